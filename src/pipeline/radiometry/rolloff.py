@@ -1,0 +1,219 @@
+"""Roll-off (relative illumination) g(theta): even polynomial fit, evaluation, defaults.
+
+Larouche et al. (2024), Sections 2.4 and 3.3, Eq. (13):
+
+    g(theta) = a0 + a2 theta^2 + a4 theta^4 + a6 theta^6 + a8 theta^8,
+    theta in degrees from the optical axis.
+
+Measurements: the source imaged every 5 deg from -80 to 80 deg in air and
+every 2 deg from -70 to 70 deg in water, normalised by the curve's maximum;
+the uncertainty of each point is the spread inside the 15-pixel averaging
+region.  Coefficients are stored lowest order first, (a0, a2, a4, a6, a8),
+for theta in degrees; internally the fit works in theta / theta_max so that
+the normal equations stay well conditioned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from scipy import optimize
+
+__all__ = [
+    "RolloffFit",
+    "rolloff_design_matrix",
+    "fit_rolloff",
+    "evaluate_rolloff",
+    "normalise_rolloff",
+    "PUBLISHED_RED_AIR_CLOSE_LENS",
+    "PUBLISHED_ROLLOFF_POINTS",
+    "default_rolloff",
+]
+
+N_COEFFICIENTS = 5  # a0, a2, a4, a6, a8
+
+
+def rolloff_design_matrix(theta_deg, scale_deg=1.0):
+    """Columns (theta / scale)^(2k), k = 0..4; shape (n, 5)."""
+    u = np.asarray(theta_deg, dtype=float).ravel() / float(scale_deg)
+    return u[:, None] ** (2 * np.arange(N_COEFFICIENTS))[None, :]
+
+
+@dataclass(frozen=True)
+class RolloffFit:
+    """Weighted least-squares fit of Eq. (13).
+
+    coefficients : (5,) a0..a8 for theta in degrees.
+    covariance : (5, 5) their covariance.
+    chi2 : weighted sum of squared residuals; dof = n - 5.
+    reduced_chi2 : chi2 / dof (about 1 when the sigmas are right).
+    residuals : data - model at each input theta (unit of the data).
+    absolute_sigma : whether the covariance trusts the given sigmas (True)
+        or was scaled by reduced_chi2 (False).
+    """
+
+    coefficients: np.ndarray
+    covariance: np.ndarray
+    chi2: float
+    dof: int
+    reduced_chi2: float
+    residuals: np.ndarray
+    absolute_sigma: bool
+
+    def __call__(self, theta_deg, with_sigma=False):
+        """g at theta (deg); with_sigma=True also returns its standard uncertainty."""
+        return evaluate_rolloff(self.coefficients, theta_deg, self.covariance if with_sigma else None)
+
+
+def fit_rolloff(theta_deg, relative_signal, sigma=None, absolute_sigma=None):
+    """Fit g(theta) = sum a_2k theta^2k (k = 0..4) by weighted least squares.
+
+    Parameters
+    ----------
+    theta_deg : (n,) field angles, deg (sign ignored: the model is even)
+    relative_signal : (n,) relative illumination (dimensionless)
+    sigma : (n,), optional
+        Standard uncertainty of each point; weights 1 / sigma^2.
+    absolute_sigma : bool, optional
+        True: covariance = (A^T W A)^-1 (trust sigma).  False: scaled by the
+        reduced chi-square.  Default: True when sigma is given, else False.
+
+    Returns
+    -------
+    RolloffFit
+    """
+    theta = np.asarray(theta_deg, dtype=float).ravel()
+    y = np.asarray(relative_signal, dtype=float).ravel()
+    if theta.size != y.size:
+        raise ValueError("theta_deg and relative_signal must have the same length")
+    if theta.size <= N_COEFFICIENTS:
+        raise ValueError("need more than 5 points to fit 5 coefficients with an error estimate")
+    if sigma is None:
+        s = np.ones_like(y)
+        absolute_sigma = False if absolute_sigma is None else absolute_sigma
+    else:
+        s = np.broadcast_to(np.asarray(sigma, dtype=float), y.shape)
+        if np.any(s <= 0):
+            raise ValueError("sigma must be positive")
+        absolute_sigma = True if absolute_sigma is None else absolute_sigma
+    scale = max(np.max(np.abs(theta)), 1e-12)
+    a = rolloff_design_matrix(theta, scale)
+    aw = a / s[:, None]
+    yw = y / s
+    b, *_ = np.linalg.lstsq(aw, yw, rcond=None)
+    # covariance from the SVD of the weighted design matrix (stable)
+    _, sv, vt = np.linalg.svd(aw, full_matrices=False)
+    cov_b = (vt.T / sv**2) @ vt
+    resid = y - a @ b
+    chi2 = float(np.sum((resid / s) ** 2))
+    dof = theta.size - N_COEFFICIENTS
+    red = chi2 / dof
+    if not absolute_sigma:
+        cov_b = cov_b * red
+    d = scale ** (-2.0 * np.arange(N_COEFFICIENTS))
+    coef = b * d
+    cov = cov_b * np.outer(d, d)
+    return RolloffFit(coef, cov, chi2, dof, red, resid, bool(absolute_sigma))
+
+
+def evaluate_rolloff(coefficients, theta_deg, covariance=None):
+    """g(theta) for coefficients (a0, a2, a4, a6, a8), theta in degrees.
+
+    With ``covariance`` also returns the standard uncertainty of the
+    prediction at each theta, sqrt(J C J^T) with J_k = theta^2k.
+    Coefficients may carry leading batch axes (..., 5).
+    """
+    c = np.asarray(coefficients, dtype=float)
+    t = np.asarray(theta_deg, dtype=float)
+    powers = t[..., None] ** (2 * np.arange(N_COEFFICIENTS))
+    g = np.sum(powers * c, axis=-1) if c.ndim == 1 else np.einsum("...k,...k->...", powers, c)
+    if covariance is None:
+        return g
+    cov = np.asarray(covariance, dtype=float)
+    var = np.einsum("...i,ij,...j->...", powers, cov, powers)
+    return g, np.sqrt(np.clip(var, 0.0, None))
+
+
+def normalise_rolloff(coefficients, covariance=None):
+    """Divide by a0 so that g(0) = 1; propagate the covariance (first order).
+
+    Returns coefficients, or (coefficients, covariance).  The normalised a0
+    is exactly 1 with zero variance.
+    """
+    c = np.asarray(coefficients, dtype=float)
+    a0 = c[0]
+    out = c / a0
+    if covariance is None:
+        return out
+    jac = np.eye(N_COEFFICIENTS) / a0
+    jac[:, 0] = -c / a0**2
+    jac[0, :] = 0.0
+    return out, jac @ np.asarray(covariance, dtype=float) @ jac.T
+
+
+#: Close lens, air, red band (supplement Table S2 of Larouche et al. 2024, via DESIGN.md).
+PUBLISHED_RED_AIR_CLOSE_LENS = np.array([0.99726, -7.806e-5, 4.074e-9, -4.884e-13, 2.406e-17])
+
+#: Published roll-off values (Section 3.3): (medium, band) -> {theta_deg: g}.
+PUBLISHED_ROLLOFF_POINTS = {
+    ("air", "B"): {70.0: 0.728, 80.0: 0.645},
+    ("air", "G"): {70.0: 0.719, 80.0: 0.637},
+    ("air", "R"): {70.0: 0.669, 80.0: 0.577},
+    ("water", "B"): {70.0: 0.570},
+    ("water", "G"): {70.0: 0.562},
+    ("water", "R"): {70.0: 0.491},
+}
+
+
+@lru_cache(maxsize=None)
+def _default_table():
+    red = PUBLISHED_RED_AIR_CLOSE_LENS / PUBLISHED_RED_AIR_CLOSE_LENS[0]
+    air = {"R": red}
+    # B and G in air: the red shape plus c2 theta^2 + c4 theta^4 chosen to pass
+    # exactly through the published values at 70 and 80 deg.
+    m = np.array([[70.0**2, 70.0**4], [80.0**2, 80.0**4]])
+    for band in ("B", "G"):
+        pts = PUBLISHED_ROLLOFF_POINTS[("air", band)]
+        rhs = np.array([pts[70.0] - evaluate_rolloff(red, 70.0), pts[80.0] - evaluate_rolloff(red, 80.0)])
+        c2, c4 = np.linalg.solve(m, rhs)
+        a = red.copy()
+        a[1] += c2
+        a[2] += c4
+        air[band] = a
+    # Water: the air curve compressed toward small angles, g_w(theta) =
+    # g_air(k theta) (Section 3.3: "almost the same shape ... compressed"),
+    # k chosen so that g_w(70) equals the published value; k ~ 1.26-1.27,
+    # close to the ratio of half fields of view 91 / 76 = 1.20.
+    water = {}
+    for band, a in air.items():
+        target = PUBLISHED_ROLLOFF_POINTS[("water", band)][70.0]
+        theta_air = optimize.brentq(lambda t: evaluate_rolloff(a, t) - target, 60.0, 95.0, xtol=1e-12)
+        k = theta_air / 70.0
+        water[band] = a * k ** (2.0 * np.arange(N_COEFFICIENTS))
+    return {"air": air, "water": water}
+
+
+def default_rolloff(band, medium="air"):
+    """Default "true" roll-off coefficients (a0..a8, theta in degrees) for the simulator.
+
+    band : "R", "G" or "B"; medium : "air" or "water".  All have g(0) = 1.
+
+    * air, R: the published close-lens red coefficients divided by their
+      a0 = 0.99726 (g(70) = 0.6708, g(80) = 0.5785; published 0.669, 0.577).
+    * air, B and G: the red shape plus a2 and a4 corrections that pass
+      through the published 70 and 80 deg values exactly.
+    * water: g_air(k theta) with k set by the published 70 deg value.
+
+    Monotone decreasing from 0 to 91 deg (air) and 0 to 76 deg (water).
+    Returns a new (5,) array.
+    """
+    band = band.upper()
+    medium = medium.lower()
+    table = _default_table()
+    if medium not in table:
+        raise ValueError(f"medium must be 'air' or 'water', not {medium!r}")
+    if band not in table[medium]:
+        raise ValueError(f"band must be 'R', 'G' or 'B', not {band!r}")
+    return table[medium][band].copy()
