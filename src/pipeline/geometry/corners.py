@@ -1,0 +1,186 @@
+"""Detect the inner corners of a chessboard in a band image.
+
+Orientation rule (matches :mod:`pipeline.geometry.chessboard`): corners are
+returned row by row, ``nx`` per row (OpenCV order for patternSize (nx, ny)),
+such that
+
+1. the grid is right-handed in the image: with u to the right and v down,
+   ``cross(c[1] - c[0], c[nx] - c[0]) > 0`` (a board seen from its front);
+2. the square enclosed by the first four corners (c[0], c[1], c[nx],
+   c[nx+1]) is *dark* -- on the rendered board square (1, 1) is black.
+
+With ``nx + ny`` odd the squares at the two ends of the grid have opposite
+colours, so rule 2 resolves the 180-degree ambiguity; with ``nx + ny`` even
+the board is symmetric and the result's ``ambiguous`` flag is set. When
+``nx == ny`` the transposed orderings are also considered.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+#: Detection is run on an image upsampled to at least this many pixels (short side).
+MIN_DETECT_SIZE_PX = 800
+#: Largest upsampling factor.
+MAX_UPSAMPLE = 4
+
+
+@dataclass
+class CornerResult:
+    """Detected corners (nx*ny, 2) as (u, v) in band pixels, or None and a reason."""
+
+    corners: np.ndarray | None
+    method: str
+    ambiguous: bool = False
+    message: str = ""
+
+    @property
+    def found(self) -> bool:
+        return self.corners is not None
+
+
+def to_uint8(image, low_pct: float = 0.5, high_pct: float = 99.5) -> np.ndarray:
+    """Stretch a float image between two percentiles to 0..255 uint8."""
+    img = np.asarray(image, dtype=float)
+    finite = img[np.isfinite(img)]
+    lo, hi = np.percentile(finite, [low_pct, high_pct]) if finite.size else (0.0, 1.0)
+    if hi <= lo:
+        hi = lo + 1.0
+    out = np.clip((np.nan_to_num(img, nan=lo) - lo) / (hi - lo), 0, 1) * 255
+    return np.round(out).astype(np.uint8)
+
+
+def _upsample_factor(shape) -> int:
+    return int(min(MAX_UPSAMPLE, max(1, np.ceil(MIN_DETECT_SIZE_PX / min(shape)))))
+
+
+def _scale_back(pts, k):
+    # Edge-preserving scaling: u_band + 0.5 = (u_up + 0.5) / k.
+    return (pts + 0.5) / k - 0.5
+
+
+def _candidates(img8, nx, ny):
+    """Yield (corners in img8 pixels, method): sector-based detector, then classic."""
+    flags_sb = [cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY | cv2.CALIB_CB_NORMALIZE_IMAGE,
+                cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_NORMALIZE_IMAGE]
+    for fl in flags_sb:
+        ok, pts = cv2.findChessboardCornersSB(img8, (nx, ny), flags=fl)
+        if ok and pts is not None and len(pts) == nx * ny:
+            yield pts.reshape(-1, 2).astype(float), "findChessboardCornersSB"
+    ok, pts = cv2.findChessboardCorners(
+        img8, (nx, ny),
+        flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    if ok and pts is not None and len(pts) == nx * ny:
+        pts = pts.reshape(-1, 1, 2).astype(np.float32)
+        # Window about a quarter of the smallest spacing between neighbours.
+        d = np.linalg.norm(np.diff(pts.reshape(ny, nx, 2), axis=1), axis=-1).min()
+        win = int(max(2, min(11, d / 4)))
+        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
+        pts = cv2.cornerSubPix(img8, pts, (win, win), (-1, -1), crit)
+        yield pts.reshape(-1, 2).astype(float), "findChessboardCorners+cornerSubPix"
+
+
+#: Largest ratio of neighbouring corner spacings along a grid line; fisheye
+#: distortion changes the spacing slowly, a skipped or extra corner doubles it.
+MAX_SPACING_RATIO = 1.6
+
+
+def validate_grid(corners, image, nx: int, ny: int) -> str:
+    """Empty string when corners form a plausible chessboard grid, else the reason.
+
+    Checks that spacings along rows and columns vary smoothly and that the
+    squares enclosed by the corners alternate dark / bright.
+    """
+    g = np.asarray(corners, float).reshape(ny, nx, 2)
+    for axis in (0, 1):
+        d = np.linalg.norm(np.diff(g, axis=axis), axis=-1)
+        if np.any(d < 0.5):
+            return "corners collapse"
+        if d.shape[axis] > 1:
+            r = np.diff(np.log(d), axis=axis)
+            if np.abs(r).max() > np.log(MAX_SPACING_RATIO):
+                return "irregular corner spacing"
+    if nx < 2 or ny < 2:
+        return ""
+    centres = 0.25 * (g[:-1, :-1] + g[1:, :-1] + g[:-1, 1:] + g[1:, 1:])
+    vals = map_coordinates(np.asarray(image, float),
+                           [centres[..., 1].ravel(), centres[..., 0].ravel()],
+                           order=1, mode="nearest").reshape(centres.shape[:2])
+    parity = (np.add.outer(np.arange(ny - 1), np.arange(nx - 1)) % 2).astype(bool)
+    a, b = vals[parity], vals[~parity]
+    if a.size == 0 or b.size == 0:
+        return ""
+    if not (a.min() > b.max() or b.min() > a.max()):
+        return "squares do not alternate dark/bright"
+    return ""
+
+
+def _orderings(nx, ny):
+    """Index arrays of the grid symmetries that keep the (ny, nx) layout."""
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    cands = [idx, idx[::-1, ::-1], idx[::-1, :], idx[:, ::-1]]
+    if nx == ny:
+        cands += [c.T for c in cands]
+    return [c.ravel() for c in cands]
+
+
+def orient_corners(corners, image, nx: int, ny: int):
+    """Reorder detected corners by the module's orientation rule.
+
+    Returns (corners, ambiguous).
+    """
+    img = np.asarray(image, dtype=float)
+    best = None
+    for order in _orderings(nx, ny):
+        g = corners[order].reshape(ny, nx, 2)
+        a = g[0, 1] - g[0, 0]
+        b = g[1, 0] - g[0, 0]
+        if a[0] * b[1] - a[1] * b[0] <= 0:
+            continue
+        c_first = g[:2, :2].reshape(-1, 2).mean(axis=0)   # square (1, 1) on the board
+        c_next = g[:2, 1:3].reshape(-1, 2).mean(axis=0)   # its neighbour (2, 1)
+        vals = map_coordinates(img, [[c_first[1], c_next[1]], [c_first[0], c_next[0]]],
+                               order=1, mode="nearest")
+        score = vals[1] - vals[0]  # first square dark, its neighbour bright
+        if best is None or score > best[0]:
+            best = (score, order)
+    if best is None:  # should not happen: reversal flips handedness for nx != ny
+        return corners, True
+    _, order = best
+    # Symmetric boards: the last square has the same colour as the first.
+    ambiguous = (nx + ny) % 2 == 0
+    return corners[order], ambiguous
+
+
+def detect_corners(image, nx: int, ny: int, *, upsample: int | None = None) -> CornerResult:
+    """Find the (nx, ny) inner corners of a chessboard in a float band image.
+
+    The image is stretched to uint8, upsampled (cubic) for small images so
+    that the detectors see squares of several pixels, searched with
+    ``findChessboardCornersSB`` (exhaustive + accuracy) and then with
+    ``findChessboardCorners`` + ``cornerSubPix``. Corners are returned in
+    band pixel coordinates (pixel centres at integers), ordered by the
+    module's orientation rule. When no board is found the result has
+    ``corners=None`` and a message (nothing is raised).
+    """
+    img = np.asarray(image, dtype=float)
+    k = _upsample_factor(img.shape) if upsample is None else int(upsample)
+    img8 = to_uint8(img)
+    if k > 1:
+        img8 = cv2.resize(img8, (img.shape[1] * k, img.shape[0] * k),
+                          interpolation=cv2.INTER_CUBIC)
+    reasons = []
+    for pts, method in _candidates(img8, nx, ny):
+        pts = _scale_back(pts, k)
+        why = validate_grid(pts, img, nx, ny)
+        if why:
+            reasons.append(f"{method}: {why}")
+            continue
+        pts, ambiguous = orient_corners(pts, img, nx, ny)
+        return CornerResult(pts, method, ambiguous=ambiguous)
+    msg = f"no {nx}x{ny} chessboard found" + (f" ({'; '.join(reasons)})" if reasons else "")
+    return CornerResult(None, "none", message=msg)

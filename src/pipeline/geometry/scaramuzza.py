@@ -1,0 +1,302 @@
+"""Scaramuzza (OCamCalib) omnidirectional camera model for fisheye lenses.
+
+Conventions (used by every module of :mod:`pipeline.geometry`):
+
+- Pixel coordinates ``(u, v)`` are continuous, in pixels of the image the
+  model belongs to: ``u`` along columns (to the right), ``v`` along rows
+  (downwards). The *centre* of pixel ``[row, col]`` is at ``(u, v) = (col,
+  row)``; the image spans ``-0.5 .. width - 0.5``.
+- Camera frame: x to the right (+u), y downwards (+v), z along the optical
+  axis, out of the lens into the scene. A pixel sees the ray
+  ``(x', y', f(rho))`` where ``[u - xc, v - yc] = A [x', y']``,
+  ``A = [[c, d], [e, 1]]``, ``rho = hypot(x', y')`` and
+  ``f(rho) = a0 + a1 rho + a2 rho^2 + ...`` (``a1 = 0``). Hence
+  ``tan(theta) = rho / f(rho)``; theta exceeds 90 degrees where f < 0.
+- ``theta`` is the angle from the optical axis, ``phi`` the azimuth
+  ``atan2(y, x)`` in the camera frame (from +u towards +v), in
+  ``(-180, 180]`` degrees.
+- Scaling an image by ``s`` keeps its outer edges fixed:
+  ``u_new + 0.5 = s (u_old + 0.5)``; coefficients ``a_k -> a_k s^(1-k)``.
+- Band images are the 2 x 2 Bayer super-pixels of the raw mosaic: band pixel
+  ``i`` covers raw pixels ``2i`` and ``2i + 1``, so its centre is raw
+  coordinate ``2i + 0.5``, i.e. ``u_band = (u_raw - 0.5) / 2`` (the same rule
+  as scaling by ``s = 1/2``). The published centres are taken as 0-based
+  pixel-centre coordinates of the 3456-pixel raw lens image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+#: Raw lens image size (pixels) on which the published fits were made.
+RAW_SIZE_PX = 3456
+
+#: Published OCamCalib fits on the raw 3456 x 3456 lens image (green band, air).
+#: Coefficients ascending, a1 = 0; centre (xc, yc) in raw pixels.
+PUBLISHED_FITS = {
+    "close": {
+        "poly": (1019.25, 0.0, -3.0382e-4, -2.1491e-8, -2.8016e-11),
+        "centre": (1731.51, 1710.86),
+    },
+    "far": {
+        "poly": (1016.48, 0.0, -3.9436e-4, 1.5171e-7, -1.1177e-10),
+        "centre": (1743.76, 1724.99),
+    },
+}
+
+#: Half field of view (degrees) at the edge of the image circle, per medium.
+HALF_FOV_DEG = {"air": 91.0, "water": 76.0}
+
+#: Number of samples of the theta(rho) lookup table used to invert f(rho).
+_LUT_SAMPLES = 4096
+
+
+@dataclass(frozen=True)
+class FisheyeModel:
+    """Scaramuzza fisheye model of one lens (see module docstring for conventions).
+
+    Attributes
+    ----------
+    poly : ascending coefficients (a0, a1, a2, ...) of f(rho), a1 = 0, pixels.
+    xc, yc : principal point, pixels (u, v).
+    c, d, e : stretch matrix ``[[c, d], [e, 1]]``.
+    shape : image shape (rows, cols) the model belongs to.
+    half_fov_deg : theta at the edge of the image circle (field stop), or None.
+    """
+
+    poly: tuple[float, ...]
+    xc: float
+    yc: float
+    c: float = 1.0
+    d: float = 0.0
+    e: float = 0.0
+    shape: tuple[int, int] = (RAW_SIZE_PX, RAW_SIZE_PX)
+    half_fov_deg: float | None = None
+    meta: dict = field(default_factory=dict, compare=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "poly", tuple(float(a) for a in self.poly))
+        object.__setattr__(self, "shape", tuple(int(n) for n in self.shape))
+
+    # ------------------------------------------------------------------ basics
+    @property
+    def stretch(self) -> np.ndarray:
+        return np.array([[self.c, self.d], [self.e, 1.0]])
+
+    def f(self, rho):
+        """f(rho) of the polynomial (pixels)."""
+        return np.polynomial.polynomial.polyval(rho, self.poly)
+
+    def df(self, rho):
+        """Derivative of f with respect to rho."""
+        return np.polynomial.polynomial.polyval(
+            rho, np.polynomial.polynomial.polyder(self.poly)
+        )
+
+    def theta_of_rho(self, rho):
+        """Angle from the optical axis (radians) at radial distance rho (pixels)."""
+        rho = np.asarray(rho, dtype=float)
+        return np.arctan2(rho, self.f(rho))
+
+    def _sensor_xy(self, u, v):
+        u = np.asarray(u, dtype=float)
+        v = np.asarray(v, dtype=float)
+        du, dv = u - self.xc, v - self.yc
+        det = self.c - self.d * self.e
+        x = (du - self.d * dv) / det
+        y = (-self.e * du + self.c * dv) / det
+        return x, y
+
+    # ---------------------------------------------------------------- mappings
+    def cam2world(self, u, v) -> np.ndarray:
+        """Unit rays (..., 3) in the camera frame seen by pixel coordinates (u, v)."""
+        x, y = self._sensor_xy(u, v)
+        z = self.f(np.hypot(x, y))
+        ray = np.stack(np.broadcast_arrays(x, y, z), axis=-1)
+        return ray / np.linalg.norm(ray, axis=-1, keepdims=True)
+
+    def rho_max(self) -> float:
+        """Upper end of the radial domain over which theta(rho) is inverted."""
+        h, w = self.shape
+        return float(np.hypot(h, w)) * max(1.0, 1.0 / abs(self.c - self.d * self.e))
+
+    def _lut(self):
+        """Monotone table (theta, rho) from rho = 0 to where theta stops rising."""
+        rho = np.linspace(0.0, self.rho_max(), _LUT_SAMPLES)
+        theta = self.theta_of_rho(rho)
+        dtheta = np.diff(theta)
+        bad = np.nonzero(dtheta <= 0)[0]
+        n = bad[0] + 1 if bad.size else rho.size
+        return theta[:n], rho[:n]
+
+    def rho_of_theta(self, theta_rad) -> np.ndarray:
+        """Invert theta(rho) (radians -> pixels); NaN beyond the model's domain.
+
+        A lookup table on the monotone part of theta(rho) gives the start,
+        three Newton steps on ``atan2(rho, f(rho)) - theta`` polish it to
+        rounding error, which is robust for theta beyond 90 degrees where
+        f(rho) changes sign.
+        """
+        theta = np.asarray(theta_rad, dtype=float)
+        t_lut, r_lut = self._lut()
+        rho = np.interp(theta, t_lut, r_lut)
+        outside = (theta > t_lut[-1]) | (theta < 0) | ~np.isfinite(theta)
+        for _ in range(4):
+            f = self.f(rho)
+            g = np.arctan2(rho, f) - theta
+            dg = (f - rho * self.df(rho)) / (rho**2 + f**2)
+            step = np.where(dg > 0, g / np.where(dg > 0, dg, 1.0), 0.0)
+            rho = np.clip(rho - step, 0.0, r_lut[-1])
+        return np.where(outside, np.nan, rho)
+
+    def world2cam(self, rays) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (u, v) of camera-frame rays (..., 3) (any length).
+
+        Rays outside the model's monotone domain give NaN.
+        """
+        rays = np.asarray(rays, dtype=float)
+        x, y, z = rays[..., 0], rays[..., 1], rays[..., 2]
+        r_xy = np.hypot(x, y)
+        theta = np.arctan2(r_xy, z)
+        rho = self.rho_of_theta(theta)
+        safe = np.where(r_xy > 0, r_xy, 1.0)
+        xs = np.where(r_xy > 0, x / safe, 0.0) * rho
+        ys = np.where(r_xy > 0, y / safe, 0.0) * rho
+        u = self.c * xs + self.d * ys + self.xc
+        v = self.e * xs + ys + self.yc
+        return u, v
+
+    def theta_phi(self, u, v, degrees: bool = True):
+        """Angle from the optical axis and azimuth of pixel coordinates (u, v)."""
+        x, y = self._sensor_xy(u, v)
+        rho = np.hypot(x, y)
+        theta = np.arctan2(rho, self.f(rho))
+        phi = np.arctan2(y, x)
+        if degrees:
+            return np.degrees(theta), np.degrees(phi)
+        return theta, phi
+
+    def solid_angle_density(self, u, v) -> np.ndarray:
+        """Solid angle per unit pixel area (sr / px^2) at (u, v).
+
+        For the ray r = (x', y', f(rho)), d(Omega) = |f - rho f'| /
+        (rho^2 + f^2)^(3/2) dx' dy', and dx' dy' = du dv / |det A|.
+        """
+        x, y = self._sensor_xy(u, v)
+        rho = np.hypot(x, y)
+        f = self.f(rho)
+        dens = np.abs(f - rho * self.df(rho)) / (rho**2 + f**2) ** 1.5
+        return dens / abs(self.c - self.d * self.e)
+
+    def image_circle_radius(self, half_fov_deg: float | None = None) -> float:
+        """Radial distance rho (pixels, sensor plane) where theta = half FOV."""
+        hf = self.half_fov_deg if half_fov_deg is None else half_fov_deg
+        if hf is None:
+            raise ValueError("model has no half_fov_deg; pass one")
+        return float(self.rho_of_theta(np.radians(hf)))
+
+    # ----------------------------------------------------------------- scaling
+    def scaled(self, s: float, shape: tuple[int, int] | None = None) -> "FisheyeModel":
+        """The same lens imaged on a grid scaled by s (edges fixed, see module doc)."""
+        poly = tuple(a * s ** (1 - k) for k, a in enumerate(self.poly))
+        if shape is None:
+            shape = tuple(int(round(n * s)) for n in self.shape)
+        return replace(
+            self,
+            poly=poly,
+            xc=s * (self.xc + 0.5) - 0.5,
+            yc=s * (self.yc + 0.5) - 0.5,
+            shape=shape,
+        )
+
+    # ------------------------------------------------------------ persistence
+    def to_dict(self) -> dict:
+        return {
+            "poly": list(self.poly),
+            "xc": self.xc,
+            "yc": self.yc,
+            "c": self.c,
+            "d": self.d,
+            "e": self.e,
+            "shape": list(self.shape),
+            "half_fov_deg": self.half_fov_deg,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FisheyeModel":
+        return cls(
+            poly=tuple(d["poly"]),
+            xc=float(d["xc"]),
+            yc=float(d["yc"]),
+            c=float(d.get("c", 1.0)),
+            d=float(d.get("d", 0.0)),
+            e=float(d.get("e", 0.0)),
+            shape=tuple(d["shape"]),
+            half_fov_deg=None if d.get("half_fov_deg") is None else float(d["half_fov_deg"]),
+        )
+
+
+def fit_poly_to_theta(rho, theta_rad, degree: int = 4) -> tuple[float, ...]:
+    """Least-squares f(rho) (a1 = 0) with atan2(rho, f(rho)) = theta at given samples.
+
+    The condition rho cos(theta) = f(rho) sin(theta) is linear in the
+    coefficients; rows are weighted so that residuals are ~ radians.
+    """
+    rho = np.asarray(rho, float)
+    theta = np.asarray(theta_rad, float)
+    powers = [0] + list(range(2, degree + 1))
+    M = np.stack([rho**k * np.sin(theta) for k in powers], axis=1)
+    b = rho * np.cos(theta)
+    w = 1.0 / np.sqrt(rho**2 + 1.0)
+    sol, *_ = np.linalg.lstsq(M * w[:, None], b * w, rcond=None)
+    poly = [sol[0], 0.0] + list(sol[1:])
+    return tuple(float(a) for a in poly)
+
+
+def water_model(air: FisheyeModel, half_fov_water_deg: float = HALF_FOV_DEG["water"],
+                degree: int = 4) -> FisheyeModel:
+    """In-water model derived from an in-air model with a half FOV.
+
+    A flat port cannot give the measured 76 degrees (Snell at a flat
+    interface caps the in-water field at asin(1/1.333) = 48.6 degrees); the
+    camera's curved front element loses part of its power instead. We model
+    this as a uniform compression of the field angle,
+    theta_water(rho) = theta_air(rho) * 76 / 91, with the image circle
+    unchanged on the sensor, and refit the Scaramuzza polynomial to it.
+    """
+    if air.half_fov_deg is None:
+        raise ValueError("air model needs half_fov_deg")
+    r_circle = air.image_circle_radius()
+    k = half_fov_water_deg / air.half_fov_deg
+    rho = np.linspace(0.0, 1.05 * r_circle, 400)
+    theta_w = air.theta_of_rho(rho) * k
+    poly = fit_poly_to_theta(rho, theta_w, degree)
+    return replace(air, poly=poly, half_fov_deg=half_fov_water_deg)
+
+
+def default_model(lens: str = "close", medium: str = "air",
+                  band_shape: tuple[int, int] | int = (1728, 1728)) -> FisheyeModel:
+    """Default model of one lens in one medium for a band image of band_shape.
+
+    Built from the published raw 3456-pixel fit: band images of size N are
+    the raw lens image scaled by s = N / 3456 (N = 1728 are the true 2 x 2
+    super-pixels). Stretch is identity (not published). The image circle is
+    where the air model reaches 91 degrees (about 1600 raw pixels for the
+    close lens); in water the same circle sees 76 degrees.
+    """
+    if lens not in PUBLISHED_FITS:
+        raise ValueError(f"lens must be one of {sorted(PUBLISHED_FITS)}, got {lens!r}")
+    if medium not in HALF_FOV_DEG:
+        raise ValueError(f"medium must be one of {sorted(HALF_FOV_DEG)}, got {medium!r}")
+    if np.isscalar(band_shape):
+        band_shape = (int(band_shape), int(band_shape))
+    fit = PUBLISHED_FITS[lens]
+    raw = FisheyeModel(poly=fit["poly"], xc=fit["centre"][0], yc=fit["centre"][1],
+                       shape=(RAW_SIZE_PX, RAW_SIZE_PX), half_fov_deg=HALF_FOV_DEG["air"])
+    s = band_shape[1] / RAW_SIZE_PX
+    model = raw.scaled(s, shape=tuple(band_shape))
+    if medium == "water":
+        model = water_model(model)
+    return replace(model, meta={"lens": lens, "medium": medium})
