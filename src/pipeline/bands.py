@@ -1,0 +1,69 @@
+"""Cut lens regions out of a Bayer mosaic and split it into R, G, B planes.
+
+No demosaicing: each output pixel is one 2x2 Bayer cell, so the planes have
+half the mosaic's rows and columns.  G is the mean of the cell's two greens.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["BANDS", "cut_region", "split_bands"]
+
+BANDS = ("R", "G", "B")
+
+
+def _check_range(name: str, span, size: int) -> tuple[int, int]:
+    try:
+        start, stop = (int(v) for v in span)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a (start, stop) pair of integers, got {span!r}") from None
+    if not 0 <= start < stop <= size:
+        raise ValueError(f"{name} [{start}, {stop}) is outside the mosaic's 0..{size}")
+    if start % 2:
+        raise ValueError(f"{name} start {start} is odd: it would change the Bayer phase")
+    return start, stop
+
+
+def cut_region(cfa, rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
+    """The mosaic's [rows[0], rows[1]) x [cols[0], cols[1]) region (a view).
+
+    Raises ValueError when the region is out of range or starts on an odd row
+    or column (which would change the Bayer phase).
+    """
+    cfa = np.asarray(cfa)
+    if cfa.ndim != 2:
+        raise ValueError(f"cfa must be 2-D, got shape {cfa.shape}")
+    r0, r1 = _check_range("rows", rows, cfa.shape[0])
+    c0, c1 = _check_range("cols", cols, cfa.shape[1])
+    return cfa[r0:r1, c0:c1]
+
+
+def split_bands(cfa, pattern: str) -> dict[str, np.ndarray]:
+    """Split a Bayer mosaic into {"R", "G", "B"} float32 planes (rows//2, cols//2).
+
+    ``pattern`` is the 2x2 cell row-major, e.g. "RGGB", "BGGR", "GRBG", "GBRG".
+    An odd trailing row or column is dropped.
+    """
+    cfa = np.asarray(cfa)
+    if cfa.ndim != 2:
+        raise ValueError(f"cfa must be 2-D, got shape {cfa.shape}")
+    pattern = str(pattern).upper()
+    if len(pattern) != 4 or sorted(pattern) != ["B", "G", "G", "R"]:
+        raise ValueError(f"pattern must be a 2x2 Bayer pattern like 'RGGB', got {pattern!r}")
+    h, w = cfa.shape[0] // 2 * 2, cfa.shape[1] // 2 * 2
+    if h == 0 or w == 0:
+        raise ValueError(f"cfa of shape {cfa.shape} holds no complete 2x2 cell")
+    sites = {}
+    for index, letter in enumerate(pattern):
+        dy, dx = divmod(index, 2)
+        sites.setdefault(letter, []).append(cfa[dy:h:2, dx:w:2])
+    (g1, g2) = sites["G"]
+    green = g1.astype(np.float32)
+    green += g2
+    green *= np.float32(0.5)
+    return {
+        "R": sites["R"][0].astype(np.float32),
+        "G": green,
+        "B": sites["B"][0].astype(np.float32),
+    }

@@ -1,0 +1,469 @@
+"""Raw frame input and output: DNG pixels with rawpy, tags with tifffile.
+
+``read_raw`` reads one raw file into a :class:`RawFrame` (the visible CFA
+mosaic, not demosaiced, plus the tags the pipeline needs).  ``read_tags`` reads
+only the tags, for quick validation.  ``write_dng`` writes the minimal DNG 1.4
+that the simulator produces and that rawpy/LibRaw can open.
+
+Every bad-input condition raises :class:`pipeline.errors.InputError` with a
+one-line message naming the file and the problem.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+from dataclasses import dataclass
+from datetime import datetime
+from fractions import Fraction
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rawpy
+import tifffile
+
+from pipeline.errors import InputError
+
+__all__ = ["RawFrame", "read_raw", "read_tags", "missing_tags", "write_dng", "TAG_NAMES"]
+
+# TIFF / EXIF / DNG tag codes used here.
+_MAKE, _MODEL = 271, 272
+_STRIP_OFFSETS, _STRIP_COUNTS = 273, 279
+_TILE_OFFSETS, _TILE_COUNTS = 324, 325
+_PHOTOMETRIC, _NEW_SUBFILE = 262, 254
+_CFA_DIM, _CFA_PATTERN = 33421, 33422
+_EXPOSURE, _ISO = 33434, 34855
+_EXIF_IFD = 34665
+_DATETIME_ORIGINAL, _SUBSEC_ORIGINAL = 36867, 37521
+_DNG_VERSION, _DNG_BACKWARD, _UNIQUE_MODEL = 50706, 50707, 50708
+_CFA_PLANE_COLOR, _CFA_LAYOUT = 50710, 50711
+_BLACK_DIM, _BLACK, _WHITE = 50713, 50714, 50717
+_COLOR_MATRIX1, _AS_SHOT_NEUTRAL = 50721, 50728
+_SERIAL, _ILLUMINANT1 = 50735, 50778
+_ACTIVE_AREA = 50829
+
+_PHOTOMETRIC_CFA = 32803
+_PHOTOMETRIC_LINEAR_RAW = 34892
+
+# RawFrame attribute -> human tag name (used in error messages and missing_tags).
+TAG_NAMES = {
+    "exposure_s": "ExposureTime",
+    "iso": "ISOSpeedRatings",
+    "time": "DateTimeOriginal",
+    "make": "Make",
+    "model": "Model",
+    "black_level": "BlackLevel",
+    "white_level": "WhiteLevel",
+    "cfa_pattern": "CFAPattern",
+}
+# Tags a calibration frame needs, in report order.
+_REQUIRED_FOR_REPORT = ("exposure_s", "iso", "time", "make", "model",
+                        "black_level", "white_level", "cfa_pattern")
+
+# CFAPlaneColor / CFAPattern colour codes (TIFF/EP).
+_COLOUR_LETTERS = {0: "R", 1: "G", 2: "B", 3: "C", 4: "M", 5: "Y", 6: "W"}
+_LETTER_CODES = {"R": 0, "G": 1, "B": 2}
+
+
+@dataclass(frozen=True)
+class RawFrame:
+    """One raw exposure: the visible CFA mosaic and the tags the pipeline uses."""
+
+    path: Path
+    cfa: np.ndarray
+    exposure_s: float | None
+    iso: float | None
+    time: datetime | None
+    black_level: float
+    white_level: float
+    cfa_pattern: str
+    make: str | None
+    model: str | None
+    md5: str
+
+
+# ---------------------------------------------------------------------------
+# helpers
+
+
+def _short_reason(exc: BaseException) -> str:
+    """First line of a library exception, trimmed, for a one-line message."""
+    text = str(exc).strip()
+    if text.startswith(("b'", 'b"')) and text.endswith(("'", '"')):
+        text = text[2:-1]
+    text = text.splitlines()[0] if text else type(exc).__name__
+    if len(text) > 120:
+        text = text[:117] + "..."
+    return text or type(exc).__name__
+
+
+def _read_bytes(path: Path) -> bytes:
+    if not path.exists():
+        raise InputError(path, "file not found")
+    if not path.is_file():
+        raise InputError(path, "not a file")
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise InputError(path, f"cannot read file ({_short_reason(exc)})") from None
+
+
+def _values(tag: tifffile.TiffTag | None) -> list[float] | None:
+    """Numeric tag value as a flat list of floats (rationals divided out)."""
+    if tag is None:
+        return None
+    value = tag.value
+    if isinstance(value, (bytes, str)):
+        return None
+    if isinstance(value, np.ndarray):
+        value = value.ravel().tolist()
+    if not isinstance(value, (tuple, list)):
+        value = [value]
+    value = list(value)
+    if tag.dtype in (5, 10):  # RATIONAL, SRATIONAL: flattened (num, den) pairs
+        if len(value) % 2:
+            return None
+        out = []
+        for num, den in zip(value[0::2], value[1::2]):
+            if den == 0:
+                return None
+            out.append(num / den)
+        return out
+    try:
+        return [float(v) for v in value]
+    except (TypeError, ValueError):
+        return None
+
+
+def _positive_number(value: Any) -> float | None:
+    """First value of a tag as a positive float, or None (missing, zero, junk)."""
+    if value is None:
+        return None
+    if isinstance(value, tuple) and len(value) == 2 and all(isinstance(v, int) for v in value):
+        num, den = value
+        value = num / den if den else 0.0
+    elif isinstance(value, (tuple, list, np.ndarray)):
+        if len(value) == 0:
+            return None
+        value = value[0]
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return None
+    if not np.isfinite(value) or value <= 0:
+        return None
+    return value
+
+
+def _text(value: Any) -> str | None:
+    if value is None:
+        return None
+    if isinstance(value, bytes):
+        value = value.decode("ascii", "replace")
+    value = str(value).strip().strip("\x00").strip()
+    return value or None
+
+
+def _parse_time(value: Any, subsec: Any) -> datetime | None:
+    text = _text(value)
+    if text is None:
+        return None
+    try:
+        stamp = datetime.strptime(text[:19], "%Y:%m:%d %H:%M:%S")
+    except ValueError:
+        return None  # e.g. "0000:00:00 00:00:00" or junk: treated as absent
+    digits = _text(subsec)
+    if digits is not None:
+        digits = "".join(ch for ch in digits if ch.isdigit())
+        if digits:
+            micro = int(round(int(digits) * 10 ** (6 - len(digits)))) if len(digits) <= 6 \
+                else int(round(int(digits[:7]) / 10))
+            micro = min(micro, 999_999)
+            stamp = stamp.replace(microsecond=micro)
+    return stamp
+
+
+class _TagSource:
+    """Tags from the raw IFD, IFD0 and the EXIF sub-IFD, looked up in that order."""
+
+    def __init__(self, tif: tifffile.TiffFile):
+        self.ifd0 = tif.pages[0]
+        self.raw = self._find_raw_ifd(self.ifd0)
+        exif = self.ifd0.tags.get(_EXIF_IFD)
+        if exif is None and self.raw is not self.ifd0:
+            exif = self.raw.tags.get(_EXIF_IFD)
+        self.exif = exif.value if exif is not None and isinstance(exif.value, dict) else {}
+
+    @staticmethod
+    def _find_raw_ifd(ifd0):
+        def is_raw(page) -> bool:
+            photometric = page.tags.get(_PHOTOMETRIC)
+            subfile = page.tags.get(_NEW_SUBFILE)
+            return (photometric is not None
+                    and photometric.value in (_PHOTOMETRIC_CFA, _PHOTOMETRIC_LINEAR_RAW)
+                    and (subfile is None or subfile.value == 0))
+
+        if is_raw(ifd0):
+            return ifd0
+        try:  # camera DNGs often keep the raw image in a SubIFD behind a preview
+            for page in tifffile.TiffPages(ifd0):
+                if page is not None and is_raw(page):
+                    return page
+        except Exception:  # noqa: BLE001 - no usable SubIFDs: fall back to IFD0
+            pass
+        return ifd0
+
+    def tag(self, code: int) -> tifffile.TiffTag | None:
+        for page in (self.raw, self.ifd0):
+            tag = page.tags.get(code)
+            if tag is not None:
+                return tag
+        return None
+
+    def value(self, code: int) -> Any:
+        tag = self.tag(code)
+        if tag is not None:
+            return tag.value
+        name = tifffile.TIFF.TAGS.get(code)
+        for key in (name, name.replace("Subsec", "SubSec") if name else None):
+            if key and key in self.exif:
+                return self.exif[key]
+        return None
+
+    def data_end(self) -> int | None:
+        """End offset of the raw image data (strips or tiles), if it is known."""
+        for off_code, cnt_code in ((_STRIP_OFFSETS, _STRIP_COUNTS), (_TILE_OFFSETS, _TILE_COUNTS)):
+            offs, cnts = self.raw.tags.get(off_code), self.raw.tags.get(cnt_code)
+            if offs is not None and cnts is not None:
+                o = np.atleast_1d(np.asarray(offs.value, dtype=np.int64))
+                c = np.atleast_1d(np.asarray(cnts.value, dtype=np.int64))
+                if o.size and o.size == c.size:
+                    return int((o + c).max())
+        return None
+
+    def cfa_pattern(self) -> str | None:
+        dim = _values(self.raw.tags.get(_CFA_DIM))
+        pattern = self.raw.tags.get(_CFA_PATTERN)
+        if pattern is None or (dim is not None and [int(d) for d in dim] != [2, 2]):
+            return None
+        codes = list(pattern.value) if isinstance(pattern.value, (bytes, tuple, list, np.ndarray)) else []
+        if len(codes) != 4:
+            return None
+        plane = self.raw.tags.get(_CFA_PLANE_COLOR)
+        plane_codes = list(plane.value) if plane is not None else [0, 1, 2]
+        try:
+            letters = [_COLOUR_LETTERS[int(plane_codes[int(c)])] for c in codes]
+        except (IndexError, KeyError):
+            return None
+        # The pattern is given at the origin of the full raw image; rawpy's visible
+        # image starts at ActiveArea (top, left): shift the phase when odd.
+        area = _values(self.raw.tags.get(_ACTIVE_AREA))
+        top, left = (int(area[0]) % 2, int(area[1]) % 2) if area and len(area) == 4 else (0, 0)
+        grid = np.array(letters).reshape(2, 2)
+        grid = np.roll(grid, (-top, -left), axis=(0, 1))
+        return "".join(grid.ravel())
+
+
+def _tags_from_tiff(path: Path, tif: tifffile.TiffFile, file_size: int) -> dict:
+    src = _TagSource(tif)
+    end = src.data_end()
+    if end is not None and end > file_size:
+        raise InputError(path, f"truncated file: image data ends at byte {end} but the file has {file_size} bytes")
+    black = _values(src.tag(_BLACK))
+    white = _values(src.tag(_WHITE))
+    return {
+        "path": path,
+        "exposure_s": _positive_number(src.value(_EXPOSURE)),
+        "iso": _positive_number(src.value(_ISO)),
+        "time": _parse_time(src.value(_DATETIME_ORIGINAL), src.value(_SUBSEC_ORIGINAL)),
+        "black_level": float(np.mean(black)) if black else None,
+        "white_level": float(max(white)) if white else None,
+        "cfa_pattern": src.cfa_pattern(),
+        "make": _text(src.value(_MAKE)),
+        "model": _text(src.value(_MODEL)),
+    }
+
+
+def _empty_tags(path: Path) -> dict:
+    return {"path": path, "exposure_s": None, "iso": None, "time": None, "black_level": None,
+            "white_level": None, "cfa_pattern": None, "make": None, "model": None}
+
+
+def _check_require(path: Path, tags: dict, require) -> None:
+    unknown = [name for name in require if name not in TAG_NAMES]
+    if unknown:
+        raise ValueError(f"unknown required field(s) {unknown}; known: {sorted(TAG_NAMES)}")
+    absent = [TAG_NAMES[name] for name in require if tags.get(name) is None]
+    if absent:
+        more = f" (also missing: {', '.join(absent[1:])})" if len(absent) > 1 else ""
+        raise InputError(path, f"{absent[0]} tag is missing or zero{more}")
+
+
+# ---------------------------------------------------------------------------
+# public API
+
+
+def read_tags(path) -> dict:
+    """Tags of one raw file without decoding pixels.
+
+    Keys: path, exposure_s, iso, time, black_level, white_level, cfa_pattern,
+    make, model.  Absent, empty or zero tags are None.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(path, "file not found")
+    if not path.is_file():
+        raise InputError(path, "not a file")
+    try:
+        with tifffile.TiffFile(path) as tif:
+            return _tags_from_tiff(path, tif, path.stat().st_size)
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any tifffile failure is a bad file here
+        raise InputError(path, f"not a readable DNG/TIFF file ({_short_reason(exc)})") from None
+
+
+def read_raw(path, require=("exposure_s", "iso", "time")) -> RawFrame:
+    """Read one raw file: visible CFA mosaic (rawpy) and tags (tifffile).
+
+    The file is read once into memory; the MD5 is computed from those bytes and
+    both rawpy and tifffile decode the same bytes.  ``require`` lists RawFrame
+    fields that must be present and non-zero (see ``TAG_NAMES``).
+    """
+    path = Path(path)
+    data = _read_bytes(path)
+    md5 = hashlib.md5(data).hexdigest()
+
+    try:
+        with tifffile.TiffFile(io.BytesIO(data)) as tif:
+            tags = _tags_from_tiff(path, tif, len(data))
+        tiff_problem = None
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - tifffile's errors vary; rawpy decides below
+        tags, tiff_problem = _empty_tags(path), _short_reason(exc)
+
+    try:
+        with rawpy.imread(io.BytesIO(data)) as raw:
+            cfa = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
+            raw_pattern = raw.raw_pattern
+            colour_desc = raw.color_desc.decode("ascii", "replace")
+            black_per_channel = list(raw.black_level_per_channel)
+            white_rawpy = float(raw.white_level)
+    except (rawpy.LibRawError, rawpy.NotSupportedError, ValueError, OSError) as exc:
+        if tiff_problem:
+            raise InputError(path, f"not a readable DNG/TIFF file ({tiff_problem})") from None
+        raise InputError(path, f"unreadable or truncated raw file ({_short_reason(exc)})") from None
+
+    if raw_pattern is None or np.shape(raw_pattern) != (2, 2):
+        raise InputError(path, "not a 2x2 Bayer CFA image (rawpy gives no 2x2 raw_pattern)")
+    pattern = "".join(colour_desc[int(i)] for i in np.asarray(raw_pattern).ravel())
+    if sorted(pattern) != ["B", "G", "G", "R"]:
+        raise InputError(path, f"unsupported CFA pattern {pattern!r} (need R, G, G, B)")
+    if cfa.ndim != 2 or cfa.size == 0:
+        raise InputError(path, f"raw image has unexpected shape {cfa.shape}")
+
+    _check_require(path, tags, require)
+
+    black = tags["black_level"] if tags["black_level"] is not None else float(np.mean(black_per_channel))
+    white = tags["white_level"] if tags["white_level"] is not None else white_rawpy
+    return RawFrame(
+        path=path, cfa=cfa, exposure_s=tags["exposure_s"], iso=tags["iso"], time=tags["time"],
+        black_level=float(black), white_level=float(white), cfa_pattern=pattern,
+        make=tags["make"], model=tags["model"], md5=md5,
+    )
+
+
+def missing_tags(frame_or_tags) -> list[str]:
+    """Human names of the tags a calibration frame needs but this one lacks."""
+    if isinstance(frame_or_tags, RawFrame):
+        get = lambda name: getattr(frame_or_tags, name)  # noqa: E731
+    else:
+        get = frame_or_tags.get
+    return [TAG_NAMES[name] for name in _REQUIRED_FOR_REPORT if get(name) is None]
+
+
+def _rational(value: float, what: str) -> tuple[int, int]:
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(f"{what} must be a positive finite number, got {value!r}")
+    limit = max(1, min(2**32 - 1, int((2**32 - 1) / max(value, 1.0))))
+    frac = Fraction(value).limit_denominator(limit)
+    if frac.numerator == 0 or frac.numerator > 2**32 - 1:
+        raise ValueError(f"{what} {value!r} cannot be written as a TIFF rational")
+    return frac.numerator, frac.denominator
+
+
+def write_dng(path, cfa: np.ndarray, *, exposure_s: float, iso: float, time: datetime,
+              black_level: float, white_level: float = 16383, cfa_pattern: str = "RGGB",
+              make: str = "Insta360", model: str = "ONE", serial: str = "SIM-0001") -> None:
+    """Write a minimal uncompressed 16-bit CFA DNG 1.4 (one IFD), deterministically."""
+    cfa = np.asarray(cfa)
+    if cfa.ndim != 2 or cfa.size == 0:
+        raise ValueError(f"cfa must be a non-empty 2-D array, got shape {cfa.shape}")
+    if cfa.dtype != np.uint16:
+        if not np.issubdtype(cfa.dtype, np.integer):
+            raise ValueError(f"cfa must hold integers, got dtype {cfa.dtype}")
+        if cfa.min() < 0 or cfa.max() > 65535:
+            raise ValueError("cfa values must fit in 16 bits")
+        cfa = cfa.astype(np.uint16)
+    pattern = cfa_pattern.upper()
+    if len(pattern) != 4 or any(ch not in _LETTER_CODES for ch in pattern):
+        raise ValueError(f"cfa_pattern must be 4 letters from R, G, B, got {cfa_pattern!r}")
+    iso_int = int(round(iso))
+    if abs(iso - iso_int) > 1e-9 or not 0 < iso_int <= 65535:
+        raise ValueError(f"iso must be a whole number in 1..65535, got {iso!r}")
+    if not 0 <= black_level < 65536 or not 0 < white_level <= 65535:
+        raise ValueError("black_level and white_level must be within 0..65535")
+    for name, text in (("make", make), ("model", model), ("serial", serial)):
+        if not text or not str(text).isascii():
+            raise ValueError(f"{name} must be a non-empty ASCII string")
+
+    if float(black_level).is_integer():
+        black_tag = (_BLACK, "I", 1, int(black_level), True)
+    else:
+        black_tag = (_BLACK, "2I", 1, _rational(float(black_level), "black_level"), True)
+    neutral = (1, 2, 1, 1, 1, 2)  # AsShotNeutral 0.5, 1, 0.5: a plausible white balance
+    # sRGB-ish XYZ(D65)->camera matrix, x10000 as signed rationals.
+    matrix = (32404, -15371, -4985, -9692, 18760, 416, 556, -2040, 10572)
+    matrix_rational = tuple(v for m in matrix for v in (m, 10000))
+    stamp = time.strftime("%Y:%m:%d %H:%M:%S")
+    camera_model = f"{make} {model}"
+    extratags = [
+        (_CFA_DIM, "H", 2, (2, 2), True),
+        (_CFA_PATTERN, "B", 4, bytes(_LETTER_CODES[ch] for ch in pattern), True),
+        (_EXPOSURE, "2I", 1, _rational(float(exposure_s), "exposure_s"), True),
+        (_ISO, "H", 1, iso_int, True),
+        (_DATETIME_ORIGINAL, "s", 0, stamp, True),
+        (_SUBSEC_ORIGINAL, "s", 0, f"{time.microsecond:06d}", True),
+        (_DNG_VERSION, "B", 4, bytes((1, 4, 0, 0)), True),
+        (_DNG_BACKWARD, "B", 4, bytes((1, 4, 0, 0)), True),
+        (_UNIQUE_MODEL, "s", 0, camera_model, True),
+        (_CFA_PLANE_COLOR, "B", 3, bytes((0, 1, 2)), True),
+        (_CFA_LAYOUT, "H", 1, 1, True),
+        (_BLACK_DIM, "H", 2, (1, 1), True),
+        black_tag,
+        (_WHITE, "I", 1, int(round(white_level)), True),
+        (_COLOR_MATRIX1, "2i", 9, matrix_rational, True),
+        (_AS_SHOT_NEUTRAL, "2I", 3, neutral, True),
+        (_SERIAL, "s", 0, str(serial), True),
+        (_ILLUMINANT1, "H", 1, 21, True),  # D65
+        (_MAKE, "s", 0, str(make), True),
+        (_MODEL, "s", 0, str(model), True),
+    ]
+    rows = cfa.shape[0]
+    with tifffile.TiffWriter(path, bigtiff=False, byteorder="<") as tw:
+        tw.write(
+            np.ascontiguousarray(cfa),
+            photometric=_PHOTOMETRIC_CFA,
+            planarconfig="contig",
+            compression=None,
+            rowsperstrip=rows,
+            subfiletype=0,
+            software=False,
+            datetime=None,
+            description=None,
+            metadata=None,
+            resolution=None,
+            extratags=extratags,
+        )

@@ -1,0 +1,81 @@
+"""Tests for pipeline.bands: region cutting and Bayer band splitting."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.bands import BANDS, cut_region, split_bands
+
+SITE_VALUES = {"R": 100, "G1": 200, "G2": 300, "B": 400}
+
+
+def _mosaic(pattern: str, rows=6, cols=8) -> np.ndarray:
+    """Mosaic where R, the first G, the second G and B each hold a distinct value."""
+    cell = np.zeros((2, 2), np.uint16)
+    greens = iter(("G1", "G2"))
+    for index, letter in enumerate(pattern):
+        key = next(greens) if letter == "G" else letter
+        cell[divmod(index, 2)] = SITE_VALUES[key]
+    return np.tile(cell, (rows // 2, cols // 2))
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "GRBG", "GBRG"])
+def test_split_bands_all_patterns(pattern):
+    cfa = _mosaic(pattern)
+    bands = split_bands(cfa, pattern)
+    assert tuple(bands) == BANDS == ("R", "G", "B")
+    for name in BANDS:
+        assert bands[name].dtype == np.float32
+        assert bands[name].shape == (3, 4)
+    assert np.all(bands["R"] == 100)
+    assert np.all(bands["G"] == 250)  # mean of the two green sites
+    assert np.all(bands["B"] == 400)
+
+
+def test_split_bands_follows_the_given_pattern():
+    cfa = _mosaic("RGGB")
+    swapped = split_bands(cfa, "BGGR")  # the same pixels read with another pattern
+    assert np.all(swapped["R"] == 400) and np.all(swapped["B"] == 100)
+
+
+def test_split_bands_keeps_positions_and_drops_odd_edge():
+    cfa = np.arange(5 * 7, dtype=np.uint16).reshape(5, 7)
+    bands = split_bands(cfa, "RGGB")
+    assert bands["R"].shape == (2, 3)
+    np.testing.assert_array_equal(bands["R"], cfa[0:4:2, 0:6:2])
+    np.testing.assert_array_equal(bands["B"], cfa[1:4:2, 1:6:2])
+    np.testing.assert_allclose(bands["G"], (cfa[0:4:2, 1:6:2] + cfa[1:4:2, 0:6:2].astype(float)) / 2)
+
+
+def test_split_bands_rejects_bad_input():
+    with pytest.raises(ValueError):
+        split_bands(np.zeros((4, 4)), "RGBX")
+    with pytest.raises(ValueError):
+        split_bands(np.zeros((4, 4)), "RRGB")
+    with pytest.raises(ValueError):
+        split_bands(np.zeros((4, 4, 3)), "RGGB")
+    with pytest.raises(ValueError):
+        split_bands(np.zeros((1, 4)), "RGGB")
+
+
+def test_cut_region():
+    cfa = np.arange(12 * 16).reshape(12, 16)
+    part = cut_region(cfa, (2, 8), (4, 16))
+    np.testing.assert_array_equal(part, cfa[2:8, 4:16])
+    # the Bayer phase is kept: a region cut on even starts splits like the original
+    bands = split_bands(part, "RGGB")
+    np.testing.assert_array_equal(bands["R"], split_bands(cfa, "RGGB")["R"][1:4, 2:8])
+
+
+@pytest.mark.parametrize("rows, cols", [
+    ((1, 8), (0, 4)),     # odd start row
+    ((0, 8), (3, 9)),     # odd start column
+    ((0, 14), (0, 4)),    # beyond the last row
+    ((0, 8), (0, 17)),    # beyond the last column
+    ((-2, 4), (0, 4)),    # negative
+    ((6, 6), (0, 4)),     # empty
+])
+def test_cut_region_rejects(rows, cols):
+    with pytest.raises(ValueError):
+        cut_region(np.zeros((12, 16)), rows, cols)
