@@ -171,9 +171,15 @@ def absolute_calibration_budget(
         noise = np.asarray(spectrum_noise_sigma, dtype=float)
         sc = scaled["scale"]
         _, band_noise = effective_band_radiance(wl, radiance, s, radiance_sigma=noise * sc)
-        ref_noise = float(np.interp(reference_wavelength_nm, wl, noise) / np.interp(reference_wavelength_nm, wl, spec))
-        # the band average and the 589 nm point are nearly independent for a
-        # 10 nm grid; both enter: L_eff ~ band / spec(589)
+        # noise of the (interpolated) spectrum at the reference wavelength,
+        # common to all wavelengths after scaling
+        ref_noise = float(
+            scale_to_reference(wl, spec, reference_wavelength_nm, reference_value, 0.0, spectrum_sigma=noise)[
+                "relative_sigma_correlated"
+            ]
+        )
+        # the band average and the reference point are treated as independent
+        # (the reference point enters the band average with a small weight)
         contrib["spectrometer_noise"] = float(np.hypot(band_noise / l_eff, ref_noise))
 
     contrib["extra"] = float(extra_relative_sigma)
