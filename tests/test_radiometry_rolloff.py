@@ -1,0 +1,136 @@
+"""Tests of pipeline.radiometry.rolloff (Eq. 13) against the published values and round trips."""
+
+import numpy as np
+import pytest
+
+from pipeline.radiometry.rolloff import (
+    PUBLISHED_RED_AIR_CLOSE_LENS,
+    PUBLISHED_ROLLOFF_POINTS,
+    default_rolloff,
+    evaluate_rolloff,
+    fit_rolloff,
+    normalise_rolloff,
+)
+
+THETA_AIR = np.arange(-80.0, 80.0 + 1e-9, 5.0)  # the in-air experiment
+THETA_WATER = np.arange(-70.0, 70.0 + 1e-9, 2.0)  # the in-water experiment
+
+
+def test_published_red_coefficients_hand_values():
+    # hand: 0.99726 - 7.806e-5 * 80^2 + 4.074e-9 * 80^4 - 4.884e-13 * 80^6 + 2.406e-17 * 80^8 = 0.5769
+    assert evaluate_rolloff(PUBLISHED_RED_AIR_CLOSE_LENS, 80.0) == pytest.approx(0.5769, abs=1e-4)
+    assert evaluate_rolloff(PUBLISHED_RED_AIR_CLOSE_LENS, 70.0) == pytest.approx(0.6690, abs=1e-4)
+
+
+@pytest.mark.parametrize("medium, band", sorted(PUBLISHED_ROLLOFF_POINTS))
+def test_default_rolloff_matches_published_points(medium, band):
+    a = default_rolloff(band, medium)
+    assert evaluate_rolloff(a, 0.0) == 1.0
+    for theta, g in PUBLISHED_ROLLOFF_POINTS[(medium, band)].items():
+        assert evaluate_rolloff(a, theta) == pytest.approx(g, abs=0.005)
+
+
+def test_default_red_air_is_published_polynomial_normalised():
+    a = default_rolloff("R", "air")
+    t = np.linspace(0, 80, 81)
+    assert np.allclose(evaluate_rolloff(a, t), evaluate_rolloff(PUBLISHED_RED_AIR_CLOSE_LENS, t) / 0.99726, atol=1e-12)
+    assert np.max(np.abs(evaluate_rolloff(a, t) - evaluate_rolloff(PUBLISHED_RED_AIR_CLOSE_LENS, t))) < 0.003
+
+
+@pytest.mark.parametrize("medium, theta_max", [("air", 91.0), ("water", 76.0)])
+def test_default_rolloff_monotone_and_positive(medium, theta_max):
+    t = np.linspace(0.0, theta_max, 400)
+    for band in "RGB":
+        g = evaluate_rolloff(default_rolloff(band, medium), t)
+        assert np.all(np.diff(g) < 0) and np.all(g > 0.2)
+    # red falls faster than green and blue (Section 3.3)
+    assert evaluate_rolloff(default_rolloff("R", medium), 60.0) < evaluate_rolloff(default_rolloff("G", medium), 60.0)
+
+
+def test_default_rolloff_rejects_unknown_names_and_returns_copies():
+    with pytest.raises(ValueError):
+        default_rolloff("X", "air")
+    with pytest.raises(ValueError):
+        default_rolloff("R", "oil")
+    a = default_rolloff("g", "AIR")
+    a[0] = 5.0
+    assert default_rolloff("G", "air")[0] == 1.0
+
+
+def test_fit_noise_free_recovers_coefficients():
+    truth = PUBLISHED_RED_AIR_CLOSE_LENS
+    fit = fit_rolloff(THETA_AIR, evaluate_rolloff(truth, THETA_AIR))
+    assert np.allclose(fit.coefficients, truth, rtol=1e-6)
+    assert fit.dof == THETA_AIR.size - 5
+
+
+def test_fit_noisy_round_trip_and_prediction_coverage():
+    # sigma = 0.01 per point (the paper's in-air spreads are 2-4 %).  For
+    # known sigma the standardised prediction error at 80 deg is N(0, 1):
+    # over 300 seeds, coverage of +/- 1.96 sigma should be 95 % (binomial
+    # sd 1.3 %: accept 90-99 %); the chi2 / dof averages to 1 (sd of the
+    # mean ~0.015: accept 0.93-1.07).
+    truth = default_rolloff("B", "water")
+    clean = evaluate_rolloff(truth, THETA_WATER)
+    rng = np.random.default_rng(2024)
+    hits, red = 0, []
+    for _ in range(300):
+        y = clean + 0.01 * rng.standard_normal(clean.size)
+        fit = fit_rolloff(THETA_WATER, y, sigma=0.01)
+        g, s = fit(70.0, with_sigma=True)
+        hits += abs(g - evaluate_rolloff(truth, 70.0)) < 1.96 * s
+        red.append(fit.reduced_chi2)
+    assert 0.90 <= hits / 300 <= 0.99
+    assert 0.93 < np.mean(red) < 1.07
+
+
+def test_prediction_uncertainty_equals_explicit_jacobian():
+    rng = np.random.default_rng(1)
+    truth = default_rolloff("G", "air")
+    y = evaluate_rolloff(truth, THETA_AIR) + 0.02 * rng.standard_normal(THETA_AIR.size)
+    fit = fit_rolloff(THETA_AIR, y, sigma=0.02)
+    t = np.array([0.0, 35.0, 80.0])
+    _, s = evaluate_rolloff(fit.coefficients, t, fit.covariance)
+    for ti, si in zip(t, s):
+        j = ti ** (2 * np.arange(5))
+        assert si == pytest.approx(np.sqrt(j @ fit.covariance @ j), rel=1e-10)
+    # unweighted fit scales the covariance by the reduced chi-square
+    fit_u = fit_rolloff(THETA_AIR, y)
+    assert not fit_u.absolute_sigma
+    assert np.allclose(fit_u.covariance, fit.covariance * fit.reduced_chi2, rtol=1e-8)
+
+
+def test_covariance_matches_monte_carlo():
+    truth = default_rolloff("R", "air")
+    clean = evaluate_rolloff(truth, THETA_AIR)
+    rng = np.random.default_rng(5)
+    coefs = np.array([fit_rolloff(THETA_AIR, clean + 0.01 * rng.standard_normal(clean.size), 0.01).coefficients for _ in range(2000)])
+    cov = fit_rolloff(THETA_AIR, clean, 0.01).covariance
+    # sample variances from 2000 draws carry ~3 % noise; compare at 10 %
+    assert np.allclose(np.var(coefs, axis=0, ddof=1), np.diag(cov), rtol=0.1)
+
+
+def test_normalise_rolloff_and_its_covariance():
+    rng = np.random.default_rng(9)
+    truth = 0.97 * default_rolloff("B", "air")
+    y = evaluate_rolloff(truth, THETA_AIR) + 0.01 * rng.standard_normal(THETA_AIR.size)
+    fit = fit_rolloff(THETA_AIR, y, 0.01)
+    c, cov = normalise_rolloff(fit.coefficients, fit.covariance)
+    assert c[0] == 1.0 and np.all(cov[0] == 0.0)
+    g0, s0 = evaluate_rolloff(c, 0.0, cov)
+    assert g0 == 1.0 and s0 == 0.0
+    # first-order propagation against a numerical Jacobian
+    h = 1e-7
+    jac = np.empty((5, 5))
+    for k in range(5):
+        d = np.zeros(5)
+        d[k] = h * max(abs(fit.coefficients[k]), 1e-30)
+        jac[:, k] = (normalise_rolloff(fit.coefficients + d) - normalise_rolloff(fit.coefficients - d)) / (2 * d[k])
+    assert np.allclose(cov, jac @ fit.covariance @ jac.T, rtol=1e-5, atol=0)
+
+
+def test_fit_input_validation():
+    with pytest.raises(ValueError):
+        fit_rolloff([0.0, 10.0, 20.0], [1.0, 0.9, 0.8])
+    with pytest.raises(ValueError):
+        fit_rolloff(THETA_AIR, np.ones_like(THETA_AIR), sigma=0.0)
