@@ -81,6 +81,7 @@ class RawFrame:
     make: str | None
     model: str | None
     md5: str
+    sha256: str = ""     # sha256 hex of the same bytes (artefact provenance)
 
 
 # ---------------------------------------------------------------------------
@@ -334,6 +335,7 @@ def read_raw(path, require=("exposure_s", "iso", "time")) -> RawFrame:
     path = Path(path)
     data = _read_bytes(path)
     md5 = hashlib.md5(data).hexdigest()
+    sha256 = hashlib.sha256(data).hexdigest()
 
     try:
         with tifffile.TiffFile(io.BytesIO(data)) as tif:
@@ -371,7 +373,7 @@ def read_raw(path, require=("exposure_s", "iso", "time")) -> RawFrame:
     return RawFrame(
         path=path, cfa=cfa, exposure_s=tags["exposure_s"], iso=tags["iso"], time=tags["time"],
         black_level=float(black), white_level=float(white), cfa_pattern=pattern,
-        make=tags["make"], model=tags["model"], md5=md5,
+        make=tags["make"], model=tags["model"], md5=md5, sha256=sha256,
     )
 
 

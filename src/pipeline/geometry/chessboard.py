@@ -141,7 +141,8 @@ def _look_rotation(direction, tilt_rad, tilt_azimuth, roll) -> np.ndarray:
 
 
 def poses_covering_fov(n: int, half_fov_deg: float, rng=None, *, board: Board | None = None,
-                       board_half_angle_deg: float = 14.0, max_tilt_deg: float = 35.0,
+                       board_half_angle_deg: float | tuple[float, float] = (26.0, 14.0),
+                       max_tilt_deg: float = 40.0,
                        edge_margin_deg: float = 1.5, model: FisheyeModel | None = None):
     """Poses whose board centres spread from the optical axis to the edge of the field.
 
@@ -153,18 +154,23 @@ def poses_covering_fov(n: int, half_fov_deg: float, rng=None, *, board: Board | 
     180-degree orientations occur). A pose is kept only when every point of
     the board outline is at theta < half_fov - edge_margin_deg (board fully
     visible); when ``model`` is given the outline must also fall inside
-    the image. Returns a list of (rvec, tvec) with tvec in mm.
+    the image. ``board_half_angle_deg`` may be a pair (on the axis, at the
+    edge): large boards near the axis constrain the focal scale through
+    perspective, small ones reach the edge of the field. Returns a list of
+    (rvec, tvec) with tvec in mm.
     """
     rng = np.random.default_rng(rng)
     board = Board() if board is None else board
     hx, hy = board.half_extent_mm()
     half_diag = np.hypot(hx, hy)
-    dist = half_diag / np.tan(np.radians(board_half_angle_deg))
     outline = board.outline_mm()
-    theta_max = half_fov_deg - edge_margin_deg - 0.8 * board_half_angle_deg
+    alpha_axis, alpha_edge = np.broadcast_to(np.asarray(board_half_angle_deg, float), (2,))
     poses = []
     for i in range(n):
         frac = i / max(1, n - 1)
+        alpha = alpha_axis + (alpha_edge - alpha_axis) * frac
+        dist = half_diag / np.tan(np.radians(alpha))
+        theta_max = half_fov_deg - edge_margin_deg - 0.8 * alpha
         for attempt in range(200):
             shrink = 1.0 - 0.01 * attempt  # move inwards if the board keeps clipping
             th = np.radians(max(0.0, theta_max * shrink * frac + rng.uniform(-2, 2)))

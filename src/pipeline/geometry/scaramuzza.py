@@ -50,7 +50,7 @@ PUBLISHED_FITS = {
 HALF_FOV_DEG = {"air": 91.0, "water": 76.0}
 
 #: Number of samples of the theta(rho) lookup table used to invert f(rho).
-_LUT_SAMPLES = 4096
+_LUT_SAMPLES = 512
 
 
 @dataclass(frozen=True)
@@ -135,7 +135,7 @@ class FisheyeModel:
         """Invert theta(rho) (radians -> pixels); NaN beyond the model's domain.
 
         A lookup table on the monotone part of theta(rho) gives the start,
-        three Newton steps on ``atan2(rho, f(rho)) - theta`` polish it to
+        five Newton steps on ``atan2(rho, f(rho)) - theta`` polish it to
         rounding error, which is robust for theta beyond 90 degrees where
         f(rho) changes sign.
         """
@@ -143,7 +143,7 @@ class FisheyeModel:
         t_lut, r_lut = self._lut()
         rho = np.interp(theta, t_lut, r_lut)
         outside = (theta > t_lut[-1]) | (theta < 0) | ~np.isfinite(theta)
-        for _ in range(4):
+        for _ in range(5):
             f = self.f(rho)
             g = np.arctan2(rho, f) - theta
             dg = (f - rho * self.df(rho)) / (rho**2 + f**2)

@@ -1,0 +1,88 @@
+"""Versioned NetCDF artefacts: one per stage and lens, with provenance.
+
+Every artefact carries, as global attributes, the stage name, the schema
+version of that stage's output, the pipeline version, the creation time, the
+sha256 of the configuration subset the stage used and of every input file, and
+the effects of the model it was fitted with (DESIGN.md). Files are written to
+a temporary name and renamed, so a failed stage never leaves a half-written
+artefact.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from datetime import datetime, timezone
+from pathlib import Path
+
+import xarray as xr
+
+from pipeline import __version__
+from pipeline.errors import ArtefactError
+
+#: schema version of each stage's output; bump when a stage's variables change meaning
+ARTEFACT_VERSIONS = {"dark": 1, "linearity": 1}
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 22) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            h.update(block)
+    return h.hexdigest()
+
+
+def config_sha256(config_subset: dict) -> str:
+    text = json.dumps(config_subset, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict[str, str],
+                   config_subset: dict, effects: list[str]) -> Path:
+    """Write ``ds`` with the provenance attributes; ``inputs`` maps file name -> sha256."""
+    path = Path(path)
+    ds = ds.copy()
+    ds.attrs.update({
+        "Conventions": "CF-1.10",
+        "artefact": stage,
+        "artefact_version": ARTEFACT_VERSIONS[stage],
+        "pipeline_version": __version__,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "config_sha256": config_sha256(config_subset),
+        "config": json.dumps(config_subset, sort_keys=True, default=str),
+        "input_sha256": json.dumps(inputs, sort_keys=True),
+        "model_effects": ",".join(effects),
+    })
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    encoding = {name: {"zlib": True, "complevel": 4} for name, var in ds.data_vars.items()
+                if var.dtype.kind in "fiub" and var.size > 1024}
+    ds.to_netcdf(tmp, engine="netcdf4", encoding=encoding)
+    os.replace(tmp, path)
+    return path
+
+
+def read_artefact(path: str | Path, stage: str) -> xr.Dataset:
+    """Open a stage's artefact (loaded into memory), refusing an unknown stage or version."""
+    path = Path(path)
+    if not path.exists():
+        raise ArtefactError(path, f"{stage} artefact is missing; run the '{stage}' stage first")
+    try:
+        with xr.open_dataset(path, engine="netcdf4") as ds:
+            ds = ds.load()
+    except (OSError, ValueError) as exc:
+        raise ArtefactError(path, f"not a readable NetCDF artefact ({exc.__class__.__name__})") from None
+    found = ds.attrs.get("artefact")
+    if found != stage:
+        raise ArtefactError(path, f"is a '{found}' artefact, expected '{stage}'")
+    version = int(ds.attrs.get("artefact_version", -1))
+    if version != ARTEFACT_VERSIONS[stage]:
+        raise ArtefactError(path, f"{stage} artefact version {version} is not the supported version "
+                                  f"{ARTEFACT_VERSIONS[stage]}; rerun the '{stage}' stage")
+    return ds
+
+
+def model_effects(ds: xr.Dataset) -> list[str]:
+    text = ds.attrs.get("model_effects", "")
+    return [e for e in text.split(",") if e]

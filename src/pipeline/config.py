@@ -1,0 +1,61 @@
+"""Configuration: the JSON schema in ``config/schema.yaml`` validates and fills defaults."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import yaml
+from jsonschema import Draft202012Validator, validators
+
+from pipeline.errors import InputError
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+SCHEMA_PATH = REPO_ROOT / "config" / "schema.yaml"
+CONFIG_PATH = REPO_ROOT / "config" / "config.yaml"
+
+
+def _with_defaults(cls):
+    validate_properties = cls.VALIDATORS["properties"]
+
+    def set_defaults(validator, properties, instance, schema):
+        if isinstance(instance, dict):
+            for name, sub in properties.items():
+                if "default" in sub and name not in instance:
+                    instance[name] = _copy(sub["default"])
+        yield from validate_properties(validator, properties, instance, schema)
+
+    return validators.extend(cls, {"properties": set_defaults})
+
+
+def _copy(value):
+    return yaml.safe_load(yaml.safe_dump(value))
+
+
+def validate_config(config: dict, schema_path: str | Path = SCHEMA_PATH) -> dict:
+    """Validate ``config`` in place, filling defaults; InputError with the first problem."""
+    schema = yaml.safe_load(Path(schema_path).read_text())
+    validator = _with_defaults(Draft202012Validator)(schema)
+    # two passes: defaults of nested objects created by the first pass get filled by the second
+    for _ in range(2):
+        errors = sorted(validator.iter_errors(config), key=lambda e: list(e.path))
+        if errors:
+            err = errors[0]
+            where = ".".join(str(p) for p in err.path) or "(top level)"
+            raise InputError(schema_path, f"config {where}: {err.message}")
+    return config
+
+
+def load_config(path: str | Path = CONFIG_PATH, overrides: dict | None = None) -> dict:
+    """Read a config file, apply ``overrides`` (nested dicts merge), validate, fill defaults."""
+    config = yaml.safe_load(Path(path).read_text()) or {}
+    for key, value in (overrides or {}).items():
+        if isinstance(value, dict) and isinstance(config.get(key), dict):
+            config[key] = {**config[key], **value}
+        else:
+            config[key] = value
+    return validate_config(config)
+
+
+def defaults() -> dict:
+    """The schema's defaults alone (what a stage uses when a config omits a key)."""
+    return validate_config({"dataset": "unused"})

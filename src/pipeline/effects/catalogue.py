@@ -1,0 +1,235 @@
+"""Built-in effects of the dark and linearity experiments.
+
+Each class holds the simulator's physics and the pipeline's linearised term
+for one catalogue entry (DESIGN.md). Coefficients of :meth:`columns` are the
+physical parameters themselves, so a fitted coefficient compares directly
+with the simulator's truth.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from pipeline.effects.base import Effect, register
+
+#: ISO settings a camera offers (ISO 100 doubling to 3200): the per-ISO draws of
+#: ``iso_gain`` are made for these, in this order, so that they do not depend on
+#: which experiments are simulated.
+STANDARD_ISOS = (100.0, 200.0, 400.0, 800.0, 1600.0, 3200.0)
+
+
+@register
+class DarkCurrent(Effect):
+    """Thermal signal: ``rate_e_per_s`` electrons per second in every pixel.
+
+    Model term (dark stage, one value per setting): ``D * gain * t`` with D in
+    DN/s at ISO 100 (equal to rate_e_per_s times the ISO 100 conversion gain).
+    """
+
+    name = "dark_current"
+    experiments = ("dark",)
+    truth_defaults = {"rate_e_per_s": 0.9}
+    amplitude_name = "dark_current_dn_per_s_iso100"
+    amplitude_units = "DN s-1"
+
+    def dark_rate_e_per_s(self, lens, shape):
+        return float(self.params["rate_e_per_s"])
+
+    def columns(self, experiment, level, table):
+        if experiment != "dark" or level != "setting":
+            return None
+        return (table["gain"] * table["exposure_s"]).to_numpy()[:, None]
+
+
+@register
+class HotPixels(Effect):
+    """Sparse pixels with a large dark current (log-normal rates).
+
+    The dark stage flags pixels whose dark signal is an outlier in every one of
+    the longest exposures; the model term is the excess those pixels add to the
+    mean dark level (covariate ``hot_excess_dn``), whose coefficient is 1 when
+    the sparse pixels explain the residuals.
+    """
+
+    name = "hot_pixels"
+    experiments = ("dark",)
+    truth_defaults = {"fraction": 5e-4, "median_rate_e_per_s": 400.0, "log_sigma": 0.6}
+    amplitude_name = "hot_pixel_fraction"
+    amplitude_units = "1"
+    corrects_data = True
+
+    def prepare(self, rng, context):
+        self.maps = {}
+        for lens in context["lens_names"]:
+            shape = context["lens_shape"]
+            hot = rng.random(shape) < self.params["fraction"]
+            rates = np.zeros(shape, dtype=np.float32)
+            n = int(hot.sum())
+            rates[hot] = self.params["median_rate_e_per_s"] * np.exp(
+                self.params["log_sigma"] * rng.standard_normal(n))
+            self.maps[lens] = rates
+
+    def dark_rate_e_per_s(self, lens, shape):
+        return self.maps[lens]
+
+    def truth(self):
+        out = super().truth()
+        out["count_raw_pixels"] = {lens: int((m > 0).sum()) for lens, m in self.maps.items()}
+        return out
+
+    def columns(self, experiment, level, table):
+        if experiment != "dark" or level != "setting" or "hot_excess_dn" not in table:
+            return None
+        return table["hot_excess_dn"].to_numpy()[:, None]
+
+    def amplitude(self, experiment, level, table, coef, cov):
+        n_hot = float(table["n_hot"].iloc[0])
+        n_pix = float(table["n_pixels"].iloc[0])
+        half = 1.96 * np.sqrt(max(n_hot, 1.0))
+        return n_hot / n_pix, max(n_hot - half, 0.0) / n_pix, (n_hot + half) / n_pix
+
+
+@register
+class ShutterOffset(Effect):
+    """True exposure = nominal + ``offset_s``.
+
+    Linearity model term for the exposure sweep: ``rate * gain * offset_s``
+    where ``rate`` (DN/s at ISO 100) is the group's fitted slope, so the
+    coefficient is the offset in seconds, shared by all bands and lenses.
+    """
+
+    name = "shutter_offset"
+    experiments = ("linearity",)
+    truth_defaults = {"offset_s": 4e-4}
+    amplitude_name = "shutter_offset_s"
+    amplitude_units = "s"
+
+    def true_exposure_s(self, exposure_s):
+        return exposure_s + self.params["offset_s"]
+
+    def columns(self, experiment, level, table):
+        if experiment != "linearity" or level != "setting":
+            return None
+        is_exposure = (table["sweep"] == "exposure").to_numpy()
+        return (table["rate_dn_per_s"] * table["gain"]).to_numpy()[:, None] * is_exposure[:, None]
+
+
+@register
+class Nonlinearity(Effect):
+    """Response bends towards saturation: ``s -> s * (1 - beta * s / full_scale)``.
+
+    Linearity model term: ``-pred**2 / full_scale`` (both sweeps), coefficient beta.
+    """
+
+    name = "nonlinearity"
+    experiments = ("linearity",)
+    truth_defaults = {"beta": 0.05}
+    amplitude_name = "nonlinearity_beta"
+    amplitude_units = "1"
+
+    def response_dn(self, signal_dn, full_scale_dn):
+        return signal_dn * (1.0 - self.params["beta"] * signal_dn / full_scale_dn)
+
+    def columns(self, experiment, level, table):
+        if experiment != "linearity" or level != "setting":
+            return None
+        pred = table["pred_linear_dn"].to_numpy()
+        return (-pred**2 / table["full_scale_dn"].to_numpy())[:, None]
+
+
+@register
+class IsoGain(Effect):
+    """True analogue gain = ISO/100 times a factor per ISO step (1 at ISO 100).
+
+    Linearity model term for the gain sweep: one column ``pred * [iso == k]`` per
+    ISO above the lowest, coefficient = factor - 1.
+    """
+
+    name = "iso_gain"
+    experiments = ("linearity",)
+    truth_defaults = {"rel_sigma": 0.03}
+    amplitude_name = "largest_gain_error"
+    amplitude_units = "1"
+
+    def prepare(self, rng, context):
+        draws = rng.standard_normal(len(STANDARD_ISOS))
+        self.factors = {iso: (1.0 if iso == 100.0 else 1.0 + self.params["rel_sigma"] * d)
+                        for iso, d in zip(STANDARD_ISOS, draws)}
+
+    def gain_factor(self, iso):
+        return self.factors.get(float(iso), 1.0)
+
+    def truth(self):
+        out = super().truth()
+        out["factors"] = {str(int(k)): float(v) for k, v in self.factors.items()}
+        return out
+
+    @staticmethod
+    def isos_fitted(table: pd.DataFrame) -> list[float]:
+        gains = table.loc[table["sweep"] == "gain", "iso"]
+        isos = sorted(set(gains.astype(float)))
+        return isos[1:]
+
+    def columns(self, experiment, level, table):
+        if experiment != "linearity" or level != "setting":
+            return None
+        isos = self.isos_fitted(table)
+        if not isos:
+            return None
+        pred = table["pred_linear_dn"].to_numpy()
+        in_gain = (table["sweep"] == "gain").to_numpy()
+        iso = table["iso"].to_numpy(dtype=float)
+        return np.column_stack([pred * in_gain * (iso == k) for k in isos])
+
+    def amplitude(self, experiment, level, table, coef, cov):
+        i = int(np.argmax(np.abs(coef)))
+        se = float(np.sqrt(max(cov[i, i], 0.0)))
+        return float(coef[i]), float(coef[i] - 1.96 * se), float(coef[i] + 1.96 * se)
+
+
+@register
+class BiasDrift(Effect):
+    """The black level of a whole frame moves by N(0, ``sigma_dn``) between frames.
+
+    Frame-level model term: the frame's deviation of the unlit (corner) pixels
+    from their setting mean, coefficient 1. The stage corrects each frame by it.
+    """
+
+    name = "bias_drift"
+    experiments = ("dark", "linearity")
+    truth_defaults = {"sigma_dn": 3.0}
+    amplitude_name = "bias_drift_sigma_dn"
+    amplitude_units = "DN"
+    corrects_data = True
+
+    def frame_offset_dn(self, rng):
+        return float(self.params["sigma_dn"] * rng.standard_normal())
+
+    def columns(self, experiment, level, table):
+        if level != "frame" or "corner_dev_dn" not in table:
+            return None
+        return table["corner_dev_dn"].to_numpy()[:, None]
+
+    def amplitude(self, experiment, level, table, coef, cov):
+        return drift_sigma(table)
+
+
+def drift_sigma(table: pd.DataFrame) -> tuple[float, float, float]:
+    """Frame-to-frame spread of the black level from the unlit pixels, with 95 % interval.
+
+    The corners' own noise (``sigma_corner_dn``) is removed in quadrature; the
+    interval is the chi-square one for a variance from n - n_settings degrees of freedom.
+    """
+    from scipy import stats
+
+    keys = [c for c in ("lens", "band", "sweep", "setting") if c in table]
+    dev = table["corner_dev_dn"].to_numpy()
+    n_groups = table.groupby(keys).ngroups if keys else 1
+    dof = max(len(dev) - n_groups, 1)
+    first = table
+    var = float(np.sum(dev**2) / dof - np.mean(first["sigma_corner_dn"].to_numpy() ** 2))
+    lo_var = var * dof / stats.chi2.ppf(0.975, dof)
+    hi_var = var * dof / stats.chi2.ppf(0.025, dof)
+    root = lambda v: float(np.sqrt(max(v, 0.0)))  # noqa: E731
+    return root(var), root(lo_var), root(hi_var)

@@ -1,0 +1,66 @@
+"""Read an experiment's raw frames once each, checked, and cut into lens band images."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from pipeline.bands import cut_region, split_bands
+from pipeline.dataset import Dataset, check_md5
+from pipeline.errors import InputError
+from pipeline.rawio import RawFrame, read_raw
+
+
+@dataclass
+class LensImages:
+    """One frame's band images (R, G, B) of one lens, plus a saturation map."""
+
+    bands: dict[str, np.ndarray]
+    saturated: dict[str, np.ndarray]   # True where any CFA site of the band pixel reached the white level
+
+
+@dataclass
+class DecodedFrame:
+    row: pd.Series
+    raw: RawFrame
+    lenses: dict[str, LensImages]
+
+
+#: raw pixels averaged in one band pixel (the G band is the mean of two sites)
+SITES_PER_BAND_PIXEL = {"R": 1, "G": 2, "B": 1}
+
+
+def iter_frames(dataset: Dataset, experiment: str, frames: pd.DataFrame | None = None,
+                lenses: list[str] | None = None, saturation_margin_dn: float = 1.0,
+                progress: bool = False) -> Iterator[DecodedFrame]:
+    """Decode every frame of ``frames`` (default: the experiment's frames.csv) once.
+
+    Each file's checksum is compared with MD5SUMS from the bytes that were
+    decoded; exposure time, ISO and time stamp must be in the tags.
+    """
+    frames = dataset.frames(experiment) if frames is None else frames
+    lenses = list(dataset.lenses) if lenses is None else lenses
+    rows = frames.iterrows()
+    if progress:
+        from tqdm import tqdm
+
+        rows = tqdm(rows, total=len(frames), unit="frame", desc=experiment, leave=False, disable=None)
+    for _, row in rows:
+        raw = read_raw(row["path"])
+        check_md5(dataset, row["path"], raw.md5)
+        out = {}
+        for lens in lenses:
+            rows_span, cols_span = dataset.lenses[lens]
+            try:
+                region = cut_region(raw.cfa, rows_span, cols_span)
+            except ValueError as exc:
+                raise InputError(row["path"], f"lens '{lens}' region does not fit the frame ({exc})") from None
+            sat = region >= (raw.white_level - saturation_margin_dn)
+            out[lens] = LensImages(
+                bands=split_bands(region, raw.cfa_pattern),
+                saturated={b: v > 0 for b, v in split_bands(sat.astype(np.uint16), raw.cfa_pattern).items()},
+            )
+        yield DecodedFrame(row=row, raw=raw, lenses=out)

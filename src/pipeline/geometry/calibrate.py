@@ -1,0 +1,397 @@
+"""Scaramuzza (OCamCalib) calibration from detected chessboard corners.
+
+Steps, as in Scaramuzza et al. (2006) and the OCamCalib toolbox:
+
+1. Linear initialisation for a given principal point: per frame, the
+   cross-product constraint ``u' (r21 X + r22 Y + t2) - v' (r11 X + r12 Y +
+   t1) = 0`` gives r11, r12, r21, r22, t1, t2 up to scale (SVD);
+   orthonormality gives r31, r32; then one joint linear least-squares
+   problem gives the polynomial (a1 = 0) and every frame's t3. Sign
+   ambiguities are resolved by requiring the projected board to lie in the
+   direction of its pixels, t3 > 0 and a0 > 0.
+2. Centre search: the linear solution's reprojection error on a grid of
+   candidate centres around the image centre, refined by shrinking the grid.
+3. Nonlinear refinement (scipy.optimize.least_squares) of all poses, the
+   centre, the stretch and the polynomial, minimising reprojection error in
+   pixels. Frames with too few corners, a failed initialisation or wild
+   errors are dropped and reported.
+
+Internally the polynomial is written in rho / r_norm (r_norm = half the
+image's short side) so that all coefficients are of similar size.
+
+Stretch: A = [[c, d], [e, 1]]. Its antisymmetric part is a rotation about the
+optical axis, which the board poses absorb; ``stretch="symmetric"`` (the
+default) therefore fits c and d with e = d; ``"full"`` frees e as well (the
+rotation gauge is then fixed only weakly by the solver); ``"none"`` keeps
+the identity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+
+from .scaramuzza import FisheyeModel
+
+#: Penalty (pixels) for a point the model cannot project (outside its domain).
+_UNPROJECTABLE_PX = 1.0e3
+
+
+@dataclass
+class CalibrationResult:
+    """Fitted model, poses and errors. Frame-indexed lists follow the input order."""
+
+    model: FisheyeModel
+    poses: list                     # (rvec, tvec_mm) per frame, None for dropped frames
+    frame_rms_px: np.ndarray        # RMS reprojection error per frame (NaN when dropped)
+    mean_error_px: float            # mean Euclidean reprojection error over all used corners
+    rms_error_px: float             # RMS Euclidean reprojection error
+    residuals_px: np.ndarray        # (n, 2) projected - detected, used corners
+    residual_rho_px: np.ndarray     # (n,) radial distance of each used corner from the centre
+    used_frames: list               # indices of frames used in the final fit
+    dropped: dict = field(default_factory=dict)  # frame index -> reason
+    linear_centre: tuple = (np.nan, np.nan)      # centre chosen by the grid search
+    success: bool = True
+    message: str = ""
+
+    def residuals_vs_radius(self, n_bins: int = 10):
+        """Mean residual norm in radial bins: (bin centres px, mean px, counts)."""
+        r = self.residual_rho_px
+        e = np.linalg.norm(self.residuals_px, axis=1)
+        edges = np.linspace(0, r.max() if r.size else 1.0, n_bins + 1)
+        idx = np.clip(np.digitize(r, edges) - 1, 0, n_bins - 1)
+        counts = np.bincount(idx, minlength=n_bins)
+        sums = np.bincount(idx, weights=e, minlength=n_bins)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return 0.5 * (edges[1:] + edges[:-1]), sums / counts, counts
+
+
+# ----------------------------------------------------------------- rotations
+def _rodrigues(rvecs):
+    """Rotation matrices (k, 3, 3) of rotation vectors (k, 3)."""
+    rvecs = np.atleast_2d(rvecs)
+    th = np.linalg.norm(rvecs, axis=1)
+    k = rvecs / np.where(th > 0, th, 1.0)[:, None]
+    K = np.zeros((len(rvecs), 3, 3))
+    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
+    s, c = np.sin(th)[:, None, None], np.cos(th)[:, None, None]
+    return np.eye(3)[None] + s * K + (1 - c) * K @ K
+
+
+def _rotvec(R):
+    """Rotation vector of a rotation matrix (robust through cv2)."""
+    import cv2
+    return cv2.Rodrigues(np.asarray(R, float))[0].ravel()
+
+
+def _nearest_rotation(M):
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1, 1, -1]) @ Vt
+    return R
+
+
+# ------------------------------------------------------- linear initialisation
+def _extrinsic_partial(up, vp, X, Y):
+    """r11, r12, r21, r22, t1, t2 (scaled) candidates and r31/r32 for one frame."""
+    M = np.stack([-vp * X, -vp * Y, up * X, up * Y, -vp, up], axis=1)
+    _, _, Vt = np.linalg.svd(M, full_matrices=False)
+    H = Vt[-1]
+    r11, r12, r21, r22, t1, t2 = H
+    # The board must lie in the direction of its pixels (lambda > 0).
+    if np.sum(up * (r11 * X + r12 * Y + t1) + vp * (r21 * X + r22 * Y + t2)) < 0:
+        H = -H
+        r11, r12, r21, r22, t1, t2 = H
+    A = (r12**2 + r22**2) - (r11**2 + r21**2)
+    B = -(r11 * r12 + r21 * r22)
+    p = 0.5 * (A + np.sqrt(A**2 + 4 * B**2))
+    r31 = np.sqrt(max(p, 0.0))
+    r32 = B / r31 if r31 > 1e-9 * np.abs(H).max() else np.sqrt(max(p - A, 0.0))
+    scale = 1.0 / np.sqrt(r11**2 + r21**2 + r31**2)
+    return H * scale, r31 * scale, r32 * scale
+
+
+def _poly_rows(up, vp, X, Y, H, r31, r32, powers):
+    r11, r12, r21, r22, t1, t2 = H
+    rho = np.hypot(up, vp)
+    Ai = r11 * X + r12 * Y + t1
+    Bi = r21 * X + r22 * Y + t2
+    Ci = r31 * X + r32 * Y
+    P = rho[:, None] ** np.asarray(powers)[None, :]
+    rows = np.concatenate([P * Bi[:, None], P * Ai[:, None]])
+    t3col = np.concatenate([-vp, -up])
+    rhs = np.concatenate([vp * Ci, up * Ci])
+    return rows, t3col, rhs
+
+
+def _linear_init(frames, centre, degree, r_norm):
+    """Linear Scaramuzza solution for a centre; frames = [(uv, XY), ...] (normalised).
+
+    Returns (b, poses) with b the normalised polynomial coefficients (b0, b2..bN)
+    and poses [(R, t)] (t in board units), or None when it fails.
+    """
+    powers = [0] + list(range(2, degree + 1))
+    parts = []
+    for uv, XY in frames:
+        up = (uv[:, 0] - centre[0]) / r_norm
+        vp = (uv[:, 1] - centre[1]) / r_norm
+        X, Y = XY[:, 0], XY[:, 1]
+        H, r31, r32 = _extrinsic_partial(up, vp, X, Y)
+        best = None
+        for sgn in (1.0, -1.0):
+            rows, t3col, rhs = _poly_rows(up, vp, X, Y, H, sgn * r31, sgn * r32, powers)
+            M = np.concatenate([rows, t3col[:, None]], axis=1)
+            sol, *_ = np.linalg.lstsq(M, rhs, rcond=None)
+            res = np.linalg.norm(M @ sol - rhs)
+            ok = sol[-1] > 0 and sol[0] > 0
+            key = (not ok, res)
+            if best is None or key < best[0]:
+                best = (key, sgn, rows, t3col, rhs)
+        parts.append((up, vp, X, Y, H, best[1] * r31, best[1] * r32, best[2], best[3], best[4]))
+    # Joint system: shared polynomial, one t3 per frame.
+    n_p = len(powers)
+    nf = len(parts)
+    blocks, rhs_all = [], []
+    for i, (*_, rows, t3col, rhs) in enumerate(parts):
+        B = np.zeros((len(rhs), n_p + nf))
+        B[:, :n_p] = rows
+        B[:, n_p + i] = t3col
+        blocks.append(B)
+        rhs_all.append(rhs)
+    M = np.concatenate(blocks)
+    rhs = np.concatenate(rhs_all)
+    sol, *_ = np.linalg.lstsq(M, rhs, rcond=None)
+    b = sol[:n_p]
+    if not np.all(np.isfinite(sol)) or b[0] <= 0:
+        return None
+    poses = []
+    for i, (up, vp, X, Y, H, r31, r32, *_r) in enumerate(parts):
+        r11, r12, r21, r22, t1, t2 = H
+        r1 = np.array([r11, r21, r31])
+        r2 = np.array([r12, r22, r32])
+        R = _nearest_rotation(np.stack([r1, r2, np.cross(r1, r2)], axis=1))
+        t = np.array([t1, t2, sol[n_p + i]])
+        poses.append((R, t))
+    return b, poses
+
+
+def _b_to_poly(b, degree, r_norm):
+    powers = [0] + list(range(2, degree + 1))
+    poly = np.zeros(degree + 1)
+    for k, bk in zip(powers, b):
+        poly[k] = bk * r_norm ** (1 - k)
+    return tuple(poly)
+
+
+def _poly_to_b(poly, degree, r_norm):
+    powers = [0] + list(range(2, degree + 1))
+    return np.array([poly[k] / r_norm ** (1 - k) if k < len(poly) else 0.0 for k in powers])
+
+
+def _project(model, R, t, XYZ):
+    cam = XYZ @ R.T + t
+    u, v = model.world2cam(cam)
+    return np.stack([u, v], axis=-1)
+
+
+def _linear_error(frames, centre, degree, r_norm, shape, L):
+    out = _linear_init(frames, centre, degree, r_norm)
+    if out is None:
+        return np.inf, None
+    b, poses = out
+    model = FisheyeModel(_b_to_poly(b, degree, r_norm), centre[0], centre[1], shape=shape)
+    err2 = []
+    for (uv, XY), (R, t) in zip(frames, poses):
+        XYZ = np.concatenate([XY, np.zeros((len(XY), 1))], axis=1)
+        p = _project(model, R, t * L, XYZ * L)
+        e = np.sum((p - uv) ** 2, axis=1)
+        err2.append(np.where(np.isfinite(e), e, _UNPROJECTABLE_PX**2))
+    return float(np.sqrt(np.mean(np.concatenate(err2)))), (b, poses)
+
+
+def search_centre(frames, shape, degree, r_norm, L, *, half_width_frac: float = 0.1,
+                  n_grid: int = 7, n_levels: int = 4):
+    """Grid search of the principal point minimising the linear solution's error."""
+    h, w = shape
+    best = ((w - 1) / 2.0, (h - 1) / 2.0)
+    half = half_width_frac * min(h, w)
+    best_err, best_sol = _linear_error(frames, best, degree, r_norm, shape, L)
+    for _ in range(n_levels):
+        cx0, cy0 = best
+        for cy in np.linspace(cy0 - half, cy0 + half, n_grid):
+            for cx in np.linspace(cx0 - half, cx0 + half, n_grid):
+                err, sol = _linear_error(frames, (cx, cy), degree, r_norm, shape, L)
+                if err < best_err:
+                    best, best_err, best_sol = (cx, cy), err, sol
+        half *= 2.5 / (n_grid - 1)
+    return best, best_err, best_sol
+
+
+# ------------------------------------------------------- nonlinear refinement
+def _unpack(x, n_frames, degree, r_norm, shape, stretch):
+    i = 0
+    xc, yc = x[0], x[1]
+    i = 2
+    c, d, e = 1.0, 0.0, 0.0
+    if stretch == "symmetric":
+        c, d = x[2], x[3]
+        e = d
+        i = 4
+    elif stretch == "full":
+        c, d, e = x[2], x[3], x[4]
+        i = 5
+    n_b = degree  # b0, b2..bN
+    b = x[i:i + n_b]
+    i += n_b
+    model = FisheyeModel(_b_to_poly(b, degree, r_norm), xc, yc, c, d, e, shape=shape)
+    pose = x[i:].reshape(n_frames, 6)
+    return model, pose, i
+
+
+def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev):
+    shape = model0.shape
+    b0 = _poly_to_b(model0.poly, degree, r_norm)
+    head = [model0.xc, model0.yc]
+    if stretch == "symmetric":
+        head += [model0.c, model0.d]
+    elif stretch == "full":
+        head += [model0.c, model0.d, model0.e]
+    pose = np.concatenate([np.concatenate([_rotvec(R), t]) for R, t in poses0])
+    x0 = np.concatenate([head, b0, pose])
+    n_f = len(frames)
+    n_intr = len(head) + len(b0)
+    uv_all = np.concatenate([uv for uv, _ in frames])
+    counts = [len(uv) for uv, _ in frames]
+    frame_of_pt = np.repeat(np.arange(n_f), counts)
+    XYZ = np.concatenate([np.concatenate([XY, np.zeros((len(XY), 1))], axis=1)
+                          for _, XY in frames])
+
+    def residuals(x):
+        model, pose, _ = _unpack(x, n_f, degree, r_norm, shape, stretch)
+        Rs = _rodrigues(pose[:, :3])[frame_of_pt]
+        cam = np.einsum("nij,nj->ni", Rs, XYZ) + pose[frame_of_pt, 3:]
+        u, v = model.world2cam(cam)
+        r = np.stack([u - uv_all[:, 0], v - uv_all[:, 1]], axis=1)
+        return np.nan_to_num(r, nan=_UNPROJECTABLE_PX).ravel()
+
+    n_res = 2 * len(uv_all)
+    sparsity = lil_matrix((n_res, len(x0)), dtype=int)
+    sparsity[:, :n_intr] = 1
+    row = 0
+    for i, n in enumerate(counts):
+        sparsity[row:row + 2 * n, n_intr + 6 * i:n_intr + 6 * i + 6] = 1
+        row += 2 * n
+    import os
+    if os.environ.get("GEOM_LM"):
+        sol = least_squares(residuals, x0, x_scale="jac", method="lm", max_nfev=max_nfev*len(x0), xtol=1e-10, ftol=1e-10)
+    else:
+        sol = least_squares(residuals, x0, jac_sparsity=sparsity, x_scale="jac",
+                        method="trf", max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
+    print("nfev", sol.nfev, sol.njev, sol.cost)
+    model, pose, _ = _unpack(sol.x, n_f, degree, r_norm, shape, stretch)
+    res = sol.fun.reshape(-1, 2)
+    poses = [(_rodrigues(p[:3])[0], p[3:].copy()) for p in pose]
+    return model, poses, res, frame_of_pt, sol
+
+
+def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
+              stretch: str = "symmetric", min_corners: int = 6, min_frames: int = 5,
+              outlier_factor: float = 5.0, max_frame_rms_px: float | None = None,
+              centre_half_width_frac: float = 0.1, max_nfev: int = 200,
+              half_fov_deg: float | None = None) -> CalibrationResult:
+    """Calibrate a Scaramuzza model from chessboard corners seen in many frames.
+
+    Parameters
+    ----------
+    image_points : list over frames of (k, 2) arrays of detected (u, v)
+        pixels (pixel centres at integers), or None for frames where the
+        board was not found.
+    object_points : (k, 3) board-frame corner positions (mm, z = 0), shared
+        by all frames, or a list with one array per frame.
+    image_shape : (rows, cols) of the images.
+    degree : polynomial degree N of f(rho) (a1 = 0).
+    stretch : "symmetric" (fit c, d with e = d), "full" or "none".
+    min_corners : frames with fewer detected corners are dropped.
+    min_frames : ValueError when fewer good frames remain.
+    outlier_factor : a frame whose RMS error exceeds outlier_factor times
+        the median frame RMS (and max_frame_rms_px when given) is dropped
+        and the fit repeated.
+    half_fov_deg : stored in the returned model (e.g. from the image circle).
+    """
+    if stretch not in ("symmetric", "full", "none"):
+        raise ValueError(f"stretch must be 'symmetric', 'full' or 'none', got {stretch!r}")
+    n_in = len(image_points)
+    if isinstance(object_points, np.ndarray) and object_points.ndim == 2:
+        object_points = [object_points] * n_in
+    dropped = {}
+    frames, idx = [], []
+    allpts = [np.asarray(o, float) for o in object_points if o is not None]
+    L = float(np.median(np.abs(np.concatenate(allpts)[:, :2]))) or 1.0  # board unit, mm
+    for i, (uv, obj) in enumerate(zip(image_points, object_points)):
+        if uv is None:
+            dropped[i] = "no corners detected"
+            continue
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        obj = np.asarray(obj, float).reshape(-1, 3)
+        good = np.all(np.isfinite(uv), axis=1)
+        if good.sum() < min_corners:
+            dropped[i] = f"only {int(good.sum())} corners (< {min_corners})"
+            continue
+        if np.abs(obj[:, 2]).max() > 1e-9 * max(1.0, np.abs(obj).max()):
+            raise ValueError("object_points must be planar with z = 0")
+        frames.append((uv[good], obj[good, :2] / L))
+        idx.append(i)
+    if len(frames) < min_frames:
+        raise ValueError(f"only {len(frames)} usable frames (< min_frames={min_frames}); "
+                         f"dropped: {dropped}")
+    shape = tuple(int(n) for n in image_shape)
+    r_norm = 0.5 * min(shape)
+
+    centre, lin_err, sol = search_centre(frames, shape, degree, r_norm, L,
+                                         half_width_frac=centre_half_width_frac)
+    if sol is None:
+        raise ValueError("linear initialisation failed for every candidate centre")
+    b, poses = sol
+    model = FisheyeModel(_b_to_poly(b, degree, r_norm), centre[0], centre[1], shape=shape)
+
+    while True:
+        model, poses, res, frame_of_pt, ls = _refine(frames, L, model, poses, degree,
+                                                     r_norm, stretch, max_nfev)
+        err = np.linalg.norm(res, axis=1)
+        rms = np.array([np.sqrt(np.mean(err[frame_of_pt == k] ** 2)) for k in range(len(frames))])
+        limit = outlier_factor * np.median(rms)
+        if max_frame_rms_px is not None:
+            limit = max(limit, max_frame_rms_px) if max_frame_rms_px < limit else max_frame_rms_px
+        bad = np.nonzero(rms > limit)[0]
+        if bad.size == 0:
+            break
+        worst = int(bad[np.argmax(rms[bad])])  # drop one frame at a time
+        dropped[idx[worst]] = f"reprojection RMS {rms[worst]:.2f} px > {limit:.2f} px"
+        del frames[worst], idx[worst], poses[worst]
+        if len(frames) < min_frames:
+            raise ValueError(f"only {len(frames)} good frames (< min_frames={min_frames}) "
+                             f"after dropping outliers; dropped: {dropped}")
+
+    if half_fov_deg is not None:
+        model = FisheyeModel(model.poly, model.xc, model.yc, model.c, model.d, model.e,
+                             shape=shape, half_fov_deg=half_fov_deg)
+    out_poses = [None] * n_in
+    frame_rms = np.full(n_in, np.nan)
+    for k, i in enumerate(idx):
+        R, t = poses[k]
+        out_poses[i] = (_rotvec(R), t * L)
+        frame_rms[i] = rms[k]
+    uv_used = np.concatenate([uv for uv, _ in frames])
+    x, y = model._sensor_xy(uv_used[:, 0], uv_used[:, 1])
+    return CalibrationResult(
+        model=model, poses=out_poses, frame_rms_px=frame_rms,
+        mean_error_px=float(err.mean()), rms_error_px=float(np.sqrt(np.mean(err**2))),
+        residuals_px=res, residual_rho_px=np.hypot(x, y), used_frames=list(idx),
+        dropped=dropped, linear_centre=tuple(centre), success=bool(ls.success),
+        message=str(ls.message))

@@ -1,0 +1,63 @@
+"""Photons to DN for one lens region of the raw mosaic.
+
+DN = bias + offset FPN (ADU) + K * offset FPN (e-) + frame offset
+     + response(K * (Poisson(photo-electrons + dark electrons)))
+     + K * read noise (e-) * N(0, 1),
+rounded and clipped to the 14-bit range, with K = conversion gain at ISO 100
+times ISO/100 times the effects' gain factor (Larouche et al. 2024, Eq. 1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.camera import SensorParams
+from pipeline.effects.base import Effect
+
+
+@dataclass
+class StaticPattern:
+    """Per-pixel offsets that do not change between frames (one lens)."""
+
+    offset_fpn_dn: np.ndarray   # ADU
+    offset_fpn_e: np.ndarray    # electrons
+
+
+def draw_static_pattern(rng: np.random.Generator, shape, sensor: SensorParams) -> StaticPattern:
+    return StaticPattern(
+        offset_fpn_dn=(sensor.offset_fpn_dn * rng.standard_normal(shape)).astype(np.float32),
+        offset_fpn_e=(sensor.offset_fpn_e * rng.standard_normal(shape)).astype(np.float32),
+    )
+
+
+def expose(rng: np.random.Generator, *, lens: str, photo_rate_e_per_s, exposure_s: float,
+           iso: float, sensor: SensorParams, pattern: StaticPattern, effects: list[Effect],
+           frame_offset_dn: float, shape) -> np.ndarray:
+    """One exposure of one lens: uint16 raw mosaic of ``shape``.
+
+    ``photo_rate_e_per_s`` is the photo-electron rate per raw pixel (array or 0).
+    ``frame_offset_dn`` is the black-level shift of the whole frame (bias drift),
+    drawn once per frame by the caller so that both lenses share it.
+    """
+    t_true = exposure_s
+    gain_factor = 1.0
+    dark_rate = 0.0
+    for effect in effects:
+        t_true = effect.true_exposure_s(t_true)
+        gain_factor *= effect.gain_factor(iso)
+        dark_rate = dark_rate + effect.dark_rate_e_per_s(lens, shape)
+    k = sensor.conversion_gain(iso) * gain_factor
+    # Light reaches the sensor only while the shutter is open (t_true); dark
+    # current accumulates over the nominal integration.
+    mean_e = np.asarray(photo_rate_e_per_s, dtype=np.float64) * t_true + np.asarray(dark_rate) * exposure_s
+    mean_e = np.broadcast_to(mean_e, shape)
+    electrons = rng.poisson(mean_e).astype(np.float64)
+    signal_dn = k * electrons
+    full_scale = sensor.adc_max_dn - sensor.bias_dn
+    for effect in effects:
+        signal_dn = effect.response_dn(signal_dn, full_scale)
+    dn = (sensor.bias_dn + frame_offset_dn + pattern.offset_fpn_dn + k * pattern.offset_fpn_e
+          + signal_dn + k * sensor.read_noise_e * rng.standard_normal(shape))
+    return np.clip(np.rint(dn), 0, sensor.adc_max_dn).astype(np.uint16)

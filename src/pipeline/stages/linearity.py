@@ -1,0 +1,340 @@
+"""Linearity stage (Larouche et al. 2024, Sections 2.2 and 3.1; Figs. 2 and 3).
+
+Streams the exposure-time and gain sweeps once and reduces them to:
+
+* per-pixel Pearson r maps of single frames against exposure time and gain
+  (Fig. 2), saturated samples left out;
+* the mean dark-corrected DN in a small mask around the optical axis against
+  exposure time and gain, with ordinary regressions and 95 % intervals
+  (Fig. 3) and the nonlinearity residuals in percent;
+* the saturation level;
+* the photon-transfer curve: temporal variance against mean signal gives the
+  conversion gain (DN per electron, and electrons per DN) and the read noise
+  in electrons;
+* the model fitted to one value per setting: ``y = rate * gain * t`` per lens,
+  band and sweep, plus the effects of ``model.effects`` (``shutter_offset``,
+  ``nonlinearity``, ``iso_gain``; ``hot_pixels`` and ``bias_drift`` correct the
+  data), with predictions and noise-normalised residuals.
+
+The mask is centred on the lit image circle, whose radius stands for the
+nominal half field of view (equidistant projection).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from pipeline.camera import BANDS
+from pipeline.dataset import Dataset
+from pipeline.effects import get as get_effect
+from pipeline.effects.catalogue import drift_sigma
+from pipeline.fitting import base_design, ols_line, wls
+from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
+from pipeline.moments import RunningMoments, RunningPearson, corner_mask, radius_map
+from pipeline.stages.dark import dark_level_dn, table_to_dataset
+
+STAGE = "linearity"
+#: linear-model effects this stage fits as columns (others correct the data)
+COLUMN_EFFECTS = ("shutter_offset", "nonlinearity", "iso_gain")
+
+
+def image_circle(image: np.ndarray, threshold_fraction: float) -> tuple[float, float, float]:
+    """Centre (x, y) and radius of the lit disc: centroid and equal-area radius above a threshold."""
+    level = np.percentile(image, 99.5)
+    floor = np.percentile(image, 1.0)
+    lit = image > floor + threshold_fraction * (level - floor)
+    y, x = np.nonzero(lit)
+    return float(x.mean()), float(y.mean()), float(np.sqrt(lit.sum() / np.pi))
+
+
+def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict, effects: list[str],
+                     progress: bool = False) -> dict:
+    """Stream the linearity frames of every lens; one decode per frame."""
+    cfg = config["linearity"]
+    frames = dataset.frames(STAGE)
+    frames = frames[frames["kind"] == "signal"]
+    corner_fraction = config["bias"]["corner_min_radius_fraction"]
+    use_hot = "hot_pixels" in effects
+    masks, corners = {}, {}
+    moments = defaultdict(RunningMoments)     # (lens, band, sweep, setting) -> moments of mask pixels
+    pearson = defaultdict(RunningPearson)     # (lens, band, sweep) -> per-pixel r
+    first_of_setting = set()
+    frame_rows, inputs, geometry = [], {}, {}
+    max_raw = 0.0
+    white = None
+    for i, dec in enumerate(iter_frames(dataset, STAGE, frames,
+                                        saturation_margin_dn=cfg["saturation_margin_dn"], progress=progress)):
+        row = dec.row
+        inputs[row["file"]] = dec.raw.sha256
+        white = dec.raw.white_level
+        lenses = list(dataset.lenses) if row["lens"] == "both" else [row["lens"]]
+        key = (float(dec.raw.iso), round(float(dec.raw.exposure_s), 9))
+        sweep = row["sweep"]
+        for lens in lenses:
+            images = dec.lenses[lens]
+            if lens not in masks:
+                g = images.bands["G"]
+                cx, cy, radius = image_circle(g, cfg["lit_threshold_fraction"])
+                r_mask = radius * cfg["mask_half_angle_deg"] / cfg["nominal_half_fov_deg"]
+                mask = radius_map(g.shape, (cx, cy)) <= r_mask
+                geometry[lens] = (cx, cy, radius, r_mask)
+                masks[lens] = {}
+                for band in BANDS:
+                    m = mask.copy()
+                    if use_hot:
+                        m &= dark[lens]["hot_pixel_mask"].sel(band=band).values == 0
+                    masks[lens][band] = m
+                corners[lens] = corner_mask(g.shape, corner_fraction)
+            max_raw = max(max_raw, float(dec.raw.cfa.max()))
+            first = (lens, sweep, key) not in first_of_setting
+            first_of_setting.add((lens, sweep, key))
+            for band in BANDS:
+                img = images.bands[band]
+                m = masks[lens][band]
+                moments[(lens, band, sweep, key)].add(img[m])
+                if first:
+                    x = key[1] if sweep == "exposure" else key[0] / 100.0
+                    pearson[(lens, band, sweep)].add(x, img, ~images.saturated[band])
+                frame_rows.append({
+                    "lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
+                    "file_index": i, "mask_mean_dn": float(img[m].mean()),
+                    "corner_dn": float(img[corners[lens]].mean()),
+                    "saturated": bool(images.saturated[band][m].any()),
+                })
+    return {"moments": moments, "pearson": pearson, "frames": pd.DataFrame(frame_rows), "masks": masks,
+            "corners": corners, "geometry": geometry, "inputs": inputs, "max_raw_dn": max_raw,
+            "white_level_dn": white}
+
+
+def _fit_model(st: pd.DataFrame, effects: list[str]):
+    """Weighted fit of the setting table; linearised effect columns iterate on the prediction."""
+    used = st["used"].to_numpy()
+    y = st["value_dn"].to_numpy()
+    sig = st["sigma_dn"].to_numpy()
+    X, names = base_design(st)
+    fit = wls(y[used], sig[used], X[used])
+    coef_base = fit.coef
+    col_effects = [e for e in effects if e in COLUMN_EFFECTS]
+    extra = []
+    for _ in range(3):
+        pred_linear = X @ coef_base[: X.shape[1]]
+        st["pred_linear_dn"] = pred_linear
+        st["rate_dn_per_s"] = np.where(st["x_rate"] > 0, pred_linear / np.maximum(st["x_rate"], 1e-12), 0.0)
+        extra = [(e, get_effect(e).columns(STAGE, "setting", st)) for e in col_effects]
+        extra = [(e, c) for e, c in extra if c is not None]
+        if not extra:
+            break
+        Xfull = np.hstack([X] + [c for _, c in extra])
+        fit = wls(y[used], sig[used], Xfull[used])
+        coef_base = fit.coef
+    Xfull = np.hstack([X] + [c for _, c in extra]) if extra else X
+    pred = Xfull @ fit.coef
+    return fit, names, extra, pred
+
+
+def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
+                      effects: list[str]) -> dict[str, xr.Dataset]:
+    moments = reduced["moments"]
+    fr = reduced["frames"].copy()
+    use_drift = "bias_drift" in effects
+
+    # ----- dark correction of every frame value (dark model of the dark stage)
+    def dark_pred(row, what):
+        d = dark[row["lens"]]
+        level = dark_level_dn(d, row["band"], row["iso"], row["exposure_s"])
+        if what == "mask":
+            fpn = d["fpn_map_dn"].sel(band=row["band"]).values[reduced["masks"][row["lens"]][row["band"]]]
+        else:
+            fpn = d["fpn_map_dn"].sel(band=row["band"]).values[reduced["corners"][row["lens"]]]
+        return level + float(fpn.mean())
+
+    keys = fr[["lens", "band", "iso", "exposure_s"]].drop_duplicates()
+    keys["dark_mask_dn"] = keys.apply(dark_pred, axis=1, what="mask")
+    keys["dark_corner_dn"] = keys.apply(dark_pred, axis=1, what="corner")
+    fr = fr.merge(keys, on=["lens", "band", "iso", "exposure_s"])
+    fr["setting"] = fr.groupby(["sweep", "iso", "exposure_s"], sort=True).ngroup()
+    fr["corner_dev_dn"] = fr["corner_dn"] - fr.groupby(["lens", "band", "sweep", "setting"])["corner_dn"].transform("mean")
+    fr["value_dn"] = fr["mask_mean_dn"] - fr["dark_mask_dn"]
+    if use_drift:
+        # the unlit corners measure each frame's black level (Section 3.7)
+        fr["value_dn"] -= fr["corner_dn"] - fr["dark_corner_dn"]
+
+    var_rows = []
+    for (lens, band, sweep, key), mom in moments.items():
+        var_rows.append({"lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
+                         "n_frames": mom.n, "n_mask": int(mom.s1.size),
+                         "pixel_var_dn2": float(mom.variance().mean())})
+    var = pd.DataFrame(var_rows)
+    fr = fr.merge(var, on=["lens", "band", "sweep", "iso", "exposure_s"])
+    n_corner = {lens: int(c.sum()) for lens, c in reduced["corners"].items()}
+    # temporal noise of an unlit band pixel: the dark stage's read noise at that ISO
+    read_dn = fr.apply(lambda r: float(dark[r["lens"]]["read_noise_dn"].sel(band=r["band"]).sel(
+        iso=r["iso"], method="nearest")), axis=1)
+    fr["sigma_corner_dn"] = read_dn / np.sqrt(fr["band"].map(SITES_PER_BAND_PIXEL) * fr["lens"].map(n_corner))
+    drift = drift_sigma(fr) if use_drift else (0.0, 0.0, 0.0)
+    fr["sigma_dn"] = np.sqrt(np.maximum(fr["pixel_var_dn2"] - drift[0] ** 2, 1e-12) / fr["n_mask"])
+    if use_drift:
+        fr["sigma_dn"] = np.hypot(fr["sigma_dn"], fr["sigma_corner_dn"])
+    fr["gain"] = fr["iso"] / 100.0
+    fr["group"] = fr["lens"] + "/" + fr["band"] + "/" + fr["sweep"] + "/" + fr["setting"].astype(str)
+    fr["x_level"] = 1.0
+    # saturated frames carry no information on drift or noise: left out of the frame-level fit
+    ok = ~fr["saturated"].to_numpy()
+    ffit = wls(fr["value_dn"].to_numpy()[ok], fr["sigma_dn"].to_numpy()[ok], base_design(fr[ok])[0])
+    fr["pred_dn"] = np.nan
+    fr["z"] = np.nan
+    fr.loc[ok, "pred_dn"] = ffit.pred
+    fr.loc[ok, "z"] = ffit.z
+
+    # ----- setting table
+    st = fr.groupby(["lens", "band", "sweep", "setting", "iso", "exposure_s"]).agg(
+        value_dn=("value_dn", "mean"), frame_sigma=("sigma_dn", "mean"), n_frames=("n_frames", "first"),
+        pixel_var_dn2=("pixel_var_dn2", "first"), saturated=("saturated", "any"),
+        dark_mask_dn=("dark_mask_dn", "first")).reset_index()
+    st["gain"] = st["iso"] / 100.0
+    # with bias_drift in the model each frame is corrected against the dark level of the
+    # unlit corners, so no drift is left in the setting mean; without it the drift is
+    # unmodelled and not part of the expected noise
+    st["sigma_dn"] = st["frame_sigma"] / np.sqrt(st["n_frames"])
+    st["used"] = ~st["saturated"]
+    st["group"] = st["lens"] + "/" + st["band"] + "/" + st["sweep"]
+    st["x_rate"] = st["gain"] * st["exposure_s"]
+    saturation = reduced["max_raw_dn"] - float(st["dark_mask_dn"].min())
+    st["full_scale_dn"] = saturation
+    fit, names, extra, pred = _fit_model(st, effects)
+    st["pred_dn"] = pred
+    st["z"] = (st["value_dn"] - pred) / st["sigma_dn"]
+    st.loc[~st["used"], "z"] = np.nan
+
+    effect_params = {}
+    col = len(names)
+    for name, cols in extra:
+        k = cols.shape[1]
+        effect_params[name] = (fit.coef[col:col + k], np.sqrt(np.diag(fit.cov)[col:col + k]))
+        col += k
+
+    return {lens: _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift, saturation,
+                                dark[lens], effects)
+            for lens in reduced["geometry"]}
+
+
+def photon_transfer(st_l: pd.DataFrame, dark_ds: xr.Dataset) -> dict:
+    """Conversion gain and read noise from temporal variance against mean signal (Janesick 2007).
+
+    For one raw pixel: var = K * signal + read_var, with K in DN per electron.
+    The G band pixel averages two sites, so its variance is doubled first.
+    read_var comes from the dark stage (temporal noise at the shortest exposure,
+    the curve's zero-signal point); K is the weighted slope of the exposure
+    sweep, and for the gain sweep K at each ISO is (var - read_var(ISO)) / signal.
+    """
+    out = {}
+    rows = st_l[st_l["used"]].copy()
+    rows["site_var"] = rows["pixel_var_dn2"] * rows["band"].map(SITES_PER_BAND_PIXEL)
+    ex = rows[rows["sweep"] == "exposure"]
+    if len(ex) >= 2:
+        iso = float(ex["iso"].iloc[0])
+        # zero-signal point of the curve: the dark stage's temporal noise at this ISO
+        read_dn = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").mean())
+        read_dn_se = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").std())
+        y = ex["value_dn"].to_numpy()
+        v = ex["site_var"].to_numpy() - read_dn**2
+        # weighted fit through the origin; the spread of a variance estimate grows with it
+        w = 1.0 / np.maximum(ex["site_var"].to_numpy(), 1e-9) ** 2
+        k = float(np.sum(w * y * v) / np.sum(w * y * y))
+        resid = v - k * y
+        dof = max(len(y) - 1, 1)
+        k_se = float(np.sqrt(np.sum(w * resid**2) / dof / np.sum(w * y * y)))
+        out["conversion_gain_dn_per_e"] = (k, k_se)
+        out["gain_e_per_dn"] = (1.0 / k, k_se / k**2)
+        read_e = read_dn / k
+        out["read_noise_e"] = (read_e, read_e * np.hypot(read_dn_se / read_dn, k_se / k))
+        out["ptc_iso"] = iso
+    gs = rows[rows["sweep"] == "gain"]
+    per_iso = []
+    for iso, grp in gs.groupby("iso"):
+        rv = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").mean()) ** 2 if iso in dark_ds["iso"] else 0.0
+        per_iso.append((iso, float(((grp["site_var"] - rv) / grp["value_dn"]).mean())))
+    out["gain_sweep"] = per_iso
+    return out
+
+
+def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift, saturation, dark_ds,
+                  effects) -> xr.Dataset:
+    st_l = st[st["lens"] == lens].reset_index(drop=True)
+    fr_l = fr[fr["lens"] == lens].reset_index(drop=True)
+    cx, cy, radius, r_mask = reduced["geometry"][lens]
+    sweeps = ("exposure", "gain")
+    shape = reduced["masks"][lens]["G"].shape
+    rmap = np.full((len(sweeps), len(BANDS)) + shape, np.nan, dtype=np.float32)
+    slope = np.full((len(sweeps), len(BANDS), 2), np.nan)
+    intercept = np.full((len(sweeps), len(BANDS), 2), np.nan)
+    r_line = np.full((len(sweeps), len(BANDS)), np.nan)
+    rate = np.full((len(sweeps), len(BANDS), 2), np.nan)
+    for si, sweep in enumerate(sweeps):
+        for bi, band in enumerate(BANDS):
+            if (lens, band, sweep) in reduced["pearson"]:
+                rmap[si, bi] = reduced["pearson"][(lens, band, sweep)].r()
+            sel = st_l[(st_l["band"] == band) & (st_l["sweep"] == sweep) & st_l["used"]]
+            if len(sel) >= 3:
+                x = sel["exposure_s"] * 1e3 if sweep == "exposure" else sel["gain"]
+                line = ols_line(x, sel["value_dn"])
+                slope[si, bi] = line["slope"], line["slope_ci"]
+                intercept[si, bi] = line["intercept"], line["intercept_ci"]
+                r_line[si, bi] = line["r"]
+                st_l.loc[sel.index, "ols_pred_dn"] = line["slope"] * x + line["intercept"]
+            name = f"{lens}/{band}/{sweep}:rate"
+            if name in names:
+                k = names.index(name)
+                rate[si, bi] = fit.coef[k], np.sqrt(fit.cov[k, k])
+    if "ols_pred_dn" in st_l:
+        st_l["nonlinearity_pct"] = 100.0 * (st_l["value_dn"] - st_l["ols_pred_dn"]) / st_l["ols_pred_dn"]
+    ptc = photon_transfer(st_l, dark_ds)
+    nan2 = (np.nan, np.nan)
+    data = {
+        "pearson_r": (("sweep", "band", "y", "x"), rmap,
+                      {"long_name": "per-pixel Pearson r of single frames against exposure time or gain (Fig. 2)", "units": "1"}),
+        "line_slope": (("sweep", "band"), slope[..., 0],
+                       {"long_name": "regression slope of mean dark-corrected DN (per ms, or per unit ISO/100)", "units": "DN ms-1 | DN"}),
+        "line_slope_ci95": (("sweep", "band"), slope[..., 1], {"long_name": "95 % half-interval of line_slope", "units": "as line_slope"}),
+        "line_intercept_dn": (("sweep", "band"), intercept[..., 0], {"long_name": "regression intercept", "units": "DN"}),
+        "line_intercept_ci95_dn": (("sweep", "band"), intercept[..., 1], {"long_name": "95 % half-interval of the intercept", "units": "DN"}),
+        "line_r": (("sweep", "band"), r_line, {"long_name": "Pearson r of the mask means (Fig. 3)", "units": "1"}),
+        "rate_dn_per_s": (("sweep", "band"), rate[..., 0],
+                          {"long_name": "model slope: dark-corrected DN per second at ISO 100", "units": "DN s-1"}),
+        "rate_dn_per_s_sigma": (("sweep", "band"), rate[..., 1], {"long_name": "standard error of rate_dn_per_s", "units": "DN s-1"}),
+        "saturation_dn": ((), saturation, {"long_name": "saturation level above the dark level", "units": "DN",
+                                          "reached": int(reduced["max_raw_dn"] >= reduced["white_level_dn"] - 1)}),
+        "conversion_gain_dn_per_e": ((), ptc.get("conversion_gain_dn_per_e", nan2)[0],
+                                     {"long_name": "photon-transfer conversion gain at the exposure-sweep ISO", "units": "DN/electron"}),
+        "conversion_gain_dn_per_e_sigma": ((), ptc.get("conversion_gain_dn_per_e", nan2)[1], {"units": "DN/electron"}),
+        "gain_e_per_dn": ((), ptc.get("gain_e_per_dn", nan2)[0], {"long_name": "electrons per DN at the exposure-sweep ISO", "units": "electron/DN"}),
+        "gain_e_per_dn_sigma": ((), ptc.get("gain_e_per_dn", nan2)[1], {"units": "electron/DN"}),
+        "read_noise_e": ((), ptc.get("read_noise_e", nan2)[0], {"long_name": "read noise from the photon-transfer intercept", "units": "electron"}),
+        "read_noise_e_sigma": ((), ptc.get("read_noise_e", nan2)[1], {"units": "electron"}),
+        "mask_centre_x_px": ((), cx, {"long_name": "mask centre (band image column)", "units": "pixel"}),
+        "mask_centre_y_px": ((), cy, {"long_name": "mask centre (band image row)", "units": "pixel"}),
+        "image_circle_radius_px": ((), radius, {"long_name": "radius of the lit image circle", "units": "pixel"}),
+        "mask_radius_px": ((), r_mask, {"long_name": "radius of the averaging mask", "units": "pixel"}),
+        "bias_drift_dn": ((), drift[0], {"long_name": "frame-to-frame black-level spread (0 when not in the model)", "units": "DN"}),
+        "rms_z": ((), np.sqrt((np.nansum(st["z"] ** 2) + ffit.chi2) / max(fit.dof + ffit.dof, 1)),
+                  {"long_name": "RMS of the noise-normalised residuals of the linearity model (1 at the noise floor)", "units": "1"}),
+    }
+    for name, (coef, se) in effect_params.items():
+        data[f"effect_{name}"] = (f"{name}_param", coef, {"long_name": f"fitted parameter(s) of {name}", "units": get_effect(name).amplitude_units})
+        data[f"effect_{name}_sigma"] = (f"{name}_param", se, {"units": get_effect(name).amplitude_units})
+        if name == "iso_gain":
+            data[f"effect_{name}_iso"] = (f"{name}_param", np.array(get_effect(name).isos_fitted(st)), {"units": "1"})
+    if ptc.get("gain_sweep"):
+        isos, kk = zip(*ptc["gain_sweep"])
+        data["ptc_gain_sweep_conversion_gain_dn_per_e"] = ("ptc_iso", np.array(kk),
+                                                          {"long_name": "conversion gain at each ISO of the gain sweep", "units": "DN/electron"})
+        data["ptc_iso"] = ("ptc_iso", np.array(isos), {"units": "1"})
+    ds = xr.Dataset(data, coords={"sweep": list(sweeps), "band": list(BANDS)})
+    st_store = st_l.drop(columns=[c for c in ("used",) if c in st_l]).assign(used=st_l["used"].astype(int),
+                                                                           saturated=st_l["saturated"].astype(int))
+    fr_store = fr_l.assign(saturated=fr_l["saturated"].astype(int), used=(~fr_l["saturated"]).astype(int))
+    return ds.merge(table_to_dataset(st_store, "obs_setting")).merge(table_to_dataset(fr_store, "obs_frame"))
