@@ -159,6 +159,9 @@ def simulate_dataset(out: str | Path, scale: str = "small", seed: int = 0,
     for path in (out, truth):
         if path.exists():
             raise InputError(path, "already exists; the simulator never overwrites a folder (remove it or choose --out)")
+    unknown = [e for e in experiments if e not in EXPERIMENTS]
+    if unknown:
+        raise InputError(None, f"the simulator does not write {', '.join(unknown)} yet; it writes {', '.join(EXPERIMENTS)}")
     sc = SCALES[scale]
     camera = Camera()
     effect_objs = [get_effect(name, **params) for name, params in effects]

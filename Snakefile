@@ -1,0 +1,27 @@
+# Calibration workflow of a RAW camera as a radiometer (Larouche et al. 2024).
+# Each calibration experiment is a rule that writes one versioned NetCDF
+# artefact per lens; diagnostics and the report come last.
+
+from snakemake.utils import min_version, validate
+
+min_version("8.0")
+
+
+configfile: "config/config.yaml"
+
+
+validate(config, "config/schema.yaml")
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/dataset.smk"
+include: "workflow/rules/dark.smk"
+include: "workflow/rules/linearity.smk"
+include: "workflow/rules/diagnostics.smk"
+include: "workflow/rules/report.smk"
+
+
+rule all:
+    input:
+        "results/report/index.html",
+    default_target: True

@@ -1,0 +1,147 @@
+"""Image circle of a fisheye lens and the half field of view it implies.
+
+Method (after Section 3.2 of Larouche et al. 2024, which used Canny edges and
+a circular Hough transform from scikit-image): block-average the image down
+to about ``coarse_size`` pixels, Canny edges, circular Hough transform for a
+first centre and radius; then, at full resolution, the edge is located along
+many radial profiles as the sub-pixel crossing of the level half-way between
+the inside and the outside, and a least-squares (algebraic, then geometric)
+circle fit of those points gives the centre and radius. The half FOV is the
+model's theta at that radius, averaged over azimuths.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import map_coordinates
+from scipy.optimize import least_squares
+
+from .scaramuzza import FisheyeModel
+
+#: Short side (pixels) of the image the coarse Hough search runs on.
+COARSE_SIZE_PX = 128
+#: Number of radial profiles used to locate the edge at full resolution.
+N_PROFILES = 360
+
+
+@dataclass
+class ImageCircle:
+    """Circle centre (u, v) and radius in pixels (pixel centres at integers)."""
+
+    xc: float
+    yc: float
+    radius: float
+    rms_px: float        # RMS distance of the edge points from the fitted circle
+    n_points: int
+
+
+def render_flat_field(model: FisheyeModel, *, half_fov_deg: float | None = None,
+                      level: float = 1.0, outside: float = 0.0, supersample: int = 4) -> np.ndarray:
+    """A bright, uniformly lit band image: ``level`` inside theta <= half FOV, else ``outside``.
+
+    Each pixel is the mean over supersample x supersample sub-pixels.
+    """
+    rows, cols = model.shape
+    hf = model.half_fov_deg if half_fov_deg is None else half_fov_deg
+    ss = int(supersample)
+    offs = (np.arange(ss) + 0.5) / ss - 0.5
+    u = (np.arange(cols)[:, None] + offs).ravel()
+    v = (np.arange(rows)[:, None] + offs).ravel()
+    img = np.empty((rows, cols))
+    step = max(1, 2_000_000 // (cols * ss * ss))
+    for r0 in range(0, rows, step):
+        r1 = min(rows, r0 + step)
+        uu, vv = np.meshgrid(u, v[r0 * ss:r1 * ss])
+        theta, _ = model.theta_phi(uu, vv)
+        val = np.where(theta <= hf, level, outside)
+        img[r0:r1] = val.reshape(r1 - r0, ss, cols, ss).mean(axis=(1, 3))
+    return img
+
+
+def _block_mean(img, k):
+    h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
+    return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3))
+
+
+def _coarse_circle(img):
+    from skimage.feature import canny
+    from skimage.transform import hough_circle, hough_circle_peaks
+
+    k = max(1, int(min(img.shape) // COARSE_SIZE_PX))
+    small = _block_mean(img, k)
+    lo, hi = np.percentile(small, [1, 99])
+    small = (small - lo) / max(hi - lo, 1e-12)
+    edges = canny(small, sigma=1.5)
+    if edges.sum() < 10:
+        raise ValueError("no edges found: is the image bright inside the circle?")
+    rmin = int(0.2 * min(small.shape))
+    rmax = int(0.75 * max(small.shape))
+    radii = np.arange(rmin, rmax + 1)
+    acc = hough_circle(edges, radii)
+    _, cx, cy, r = hough_circle_peaks(acc, radii, total_num_peaks=1)
+    # Coarse pixel centres: fine coordinate = k * coarse + (k - 1) / 2.
+    return k * cx[0] + (k - 1) / 2.0, k * cy[0] + (k - 1) / 2.0, k * float(r[0]), k
+
+
+def _fit_circle(x, y):
+    """Algebraic (Kasa) fit then geometric least squares; returns xc, yc, r, rms."""
+    A = np.stack([x, y, np.ones_like(x)], axis=1)
+    b = x**2 + y**2
+    (p, q, s), *_ = np.linalg.lstsq(A, b, rcond=None)
+    xc, yc = p / 2, q / 2
+    r = np.sqrt(s + xc**2 + yc**2)
+
+    def res(par):
+        return np.hypot(x - par[0], y - par[1]) - par[2]
+
+    sol = least_squares(res, [xc, yc, r], loss="soft_l1", f_scale=1.0)
+    rms = float(np.sqrt(np.mean(sol.fun**2)))
+    return float(sol.x[0]), float(sol.x[1]), float(sol.x[2]), rms
+
+
+def find_image_circle(image, *, n_profiles: int = N_PROFILES, window_frac: float = 0.08) -> ImageCircle:
+    """Centre and radius (pixels) of the bright image circle in a band image.
+
+    ``image`` may be one frame or the maximum over frames. ``window_frac``
+    is the half-length of each radial profile as a fraction of the coarse
+    radius.
+    """
+    img = np.asarray(image, dtype=float)
+    cx, cy, r0, k = _coarse_circle(img)
+    half = max(3.0 * k, window_frac * r0)
+    s = np.linspace(r0 - half, r0 + half, int(4 * 2 * half) + 1)  # 0.25 px steps
+    az = np.linspace(0, 2 * np.pi, n_profiles, endpoint=False)
+    xs = cx + np.cos(az)[:, None] * s[None, :]
+    ys = cy + np.sin(az)[:, None] * s[None, :]
+    prof = map_coordinates(img, [ys, xs], order=1, mode="nearest")
+    inside = np.median(prof[:, : len(s) // 8], axis=1)
+    outside = np.median(prof[:, -len(s) // 8:], axis=1)
+    level = 0.5 * (inside + outside)
+    pts_x, pts_y = [], []
+    for i in range(n_profiles):
+        if inside[i] - outside[i] <= 0.2 * np.median(inside - outside):
+            continue
+        above = prof[i] >= level[i]
+        # Last sample (going outwards) above the level, then linear interpolation.
+        idx = np.nonzero(above[:-1] & ~above[1:])[0]
+        if idx.size == 0:
+            continue
+        j = idx[-1]
+        f0, f1 = prof[i, j] - level[i], prof[i, j + 1] - level[i]
+        rr = s[j] + (s[j + 1] - s[j]) * f0 / (f0 - f1)
+        pts_x.append(cx + np.cos(az[i]) * rr)
+        pts_y.append(cy + np.sin(az[i]) * rr)
+    if len(pts_x) < 10:
+        raise ValueError("too few edge points to fit the image circle")
+    xc, yc, r, rms = _fit_circle(np.array(pts_x), np.array(pts_y))
+    return ImageCircle(xc, yc, r, rms, len(pts_x))
+
+
+def half_fov_from_circle(model: FisheyeModel, circle: ImageCircle, n_azimuths: int = 36) -> float:
+    """Half field of view (degrees): model theta on the circle, averaged over azimuths."""
+    az = np.linspace(0, 2 * np.pi, n_azimuths, endpoint=False)
+    theta, _ = model.theta_phi(circle.xc + circle.radius * np.cos(az),
+                               circle.yc + circle.radius * np.sin(az))
+    return float(np.mean(theta))

@@ -1,0 +1,125 @@
+"""What the Snakemake rules need from the package: dataset index, params, script entry point."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+from pipeline.dataset import Dataset, open_dataset
+from pipeline.errors import InputError
+from pipeline.rawio import read_tags
+
+#: experiments each stage reads (a stage runs only when all are present)
+STAGE_EXPERIMENTS = {"dark": ("dark",), "linearity": ("linearity", "dark")}
+#: config sections each rule depends on (its params rerun trigger)
+STAGE_SECTIONS = {
+    "dark": ("model", "bias", "dark"),
+    "linearity": ("model", "bias", "linearity"),
+    "diagnostics": ("model", "diagnostics"),
+}
+REQUIRED_TAGS = {"exposure_s": "ExposureTime", "iso": "ISOSpeedRatings", "time": "DateTimeOriginal"}
+
+
+def stage_params(config: dict, stage: str) -> dict:
+    """The subset of the configuration a rule uses, so that its params trigger reruns precisely."""
+    return {key: config[key] for key in STAGE_SECTIONS[stage]}
+
+
+class DatasetIndex:
+    """A dataset validated once per workflow run: layout, checksums list, frames.csv and tags."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        self.dataset: Dataset | None = None
+
+    def load(self) -> "DatasetIndex":
+        if self.dataset is None:
+            dataset = open_dataset(self.root)
+            for experiment in dataset.experiments():
+                for path in dataset.raw_files(experiment):
+                    tags = read_tags(path)
+                    for key, name in REQUIRED_TAGS.items():
+                        if tags.get(key) in (None, 0, 0.0):
+                            raise InputError(path, f"{name} tag is missing or zero")
+            self.dataset = dataset
+        return self
+
+    def lenses(self) -> list[str]:
+        return list(self.load().dataset.lenses)
+
+    def stage_runnable(self, stage: str) -> bool:
+        present = set(self.load().dataset.experiments())
+        return all(exp in present for exp in STAGE_EXPERIMENTS[stage])
+
+    def skipped(self) -> dict[str, str]:
+        present = set(self.load().dataset.experiments())
+        out = {}
+        for stage, needs in STAGE_EXPERIMENTS.items():
+            missing = [e for e in needs if e not in present]
+            if missing:
+                out[stage] = f"the dataset has no {', '.join(m + '/' for m in missing)} folder"
+        for exp in ("geometry", "rolloff", "spectral", "absolute", "immersion", "field"):
+            if exp not in present:
+                out.setdefault(exp, f"the dataset has no {exp}/ folder")
+            else:
+                out.setdefault(exp, f"{exp}/ is present but this version of the pipeline has no {exp} stage yet")
+        return out
+
+    def experiment_files(self, experiment: str) -> list[str]:
+        dataset = self.load().dataset
+        if experiment not in dataset.experiments():
+            return []
+        return [str(dataset.root / experiment / "frames.csv")] + [str(p) for p in dataset.raw_files(experiment)]
+
+
+def _setup_log(path: str | None) -> None:
+    handlers = [logging.StreamHandler(sys.stderr)]
+    if path:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        handlers.append(logging.FileHandler(path, mode="w"))
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s", handlers=handlers,
+                        force=True)
+
+
+def run_stage_script(smk, stage: str) -> None:
+    """Entry point of the thin workflow scripts: unpack ``snakemake`` and call the package.
+
+    Bad input ends the job with one line naming the file and the problem.
+    """
+    from pipeline import stage_io
+
+    log = smk.log[0] if smk.log else None
+    _setup_log(log)
+    try:
+        if stage == "simulate_dataset":
+            from pipeline.cli import simulate_from_config
+
+            simulate_from_config(smk.output.dataset, smk.params.simulation)
+        elif stage == "dark":
+            stage_io.run_dark(smk.params.dataset, smk.params.config,
+                              dict(zip(smk.params.lenses, smk.output.artefacts)))
+        elif stage == "linearity":
+            stage_io.run_linearity(smk.params.dataset, smk.params.config,
+                                   dict(zip(smk.params.lenses, smk.input.dark)),
+                                   dict(zip(smk.params.lenses, smk.output.artefacts)))
+        elif stage == "diagnostics":
+            artefacts = {k: list(smk.input[k]) for k in ("dark", "linearity") if k in smk.input.keys()}
+            stage_io.run_diagnostics(artefacts, smk.params.config, smk.output.missing_effects,
+                                     smk.output.unexplained, smk.output.run_errors, smk.params.error_history)
+        elif stage == "report":
+            from pipeline.report import build_report
+
+            def by_lens(key):
+                return dict(zip(smk.params.lenses, smk.input[key])) if key in smk.input.keys() else {}
+
+            build_report(dark=by_lens("dark"), linearity=by_lens("linearity"),
+                         missing_effects=smk.input.missing_effects, unexplained=smk.input.unexplained,
+                         run_errors=smk.input.run_errors, error_history=smk.params.error_history,
+                         out_html=smk.output.html, skipped=smk.params.skipped)
+        else:
+            raise ValueError(f"unknown stage {stage}")
+    except InputError as exc:
+        logging.getLogger("pipeline").error("%s", exc)
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(1)

@@ -1,0 +1,16 @@
+# The default dataset is simulated when the configured folder does not exist.
+# The rule is defined only then, so a user's dataset is never touched.
+
+if SIMULATE:
+
+    checkpoint simulate_dataset:
+        output:
+            dataset=directory(config["dataset"]),
+        params:
+            simulation=config["simulate_if_missing"],
+        log:
+            "results/logs/simulate_dataset.log",
+        benchmark:
+            "results/benchmarks/simulate_dataset.tsv"
+        script:
+            "../scripts/simulate_dataset.py"
