@@ -206,17 +206,17 @@ def _linear_error(frames, centre, degree, r_norm, shape, L):
         return np.inf, None
     b, poses = out
     model = FisheyeModel(_b_to_poly(b, degree, r_norm), centre[0], centre[1], shape=shape)
-    err2 = []
-    for (uv, XY), (R, t) in zip(frames, poses):
-        XYZ = np.concatenate([XY, np.zeros((len(XY), 1))], axis=1)
-        p = _project(model, R, t * L, XYZ * L)
-        e = np.sum((p - uv) ** 2, axis=1)
-        err2.append(np.where(np.isfinite(e), e, _UNPROJECTABLE_PX**2))
-    return float(np.sqrt(np.mean(np.concatenate(err2)))), (b, poses)
+    cam = np.concatenate([np.concatenate([XY, np.zeros((len(XY), 1))], axis=1) @ R.T + t
+                          for (_, XY), (R, t) in zip(frames, poses)])
+    uv = np.concatenate([uv for uv, _ in frames])
+    u, v = model.world2cam(cam)
+    e = (u - uv[:, 0]) ** 2 + (v - uv[:, 1]) ** 2
+    e = np.where(np.isfinite(e), e, _UNPROJECTABLE_PX**2)
+    return float(np.sqrt(np.mean(e))), (b, poses)
 
 
 def search_centre(frames, shape, degree, r_norm, L, *, half_width_frac: float = 0.1,
-                  n_grid: int = 7, n_levels: int = 4):
+                  n_grid: int = 5, n_levels: int = 4):
     """Grid search of the principal point minimising the linear solution's error."""
     h, w = shape
     best = ((w - 1) / 2.0, (h - 1) / 2.0)
@@ -229,7 +229,7 @@ def search_centre(frames, shape, degree, r_norm, L, *, half_width_frac: float = 
                 err, sol = _linear_error(frames, (cx, cy), degree, r_norm, shape, L)
                 if err < best_err:
                     best, best_err, best_sol = (cx, cy), err, sol
-        half *= 2.5 / (n_grid - 1)
+        half *= 3.0 / (n_grid - 1)
     return best, best_err, best_sol
 
 
@@ -280,20 +280,29 @@ def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev):
         r = np.stack([u - uv_all[:, 0], v - uv_all[:, 1]], axis=1)
         return np.nan_to_num(r, nan=_UNPROJECTABLE_PX).ravel()
 
-    n_res = 2 * len(uv_all)
-    sparsity = lil_matrix((n_res, len(x0)), dtype=int)
-    sparsity[:, :n_intr] = 1
-    row = 0
-    for i, n in enumerate(counts):
-        sparsity[row:row + 2 * n, n_intr + 6 * i:n_intr + 6 * i + 6] = 1
-        row += 2 * n
-    import os
-    if os.environ.get("GEOM_LM"):
-        sol = least_squares(residuals, x0, x_scale="jac", method="lm", max_nfev=max_nfev*len(x0), xtol=1e-10, ftol=1e-10)
-    else:
-        sol = least_squares(residuals, x0, jac_sparsity=sparsity, x_scale="jac",
-                        method="trf", max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
-    print("nfev", sol.nfev, sol.njev, sol.cost)
+    def jacobian(x):
+        # Central differences, grouped: a pose parameter of every frame is
+        # perturbed at once (each frame's residuals depend on its pose only).
+        J = np.zeros((2 * len(uv_all), len(x)))
+        rows_of_frame = np.repeat(frame_of_pt, 2)
+        for j in range(n_intr):
+            h = 1e-6 * max(1.0, abs(x[j]))
+            xp, xm = x.copy(), x.copy()
+            xp[j] += h
+            xm[j] -= h
+            J[:, j] = (residuals(xp) - residuals(xm)) / (2 * h)
+        for k in range(6):
+            cols = n_intr + 6 * np.arange(n_f) + k
+            h = 1e-6 * np.maximum(1.0, np.abs(x[cols]))
+            xp, xm = x.copy(), x.copy()
+            xp[cols] += h
+            xm[cols] -= h
+            d = (residuals(xp) - residuals(xm)) / (2 * h[rows_of_frame])
+            J[np.arange(len(d)), cols[rows_of_frame]] = d
+        return J
+
+    sol = least_squares(residuals, x0, jac=jacobian, method="lm", x_scale="jac",
+                        max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
     model, pose, _ = _unpack(sol.x, n_f, degree, r_norm, shape, stretch)
     res = sol.fun.reshape(-1, 2)
     poses = [(_rodrigues(p[:3])[0], p[3:].copy()) for p in pose]

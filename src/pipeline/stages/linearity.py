@@ -59,7 +59,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
     frames = frames[frames["kind"] == "signal"]
     corner_fraction = config["bias"]["corner_min_radius_fraction"]
     use_hot = "hot_pixels" in effects
-    masks, corners = {}, {}
+    masks, corners, ptc = {}, {}, {}
     moments = defaultdict(RunningMoments)     # (lens, band, sweep, setting) -> moments of mask pixels
     pearson = defaultdict(RunningPearson)     # (lens, band, sweep) -> per-pixel r
     first_of_setting = set()
@@ -80,14 +80,21 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                 g = images.bands["G"]
                 cx, cy, radius = image_circle(g, cfg["lit_threshold_fraction"])
                 r_mask = radius * cfg["mask_half_angle_deg"] / cfg["nominal_half_fov_deg"]
-                mask = radius_map(g.shape, (cx, cy)) <= r_mask
+                rmap = radius_map(g.shape, (cx, cy))
+                mask = rmap <= r_mask
+                ptc_region = rmap <= radius * cfg["ptc_half_angle_deg"] / cfg["nominal_half_fov_deg"]
                 geometry[lens] = (cx, cy, radius, r_mask)
-                masks[lens] = {}
+                masks[lens], ptc[lens] = {}, {}
                 for band in BANDS:
                     m = mask.copy()
+                    p = ptc_region.copy()
                     if use_hot:
-                        m &= dark[lens]["hot_pixel_mask"].sel(band=band).values == 0
+                        good = dark[lens]["hot_pixel_mask"].sel(band=band).values == 0
+                        m &= good
+                        p &= good
                     masks[lens][band] = m
+                    # the mask's pixels within the photon-transfer region, to split its moments
+                    ptc[lens][band] = (p, m[p])
                 corners[lens] = corner_mask(g.shape, corner_fraction)
             max_raw = max(max_raw, float(dec.raw.cfa.max()))
             first = (lens, sweep, key) not in first_of_setting
@@ -95,7 +102,8 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
             for band in BANDS:
                 img = images.bands[band]
                 m = masks[lens][band]
-                moments[(lens, band, sweep, key)].add(img[m])
+                region, _ = ptc[lens][band]
+                moments[(lens, band, sweep, key)].add(img[region])
                 if first:
                     x = key[1] if sweep == "exposure" else key[0] / 100.0
                     pearson[(lens, band, sweep)].add(x, img, ~images.saturated[band])
@@ -106,7 +114,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     "saturated": bool(images.saturated[band][m].any()),
                 })
     return {"moments": moments, "pearson": pearson, "frames": pd.DataFrame(frame_rows), "masks": masks,
-            "corners": corners, "geometry": geometry, "inputs": inputs, "max_raw_dn": max_raw,
+            "corners": corners, "geometry": geometry, "ptc": ptc, "inputs": inputs, "max_raw_dn": max_raw,
             "white_level_dn": white}
 
 
@@ -165,9 +173,12 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
 
     var_rows = []
     for (lens, band, sweep, key), mom in moments.items():
+        in_mask = reduced["ptc"][lens][band][1]
+        v = mom.variance()
         var_rows.append({"lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
-                         "n_frames": mom.n, "n_mask": int(mom.s1.size),
-                         "pixel_var_dn2": float(mom.variance().mean())})
+                         "n_frames": mom.n, "n_mask": int(in_mask.sum()),
+                         "pixel_var_dn2": float(v[in_mask].mean()),
+                         "ptc_var_dn2": float(v.mean()), "ptc_mean_dn": float(mom.mean().mean())})
     var = pd.DataFrame(var_rows)
     fr = fr.merge(var, on=["lens", "band", "sweep", "iso", "exposure_s"])
     n_corner = {lens: int(c.sum()) for lens, c in reduced["corners"].items()}
@@ -193,7 +204,8 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     # ----- setting table
     st = fr.groupby(["lens", "band", "sweep", "setting", "iso", "exposure_s"]).agg(
         value_dn=("value_dn", "mean"), frame_sigma=("sigma_dn", "mean"), n_frames=("n_frames", "first"),
-        pixel_var_dn2=("pixel_var_dn2", "first"), saturated=("saturated", "any"),
+        pixel_var_dn2=("pixel_var_dn2", "first"), ptc_var_dn2=("ptc_var_dn2", "first"),
+        ptc_mean_dn=("ptc_mean_dn", "first"), saturated=("saturated", "any"),
         dark_mask_dn=("dark_mask_dn", "first")).reset_index()
     st["gain"] = st["iso"] / 100.0
     # with bias_drift in the model each frame is corrected against the dark level of the
@@ -233,14 +245,16 @@ def photon_transfer(st_l: pd.DataFrame, dark_ds: xr.Dataset) -> dict:
     """
     out = {}
     rows = st_l[st_l["used"]].copy()
-    rows["site_var"] = rows["pixel_var_dn2"] * rows["band"].map(SITES_PER_BAND_PIXEL)
+    rows["site_var"] = rows["ptc_var_dn2"] * rows["band"].map(SITES_PER_BAND_PIXEL)
+    # mean dark-corrected signal over the photon-transfer region
+    rows["ptc_signal_dn"] = rows["ptc_mean_dn"] - rows["dark_mask_dn"]
     ex = rows[rows["sweep"] == "exposure"]
     if len(ex) >= 2:
         iso = float(ex["iso"].iloc[0])
         # zero-signal point of the curve: the dark stage's temporal noise at this ISO
         read_dn = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").mean())
         read_dn_se = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").std())
-        y = ex["value_dn"].to_numpy()
+        y = ex["ptc_signal_dn"].to_numpy()
         v = ex["site_var"].to_numpy() - read_dn**2
         # weighted fit through the origin; the spread of a variance estimate grows with it
         w = 1.0 / np.maximum(ex["site_var"].to_numpy(), 1e-9) ** 2
@@ -257,7 +271,7 @@ def photon_transfer(st_l: pd.DataFrame, dark_ds: xr.Dataset) -> dict:
     per_iso = []
     for iso, grp in gs.groupby("iso"):
         rv = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").mean()) ** 2 if iso in dark_ds["iso"] else 0.0
-        per_iso.append((iso, float(((grp["site_var"] - rv) / grp["value_dn"]).mean())))
+        per_iso.append((iso, float(((grp["site_var"] - rv) / grp["ptc_signal_dn"]).mean())))
     out["gain_sweep"] = per_iso
     return out
 

@@ -1,0 +1,826 @@
+"""One self-contained HTML report of a calibration run.
+
+:func:`build_report` reads the dark and linearity artefacts (NetCDF) and the
+diagnostics tables (CSV) and writes a single HTML file: figures are embedded
+as base64 PNG, the style sheet is inline and nothing is loaded from the
+network. Every number in the report is read from those inputs; the module
+holds no calibration values of its own.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import math
+import os
+from datetime import datetime, timezone
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pandas as pd  # noqa: E402
+import xarray as xr  # noqa: E402
+
+from pipeline.artefact import read_artefact  # noqa: E402
+from pipeline.stages.dark import dataset_to_table  # noqa: E402
+
+try:  # G band pixels average two photosites (see pipeline.stages.linearity.photon_transfer)
+    from pipeline.frames import SITES_PER_BAND_PIXEL
+except ImportError:  # pragma: no cover - keep the report usable if the constant moves
+    SITES_PER_BAND_PIXEL = {"R": 1, "G": 2, "B": 1}
+
+__all__ = ["build_report", "fmt_value", "fmt_uncertain"]
+
+BAND_COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue"}
+SWEEP_MARKERS = {"exposure": "o", "gain": "s"}
+
+CSS = """
+body{font-family:Georgia,'Times New Roman',serif;max-width:1100px;margin:2em auto;padding:0 1em;
+color:#222;line-height:1.45}
+h1,h2,h3{font-family:Helvetica,Arial,sans-serif;color:#123}
+h2{border-bottom:2px solid #9ab;padding-bottom:.2em;margin-top:2em}
+table{border-collapse:collapse;margin:.6em 0 1.2em 0;font-size:.9em}
+th,td{border:1px solid #bbb;padding:.25em .55em;text-align:right;vertical-align:top}
+th{background:#e8eef3}
+td.l,th.l{text-align:left}
+figure{margin:1em 0;text-align:center}
+figure img{max-width:100%;border:1px solid #ddd}
+figcaption{font-size:.88em;color:#444;text-align:left;margin-top:.3em}
+.callout{background:#fff4e0;border-left:5px solid #e8a33d;padding:.6em 1em;margin:1em 0}
+.ok{background:#eaf6ea;border-left:5px solid #4a9a4a;padding:.6em 1em;margin:1em 0}
+.note{color:#555;font-size:.9em}
+code{background:#f3f3f3;padding:0 .2em}
+nav ul{columns:2}
+details pre{white-space:pre-wrap;font-size:.8em;background:#f7f7f7;padding:.5em}
+"""
+
+
+# ---------------------------------------------------------------- formatting
+
+def _finite(x) -> bool:
+    try:
+        return math.isfinite(float(x))
+    except (TypeError, ValueError):
+        return False
+
+
+def fmt_value(value, digits: int = 4) -> str:
+    """A number with ``digits`` significant figures (plain notation unless very large or small)."""
+    if value is None:
+        return "—"
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return str(value)
+    if math.isnan(v):
+        return "n/a"
+    if math.isinf(v):
+        return "∞" if v > 0 else "−∞"
+    if v == 0:
+        return "0"
+    if v == int(v) and abs(v) < 1e9 and isinstance(value, (int, np.integer)):
+        return str(int(v))
+    mag = math.floor(math.log10(abs(v)))
+    if mag < -3 or mag >= 6:
+        return f"{v:.{digits - 1}e}"
+    decimals = max(digits - 1 - mag, 0)
+    return f"{v:.{decimals}f}"
+
+
+def fmt_uncertain(value, sigma) -> str:
+    """``value ± sigma``, sigma to two significant figures and the value to the same decimal place.
+
+    Falls back to :func:`fmt_value` when sigma is missing, zero or not finite.
+    """
+    if not _finite(value):
+        return fmt_value(value)
+    v = float(value)
+    if not _finite(sigma) or float(sigma) <= 0:
+        return fmt_value(v)
+    s = float(sigma)
+    ref = max(abs(v), s)
+    mag = math.floor(math.log10(ref))
+    if mag < -3 or mag >= 6:
+        scale = 10.0 ** mag
+        vs, ss = v / scale, s / scale
+        dec = max(1 - math.floor(math.log10(ss)), 0)
+        return f"({vs:.{dec}f} ± {ss:.{dec}f})×10^{mag}"
+    dec = max(1 - math.floor(math.log10(s)), 0)
+    return f"{v:.{dec}f} ± {s:.{dec}f}"
+
+
+def _unit(units: str | None) -> str:
+    if not units or units == "1":
+        return ""
+    u = str(units)
+    for a, b in (("s-1", "s⁻¹"), ("ms-1", "ms⁻¹"), ("dn2", "DN²"), ("DN2", "DN²")):
+        u = u.replace(a, b)
+    return u
+
+
+def _e(x) -> str:
+    return html.escape(str(x))
+
+
+def _var_units(ds: xr.Dataset, name: str) -> str:
+    return _unit(ds[name].attrs.get("units", "")) if name in ds else ""
+
+
+def _q(ds: xr.Dataset, name: str, **sel) -> str:
+    """The artefact value ``name`` (selected by ``sel``) with its uncertainty and units."""
+    if name not in ds:
+        return "n/a"
+    da = ds[name].sel(**sel) if sel else ds[name]
+    val = float(da)
+    sig = None
+    for cand in (f"{name}_sigma", f"{name.removesuffix('_dn')}_sigma_dn"):
+        if cand in ds:
+            sd = ds[cand]
+            sd = sd.sel(**{k: v for k, v in sel.items() if k in sd.dims})
+            sig = float(sd) if sd.size == 1 else None
+            break
+    text = fmt_uncertain(val, sig)
+    lo, hi = f"{name}_low", f"{name}_high"
+    if lo in ds and hi in ds:
+        lv = ds[lo].sel(**{k: v for k, v in sel.items() if k in ds[lo].dims})
+        hv = ds[hi].sel(**{k: v for k, v in sel.items() if k in ds[hi].dims})
+        text += f" [95 %: {fmt_value(float(lv))}, {fmt_value(float(hv))}]"
+    u = _var_units(ds, name)
+    return f"{text} {u}".strip()
+
+
+def _table(header: list[str], rows: list[list], left: int = 1) -> str:
+    """An HTML table; the first ``left`` columns are left-aligned. Cells are escaped."""
+    def cell(tag, i, x):
+        cls = ' class="l"' if i < left else ""
+        return f"<{tag}{cls}>{_e(x)}</{tag}>"
+    out = ["<table>", "<tr>" + "".join(cell("th", i, h) for i, h in enumerate(header)) + "</tr>"]
+    for r in rows:
+        out.append("<tr>" + "".join(cell("td", i, x) for i, x in enumerate(r)) + "</tr>")
+    out.append("</table>")
+    return "\n".join(out)
+
+
+# ---------------------------------------------------------------- figures
+
+class _Figures:
+    """Turn matplotlib figures into embedded <img> tags (and optional PNG files)."""
+
+    def __init__(self, figures_dir: Path | None):
+        self.dir = Path(figures_dir) if figures_dir is not None else None
+        if self.dir is not None:
+            self.dir.mkdir(parents=True, exist_ok=True)
+        self.count = 0
+
+    def embed(self, fig, name: str, caption: str) -> str:
+        buf = io.BytesIO()
+        try:
+            fig.savefig(buf, format="png", dpi=90)
+        finally:
+            plt.close(fig)
+        data = buf.getvalue()
+        self.count += 1
+        if self.dir is not None:
+            target = self.dir / f"{self.count:02d}_{name}.png"
+            tmp = target.with_name(f".{target.name}.tmp")
+            tmp.write_bytes(data)
+            os.replace(tmp, target)
+        b64 = base64.b64encode(data).decode("ascii")
+        return (f'<figure><img src="data:image/png;base64,{b64}" alt="{_e(name)}">'
+                f"<figcaption><b>Figure {self.count}.</b> {caption}</figcaption></figure>")
+
+
+def _bands(ds: xr.Dataset) -> list[str]:
+    return [str(b) for b in ds["band"].values] if "band" in ds.coords else []
+
+
+def _z_guides(ax):
+    for level, style in ((0, "-"), (1, ":"), (-1, ":"), (3, "--"), (-3, "--")):
+        ax.axhline(level, color="grey", lw=0.8, ls=style, zorder=0)
+
+
+# ---------------------------------------------------------------- dark section
+
+def _dark_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
+    out = [f'<h3 id="dark-{_e(lens)}">Lens “{_e(lens)}”</h3>']
+    bands = _bands(ds)
+    iso_s = ds["setting_iso"].values
+    exp_s = ds["setting_exposure_s"].values
+    iso_min = float(np.min(iso_s))
+    low = np.where(iso_s == iso_min)[0]
+    low = low[np.argsort(exp_s[low])]
+    # the ISO series: settings sharing the exposure time closest to 1 s that has >1 ISO
+    exps, counts = np.unique(exp_s, return_counts=True)
+    multi = exps[counts > 1] if np.any(counts > 1) else exps
+    t_iso = float(multi[np.argmin(np.abs(np.log(multi / 1.0)))])
+    at_t = np.where(exp_s == t_iso)[0]
+    at_t = at_t[np.argsort(iso_s[at_t])]
+
+    # histograms (Fig. 9a-b analogue)
+    if "dark_histogram" in ds:
+        centres = ds["hist_bin_centre_dn"].values if "hist_bin_centre_dn" in ds else np.arange(ds.sizes["hist_bin"])
+        fig, axes = plt.subplots(len(bands), 2, figsize=(11, 2.6 * len(bands)), squeeze=False)
+        for i, b in enumerate(bands):
+            for j, (idx, lab) in enumerate(((low, "exposure"), (at_t, "iso"))):
+                ax = axes[i, j]
+                cmap = plt.get_cmap("viridis", max(len(idx), 2))
+                for k, s in enumerate(idx):
+                    h = ds["dark_histogram"].sel(band=b).isel(setting=int(s)).values
+                    txt = (f"{exp_s[s] * 1e3:.4g} ms" if lab == "exposure" else f"ISO {iso_s[s]:.0f}")
+                    ax.step(centres, h, where="mid", color=cmap(k), lw=1, label=txt)
+                nz = np.nonzero(ds["dark_histogram"].sel(band=b).isel(setting=list(map(int, idx))).sum("setting").values)[0]
+                if len(nz):
+                    ax.set_xlim(centres[max(nz[0] - 3, 0)], centres[min(nz[-1] + 3, len(centres) - 1)])
+                ax.set_yscale("log")
+                ax.set_xlabel("frame-averaged dark level [DN]")
+                ax.set_ylabel("pixels")
+                ttl = (f"{b} band, ISO {iso_min:.0f}, per exposure" if lab == "exposure"
+                       else f"{b} band, {t_iso:.4g} s, per ISO")
+                ax.set_title(ttl, fontsize=9)
+                ax.legend(fontsize=6, ncol=2)
+        fig.tight_layout()
+        out.append(figs.embed(fig, f"dark_{lens}_histograms",
+                              f"Lens {_e(lens)}: histograms of the frame-averaged dark image "
+                              f"(left: each exposure time at the lowest ISO, {iso_min:.0f}; right: each ISO at "
+                              f"{t_iso:.4g} s). Analogue of Larouche et al. (2024) Fig. 9a–b."))
+
+    # centre and width vs exposure and ISO, with the fitted model
+    try:
+        from pipeline.stages.dark import dark_level_dn
+    except ImportError:  # pragma: no cover
+        dark_level_dn = None
+    fig, axes = plt.subplots(2, 2, figsize=(11, 6.5))
+    for b in bands:
+        c = BAND_COLOURS.get(b, None)
+        cen = ds["dark_centre_dn"].sel(band=b).values
+        wid = ds["dark_width_dn"].sel(band=b).values
+        axes[0, 0].plot(exp_s[low], cen[low], "o", color=c, label=f"{b} measured")
+        axes[1, 0].plot(exp_s[low], wid[low], "o-", color=c, label=b)
+        axes[0, 1].plot(iso_s[at_t], cen[at_t], "o", color=c, label=f"{b} measured")
+        axes[1, 1].plot(iso_s[at_t], wid[at_t], "o-", color=c, label=b)
+        if dark_level_dn is not None:
+            tt = np.geomspace(exp_s[low].min(), exp_s[low].max(), 25)
+            axes[0, 0].plot(tt, [dark_level_dn(ds, b, iso_min, t) for t in tt], "-", color=c, lw=1,
+                            label=f"{b} model")
+            ii = np.geomspace(iso_s[at_t].min(), iso_s[at_t].max(), 25)
+            axes[0, 1].plot(ii, [dark_level_dn(ds, b, i, t_iso) for i in ii], "-", color=c, lw=1,
+                            label=f"{b} model")
+    for ax in axes[:, 0]:
+        ax.set_xscale("log")
+        ax.set_xlabel(f"exposure time [s] (ISO {iso_min:.0f})")
+    for ax in axes[:, 1]:
+        ax.set_xscale("log")
+        ax.set_xlabel(f"ISO (exposure {t_iso:.4g} s)")
+    for ax in axes[0]:
+        ax.set_ylabel("dark centre [DN]")
+    for ax in axes[1]:
+        ax.set_ylabel("dark width [DN]")
+    for ax in axes.ravel():
+        ax.legend(fontsize=6, ncol=2)
+    fig.tight_layout()
+    out.append(figs.embed(fig, f"dark_{lens}_centre_width",
+                          f"Lens {_e(lens)}: centre (top) and spatial width (bottom) of the frame-averaged "
+                          "dark image against exposure time (left) and ISO (right); lines are the fitted "
+                          "dark model b0 + b1·(ISO/100 − 1) + D·(ISO/100)·t. Analogue of Fig. 9c."))
+
+    # fitted parameters
+    rows = []
+    for b in bands:
+        rows.append([b, _q(ds, "bias_dn", band=b), _q(ds, "bias_per_gain_dn", band=b),
+                     fmt_value(int(ds["hot_pixel_count"].sel(band=b))) if "hot_pixel_count" in ds else "n/a"])
+    out.append("<p>Fitted dark model per band (uncertainties are standard errors):</p>")
+    out.append(_table(["band", "bias b0 (ISO 100)", "bias per ISO/100 b1", "hot pixels"], rows))
+    scal = [["dark current D (ISO 100)", _q(ds, "dark_current_dn_per_s")]]
+    if "bias_drift_dn" in ds:
+        scal.append(["frame-to-frame bias drift", _q(ds, "bias_drift_dn")])
+    if "rms_z" in ds:
+        scal.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
+    out.append(_table(["quantity", "value"], scal))
+    if "read_noise_dn" in ds:
+        isos = ds["iso"].values
+        u = _var_units(ds, "read_noise_dn")
+        rows = [[b] + [fmt_value(float(ds["read_noise_dn"].sel(band=b, iso=i)), 3) for i in isos] for b in bands]
+        out.append(f"<p>Read noise (temporal noise of one raw pixel at the shortest exposure) per ISO, "
+                   f"in {_e(u)}:</p>")
+        out.append(_table(["band"] + [f"ISO {i:.0f}" for i in isos], rows))
+
+    # FPN map and hot pixels
+    if "fpn_map_dn" in ds:
+        fig, axes = plt.subplots(1, len(bands), figsize=(3.6 * len(bands), 3.3), squeeze=False)
+        for ax, b in zip(axes[0], bands):
+            m = ds["fpn_map_dn"].sel(band=b).values
+            lim = np.nanpercentile(np.abs(m), 99) or 1.0
+            im = ax.imshow(m, cmap="RdBu_r", vmin=-lim, vmax=lim, origin="upper")
+            if "hot_pixel_mask" in ds:
+                yy, xx = np.nonzero(ds["hot_pixel_mask"].sel(band=b).values)
+                ax.plot(xx, yy, "o", mfc="none", mec="k", ms=6, label=f"hot ({len(xx)})")
+                ax.legend(fontsize=6, loc="lower right")
+            ax.set_title(f"{b} band", fontsize=9)
+            fig.colorbar(im, ax=ax, shrink=0.8, label=f"offset FPN [{_var_units(ds, 'fpn_map_dn')}]")
+        fig.tight_layout()
+        out.append(figs.embed(fig, f"dark_{lens}_fpn",
+                              f"Lens {_e(lens)}: offset fixed-pattern map at the shortest exposure and lowest "
+                              "ISO (mean removed); circles mark the flagged hot pixels."))
+
+    # residuals
+    tab = dataset_to_table(ds, "obs_setting")
+    if len(tab) and "z" in tab:
+        fig, ax = plt.subplots(figsize=(8, 3.8))
+        isos = np.unique(tab["iso"])
+        cmap = plt.get_cmap("plasma", max(len(isos) + 1, 2))
+        markers = {"R": "^", "G": "o", "B": "s"}
+        for k, i in enumerate(isos):
+            for b in bands:
+                sub = tab[(tab["iso"] == i) & (tab["band"] == b)]
+                if len(sub):
+                    ax.plot(sub["exposure_s"], sub["z"], markers.get(b, "o"), color=cmap(k), ms=5,
+                            label=f"ISO {i:.0f}" if b == bands[0] else None)
+        _z_guides(ax)
+        ax.set_xscale("log")
+        ax.set_xlabel("exposure time [s]")
+        ax.set_ylabel("residual z (data − model)/σ")
+        ax.legend(fontsize=6, ncol=3, title="▲R ●G ■B", title_fontsize=7)
+        fig.tight_layout()
+        out.append(figs.embed(fig, f"dark_{lens}_residuals",
+                              f"Lens {_e(lens)}: setting-level residuals of the dark model, normalised by their "
+                              "uncertainty, against exposure time. Dotted: ±1, dashed: ±3. A trend with "
+                              "exposure time points to an unmodelled effect."))
+    return "\n".join(out)
+
+
+# ---------------------------------------------------------------- linearity section
+
+def _mask(ds: xr.Dataset) -> np.ndarray:
+    ny, nx = ds["pearson_r"].shape[-2:]
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    cx, cy = float(ds["mask_centre_x_px"]), float(ds["mask_centre_y_px"])
+    return np.hypot(xx - cx, yy - cy) <= float(ds["mask_radius_px"])
+
+
+def _sweep_x(tab: pd.DataFrame, sweep: str) -> np.ndarray:
+    return (tab["exposure_s"].to_numpy() * 1e3 if sweep == "exposure" else tab["iso"].to_numpy() / 100.0)
+
+
+SWEEP_XLABEL = {"exposure": "exposure time [ms]", "gain": "ISO/100"}
+
+
+def _linearity_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
+    out = [f'<h3 id="lin-{_e(lens)}">Lens “{_e(lens)}”</h3>']
+    bands = _bands(ds)
+    sweeps = [str(s) for s in ds["sweep"].values] if "sweep" in ds.coords else []
+    tab = dataset_to_table(ds, "obs_setting")
+    if "used" in tab:
+        tab["used"] = tab["used"].astype(bool)
+
+    # Pearson r inside the mask (Fig. 2)
+    if "pearson_r" in ds and all(k in ds for k in ("mask_centre_x_px", "mask_centre_y_px", "mask_radius_px")):
+        m = _mask(ds)
+        fig, axes = plt.subplots(1, len(sweeps), figsize=(5.5 * len(sweeps), 3.6), squeeze=False)
+        for ax, sw in zip(axes[0], sweeps):
+            for b in bands:
+                r = ds["pearson_r"].sel(sweep=sw, band=b).values[m]
+                r = r[np.isfinite(r)]
+                if len(r):
+                    ax.hist(r, bins=max(min(len(r) // 2, 40), 5), histtype="step", lw=1.5,
+                            color=BAND_COLOURS.get(b), label=f"{b}: mean r = {np.mean(r):.5f} (n = {len(r)})")
+            ax.set_xlabel("Pearson r per pixel")
+            ax.set_ylabel("pixels")
+            ax.set_title(f"{sw} sweep", fontsize=9)
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        out.append(figs.embed(fig, f"lin_{lens}_pearson",
+                              f"Lens {_e(lens)}: per-pixel Pearson correlation of single frames with exposure time "
+                              f"or gain, for the {int(m.sum())} pixels within {fmt_value(float(ds['mask_radius_px']), 3)} px "
+                              "of the mask centre. Analogue of Larouche et al. (2024) Fig. 2."))
+
+    # mean DN vs exposure and vs ISO with regression lines (Fig. 3)
+    if len(tab) and "value_dn" in tab:
+        fig, axes = plt.subplots(1, len(sweeps), figsize=(5.5 * len(sweeps), 4), squeeze=False)
+        slope_u = {"exposure": "DN/ms", "gain": "DN per ISO/100"}
+        for ax, sw in zip(axes[0], sweeps):
+            for b in bands:
+                sub = tab[(tab["sweep"] == sw) & (tab["band"] == b)]
+                if not len(sub):
+                    continue
+                c = BAND_COLOURS.get(b)
+                x = _sweep_x(sub, sw)
+                used = sub["used"].to_numpy() if "used" in sub else np.ones(len(sub), bool)
+                ax.errorbar(x[used], sub["value_dn"][used], yerr=sub["sigma_dn"][used] if "sigma_dn" in sub else None,
+                            fmt="o", color=c, ms=4)
+                if (~used).any():
+                    ax.plot(x[~used], sub["value_dn"][~used], "o", mfc="none", mec=c, ms=6)
+                sl = ds["line_slope"].sel(sweep=sw, band=b)
+                ic = ds["line_intercept_dn"].sel(sweep=sw, band=b)
+                xx = np.linspace(0, x.max(), 50)
+                lab = (f"{b}: slope {fmt_uncertain(float(sl), float(ds['line_slope_ci95'].sel(sweep=sw, band=b)))} "
+                       f"{slope_u.get(sw, '')}, intercept "
+                       f"{fmt_uncertain(float(ic), float(ds['line_intercept_ci95_dn'].sel(sweep=sw, band=b)))} DN, "
+                       f"r = {float(ds['line_r'].sel(sweep=sw, band=b)):.6f}")
+                ax.plot(xx, float(sl) * xx + float(ic), "-", color=c, lw=1, label=lab)
+            ax.set_xlabel(SWEEP_XLABEL.get(sw, sw))
+            ax.set_ylabel("mean dark-corrected signal [DN]")
+            ax.set_title(f"{sw} sweep (± values are 95 % half-intervals)", fontsize=9)
+            ax.legend(fontsize=6, loc="upper left")
+        fig.tight_layout()
+        out.append(figs.embed(fig, f"lin_{lens}_lines",
+                              f"Lens {_e(lens)}: mean dark-corrected signal in the mask against exposure time and "
+                              "against ISO/100, with the least-squares lines (slope, intercept with 95 % "
+                              "half-intervals, and Pearson r in the legend). Hollow markers were not used "
+                              "(e.g. saturated). Analogue of Larouche et al. (2024) Fig. 3."))
+
+        # nonlinearity residuals
+        if "nonlinearity_pct" in tab:
+            fig, axes = plt.subplots(1, len(sweeps), figsize=(5.5 * len(sweeps), 3.4), squeeze=False)
+            for ax, sw in zip(axes[0], sweeps):
+                for b in bands:
+                    sub = tab[(tab["sweep"] == sw) & (tab["band"] == b)]
+                    if len(sub):
+                        used = sub["used"].to_numpy() if "used" in sub else np.ones(len(sub), bool)
+                        x = _sweep_x(sub, sw)
+                        ax.plot(x[used], sub["nonlinearity_pct"][used], "o-", color=BAND_COLOURS.get(b), ms=4, label=b)
+                ax.axhline(0, color="grey", lw=0.8)
+                ax.set_xscale("log")
+                ax.set_xlabel(SWEEP_XLABEL.get(sw, sw))
+                ax.set_ylabel("(data − line)/line [%]")
+                ax.set_title(f"{sw} sweep", fontsize=9)
+                ax.legend(fontsize=7)
+            fig.tight_layout()
+            out.append(figs.embed(fig, f"lin_{lens}_nonlinearity",
+                                  f"Lens {_e(lens)}: nonlinearity residuals, the relative departure of the "
+                                  "mean signal from the regression line, in percent."))
+
+        # photon transfer curve
+        if "pixel_var_dn2" in tab and "conversion_gain_dn_per_e" in ds:
+            k = float(ds["conversion_gain_dn_per_e"])
+            rn_e = float(ds["read_noise_e"]) if "read_noise_e" in ds else float("nan")
+            sub = tab[(tab["sweep"] == "exposure")]
+            if "used" in sub:
+                sub = sub[sub["used"]]
+            ncols = 2 if "ptc_gain_sweep_conversion_gain_dn_per_e" in ds else 1
+            fig, axes = plt.subplots(1, ncols, figsize=(5.5 * ncols, 4), squeeze=False)
+            ax = axes[0, 0]
+            for b in bands:
+                sb = sub[sub["band"] == b]
+                if len(sb):
+                    site_var = sb["pixel_var_dn2"] * SITES_PER_BAND_PIXEL.get(b, 1)
+                    ax.plot(sb["value_dn"], site_var, "o", color=BAND_COLOURS.get(b), ms=4, label=f"{b}")
+            if len(sub) and np.isfinite(k):
+                ss = np.geomspace(max(sub["value_dn"].min(), 1e-3), sub["value_dn"].max(), 60)
+                rv = (rn_e * k) ** 2 if np.isfinite(rn_e) else 0.0
+                ax.plot(ss, k * ss + rv, "k-", lw=1,
+                        label=f"K = {_q(ds, 'conversion_gain_dn_per_e')}\nread noise = {_q(ds, 'read_noise_e')}")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel("mean signal [DN]")
+            ax.set_ylabel("temporal variance per photosite [DN²]")
+            ax.set_title("photon transfer, exposure sweep", fontsize=9)
+            ax.legend(fontsize=7)
+            if ncols == 2:
+                ax = axes[0, 1]
+                iso = ds["ptc_iso"].values
+                ax.plot(iso, ds["ptc_gain_sweep_conversion_gain_dn_per_e"].values, "o-")
+                ax.set_xscale("log")
+                ax.set_yscale("log")
+                ax.set_xlabel("ISO")
+                ax.set_ylabel("conversion gain [DN/electron]")
+                ax.set_title("conversion gain per ISO (gain sweep)", fontsize=9)
+            fig.tight_layout()
+            out.append(figs.embed(fig, f"lin_{lens}_ptc",
+                                  f"Lens {_e(lens)}: photon-transfer curve (G-band variance doubled to one photosite) "
+                                  "with the fitted line var = K·signal + (K·read noise)²."))
+
+        # residual z vs signal
+        if "z" in tab:
+            fig, ax = plt.subplots(figsize=(8, 3.8))
+            for sw in sweeps:
+                for b in bands:
+                    sub = tab[(tab["sweep"] == sw) & (tab["band"] == b)]
+                    if not len(sub):
+                        continue
+                    used = sub["used"].to_numpy() if "used" in sub else np.ones(len(sub), bool)
+                    c = BAND_COLOURS.get(b)
+                    mk = SWEEP_MARKERS.get(sw, "o")
+                    ax.plot(sub["value_dn"][used], sub["z"][used], mk, color=c, ms=5, label=f"{b}, {sw}")
+                    if (~used).any():
+                        ax.plot(sub["value_dn"][~used], sub["z"][~used], mk, mfc="none", mec=c, ms=6)
+            _z_guides(ax)
+            ax.set_xscale("log")
+            ax.set_xlabel("mean signal [DN]")
+            ax.set_ylabel("residual z (data − model)/σ")
+            ax.legend(fontsize=6, ncol=2)
+            fig.tight_layout()
+            out.append(figs.embed(fig, f"lin_{lens}_residuals",
+                                  f"Lens {_e(lens)}: setting-level residuals of the linearity model against signal "
+                                  "level (circles: exposure sweep, squares: gain sweep; hollow: not used). "
+                                  "Structure at low signal, e.g. a rising z at short exposures, suggests a "
+                                  "shutter offset."))
+
+    # scalar results
+    rows = []
+    for name, label in (("saturation_dn", "saturation level above dark"),
+                        ("conversion_gain_dn_per_e", "conversion gain K"),
+                        ("gain_e_per_dn", "gain 1/K"),
+                        ("read_noise_e", "read noise (photon transfer)"),
+                        ("image_circle_radius_px", "image circle radius"),
+                        ("mask_radius_px", "averaging mask radius"),
+                        ("mask_centre_x_px", "mask centre x"),
+                        ("mask_centre_y_px", "mask centre y"),
+                        ("bias_drift_dn", "frame-to-frame bias drift")):
+        if name in ds:
+            extra = ""
+            if name == "saturation_dn" and "reached" in ds[name].attrs:
+                extra = " (reached)" if int(ds[name].attrs["reached"]) else " (not reached: lower bound)"
+            rows.append([label, _q(ds, name) + extra])
+    if "rms_z" in ds:
+        rows.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
+    out.append("<p>Fitted linearity and noise parameters:</p>")
+    out.append(_table(["quantity", "value"], rows))
+
+    if "rate_dn_per_s" in ds:
+        rows = []
+        for sw in sweeps:
+            for b in bands:
+                rows.append([sw, b, _q(ds, "rate_dn_per_s", sweep=sw, band=b),
+                             fmt_uncertain(float(ds["line_slope"].sel(sweep=sw, band=b)),
+                                           float(ds["line_slope_ci95"].sel(sweep=sw, band=b))),
+                             fmt_uncertain(float(ds["line_intercept_dn"].sel(sweep=sw, band=b)),
+                                           float(ds["line_intercept_ci95_dn"].sel(sweep=sw, band=b))),
+                             f"{float(ds['line_r'].sel(sweep=sw, band=b)):.6f}"])
+        out.append("<p>Model rate (± standard error) and the regression of the mask means "
+                   "(± 95 % half-interval; slope in DN/ms for the exposure sweep, DN per ISO/100 for the gain sweep):</p>")
+        out.append(_table(["sweep", "band", "rate at ISO 100", "line slope", "line intercept [DN]", "line r"], rows,
+                          left=2))
+
+    effects = [v for v in ds.data_vars if v.startswith("effect_") and not v.endswith("_sigma")]
+    if effects:
+        rows = []
+        for v in effects:
+            da = ds[v]
+            if da.size == 1:
+                rows.append([v.removeprefix("effect_"), da.attrs.get("long_name", ""), _q(ds, v)])
+            else:
+                for idx in np.ndindex(da.shape):
+                    sel = {d: da[d].values[i] if d in da.coords else i for d, i in zip(da.dims, idx)}
+                    label = ", ".join(f"{d}={s}" for d, s in sel.items())
+                    sig = ds[f"{v}_sigma"].values[idx] if f"{v}_sigma" in ds else None
+                    rows.append([f"{v.removeprefix('effect_')} ({label})", da.attrs.get("long_name", ""),
+                                 f"{fmt_uncertain(float(da.values[idx]), sig)} {_var_units(ds, v)}".strip()])
+        out.append("<p>Fitted effect parameters (± standard error):</p>")
+        out.append(_table(["effect", "description", "value"], rows, left=2))
+    else:
+        out.append('<p class="note">No effect parameters are fitted in the linearity model of this run.</p>')
+    return "\n".join(out)
+
+
+# ---------------------------------------------------------------- diagnostics
+
+def _read_csv(path: Path) -> pd.DataFrame:
+    try:
+        return pd.read_csv(path)
+    except (FileNotFoundError, pd.errors.EmptyDataError):
+        return pd.DataFrame()
+
+
+def _as_bool(x) -> bool:
+    if isinstance(x, str):
+        return x.strip().lower() in ("true", "1", "yes")
+    try:
+        return bool(x) and not (isinstance(x, float) and math.isnan(x))
+    except (TypeError, ValueError):
+        return False
+
+
+def _top_effect(missing: pd.DataFrame):
+    if missing.empty:
+        return None
+    m = missing.sort_values("rank") if "rank" in missing else missing
+    return m.iloc[0]
+
+
+def _amplitude_text(row) -> str:
+    units = "" if pd.isna(row.get("units")) or str(row.get("units")) == "1" else f" {row['units']}"
+    name = row.get("amplitude_name")
+    name = f"{name} = " if isinstance(name, str) and name else ""
+    return (f"{name}{fmt_value(row['amplitude'], 3)}{units}, 95 % interval "
+            f"[{fmt_value(row['amplitude_low'], 3)}, {fmt_value(row['amplitude_high'], 3)}]{units}")
+
+
+def _history_figure(history: pd.DataFrame, figs: _Figures) -> str:
+    if history.empty or not {"run_time", "experiment", "rms_z"} <= set(history.columns):
+        return '<p class="note">No error history yet.</p>'
+    runs = list(dict.fromkeys(history["run_time"].astype(str)))
+    idx = {r: i for i, r in enumerate(runs)}
+    h = history.assign(run=history["run_time"].astype(str).map(idx))
+    labels = []
+    for r in runs:
+        effs = h.loc[h["run_time"].astype(str) == r, "model_effects"] if "model_effects" in h else pd.Series([""])
+        e = effs.iloc[0] if len(effs) and isinstance(effs.iloc[0], str) else "(none)"
+        labels.append(e.replace(" ", "\n").replace(",", "\n"))
+    fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(runs) + 3), 4))
+    for exp, grp in h.groupby("experiment"):
+        grp = grp.sort_values("run")
+        ax.plot(grp["run"], grp["rms_z"], "o-", label=str(exp))
+    ax.axhline(1.0, color="grey", ls="--", lw=0.8, label="noise floor")
+    ax.set_xticks(range(len(runs)))
+    ax.set_xticklabels(labels, fontsize=7)
+    ax.set_xlabel("run (labelled with the model effects)")
+    ax.set_ylabel("rms z")
+    ax.set_xlim(-0.5, len(runs) - 0.5)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return figs.embed(fig, "error_history",
+                      "Error history: rms of the normalised residuals per experiment for each run, labelled "
+                      "with the model effects of that run. Adding a missing effect should bring rms z towards 1.")
+
+
+# ---------------------------------------------------------------- assembly
+
+def _input_count(ds: xr.Dataset) -> str:
+    try:
+        return str(len(json.loads(ds.attrs.get("input_sha256", "{}"))))
+    except (TypeError, ValueError):
+        return "n/a"
+
+
+def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_effects: Path,
+                 unexplained: Path, run_errors: Path, error_history: Path, out_html: Path,
+                 skipped: dict[str, str] | None = None, figures_dir: Path | None = None) -> Path:
+    """Write the calibration report as one self-contained HTML file and return its path.
+
+    ``dark`` and ``linearity`` map lens name to artefact path; the four CSVs
+    come from the diagnostics stage; ``skipped`` maps a stage name to the
+    reason it did not run. PNG copies of the figures go to ``figures_dir``
+    when given. The file is written to a temporary sibling and renamed.
+    """
+    out_html = Path(out_html)
+    skipped = dict(skipped or {})
+    figs = _Figures(figures_dir)
+    dark_ds = {lens: read_artefact(p, "dark") for lens, p in dark.items()}
+    lin_ds = {lens: read_artefact(p, "linearity") for lens, p in linearity.items()}
+    missing = _read_csv(Path(missing_effects))
+    unexp = _read_csv(Path(unexplained))
+    errors = _read_csv(Path(run_errors))
+    history = _read_csv(Path(error_history))
+    all_arts = [("dark", lens, dark[lens], ds) for lens, ds in dark_ds.items()] + \
+               [("linearity", lens, linearity[lens], ds) for lens, ds in lin_ds.items()]
+
+    body = []
+    # 1. summary
+    s = ['<h2 id="summary">1. Summary</h2>']
+    if all_arts:
+        first = all_arts[0][3].attrs
+        pv = sorted({str(a[3].attrs.get("pipeline_version", "?")) for a in all_arts})
+        effs = sorted({str(a[3].attrs.get("model_effects", "")) for a in all_arts})
+        created = sorted(str(a[3].attrs.get("created", "?")) for a in all_arts)
+        s.append(_table(["", ""], [
+            ["pipeline version", ", ".join(pv)],
+            ["artefacts created", f"{created[0]} … {created[-1]}" if len(created) > 1 else created[0]],
+            ["model effects", " | ".join(e.replace(",", ", ") or "(none)" for e in effs)],
+            ["lenses", ", ".join(dict.fromkeys([a[1] for a in all_arts]))],
+            ["dataset (inputs of first artefact)", f"{_input_count(all_arts[0][3])} raw files, e.g. "
+             f"{next(iter(json.loads(first.get('input_sha256', '{}') or '{}')), '—')}"],
+        ], left=2))
+        cfgs = [[a[0], a[1], str(a[3].attrs.get("config_sha256", "?"))[:16] + "…"] for a in all_arts]
+        s.append("<p>Configuration fingerprints (SHA-256 of each stage's config subset):</p>")
+        s.append(_table(["stage", "lens", "config sha256"], cfgs, left=3))
+    if not errors.empty and {"experiment", "rms_z"} <= set(errors.columns):
+        rows = [[r["experiment"], fmt_value(r["rms_z"], 3),
+                 fmt_value(r.get("chi2"), 4), fmt_value(r.get("dof"), 4), fmt_value(r.get("n_obs"), 4)]
+                for _, r in errors.iterrows()]
+        s.append("<p>Residual error of this run per experiment (rms z = 1 at the noise floor; larger values "
+                 "mean the model leaves structure the noise cannot explain):</p>")
+        s.append(_table(["experiment", "rms z", "χ²", "dof", "observations"], rows))
+    top = _top_effect(missing)
+    if top is not None and _as_bool(top.get("significant")):
+        s.append(f'<div class="callout">The residuals point to a missing effect: <b>{_e(top["effect"])}</b> '
+                 f"in the {_e(top['experiment'])} experiment ({_e(_amplitude_text(top))}; it explains "
+                 f"{100 * float(top['explained_fraction']):.0f} % of the excess χ²). Add it to "
+                 f"<code>model.effects</code> in <code>config/config.yaml</code> and rerun.</div>")
+    elif top is not None:
+        s.append(f'<div class="ok">No significant missing effect. The top-ranked candidate, '
+                 f"<b>{_e(top['effect'])}</b>, is not significant (p = {fmt_value(top.get('p_value'), 3)}).</div>")
+    else:
+        s.append('<div class="ok">The missing-effect search returned no candidates.</div>')
+    if skipped:
+        s.append(f"<p>Stages not run: {_e(', '.join(skipped))} (see section 5).</p>")
+    body.append("\n".join(s))
+
+    # 2. dark
+    d = ['<h2 id="dark">2. Dark frames</h2>']
+    d.append("<p>Dark frames per lens: distribution of the frame-averaged dark image, its centre and width against "
+             "exposure time and ISO, the fitted bias and dark current, read noise and hot pixels.</p>")
+    if not dark_ds:
+        d.append('<p class="note">No dark artefacts were given.</p>')
+    for lens, ds in dark_ds.items():
+        d.append(_dark_section(lens, ds, figs))
+    body.append("\n".join(d))
+
+    # 3. linearity
+    li = ['<h2 id="linearity">3. Linearity</h2>']
+    if not lin_ds:
+        li.append('<p class="note">No linearity artefacts were given.</p>')
+    for lens, ds in lin_ds.items():
+        li.append(_linearity_section(lens, ds, figs))
+    body.append("\n".join(li))
+
+    # 4. diagnostics
+    dg = ['<h2 id="diagnostics">4. Diagnostics</h2>', "<h3>Missing-effect search</h3>"]
+    if missing.empty:
+        dg.append('<p class="note">No candidate effects were tested.</p>')
+    else:
+        rows = []
+        m = missing.sort_values("rank") if "rank" in missing else missing
+        for _, r in m.iterrows():
+            units = "" if pd.isna(r.get("units")) or str(r.get("units")) == "1" else str(r["units"])
+            rows.append([fmt_value(r.get("rank")), r.get("effect"), r.get("experiment"),
+                         fmt_value(r.get("evidence"), 3), "yes" if _as_bool(r.get("significant")) else "no",
+                         fmt_value(r.get("p_value"), 3),
+                         f"{100 * float(r['explained_fraction']):.1f} %" if _finite(r.get("explained_fraction")) else "n/a",
+                         f"{fmt_value(r.get('amplitude'), 3)} [{fmt_value(r.get('amplitude_low'), 3)}, "
+                         f"{fmt_value(r.get('amplitude_high'), 3)}] {units}".strip(),
+                         f"{fmt_value(r.get('detectable_amplitude'), 3)} {units}".strip(),
+                         "" if pd.isna(r.get("note")) else r.get("note")])
+        dg.append("<p>Candidate effects ranked by evidence (drop in χ² penalised for the added parameters). "
+                  "Amplitudes with their 95 % interval; “detectable” is the smallest amplitude this dataset "
+                  "would have revealed.</p>")
+        dg.append(_table(["rank", "effect", "experiment", "evidence", "significant", "p", "explained",
+                          "amplitude [95 % interval]", "detectable", "note"], rows, left=3))
+    dg.append("<h3>Unexplained structure</h3>")
+    if unexp.empty:
+        dg.append("<p>No residual structure was found that the candidate effects leave unexplained.</p>")
+    else:
+        items = []
+        for _, r in unexp.iterrows():
+            extra = []
+            if "rms_z" in r and _finite(r["rms_z"]):
+                extra.append(f"rms z {fmt_value(r['rms_z'], 3)}")
+            if "covariate" in r and isinstance(r["covariate"], str):
+                extra.append(f"covariate {r['covariate']}")
+            if "association" in r and _finite(r["association"]):
+                extra.append(f"association {fmt_value(r['association'], 3)}")
+            items.append(f"<li><b>{_e(r.get('experiment', ''))}</b>: {_e(r.get('message', ''))} "
+                         f"<span class='note'>({_e('; '.join(extra))})</span></li>")
+        dg.append("<ul>" + "".join(items) + "</ul>")
+    dg.append("<h3>Error history</h3>")
+    dg.append(_history_figure(history, figs))
+    if not history.empty:
+        cols = [c for c in ("run_time", "experiment", "model_effects", "rms_z", "chi2", "dof", "n_obs")
+                if c in history]
+        rows = [[r[c] if c in ("run_time", "experiment", "model_effects") else fmt_value(r[c], 4) for c in cols]
+                for _, r in history.iterrows()]
+        dg.append("<details><summary>Error history table</summary>" + _table(cols, rows, left=3) + "</details>")
+    body.append("\n".join(dg))
+
+    # 5. stages not run
+    sk = ['<h2 id="skipped">5. Stages not run</h2>']
+    if skipped:
+        sk.append(_table(["stage", "reason"], [[k, v] for k, v in skipped.items()], left=2))
+    else:
+        sk.append("<p>All requested stages ran.</p>")
+    body.append("\n".join(sk))
+
+    # 6. provenance
+    pr = ['<h2 id="provenance">6. Provenance</h2>']
+    rows = [[st, lens, Path(p).name, str(ds.attrs.get("artefact_version", "?")),
+             str(ds.attrs.get("pipeline_version", "?")), str(ds.attrs.get("created", "?")),
+             str(ds.attrs.get("model_effects", "")).replace(",", ", ") or "(none)",
+             _input_count(ds), str(ds.attrs.get("config_sha256", "?"))]
+            for st, lens, p, ds in all_arts]
+    pr.append(_table(["stage", "lens", "file", "artefact version", "pipeline version", "created",
+                      "model effects", "input files", "config sha256"], rows, left=3))
+    for st, lens, p, ds in all_arts:
+        cfg = ds.attrs.get("config")
+        if cfg:
+            try:
+                cfg = json.dumps(json.loads(cfg), indent=2, sort_keys=True)
+            except ValueError:
+                pass
+            pr.append(f"<details><summary>Config subset of {_e(st)} / {_e(lens)}</summary>"
+                      f"<pre>{_e(cfg)}</pre></details>")
+    pr.append(f'<p class="note">Report written {_e(datetime.now(timezone.utc).isoformat(timespec="seconds"))} '
+              f"with {figs.count} figures.</p>")
+    body.append("\n".join(pr))
+
+    nav = ("<nav><ul>" + "".join(f'<li><a href="#{a}">{t}</a></li>' for a, t in (
+        ("summary", "1. Summary"), ("dark", "2. Dark frames"), ("linearity", "3. Linearity"),
+        ("diagnostics", "4. Diagnostics"), ("skipped", "5. Stages not run"), ("provenance", "6. Provenance")))
+        + "</ul></nav>")
+    doc = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+           "<title>Calibration report</title>"
+           f"<style>{CSS}</style></head><body>\n<h1>Camera calibration report</h1>\n{nav}\n"
+           + "\n".join(body) + "\n</body></html>\n")
+
+    out_html.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_html.with_name(f".{out_html.name}.tmp")
+    try:
+        tmp.write_text(doc, encoding="utf-8")
+        os.replace(tmp, out_html)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return out_html
