@@ -382,12 +382,18 @@ def _linearity_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
         m = _mask(ds)
         fig, axes = plt.subplots(1, len(sweeps), figsize=(5.5 * len(sweeps), 3.6), squeeze=False)
         for ax, sw in zip(axes[0], sweeps):
-            for b in bands:
-                r = ds["pearson_r"].sel(sweep=sw, band=b).values[m]
-                r = r[np.isfinite(r)]
-                if len(r):
-                    ax.hist(r, bins=max(min(len(r) // 2, 40), 5), histtype="step", lw=1.5,
-                            color=BAND_COLOURS.get(b), label=f"{b}: mean r = {np.mean(r):.5f} (n = {len(r)})")
+            per_band = {b: ds["pearson_r"].sel(sweep=sw, band=b).values[m] for b in bands}
+            per_band = {b: r[np.isfinite(r)] for b, r in per_band.items()}
+            pooled = np.concatenate([r for r in per_band.values()] or [np.zeros(0)])
+            if len(pooled):
+                lo, hi = float(pooled.min()), float(pooled.max())
+                edges = np.linspace(lo, hi if hi > lo else lo + 1e-9, max(min(len(pooled) // 3, 40), 6))
+                for b, r in per_band.items():
+                    if len(r):
+                        ax.hist(r, bins=edges, histtype="step", lw=1.5, color=BAND_COLOURS.get(b),
+                                label=f"{b}: mean r = {np.mean(r):.6f} (n = {len(r)})")
+            ax.ticklabel_format(axis="x", useOffset=False)
+            ax.tick_params(axis="x", labelrotation=30, labelsize=7)
             ax.set_xlabel("Pearson r per pixel")
             ax.set_ylabel("pixels")
             ax.set_title(f"{sw} sweep", fontsize=9)
@@ -561,15 +567,19 @@ def _linearity_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
         rows = []
         for v in effects:
             da = ds[v]
-            if da.size == 1:
-                rows.append([v.removeprefix("effect_"), da.attrs.get("long_name", ""), _q(ds, v)])
-            else:
-                for idx in np.ndindex(da.shape):
-                    sel = {d: da[d].values[i] if d in da.coords else i for d, i in zip(da.dims, idx)}
-                    label = ", ".join(f"{d}={s}" for d, s in sel.items())
-                    sig = ds[f"{v}_sigma"].values[idx] if f"{v}_sigma" in ds else None
-                    rows.append([f"{v.removeprefix('effect_')} ({label})", da.attrs.get("long_name", ""),
-                                 f"{fmt_uncertain(float(da.values[idx]), sig)} {_var_units(ds, v)}".strip()])
+            sig_da = ds[f"{v}_sigma"] if f"{v}_sigma" in ds and ds[f"{v}_sigma"].shape == da.shape else None
+            name = v.removeprefix("effect_")
+            for idx in np.ndindex(da.shape):
+                label = ""
+                if da.size > 1:
+                    parts = []
+                    for d, i in zip(da.dims, idx):
+                        parts.append(f"{d}={da[d].values[i]}" if d in da.coords else f"{d}[{i}]")
+                    label = f" ({', '.join(parts)})"
+                val = float(da.values[idx]) if da.ndim else float(da.values)
+                sig = (float(sig_da.values[idx]) if da.ndim else float(sig_da.values)) if sig_da is not None else None
+                rows.append([name + label, da.attrs.get("long_name", ""),
+                             f"{fmt_uncertain(val, sig)} {_var_units(ds, v)}".strip()])
         out.append("<p>Fitted effect parameters (± standard error):</p>")
         out.append(_table(["effect", "description", "value"], rows, left=2))
     else:
@@ -620,7 +630,7 @@ def _history_figure(history: pd.DataFrame, figs: _Figures) -> str:
     for r in runs:
         effs = h.loc[h["run_time"].astype(str) == r, "model_effects"] if "model_effects" in h else pd.Series([""])
         e = effs.iloc[0] if len(effs) and isinstance(effs.iloc[0], str) else "(none)"
-        labels.append(e.replace(" ", "\n").replace(",", "\n"))
+        labels.append(f"run {len(labels) + 1}\n" + e.replace(" ", "\n").replace(",", "\n"))
     fig, ax = plt.subplots(figsize=(max(6, 1.6 * len(runs) + 3), 4))
     for exp, grp in h.groupby("experiment"):
         grp = grp.sort_values("run")
@@ -677,7 +687,7 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
         pv = sorted({str(a[3].attrs.get("pipeline_version", "?")) for a in all_arts})
         effs = sorted({str(a[3].attrs.get("model_effects", "")) for a in all_arts})
         created = sorted(str(a[3].attrs.get("created", "?")) for a in all_arts)
-        s.append(_table(["", ""], [
+        s.append(_table(["item", "value"], [
             ["pipeline version", ", ".join(pv)],
             ["artefacts created", f"{created[0]} … {created[-1]}" if len(created) > 1 else created[0]],
             ["model effects", " | ".join(e.replace(",", ", ") or "(none)" for e in effs)],

@@ -108,6 +108,27 @@ class Effect:
     def frame_offset_dn(self, rng: np.random.Generator) -> float:
         return 0.0
 
+    def sensitivity_map(self, lens: str, shape: tuple[int, int]) -> np.ndarray | float:
+        """Multiplicative per-pixel sensitivity (raw lens shape), e.g. a flat field."""
+        return 1.0
+
+    def optics_factor(self, lens: str, medium: str, theta_deg: np.ndarray, phi_deg: np.ndarray,
+                      band_index: np.ndarray) -> np.ndarray | float:
+        """Multiplicative change of the light reaching each raw pixel (roll-off, immersion)."""
+        return 1.0
+
+    def spread_light(self, photo_rate: np.ndarray, lens: str) -> np.ndarray:
+        """Redistribute the photo-electron rate image (point-spread function, stray light)."""
+        return photo_rate
+
+    def bias_offset_dn(self, temperature_c: float | None) -> float:
+        """Black-level change of a frame taken at ``temperature_c``."""
+        return 0.0
+
+    def dark_rate_factor(self, temperature_c: float | None) -> float:
+        """Factor on every dark-current rate at ``temperature_c``."""
+        return 1.0
+
     def truth(self) -> dict:
         """What the simulator writes to the truth folder for this effect."""
         return {k: _plain(v) for k, v in self.params.items()}

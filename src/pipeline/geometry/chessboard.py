@@ -27,10 +27,10 @@ from .scaramuzza import FisheyeModel
 class Board:
     """Chessboard: inner corners (nx, ny), square size (mm), white margin (squares)."""
 
-    nx: int = 5
-    ny: int = 4
+    nx: int = 7
+    ny: int = 6
     square_mm: float = 30.0
-    margin_squares: float = 0.75
+    margin_squares: float = 0.5
 
     def corners_mm(self) -> np.ndarray:
         """Inner corners (nx*ny, 3) in the board frame, OpenCV order (i fastest)."""
@@ -141,8 +141,8 @@ def _look_rotation(direction, tilt_rad, tilt_azimuth, roll) -> np.ndarray:
 
 
 def poses_covering_fov(n: int, half_fov_deg: float, rng=None, *, board: Board | None = None,
-                       board_half_angle_deg: float | tuple[float, float] = (26.0, 14.0),
-                       max_tilt_deg: float = 40.0,
+                       board_half_angle_deg: float | tuple[float, float] = (50.0, 20.0),
+                       max_tilt_deg: float = 55.0,
                        edge_margin_deg: float = 1.5, model: FisheyeModel | None = None):
     """Poses whose board centres spread from the optical axis to the edge of the field.
 

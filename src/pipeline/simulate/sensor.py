@@ -34,7 +34,7 @@ def draw_static_pattern(rng: np.random.Generator, shape, sensor: SensorParams) -
 
 def expose(rng: np.random.Generator, *, lens: str, photo_rate_e_per_s, exposure_s: float,
            iso: float, sensor: SensorParams, pattern: StaticPattern, effects: list[Effect],
-           frame_offset_dn: float, shape) -> np.ndarray:
+           frame_offset_dn: float, shape, temperature_c: float | None = None) -> np.ndarray:
     """One exposure of one lens: uint16 raw mosaic of ``shape``.
 
     ``photo_rate_e_per_s`` is the photo-electron rate per raw pixel (array or 0).
@@ -44,10 +44,14 @@ def expose(rng: np.random.Generator, *, lens: str, photo_rate_e_per_s, exposure_
     t_true = exposure_s
     gain_factor = 1.0
     dark_rate = 0.0
+    dark_factor = 1.0
     for effect in effects:
         t_true = effect.true_exposure_s(t_true)
         gain_factor *= effect.gain_factor(iso)
         dark_rate = dark_rate + effect.dark_rate_e_per_s(lens, shape)
+        dark_factor *= effect.dark_rate_factor(temperature_c)
+        frame_offset_dn += effect.bias_offset_dn(temperature_c)
+    dark_rate = dark_rate * dark_factor
     k = sensor.conversion_gain(iso) * gain_factor
     # Light reaches the sensor only while the shutter is open (t_true); dark
     # current accumulates over the nominal integration.

@@ -1,0 +1,33 @@
+"""Dark-frame and linearity experiments (Sections 2.2 and 2.8)."""
+
+from __future__ import annotations
+
+from pipeline.camera import BANDS, DarkPlan, LinearityPlan
+from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
+
+
+@planner("dark")
+def plan_dark(ctx: SimContext) -> ExperimentPlan:
+    plan = DarkPlan(frames_per_setting=ctx.scale.dark_frames)
+    frames = [FrameSpec("both", "dark", iso, t)
+              for iso, t in plan.settings() for _ in range(plan.frames_per_setting)]
+    return ExperimentPlan(frames)
+
+
+@planner("linearity")
+def plan_linearity(ctx: SimContext) -> ExperimentPlan:
+    """Both sweeps for each lens in turn, the integrating sphere filling the field."""
+    plan = LinearityPlan(frames_per_setting=ctx.scale.linearity_frames)
+    sphere = ctx.camera.radiometry.sphere_band_radiance
+    exposure_source = {b: plan.exposure_source_fraction * sphere[b] for b in BANDS}
+    gain_source = {b: plan.gain_source_fraction * sphere[b] for b in BANDS}
+    frames = []
+    for lens in ctx.camera.lens_names:
+        for t in plan.exposures_s:
+            frames += [FrameSpec(lens, "signal", plan.exposure_sweep_iso, t, {"sweep": "exposure"},
+                                 exposure_source) for _ in range(plan.frames_per_setting)]
+        for iso in plan.isos:
+            frames += [FrameSpec(lens, "signal", iso, plan.gain_sweep_exposure_s, {"sweep": "gain"},
+                                 gain_source) for _ in range(plan.frames_per_setting)]
+    return ExperimentPlan(frames, truth={"exposure_source_band_radiance": exposure_source,
+                                         "gain_source_band_radiance": gain_source})

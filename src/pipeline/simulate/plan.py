@@ -1,0 +1,68 @@
+"""What an experiment's simulation consists of: frames, sidecar files and truth.
+
+An experiment module registers a planner with :func:`planner`; the planner
+returns an :class:`ExperimentPlan` (the frames to render in acquisition
+order, the sidecar files the lab would write, what only the simulator knows).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.camera import Camera
+
+
+@dataclass
+class LensGeometry:
+    """Where every raw pixel of one lens looks, in one medium (true optics)."""
+
+    theta_deg: np.ndarray
+    phi_deg: np.ndarray
+    lit: np.ndarray          # inside the image circle
+
+
+@dataclass
+class FrameSpec:
+    lens: str                 # lens facing the source, or "both"
+    kind: str                 # signal or dark
+    iso: float
+    exposure_s: float
+    extra: dict = field(default_factory=dict)   # experiment-specific frames.csv columns
+    #: None (no light), {band: radiance} (uniform), or a scene:
+    #: scene(lens, LensGeometry, band_index) -> per-raw-pixel effective band radiance
+    #: (W sr-1 m-2 nm-1) seen by the camera band of each site
+    radiance: dict | Callable | None = None
+    medium: str = "air"
+    temperature_c: float | None = None
+    #: extra factor on the light (e.g. 1/immersion factor in water), per band index or scalar
+    light_factor: Callable | float = 1.0
+    file: str = ""
+
+
+@dataclass
+class ExperimentPlan:
+    frames: list[FrameSpec]
+    sidecars: dict[str, str] = field(default_factory=dict)   # path relative to the experiment -> text
+    truth: dict = field(default_factory=dict)
+
+
+@dataclass
+class SimContext:
+    camera: Camera
+    scale: object             # simulate.dataset.Scale
+    seed: int
+    rng: np.random.Generator  # static draws of the planners (deterministic per seed)
+
+
+PLANNERS: dict[str, Callable[[SimContext], ExperimentPlan]] = {}
+
+
+def planner(name: str):
+    """Decorator registering the planner of experiment ``name``."""
+    def wrap(fn):
+        PLANNERS[name] = fn
+        return fn
+    return wrap

@@ -1,0 +1,92 @@
+"""Turn a FrameSpec into a raw dual-fisheye frame through the camera's true physics.
+
+Light: per raw pixel, photo-electrons per second =
+    responsivity(band) / K100 * L_band(pixel) * g_band(theta) [* effects' optics factors]
+    * light factor (e.g. 1/I in water) * sensitivity (flat field),
+then any stray-light spreading, then :func:`pipeline.simulate.sensor.expose`
+(Larouche et al. 2024, Eqs. 1 and 4).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.camera import BANDS, Camera
+from pipeline.geometry.maps import theta_phi_maps
+from pipeline.geometry.scaramuzza import HALF_FOV_DEG, default_model
+from pipeline.radiometry.rolloff import default_rolloff, evaluate_rolloff
+from pipeline.simulate.plan import FrameSpec, LensGeometry
+from pipeline.simulate.sensor import draw_static_pattern, expose
+
+
+class Renderer:
+    """Holds the static per-lens maps of one simulated camera."""
+
+    def __init__(self, camera: Camera, lens_px: int, seed: int, effects):
+        self.camera = camera
+        self.n = lens_px
+        self.shape = (lens_px, lens_px)
+        self.seed = seed
+        self.effects = effects
+        static = np.random.default_rng([seed, 7919])
+        context = {"lens_names": camera.lens_names, "lens_shape": self.shape}
+        for effect in effects:
+            effect.prepare(static, context)
+        self.patterns = {lens: draw_static_pattern(static, self.shape, camera.sensor)
+                         for lens in camera.lens_names}
+        site = np.array([[0, 1], [1, 2]], dtype=np.int8)      # RGGB -> band index
+        self.band_index = np.tile(site, (lens_px // 2, lens_px // 2))
+        k100 = camera.sensor.conversion_gain_dn_per_e_iso100
+        self.resp_e = np.array([camera.radiometry.responsivity_dn_s_per_radiance[b] / k100 for b in BANDS])
+        self._geometry = {}
+        self._unit_rate = {}
+
+    def geometry(self, lens: str, medium: str) -> LensGeometry:
+        """True viewing directions of the raw pixels (default model at raw resolution)."""
+        key = (lens, medium)
+        if key not in self._geometry:
+            model = default_model(lens, medium, band_shape=self.shape)
+            theta, phi = theta_phi_maps(model, self.shape)
+            theta = np.where(np.isfinite(theta), theta, 180.0)
+            self._geometry[key] = LensGeometry(theta, phi, theta <= HALF_FOV_DEG[medium])
+        return self._geometry[key]
+
+    def unit_rate(self, lens: str, medium: str) -> np.ndarray:
+        """Photo-electrons per second per unit band radiance, roll-off and optics effects included."""
+        key = (lens, medium)
+        if key not in self._unit_rate:
+            geo = self.geometry(lens, medium)
+            theta = np.minimum(geo.theta_deg, HALF_FOV_DEG[medium])
+            rate = np.zeros(self.shape)
+            for b, band in enumerate(BANDS):
+                sel = self.band_index == b
+                rate[sel] = self.resp_e[b] * evaluate_rolloff(default_rolloff(band, medium), theta[sel])
+            for effect in self.effects:
+                rate = rate * effect.optics_factor(lens, medium, geo.theta_deg, geo.phi_deg, self.band_index)
+                rate = rate * effect.sensitivity_map(lens, self.shape)
+            self._unit_rate[key] = rate * geo.lit
+        return self._unit_rate[key]
+
+    def photo_rate(self, lens: str, spec: FrameSpec):
+        if spec.radiance is None or spec.lens not in (lens, "both"):
+            return 0.0
+        if callable(spec.radiance):
+            lbar = spec.radiance(lens, self.geometry(lens, spec.medium), self.band_index)
+        else:
+            lbar = np.array([spec.radiance[b] for b in BANDS])[self.band_index]
+        factor = spec.light_factor(self.band_index) if callable(spec.light_factor) else spec.light_factor
+        rate = self.unit_rate(lens, spec.medium) * lbar * factor
+        for effect in self.effects:
+            rate = effect.spread_light(rate, lens)
+        return rate
+
+    def render(self, index: int, experiment_id: int, spec: FrameSpec) -> np.ndarray:
+        rng = np.random.default_rng([self.seed, experiment_id, index])
+        offset = sum(e.frame_offset_dn(rng) for e in self.effects)
+        frame = np.empty((2 * self.n, self.n), dtype=np.uint16)
+        for row, lens in enumerate(self.camera.lens_names):
+            frame[row * self.n:(row + 1) * self.n] = expose(
+                rng, lens=lens, photo_rate_e_per_s=self.photo_rate(lens, spec), exposure_s=spec.exposure_s,
+                iso=spec.iso, sensor=self.camera.sensor, pattern=self.patterns[lens], effects=self.effects,
+                frame_offset_dn=offset, shape=self.shape, temperature_c=spec.temperature_c)
+        return frame
