@@ -35,7 +35,6 @@ from pipeline.effects import available, get as get_effect
 from pipeline.fitting import base_design, wls
 from pipeline.stages.dark import dataset_to_table
 
-LEVELS = ("setting", "frame")
 #: covariates scanned to say where unexplained structure sits
 COVARIATES = ("exposure_s", "gain", "lens", "band", "sweep", "temperature_c", "frame")
 
@@ -51,7 +50,9 @@ def observations_from_artefacts(artefacts: dict[str, list]) -> list[Observations
     """Observation tables per experiment and level, lenses concatenated."""
     out = []
     for experiment, datasets in artefacts.items():
-        for level in LEVELS:
+        levels = sorted({name.split("__", 1)[0][4:] for ds in datasets for name in ds.data_vars
+                         if name.startswith("obs_") and "__" in name})
+        for level in levels:
             tables = [dataset_to_table(ds, f"obs_{level}") for ds in datasets]
             tables = [t for t in tables if len(t)]
             if not tables:

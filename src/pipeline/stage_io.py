@@ -73,3 +73,41 @@ def run_diagnostics(artefacts: dict[str, list[str | Path]], config: dict, missin
 
 def read_table(path) -> pd.DataFrame:
     return pd.read_csv(path)
+
+
+# ---------------------------------------------------------------- snakemake runners
+def _simulate(smk) -> None:
+    from pipeline.cli import simulate_from_config
+
+    simulate_from_config(smk.output.dataset, smk.params.simulation)
+
+
+def _dark(smk) -> None:
+    run_dark(smk.params.dataset, smk.params.config, dict(zip(smk.params.lenses, smk.output.artefacts)))
+
+
+def _linearity(smk) -> None:
+    run_linearity(smk.params.dataset, smk.params.config, dict(zip(smk.params.lenses, smk.input.dark)),
+                  dict(zip(smk.params.lenses, smk.output.artefacts)))
+
+
+def _diagnostics(smk) -> None:
+    artefacts = {k: list(v) for k, v in smk.input.items()}
+    run_diagnostics(artefacts, smk.params.config, smk.output.missing_effects, smk.output.unexplained,
+                    smk.output.run_errors, smk.params.error_history)
+
+
+def _report(smk) -> None:
+    from pipeline.report import build_report
+
+    def by_lens(key):
+        return dict(zip(smk.params.lenses, smk.input[key])) if key in smk.input.keys() else {}
+
+    build_report(dark=by_lens("dark"), linearity=by_lens("linearity"),
+                 missing_effects=smk.input.missing_effects, unexplained=smk.input.unexplained,
+                 run_errors=smk.input.run_errors, error_history=smk.params.error_history,
+                 out_html=smk.output.html, skipped=smk.params.skipped)
+
+
+RUNNERS = {"simulate_dataset": _simulate, "dark": _dark, "linearity": _linearity,
+           "diagnostics": _diagnostics, "report": _report}

@@ -85,40 +85,21 @@ def _setup_log(path: str | None) -> None:
 def run_stage_script(smk, stage: str) -> None:
     """Entry point of the thin workflow scripts: unpack ``snakemake`` and call the package.
 
+    The stage's module provides ``run_from_snakemake(smk)``: ``pipeline.stage_io``
+    for the foundation rules, ``pipeline.stages.<stage>`` for the others.
     Bad input ends the job with one line naming the file and the problem.
     """
+    import importlib
+
     from pipeline import stage_io
 
     log = smk.log[0] if smk.log else None
     _setup_log(log)
     try:
-        if stage == "simulate_dataset":
-            from pipeline.cli import simulate_from_config
-
-            simulate_from_config(smk.output.dataset, smk.params.simulation)
-        elif stage == "dark":
-            stage_io.run_dark(smk.params.dataset, smk.params.config,
-                              dict(zip(smk.params.lenses, smk.output.artefacts)))
-        elif stage == "linearity":
-            stage_io.run_linearity(smk.params.dataset, smk.params.config,
-                                   dict(zip(smk.params.lenses, smk.input.dark)),
-                                   dict(zip(smk.params.lenses, smk.output.artefacts)))
-        elif stage == "diagnostics":
-            artefacts = {k: list(smk.input[k]) for k in ("dark", "linearity") if k in smk.input.keys()}
-            stage_io.run_diagnostics(artefacts, smk.params.config, smk.output.missing_effects,
-                                     smk.output.unexplained, smk.output.run_errors, smk.params.error_history)
-        elif stage == "report":
-            from pipeline.report import build_report
-
-            def by_lens(key):
-                return dict(zip(smk.params.lenses, smk.input[key])) if key in smk.input.keys() else {}
-
-            build_report(dark=by_lens("dark"), linearity=by_lens("linearity"),
-                         missing_effects=smk.input.missing_effects, unexplained=smk.input.unexplained,
-                         run_errors=smk.input.run_errors, error_history=smk.params.error_history,
-                         out_html=smk.output.html, skipped=smk.params.skipped)
-        else:
-            raise ValueError(f"unknown stage {stage}")
+        runner = stage_io.RUNNERS.get(stage)
+        if runner is None:
+            runner = importlib.import_module(f"pipeline.stages.{stage}").run_from_snakemake
+        runner(smk)
     except InputError as exc:
         logging.getLogger("pipeline").error("%s", exc)
         print(f"error: {exc}", file=sys.stderr)
