@@ -54,6 +54,7 @@ class CalibrationResult:
     used_frames: list               # indices of frames used in the final fit
     dropped: dict = field(default_factory=dict)  # frame index -> reason
     linear_centre: tuple = (np.nan, np.nan)      # centre chosen by the grid search
+    n_points_dropped: int = 0                    # single outlier corners removed
     success: bool = True
     message: str = ""
 
@@ -312,6 +313,7 @@ def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev):
 def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
               stretch: str = "symmetric", min_corners: int = 6, min_frames: int = 5,
               outlier_factor: float = 5.0, max_frame_rms_px: float | None = None,
+              point_outlier_factor: float = 5.0,
               centre_half_width_frac: float = 0.1, max_nfev: int = 200,
               half_fov_deg: float | None = None) -> CalibrationResult:
     """Calibrate a Scaramuzza model from chessboard corners seen in many frames.
@@ -331,6 +333,9 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
     outlier_factor : a frame whose RMS error exceeds outlier_factor times
         the median frame RMS (and max_frame_rms_px when given) is dropped
         and the fit repeated.
+    point_outlier_factor : single corners whose error exceeds this times the
+        median corner error are dropped (a mislocated corner on a steeply
+        tilted board) and the fit repeated; counted in ``n_points_dropped``.
     half_fov_deg : stored in the returned model (e.g. from the image circle).
     """
     if stretch not in ("symmetric", "full", "none"):
@@ -369,6 +374,7 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
     b, poses = sol
     model = FisheyeModel(_b_to_poly(b, degree, r_norm), centre[0], centre[1], shape=shape)
 
+    n_points_dropped = 0
     while True:
         model, poses, res, frame_of_pt, ls = _refine(frames, L, model, poses, degree,
                                                      r_norm, stretch, max_nfev)
@@ -379,7 +385,17 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
             limit = max(limit, max_frame_rms_px) if max_frame_rms_px < limit else max_frame_rms_px
         bad = np.nonzero(rms > limit)[0]
         if bad.size == 0:
-            break
+            bad_pts = err > point_outlier_factor * np.median(err)
+            if not bad_pts.any():
+                break
+            offsets = np.concatenate([[0], np.cumsum([len(uv) for uv, _ in frames])])
+            new_frames = []
+            for k, (uv, XY) in enumerate(frames):
+                keep = ~bad_pts[offsets[k]:offsets[k + 1]]
+                new_frames.append((uv[keep], XY[keep]))
+            n_points_dropped += int(bad_pts.sum())
+            frames = new_frames
+            continue
         worst = int(bad[np.argmax(rms[bad])])  # drop one frame at a time
         dropped[idx[worst]] = f"reprojection RMS {rms[worst]:.2f} px > {limit:.2f} px"
         del frames[worst], idx[worst], poses[worst]
@@ -402,5 +418,6 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         model=model, poses=out_poses, frame_rms_px=frame_rms,
         mean_error_px=float(err.mean()), rms_error_px=float(np.sqrt(np.mean(err**2))),
         residuals_px=res, residual_rho_px=np.hypot(x, y), used_frames=list(idx),
-        dropped=dropped, linear_centre=tuple(centre), success=bool(ls.success),
+        dropped=dropped, linear_centre=tuple(centre), n_points_dropped=n_points_dropped,
+        success=bool(ls.success),
         message=str(ls.message))

@@ -142,7 +142,7 @@ def _look_rotation(direction, tilt_rad, tilt_azimuth, roll) -> np.ndarray:
 
 def poses_covering_fov(n: int, half_fov_deg: float, rng=None, *, board: Board | None = None,
                        board_half_angle_deg: float | tuple[float, float] = (50.0, 20.0),
-                       max_tilt_deg: float = 55.0,
+                       max_tilt_deg: float = 45.0,
                        edge_margin_deg: float = 1.5, model: FisheyeModel | None = None):
     """Poses whose board centres spread from the optical axis to the edge of the field.
 
