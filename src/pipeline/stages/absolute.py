@@ -1,0 +1,239 @@
+"""Absolute spectral-radiance stage (Larouche et al. 2024, Sections 2.1, 2.6 and 3.5; Table 1, Fig. 7).
+
+Per lens and band:
+
+* the source spectrum (``absolute/source_spectrum.csv``, relative) is scaled
+  so that its value at the reference wavelength (589 nm) equals the C-OPS
+  reading (``absolute/source_reference.csv``), Section 2.6;
+* its effective band radiance by Eq. (3), with the MEASURED peak-normalised
+  response of the spectral artefact, linearly interpolated onto the
+  spectrometer's wavelengths inside the measured range (400-700 nm) and zero
+  outside it (unmeasured: with the simulator's default response this drops
+  the B tail below 400 nm, about +0.9 % on B's L and R^-1);
+* y_DN, Eq. (2): dark-subtracted mean DN in the ``absolute.mask_half_angle_deg``
+  mask (geometry artefact, in air), divided by exposure time and ISO/100;
+* R^-1 = L / y_DN, Eq. (9), and its uncertainty budget
+  (:func:`pipeline.radiometry.absolute.absolute_calibration_budget`):
+  spectrometer calibration lamp (manufacturer 9.1 % at 400 nm to 6.9 % at
+  800 nm), reference reading (its ``uncertainty_rel``), spectrometer noise
+  (``radiance_std``), optional extra source term, and image statistics (the
+  spread of the averaging region by default, as Section 3.5 says).  The lamp
+  term dominates (about 8 % of 8.6-9.3 %).  The spectral response's own
+  uncertainty is left out, as in the paper (R^-1 x y_DN gives Eq. 3 back).
+
+Dark level: the experiment's dark frames at the same setting, or the dark
+artefact's model when there are none (:func:`pipeline.stages.spectral.dark_levels`).
+
+Observation table (closure): frame level, one row per frame, lens and band
+(signal and dark frames): ``value_dn`` the dark-corrected mask mean,
+``sigma_dn`` its temporal noise, one free level per group
+``lens/band/kind/setting`` (``x_level``); covariates ``frame``, ``iso``,
+``exposure_s``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from pipeline.camera import BANDS
+from pipeline.dataset import read_source_reference, read_source_spectrum
+from pipeline.errors import InputError
+from pipeline.radiometry.absolute import (absolute_calibration_budget, dn_per_second,
+                                          lamp_calibration_relative_sigma)
+from pipeline.stages.dark import table_to_dataset
+from pipeline.stages.spectral import _read_optional, central_masks, dark_levels, frame_table, reduce_central
+
+STAGE = "absolute"
+TERMS = ("lamp_calibration", "reference", "spectrometer_noise", "extra", "image")
+
+
+def reference_reading(table: pd.DataFrame, path: Path, wavelength_nm: float,
+                      tolerance_nm: float = 0.5) -> tuple[float, float]:
+    """The reference radiance (W sr-1 m-2 nm-1) and its relative uncertainty at ``wavelength_nm``."""
+    hit = np.flatnonzero(np.abs(table["wavelength_nm"].to_numpy(float) - wavelength_nm) <= tolerance_nm)
+    if hit.size == 0:
+        raise InputError(path, f"no reading at {wavelength_nm:g} nm (needed to scale the source spectrum)")
+    if hit.size > 1:
+        raise InputError(path, f"more than one reading at {wavelength_nm:g} nm")
+    row = table.iloc[hit[0]]
+    return float(row["radiance_W_sr_m2_nm"]), float(row["uncertainty_rel"])
+
+
+def check_spectrum(spectrum: pd.DataFrame, path: Path, reference_nm: float, response_nm: np.ndarray) -> None:
+    wl = spectrum["wavelength_nm"].to_numpy(float)
+    if np.any(np.diff(wl) <= 0):
+        raise InputError(path, "wavelength_nm must increase strictly")
+    if not (wl[0] <= reference_nm <= wl[-1]):
+        raise InputError(path, f"does not cover the reference wavelength {reference_nm:g} nm")
+    if wl[0] > response_nm[0] or wl[-1] < response_nm[-1]:
+        raise InputError(path, f"covers {wl[0]:g}-{wl[-1]:g} nm, not the measured response range "
+                               f"{response_nm[0]:g}-{response_nm[-1]:g} nm")
+    if np.any(spectrum["radiance"].to_numpy(float) < 0):
+        raise InputError(path, "radiance must not be negative")
+
+
+def response_on_grid(wavelength_nm: np.ndarray, response_nm: np.ndarray, response: np.ndarray) -> np.ndarray:
+    """Measured response linearly interpolated onto ``wavelength_nm``; zero outside its range."""
+    return np.interp(wavelength_nm, response_nm, response, left=0.0, right=0.0)
+
+
+def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset], spectrum: pd.DataFrame,
+                     spectrum_path: Path, reference: tuple[float, float], config: dict) -> dict[str, xr.Dataset]:
+    cfg = config[STAGE]
+    moments = reduced["moments"]
+    fr = frame_table(reduced, darks)
+    if fr[fr["kind"] == "signal"]["saturated"].any():
+        raise InputError(spectrum_path.parent / "frames.csv", "saturated pixels in the averaging mask")
+    wl = spectrum["wavelength_nm"].to_numpy(float)
+    spec = spectrum["radiance"].to_numpy(float)
+    spec_std = spectrum["radiance_std"].to_numpy(float)
+    ref_value, ref_rel = reference
+    lamp = lamp_calibration_relative_sigma(wl, cfg["lamp_relative_sigma_400nm"], cfg["lamp_relative_sigma_800nm"])
+    out = {}
+    for lens in sorted({k[0] for k in moments}):
+        if lens not in spectral:
+            raise InputError(None, f"no spectral artefact for lens {lens}")
+        sp = spectral[lens]
+        resp_nm = sp["wavelength_nm"].values.astype(float)
+        check_spectrum(spectrum, spectrum_path, cfg["reference_wavelength_nm"], resp_nm)
+        rows = []
+        for band in BANDS:
+            keys = [k for k in moments if k[0] == lens and k[1] == band and k[2] == "signal"]
+            if not keys:
+                raise InputError(spectrum_path.parent / "frames.csv", f"no signal frames for lens {lens}")
+            # Eq. (2) per setting, then the frame-weighted mean over settings (usually one: ISO 100, 0.1 s)
+            y, y_var_std, y_var_se, n_tot, n_mask = 0.0, 0.0, 0.0, 0, 0
+            for k in keys:
+                mom = moments[k]
+                d = darks[(lens, band, k[4], k[5])]
+                mean_map = mom.mean()
+                n_mask = mean_map.size
+                y_k = float(dn_per_second(mean_map.mean(), d["level_dn"], k[5], k[4]))
+                scale = k[5] * k[4] / 100.0
+                region_std = float(np.std(mean_map, ddof=1)) / scale
+                se = np.sqrt(float(mom.variance().mean()) / n_mask / mom.n + d["sigma_dn"] ** 2) / scale
+                y += y_k * mom.n
+                y_var_std += (region_std * mom.n) ** 2
+                y_var_se += (se * mom.n) ** 2
+                n_tot += mom.n
+            y /= n_tot
+            y_std = np.sqrt(y_var_std) / n_tot
+            y_se = np.sqrt(y_var_se) / n_tot
+            y_sigma = y_std if cfg["image_sigma"] == "region_std" else y_se
+            s = response_on_grid(wl, resp_nm, sp["response"].sel(band=band).values.astype(float))
+            budget = absolute_calibration_budget(
+                wl, spec, s, y, y_sigma, spectrum_noise_sigma=spec_std,
+                reference_wavelength_nm=cfg["reference_wavelength_nm"], reference_value=ref_value,
+                reference_sigma=ref_value * ref_rel, lamp_relative_sigma=lamp,
+                lamp_reference_correlation=cfg["lamp_reference_correlation"],
+                extra_relative_sigma=cfg["extra_relative_sigma"])
+            rows.append({"band": band, "y": y, "y_sigma": y_sigma, "y_std": y_std, "y_se": y_se,
+                         "n_mask": n_mask, "n_frames": n_tot, "budget": budget,
+                         "dark_dn": darks[(lens, band, keys[0][4], keys[0][5])]["level_dn"],
+                         "dark_source": darks[(lens, band, keys[0][4], keys[0][5])]["source"]})
+        scaled = spec * (ref_value / np.interp(cfg["reference_wavelength_nm"], wl, spec))
+        out[lens] = _lens_dataset(rows, wl, scaled, ref_value, ref_rel, fr[fr["lens"] == lens].reset_index(drop=True),
+                                  cfg)
+    return out
+
+
+def _lens_dataset(rows, wl, scaled, ref_value, ref_rel, fr, cfg) -> xr.Dataset:
+    def col(key):
+        return np.array([r[key] for r in rows])
+
+    def bud(key):
+        return np.array([r["budget"][key] for r in rows])
+
+    contrib = np.array([[r["budget"]["contributions"][t] for t in TERMS] for r in rows])
+    ds = xr.Dataset(
+        coords={"band": ("band", list(BANDS)), "term": ("term", list(TERMS)),
+                "source_wavelength_nm": ("source_wavelength_nm", wl, {"long_name": "spectrometer wavelength", "units": "nm"})},
+        data_vars={
+            "effective_radiance": ("band", bud("effective_radiance"),
+                                   {"long_name": "effective band radiance of the source, Eq. (3), measured response (Table 1)",
+                                    "units": "W sr-1 m-2 nm-1"}),
+            "effective_radiance_sigma": ("band", bud("effective_radiance_sigma"),
+                                         {"long_name": "standard uncertainty of the effective band radiance", "units": "W sr-1 m-2 nm-1"}),
+            "dn_per_s": ("band", col("y"), {"long_name": "dark-subtracted DN per second at ISO 100 in the mask, Eq. (2) (Table 1)",
+                                            "units": "DN s-1"}),
+            "dn_per_s_sigma": ("band", col("y_sigma"), {"long_name": f"uncertainty of dn_per_s used in the budget ({cfg['image_sigma']})",
+                                                        "units": "DN s-1"}),
+            "dn_per_s_region_std": ("band", col("y_std"), {"long_name": "spatial spread of the frame-averaged image in the mask", "units": "DN s-1"}),
+            "dn_per_s_standard_error": ("band", col("y_se"), {"long_name": "standard error of the mask mean (temporal noise and dark level)", "units": "DN s-1"}),
+            "inverse_responsivity": ("band", bud("inverse_responsivity"),
+                                     {"long_name": "calibration coefficient R^-1, Eq. (9) (Table 1)",
+                                      "units": "W sr-1 m-2 nm-1 s DN-1"}),
+            "inverse_responsivity_sigma": ("band", bud("inverse_responsivity_sigma"),
+                                           {"long_name": "standard uncertainty of R^-1", "units": "W sr-1 m-2 nm-1 s DN-1"}),
+            "relative_sigma": ("band", bud("relative_sigma"), {"long_name": "relative standard uncertainty of R^-1", "units": "1"}),
+            "uncertainty_contribution": (("band", "term"), contrib,
+                                         {"long_name": "relative standard uncertainty of each budget term", "units": "1"}),
+            "dominant_term": ("band", np.array([r["budget"]["dominant"] for r in rows]).astype(str),
+                              {"long_name": "largest term of the budget"}),
+            "dark_level_dn": ("band", col("dark_dn"), {"long_name": "dark level subtracted in the mask", "units": "DN",
+                                                      "source": ",".join(f"{r['band']}:{r['dark_source']}" for r in rows)}),
+            "mask_n_pixels": ("band", col("n_mask"), {"long_name": "band pixels in the averaging mask", "units": "1"}),
+            "n_frames": ("band", col("n_frames"), {"long_name": "signal frames averaged", "units": "1"}),
+            "source_radiance": ("source_wavelength_nm", scaled,
+                                {"long_name": "source spectrum scaled to the reference reading (Fig. 7)", "units": "W sr-1 m-2 nm-1"}),
+            "reference_wavelength_nm": ((), float(cfg["reference_wavelength_nm"]), {"units": "nm"}),
+            "reference_radiance": ((), ref_value, {"long_name": "reference radiometer reading", "units": "W sr-1 m-2 nm-1"}),
+            "reference_relative_sigma": ((), ref_rel, {"units": "1"}),
+            "mask_half_angle_deg": ((), float(cfg["mask_half_angle_deg"]), {"units": "degree"}),
+            "rms_z": ((), fr.attrs.get("rms_z", np.nan),
+                      {"long_name": "RMS of the noise-normalised frame residuals (1 at the noise floor)", "units": "1"}),
+        },
+    )
+    return ds.merge(table_to_dataset(fr, "obs_frame"))
+
+
+def run(dataset: str | Path, config: dict, spectral_paths: dict[str, str | Path],
+        geometry_paths: dict[str, str | Path], outputs: dict[str, str | Path],
+        dark_paths: dict[str, str | Path] | None = None, progress: bool = False) -> dict[str, xr.Dataset]:
+    """Absolute stage from files to files: one artefact per lens in ``outputs``.
+
+    ``spectral_paths``: lens -> spectral artefact (measured response);
+    ``geometry_paths``: lens -> geometry artefact (mask); ``dark_paths``
+    (optional): lens -> dark artefact, used when the experiment has no dark frames.
+    """
+    from pipeline.artefact import sha256_file, write_artefact
+    from pipeline.dataset import open_dataset
+    from pipeline.stage_io import _model, stage_config
+
+    effects = _model(config)
+    ds = open_dataset(dataset)
+    cfg = config[STAGE]
+    # sidecars first: bad input fails before any frame is decoded
+    spectrum_path = ds.root / STAGE / "source_spectrum.csv"
+    reference_path = ds.root / STAGE / "source_reference.csv"
+    spectrum = read_source_spectrum(ds)
+    reference = reference_reading(read_source_reference(ds), reference_path, cfg["reference_wavelength_nm"])
+    geometry = _read_optional(geometry_paths, "geometry")
+    spectral = _read_optional(spectral_paths, "spectral")
+    dark = _read_optional(dark_paths, "dark")
+    lenses = [lens for lens in ds.lenses if lens in outputs]
+    missing = [lens for lens in lenses if lens not in geometry]
+    if missing:
+        raise InputError(None, f"no geometry artefact for lens {', '.join(missing)}")
+    masks = central_masks({lens: geometry[lens] for lens in lenses}, cfg["mask_half_angle_deg"], cfg["mask_min_pixels"])
+    reduced = reduce_central(ds, STAGE, masks, progress=progress)
+    darks = dark_levels(reduced, dark, ds.root / STAGE / "frames.csv")
+    arts = analyse_absolute(reduced, darks, spectral, spectrum, spectrum_path, reference, config)
+    inputs = dict(reduced["inputs"])
+    for path in (spectrum_path, reference_path):
+        inputs[path.name] = sha256_file(path)
+    for lens in lenses:
+        write_artefact(arts[lens], outputs[lens], stage=STAGE, inputs=inputs,
+                       config_subset=stage_config(config, STAGE), effects=effects)
+    return arts
+
+
+def run_from_snakemake(smk) -> None:
+    lenses = list(smk.params.lenses)
+    dark = dict(zip(lenses, smk.input.dark)) if "dark" in smk.input.keys() else None
+    run(smk.params.dataset, smk.params.config, dict(zip(lenses, smk.input.spectral)),
+        dict(zip(lenses, smk.input.geometry)), dict(zip(lenses, smk.output.artefacts)), dark_paths=dark)

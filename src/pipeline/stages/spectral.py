@@ -1,0 +1,381 @@
+"""Relative spectral response stage (Larouche et al. 2024, Sections 2.5 and 3.4; Fig. 6).
+
+Streams the spectral experiment's frames once per lens and reduces them to:
+
+* per wavelength and band, the dark-corrected mean DN inside a small mask
+  around the optical axis (``spectral.mask_half_angle_deg`` of the geometry
+  artefact's in-air theta map, grown to ``spectral.mask_min_pixels`` band pixels
+  nearest the axis when the image is too coarse), averaged over the frames;
+* the response r = DN / photodiode signal, divided by its peak value
+  (:func:`pipeline.radiometry.spectral.peak_normalise_response`), with the
+  covariance that the shared peak induces;
+* the effective wavelength (Eq. 8) and the bandwidth int S dlambda (trapezoid)
+  with half bandwidth, uncertainties propagated linearly from the response
+  covariance (:func:`pipeline.radiometry.spectral.band_statistics`).
+
+Dark correction: the experiment's own dark frames at the same ISO and
+exposure (mean of their mask pixels, which also removes the fixed pattern);
+when the experiment has none, the dark artefact's model
+(:func:`pipeline.stages.dark.dark_level_dn`) plus its fixed pattern in the mask.
+
+Uncertainty of each mean: temporal variance of the mask pixels (running
+moments across the frames of one wavelength) divided by the number of pixels
+and frames, plus the uncertainty of the dark level; the photodiode's
+``signal_std`` is taken as the standard uncertainty of its reported reading.
+The dark level is shared by all wavelengths of a band; its (small)
+correlation is neglected.
+
+Observation table (for closure and the diagnostics): the frame level, one
+row per frame and band: ``value_dn`` the frame's dark-corrected mask mean,
+``sigma_dn`` its temporal noise (pixel variance / pixels), one free level per
+group ``lens/band/wavelength`` (``x_level``); covariates ``wavelength_nm``,
+``photodiode_signal``, ``frame``, ``iso``, ``exposure_s``.  A table with one
+row per wavelength and band would need one free parameter per row (the
+response itself) and be saturated; the frames scatter about their setting
+mean, which the noise model must explain (like the foundation's frame tables).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from pipeline.camera import BANDS
+from pipeline.dataset import Dataset, read_photodiode
+from pipeline.errors import InputError
+from pipeline.fitting import base_design, wls
+from pipeline.frames import iter_frames
+from pipeline.moments import RunningMoments
+from pipeline.radiometry.spectral import band_statistics
+from pipeline.stages.dark import dark_level_dn, table_to_dataset
+
+STAGE = "spectral"
+#: medium of the lab experiments (the geometry artefact's in-air maps)
+MEDIUM = "air"
+
+
+# ----------------------------------------------------------------------------- shared with absolute
+def central_masks(geometry: dict[str, xr.Dataset], half_angle_deg: float, min_pixels: int,
+                  medium: str = MEDIUM) -> dict[tuple[str, str], np.ndarray]:
+    """Band-pixel masks within ``half_angle_deg`` of the optical axis, per (lens, band).
+
+    When fewer than ``min_pixels`` band pixels fall inside (coarse images),
+    the mask is the ``min_pixels`` pixels with the smallest theta.
+    """
+    out = {}
+    for lens, geo in geometry.items():
+        for band in BANDS:
+            theta = geo["theta_deg"].sel(medium=medium, band=band).values.astype(float)
+            theta = np.where(np.isfinite(theta), theta, np.inf)
+            mask = theta <= half_angle_deg
+            if mask.sum() < min_pixels:
+                order = np.argsort(theta, axis=None)[:min_pixels]
+                mask = np.zeros(theta.shape, dtype=bool)
+                mask.flat[order] = True
+            out[(lens, band)] = mask
+    return out
+
+
+#: wavelength key of frames without a monochromator setting (dark frames, other experiments):
+#: NaN cannot serve, it never equals itself as a dictionary key
+NO_WAVELENGTH = -1.0
+
+
+def _wavelength_key(row) -> float:
+    value = row.get("wavelength_nm", np.nan)
+    try:
+        value = float(value)
+    except (TypeError, ValueError):
+        return NO_WAVELENGTH
+    return round(value, 6) if np.isfinite(value) else NO_WAVELENGTH
+
+
+def reduce_central(dataset: Dataset, experiment: str, masks: dict[tuple[str, str], np.ndarray],
+                   saturation_margin_dn: float = 1.0, progress: bool = False) -> dict:
+    """Stream an experiment's frames once: running moments of the mask pixels per setting.
+
+    Setting key: (lens, band, kind, wavelength_nm or NO_WAVELENGTH, iso, exposure_s).
+    Returns ``moments``, per-frame ``frames`` table, ``inputs`` (file -> sha256).
+    """
+    frames = dataset.frames(experiment)
+    lenses = sorted({lens for lens, _ in masks})
+    moments = defaultdict(RunningMoments)
+    rows, inputs = [], {}
+    for i, dec in enumerate(iter_frames(dataset, experiment, frames, saturation_margin_dn=saturation_margin_dn,
+                                        progress=progress)):
+        row = dec.row
+        inputs[row["file"]] = dec.raw.sha256
+        wl = _wavelength_key(row)
+        kind = row["kind"]
+        if kind == "signal" and experiment == STAGE and wl == NO_WAVELENGTH:
+            raise InputError(dataset.root / experiment / "frames.csv",
+                             f"signal frame {row['file']!r} has no wavelength_nm")
+        iso, t = float(dec.raw.iso), round(float(dec.raw.exposure_s), 9)
+        for lens in (lenses if row["lens"] == "both" else [row["lens"]]):
+            if lens not in dec.lenses or (lens, BANDS[0]) not in masks:
+                continue
+            for band in BANDS:
+                img = dec.lenses[lens].bands[band]
+                mask = masks[(lens, band)]
+                if img.shape != mask.shape:
+                    raise InputError(row["path"], f"band image {img.shape} does not match the geometry "
+                                                  f"artefact's maps {mask.shape} (lens {lens})")
+                pix = img[mask]
+                moments[(lens, band, kind, wl, iso, t)].add(pix)
+                rows.append({"lens": lens, "band": band, "kind": kind, "wavelength_nm": wl, "iso": iso,
+                             "exposure_s": t, "file_index": i, "mask_mean_dn": float(pix.mean()),
+                             "saturated": bool(dec.lenses[lens].saturated[band][mask].any())})
+    if not rows:
+        raise InputError(dataset.root / experiment / "frames.csv", "no frames")
+    return {"moments": moments, "frames": pd.DataFrame(rows), "inputs": inputs, "masks": masks}
+
+
+def dark_levels(reduced: dict, dark: dict[str, xr.Dataset] | None, frames_csv: Path) -> dict:
+    """Dark level (DN) and its uncertainty in the mask, per (lens, band, iso, exposure_s) of signal frames.
+
+    From the experiment's dark frames at the same setting; otherwise the dark
+    artefact's model plus its fixed pattern averaged over the mask.
+    """
+    moments = reduced["moments"]
+    out = {}
+    signal_keys = {(k[0], k[1], k[4], k[5]) for k in moments if k[2] == "signal"}
+    for lens, band, iso, t in signal_keys:
+        dark_keys = [k for k in moments if k[2] == "dark" and k[0] == lens and k[1] == band
+                     and k[4] == iso and k[5] == t]
+        if dark_keys:
+            n = sum(moments[k].n for k in dark_keys)
+            level_map = sum(moments[k].mean() * moments[k].n for k in dark_keys) / n
+            var = float(np.mean([moments[k].variance().mean() for k in dark_keys]))
+            out[(lens, band, iso, t)] = {"level_dn": float(level_map.mean()),
+                                         "sigma_dn": float(np.sqrt(var / level_map.size / n)),
+                                         "n_frames": n, "source": "dark frames"}
+        elif dark is not None and lens in dark:
+            d = dark[lens]
+            mask = reduced["masks"][(lens, band)]
+            fpn = d["fpn_map_dn"].sel(band=band).values
+            fpn_mean = float(fpn[mask].mean()) if fpn.shape == mask.shape else 0.0
+            sigma = float(d["bias_dn_sigma"].sel(band=band))
+            out[(lens, band, iso, t)] = {"level_dn": dark_level_dn(d, band, iso, t) + fpn_mean,
+                                         "sigma_dn": sigma, "n_frames": 0, "source": "dark artefact"}
+        else:
+            raise InputError(frames_csv, f"no dark frames at ISO {iso:g} and {t:g} s for lens {lens}, "
+                                         "and no dark artefact was given")
+    return out
+
+
+def frame_table(reduced: dict, darks: dict) -> pd.DataFrame:
+    """Frame-level observation table: dark-corrected mask means with their temporal noise."""
+    fr = reduced["frames"].copy()
+    moments = reduced["moments"]
+    levels, sig = [], []
+    for _, r in fr.iterrows():
+        d = darks.get((r["lens"], r["band"], r["iso"], r["exposure_s"]))
+        levels.append(d["level_dn"] if d else np.nan)
+        mom = moments[(r["lens"], r["band"], r["kind"], r["wavelength_nm"], r["iso"], r["exposure_s"])]
+        var = mom.variance()
+        sig.append(np.sqrt(max(float(var.mean()), 1e-12) / var.size))
+    fr["dark_dn"] = levels
+    fr["value_dn"] = fr["mask_mean_dn"] - fr["dark_dn"]
+    fr["sigma_dn"] = sig
+    fr["n_mask"] = [int(reduced["masks"][(lens, band)].sum()) for lens, band in zip(fr["lens"], fr["band"])]
+    wl = fr["wavelength_nm"].map(lambda w: "none" if w == NO_WAVELENGTH else f"{w:g}")
+    fr["group"] = fr["lens"] + "/" + fr["band"] + "/" + fr["kind"] + "/" + wl + "/" + \
+        fr["iso"].map("{:g}".format) + "/" + fr["exposure_s"].map("{:g}".format)
+    fr["frame"] = fr.groupby("group").cumcount()
+    fr = fr[np.isfinite(fr["value_dn"])].reset_index(drop=True)
+    fr["wavelength_nm"] = fr["wavelength_nm"].where(fr["wavelength_nm"] != NO_WAVELENGTH, np.nan)
+    fr["x_level"] = 1.0
+    fit = wls(fr["value_dn"].to_numpy(), fr["sigma_dn"].to_numpy(), base_design(fr)[0])
+    fr["pred_dn"] = fit.pred
+    fr["z"] = fit.z
+    fr.attrs["rms_z"] = fit.rms_z
+    fr["saturated"] = fr["saturated"].astype(int)
+    fr["used"] = 1 - fr["saturated"]
+    return fr
+
+
+# ----------------------------------------------------------------------------- spectral analysis
+def normalised_response(dn, dn_sigma, photodiode, photodiode_sigma):
+    """Peak-normalised response S = r / r_peak, r = dn / photodiode, with its covariance (last axis).
+
+    Same propagation as :func:`pipeline.radiometry.spectral.peak_normalise_response`
+    written with absolute uncertainties of r, so that wavelengths where a band
+    has no signal (dn = 0, e.g. R at 400 nm) keep a finite uncertainty:
+    cov_ij = delta_ij sigma_r,i^2 / r_p^2 + S_i S_j u_p^2 for i, j != p and zero
+    on the peak row and column (S_p = 1 exactly), u_p the relative uncertainty
+    of r_p, sigma_r^2 = (sigma_dn / pd)^2 + (dn sigma_pd / pd^2)^2.
+    """
+    dn = np.asarray(dn, dtype=float)
+    pd_ = np.asarray(photodiode, dtype=float)
+    r = dn / pd_
+    sr2 = (np.asarray(dn_sigma, dtype=float) / pd_) ** 2 + (dn * np.asarray(photodiode_sigma, dtype=float) / pd_**2) ** 2
+    ip = np.argmax(r, axis=-1)
+    rp = np.take_along_axis(r, ip[..., None], axis=-1)
+    up2 = np.take_along_axis(sr2, ip[..., None], axis=-1) / rp**2
+    s = r / rp
+    n = r.shape[-1]
+    not_p = (np.arange(n) != ip[..., None]).astype(float)
+    cov = np.einsum("...i,...j->...ij", s * not_p, s * not_p) * up2[..., None]
+    cov = cov + np.einsum("...i,ij->...ij", sr2 * not_p / rp**2, np.eye(n))
+    return s, np.sqrt(np.einsum("...ii->...i", cov)), cov
+
+
+def analyse_spectral(reduced: dict, darks: dict, photodiode: pd.DataFrame, photodiode_path: Path,
+                     config: dict) -> dict[str, xr.Dataset]:
+    """Response, effective wavelength and bandwidth per lens and band."""
+    moments = reduced["moments"]
+    fr = frame_table(reduced, darks)
+    sig = fr[fr["kind"] == "signal"]
+    if sig["saturated"].any():
+        bad = sig[sig["saturated"] == 1].iloc[0]
+        raise InputError(photodiode_path.parent / "frames.csv",
+                         f"saturated pixels in the mask at {bad['wavelength_nm']:g} nm ({bad['lens']}/{bad['band']}); "
+                         "lower the exposure")
+    pd_wl = photodiode["wavelength_nm"].to_numpy(float)
+    out = {}
+    for lens in sorted({k[0] for k in moments}):
+        keys = [k for k in moments if k[0] == lens and k[2] == "signal"]
+        wls_nm = np.array(sorted({k[3] for k in keys}))
+        if wls_nm.size < 2:
+            raise InputError(photodiode_path.parent / "frames.csv",
+                             f"lens {lens}: fewer than two monochromator wavelengths")
+        pd_sig, pd_std = np.empty(wls_nm.size), np.empty(wls_nm.size)
+        for j, w in enumerate(wls_nm):
+            hit = np.flatnonzero(np.abs(pd_wl - w) < 1e-3)
+            if hit.size != 1:
+                raise InputError(photodiode_path, f"{'no' if hit.size == 0 else 'more than one'} reading at "
+                                                  f"{w:g} nm (the frames use it)")
+            pd_sig[j] = photodiode["signal"].iloc[hit[0]]
+            pd_std[j] = photodiode["signal_std"].iloc[hit[0]]
+        if np.any(pd_sig <= 0):
+            raise InputError(photodiode_path, "signal must be positive at every wavelength the frames use")
+        dn = np.empty((len(BANDS), wls_nm.size))
+        dn_sigma = np.empty_like(dn)
+        dark_dn = np.empty(len(BANDS))
+        n_mask = np.empty(len(BANDS), dtype=int)
+        for bi, band in enumerate(BANDS):
+            n_mask[bi] = int(reduced["masks"][(lens, band)].sum())
+            for j, w in enumerate(wls_nm):
+                ks = [k for k in keys if k[1] == band and k[3] == w]
+                total, var_sum, n = 0.0, 0.0, 0
+                dsig2 = 0.0
+                for k in ks:
+                    mom = moments[k]
+                    d = darks[(lens, band, k[4], k[5])]
+                    # Eq. (2) normalisation would cancel in the peak normalisation unless the
+                    # settings differ between wavelengths: bring every setting to DN per second at ISO 100
+                    norm = k[5] * k[4] / 100.0
+                    total += (mom.mean().mean() - d["level_dn"]) / norm * mom.n
+                    var_sum += float(mom.variance().mean()) / mom.mean().size / norm**2 * mom.n
+                    dsig2 += (d["sigma_dn"] / norm) ** 2 * mom.n
+                    n += mom.n
+                    dark_dn[bi] = d["level_dn"]
+                dn[bi, j] = total / n
+                dn_sigma[bi, j] = np.sqrt(var_sum / n / n + dsig2 / n)
+        s, s_sigma, cov = normalised_response(dn, dn_sigma, pd_sig, pd_std)
+        stats = [band_statistics(wls_nm, s[bi], cov[bi]) for bi in range(len(BANDS))]
+        out[lens] = _lens_dataset(lens, wls_nm, dn, dn_sigma, pd_sig, pd_std, s, s_sigma, cov, stats, dark_dn,
+                                  n_mask, fr[fr["lens"] == lens].reset_index(drop=True), config,
+                                  darks_source={b: darks[next((lens, b, k[4], k[5]) for k in keys if k[1] == b)]["source"]
+                                                for b in BANDS})
+    return out
+
+
+def _lens_dataset(lens, wl, dn, dn_sigma, pd_sig, pd_std, s, s_sigma, cov, stats, dark_dn, n_mask, fr, config,
+                  darks_source) -> xr.Dataset:
+    def stat(key):
+        return np.array([st[key] for st in stats])
+
+    cfg = config[STAGE]
+    ds = xr.Dataset(
+        coords={"band": ("band", list(BANDS)),
+                "wavelength_nm": ("wavelength_nm", wl, {"long_name": "monochromator wavelength", "units": "nm"}),
+                "wavelength2_nm": ("wavelength2_nm", wl, {"long_name": "monochromator wavelength (second axis of covariances)", "units": "nm"})},
+        data_vars={
+            "response": (("band", "wavelength_nm"), s,
+                         {"long_name": "peak-normalised relative spectral response S_R (Fig. 6)", "units": "1"}),
+            "response_sigma": (("band", "wavelength_nm"), s_sigma,
+                               {"long_name": "standard uncertainty of the response", "units": "1"}),
+            "response_covariance": (("band", "wavelength_nm", "wavelength2_nm"), cov,
+                                    {"long_name": "covariance of the response (shared peak value)", "units": "1"}),
+            "signal_dn_per_s": (("band", "wavelength_nm"), dn,
+                                {"long_name": "dark-corrected mean signal in the mask, per second at ISO 100", "units": "DN s-1"}),
+            "signal_dn_per_s_sigma": (("band", "wavelength_nm"), dn_sigma,
+                                      {"long_name": "standard uncertainty of signal_dn_per_s", "units": "DN s-1"}),
+            "photodiode_signal": ("wavelength_nm", pd_sig, {"long_name": "reference photodiode reading", "units": "arbitrary"}),
+            "photodiode_signal_std": ("wavelength_nm", pd_std, {"long_name": "uncertainty of the photodiode reading", "units": "arbitrary"}),
+            "peak_wavelength_nm": ("band", wl[np.argmax(s, axis=1)], {"long_name": "wavelength of the response peak", "units": "nm"}),
+            "effective_wavelength_nm": ("band", stat("effective_wavelength_nm"),
+                                        {"long_name": "effective wavelength, Eq. (8), trapezoidal rule", "units": "nm"}),
+            "effective_wavelength_nm_sigma": ("band", stat("effective_wavelength_nm_sigma"),
+                                              {"long_name": "standard uncertainty of the effective wavelength", "units": "nm"}),
+            "bandwidth_nm": ("band", stat("bandwidth_nm"), {"long_name": "bandwidth int S_R dlambda", "units": "nm"}),
+            "bandwidth_nm_sigma": ("band", stat("bandwidth_nm_sigma"), {"long_name": "standard uncertainty of the bandwidth", "units": "nm"}),
+            "half_bandwidth_nm": ("band", stat("half_bandwidth_nm"),
+                                  {"long_name": "half bandwidth (the paper's lambda_eff +/- Lambda/2)", "units": "nm"}),
+            "half_bandwidth_nm_sigma": ("band", stat("half_bandwidth_nm_sigma"),
+                                        {"long_name": "standard uncertainty of the half bandwidth", "units": "nm"}),
+            "dark_level_dn": ("band", dark_dn, {"long_name": "dark level subtracted in the mask", "units": "DN",
+                                                "source": ",".join(f"{b}:{darks_source[b]}" for b in BANDS)}),
+            "mask_n_pixels": ("band", n_mask, {"long_name": "band pixels in the averaging mask", "units": "1"}),
+            "mask_half_angle_deg": ((), float(cfg["mask_half_angle_deg"]),
+                                    {"long_name": "requested half-angle of the averaging mask", "units": "degree"}),
+            "rms_z": ((), fr.attrs.get("rms_z", np.nan) if len(fr) else np.nan,
+                      {"long_name": "RMS of the noise-normalised frame residuals (1 at the noise floor)", "units": "1"}),
+        },
+    )
+    return ds.merge(table_to_dataset(fr, "obs_frame"))
+
+
+# ----------------------------------------------------------------------------- runners
+def _read_optional(paths, stage):
+    from pipeline.artefact import read_artefact
+
+    return {lens: read_artefact(p, stage) for lens, p in (paths or {}).items()}
+
+
+def run(dataset: str | Path, config: dict, geometry_paths: dict[str, str | Path],
+        outputs: dict[str, str | Path], dark_paths: dict[str, str | Path] | None = None,
+        progress: bool = False) -> dict[str, xr.Dataset]:
+    """Spectral stage from files to files: one artefact per lens in ``outputs``.
+
+    ``geometry_paths``: lens -> geometry artefact (its in-air theta maps make the mask);
+    ``dark_paths`` (optional): lens -> dark artefact, used only when the experiment has
+    no dark frames at a signal setting.  Returns the artefact Datasets.
+    """
+    from pipeline.artefact import sha256_file, write_artefact
+    from pipeline.dataset import open_dataset
+    from pipeline.stage_io import _model, stage_config
+
+    effects = _model(config)
+    ds = open_dataset(dataset)
+    cfg = config[STAGE]
+    geometry = _read_optional(geometry_paths, "geometry")
+    dark = _read_optional(dark_paths, "dark")
+    photodiode = read_photodiode(ds)      # bad sidecar input fails before any frame is decoded
+    lenses = [lens for lens in ds.lenses if lens in outputs]
+    missing = [lens for lens in lenses if lens not in geometry]
+    if missing:
+        raise InputError(None, f"no geometry artefact for lens {', '.join(missing)}")
+    masks = central_masks({lens: geometry[lens] for lens in lenses}, cfg["mask_half_angle_deg"],
+                          cfg["mask_min_pixels"])
+    reduced = reduce_central(ds, STAGE, masks, progress=progress)
+    frames_csv = ds.root / STAGE / "frames.csv"
+    darks = dark_levels(reduced, dark, frames_csv)
+    arts = analyse_spectral(reduced, darks, photodiode, ds.root / STAGE / "photodiode.csv", config)
+    inputs = dict(reduced["inputs"], **{"photodiode.csv": sha256_file(ds.root / STAGE / "photodiode.csv")})
+    for lens in lenses:
+        write_artefact(arts[lens], outputs[lens], stage=STAGE, inputs=inputs,
+                       config_subset=stage_config(config, STAGE), effects=effects)
+    return arts
+
+
+def run_from_snakemake(smk) -> None:
+    lenses = list(smk.params.lenses)
+    dark = dict(zip(lenses, smk.input.dark)) if "dark" in smk.input.keys() else None
+    run(smk.params.dataset, smk.params.config, dict(zip(lenses, smk.input.geometry)),
+        dict(zip(lenses, smk.output.artefacts)), dark_paths=dark)

@@ -1,0 +1,5 @@
+"""Rule 'spectral': unpack the snakemake object and call the package."""
+
+from pipeline.workflow import run_stage_script
+
+run_stage_script(snakemake, "spectral")  # noqa: F821 (snakemake injects this object)
