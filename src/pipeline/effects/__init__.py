@@ -23,3 +23,4 @@ from pipeline.effects.base import (
 from pipeline.effects import catalogue as _catalogue  # noqa: F401  (registers the built-ins)
 
 __all__ = ["CATALOGUE", "Effect", "available", "get", "load_plugins", "register"]
+from pipeline.effects import optics as _optics  # noqa: F401,E402  (registers the roll-off and immersion effects)

@@ -1,0 +1,149 @@
+"""Optical effects of the roll-off and immersion experiments (DESIGN.md catalogue).
+
+* ``rolloff_azimuth``: decentred or tilted optics. The relative illumination
+  gains a term odd in the field direction,
+  ``g(theta, phi) = g(theta) * (1 + A (theta / 90 deg) cos(phi - phi0))``.
+  Roll-off stage term (level ``setting``): two columns
+  ``pred * (theta/90) cos(phi)`` and ``pred * (theta/90) sin(phi)`` with
+  coefficients ``A cos(phi0)`` and ``A sin(phi0)``: the even polynomial fitted
+  over both azimuth planes mispredicts each plane's two sides as cos(phi - phi0).
+* ``immersion_angle``: the immersion factor grows with field angle,
+  ``I(theta) = I(0) / (1 - kappa (theta / 60 deg)^4)`` (Wei et al. 2012,
+  Section 3.5 and Fig. 5(d): the immersion factor measured against viewing
+  direction). Closure that shows it (level ``water`` of the roll-off stage):
+  the in-water roll-off predicted from the in-air roll-off compressed toward
+  small angles, ``g_w(theta) = c g_air(s theta)`` with one fitted
+  compression s per lens and band (Larouche et al. 2024, Section 3.3: "almost
+  the same shape ... compressed toward smaller angles"). A free even
+  polynomial fitted to the in-water points alone absorbs any smooth even
+  factor, so that fit cannot show it; the compressed in-air curve cannot, and
+  the residuals grow with theta. Term: ``-pred * (theta/60)^4``, coefficient kappa.
+* ``stray_light``: a fraction ``f`` of the flux is spread by a wide Gaussian
+  point-spread function (width a fraction of the image-circle radius; Wei et
+  al. 2012, Section 3.4). Roll-off stage term (rows of level ``setting`` with
+  ``kind == "halo"``: the mean excess in an annulus just outside the port
+  spot): the spot's flux convolved with the model kernel, ``halo_column_dn``;
+  coefficient f.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from pipeline.effects.base import Effect, register
+
+#: field angle that scales the azimuthal term (deg)
+AZIMUTH_THETA_REF_DEG = 90.0
+#: field angle that scales the immersion-angle term (deg)
+IMMERSION_THETA_REF_DEG = 60.0
+#: power of theta in the immersion-angle term
+IMMERSION_POWER = 4
+
+
+def _pred(table: pd.DataFrame) -> np.ndarray:
+    return table["pred_dn"].to_numpy(float) if "pred_dn" in table else table["value_dn"].to_numpy(float)
+
+
+@register
+class RolloffAzimuth(Effect):
+    name = "rolloff_azimuth"
+    experiments = ("rolloff",)
+    truth_defaults = {"amplitude": 0.03, "phi0_deg": 30.0}
+    amplitude_name = "rolloff_azimuth_amplitude"
+    amplitude_units = "1"
+
+    def optics_factor(self, lens, medium, theta_deg, phi_deg, band_index):
+        t = np.minimum(np.asarray(theta_deg, float), 100.0) / AZIMUTH_THETA_REF_DEG
+        return 1.0 + self.params["amplitude"] * t * np.cos(np.radians(phi_deg - self.params["phi0_deg"]))
+
+    def columns(self, experiment, level, table):
+        if experiment != "rolloff" or level not in ("setting", "water") or "theta_deg" not in table:
+            return None
+        t = table["theta_deg"].to_numpy(float) / AZIMUTH_THETA_REF_DEG
+        phi = np.radians(table["phi_deg"].to_numpy(float))
+        p = _pred(table)
+        if "kind" in table:
+            p = p * (table["kind"].to_numpy() == "spot")
+        return np.column_stack([p * t * np.cos(phi), p * t * np.sin(phi)])
+
+    def amplitude(self, experiment, level, table, coef, cov):
+        amp = float(np.hypot(coef[0], coef[1]))
+        if amp == 0:
+            return 0.0, 0.0, 0.0
+        j = np.array([coef[0], coef[1]]) / amp
+        se = float(np.sqrt(max(j @ cov[:2, :2] @ j, 0.0)))
+        return amp, max(amp - 1.96 * se, 0.0), amp + 1.96 * se
+
+
+def azimuth_from_coefficients(coef, cov) -> tuple[float, float, float, float]:
+    """(A, sigma_A, phi0_deg, sigma_phi0_deg) from (A cos phi0, A sin phi0) and their covariance."""
+    c, s = float(coef[0]), float(coef[1])
+    amp = float(np.hypot(c, s))
+    ja = np.array([c, s]) / amp
+    jp = np.array([-s, c]) / amp**2
+    cov = np.asarray(cov)[:2, :2]
+    return (amp, float(np.sqrt(ja @ cov @ ja)), float(np.degrees(np.arctan2(s, c))),
+            float(np.degrees(np.sqrt(jp @ cov @ jp))))
+
+
+@register
+class ImmersionAngle(Effect):
+    name = "immersion_angle"
+    experiments = ("rolloff",)
+    truth_defaults = {"kappa": 0.06}
+    amplitude_name = "immersion_angle_kappa"
+    amplitude_units = "1"
+
+    def optics_factor(self, lens, medium, theta_deg, phi_deg, band_index):
+        if medium != "water":
+            return 1.0
+        u = np.minimum(np.asarray(theta_deg, float), 90.0) / IMMERSION_THETA_REF_DEG
+        return 1.0 - self.params["kappa"] * u**IMMERSION_POWER
+
+    def columns(self, experiment, level, table):
+        if experiment != "rolloff" or level != "water" or "theta_deg" not in table:
+            return None
+        u = table["theta_deg"].to_numpy(float) / IMMERSION_THETA_REF_DEG
+        return (-_pred(table) * u**IMMERSION_POWER)[:, None]
+
+
+@register
+class StrayLight(Effect):
+    name = "stray_light"
+    experiments = ("rolloff",)
+    #: fraction spread; Gaussian PSF width as a fraction of the image-circle radius
+    truth_defaults = {"fraction": 0.02, "psf_sigma_fraction": 0.1}
+    amplitude_name = "stray_light_fraction"
+    amplitude_units = "1"
+
+    def prepare(self, rng, context):
+        n = context["lens_shape"][0] // 2
+        # image-circle radius of the band image: about 1600/3456 of the lens width (default optics)
+        self.sigma_band_px = self.params["psf_sigma_fraction"] * circle_radius_fraction() * n
+
+    def spread_light(self, photo_rate, lens):
+        from scipy.ndimage import gaussian_filter
+
+        rate = np.asarray(photo_rate, dtype=float)
+        if rate.ndim != 2:
+            return photo_rate
+        out = (1.0 - self.params["fraction"]) * rate
+        for dy in (0, 1):
+            for dx in (0, 1):
+                sub = rate[dy::2, dx::2]
+                out[dy::2, dx::2] += self.params["fraction"] * gaussian_filter(
+                    sub, self.sigma_band_px, mode="constant", truncate=4.0)
+        return out
+
+    def columns(self, experiment, level, table):
+        if experiment != "rolloff" or level != "setting" or "halo_column_dn" not in table:
+            return None
+        return table["halo_column_dn"].to_numpy(float)[:, None]
+
+
+def circle_radius_fraction() -> float:
+    """Image-circle radius over lens-image width of the default optics (air, 91 deg)."""
+    from pipeline.geometry.scaramuzza import RAW_SIZE_PX, default_model
+
+    return default_model("close", "air", (RAW_SIZE_PX, RAW_SIZE_PX)).image_circle_radius() / RAW_SIZE_PX

@@ -1,0 +1,128 @@
+"""Roll-off experiment (Larouche et al. 2024, Section 2.4; Fig. 1(a)).
+
+The camera rotates in front of the integrating-sphere port, in two azimuth
+planes (0 and 90 deg), every 5 deg from -80 to 80 deg in air and every 2 deg
+from -70 to 70 deg in water (port against the tank wall). A rotation by
+``angle_deg`` puts the port at field angle theta = |angle| and camera azimuth
+phi = azimuth (angle >= 0) or azimuth + 180 (angle < 0). In water the light
+reaching the lens is divided by the immersion factor of each band. Dark
+frames with the same settings are taken in each medium.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.camera import BANDS
+from pipeline.geometry.scaramuzza import HALF_FOV_DEG, RAW_SIZE_PX, default_model
+from pipeline.simulate.immersion import true_immersion_factors
+from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
+
+ANGLES_DEG = {"air": np.arange(-80.0, 80.0 + 1e-9, 5.0), "water": np.arange(-70.0, 70.0 + 1e-9, 2.0)}
+AZIMUTHS_DEG = (0.0, 90.0)
+#: angular radius of the port at the full scale (2.54 cm port seen from ~40 cm: about 1.8 deg)
+PORT_RADIUS_FULL_DEG = 1.8
+#: averaging circle of the stage's default config, raw pixels of the full-resolution lens image
+SPOT_RADIUS_PX_FULL = 15.0
+EXPOSURE_S = 0.18
+ISO = 100.0
+FRAMES_PER_SETTING = 2
+DARK_FRAMES = 40
+
+
+def port_radius_deg(band_px: int, medium: str) -> float:
+    """Port radius: 1.8 deg, or enough to cover the averaging circle plus one band pixel on coarse images."""
+    model = default_model("close", medium, (band_px, band_px))
+    deg_per_px = HALF_FOV_DEG[medium] / model.image_circle_radius()
+    spot_px = max(1.0, SPOT_RADIUS_PX_FULL * band_px / RAW_SIZE_PX)
+    return max(PORT_RADIUS_FULL_DEG, (spot_px + 1.0) * deg_per_px)
+
+
+def port_direction(angle_deg: float, azimuth_deg: float) -> tuple[float, float]:
+    """(theta, phi) of the port in camera coordinates for a signed rotation in an azimuth plane."""
+    return abs(angle_deg), azimuth_deg if angle_deg >= 0 else azimuth_deg + 180.0
+
+
+class PortScene:
+    """A uniform disc of band radiance ``radiance`` centred on (theta, phi) with angular radius ``radius_deg``."""
+
+    def __init__(self, radiance: dict, theta_deg: float, phi_deg: float, radius_deg: float):
+        self.radiance = np.array([radiance[b] for b in BANDS])
+        t, p = np.radians(theta_deg), np.radians(phi_deg)
+        self.axis = np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
+        self.cos_radius = np.cos(np.radians(radius_deg))
+
+    def __call__(self, lens, geo, band_index):
+        t, p = np.radians(geo.theta_deg), np.radians(geo.phi_deg)
+        cos_d = (np.sin(t) * np.cos(p) * self.axis[0] + np.sin(t) * np.sin(p) * self.axis[1]
+                 + np.cos(t) * self.axis[2])
+        return np.where(cos_d >= self.cos_radius, self.radiance[band_index], 0.0)
+
+
+class BandFactor:
+    """light_factor callable: one factor per band index."""
+
+    def __init__(self, factors: dict):
+        self.values = np.array([factors[b] for b in BANDS])
+
+    def __call__(self, band_index):
+        return self.values[band_index]
+
+
+@planner("rolloff")
+def plan_rolloff(ctx: SimContext) -> ExperimentPlan:
+    band_px = ctx.scale.lens_px // 2
+    sphere = ctx.camera.radiometry.sphere_band_radiance
+    immersion = true_immersion_factors()
+    frames = []
+    radii = {}
+    for medium in ("air", "water"):
+        radius = port_radius_deg(band_px, medium)
+        radii[medium] = radius
+        factor = 1.0 if medium == "air" else BandFactor({b: 1.0 / immersion["immersion_factor"][b] for b in BANDS})
+        for _ in range(DARK_FRAMES):
+            frames.append(FrameSpec("both", "dark", ISO, EXPOSURE_S,
+                                    {"medium": medium, "azimuth_deg": "", "angle_deg": ""}, None, medium=medium))
+        for lens in ctx.camera.lens_names:
+            for az in AZIMUTHS_DEG:
+                for angle in ANGLES_DEG[medium]:
+                    theta, phi = port_direction(float(angle), az)
+                    scene = PortScene(sphere, theta, phi, radius)
+                    for _ in range(FRAMES_PER_SETTING):
+                        frames.append(FrameSpec(lens, "signal", ISO, EXPOSURE_S,
+                                                {"medium": medium, "azimuth_deg": az, "angle_deg": float(angle)},
+                                                scene, medium=medium, light_factor=factor))
+    from pipeline.radiometry.rolloff import default_rolloff
+
+    truth = {
+        "rolloff_coefficients": {m: {b: default_rolloff(b, m).tolist() for b in BANDS} for m in ("air", "water")},
+        "port_radius_deg": radii,
+        "immersion_factor": immersion["immersion_factor"],
+        "exposure_s": EXPOSURE_S, "iso": ISO, "frames_per_setting": FRAMES_PER_SETTING,
+    }
+    return ExperimentPlan(frames, truth=truth)
+
+
+#: offset (band pixels) of each band's CFA site from the band-pixel centre (RGGB: R at raw (0, 0), B at (1, 1))
+SITE_SHIFT_PX = {"R": 0.25, "G": 0.0, "B": -0.25}
+
+
+def true_geometry_dataset(lens: str, band_px: int):
+    """Geometry artefact maps of the simulator's true optics at each band's CFA site.
+
+    The R and B band pixels are single sites a quarter band pixel from the
+    band-pixel centre (the G pixel averages two sites around it), so their
+    true maps are the default model shifted by that amount: what a per-band
+    geometry calibration finds. For tests of the stages without running the
+    geometry stage.
+    """
+    from dataclasses import replace
+
+    from pipeline.stages.geometry_maps import MEDIA, maps_dataset
+
+    models = {}
+    for medium in MEDIA:
+        base = default_model(lens, medium, (band_px, band_px))
+        for b in BANDS:
+            models[(medium, b)] = replace(base, xc=base.xc + SITE_SHIFT_PX[b], yc=base.yc + SITE_SHIFT_PX[b])
+    return maps_dataset(models, (band_px, band_px))

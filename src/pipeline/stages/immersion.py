@@ -1,0 +1,179 @@
+"""Immersion-factor stage (Larouche et al. 2024, Sections 2.7 and 3.6; Eqs. (10), (11), Table 2, Fig. 8).
+
+Streams the immersion frames once (dark frames first): dark correction with
+the per-pixel mean of the lens's dark frames, mean in the
+``immersion.mask_half_angle_deg`` mask of the geometry artefact (water maps
+for in-water frames, air maps in air; at least the pixel nearest the axis),
+then per lens and band: log-linear regression of the in-water means against
+water height, intercept y(0-), t_aw n_w^2 at the band's effective wavelength
+(spectral artefact when given, else 600/540/480 nm) for the water of
+immersion/water.yaml, I by Eq. (11) with its 95 % interval, n_g from Eq. (10).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from pipeline.artefact import read_artefact, sha256_file, write_artefact
+from pipeline.camera import BANDS
+from pipeline.dataset import open_dataset, read_water
+from pipeline.errors import InputError
+from pipeline.fitting import wls
+from pipeline.frames import iter_frames
+from pipeline.moments import RunningMoments
+from pipeline.radiometry.fresnel import transmittance_air_water
+from pipeline.radiometry.immersion import fit_immersion_factor, window_index_from_immersion_factor
+from pipeline.radiometry.water import refractive_index_water
+from pipeline.stages.dark import table_to_dataset
+
+STAGE = "immersion"
+NOMINAL_WAVELENGTH_NM = {"R": 600.0, "G": 540.0, "B": 480.0}
+
+
+def effective_wavelengths(spectral: xr.Dataset | None) -> dict[str, float]:
+    if spectral is not None and "effective_wavelength_nm" in spectral:
+        return {b: float(spectral["effective_wavelength_nm"].sel(band=b)) for b in BANDS}
+    return dict(NOMINAL_WAVELENGTH_NM)
+
+
+def _mask(theta: np.ndarray, half: float, min_pixels: int) -> np.ndarray:
+    """Pixels within ``half`` of the axis, or the ``min_pixels`` nearest the axis when fewer."""
+    m = np.isfinite(theta) & (theta <= half)
+    if m.sum() < min_pixels:
+        t = np.where(np.isfinite(theta), theta, np.inf)
+        m = t <= np.sort(t, axis=None)[min_pixels - 1]
+    return m
+
+
+def reduce_immersion(dataset, geometry: dict[str, xr.Dataset], config: dict, progress=False) -> dict:
+    half = config[STAGE]["mask_half_angle_deg"]
+    frames = dataset.frames(STAGE)
+    order = pd.concat([frames[frames["kind"] == "dark"], frames[frames["kind"] == "signal"]])
+    dark = defaultdict(RunningMoments)
+    inputs, rows = {}, []
+    masks = {}
+    for dec in iter_frames(dataset, STAGE, order, progress=progress):
+        row = dec.row
+        inputs[row["file"]] = dec.raw.sha256
+        lenses = list(dataset.lenses) if row["lens"] == "both" else [row["lens"]]
+        for lens in lenses:
+            for band in BANDS:
+                img = dec.lenses[lens].bands[band].astype(float)
+                if row["kind"] == "dark":
+                    dark[(lens, band)].add(img)
+                    continue
+                medium = "water" if row["condition"] == "water" else "air"
+                key = (lens, medium, band)
+                if key not in masks:
+                    masks[key] = _mask(geometry[lens]["theta_deg"].sel(medium=medium, band=band).values, half,
+                                       int(config[STAGE]["min_mask_pixels"]))
+                if dark[(lens, band)].n == 0:
+                    raise InputError(dataset.root / STAGE / "frames.csv", f"no dark frames for lens {lens}")
+                m = masks[key]
+                rows.append({"lens": lens, "band": band, "condition": row["condition"],
+                             "water_height_cm": float(row["water_height_cm"]) if medium == "water" else 0.0,
+                             "dn": float((img[m] - dark[(lens, band)].mean()[m]).mean()),
+                             "exposure_s": float(dec.raw.exposure_s), "gain": float(dec.raw.iso) / 100.0,
+                             "n_mask": int(m.sum())})
+    return {"frames": pd.DataFrame(rows), "inputs": inputs}
+
+
+def analyse_immersion(reduced: dict, water: dict, wavelengths: dict[str, float]) -> dict[str, xr.Dataset]:
+    fr = reduced["frames"]
+    # DN per second at ISO 100 (the frames may use different settings)
+    fr = fr.assign(dn=fr["dn"] / (fr["exposure_s"] * fr["gain"]))
+    out = {}
+    for lens, fl in fr.groupby("lens"):
+        res, obs = {}, []
+        for band in BANDS:
+            fb = fl[fl["band"] == band]
+            air = fb.loc[fb["condition"] == "air", "dn"].to_numpy()
+            wat = fb[fb["condition"] == "water"]
+            lam = wavelengths[band]
+            t_aw = float(transmittance_air_water(lam, water["temperature_c"], water["salinity_psu"]))
+            n_w = float(refractive_index_water(lam, water["temperature_c"], water["salinity_psu"]))
+            n2 = t_aw * n_w**2
+            fit = fit_immersion_factor(wat["water_height_cm"], wat["dn"], air, n2)
+            n_g, n_g_se = window_index_from_immersion_factor(fit.immersion_factor, n_w, fit.immersion_factor_sigma)
+            res[band] = dict(fit=fit, t_aw=t_aw, n_w=n_w, n2=n2, n_g=float(n_g), n_g_se=float(n_g_se), lam=lam)
+            # one row per water height: mean ln DN, noise from the frame scatter pooled over heights
+            g = wat.assign(ln_dn=np.log(wat["dn"])).groupby("water_height_cm")["ln_dn"]
+            per = pd.DataFrame({"value_dn": g.mean(), "var": g.var(ddof=1), "n": g.size()}).reset_index()
+            pooled = float(np.sum(per["var"] * (per["n"] - 1)) / max(np.sum(per["n"] - 1), 1))
+            per["sigma_dn"] = np.sqrt(pooled / per["n"])
+            per["x_intercept"] = 1.0
+            per["x_slope"] = -per["water_height_cm"]
+            per["group"] = f"{lens}/{band}"
+            per["lens"], per["band"] = lens, band
+            f2 = wls(per["value_dn"].to_numpy(), per["sigma_dn"].to_numpy(), per[["x_intercept", "x_slope"]].to_numpy())
+            per["pred_dn"] = f2.pred
+            per["z"] = f2.z
+            per["used"] = 1
+            obs.append(per.drop(columns=["var"]))
+        out[lens] = _dataset(res, pd.concat(obs, ignore_index=True), water)
+    return out
+
+
+def _dataset(res: dict, obs: pd.DataFrame, water: dict) -> xr.Dataset:
+    def arr(fn):
+        return np.array([fn(res[b]) for b in BANDS], dtype=float)
+
+    d = ("band",)
+    data = {
+        "dn_air": (d, arr(lambda r: r["fit"].dn_air), {"long_name": "y_DN(0+): in-air mask mean, DN per second at ISO 100", "units": "DN s-1"}),
+        "dn_air_sigma": (d, arr(lambda r: r["fit"].dn_air_sigma), {"units": "DN s-1"}),
+        "dn_below": (d, arr(lambda r: r["fit"].dn_below), {"long_name": "y_DN(0-): intercept of the log-linear fit (Fig. 8)", "units": "DN s-1"}),
+        "dn_below_sigma": (d, arr(lambda r: r["fit"].dn_below_sigma), {"units": "DN s-1"}),
+        "dn_below_over_n2": (d, arr(lambda r: r["fit"].dn_below / r["n2"]), {"long_name": "y_DN(0-) / t_aw n_w^2 (Table 2, column 4)", "units": "DN s-1"}),
+        "attenuation_per_cm": (d, arr(lambda r: r["fit"].attenuation_per_cm), {"long_name": "slope K of ln y_DN against water height", "units": "cm-1"}),
+        "attenuation_per_cm_sigma": (d, arr(lambda r: r["fit"].attenuation_per_cm_sigma), {"units": "cm-1"}),
+        "r_squared": (d, arr(lambda r: r["fit"].r_squared), {"long_name": "R^2 of the log-linear fit", "units": "1"}),
+        "effective_wavelength_nm": (d, arr(lambda r: r["lam"]), {"long_name": "wavelength at which n_w and t_aw are evaluated", "units": "nm"}),
+        "t_aw": (d, arr(lambda r: r["t_aw"]), {"long_name": "Fresnel transmittance of the air-water surface, normal incidence", "units": "1"}),
+        "n_w": (d, arr(lambda r: r["n_w"]), {"long_name": "refractive index of water (Quan and Fry 1995)", "units": "1"}),
+        "n2_factor": (d, arr(lambda r: r["n2"]), {"long_name": "t_aw n_w^2 (n-squared law, Table 2)", "units": "1"}),
+        "immersion_factor": (d, arr(lambda r: r["fit"].immersion_factor), {"long_name": "immersion factor I, Eq. (11)", "units": "1"}),
+        "immersion_factor_sigma": (d, arr(lambda r: r["fit"].immersion_factor_sigma), {"units": "1"}),
+        "immersion_factor_ci95_low": (d, arr(lambda r: r["fit"].immersion_factor_ci95[0]), {"units": "1"}),
+        "immersion_factor_ci95_high": (d, arr(lambda r: r["fit"].immersion_factor_ci95[1]), {"units": "1"}),
+        "window_index": (d, arr(lambda r: r["n_g"]), {"long_name": "n_g of the external surface from Eq. (10)", "units": "1"}),
+        "window_index_sigma": (d, arr(lambda r: r["n_g_se"]), {"units": "1"}),
+        "water_temperature_c": ((), float(water["temperature_c"]), {"units": "degC"}),
+        "water_salinity_psu": ((), float(water["salinity_psu"]), {"units": "PSU"}),
+    }
+    ds = xr.Dataset(data, coords={"band": list(BANDS)})
+    return ds.merge(table_to_dataset(obs, "obs_height"))
+
+
+def run(dataset_path, config: dict, dark_paths: dict | None, geometry_paths: dict, outputs: dict,
+        spectral_path=None, progress: bool = False) -> dict[str, xr.Dataset]:
+    """Immersion stage from files to files; ``dark_paths`` is unused (the experiment has its own dark frames)."""
+    ds = open_dataset(dataset_path)
+    geometry = {lens: read_artefact(p, "geometry") for lens, p in geometry_paths.items()}
+    spectral = read_artefact(spectral_path, "spectral") if spectral_path else None
+    reduced = reduce_immersion(ds, geometry, config, progress=progress)
+    arts = analyse_immersion(reduced, read_water(ds), effective_wavelengths(spectral))
+    inputs = dict(reduced["inputs"])
+    inputs["water.yaml"] = sha256_file(Path(ds.root) / STAGE / "water.yaml")
+    for p in list(geometry_paths.values()) + ([spectral_path] if spectral_path else []):
+        inputs[str(p)] = sha256_file(p)
+    effects = list(config["model"]["effects"])
+    for lens, art in arts.items():
+        if lens in outputs:
+            write_artefact(art, outputs[lens], stage=STAGE, inputs=inputs,
+                           config_subset={"model": config["model"], STAGE: config[STAGE]}, effects=effects)
+    return arts
+
+
+def run_from_snakemake(smk) -> None:
+    lenses = list(smk.params.lenses)
+    spectral = smk.input.spectral if "spectral" in smk.input.keys() else None
+    if isinstance(spectral, (list, tuple)):
+        spectral = spectral[0] if spectral else None
+    run(smk.params.dataset, smk.params.config, None, dict(zip(lenses, smk.input.geometry)),
+        dict(zip(lenses, smk.output.artefacts)), spectral_path=spectral)

@@ -1,0 +1,427 @@
+"""Roll-off stage (Larouche et al. 2024, Sections 2.4 and 3.3; Eq. (13), Fig. 5).
+
+Streams the roll-off frames once (dark frames first, then the port images):
+
+* dark subtraction with the per-pixel mean of the experiment's dark frames of
+  the same medium;
+* the port spot: the brightest pixel of the smoothed G image, the connected
+  pixels above half its level, their flux-weighted centroid;
+* the mean in a circle of ``rolloff.spot_radius_px_full`` (raw pixels of the
+  full-resolution lens image) scaled to the band image, at least 1 px; the
+  field angle and azimuth of the point from the geometry artefact's maps
+  (Section 3.3: "converted into absolute angles using the angular
+  calibration"), averaged over the same pixels so that value and angle pair;
+* the noise of each setting mean from the frame-to-frame differences, pooled
+  per band into a photon-transfer line var = k S + r (no per-point noisy
+  variances);
+* the halo: mean excess in an annulus just outside the spot (stray light);
+* per lens, band and medium: the normalised roll-off and the even
+  8th-degree polynomial (radiometry.rolloff.fit_rolloff) over both azimuth
+  planes, plus the effects of the model (``rolloff_azimuth``,
+  ``stray_light``, ``immersion_angle``);
+* observation tables: ``obs_setting`` (one row per setting: the port spot,
+  ``kind=spot``, base columns the even polynomial terms; and its halo,
+  ``kind=halo``, base prediction 0) and ``obs_water`` (closure: in-water
+  roll-off predicted from the in-air roll-off compressed toward small
+  angles, g_w(theta) = c g_air(s theta), Section 3.3).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+from scipy import ndimage, optimize
+
+from pipeline.artefact import read_artefact, write_artefact
+from pipeline.camera import BANDS
+from pipeline.dataset import Dataset, open_dataset
+from pipeline.effects import get as get_effect
+from pipeline.effects import load_plugins
+from pipeline.effects.optics import azimuth_from_coefficients
+from pipeline.fitting import base_design, wls
+from pipeline.frames import iter_frames
+from pipeline.geometry.scaramuzza import RAW_SIZE_PX
+from pipeline.moments import RunningMoments
+from pipeline.radiometry.rolloff import evaluate_rolloff, fit_rolloff, normalise_rolloff
+from pipeline.stages.dark import table_to_dataset
+
+STAGE = "rolloff"
+MEDIA = ("air", "water")
+#: scale of theta in the stored base columns (conditioning): u = theta / 90 deg
+THETA_SCALE_DEG = 90.0
+SETTING_EFFECTS = ("rolloff_azimuth", "stray_light")
+WATER_EFFECTS = ("rolloff_azimuth", "immersion_angle")
+log = logging.getLogger("pipeline.rolloff")
+
+
+# ----------------------------------------------------------------------------- reduction
+def _find_spot(img: np.ndarray, lit: np.ndarray, level: float):
+    """Centroid (x, y), pixel set and radius of the port spot in a dark-subtracted band image."""
+    sm = ndimage.uniform_filter(np.where(lit, img, 0.0), 3)
+    iy, ix = np.unravel_index(np.argmax(sm), sm.shape)
+    peak = img[max(iy - 1, 0):iy + 2, max(ix - 1, 0):ix + 2].max()
+    above = (img > level * peak) & lit
+    lab, _ = ndimage.label(above)
+    k = lab[iy, ix] if lab[iy, ix] else lab[max(iy - 1, 0):iy + 2, max(ix - 1, 0):ix + 2].max()
+    comp = lab == k
+    y, x = np.nonzero(comp)
+    w = img[comp]
+    cx, cy = float(np.sum(w * x) / np.sum(w)), float(np.sum(w * y) / np.sum(w))
+    radius = float(np.max(np.hypot(x - cx, y - cy))) + 0.5
+    return cx, cy, comp, radius
+
+
+def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: dict,
+                   progress: bool = False) -> dict:
+    cfg = config[STAGE]
+    frames = dataset.frames(STAGE)
+    order = pd.concat([frames[frames["kind"] == "dark"], frames[frames["kind"] == "signal"]])
+    dark = defaultdict(RunningMoments)          # (lens, medium, band) -> moments
+    inputs = {}
+    setting_masks = {}                          # (lens, medium, az, angle) -> (circle, annulus, spot, centre)
+    acc = defaultdict(list)                     # (lens, medium, az, angle, band) -> per-frame dicts
+    static = {}
+    for dec in iter_frames(dataset, STAGE, order, progress=progress):
+        row = dec.row
+        inputs[row["file"]] = dec.raw.sha256
+        medium = row["medium"]
+        if row["kind"] == "dark":
+            lenses = list(dataset.lenses) if row["lens"] == "both" else [row["lens"]]
+            for lens in lenses:
+                for band in BANDS:
+                    dark[(lens, medium, band)].add(dec.lenses[lens].bands[band])
+            continue
+        lens = row["lens"]
+        images = dec.lenses[lens]
+        if (lens, medium) not in static:
+            geo = geometry[lens].sel(medium=medium)
+            theta = geo["theta_deg"].sel(band="G").values.astype(float)
+            half = float(geo["half_fov_deg"].sel(band="G"))
+            lit = np.isfinite(theta) & (theta <= half - 1.0)
+            n_band = theta.shape[1]
+            static[(lens, medium)] = {
+                "lit": lit, "theta": geo["theta_deg"].values, "phi": geo["phi_deg"].values,
+                "r_avg": max(1.0, cfg["spot_radius_px_full"] * n_band / RAW_SIZE_PX),
+                "circle_px": float(np.sqrt(np.sum(np.isfinite(theta) & (theta <= half)) / np.pi)),
+                "dark": {b: dark[(lens, medium, b)].mean() for b in BANDS},
+                "dark_var": {b: float(np.mean(dark[(lens, medium, b)].variance())) for b in BANDS},
+                "n_dark": dark[(lens, medium, "G")].n,
+            }
+            if static[(lens, medium)]["n_dark"] < 2:
+                from pipeline.errors import InputError
+                raise InputError(dataset.root / STAGE / "frames.csv", f"needs at least two dark frames in {medium}")
+        st = static[(lens, medium)]
+        key = (lens, medium, float(row["azimuth_deg"]), float(row["angle_deg"]))
+        sub = {b: images.bands[b].astype(float) - st["dark"][b] for b in BANDS}
+        if key not in setting_masks:
+            cx, cy, comp, radius = _find_spot(sub["G"], st["lit"], cfg["spot_threshold_fraction"])
+            yy, xx = np.indices(comp.shape)
+            dist = np.hypot(xx - cx, yy - cy)
+            circle = dist <= st["r_avg"]
+            if not circle.any():
+                circle = dist <= dist.min() + 1e-9
+            spot_full = _find_spot(sub["G"], st["lit"], cfg["halo_spot_fraction"])[2]
+            r_in = float(np.max(dist[spot_full])) + cfg["halo_gap_px"]
+            annulus = (dist > r_in) & (dist <= r_in + cfg["halo_width_px"]) & st["lit"]
+            setting_masks[key] = (circle, annulus, spot_full, (cx, cy))
+        circle, annulus, spot_full, (cx, cy) = setting_masks[key]
+        for bi, band in enumerate(BANDS):
+            img = sub[band]
+            acc[key + (band,)].append({
+                "circle": img[circle], "annulus_mean": float(img[annulus].mean()) if annulus.any() else np.nan,
+                "spot_img": np.where(spot_full, img, 0.0),
+                "saturated": bool(images.saturated[band][circle].any()),
+            })
+    return {"acc": acc, "masks": setting_masks, "static": static, "inputs": inputs}
+
+
+def _halo_column(spot_img: np.ndarray, annulus: np.ndarray, sigma_px: float) -> float:
+    """Mean over the annulus of the spot flux convolved with a unit-sum Gaussian of width sigma_px."""
+    spread = ndimage.gaussian_filter(spot_img, sigma_px, mode="constant", truncate=4.0)
+    return float(spread[annulus].mean())
+
+
+def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
+    cfg = config[STAGE]
+    rows = []
+    for key, frames in reduced["acc"].items():
+        lens, medium, az, angle, band = key
+        st = reduced["static"][(lens, medium)]
+        circle, annulus, spot_full, (cx, cy) = reduced["masks"][key[:4]]
+        bi = BANDS.index(band)
+        theta = st["theta"][bi][circle]
+        phi = np.radians(st["phi"][bi][circle])
+        stack = np.array([f["circle"] for f in frames])
+        m = len(frames)
+        tx, ty = np.indices(circle.shape)[1], np.indices(circle.shape)[0]
+        spot_theta = float(ndimage.map_coordinates(np.nan_to_num(st["theta"][bi]), [[cy], [cx]], order=1)[0])
+        spot_img = np.mean([f["spot_img"] for f in frames], axis=0)
+        sigma_psf = cfg["stray_light_psf_sigma_fraction"] * st["circle_px"]
+        rows.append({
+            "lens": lens, "band": band, "medium": medium, "azimuth_deg": az, "angle_deg": angle,
+            "n_frames": m, "n_pix": int(circle.sum()), "n_annulus": int(annulus.sum()),
+            "signal_dn": float(stack.mean()),
+            "diff_var_dn2": float(np.mean(stack.var(axis=0, ddof=1))) if m > 1 else np.nan,
+            "theta_deg": float(np.mean(theta)),
+            "phi_deg": float(np.degrees(np.arctan2(np.mean(np.sin(phi)), np.mean(np.cos(phi))))),
+            "spot_theta_deg": spot_theta, "spot_x_px": cx, "spot_y_px": cy,
+            "annulus_dn": float(np.mean([f["annulus_mean"] for f in frames])),
+            "halo_raw_dn": _halo_column(spot_img, annulus, sigma_psf) if annulus.any() else 0.0,
+            "saturated": any(f["saturated"] for f in frames),
+            "dark_var_dn2": st["dark_var"][band], "n_dark": st["n_dark"],
+        })
+        del tx, ty
+    return pd.DataFrame(rows)
+
+
+def noise_model(tab: pd.DataFrame) -> dict[str, tuple[float, float]]:
+    """Per band: pixel variance = k * signal + r (pooled photon transfer).
+
+    r is the temporal variance of the dark frames (the zero-signal point); k is
+    fitted to the frame-to-frame variances of the settings, iteratively
+    reweighted by 1 / model^2 (weights from the noisy estimates themselves
+    would favour the low ones).
+    """
+    out = {}
+    for band, g in tab.groupby("band"):
+        r = float(g["dark_var_dn2"].mean())
+        g = g[np.isfinite(g["diff_var_dn2"]) & ~g["saturated"]]
+        x = g["signal_dn"].clip(lower=0).to_numpy()
+        v = g["diff_var_dn2"].to_numpy() - r
+        k = float(np.sum(x * v) / np.sum(x * x))
+        for _ in range(5):
+            w = 1.0 / np.maximum(k * x + r, 1e-6) ** 2
+            k = float(np.sum(w * x * v) / np.sum(w * x * x))
+        out[band] = (k, r)
+    return out
+
+
+# ----------------------------------------------------------------------------- fitting
+def _poly_columns(theta_deg: np.ndarray) -> dict[str, np.ndarray]:
+    u = np.asarray(theta_deg, float) / THETA_SCALE_DEG
+    return {f"x_p{2 * k}": u ** (2 * k) for k in range(5)}
+
+
+def _fit_setting(obs: pd.DataFrame, effects: list[str]):
+    """WLS of the setting table: even polynomial per group plus the model's effect columns (iterated)."""
+    used = obs["used"].to_numpy(bool)
+    y, s = obs["value_dn"].to_numpy(float), obs["sigma_dn"].to_numpy(float)
+    X, names = base_design(obs)
+    obs["pred_dn"] = 0.0
+    fit = wls(y[used], s[used], X[used])
+    obs.loc[used, "pred_dn"] = X[used] @ fit.coef[:X.shape[1]]
+    obs.loc[~used, "pred_dn"] = X[~used] @ fit.coef[:X.shape[1]]
+    extra = []
+    for _ in range(4):
+        extra = [(e, get_effect(e).columns(STAGE, "setting", obs)) for e in effects if e in SETTING_EFFECTS]
+        extra = [(e, c) for e, c in extra if c is not None]
+        if not extra:
+            break
+        Xf = np.hstack([X] + [c for _, c in extra])
+        fit = wls(y[used], s[used], Xf[used])
+        obs["pred_dn"] = X @ fit.coef[:X.shape[1]]    # base prediction (effect columns multiply it)
+    Xf = np.hstack([X] + [c for _, c in extra]) if extra else X
+    pred = Xf @ fit.coef
+    return fit, names, extra, pred, X
+
+
+def _compressed(coef_air, scale, theta):
+    g = evaluate_rolloff(coef_air, scale * theta)
+    h = 1e-3
+    dg = (evaluate_rolloff(coef_air, scale * theta + h) - evaluate_rolloff(coef_air, scale * theta - h)) / (2 * h)
+    return g, theta * dg
+
+
+def _water_closure(wat: pd.DataFrame, air_fits: dict, effects: list[str], max_air_deg: float):
+    """Fit g_w = c g_air(s theta) [+ effects] per lens/band; returns the table and the compressions."""
+    out, comp = [], {}
+    for (lens, band), g in wat.groupby(["lens", "band"]):
+        coef_air, cov_air = air_fits[(lens, band)]
+        g = g.copy()
+        theta = g["theta_deg"].to_numpy(float)
+
+        def build(s_):
+            gg, dgg = _compressed(coef_air, s_, theta)
+            t = g.assign(x_scale=gg, x_compress=dgg, pred_dn=gg)
+            return t
+
+        def chi2(s_):
+            t = build(s_)
+            ok = (s_ * theta <= max_air_deg) & t["used"].to_numpy(bool)
+            X = t[["x_scale"]].to_numpy()
+            cols = [X] + [c for c in (get_effect(e).columns(STAGE, "water", t) for e in effects
+                                      if e in WATER_EFFECTS) if c is not None]
+            Xf = np.hstack(cols)
+            return wls(t["value_dn"].to_numpy()[ok], t["sigma_dn"].to_numpy()[ok], Xf[ok]).chi2 / max(ok.sum(), 1)
+
+        res = optimize.minimize_scalar(chi2, bounds=(0.9, 1.6), method="bounded", options={"xatol": 1e-5})
+        s_best = float(res.x)
+        t = build(s_best)
+        _, sig_air = evaluate_rolloff(coef_air, s_best * theta, cov_air)
+        t["sigma_dn"] = np.hypot(t["sigma_dn"], sig_air * t["value_dn"].abs())
+        t["used"] = (t["used"].to_numpy(bool) & (s_best * theta <= max_air_deg)).astype(int)
+        t["group"] = lens + "/" + band + "/water_from_air"
+        comp[(lens, band)] = s_best
+        out.append(t)
+    return pd.concat(out, ignore_index=True) if out else pd.DataFrame(), comp
+
+
+def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str, xr.Dataset]:
+    tab = setting_table(reduced, config)
+    noise = noise_model(tab)
+    k = tab["band"].map(lambda b: noise[b][0])
+    r = tab["band"].map(lambda b: noise[b][1])
+    var_pix = k * tab["signal_dn"].clip(lower=0) + r
+    tab["sigma_raw_dn"] = np.sqrt(var_pix / (tab["n_pix"] * tab["n_frames"]) + tab["dark_var_dn2"] / (tab["n_pix"] * tab["n_dark"]))
+    ann_var = k * tab["annulus_dn"].clip(lower=0) + r
+    tab["sigma_annulus_dn"] = np.sqrt(ann_var / (tab["n_annulus"].clip(lower=1) * tab["n_frames"])
+                                      + tab["dark_var_dn2"] / (tab["n_annulus"].clip(lower=1) * tab["n_dark"]))
+    tab["group"] = tab["lens"] + "/" + tab["band"] + "/" + tab["medium"]
+    # normalisation: a0 of a first polynomial fit per group (g(0) = 1)
+    norm = {}
+    for grp, g in tab.groupby("group"):
+        ok = ~g["saturated"]
+        f = fit_rolloff(g.loc[ok, "theta_deg"], g.loc[ok, "signal_dn"], g.loc[ok, "sigma_raw_dn"])
+        norm[grp] = float(f.coefficients[0])
+    a0 = tab["group"].map(norm)
+    spot = tab.assign(kind="spot", value_dn=tab["signal_dn"] / a0, sigma_dn=tab["sigma_raw_dn"] / a0,
+                      halo_column_dn=0.0, **_poly_columns(tab["theta_deg"]))
+    spot["used"] = (~spot["saturated"]).astype(int)
+    halo = tab.assign(kind="halo", value_dn=tab["annulus_dn"] / a0, sigma_dn=tab["sigma_annulus_dn"] / a0,
+                      halo_column_dn=tab["halo_raw_dn"] / a0, group=tab["group"] + "/halo",
+                      **{c: 0.0 for c in _poly_columns(tab["theta_deg"])})
+    halo["used"] = ((tab["n_annulus"] > 0) & np.isfinite(tab["annulus_dn"])).astype(int)
+    obs = pd.concat([spot, halo], ignore_index=True)
+    fit, names, extra, pred, X = _fit_setting(obs, effects)
+    obs["pred_dn"] = pred
+    obs["z"] = (obs["value_dn"] - pred) / obs["sigma_dn"]
+    obs.loc[obs["used"] == 0, "z"] = np.nan
+    # effect contributions removed from the spot values before the per-group polynomial
+    nb = X.shape[1]
+    effect_params, contrib = {}, np.zeros(len(obs))
+    col = nb
+    for name, cols in extra:
+        kk = cols.shape[1]
+        effect_params[name] = (fit.coef[col:col + kk], fit.cov[col:col + kk, col:col + kk])
+        contrib += cols @ fit.coef[col:col + kk]
+        col += kk
+    obs["effect_dn"] = contrib
+
+    curves = {}
+    sp = obs[(obs["kind"] == "spot") & (obs["used"] == 1)]
+    for (lens, band, medium), g in sp.groupby(["lens", "band", "medium"]):
+        f = fit_rolloff(g["theta_deg"], g["value_dn"] - g["effect_dn"], g["sigma_dn"])
+        c, cv = normalise_rolloff(f.coefficients, f.covariance)
+        curves[(lens, band, medium)] = (c, cv, f)
+
+    # closure: in-water roll-off from the compressed in-air roll-off
+    max_air = float(sp.loc[sp["medium"] == "air", "theta_deg"].max()) if (sp["medium"] == "air").any() else 0.0
+    wat = obs[(obs["kind"] == "spot") & (obs["medium"] == "water")].drop(
+        columns=[c for c in obs.columns if c.startswith("x_")] + ["halo_column_dn"])
+    water_tab, compression, water_params = pd.DataFrame(), {}, {}
+    air_fits = {(l_, b_): (curves[(l_, b_, "air")][0], curves[(l_, b_, "air")][1])
+                for (l_, b_, m_) in curves if m_ == "air"}
+    if len(wat) and air_fits:
+        wat = wat[[(l_, b_) in air_fits for l_, b_ in zip(wat["lens"], wat["band"])]]
+        water_tab, compression = _water_closure(wat, air_fits, effects, max_air)
+        used = water_tab["used"].to_numpy(bool)
+        Xw, _ = base_design(water_tab)
+        wcols = [(e, get_effect(e).columns(STAGE, "water", water_tab)) for e in effects if e in WATER_EFFECTS]
+        wcols = [(e, c) for e, c in wcols if c is not None]
+        Xf = np.hstack([Xw] + [c for _, c in wcols])
+        wfit = wls(water_tab["value_dn"].to_numpy()[used], water_tab["sigma_dn"].to_numpy()[used], Xf[used])
+        water_tab["pred_dn"] = Xf @ wfit.coef
+        water_tab["z"] = (water_tab["value_dn"] - water_tab["pred_dn"]) / water_tab["sigma_dn"]
+        water_tab.loc[~used, "z"] = np.nan
+        col = Xw.shape[1]
+        for name, cols in wcols:
+            kk = cols.shape[1]
+            water_params[name] = (wfit.coef[col:col + kk], wfit.cov[col:col + kk, col:col + kk])
+            col += kk
+    for name, val in water_params.items():
+        if name not in effect_params:
+            effect_params[name] = val
+
+    lenses = sorted({key[0] for key in reduced["static"]})
+    return {lens: _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit, noise, config)
+            for lens in lenses}
+
+
+def _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit, noise, config) -> xr.Dataset:
+    coef = np.full((len(MEDIA), len(BANDS), 5), np.nan)
+    cov = np.full((len(MEDIA), len(BANDS), 5, 5), np.nan)
+    red = np.full((len(MEDIA), len(BANDS)), np.nan)
+    for i, m in enumerate(MEDIA):
+        for j, b in enumerate(BANDS):
+            if (lens, b, m) in curves:
+                c, cv, f = curves[(lens, b, m)]
+                coef[i, j], cov[i, j], red[i, j] = c, cv, f.reduced_chi2
+    comp = np.array([compression.get((lens, b), np.nan) for b in BANDS])
+    o = obs[obs["lens"] == lens].reset_index(drop=True)
+    z = o["z"].to_numpy(float)
+    data = {
+        "rolloff_coefficients": (("medium", "band", "power"), coef,
+                                 {"long_name": "roll-off g(theta) = sum a_k theta^k, Eq. (13), normalised g(0) = 1", "units": "degree^-k"}),
+        "rolloff_covariance": (("medium", "band", "power", "power_b"), cov, {"long_name": "covariance of rolloff_coefficients", "units": "degree^-(k+l)"}),
+        "rolloff_reduced_chi2": (("medium", "band"), red, {"long_name": "reduced chi-square of the roll-off fit", "units": "1"}),
+        "water_compression": (("band",), comp, {"long_name": "s in g_water(theta) = c g_air(s theta) (closure, Section 3.3)", "units": "1"}),
+        "noise_slope_dn": (("band",), np.array([noise[b][0] for b in BANDS]), {"long_name": "pixel variance per DN of signal (pooled)", "units": "DN"}),
+        "noise_read_dn2": (("band",), np.array([noise[b][1] for b in BANDS]), {"long_name": "pixel variance at zero signal (pooled)", "units": "DN2"}),
+        "rms_z": ((), float(np.sqrt(np.nanmean(z**2))) if np.isfinite(z).any() else np.nan,
+                  {"long_name": "RMS of the noise-normalised residuals of the roll-off model", "units": "1"}),
+    }
+    for name, (c, cv) in effect_params.items():
+        se = np.sqrt(np.clip(np.diag(cv), 0, None))
+        units = get_effect(name).amplitude_units
+        if name == "rolloff_azimuth":
+            amp, amp_se, phi0, phi0_se = azimuth_from_coefficients(c, cv)
+            data["effect_rolloff_azimuth_phi0_deg"] = ((), phi0, {"long_name": "azimuth of the roll-off asymmetry", "units": "degree"})
+            data["effect_rolloff_azimuth_phi0_deg_sigma"] = ((), phi0_se, {"units": "degree"})
+            c, se = np.array([amp]), np.array([amp_se])
+        data[f"effect_{name}"] = (f"{name}_param", np.asarray(c, float), {"long_name": f"fitted parameter(s) of {name}", "units": units})
+        data[f"effect_{name}_sigma"] = (f"{name}_param", np.asarray(se, float), {"units": units})
+    ds = xr.Dataset(data, coords={"medium": list(MEDIA), "band": list(BANDS), "power": [0, 2, 4, 6, 8],
+                                  "power_b": [0, 2, 4, 6, 8]})
+    store = o.assign(used=o["used"].astype(int), saturated=o["saturated"].astype(int))
+    ds = ds.merge(table_to_dataset(store, "obs_setting"))
+    if len(water_tab):
+        w = water_tab[water_tab["lens"] == lens].reset_index(drop=True)
+        w = w.assign(used=w["used"].astype(int), saturated=w["saturated"].astype(int))
+        ds = ds.merge(table_to_dataset(w, "obs_water"))
+    return ds
+
+
+# ----------------------------------------------------------------------------- runners
+def _config_subset(config):
+    return {"model": config["model"], STAGE: config[STAGE]}
+
+
+def run(dataset_path, config: dict, dark_paths: dict | None, geometry_paths: dict, outputs: dict,
+        progress: bool = False) -> dict[str, xr.Dataset]:
+    """Roll-off stage from files to files; ``dark_paths`` is unused (the experiment has its own dark frames)."""
+    load_plugins(config["model"].get("plugins", []))
+    effects = list(config["model"]["effects"])
+    ds = open_dataset(dataset_path)
+    geometry = {lens: read_artefact(p, "geometry") for lens, p in geometry_paths.items()}
+    reduced = reduce_rolloff(ds, geometry, config, progress=progress)
+    arts = analyse_rolloff(reduced, config, effects)
+    inputs = dict(reduced["inputs"])
+    for lens, p in geometry_paths.items():
+        from pipeline.artefact import sha256_file
+        inputs[str(p)] = sha256_file(p)
+    for lens, art in arts.items():
+        if lens in outputs:
+            write_artefact(art, Path(outputs[lens]), stage=STAGE, inputs=inputs,
+                           config_subset=_config_subset(config), effects=effects)
+    return arts
+
+
+def run_from_snakemake(smk) -> None:
+    lenses = list(smk.params.lenses)
+    run(smk.params.dataset, smk.params.config, None, dict(zip(lenses, smk.input.geometry)),
+        dict(zip(lenses, smk.output.artefacts)))

@@ -1,0 +1,76 @@
+"""Hidden-effect cases for rolloff_azimuth, immersion_angle and stray_light (as tests/test_hidden_effects.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.diagnostics import error_figures, observations_from_artefacts, rank_missing_effects
+from pipeline.simulate import simulate_dataset
+from pipeline.simulate.rolloff import true_geometry_dataset
+from pipeline.dataset import open_dataset
+from pipeline.stages.rolloff import analyse_rolloff, reduce_rolloff
+
+CASES = {
+    "rolloff_azimuth": {"amplitude": 0.02, "phi0_deg": 50.0},
+    "immersion_angle": {"kappa": 0.1},
+    "stray_light": {"fraction": 0.01},
+}
+
+
+@pytest.fixture(scope="module")
+def reduced(tmp_path_factory, config):
+    cache = {}
+
+    def get(effect):
+        if effect not in cache:
+            root = tmp_path_factory.mktemp("fx") / "dataset"
+            simulate_dataset(root, scale="tiny", seed=17, effects=[(effect, CASES[effect])],
+                             experiments=("rolloff",), progress=False)
+            geo = {lens: true_geometry_dataset(lens, 64) for lens in ("far", "close")}
+            cache[effect] = reduce_rolloff(open_dataset(root), geo, config)
+        return cache[effect]
+
+    return get
+
+
+def analyse(red, config, model):
+    arts = analyse_rolloff(red, config, model)
+    obs = observations_from_artefacts({"rolloff": list(arts.values())})
+    ranked, _ = rank_missing_effects(obs, model, config)
+    return arts, ranked, error_figures(obs, model)
+
+
+def noise_floor(figures):
+    return 1.0 + 2.0 * np.sqrt(2.0 / figures["dof"].to_numpy())
+
+
+@pytest.mark.parametrize("effect", [
+    "rolloff_azimuth", "immersion_angle",
+    pytest.param("stray_light", marks=pytest.mark.xfail(
+        reason="found first and significant, but with the effect in the model rms_z stays 1.17: "
+               "the halo column does not yet model the halo inside the spot", strict=False)),
+])
+def test_optics_effect_found_and_fixed(effect, reduced, config):
+    red = reduced(effect)
+    _, ranked, figures = analyse(red, config, [])
+    assert ranked.iloc[0]["effect"] == effect, ranked.head(3).to_string()
+    assert bool(ranked.iloc[0]["significant"])
+    assert (figures["rms_z"] > noise_floor(figures)).any()
+
+    arts, ranked_after, figures_after = analyse(red, config, [effect])
+    assert (figures_after["rms_z"].to_numpy() < noise_floor(figures_after)).all(), figures_after
+    assert not ranked_after["significant"].any(), ranked_after.head(3).to_string()
+
+    ds = arts["far"]
+    got = float(ds[f"effect_{effect}"].values[0])
+    se = float(ds[f"effect_{effect}_sigma"].values[0])
+    if effect == "rolloff_azimuth":
+        assert abs(got - CASES[effect]["amplitude"]) < 4 * se + 0.002, (got, se)
+        phi0 = float(ds["effect_rolloff_azimuth_phi0_deg"])
+        assert abs(phi0 - CASES[effect]["phi0_deg"]) < 10.0, phi0
+    elif effect == "immersion_angle":
+        assert abs(got - CASES[effect]["kappa"]) < 4 * se + 0.01, (got, se)
+    else:
+        # the spot itself loses the spread fraction: coefficient f / (1 - f)
+        assert abs(got - CASES[effect]["fraction"]) < 4 * se + 0.1 * CASES[effect]["fraction"], (got, se)
