@@ -19,6 +19,8 @@ from pipeline.stages.linearity import analyse_linearity, reduce_linearity
 from pipeline.dataset import open_dataset
 
 CASES = {
+    "prnu": {"sigma_rel": 0.015},
+    "temperature": {"bias_dn_per_c": 0.4, "dark_doubling_c": 6.0},
     "dark_current": {"rate_e_per_s": 1.3},
     "hot_pixels": {"fraction": 8e-4, "median_rate_e_per_s": 300.0},
     "shutter_offset": {"offset_s": 6e-4},
@@ -28,9 +30,14 @@ CASES = {
 }
 
 
+_REDUCED = {}
+
+
 def analyse(root, config, model):
     ds = open_dataset(root)
-    dark = analyse_dark(reduce_dark(ds, config), config, model)
+    if root not in _REDUCED:           # the dark reduction does not depend on the model
+        _REDUCED[root] = reduce_dark(ds, config)
+    dark = analyse_dark(_REDUCED[root], config, model)
     lin = analyse_linearity(reduce_linearity(ds, dark, config, model), dark, config, model)
     obs = observations_from_artefacts({"dark": list(dark.values()), "linearity": list(lin.values())})
     ranked, unexplained = rank_missing_effects(obs, model, config)
@@ -82,6 +89,16 @@ def check_parameter(effect, truth, dark, lin):
         se = ds["effect_iso_gain_sigma"].values
         expected = np.array([t["factors"][str(int(i))] - 1 for i in isos])
         assert np.all(np.abs(got - expected) < 4 * se + 1e-3), (got, expected, se)
+    elif effect == "prnu":
+        lo, hi = [float(v) for v in lin["far"]["effect_prnu"].values[:1]] * 2
+        got = float(np.sqrt(lin["far"]["effect_prnu"].values[0]))
+        se_sq = float(lin["far"]["effect_prnu_sigma"].values[0])
+        # the coefficient is sigma^2; 4 standard errors on it
+        assert abs(got**2 - t["sigma_rel"] ** 2) < 4 * se_sq, (got, t["sigma_rel"])
+    elif effect == "temperature":
+        got = float(dark["far"]["temperature_bias_dn_per_c"])
+        se = float(dark["far"]["temperature_bias_dn_per_c_sigma"])
+        assert abs(got - t["bias_dn_per_c"]) < 4 * se + 0.01, (got, se)
     elif effect == "bias_drift":
         lo, hi = float(dark["far"]["bias_drift_dn_low"]), float(dark["far"]["bias_drift_dn_high"])
         assert lo <= t["sigma_dn"] <= hi, (lo, hi)

@@ -47,6 +47,10 @@ def base_design(table: pd.DataFrame) -> tuple[np.ndarray, list[str]]:
 def wls(y: np.ndarray, sigma: np.ndarray, X: np.ndarray) -> Fit:
     """Minimise sum(((y - X b) / sigma)^2); covariance from the stated sigma."""
     w = 1.0 / np.asarray(sigma, dtype=float)
+    if X.shape[1] == 0:
+        z = np.asarray(y, float) * w
+        return Fit(coef=np.zeros(0), cov=np.zeros((0, 0)), pred=np.zeros(len(y)), z=z,
+                   chi2=float(np.sum(z**2)), dof=len(y))
     A = X * w[:, None]
     b = y * w
     coef, *_ = np.linalg.lstsq(A, b, rcond=None)

@@ -233,3 +233,80 @@ def drift_sigma(table: pd.DataFrame) -> tuple[float, float, float]:
     hi_var = var * dof / stats.chi2.ppf(0.025, dof)
     root = lambda v: float(np.sqrt(max(v, 0.0)))  # noqa: E731
     return root(var), root(lo_var), root(hi_var)
+
+
+@register
+class Temperature(Effect):
+    """Bias and dark current change with the sensor temperature.
+
+    Simulator: black level + ``bias_dn_per_c`` (T - ``reference_c``); dark current
+    times 2^((T - reference_c) / ``dark_doubling_c``). The temperature must be
+    logged (``temperature_c`` in frames.csv) for the pipeline to see it.
+
+    Model terms (dark stage), with T_ref the experiment's mean logged temperature:
+    setting level ``T - T_ref`` (coefficient: DN per degree C) and
+    ``gain * t * (T - T_ref)`` (DN/s at ISO 100 per degree C); frame level the
+    frame's temperature departure from its setting mean (DN per degree C).
+    """
+
+    name = "temperature"
+    experiments = ("dark",)
+    truth_defaults = {"bias_dn_per_c": 0.3, "dark_doubling_c": 7.0, "reference_c": 25.0}
+    amplitude_name = "bias_dn_per_c"
+    amplitude_units = "DN degree_C-1"
+
+    def bias_offset_dn(self, temperature_c):
+        if temperature_c is None:
+            return 0.0
+        return self.params["bias_dn_per_c"] * (temperature_c - self.params["reference_c"])
+
+    def dark_rate_factor(self, temperature_c):
+        if temperature_c is None:
+            return 1.0
+        return 2.0 ** ((temperature_c - self.params["reference_c"]) / self.params["dark_doubling_c"])
+
+    def columns(self, experiment, level, table):
+        if experiment != "dark" or "temperature_c" not in table:
+            return None
+        temp = table["temperature_c"].to_numpy(dtype=float)
+        if not np.all(np.isfinite(temp)) or np.ptp(temp) == 0:
+            return None
+        if level == "setting":
+            dt = temp - table["temperature_ref_c"].to_numpy(dtype=float)
+            return np.column_stack([dt, (table["gain"] * table["exposure_s"]).to_numpy() * dt])
+        if level == "frame":
+            dev = temp - table.groupby(["lens", "band", "setting"])["temperature_c"].transform("mean").to_numpy()
+            return dev[:, None]
+        return None
+
+
+@register
+class Prnu(Effect):
+    """Pixel-to-pixel sensitivity: each raw pixel's response times 1 + ``sigma_rel`` N(0, 1).
+
+    Model term (linearity stage, level ``flat``): ``S^2 / sites``, whose
+    coefficient is sigma_rel^2; the amplitude reported is sigma_rel.
+    """
+
+    name = "prnu"
+    experiments = ("linearity",)
+    truth_defaults = {"sigma_rel": 0.01}
+    amplitude_name = "prnu_sigma_rel"
+    amplitude_units = "1"
+
+    def prepare(self, rng, context):
+        self.maps = {lens: (1.0 + self.params["sigma_rel"] * rng.standard_normal(context["lens_shape"])).astype(np.float32)
+                     for lens in context["lens_names"]}
+
+    def sensitivity_map(self, lens, shape):
+        return self.maps[lens]
+
+    def columns(self, experiment, level, table):
+        if experiment != "linearity" or level != "flat":
+            return None
+        return table["signal_sq_per_site_dn2"].to_numpy()[:, None]
+
+    def amplitude(self, experiment, level, table, coef, cov):
+        se = float(np.sqrt(max(cov[0, 0], 0.0)))
+        root = lambda v: float(np.sqrt(max(v, 0.0)))  # noqa: E731
+        return root(coef[0]), root(coef[0] - 1.96 * se), root(coef[0] + 1.96 * se)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numpy as np
+
 from pipeline.camera import BANDS, DarkPlan, LinearityPlan
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
@@ -11,7 +13,18 @@ def plan_dark(ctx: SimContext) -> ExperimentPlan:
     plan = DarkPlan(frames_per_setting=ctx.scale.dark_frames)
     frames = [FrameSpec("both", "dark", iso, t)
               for iso, t in plan.settings() for _ in range(plan.frames_per_setting)]
+    _log_temperature(ctx, frames)
     return ExperimentPlan(frames)
+
+
+def _log_temperature(ctx: SimContext, frames: list[FrameSpec], start_c: float = 22.0,
+                     rise_c: float = 8.0, noise_c: float = 0.1) -> None:
+    """A sensor warming up during the session (first-order rise), logged to 0.01 C."""
+    n = len(frames)
+    i = np.arange(n)
+    temp = start_c + rise_c * (1.0 - np.exp(-i / max(0.4 * n, 1.0))) + noise_c * ctx.rng.standard_normal(n)
+    for spec, t in zip(frames, temp):
+        spec.temperature_c = round(float(t), 2)
 
 
 @planner("linearity")
@@ -29,5 +42,6 @@ def plan_linearity(ctx: SimContext) -> ExperimentPlan:
         for iso in plan.isos:
             frames += [FrameSpec(lens, "signal", iso, plan.gain_sweep_exposure_s, {"sweep": "gain"},
                                  gain_source) for _ in range(plan.frames_per_setting)]
+    _log_temperature(ctx, frames)
     return ExperimentPlan(frames, truth={"exposure_source_band_radiance": exposure_source,
                                          "gain_source_band_radiance": gain_source})

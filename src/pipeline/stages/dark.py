@@ -151,41 +151,72 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     fr["group"] = fr["lens"] + "/" + fr["band"] + "/" + fr["setting"].astype(str)
     fr["frame"] = fr.groupby(["lens", "band", "setting"]).cumcount()
     fr["x_level"] = 1.0
-    ffit = wls(fr["value_dn"].to_numpy(), fr["sigma_dn"].to_numpy(), base_design(fr)[0])
+    if fr["temperature_c"].notna().all():
+        fr["temperature_ref_c"] = float(fr["temperature_c"].mean())
+    ffit, _ = fit_with_effects(fr, "frame", effects)
     fr["pred_dn"] = ffit.pred
     fr["z"] = ffit.z
 
     # ----- setting level: the dark model
     agg = fr.groupby(["lens", "band", "setting"]).agg(value_dn=("value_dn", "mean"),
-                                                      frame_sigma=("sigma_dn", "mean")).reset_index()
+                                                      frame_sigma=("sigma_dn", "mean"),
+                                                      temperature_c=("temperature_c", "mean")).reset_index()
     st = st.merge(agg, on=["lens", "band", "setting"])
     st["sigma_dn"] = np.sqrt(st["frame_sigma"] ** 2 / st["n_frames"] + drift[0] ** 2 / st["n_frames"])
     st["x_b0"] = 1.0
     st["x_b1"] = st["gain"] - 1.0
-    X, names = base_design(st)
-    shared = []
-    for name in effects:
-        cols = get_effect(name).columns(STAGE, "setting", st) if name != "hot_pixels" else None
-        if cols is not None:
-            shared.append((name, cols))
-    Xfull = np.hstack([X] + [c for _, c in shared]) if shared else X
-    fit = wls(st["value_dn"].to_numpy(), st["sigma_dn"].to_numpy(), Xfull)
+    if "temperature_ref_c" in fr:
+        st["temperature_ref_c"] = fr["temperature_ref_c"].iloc[0]
+    fit, effect_params = fit_with_effects(st, "setting", effects)
     st["pred_dn"] = fit.pred
     st["z"] = fit.z
+    names = base_design(st)[1]
+    params = {name: (fit.coef[k], np.sqrt(fit.cov[k, k])) for k, name in enumerate(names)}
+    dark_rate = tuple(float(v[0]) for v in effect_params.get("dark_current", ((0.0,), (0.0,))))
+    temperature = effect_params.get("temperature")
+    if temperature is not None:
+        temperature = {"coef": temperature[0], "sigma": temperature[1],
+                       "reference_c": float(st["temperature_ref_c"].iloc[0])}
 
-    params = {}
-    for k, name in enumerate(names):
-        params[name] = (fit.coef[k], np.sqrt(fit.cov[k, k]))
-    col = len(names)
-    dark_rate = (0.0, 0.0)
-    for name, cols in shared:
-        if name == "dark_current":
-            dark_rate = (float(fit.coef[col]), float(np.sqrt(fit.cov[col, col])))
-        col += cols.shape[1]
+    out = {lens: _lens_dataset(lens, st, fr, per_lens_band, params, dark_rate, drift, fit, ffit,
+                               config, settings, ref_iso)
+           for lens in lenses}
+    if temperature is not None:
+        for ds in out.values():
+            ds["temperature_bias_dn_per_c"] = ((), temperature["coef"][0],
+                                               {"long_name": "black-level change per degree C", "units": "DN degree_C-1"})
+            ds["temperature_bias_dn_per_c_sigma"] = ((), temperature["sigma"][0], {"units": "DN degree_C-1"})
+            ds["temperature_dark_dn_per_s_per_c"] = ((), temperature["coef"][1],
+                                                     {"long_name": "dark-current change per degree C (ISO 100)",
+                                                      "units": "DN s-1 degree_C-1"})
+            ds["temperature_dark_dn_per_s_per_c_sigma"] = ((), temperature["sigma"][1], {"units": "DN s-1 degree_C-1"})
+            ds["temperature_reference_c"] = ((), temperature["reference_c"],
+                                             {"long_name": "reference temperature of the dark model", "units": "degree_C"})
+    return out
 
-    return {lens: _lens_dataset(lens, st, fr, per_lens_band, params, dark_rate, drift, fit, ffit,
-                                config, settings, ref_iso)
-            for lens in lenses}
+
+def fit_with_effects(table: pd.DataFrame, level: str, effects: list[str], stage: str = STAGE):
+    """Weighted fit of the base columns plus the columns of the model's effects at this level.
+
+    Returns the fit and, per effect, its coefficients and standard errors.
+    """
+    X, names = base_design(table)
+    extra = []
+    for name in effects:
+        effect = get_effect(name)
+        if effect.corrects_data:
+            continue
+        cols = effect.columns(stage, level, table)
+        if cols is not None:
+            extra.append((name, cols))
+    Xfull = np.hstack([X] + [c for _, c in extra]) if extra else X
+    fit = wls(table["value_dn"].to_numpy(), table["sigma_dn"].to_numpy(), Xfull)
+    out, col = {}, X.shape[1]
+    for name, cols in extra:
+        k = cols.shape[1]
+        out[name] = (fit.coef[col:col + k], np.sqrt(np.diag(fit.cov)[col:col + k]))
+        col += k
+    return fit, out
 
 
 def _lens_dataset(lens, st, fr, per_lens_band, params, dark_rate, drift, fit, ffit, config,
@@ -288,9 +319,19 @@ def dataset_to_table(ds: xr.Dataset, prefix: str) -> pd.DataFrame:
     return pd.DataFrame(cols)
 
 
-def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float) -> float:
-    """Mean dark level predicted by the fitted dark model for one band and setting."""
+def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
+                  temperature_c: float | None = None) -> float:
+    """Mean dark level predicted by the fitted dark model for one band and setting.
+
+    With the ``temperature`` effect in the dark model and a logged temperature,
+    the level follows it.
+    """
     b = ds.sel(band=band)
     gain = iso / 100.0
-    return float(b["bias_dn"] + b["bias_per_gain_dn"] * (gain - 1.0)
-                 + ds["dark_current_dn_per_s"] * gain * exposure_s)
+    level = float(b["bias_dn"] + b["bias_per_gain_dn"] * (gain - 1.0)
+                  + ds["dark_current_dn_per_s"] * gain * exposure_s)
+    if temperature_c is not None and np.isfinite(temperature_c) and "temperature_bias_dn_per_c" in ds:
+        dt = temperature_c - float(ds["temperature_reference_c"])
+        level += float(ds["temperature_bias_dn_per_c"]) * dt
+        level += float(ds["temperature_dark_dn_per_s_per_c"]) * gain * exposure_s * dt
+    return level

@@ -35,7 +35,8 @@ from pipeline.effects.catalogue import drift_sigma
 from pipeline.fitting import base_design, ols_line, wls
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.moments import RunningMoments, RunningPearson, corner_mask, radius_map
-from pipeline.stages.dark import dark_level_dn, table_to_dataset
+from pipeline.stages.dark import dark_level_dn, fit_with_effects, table_to_dataset
+from pipeline.stages.flatfield import flatfield
 
 STAGE = "linearity"
 #: linear-model effects this stage fits as columns (others correct the data)
@@ -112,6 +113,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     "file_index": i, "mask_mean_dn": float(img[m].mean()),
                     "corner_dn": float(img[corners[lens]].mean()),
                     "saturated": bool(images.saturated[band][m].any()),
+                    "temperature_c": float(row.get("temperature_c", np.nan)),
                 })
     return {"moments": moments, "pearson": pearson, "frames": pd.DataFrame(frame_rows), "masks": masks,
             "corners": corners, "geometry": geometry, "ptc": ptc, "inputs": inputs, "max_raw_dn": max_raw,
@@ -164,6 +166,15 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     keys["dark_mask_dn"] = keys.apply(dark_pred, axis=1, what="mask")
     keys["dark_corner_dn"] = keys.apply(dark_pred, axis=1, what="corner")
     fr = fr.merge(keys, on=["lens", "band", "iso", "exposure_s"])
+    # the dark model's temperature term, frame by frame, when the dark stage fitted one
+    for lens, d in dark.items():
+        if "temperature_bias_dn_per_c" in d and fr["temperature_c"].notna().all():
+            sel = fr["lens"] == lens
+            dt = fr.loc[sel, "temperature_c"] - float(d["temperature_reference_c"])
+            shift = (float(d["temperature_bias_dn_per_c"]) * dt + float(d["temperature_dark_dn_per_s_per_c"])
+                     * fr.loc[sel, "iso"] / 100.0 * fr.loc[sel, "exposure_s"] * dt)
+            fr.loc[sel, "dark_mask_dn"] += shift
+            fr.loc[sel, "dark_corner_dn"] += shift
     fr["setting"] = fr.groupby(["sweep", "iso", "exposure_s"], sort=True).ngroup()
     fr["corner_dev_dn"] = fr["corner_dn"] - fr.groupby(["lens", "band", "sweep", "setting"])["corner_dn"].transform("mean")
     fr["value_dn"] = fr["mask_mean_dn"] - fr["dark_mask_dn"]
@@ -206,7 +217,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         value_dn=("value_dn", "mean"), frame_sigma=("sigma_dn", "mean"), n_frames=("n_frames", "first"),
         pixel_var_dn2=("pixel_var_dn2", "first"), ptc_var_dn2=("ptc_var_dn2", "first"),
         ptc_mean_dn=("ptc_mean_dn", "first"), saturated=("saturated", "any"),
-        dark_mask_dn=("dark_mask_dn", "first")).reset_index()
+        dark_mask_dn=("dark_mask_dn", "mean"), temperature_c=("temperature_c", "mean")).reset_index()
     st["gain"] = st["iso"] / 100.0
     # with bias_drift in the model each frame is corrected against the dark level of the
     # unlit corners, so no drift is left in the setting mean; without it the drift is
@@ -228,6 +239,17 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         k = cols.shape[1]
         effect_params[name] = (fit.coef[col:col + k], np.sqrt(np.diag(fit.cov)[col:col + k]))
         col += k
+
+    # ----- flat field (level "flat"): spatial variance beyond the known noise
+    exposure_isos = st.loc[st["sweep"] == "exposure", "iso"]
+    flat, flat_maps = flatfield(reduced, dark, float(exposure_isos.min())) if len(exposure_isos) else (pd.DataFrame(), {})
+    flat_fit = None
+    if len(flat):
+        flat_fit, flat_params = fit_with_effects(flat, "flat", effects, STAGE)
+        flat["pred_dn"] = flat_fit.pred
+        flat["z"] = flat_fit.z
+        effect_params.update(flat_params)
+    reduced["flat"] = (flat, flat_maps, flat_fit)
 
     return {lens: _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift, saturation,
                                 dark[lens], effects)
@@ -307,6 +329,9 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
     if "ols_pred_dn" in st_l:
         st_l["nonlinearity_pct"] = 100.0 * (st_l["value_dn"] - st_l["ols_pred_dn"]) / st_l["ols_pred_dn"]
     ptc = photon_transfer(st_l, dark_ds)
+    flat, flat_maps, flat_fit = reduced["flat"]
+    flat_chi2 = flat_fit.chi2 if flat_fit is not None else 0.0
+    flat_dof = flat_fit.dof if flat_fit is not None else 0
     nan2 = (np.nan, np.nan)
     data = {
         "pearson_r": (("sweep", "band", "y", "x"), rmap,
@@ -334,7 +359,7 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
         "image_circle_radius_px": ((), radius, {"long_name": "radius of the lit image circle", "units": "pixel"}),
         "mask_radius_px": ((), r_mask, {"long_name": "radius of the averaging mask", "units": "pixel"}),
         "bias_drift_dn": ((), drift[0], {"long_name": "frame-to-frame black-level spread (0 when not in the model)", "units": "DN"}),
-        "rms_z": ((), np.sqrt((np.nansum(st["z"] ** 2) + ffit.chi2) / max(fit.dof + ffit.dof, 1)),
+        "rms_z": ((), np.sqrt((np.nansum(st["z"] ** 2) + ffit.chi2 + flat_chi2) / max(fit.dof + ffit.dof + flat_dof, 1)),
                   {"long_name": "RMS of the noise-normalised residuals of the linearity model (1 at the noise floor)", "units": "1"}),
     }
     for name, (coef, se) in effect_params.items():
@@ -351,4 +376,11 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
     st_store = st_l.drop(columns=[c for c in ("used",) if c in st_l]).assign(used=st_l["used"].astype(int),
                                                                            saturated=st_l["saturated"].astype(int))
     fr_store = fr_l.assign(saturated=fr_l["saturated"].astype(int), used=(~fr_l["saturated"]).astype(int))
-    return ds.merge(table_to_dataset(st_store, "obs_setting")).merge(table_to_dataset(fr_store, "obs_frame"))
+    ds = ds.merge(table_to_dataset(st_store, "obs_setting")).merge(table_to_dataset(fr_store, "obs_frame"))
+    if len(flat):
+        ds = ds.merge(table_to_dataset(flat[flat["lens"] == lens].reset_index(drop=True), "obs_flat"))
+    if lens in flat_maps:
+        ds["flat_field"] = (("band", "y", "x"), flat_maps[lens],
+                            {"long_name": "relative pixel sensitivity in the photon-transfer region (1 = mean)",
+                             "units": "1"})
+    return ds

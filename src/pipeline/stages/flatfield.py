@@ -1,0 +1,88 @@
+"""Pixel response non-uniformity (flat field) from the linearity exposure sweep.
+
+For each setting of the exposure sweep at the dark frames' lowest ISO, the
+frame-averaged image of the photon-transfer region is dark-corrected pixel by
+pixel (the dark stage's offset pattern) and a smooth surface (roll-off, a
+polynomial in the pixel offsets from the region centre) is removed. What is
+left scatters by
+
+    var = temporal variance / n_frames + offset-pattern error + prnu^2 S^2 / sites,
+
+with S the mean signal and ``sites`` the raw pixels averaged in a band pixel.
+The observation is the spatial variance in excess of the known noise terms,
+one row per setting and band (level ``flat``); its expected spread is that of a
+sample variance, var sqrt(2 / N), with var the larger of the measured and the
+noise-only variance. A flat-field-free model predicts zero; the
+``prnu`` effect adds the column ``S^2 / sites`` whose coefficient is prnu^2.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from pipeline.camera import BANDS
+from pipeline.frames import SITES_PER_BAND_PIXEL
+from pipeline.stages.dark import dark_level_dn
+
+
+def _smooth_design(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+    dy = (y - y.mean()) / max(np.ptp(y), 1)
+    dx = (x - x.mean()) / max(np.ptp(x), 1)
+    r2 = dx * dx + dy * dy
+    return np.column_stack([np.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy, r2 * r2])
+
+
+def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float) -> tuple[pd.DataFrame, dict]:
+    """Observation table (level ``flat``) and flat-field maps (band, y, x) per lens."""
+    rows, maps = [], {}
+    fr = reduced["frames"]
+    sat = fr[fr["saturated"]]
+    saturated = {(r.lens, r.band, (float(r.iso), round(float(r.exposure_s), 9))) for r in sat.itertuples()}
+    for lens, per_band in reduced["ptc"].items():
+        d = dark[lens]
+        shape = per_band["G"][0].shape
+        fmap = np.full((len(BANDS),) + shape, np.nan, dtype=np.float32)
+        for bi, band in enumerate(BANDS):
+            region = per_band[band][0] & (d["hot_pixel_mask"].sel(band=band).values == 0)
+            yy, xx = np.nonzero(per_band[band][0])
+            keep = region[per_band[band][0]]
+            y, x = yy[keep], xx[keep]
+            X = _smooth_design(y.astype(float), x.astype(float))
+            fpn = d["fpn_map_dn"].sel(band=band).values[y, x]
+            read = float(d["read_noise_dn"].sel(band=band).sel(iso=iso, method="nearest"))
+            n_dark = int(d["obs_setting__n_frames"].values.min()) if "obs_setting__n_frames" in d else 1
+            sites = SITES_PER_BAND_PIXEL[band]
+            ratios = []
+            for (l2, b2, sweep, key), mom in reduced["moments"].items():
+                if l2 != lens or b2 != band or sweep != "exposure" or key[0] != iso:
+                    continue
+                mean = mom.mean()[keep] - fpn
+                var_t = mom.variance()[keep]
+                if mom.n < 2 or (lens, band, key) in saturated:
+                    continue
+                coef, *_ = np.linalg.lstsq(X, mean, rcond=None)
+                smooth = X @ coef
+                resid = mean - smooth
+                signal = smooth - dark_level_dn(d, band, key[0], key[1])
+                level = float(np.mean(signal))
+                noise_var = float(var_t.mean()) / mom.n + read**2 / sites / max(n_dark, 1)
+                n = resid.size
+                measured = float(np.sum(resid**2) / max(n - X.shape[1], 1))
+                rows.append({"lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
+                             "n_pixels": n, "spatial_var_dn2": measured, "noise_var_dn2": noise_var,
+                             "signal_dn": level, "signal_sq_per_site_dn2": float(np.mean(signal**2)) / sites})
+                ratios.append((resid / np.maximum(signal, 1e-9), mom.n))
+            if ratios:
+                w = np.array([n for _, n in ratios], dtype=float)
+                fmap[bi][y, x] = 1.0 + np.average(np.stack([r for r, _ in ratios]), axis=0, weights=w)
+        maps[lens] = fmap
+    table = pd.DataFrame(rows)
+    if len(table):
+        table["value_dn"] = table["spatial_var_dn2"] - table["noise_var_dn2"]
+        # spread of a sample variance of N roughly Gaussian values: var sqrt(2 / N),
+        # with var the variance actually there (noise plus any flat-field pattern)
+        table["sigma_dn"] = np.maximum(table["spatial_var_dn2"], table["noise_var_dn2"]) * np.sqrt(2.0 / table["n_pixels"])
+        table["group"] = table["lens"] + "/" + table["band"]
+    return table, maps
