@@ -315,7 +315,8 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
               outlier_factor: float = 5.0, max_frame_rms_px: float | None = None,
               point_outlier_factor: float = 5.0,
               centre_half_width_frac: float = 0.1, max_nfev: int = 200,
-              half_fov_deg: float | None = None) -> CalibrationResult:
+              half_fov_deg: float | None = None,
+              centre_guess: tuple[float, float] | None = None) -> CalibrationResult:
     """Calibrate a Scaramuzza model from chessboard corners seen in many frames.
 
     Parameters
@@ -337,6 +338,10 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         median corner error are dropped (a mislocated corner on a steeply
         tilted board) and the fit repeated; counted in ``n_points_dropped``.
     half_fov_deg : stored in the returned model (e.g. from the image circle).
+    centre_guess : a principal point already known to within a few pixels
+        (e.g. another band's fit): the centre grid search is skipped and the
+        linear initialisation is made at this centre (the nonlinear
+        refinement still frees it).
     """
     if stretch not in ("symmetric", "full", "none"):
         raise ValueError(f"stretch must be 'symmetric', 'full' or 'none', got {stretch!r}")
@@ -367,8 +372,12 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
     shape = tuple(int(n) for n in image_shape)
     r_norm = 0.5 * min(shape)
 
-    centre, lin_err, sol = search_centre(frames, shape, degree, r_norm, L,
-                                         half_width_frac=centre_half_width_frac)
+    if centre_guess is not None:
+        centre = (float(centre_guess[0]), float(centre_guess[1]))
+        lin_err, sol = _linear_error(frames, centre, degree, r_norm, shape, L)
+    else:
+        centre, lin_err, sol = search_centre(frames, shape, degree, r_norm, L,
+                                             half_width_frac=centre_half_width_frac)
     if sol is None:
         raise ValueError("linear initialisation failed for every candidate centre")
     b, poses = sol

@@ -67,6 +67,40 @@ def project_points(model: FisheyeModel, points_mm, rvec, tvec) -> np.ndarray:
     return np.stack([u, v], axis=-1)
 
 
+def board_reflectance(model: FisheyeModel, board: Board, rvec, tvec, u, v, *,
+                      white: float = 0.9, black: float = 0.05, background: float = 0.35,
+                      outside: float = 0.0, half_fov_deg: float | None = None) -> np.ndarray:
+    """Reflectance seen along the rays of pixel coordinates (u, v) (any shape).
+
+    Each ray (model.cam2world) is intersected with the board plane: white or
+    black squares, the white margin, ``background`` off the board or behind
+    the camera, ``outside`` beyond the image circle (theta > half FOV).
+    """
+    hfov = model.half_fov_deg if half_fov_deg is None else half_fov_deg
+    R = rotation_matrix(rvec)
+    t = np.asarray(tvec, float).ravel()
+    normal = R[:, 2]
+    n_dot_t = float(normal @ t)
+    hx, hy = board.half_extent_mm()
+    sq = board.square_mm
+    cos_fov = np.cos(np.radians(hfov)) if hfov is not None else -2.0
+    d = model.cam2world(u, v)
+    denom = d @ normal
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lam = n_dot_t / denom
+    hit = lam > 0
+    p = np.where(hit[..., None], lam[..., None] * d, 0.0) - t
+    bx = p @ R[:, 0]
+    by = p @ R[:, 1]
+    on_board = hit & (np.abs(bx) <= hx) & (np.abs(by) <= hy)
+    pi = np.floor(bx / sq + (board.nx + 1) / 2)
+    qi = np.floor(by / sq + (board.ny + 1) / 2)
+    in_squares = (pi >= 0) & (pi <= board.nx) & (qi >= 0) & (qi <= board.ny)
+    is_black = in_squares & ((pi + qi) % 2 == 0)
+    val = np.where(on_board, np.where(is_black, black, white), background)
+    return np.where(d[..., 2] < cos_fov, outside, val)
+
+
 def render_chessboard(model: FisheyeModel, board: Board, rvec, tvec, *,
                       supersample: int = 4, white: float = 0.9, black: float = 0.05,
                       background: float = 0.35, outside: float = 0.0,
@@ -84,39 +118,18 @@ def render_chessboard(model: FisheyeModel, board: Board, rvec, tvec, *,
     inner-corner pixel positions (nx*ny, 2) as (u, v), OpenCV order.
     """
     rows, cols = model.shape
-    hfov = model.half_fov_deg if half_fov_deg is None else half_fov_deg
-    R = rotation_matrix(rvec)
-    t = np.asarray(tvec, float).ravel()
-    normal = R[:, 2]
-    n_dot_t = float(normal @ t)
-    hx, hy = board.half_extent_mm()
-    sq = board.square_mm
     ss = int(supersample)
     offs = (np.arange(ss) + 0.5) / ss - 0.5
     if chunk_rows is None:
         chunk_rows = max(1, int(2_000_000 // (cols * ss * ss)))
-    cos_fov = np.cos(np.radians(hfov)) if hfov is not None else -2.0
     image = np.empty((rows, cols))
     u_sub = (np.arange(cols)[:, None] + offs[None, :]).ravel()  # cols*ss
     for r0 in range(0, rows, chunk_rows):
         r1 = min(rows, r0 + chunk_rows)
         v_sub = (np.arange(r0, r1)[:, None] + offs[None, :]).ravel()
         uu, vv = np.meshgrid(u_sub, v_sub)
-        d = model.cam2world(uu, vv)
-        denom = d @ normal
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lam = n_dot_t / denom
-        hit = lam > 0
-        p = np.where(hit[..., None], lam[..., None] * d, 0.0) - t
-        bx = p @ R[:, 0]
-        by = p @ R[:, 1]
-        on_board = hit & (np.abs(bx) <= hx) & (np.abs(by) <= hy)
-        pi = np.floor(bx / sq + (board.nx + 1) / 2)
-        qi = np.floor(by / sq + (board.ny + 1) / 2)
-        in_squares = (pi >= 0) & (pi <= board.nx) & (qi >= 0) & (qi <= board.ny)
-        is_black = in_squares & ((pi + qi) % 2 == 0)
-        val = np.where(on_board, np.where(is_black, black, white), background)
-        val = np.where(d[..., 2] < cos_fov, outside, val)
+        val = board_reflectance(model, board, rvec, tvec, uu, vv, white=white, black=black,
+                                background=background, outside=outside, half_fov_deg=half_fov_deg)
         val = val.reshape(r1 - r0, ss, cols, ss).mean(axis=(1, 3))
         image[r0:r1] = val
     corners = project_points(model, board.corners_mm(), rvec, tvec)

@@ -18,6 +18,7 @@ from pipeline.effects import get as get_effect
 from pipeline.errors import InputError
 from pipeline.rawio import write_dng
 from pipeline.simulate import lab  # noqa: F401  (registers the dark and linearity planners)
+from pipeline.simulate import geometry  # noqa: F401  (registers the geometry planner)
 from pipeline.simulate import immersion, rolloff  # noqa: F401  (registers the roll-off and immersion planners)
 from pipeline.simulate import absolute, spectral  # noqa: F401  (registers the spectral and absolute planners)
 from pipeline.simulate.plan import PLANNERS, SimContext

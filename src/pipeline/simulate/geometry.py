@@ -1,0 +1,209 @@
+"""Geometric-calibration experiment (Larouche et al. 2024, Sections 2.3 and 3.2).
+
+A planar chessboard, lit uniformly, photographed by each lens in air and in
+water at poses that cover the field of view up to its edge
+(:func:`pipeline.geometry.chessboard.poses_covering_fov`). The board is
+rendered through the TRUE camera model of every raw pixel's own band:
+
+* per lens and medium the nominal model is the published fit
+  (:func:`pipeline.geometry.scaramuzza.default_model` at raw resolution);
+* chromatic differences: per band a magnification of the polynomial about its
+  centre (R +0.2 %, B -0.15 % in air; +0.3 % / -0.3 % in water, giving
+  edge differences of 0.1-0.35 degree against G, the size of Fig. 4c-d) and a
+  principal-point offset of a fraction of a band pixel;
+* each raw pixel integrates the board over its own area (inverse mapping,
+  ``SUPERSAMPLE`` x ``SUPERSAMPLE`` sub-pixels wherever the 1-sample image
+  changes within the pixel's neighbourhood, one sample elsewhere, which is
+  exact there); the renderer then adds roll-off, the unlit border outside
+  the image circle, and noise. No optical point-spread function is simulated
+  beyond the pixel area.
+
+Band images are 2 x 2 Bayer cells (RGGB): an R band pixel is the raw site
+``(2i, 2j)``, B is ``(2i+1, 2j+1)``, G averages ``(2i, 2j+1)`` and
+``(2i+1, 2j)``. The true band-image model of band b therefore is the raw
+model scaled by 1/2 with the site offset: R centre +0.25 band px, B -0.25 band
+px relative to the cell centre convention of
+:meth:`pipeline.geometry.scaramuzza.FisheyeModel.scaled` (G).
+
+Frame counts: the real counts are not published per lens (16 in air, 20 in
+water for one calibration, Section 2.3); we use ``FRAMES_PER_MEDIUM``
+(20 per lens and medium at the full scale).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+from scipy.ndimage import maximum_filter, minimum_filter
+
+from pipeline.camera import BANDS
+from pipeline.geometry.chessboard import Board, board_reflectance, poses_covering_fov, project_points
+from pipeline.geometry.image_circle import ImageCircle, half_fov_from_circle
+from pipeline.geometry.scaramuzza import HALF_FOV_DEG, FisheyeModel, default_model
+from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
+
+#: the board the simulator's dataset.yaml declares (simulate/dataset.py writes the same)
+INNER_CORNERS = (8, 6)
+SQUARE_MM = {"air": 30.0, "water": 20.0}
+MEDIA = ("air", "water")
+#: frames per lens and medium, by scale name (full: real counts unpublished, ~20)
+FRAMES_PER_MEDIUM = {"tiny": 12, "small": 16, "full": 20}
+#: per-band magnification of f(rho) about the centre (chromatic), per medium
+MAGNIFICATION = {"air": {"R": 1.002, "G": 1.0, "B": 0.9985},
+                 "water": {"R": 1.003, "G": 1.0, "B": 0.997}}
+#: per-band principal-point offset (band pixels) on top of the Bayer site offset
+CENTRE_OFFSET_BAND_PX = {"R": (0.3, -0.2), "G": (0.0, 0.0), "B": (-0.2, 0.3)}
+#: raw-site position of each band inside its 2 x 2 cell (RGGB), raw pixels (du, dv)
+SITE_OFFSET_RAW = {"R": (0.0, 0.0), "G": (0.5, 0.5), "B": (1.0, 1.0)}
+SUPERSAMPLE = 4
+EXPOSURE_S = 0.05
+ISO = 100.0
+#: DN (above bias, on the axis) of a perfectly white board per band; R and B are
+#: dimmer than G as with a halogen lamp seen through the broad camera bands
+WHITE_DN = {"R": 8000.0, "G": 10000.0, "B": 6000.0}
+REFLECTANCE = {"white": 0.9, "black": 0.05, "background": 0.35}
+#: board half-angle (deg) on the axis and at the edge of the field
+BOARD_HALF_ANGLE_DEG = (50.0, 20.0)
+
+
+def magnified(model: FisheyeModel, m: float) -> FisheyeModel:
+    """The model with the image magnified by m about its principal point."""
+    return replace(model, poly=tuple(a * m ** (1 - k) for k, a in enumerate(model.poly)))
+
+
+def true_raw_models(lens: str, medium: str, lens_px: int) -> dict[str, FisheyeModel]:
+    """Per-band true model in raw-pixel coordinates of the lens region."""
+    base = default_model(lens, medium, (lens_px, lens_px))
+    out = {}
+    for band in BANDS:
+        du, dv = CENTRE_OFFSET_BAND_PX[band]
+        m = magnified(base, MAGNIFICATION[medium][band])
+        out[band] = replace(m, xc=m.xc + 2 * du, yc=m.yc + 2 * dv, meta={"lens": lens, "medium": medium})
+    return out
+
+
+def band_model(raw: FisheyeModel, band: str) -> FisheyeModel:
+    """True band-image model of a raw-coordinate model (Bayer site offset included)."""
+    b = raw.scaled(0.5)
+    su, sv = SITE_OFFSET_RAW[band]
+    # band pixel i of this band sits at raw 2i + su: u_band = (u_raw - su) / 2
+    return replace(b, xc=(raw.xc - su) / 2.0, yc=(raw.yc - sv) / 2.0)
+
+
+def true_image_circle(lens: str, medium: str, lens_px: int, band: str) -> ImageCircle:
+    """The lit disc of the renderer (nominal model, theta <= half FOV) in band coordinates."""
+    nominal = default_model(lens, medium, (lens_px, lens_px))
+    r = nominal.image_circle_radius()
+    su, sv = SITE_OFFSET_RAW[band]
+    return ImageCircle((nominal.xc - su) / 2.0, (nominal.yc - sv) / 2.0, r / 2.0, 0.0, 0)
+
+
+class ChessboardScene:
+    """Scene callable: the uniformly lit board at one pose, per raw site through its band's model."""
+
+    def __init__(self, board: Board, rvec, tvec, raw_models: dict, radiance_white: dict,
+                 supersample: int = SUPERSAMPLE):
+        self.board = board
+        self.rvec = np.asarray(rvec, float)
+        self.tvec = np.asarray(tvec, float)
+        self.models = raw_models
+        self.radiance_white = radiance_white
+        self.ss = int(supersample)
+
+    def reflectance(self, model, u, v):
+        return board_reflectance(model, self.board, self.rvec, self.tvec, u, v,
+                                 white=REFLECTANCE["white"], black=REFLECTANCE["black"],
+                                 background=REFLECTANCE["background"], outside=REFLECTANCE["background"],
+                                 half_fov_deg=180.0)
+
+    def band_sites(self, band: str, shape) -> np.ndarray:
+        """Reflectance integrated over every raw pixel of one band site pattern: list of (rows, cols, values)."""
+        model = self.models[band]
+        out = []
+        sites = {"R": [(0, 0)], "G": [(0, 1), (1, 0)], "B": [(1, 1)]}[band]
+        for dy, dx in sites:
+            rows = np.arange(dy, shape[0], 2)
+            cols = np.arange(dx, shape[1], 2)
+            # only the board's neighbourhood needs rays; elsewhere it is background
+            r0, r1, c0, c1 = self._bbox(model, shape)
+            sel_r = rows[(rows >= r0) & (rows < r1)]
+            sel_c = cols[(cols >= c0) & (cols < c1)]
+            val = np.full((rows.size, cols.size), REFLECTANCE["background"])
+            if sel_r.size and sel_c.size:
+                uu, vv = np.meshgrid(sel_c.astype(float), sel_r.astype(float))
+                centre = self.reflectance(model, uu, vv)
+                # supersample where the site grid changes within one site (edges of squares or board)
+                edge = maximum_filter(centre, 3) != minimum_filter(centre, 3)
+                if edge.any():
+                    offs = (np.arange(self.ss) + 0.5) / self.ss - 0.5
+                    du, dv = np.meshgrid(offs, offs)
+                    ue = uu[edge][:, None] + du.ravel()[None, :]
+                    ve = vv[edge][:, None] + dv.ravel()[None, :]
+                    centre[edge] = self.reflectance(model, ue, ve).mean(axis=1)
+                ir = np.searchsorted(rows, sel_r)
+                ic = np.searchsorted(cols, sel_c)
+                val[np.ix_(ir, ic)] = centre
+            out.append((dy, dx, val))
+        return out
+
+    def _bbox(self, model, shape):
+        pts = self.board.outline_mm(64)
+        uv = project_points(model, pts, self.rvec, self.tvec)
+        if not np.all(np.isfinite(uv)):
+            return 0, shape[0], 0, shape[1]
+        m = 4
+        c0 = max(0, int(np.floor(uv[:, 0].min())) - m)
+        c1 = min(shape[1], int(np.ceil(uv[:, 0].max())) + m + 1)
+        r0 = max(0, int(np.floor(uv[:, 1].min())) - m)
+        r1 = min(shape[0], int(np.ceil(uv[:, 1].max())) + m + 1)
+        return r0, r1, c0, c1
+
+    def __call__(self, lens, geo, band_index):
+        shape = band_index.shape
+        out = np.empty(shape)
+        for band in BANDS:
+            for dy, dx, val in self.band_sites(band, shape):
+                out[dy::2, dx::2] = val * self.radiance_white[band]
+        return out
+
+
+def white_radiance(ctx: SimContext) -> dict:
+    """Band radiance of a perfect white board giving WHITE_DN on the axis at ISO 100."""
+    resp = ctx.camera.radiometry.responsivity_dn_s_per_radiance
+    return {b: WHITE_DN[b] / (resp[b] * EXPOSURE_S) for b in BANDS}
+
+
+def plan_poses(ctx: SimContext, lens: str, medium: str, n: int):
+    raw = true_raw_models(lens, medium, ctx.scale.lens_px)["G"]
+    board = Board(*INNER_CORNERS, SQUARE_MM[medium])
+    seed = int(ctx.rng.integers(2**31))
+    return poses_covering_fov(n, HALF_FOV_DEG[medium], seed, board=board, model=raw,
+                              board_half_angle_deg=BOARD_HALF_ANGLE_DEG)
+
+
+@planner("geometry")
+def plan_geometry(ctx: SimContext) -> ExperimentPlan:
+    n = FRAMES_PER_MEDIUM.get(ctx.scale.name, 20)
+    lens_px = ctx.scale.lens_px
+    radiance = white_radiance(ctx)
+    frames = []
+    truth = {"inner_corners": list(INNER_CORNERS), "square_mm": dict(SQUARE_MM), "supersample": SUPERSAMPLE,
+             "exposure_s": EXPOSURE_S, "iso": ISO, "white_radiance": radiance, "models": {}, "frames": []}
+    for medium in MEDIA:
+        board = Board(*INNER_CORNERS, SQUARE_MM[medium])
+        for lens in ctx.camera.lens_names:
+            raw = true_raw_models(lens, medium, lens_px)
+            models = truth["models"].setdefault(lens, {}).setdefault(medium, {})
+            for band in BANDS:
+                bm = band_model(raw[band], band)
+                circle = true_image_circle(lens, medium, lens_px, band)
+                bm = replace(bm, half_fov_deg=half_fov_from_circle(bm, circle, 360))
+                models[band] = {"raw": raw[band].to_dict(), "band": bm.to_dict(),
+                                "image_circle": {"xc": circle.xc, "yc": circle.yc, "radius": circle.radius}}
+            for rvec, tvec in plan_poses(ctx, lens, medium, n):
+                truth["frames"].append({"frame_index": len(frames), "lens": lens, "medium": medium,
+                                        "rvec": list(map(float, rvec)), "tvec_mm": list(map(float, tvec))})
+                frames.append(FrameSpec(lens, "signal", ISO, EXPOSURE_S, {"medium": medium},
+                                        ChessboardScene(board, rvec, tvec, raw, radiance), medium=medium))
+    return ExperimentPlan(frames, truth=truth)

@@ -1,0 +1,404 @@
+"""Geometric calibration stage (Larouche et al. 2024, Sections 2.3 and 3.2; Fig. 4, Fig. S1).
+
+Streams the ``geometry/`` frames once. Per frame, for the lens in its
+``lens`` column and each band (R, G, B) of that lens:
+
+* corners: :func:`pipeline.geometry.corners.detect_corners` on the G band
+  image; R and B are detected in a crop around G's corners (same upsampling),
+  which is several times faster than searching the whole image; when G fails
+  the whole R/B image is searched. Only the corner lists are kept.
+* image circle: a running maximum of every band image per lens and medium (the
+  lit wall around the board makes each frame bright inside the circle and
+  dark outside); after the stream :func:`find_image_circle` fits it.
+* frames where the board is not found keep a small block-mean thumbnail, so
+  that the reason can be told once the circle is known: a board cut by the
+  rim of the image circle, no board visible, or a board that is visible but
+  not found (wrong ``inner_corners``?).
+
+Then per lens, medium and band: :func:`pipeline.geometry.calibrate.calibrate`
+(degree ``geometry.polynomial_degree``; G first with the centre search, R and
+B initialised at G's centre), half field of view through the fitted model on
+the fitted image circle (Section 3.2), maps (:func:`maps_dataset`), projection
+curves against the equidistant, stereographic and orthographic references
+(Fig. 4a-b), band differences against G (Fig. 4c-d), reprojection errors
+(mean, per frame, against radius, Fig. S1) and the dropped frames with reasons.
+
+Artefact ``results/geometry/<lens>.nc``: the layout of
+:mod:`pipeline.stages.geometry_maps` plus the variables listed in
+:func:`lens_dataset`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from pipeline.camera import BANDS
+from pipeline.dataset import Dataset
+from pipeline.errors import InputError
+from pipeline.frames import iter_frames
+from pipeline.geometry.calibrate import calibrate
+from pipeline.geometry.chessboard import Board
+from pipeline.geometry.corners import _upsample_factor, detect_corners
+from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle
+from pipeline.stages.dark import table_to_dataset
+from pipeline.stages.geometry_maps import MEDIA, maps_dataset
+
+STAGE = "geometry"
+log = logging.getLogger("pipeline.geometry")
+#: block size (band pixels) of the thumbnails kept for frames without a board
+THUMB_BLOCK = {"min": 2, "target_px": 192}
+BOARD_SIZE_HINT = "chessboard inner_corners/square_mm in dataset.yaml may be wrong"
+
+
+def board_of(dataset: Dataset, medium: str) -> Board:
+    cb = dataset.meta.get("chessboard")
+    path = dataset.root / "dataset.yaml"
+    if not cb:
+        raise InputError(path, "no 'chessboard' entry: the geometry stage needs inner_corners and square_mm")
+    nx, ny = (int(n) for n in cb["inner_corners"])
+    sq = cb.get("square_mm", {}).get(medium)
+    if sq is None:
+        raise InputError(path, f"chessboard.square_mm has no size for medium '{medium}'")
+    return Board(nx, ny, float(sq))
+
+
+def _thumb(img: np.ndarray) -> tuple[np.ndarray, int]:
+    k = max(THUMB_BLOCK["min"], int(min(img.shape) // THUMB_BLOCK["target_px"]))
+    h, w = (img.shape[0] // k) * k, (img.shape[1] // k) * k
+    return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3)).astype(np.float32), k
+
+
+def _detect_in_crop(img, seed, nx, ny, k, margin):
+    """Detect the board in a crop around seed corners (same upsampling k as the full image)."""
+    h, w = img.shape
+    c0 = max(0, int(np.floor(seed[:, 0].min() - margin)))
+    c1 = min(w, int(np.ceil(seed[:, 0].max() + margin)) + 1)
+    r0 = max(0, int(np.floor(seed[:, 1].min() - margin)))
+    r1 = min(h, int(np.ceil(seed[:, 1].max() + margin)) + 1)
+    res = detect_corners(img[r0:r1, c0:c1], nx, ny, upsample=k)
+    if res.found:
+        res.corners = res.corners + np.array([c0, r0], float)
+    return res
+
+
+def _match_order(corners, reference):
+    """Reorder corners (a symmetric board may come out rotated by 180 degrees) to follow reference."""
+    if corners is None or reference is None:
+        return corners
+    flipped = corners[::-1]
+    if np.linalg.norm(flipped - reference, axis=1).mean() < np.linalg.norm(corners - reference, axis=1).mean():
+        return flipped
+    return corners
+
+
+def reduce_geometry(dataset: Dataset, config: dict, progress: bool = False) -> dict:
+    """Stream the geometry frames once: corners per frame and band, running maxima, thumbnails."""
+    frames = dataset.frames(STAGE)
+    rows, maxima, thumbs, inputs = [], {}, {}, {}
+    boards = {m: board_of(dataset, m) for m in sorted(set(frames["medium"]))}
+    for i, dec in enumerate(iter_frames(dataset, STAGE, frames, progress=progress)):
+        inputs[dec.row["file"]] = dec.raw.sha256
+        lens, medium = dec.row["lens"], dec.row["medium"]
+        lenses = list(dec.lenses) if lens == "both" else [lens]
+        board = boards[medium]
+        for ln in lenses:
+            images = dec.lenses[ln].bands
+            g = None
+            for band in ("G", "R", "B"):
+                img = images[band]
+                key = (ln, medium, band)
+                if key not in maxima:
+                    maxima[key] = img.copy()
+                else:
+                    np.maximum(maxima[key], img, out=maxima[key])
+                k = _upsample_factor(img.shape)
+                if band == "G" or g is None:
+                    res = detect_corners(img, board.nx, board.ny)
+                else:
+                    spacing = np.median(np.linalg.norm(np.diff(g.reshape(board.ny, board.nx, 2), axis=1), axis=-1))
+                    res = _detect_in_crop(img, g, board.nx, board.ny, k, 2.5 * spacing + 4)
+                    if not res.found:
+                        res = detect_corners(img, board.nx, board.ny)
+                    res.corners = _match_order(res.corners, g)
+                if band == "G" and res.found:
+                    g = res.corners
+                if not res.found:
+                    thumbs[(i, ln, band)] = _thumb(img)
+                rows.append({"frame": i, "file": dec.row["file"], "lens": ln, "medium": medium, "band": band,
+                             "found": res.found, "corners": res.corners, "method": res.method,
+                             "detector_message": res.message})
+    return {"rows": rows, "maxima": maxima, "thumbs": thumbs, "inputs": inputs, "boards": boards,
+            "n_frames": len(frames)}
+
+
+def classify_missing(thumb: np.ndarray, k: int, circle, contrast_threshold: float) -> str:
+    """Why no board was found in a frame: cut by the rim, nothing visible, or not recognised.
+
+    High-contrast blocks (local spread of the thumbnail above
+    ``contrast_threshold`` times the frame's bright level) mark a board;
+    blocks within two thumbnail blocks of the circle's rim are not counted
+    as rim contacts unless they lie inside it (the rim itself is an edge).
+    """
+    from scipy.ndimage import generic_filter  # noqa: F401 (kept light: use max/min filters)
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    spread = maximum_filter(thumb, 3) - minimum_filter(thumb, 3)
+    yy, xx = np.mgrid[0:thumb.shape[0], 0:thumb.shape[1]]
+    # thumbnail block centres in band pixels
+    r = np.hypot((xx + 0.5) * k - 0.5 - circle.xc, (yy + 0.5) * k - 0.5 - circle.yc)
+    inside = r < circle.radius - 2.5 * k
+    bright = np.percentile(thumb[inside], 90) if inside.any() else thumb.max()
+    board = inside & (spread > contrast_threshold * bright)
+    if not board.any():
+        return "no board visible in the frame"
+    near_rim = board & (r > circle.radius - 6 * k)
+    if near_rim.sum() >= 3:
+        az = np.degrees(np.arctan2(((yy + 0.5) * k - circle.yc)[near_rim], ((xx + 0.5) * k - circle.xc)[near_rim]))
+        return (f"board partly outside the image circle (cut by its rim near azimuth "
+                f"{float(np.median(az)):.0f} deg); no complete board found")
+    return "a board is visible but no complete board with the declared inner corners was found"
+
+
+def _projection_curves(model, rho):
+    theta = np.degrees(model.theta_of_rho(rho))
+    f0 = model.poly[0]
+    with np.errstate(invalid="ignore"):
+        ref = {"equidistant": np.degrees(rho / f0),
+               "stereographic": np.degrees(2 * np.arctan(rho / (2 * f0))),
+               "orthographic": np.degrees(np.arcsin(np.where(rho <= f0, rho / f0, np.nan)))}
+    return theta, ref
+
+
+def analyse_geometry(reduced: dict, config: dict, dataset_root: Path) -> dict[str, xr.Dataset]:
+    cfg = config[STAGE]
+    folder = Path(dataset_root) / STAGE
+    table = pd.DataFrame(reduced["rows"])
+    out = {}
+    if table.empty:
+        raise InputError(folder, "frames.csv lists no frames")
+    for lens in sorted(set(table["lens"])):
+        tl = table[table["lens"] == lens]
+        media = [m for m in MEDIA if m in set(tl["medium"])]
+        models, results, circles, frame_rows, points_rows = {}, {}, {}, [], []
+        for medium in media:
+            board = reduced["boards"][medium]
+            tm = tl[tl["medium"] == medium]
+            n_frames = tm["frame"].nunique()
+            found_any = tm.groupby("frame")["found"].any()
+            if found_any.mean() < cfg["min_found_fraction"]:
+                raise InputError(folder, (f"lens {lens}, {medium}: a {board.nx}x{board.ny} board was found in only "
+                                          f"{int(found_any.sum())} of {n_frames} frames; {BOARD_SIZE_HINT}"))
+            centre = None
+            for band in ("G", "R", "B"):
+                tb = tm[tm["band"] == band].sort_values("frame")
+                circle = find_image_circle(reduced["maxima"][(lens, medium, band)])
+                circles[(medium, band)] = circle
+                reasons = {}
+                for _, r in tb.iterrows():
+                    if not r["found"]:
+                        thumb, k = reduced["thumbs"][(r["frame"], lens, band)]
+                        reasons[r["frame"]] = classify_missing(thumb, k, circle, cfg["board_contrast_fraction"])
+                pts = [r["corners"] if r["found"] else None for _, r in tb.iterrows()]
+                n_good = sum(p is not None for p in pts)
+                if n_good < cfg["min_frames"]:
+                    raise InputError(folder, (f"lens {lens}, {medium}, band {band}: only {n_good} frames with a board "
+                                              f"(need geometry.min_frames = {cfg['min_frames']})"))
+                t0 = time.perf_counter()
+                try:
+                    res = calibrate(pts, board.corners_mm(), reduced["maxima"][(lens, medium, band)].shape,
+                                    degree=cfg["polynomial_degree"], stretch=cfg["stretch"],
+                                    min_frames=cfg["min_frames"], outlier_factor=cfg["frame_outlier_factor"],
+                                    point_outlier_factor=cfg["corner_outlier_factor"], centre_guess=centre)
+                except ValueError as exc:
+                    raise InputError(folder, f"lens {lens}, {medium}, band {band}: calibration failed ({exc})") from None
+                if res.mean_error_px > cfg["max_mean_error_px"]:
+                    raise InputError(folder, (f"lens {lens}, {medium}, band {band}: mean reprojection error "
+                                              f"{res.mean_error_px:.2f} px > geometry.max_mean_error_px "
+                                              f"{cfg['max_mean_error_px']}; {BOARD_SIZE_HINT}"))
+                if band == "G":
+                    centre = (res.model.xc, res.model.yc)
+                hf = half_fov_from_circle(res.model, circle)
+                model = replace(res.model, half_fov_deg=hf)
+                models[(medium, band)] = model
+                results[(medium, band)] = res
+                log.info("geometry %s %s %s: %d/%d frames, mean error %.3f px, centre (%.2f, %.2f), half FOV %.2f deg "
+                         "(%.1f s)", lens, medium, band, len(res.used_frames), len(pts), res.mean_error_px,
+                         model.xc, model.yc, hf, time.perf_counter() - t0)
+                for j, (_, r) in enumerate(tb.iterrows()):
+                    reason = reasons.get(r["frame"], res.dropped.get(j, ""))
+                    if reason:
+                        log.warning("geometry %s %s %s: %s dropped: %s", lens, medium, band, r["file"], reason)
+                    frame_rows.append({"file": r["file"], "medium": medium, "band": band,
+                                       "board_found": bool(r["found"]), "used": j in res.used_frames,
+                                       "rms_error_px": float(res.frame_rms_px[j]), "reason": reason,
+                                       "detector": r["method"]})
+                points_rows.append(_points(res, board))
+                dist = [np.linalg.norm(p[1]) for p in res.poses if p is not None]
+                log.info("geometry %s %s: median board distance %.0f mm (square_mm %.1f scales it)",
+                         lens, medium, float(np.median(dist)), board.square_mm)
+        band_shape = next(iter(models.values())).shape
+        out[lens] = lens_dataset(models, results, circles, frame_rows, points_rows, band_shape, cfg, reduced, lens)
+    return out
+
+
+def _points(res, board):
+    """Per used corner: radius of the detected point, theta of the board point (fitted pose), error."""
+    obj = board.corners_mm()
+    thetas = []
+    from pipeline.geometry.calibrate import _rodrigues
+    for i in res.used_frames:
+        rvec, t = res.poses[i]
+        cam = obj @ _rodrigues(rvec[None])[0].T + t
+        thetas.append(np.degrees(np.arctan2(np.hypot(cam[:, 0], cam[:, 1]), cam[:, 2])))
+    # used corners after single-corner outlier removal are a subset: report radius and error only
+    return {"rho_px": res.residual_rho_px, "error_px": np.linalg.norm(res.residuals_px, axis=1),
+            "theta_board_deg": np.concatenate(thetas) if thetas else np.array([])}
+
+
+def lens_dataset(models, results, circles, frame_rows, points_rows, band_shape, cfg, reduced, lens) -> xr.Dataset:
+    """The geometry artefact of one lens (see module docstring)."""
+    ds = maps_dataset(models, band_shape)
+    media = list(ds["medium"].values)
+    nb, nm = len(BANDS), len(media)
+    n_rho = int(cfg["curve_samples"])
+    n_bins = int(cfg["radius_bins"])
+    r_max = max(c.radius for c in circles.values())
+    rho = np.linspace(0.0, r_max, n_rho)
+    theta_curve = np.full((nm, nb, n_rho), np.nan)
+    refs = {k: np.full((nm, nb, n_rho), np.nan) for k in ("equidistant", "stereographic", "orthographic")}
+    diff_curve = np.full((nm, nb, n_rho), np.nan)
+    diff_map_max = np.full((nm, nb), np.nan)
+    scal = {k: np.full((nm, nb), np.nan) for k in ("mean_error_px", "rms_error_px", "n_frames_used", "n_frames",
+                                                   "n_corners_dropped", "circle_xc_px", "circle_yc_px",
+                                                   "circle_radius_px", "circle_fit_rms_px", "deg_per_px_axis")}
+    err_bins = np.full((nm, nb, n_bins), np.nan)
+    err_count = np.zeros((nm, nb, n_bins))
+    bin_rho = np.full((nm, nb, n_bins), np.nan)
+    for (medium, band), model in models.items():
+        i, j = media.index(medium), BANDS.index(band)
+        th, ref = _projection_curves(model, rho)
+        theta_curve[i, j] = th
+        for k in refs:
+            refs[k][i, j] = ref[k]
+        res = results[(medium, band)]
+        c = circles[(medium, band)]
+        scal["mean_error_px"][i, j] = res.mean_error_px
+        scal["rms_error_px"][i, j] = res.rms_error_px
+        scal["n_frames_used"][i, j] = len(res.used_frames)
+        scal["n_frames"][i, j] = len(res.poses)
+        scal["n_corners_dropped"][i, j] = res.n_points_dropped
+        scal["circle_xc_px"][i, j], scal["circle_yc_px"][i, j] = c.xc, c.yc
+        scal["circle_radius_px"][i, j], scal["circle_fit_rms_px"][i, j] = c.radius, c.rms_px
+        scal["deg_per_px_axis"][i, j] = np.degrees(1.0 / model.poly[0])
+        # reprojection error against radius on fixed bins up to the circle radius (Fig. S1)
+        edges = np.linspace(0.0, r_max, n_bins + 1)
+        idx = np.clip(np.digitize(res.residual_rho_px, edges) - 1, 0, n_bins - 1)
+        e = np.linalg.norm(res.residuals_px, axis=1)
+        cnt = np.bincount(idx, minlength=n_bins)
+        sm = np.bincount(idx, weights=e, minlength=n_bins)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            err_bins[i, j] = sm / cnt
+        err_count[i, j] = cnt
+        bin_rho[i, j] = 0.5 * (edges[1:] + edges[:-1])
+    for medium in media:
+        i = media.index(medium)
+        g = BANDS.index("G")
+        for j, band in enumerate(BANDS):
+            diff_curve[i, j] = theta_curve[i, j] - theta_curve[i, g]
+            d = ds["theta_deg"].values[i, j] - ds["theta_deg"].values[i, g]
+            inside = ds["theta_deg"].values[i, g] <= ds["half_fov_deg"].values[i, g]
+            diff_map_max[i, j] = float(np.nanmax(np.abs(d[inside]))) if inside.any() else np.nan
+    dims2, dims3 = ("medium", "band"), ("medium", "band", "rho")
+    ds = ds.assign_coords(rho_px=("rho", rho, {"long_name": "radial distance from the principal point", "units": "pixel"}),
+                          radius_bin=("radius_bin", np.arange(n_bins)))
+    attrs = {
+        "mean_error_px": {"long_name": "mean Euclidean reprojection error over the used corners", "units": "pixel"},
+        "rms_error_px": {"long_name": "RMS reprojection error", "units": "pixel"},
+        "n_frames_used": {"long_name": "frames used in the final fit", "units": "1"},
+        "n_frames": {"long_name": "frames of this medium", "units": "1"},
+        "n_corners_dropped": {"long_name": "single outlier corners removed", "units": "1"},
+        "circle_xc_px": {"long_name": "image circle centre column", "units": "pixel"},
+        "circle_yc_px": {"long_name": "image circle centre row", "units": "pixel"},
+        "circle_radius_px": {"long_name": "image circle radius (max over frames of the lit region)", "units": "pixel"},
+        "circle_fit_rms_px": {"long_name": "RMS distance of the edge points from the circle", "units": "pixel"},
+        "deg_per_px_axis": {"long_name": "angular size of a pixel on the optical axis (1/a0)", "units": "degree"},
+    }
+    for k, v in scal.items():
+        ds[k] = (dims2, v, attrs[k])
+    ds["projection_theta_deg"] = (dims3, theta_curve, {"long_name": "fitted projection theta(rho) (Fig. 4a-b)", "units": "degree"})
+    for k, v in refs.items():
+        ds[f"reference_{k}_theta_deg"] = (dims3, v, {"long_name": f"{k} projection with focal length a0", "units": "degree"})
+    ds["theta_difference_vs_green_deg"] = (dims3, diff_curve, {"long_name": "theta(rho) of the band minus G (Fig. 4c-d)", "units": "degree"})
+    ds["theta_map_max_difference_vs_green_deg"] = (dims2, diff_map_max, {"long_name": "largest |theta - theta_G| over the field of view", "units": "degree"})
+    ds["error_vs_radius_px"] = (("medium", "band", "radius_bin"), err_bins, {"long_name": "mean reprojection error in radial bins (Fig. S1)", "units": "pixel"})
+    ds["error_vs_radius_count"] = (("medium", "band", "radius_bin"), err_count, {"long_name": "corners in the radial bin", "units": "1"})
+    ds["error_vs_radius_rho_px"] = (("medium", "band", "radius_bin"), bin_rho, {"long_name": "radial bin centre", "units": "pixel"})
+    # per-frame table (obs_frame) and per-corner points (points)
+    fr = pd.DataFrame(frame_rows)
+    ds = ds.merge(table_to_dataset(fr, "obs_frame"))
+    pts = []
+    for (medium, band), pr in zip([(m, b) for m in media for b in ("G", "R", "B") if (m, b) in models], points_rows):
+        n = len(pr["rho_px"])
+        th = pr["theta_board_deg"]
+        pts.append(pd.DataFrame({"medium": [medium] * n, "band": [band] * n, "rho_px": pr["rho_px"],
+                                 "error_px": pr["error_px"]}))
+    ds = ds.merge(table_to_dataset(pd.concat(pts, ignore_index=True), "used_corner"))
+    # detected corners of every frame of this lens (NaN where none), for checks and figures
+    table = pd.DataFrame(reduced["rows"])
+    tl = table[table["lens"] == lens]
+    frames_l = sorted(set(tl["frame"]))
+    n_c = max((len(c) for c in tl["corners"] if c is not None), default=0)
+    corners = np.full((len(frames_l), nb, n_c, 2), np.nan, dtype=np.float32)
+    files = [""] * len(frames_l)
+    frame_medium = [""] * len(frames_l)
+    for _, r in tl.iterrows():
+        k = frames_l.index(r["frame"])
+        files[k], frame_medium[k] = r["file"], r["medium"]
+        if r["corners"] is not None:
+            corners[k, BANDS.index(r["band"]), :len(r["corners"])] = r["corners"]
+    ds = ds.assign_coords(lens_frame=("lens_frame", np.arange(len(frames_l))))
+    ds["lens_frame_file"] = ("lens_frame", np.array(files, dtype=str))
+    ds["lens_frame_medium"] = ("lens_frame", np.array(frame_medium, dtype=str))
+    ds["corners_px"] = (("lens_frame", "band", "board_corner", "uv"), corners,
+                        {"long_name": "detected inner corners (u, v), OpenCV order", "units": "pixel"})
+    ds.attrs["lens"] = lens
+    return ds
+
+
+def run(dataset: str | Path, config: dict, outputs: dict[str, str | Path], progress: bool = False) -> dict[str, xr.Dataset]:
+    """Geometry stage from files to files: one artefact per lens in ``outputs``."""
+    from pipeline.artefact import write_artefact
+    from pipeline.dataset import open_dataset
+    from pipeline.stage_io import _model, stage_config
+
+    effects = _model(config)
+    ds = open_dataset(dataset)
+    if STAGE not in ds.experiments():
+        raise InputError(ds.root / STAGE, "experiment folder is absent")
+    reduced = reduce_geometry(ds, config, progress=progress)
+    arts = analyse_geometry(reduced, config, ds.root)
+    missing = [lens for lens in outputs if lens not in arts]
+    if missing:
+        raise InputError(ds.root / STAGE, f"no frames for lens {', '.join(missing)}")
+    for lens, path in outputs.items():
+        write_artefact(arts[lens], path, stage=STAGE, inputs=reduced["inputs"],
+                       config_subset=stage_config(config, STAGE), effects=effects)
+    return arts
+
+
+def run_from_snakemake(smk) -> None:
+    run(smk.params.dataset, smk.params.config, dict(zip(smk.params.lenses, smk.output.artefacts)))
+
+
+def run_benchmark(dataset, cfg, results_dir) -> None:
+    from pipeline.dataset import open_dataset
+
+    lenses = list(open_dataset(dataset, check_frames=False).lenses)
+    run(dataset, cfg, {lens: Path(results_dir) / STAGE / f"{lens}.nc" for lens in lenses})
