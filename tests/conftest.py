@@ -20,14 +20,18 @@ def config():
 
 @pytest.fixture(scope="session")
 def make_dataset(tmp_path_factory):
-    """Factory: simulate (once per session and arguments) a tiny dataset; returns (path, truth dict)."""
+    """Factory: simulate (once per session and arguments) a tiny dataset; returns (path, truth dict).
+
+    By default only the dark and linearity experiments (the foundation stages) are written.
+    """
     cache = {}
 
-    def make(effects=(), seed=11, scale="tiny"):
-        key = (tuple((n, tuple(sorted(p.items()))) for n, p in effects), seed, scale)
+    def make(effects=(), seed=11, scale="tiny", experiments=("dark", "linearity")):
+        key = (tuple((n, tuple(sorted(p.items()))) for n, p in effects), seed, scale, tuple(experiments))
         if key not in cache:
             root = tmp_path_factory.mktemp("sim") / "dataset"
-            simulate_dataset(root, scale=scale, seed=seed, effects=list(effects), progress=False)
+            simulate_dataset(root, scale=scale, seed=seed, effects=list(effects), experiments=experiments,
+                             progress=False)
             truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())
             cache[key] = (root, truth)
         return cache[key]

@@ -23,7 +23,8 @@ def run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("report")
     cfg = load_config()
     simulate_dataset(tmp / "data", "tiny", seed=2,
-                     effects=[("dark_current", {}), ("hot_pixels", {}), ("shutter_offset", {})], progress=False)
+                     effects=[("dark_current", {}), ("hot_pixels", {}), ("shutter_offset", {})],
+                     experiments=("dark", "linearity"), progress=False)
     dark = {lens: tmp / "dark" / f"{lens}.nc" for lens in LENSES}
     lin = {lens: tmp / "lin" / f"{lens}.nc" for lens in LENSES}
     run_dark(tmp / "data", cfg, dark)

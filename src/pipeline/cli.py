@@ -28,8 +28,8 @@ def main(argv: list[str] | None = None) -> int:
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--effect", action="append", default=[], metavar="NAME[:param=value,...]",
                      help="switch on a true effect of the simulated camera (repeatable)")
-    sim.add_argument("--experiments", default="dark,linearity",
-                     help="comma-separated experiments to simulate (default: dark,linearity)")
+    sim.add_argument("--experiments", default=None,
+                     help="comma-separated experiments to simulate (default: all the simulator writes)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     try:
@@ -37,10 +37,12 @@ def main(argv: list[str] | None = None) -> int:
             from pipeline.simulate import simulate_dataset
             from pipeline.simulate.dataset import truth_dir_for
 
+            from pipeline.simulate.dataset import EXPERIMENTS
+
             effects = [parse_effect_spec(s) for s in args.effect]
+            experiments = tuple(e for e in args.experiments.split(",") if e) if args.experiments else EXPERIMENTS
             out = simulate_dataset(args.out, scale=args.scale, seed=args.seed, effects=effects,
-                                   experiments=tuple(e for e in args.experiments.split(",") if e),
-                                   progress=not args.no_progress)
+                                   experiments=experiments, progress=not args.no_progress)
             print(f"dataset: {out}\ntruth:   {truth_dir_for(out)}")
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -11,11 +11,24 @@ from pipeline.errors import InputError
 from pipeline.rawio import read_tags
 
 #: experiments each stage reads (a stage runs only when all are present)
-STAGE_EXPERIMENTS = {"dark": ("dark",), "linearity": ("linearity", "dark")}
+STAGE_EXPERIMENTS = {
+    "dark": ("dark",),
+    "linearity": ("linearity", "dark"),
+    "geometry": ("geometry",),
+    "rolloff": ("rolloff", "geometry"),
+    "spectral": ("spectral", "geometry"),
+    "absolute": ("absolute", "spectral", "geometry"),
+    "immersion": ("immersion", "geometry"),
+}
 #: config sections each rule depends on (its params rerun trigger)
 STAGE_SECTIONS = {
     "dark": ("model", "bias", "dark"),
     "linearity": ("model", "bias", "linearity"),
+    "geometry": ("model", "geometry"),
+    "rolloff": ("model", "rolloff"),
+    "spectral": ("model", "bias", "spectral"),
+    "absolute": ("model", "bias", "absolute"),
+    "immersion": ("model", "immersion"),
     "diagnostics": ("model", "diagnostics"),
 }
 REQUIRED_TAGS = {"exposure_s": "ExposureTime", "iso": "ISOSpeedRatings", "time": "DateTimeOriginal"}
@@ -59,11 +72,10 @@ class DatasetIndex:
             missing = [e for e in needs if e not in present]
             if missing:
                 out[stage] = f"the dataset has no {', '.join(m + '/' for m in missing)} folder"
-        for exp in ("geometry", "rolloff", "spectral", "absolute", "immersion", "field"):
-            if exp not in present:
-                out.setdefault(exp, f"the dataset has no {exp}/ folder")
-            else:
-                out.setdefault(exp, f"{exp}/ is present but this version of the pipeline has no {exp} stage yet")
+        if "field" not in present:
+            out["field"] = "the dataset has no field/ folder"
+        else:
+            out["field"] = "field/ is present but this version of the pipeline has no field stage yet"
         return out
 
     def experiment_files(self, experiment: str) -> list[str]:

@@ -5,7 +5,9 @@ from pathlib import Path
 
 from pipeline.camera import Camera
 from pipeline.errors import InputError
-from pipeline.workflow import DatasetIndex, stage_params
+from pipeline.workflow import STAGE_EXPERIMENTS, DatasetIndex, stage_params
+
+STAGES = list(STAGE_EXPERIMENTS)
 
 DATASET = Path(config["dataset"])
 SIMULATE = not DATASET.exists() and config["simulate_if_missing"]["enabled"]
@@ -42,6 +44,35 @@ def linearity_inputs(wildcards):
     return _ready().experiment_files("linearity")
 
 
+def _with_sidecars(experiment, *names):
+    files = _ready().experiment_files(experiment)
+    return files + [str(DATASET / experiment / name) for name in names] if files else files
+
+
+def geometry_inputs(wildcards):
+    return _ready().experiment_files("geometry")
+
+
+def rolloff_inputs(wildcards):
+    return _ready().experiment_files("rolloff")
+
+
+def spectral_inputs(wildcards):
+    return _with_sidecars("spectral", "photodiode.csv")
+
+
+def absolute_inputs(wildcards):
+    return _with_sidecars("absolute", "source_spectrum.csv", "source_reference.csv")
+
+
+def immersion_inputs(wildcards):
+    index = _ready()
+    out = {"frames": _with_sidecars("immersion", "water.yaml"), "geometry": artefacts_of("geometry")}
+    if index.stage_runnable("spectral"):
+        out["spectral"] = artefacts_of("spectral")
+    return out
+
+
 def artefacts_of(stage):
     """Artefact paths of a stage, or none when its experiment is absent from the dataset."""
     return [f"results/{stage}/{lens}.nc" for lens in LENSES]
@@ -50,7 +81,7 @@ def artefacts_of(stage):
 def diagnostics_inputs(wildcards):
     index = _ready()
     out = {}
-    for stage in ("dark", "linearity"):
+    for stage in STAGES:
         if index.stage_runnable(stage):
             out[stage] = artefacts_of(stage)
     return out

@@ -18,9 +18,9 @@ from pipeline.effects import get as get_effect
 from pipeline.errors import InputError
 from pipeline.rawio import write_dng
 from pipeline.simulate import lab  # noqa: F401  (registers the dark and linearity planners)
-from pipeline.simulate import geometry  # noqa: F401  (registers the geometry planner)
 from pipeline.simulate import immersion, rolloff  # noqa: F401  (registers the roll-off and immersion planners)
 from pipeline.simulate import absolute, spectral  # noqa: F401  (registers the spectral and absolute planners)
+from pipeline.simulate import geometry  # noqa: F401  (registers the geometry planner)
 from pipeline.simulate.plan import PLANNERS, SimContext
 from pipeline.simulate.render import Renderer
 
@@ -45,7 +45,7 @@ SCALES = {
 }
 
 #: experiments simulated by default, in acquisition order
-EXPERIMENTS = ("dark", "linearity")
+EXPERIMENTS = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
 START_TIME = datetime(2021, 3, 10, 9, 0, 0)
 #: seconds between the end of one exposure and the start of the next
 FRAME_INTERVAL_S = 1.5
