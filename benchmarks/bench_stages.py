@@ -1,6 +1,7 @@
 """Time and peak memory of each stage on a simulated dataset.
 
     python benchmarks/bench_stages.py [--scale tiny|small|full] [--stages dark,linearity] [--repeat N]
+                                      [--experiments geometry]
 
 Simulates the dataset once (kept in benchmarks/out/), then runs every stage
 in a fresh Python process, --repeat times, and prints the minimum, median and
@@ -56,6 +57,8 @@ def main() -> None:
     ap.add_argument("--stages", default="dark,linearity,diagnostics")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--experiments", default=None,
+                    help="comma-separated experiments to simulate (default: the simulator's default set)")
     ap.add_argument("--child", nargs=3, metavar=("STAGE", "DATASET", "RESULTS"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -63,12 +66,15 @@ def main() -> None:
         return
     from pipeline.simulate import simulate_dataset
 
-    dataset = OUT / f"dataset-{args.scale}"
-    results = OUT / f"results-{args.scale}"
+    experiments = tuple(args.experiments.split(",")) if args.experiments else None
+    tag = args.scale + ("-" + "-".join(experiments) if experiments else "")
+    dataset = OUT / f"dataset-{tag}"
+    results = OUT / f"results-{tag}"
     if not dataset.exists():
         t0 = time.perf_counter()
+        extra = {"experiments": experiments} if experiments else {}
         simulate_dataset(dataset, scale=args.scale, seed=args.seed,
-                         effects=[("dark_current", {}), ("hot_pixels", {})])
+                         effects=[("dark_current", {}), ("hot_pixels", {})], **extra)
         print(f"simulated {dataset} in {time.perf_counter() - t0:.1f} s")
     size_mb = sum(p.stat().st_size for p in dataset.rglob("*") if p.is_file()) / 1e6
     rows = []
