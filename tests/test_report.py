@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 
 from pipeline.artefact import read_artefact
-from pipeline.report import build_report, fmt_uncertain
+from pipeline.report import build_report, fmt_uncertain, fmt_value
 
 LENSES = ("far", "close")
 
@@ -97,3 +97,143 @@ def test_fmt_uncertain_rounds_to_the_uncertainty():
     assert fmt_uncertain(30560.48, 28.07) == "30560 ± 28"
     assert fmt_uncertain(1.5, float("nan")) == "1.500"
     assert "×10^-4" in fmt_uncertain(4.108e-4, 5.7e-6)
+
+
+# ---------------------------------------------------------------- later stages: geometry ... immersion
+
+LATER = ("geometry", "rolloff", "spectral", "absolute", "immersion")
+
+
+def _geometry_with_curves(lens: str):
+    """True maps plus the stage's curve variables (projection, references, band differences, errors).
+
+    The real geometry stage needs the small scale (minutes); this gives the
+    report's full geometry branch the same variable layout in a second.
+    """
+    import numpy as np
+
+    from pipeline.geometry.scaramuzza import default_model
+    from pipeline.simulate.rolloff import true_geometry_dataset
+    from pipeline.stages.geometry import _projection_curves
+
+    ds = true_geometry_dataset(lens, 64)
+    media, bands = list(ds["medium"].values), list(ds["band"].values)
+    rho = np.linspace(0.0, 40.0, 50)
+    theta = np.zeros((len(media), len(bands), rho.size))
+    refs = {k: np.zeros_like(theta) for k in ("equidistant", "stereographic", "orthographic")}
+    for i, m in enumerate(media):
+        th, ref = _projection_curves(default_model(lens, m, (64, 64)), rho)
+        for j in range(len(bands)):
+            theta[i, j] = th + 0.01 * (j - 1) * rho / 40.0
+            for k in refs:
+                refs[k][i, j] = ref[k]
+    ds = ds.assign_coords(rho_px=("rho", rho, {"units": "pixel"}))
+    dims3 = ("medium", "band", "rho")
+    ds["projection_theta_deg"] = (dims3, theta, {"units": "degree"})
+    for k, v in refs.items():
+        ds[f"reference_{k}_theta_deg"] = (dims3, v, {"units": "degree"})
+    g = bands.index("G")
+    ds["theta_difference_vs_green_deg"] = (dims3, theta - theta[:, g:g + 1], {"units": "degree"})
+    shape2 = (len(media), len(bands))
+    ds["mean_error_px"] = (("medium", "band"), np.full(shape2, 0.3123), {"units": "pixel"})
+    bins = np.linspace(2.0, 38.0, 8)
+    ds["error_vs_radius_px"] = (("medium", "band", "radius_bin"), np.broadcast_to(0.2 + bins / 100, shape2 + bins.shape).copy(),
+                                {"units": "pixel"})
+    ds["error_vs_radius_rho_px"] = (("medium", "band", "radius_bin"), np.broadcast_to(bins, shape2 + bins.shape).copy(),
+                                    {"units": "pixel"})
+    return ds
+
+
+@pytest.fixture(scope="module")
+def later(run, config):
+    """Tiny artefacts of the later stages and a report that includes them (plus dark and linearity)."""
+    from pipeline.artefact import write_artefact
+    from pipeline.simulate import simulate_dataset
+    from pipeline.simulate.rolloff import true_geometry_dataset
+    from pipeline.stages import absolute, immersion, rolloff, spectral
+
+    tmp = run["tmp"] / "later"
+    # geometry: "far" with the stage's curve variables, "close" maps only (degrades gracefully)
+    geo_ds = {"far": _geometry_with_curves("far"), "close": true_geometry_dataset("close", 64)}
+    geo = {lens: write_artefact(geo_ds[lens], tmp / "geometry" / f"{lens}.nc", stage="geometry", inputs={},
+                                config_subset={}, effects=[]) for lens in LENSES}
+    paths = {st: {lens: tmp / st / f"{lens}.nc" for lens in LENSES} for st in LATER if st != "geometry"}
+    paths["geometry"] = geo
+    simulate_dataset(tmp / "roll", scale="tiny", seed=3, experiments=("rolloff",), progress=False)
+    rolloff.run(tmp / "roll", config, None, geo, paths["rolloff"])
+    simulate_dataset(tmp / "rad", scale="tiny", seed=5, experiments=("spectral", "absolute"), progress=False)
+    spectral.run(tmp / "rad", config, geo, paths["spectral"])
+    absolute.run(tmp / "rad", config, paths["spectral"], geo, paths["absolute"])
+    simulate_dataset(tmp / "imm", scale="tiny", seed=5, experiments=("immersion",), progress=False)
+    immersion.run(tmp / "imm", config, None, geo, paths["immersion"], spectral_path=paths["spectral"]["far"])
+    out = tmp / "report" / "report.html"
+    build_report(dark=run["dark"], linearity=run["lin"], out_html=out, skipped={}, figures_dir=tmp / "figures",
+                 **run["diag"], **paths)
+    html = out.read_text(encoding="utf-8")
+    return {"paths": paths, "html": html, "tmp": tmp}
+
+
+def _section(html: str, anchor: str) -> str:
+    return html.split(f'<h2 id="{anchor}">', 1)[1].split("<h2", 1)[0]
+
+
+def _n_imgs(html: str) -> int:
+    return len(re.findall(r'<img src="data:image/png;base64,', html))
+
+
+def test_later_sections_present_with_figures(run, later):
+    html = later["html"]
+    for anchor, title in (("geometry", "Geometry"), ("rolloff", "Roll-off"), ("spectral", "Relative spectral response"),
+                          ("absolute", "Absolute spectral radiance"), ("immersion", "Immersion factor")):
+        sec = _section(html, anchor)
+        assert title in sec and "not run" not in sec
+        for lens in LENSES:
+            assert f"Lens “{lens}”" in sec
+            assert _n_imgs(sec) >= len(LENSES), anchor
+    # at least one figure per lens and stage more than the dark/linearity-only report
+    assert _n_imgs(html) >= _n_imgs(run["html"]) + len(LATER) * len(LENSES)
+    assert len(list((later["tmp"] / "figures").glob("*.png"))) == _n_imgs(html)
+    # the existing sections are still there
+    for title in ("Summary", "Dark frames", "Linearity", "Diagnostics", "Stages not run", "Provenance"):
+        assert title in html
+    assert not re.search(r"https?://", html)
+
+
+def test_later_numbers_come_from_the_artefacts(later):
+    html = later["html"]
+    p = later["paths"]
+    a = read_artefact(p["absolute"]["far"], "absolute").sel(band="G")
+    r_inv = fmt_uncertain(float(a["inverse_responsivity"]), float(a["inverse_responsivity_sigma"]))
+    assert "±" in r_inv
+    assert r_inv in _section(html, "absolute") and r_inv in _section(html, "summary")
+    assert "W sr⁻¹ m⁻² nm⁻¹ s DN⁻¹" in _section(html, "absolute")
+    lrad = fmt_uncertain(float(a["effective_radiance"]), float(a["effective_radiance_sigma"]))
+    assert lrad in _section(html, "absolute")
+    im = read_artefact(p["immersion"]["close"], "immersion").sel(band="R")
+    i_r = fmt_uncertain(float(im["immersion_factor"]), float(im["immersion_factor_sigma"]))
+    assert i_r in _section(html, "immersion") and i_r in _section(html, "summary")
+    sp = read_artefact(p["spectral"]["far"], "spectral").sel(band="B")
+    lam = fmt_uncertain(float(sp["effective_wavelength_nm"]), float(sp["effective_wavelength_nm_sigma"]))
+    assert f"{lam} nm" in _section(html, "spectral")
+    ro = read_artefact(p["rolloff"]["far"], "rolloff")
+    assert fmt_value(float(ro["water_compression"].sel(band="G"))) in _section(html, "rolloff")
+
+
+def test_geometry_section_with_and_without_curves(later):
+    sec = _section(later["html"], "geometry")
+    far, close = sec.split("Lens “close”", 1)
+    assert "0.3123 pixel" in far                       # mean reprojection error from the curve artefact
+    assert "reprojection error of the used corners" in far
+    assert "no stored projection curves" in close      # maps-only artefact: theta map against radius
+    assert "holds no reprojection errors" in close
+    half = read_artefact(later["paths"]["geometry"]["close"], "geometry")["half_fov_deg"].sel(medium="water", band="G")
+    assert f"{fmt_value(float(half))} °" in close
+
+
+def test_stage_passed_as_none_says_not_run(run):
+    html = run["html"]
+    geo = _section(html, "geometry")
+    assert "not run" in geo and "dataset has no geometry/ folder" in geo and 'href="#skipped"' in geo
+    for anchor in ("rolloff", "spectral", "absolute", "immersion"):
+        assert "not run" in _section(html, anchor)
+    assert "Calibration per lens" not in _section(html, "summary")

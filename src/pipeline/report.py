@@ -15,6 +15,7 @@ import io
 import json
 import math
 import os
+import re
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -587,6 +588,462 @@ def _linearity_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
     return "\n".join(out)
 
 
+# ---------------------------------------------------------------- later stages (geometry … immersion)
+
+_SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
+def _u(ds: xr.Dataset, name: str) -> str:
+    """Units of an artefact variable with exponents as superscripts ("W sr-1 m-2" -> "W sr⁻¹ m⁻²")."""
+    if name not in ds:
+        return ""
+    units = str(ds[name].attrs.get("units", "") or "")
+    if units in ("", "1"):
+        return ""
+    units = re.sub(r"\^?\(?(-?\d+)\)?(?=$|\s)", lambda m: m.group(1).translate(_SUPERSCRIPT), units)
+    return units.replace("degree", "°").replace("degC", "°C")
+
+
+def _sel(da: xr.DataArray, sel: dict) -> xr.DataArray:
+    return da.sel(**{k: v for k, v in sel.items() if k in da.dims})
+
+
+def _num(ds: xr.Dataset, name: str, sigma: str | None = None, digits: int = 4, units: bool = True, **sel) -> str:
+    """``name`` (selected by ``sel``) ± ``sigma`` (default ``name_sigma``) with units; "n/a" when absent."""
+    if name not in ds:
+        return "n/a"
+    da = _sel(ds[name], sel)
+    if da.size != 1:
+        return "n/a"
+    sig_name = sigma or f"{name}_sigma"
+    sig = None
+    if sig_name in ds:
+        sd = _sel(ds[sig_name], sel)
+        sig = float(sd) if sd.size == 1 else None
+    v = da.values.item()
+    text = fmt_uncertain(v, sig) if sig is not None else fmt_value(v, digits)
+    return f"{text} {_u(ds, name)}".strip() if units else text
+
+
+def _pct(x) -> str:
+    return f"{100 * float(x):.2f} %" if _finite(x) else "n/a"
+
+
+def _media(ds: xr.Dataset) -> list[str]:
+    return [str(m) for m in ds["medium"].values] if "medium" in ds.coords else []
+
+
+def _not_run(stage: str, title: str, skipped: dict[str, str]) -> str:
+    reason = skipped.get(stage)
+    why = (f": {_e(reason)}" if reason else "; no artefacts were given")
+    return (f'<p class="note">The {_e(title)} stage was not run{why} '
+            f'(see <a href="#skipped">Stages not run</a>).</p>')
+
+
+def _effects_table(ds: xr.Dataset) -> str:
+    """Fitted effect parameters stored as ``effect_<name>`` (+ ``_sigma``), if any."""
+    names = [v for v in ds.data_vars if v.startswith("effect_") and not v.endswith("_sigma")]
+    rows = []
+    for v in names:
+        da = ds[v]
+        sd = ds[f"{v}_sigma"] if f"{v}_sigma" in ds and ds[f"{v}_sigma"].shape == da.shape else None
+        for idx in np.ndindex(da.shape):
+            label = v.removeprefix("effect_") + (f"[{', '.join(map(str, idx))}]" if da.size > 1 else "")
+            val = float(da.values[idx]) if da.ndim else float(da.values)
+            sig = (float(sd.values[idx]) if da.ndim else float(sd.values)) if sd is not None else None
+            rows.append([label, da.attrs.get("long_name", ""), f"{fmt_uncertain(val, sig)} {_u(ds, v)}".strip()])
+    if not rows:
+        return '<p class="note">No effect parameters are fitted in this stage for this run.</p>'
+    return "<p>Fitted effect parameters (± standard error):</p>" + _table(["effect", "description", "value"], rows,
+                                                                          left=2)
+
+
+def _geometry_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
+    out = [f'<h3 id="geometry-{_e(lens)}">Lens “{_e(lens)}”</h3>']
+    media, bands = _media(ds), _bands(ds)
+    has_curves = "projection_theta_deg" in ds and "rho_px" in ds.coords
+    if media and "theta_deg" in ds:
+        fig, axes = plt.subplots(2, len(media), figsize=(5.5 * len(media), 7), squeeze=False)
+        for k, m in enumerate(media):
+            ax, axd = axes[0, k], axes[1, k]
+            if has_curves:
+                rho = ds["rho_px"].values
+                ax.plot(rho, ds["projection_theta_deg"].sel(medium=m, band="G").values, "-", color="tab:green",
+                        lw=2, label="fitted (G)")
+                for ref, ls in (("equidistant", "--"), ("stereographic", "-."), ("orthographic", ":")):
+                    v = f"reference_{ref}_theta_deg"
+                    if v in ds:
+                        ax.plot(rho, ds[v].sel(medium=m, band="G").values, ls, color="grey", lw=1, label=ref)
+                if "theta_difference_vs_green_deg" in ds:
+                    for b in bands:
+                        if b != "G":
+                            axd.plot(rho, ds["theta_difference_vs_green_deg"].sel(medium=m, band=b).values, "-",
+                                     color=BAND_COLOURS.get(b), label=f"{b} − G")
+            else:
+                # no stored curves (maps-only artefact): theta of the map pixels against their radius
+                th = ds["theta_deg"].sel(medium=m)
+                ny, nx = th.shape[-2:]
+                yy, xx = np.mgrid[0:ny, 0:nx]
+                xc, yc = float(ds["xc_px"].sel(medium=m, band="G")), float(ds["yc_px"].sel(medium=m, band="G"))
+                rho_map = np.hypot(xx - xc, yy - yc)
+                tg = th.sel(band="G").values.astype(float)
+                hf_g = float(ds["half_fov_deg"].sel(medium=m, band="G")) if "half_fov_deg" in ds else np.inf
+                ok = np.isfinite(tg) & (tg <= (hf_g if np.isfinite(hf_g) else np.inf))
+                step = max(1, int(ok.sum() // 4000))
+                ax.plot(rho_map[ok][::step], tg[ok][::step], ".", color="tab:green", ms=2, label="theta map (G)")
+                if "poly" in ds:
+                    a0 = float(ds["poly"].sel(medium=m, band="G").values[0])
+                    r = np.linspace(0, float(rho_map[ok].max()) if ok.any() else 1.0, 200)
+                    with np.errstate(invalid="ignore"):
+                        ax.plot(r, np.degrees(r / a0), "--", color="grey", lw=1, label="equidistant")
+                        ax.plot(r, np.degrees(2 * np.arctan(r / (2 * a0))), "-.", color="grey", lw=1,
+                                label="stereographic")
+                        ax.plot(r, np.degrees(np.arcsin(np.where(r <= a0, r / a0, np.nan))), ":", color="grey",
+                                lw=1, label="orthographic")
+                for b in bands:
+                    if b != "G":
+                        d = th.sel(band=b).values.astype(float) - tg
+                        okb = np.isfinite(d) & ok
+                        axd.plot(rho_map[okb][::step], d[okb][::step], ".", ms=2, color=BAND_COLOURS.get(b),
+                                 label=f"{b} − G (maps)")
+            hf = float(ds["half_fov_deg"].sel(medium=m, band="G")) if "half_fov_deg" in ds else float("nan")
+            if _finite(hf):
+                ax.axhline(hf, color="k", lw=0.6, ls=":")
+                ax.text(0.02, 0.95, f"half FOV (G) {hf:.2f}°", transform=ax.transAxes, fontsize=7, va="top")
+            ax.set_xlabel("ρ, distance from the principal point [band px]")
+            ax.set_ylabel("θ [°]")
+            ax.set_title(f"{m}: projection function", fontsize=9)
+            ax.legend(fontsize=7, loc="lower right")
+            axd.axhline(0, color="grey", lw=0.8)
+            axd.set_xlabel("ρ [band px]")
+            axd.set_ylabel("θ(band) − θ(G) [°]")
+            axd.set_title(f"{m}: band differences against G", fontsize=9)
+            if axd.get_legend_handles_labels()[0]:
+                axd.legend(fontsize=7)
+        fig.tight_layout()
+        src = ("fitted curves stored in the artefact" if has_curves else
+               "the artefact has no stored projection curves, so the θ map is plotted against pixel radius")
+        out.append(figs.embed(fig, f"geometry_{lens}_projection",
+                              f"Lens {_e(lens)}: projection function θ(ρ) of the G band with the equidistant, "
+                              "stereographic and orthographic references of the same focal length a0 (top), and "
+                              f"the R and B mapping minus G (bottom), per medium ({_e(src)}). "
+                              "Analogue of Larouche et al. (2024) Fig. 4."))
+    if "error_vs_radius_px" in ds and "error_vs_radius_rho_px" in ds and media:
+        fig, axes = plt.subplots(1, len(media), figsize=(5.5 * len(media), 3.4), squeeze=False)
+        for ax, m in zip(axes[0], media):
+            for b in bands:
+                ax.plot(ds["error_vs_radius_rho_px"].sel(medium=m, band=b).values,
+                        ds["error_vs_radius_px"].sel(medium=m, band=b).values, "o-", ms=3,
+                        color=BAND_COLOURS.get(b), label=b)
+            ax.set_xlabel("ρ [band px]")
+            ax.set_ylabel(f"mean reprojection error [{_u(ds, 'error_vs_radius_px') or 'px'}]")
+            ax.set_title(m, fontsize=9)
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        out.append(figs.embed(fig, f"geometry_{lens}_error_radius",
+                              f"Lens {_e(lens)}: mean reprojection error of the used corners in radial bins. "
+                              "Analogue of Fig. S1."))
+    elif media:
+        out.append('<p class="note">The artefact holds no reprojection errors (maps only).</p>')
+    # per medium and band table
+    cols = [("principal point x", "xc_px"), ("principal point y", "yc_px"), ("half FOV", "half_fov_deg"),
+            ("pixel angle on axis", "deg_per_px_axis"), ("mean reproj. error", "mean_error_px"),
+            ("rms reproj. error", "rms_error_px"), ("image circle radius", "circle_radius_px"),
+            ("max |θ − θ_G|", "theta_map_max_difference_vs_green_deg")]
+    cols = [(t, v) for t, v in cols if v in ds]
+    rows = []
+    for m in media:
+        for b in bands:
+            r = [m, b] + [_num(ds, v, digits=4, medium=m, band=b) for _, v in cols]
+            if "n_frames_used" in ds and "n_frames" in ds:
+                r.append(f"{fmt_value(float(ds['n_frames_used'].sel(medium=m, band=b)))} / "
+                         f"{fmt_value(float(ds['n_frames'].sel(medium=m, band=b)))}")
+            rows.append(r)
+    if rows:
+        hdr = ["medium", "band"] + [t for t, _ in cols] + (["frames used"] if "n_frames_used" in ds and "n_frames" in ds else [])
+        out.append("<p>Fitted camera model per medium and band:</p>")
+        out.append(_table(hdr, rows, left=2))
+    if "obs_frame__reason" in ds:
+        fr = dataset_to_table(ds, "obs_frame")
+        bad = fr[fr["reason"].astype(str).str.len() > 0] if len(fr) else fr
+        if len(bad):
+            rows = [[r.get("file", ""), r.get("medium", ""), r.get("band", ""), r["reason"]] for _, r in bad.iterrows()]
+            out.append(f"<details><summary>{len(bad)} dropped frame/band combinations</summary>"
+                       + _table(["file", "medium", "band", "reason"], rows, left=4) + "</details>")
+    return "\n".join(out)
+
+
+def _rolloff_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
+    from pipeline.radiometry.rolloff import evaluate_rolloff
+
+    out = [f'<h3 id="rolloff-{_e(lens)}">Lens “{_e(lens)}”</h3>']
+    media, bands = _media(ds), _bands(ds)
+    tab = dataset_to_table(ds, "obs_setting") if "obs_setting" in ds.dims else pd.DataFrame()
+    if len(tab) and "kind" in tab:
+        tab = tab[tab["kind"] == "spot"]
+    az_markers = ["o", "s", "^", "D", "v"]
+    if media and "rolloff_coefficients" in ds:
+        fig, axes = plt.subplots(1, len(media), figsize=(5.5 * len(media), 4), squeeze=False)
+        for ax, m in zip(axes[0], media):
+            sub_m = tab[tab["medium"] == m] if len(tab) else tab
+            azs = sorted(set(sub_m["azimuth_deg"])) if len(sub_m) else []
+            t_max = float(sub_m["theta_deg"].max()) if len(sub_m) else 80.0
+            tt = np.linspace(0, t_max, 200)
+            for b in bands:
+                c = BAND_COLOURS.get(b)
+                coef = ds["rolloff_coefficients"].sel(medium=m, band=b).values
+                if not np.all(np.isfinite(coef)):
+                    continue
+                if "rolloff_covariance" in ds:
+                    g, sg = evaluate_rolloff(coef, tt, ds["rolloff_covariance"].sel(medium=m, band=b).values)
+                    ax.fill_between(tt, g - sg, g + sg, color=c, alpha=0.2, lw=0)
+                else:
+                    g = evaluate_rolloff(coef, tt)
+                chi = (f", χ²ν = {fmt_value(float(ds['rolloff_reduced_chi2'].sel(medium=m, band=b)), 3)}"
+                       if "rolloff_reduced_chi2" in ds else "")
+                ax.plot(tt, g, "-", color=c, lw=1.3, label=f"{b} fit{chi}")
+                for k, az in enumerate(azs):
+                    s = sub_m[(sub_m["band"] == b) & (sub_m["azimuth_deg"] == az)]
+                    if "used" in s:
+                        s = s[s["used"].astype(bool)]
+                    y = s["value_dn"] - (s["effect_dn"] if "effect_dn" in s else 0.0)
+                    ax.errorbar(s["theta_deg"], y, yerr=s["sigma_dn"] if "sigma_dn" in s else None,
+                                fmt=az_markers[k % len(az_markers)], ms=3.5, color=c, mfc="none", lw=0.8,
+                                label=f"azimuth plane φ = {az:g}°" if b == bands[0] else None)
+            ax.set_xlabel("θ, angle from the optical axis [°]")
+            ax.set_ylabel("relative illumination g(θ)")
+            ax.set_title(f"{m}", fontsize=9)
+            ax.legend(fontsize=6, ncol=2)
+        fig.tight_layout()
+        out.append(figs.embed(fig, f"rolloff_{lens}",
+                              f"Lens {_e(lens)}: roll-off per band and medium: normalised spot means (open markers, "
+                              "one marker shape per azimuth plane; fitted effect contributions removed) and the "
+                              "even 8th-degree polynomial of Eq. (13) with its ±1σ band. Analogue of "
+                              "Larouche et al. (2024) Fig. 5."))
+        # table: coefficients and g at the largest measured angle
+        rows = []
+        cov = ds["rolloff_covariance"] if "rolloff_covariance" in ds else None
+        powers = [int(p) for p in ds["power"].values] if "power" in ds.coords else list(range(0, 10, 2))
+        for m in media:
+            sub_m = tab[tab["medium"] == m] if len(tab) else tab
+            t_max = float(sub_m["theta_deg"].max()) if len(sub_m) else float("nan")
+            for b in bands:
+                coef = ds["rolloff_coefficients"].sel(medium=m, band=b).values
+                cv = cov.sel(medium=m, band=b).values if cov is not None else None
+                se = np.sqrt(np.clip(np.diag(cv), 0, None)) if cv is not None else [None] * len(coef)
+                cells = [fmt_uncertain(c_, s_) if s_ else fmt_value(c_) for c_, s_ in zip(coef, se)]
+                if _finite(t_max) and np.all(np.isfinite(coef)):
+                    if cv is not None:
+                        g, sg = evaluate_rolloff(coef, t_max, cv)
+                        gtxt = fmt_uncertain(float(g), float(sg))
+                    else:
+                        gtxt = fmt_value(float(evaluate_rolloff(coef, t_max)))
+                else:
+                    gtxt = "n/a"
+                rows.append([m, b] + cells + [f"{gtxt} (θ = {fmt_value(t_max, 3)}°)",
+                                              _num(ds, "rolloff_reduced_chi2", digits=3, medium=m, band=b)])
+        unit = _u(ds, "rolloff_coefficients")
+        out.append(f"<p>Roll-off polynomial g(θ) = Σ a_k θ^k (θ in degrees; a_k in {_e(unit or '°⁻ᵏ')}; "
+                   "± standard error) and g at the largest measured angle:</p>")
+        out.append(_table(["medium", "band"] + [f"a{p}" for p in powers] + ["g(θ_max)", "reduced χ²"], rows, left=2))
+    scal = []
+    if "water_compression" in ds:
+        scal += [[f"water compression s ({b}), g_water(θ) = c g_air(sθ)", _num(ds, "water_compression", band=b)]
+                 for b in bands]
+    if "rms_z" in ds:
+        scal.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
+    if scal:
+        out.append(_table(["quantity", "value"], scal))
+    out.append(_effects_table(ds))
+    return "\n".join(out)
+
+
+def _spectral_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
+    out = [f'<h3 id="spectral-{_e(lens)}">Lens “{_e(lens)}”</h3>']
+    bands = _bands(ds)
+    if "response" in ds and "wavelength_nm" in ds.coords:
+        wl = ds["wavelength_nm"].values.astype(float)
+        fig, ax = plt.subplots(figsize=(8, 4))
+        for ib, b in enumerate(bands):
+            c = BAND_COLOURS.get(b)
+            ybar = 1.04 + 0.05 * ib
+            s = ds["response"].sel(band=b).values
+            ax.plot(wl, s, "o-", ms=3, color=c, label=b)
+            if "response_sigma" in ds:
+                sg = ds["response_sigma"].sel(band=b).values
+                ax.fill_between(wl, s - sg, s + sg, color=c, alpha=0.25, lw=0)
+            if "effective_wavelength_nm" in ds:
+                le = float(ds["effective_wavelength_nm"].sel(band=b))
+                ax.axvline(le, color=c, ls="--", lw=0.8)
+                hb = float(ds["half_bandwidth_nm"].sel(band=b)) if "half_bandwidth_nm" in ds else float("nan")
+                if _finite(hb):
+                    ax.errorbar([le], [ybar], xerr=[hb], fmt="|", color=c, capsize=3)
+                ax.text(le, ybar + 0.01, f"{le:.1f} nm", color=c, ha="center", va="bottom", fontsize=7)
+        ax.set_ylim(-0.05, 1.05 + 0.05 * len(bands) + 0.05)
+        ax.set_xlabel("wavelength [nm]")
+        ax.set_ylabel("peak-normalised response S_R")
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        out.append(figs.embed(fig, f"spectral_{lens}",
+                              f"Lens {_e(lens)}: relative spectral response per band (shaded: ±1σ); dashed lines "
+                              "mark the effective wavelength (Eq. 8) and the bars its ± half bandwidth. "
+                              "Analogue of Larouche et al. (2024) Fig. 6."))
+    rows = []
+    for b in bands:
+        rows.append([b, _num(ds, "effective_wavelength_nm", band=b), _num(ds, "half_bandwidth_nm", band=b),
+                     _num(ds, "bandwidth_nm", band=b), _num(ds, "peak_wavelength_nm", band=b),
+                     _num(ds, "mask_n_pixels", band=b), _num(ds, "dark_level_dn", band=b)])
+    out.append("<p>Band statistics (± standard uncertainty propagated from the response covariance):</p>")
+    out.append(_table(["band", "effective wavelength λ_eff", "half bandwidth Λ/2", "bandwidth ∫S dλ",
+                       "peak wavelength", "mask pixels", "dark level"], rows))
+    if "rms_z" in ds:
+        out.append(f"<p>rms of normalised frame residuals (1 = noise floor): {fmt_value(float(ds['rms_z']), 3)}</p>")
+    return "\n".join(out)
+
+
+def _absolute_section(lens: str, ds: xr.Dataset, figs: _Figures, spectral: xr.Dataset | None) -> str:
+    out = [f'<h3 id="absolute-{_e(lens)}">Lens “{_e(lens)}”</h3>']
+    bands = _bands(ds)
+    if "source_radiance" in ds and "source_wavelength_nm" in ds.coords:
+        fig, ax = plt.subplots(figsize=(8, 4))
+        ax.plot(ds["source_wavelength_nm"].values, ds["source_radiance"].values, "-", color="k", lw=1,
+                label="source spectrum (scaled)")
+        have_wl = spectral is not None and "effective_wavelength_nm" in spectral
+        for b in bands:
+            if not have_wl or "effective_radiance" not in ds:
+                continue
+            le = float(spectral["effective_wavelength_nm"].sel(band=b))
+            hb = float(spectral["half_bandwidth_nm"].sel(band=b)) if "half_bandwidth_nm" in spectral else None
+            sig = float(ds["effective_radiance_sigma"].sel(band=b)) if "effective_radiance_sigma" in ds else None
+            ax.errorbar([le], [float(ds["effective_radiance"].sel(band=b))], xerr=[hb] if hb else None,
+                        yerr=[sig] if sig else None, fmt="o", color=BAND_COLOURS.get(b), capsize=3,
+                        label=f"L̄ {b} (Eq. 3)")
+        if "reference_radiance" in ds and "reference_wavelength_nm" in ds:
+            ref = float(ds["reference_radiance"])
+            rel = float(ds["reference_relative_sigma"]) if "reference_relative_sigma" in ds else 0.0
+            ax.errorbar([float(ds["reference_wavelength_nm"])], [ref], yerr=[ref * rel], fmt="^", color="purple",
+                        capsize=3, ms=7, label="reference reading")
+        ax.set_xlabel("wavelength [nm]")
+        ax.set_ylabel(f"radiance [{_u(ds, 'source_radiance')}]")
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        where = ("plotted at each band's effective wavelength with ± half bandwidth bars (spectral artefact)"
+                 if have_wl else "not plotted: no spectral artefact gives the effective wavelengths")
+        out.append(figs.embed(fig, f"absolute_{lens}_source",
+                              f"Lens {_e(lens)}: calibration-source spectral radiance scaled to the reference "
+                              f"reading (triangle); effective band radiances {_e(where)}. "
+                              "Analogue of Larouche et al. (2024) Fig. 7."))
+    rows = []
+    for b in bands:
+        dom = str(ds["dominant_term"].sel(band=b).values) if "dominant_term" in ds else "n/a"
+        rows.append([b, _num(ds, "effective_radiance", band=b), _num(ds, "dn_per_s", band=b),
+                     _num(ds, "inverse_responsivity", band=b),
+                     _pct(ds["relative_sigma"].sel(band=b)) if "relative_sigma" in ds else "n/a", dom])
+    out.append("<p>Absolute calibration (Eq. 9; ± standard uncertainty). Analogue of Table 1:</p>")
+    out.append(_table(["band", "effective band radiance L̄", "y_DN (DN/s at ISO 100)", "R⁻¹",
+                       "relative uncertainty of R⁻¹", "dominant term"], rows))
+    if "uncertainty_contribution" in ds and "term" in ds.coords:
+        terms = [str(t) for t in ds["term"].values]
+        rows = [[b] + [_pct(ds["uncertainty_contribution"].sel(band=b, term=t)) for t in terms]
+                + [_pct(ds["relative_sigma"].sel(band=b)) if "relative_sigma" in ds else "n/a"] for b in bands]
+        out.append("<p>Uncertainty budget of R⁻¹ (relative standard uncertainty of each term):</p>")
+        out.append(_table(["band"] + [t.replace("_", " ") for t in terms] + ["total"], rows))
+    scal = []
+    for label, v in (("reference reading", "reference_radiance"), ("reference wavelength", "reference_wavelength_nm"),
+                     ("mask half-angle", "mask_half_angle_deg")):
+        if v in ds:
+            scal.append([label, _num(ds, v)])
+    if "reference_relative_sigma" in ds:
+        scal.append(["reference relative uncertainty", _pct(ds["reference_relative_sigma"])])
+    if "rms_z" in ds:
+        scal.append(["rms of normalised frame residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
+    if scal:
+        out.append(_table(["quantity", "value"], scal))
+    return "\n".join(out)
+
+
+def _immersion_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
+    out = [f'<h3 id="immersion-{_e(lens)}">Lens “{_e(lens)}”</h3>']
+    bands = _bands(ds)
+    tab = dataset_to_table(ds, "obs_height") if "obs_height" in ds.dims else pd.DataFrame()
+    if len(tab) and bands:
+        fig, axes = plt.subplots(1, len(bands), figsize=(4.2 * len(bands), 3.8), squeeze=False)
+        for ax, b in zip(axes[0], bands):
+            c = BAND_COLOURS.get(b)
+            s = tab[tab["band"] == b].sort_values("water_height_cm")
+            # corrected for the n-squared law as in Fig. 8: ln y - ln(t_aw n_w^2)
+            ln_n2 = math.log(float(ds["n2_factor"].sel(band=b))) if "n2_factor" in ds else 0.0
+            corr = " − ln(t_aw n_w²)" if "n2_factor" in ds else ""
+            ax.errorbar(s["water_height_cm"], s["value_dn"] - ln_n2, yerr=s["sigma_dn"] if "sigma_dn" in s else None,
+                        fmt="o", color=c, ms=4, label=f"ln y_DN(z){corr}, mean per height")
+            z = np.linspace(0.0, float(s["water_height_cm"].max()) if len(s) else 1.0, 50)
+            if "dn_below" in ds and "attenuation_per_cm" in ds:
+                b0 = math.log(float(ds["dn_below"].sel(band=b))) - ln_n2
+                k = float(ds["attenuation_per_cm"].sel(band=b))
+                r2 = f", R² = {float(ds['r_squared'].sel(band=b)):.3f}" if "r_squared" in ds else ""
+                ax.plot(z, b0 - k * z, "-", color=c, lw=1,
+                        label=f"fit, K = {fmt_value(k, 3)} {_u(ds, 'attenuation_per_cm')}{r2}")
+                rel = (float(ds["dn_below_sigma"].sel(band=b)) / float(ds["dn_below"].sel(band=b))
+                       if "dn_below_sigma" in ds else None)
+                ax.errorbar([0.0], [b0], yerr=[rel] if rel else None, fmt="v", color="k", ms=7, capsize=3,
+                            label=f"intercept ln y_DN(0−){corr}")
+            if "dn_air" in ds:
+                rel = (float(ds["dn_air_sigma"].sel(band=b)) / float(ds["dn_air"].sel(band=b))
+                       if "dn_air_sigma" in ds else None)
+                ax.errorbar([0.0], [math.log(float(ds["dn_air"].sel(band=b)))], yerr=[rel] if rel else None,
+                            fmt="*", color="orange", ms=10, capsize=3, label="ln y_DN(0+) in air")
+            if "immersion_factor" in ds:
+                ax.text(0.35, 0.5, f"I = {_num(ds, 'immersion_factor', band=b)}", transform=ax.transAxes, fontsize=8)
+            ax.set_xlabel("water height z [cm]")
+            ax.set_ylabel("ln y_DN [ln(DN s⁻¹)]")
+            ax.set_title(f"{b} band", fontsize=9)
+            ax.legend(fontsize=6)
+        fig.tight_layout()
+        out.append(figs.embed(fig, f"immersion_{lens}",
+                              f"Lens {_e(lens)}: natural logarithm of the in-water signal against water height with "
+                              "the log-linear fit extrapolated to just below the surface (0−, triangle), both corrected for "
+                              "the n-squared law t_aw n_w²; the star is the in-air signal y(0+): the gap between "
+                              "star and triangle is ln I (Eq. 11). "
+                              "Analogue of Larouche et al. (2024) Fig. 8."))
+    rows = []
+    for b in bands:
+        ci = ""
+        if "immersion_factor_ci95_low" in ds and "immersion_factor_ci95_high" in ds:
+            ci = (f" [95 %: {fmt_value(float(ds['immersion_factor_ci95_low'].sel(band=b)))}, "
+                  f"{fmt_value(float(ds['immersion_factor_ci95_high'].sel(band=b)))}]")
+        rows.append([b, _num(ds, "effective_wavelength_nm", band=b), _num(ds, "dn_air", band=b),
+                     _num(ds, "t_aw", band=b), _num(ds, "n_w", band=b), _num(ds, "n2_factor", band=b),
+                     _num(ds, "dn_below", band=b), _num(ds, "dn_below_over_n2", band=b),
+                     _num(ds, "immersion_factor", band=b) + ci, _num(ds, "window_index", band=b)])
+    out.append("<p>Immersion factor per band (Eq. 11; ± standard uncertainty). Analogue of Table 2:</p>")
+    out.append(_table(["band", "λ", "y_DN(0+) in air", "t_aw", "n_w", "t_aw n_w²", "y_DN(0−)",
+                       "y_DN(0−)/(t_aw n_w²)", "I", "n_g (Eq. 10)"], rows))
+    water = [f"{lab} {_num(ds, v)}" for lab, v in (("temperature", "water_temperature_c"),
+                                                   ("salinity", "water_salinity_psu")) if v in ds]
+    if water:
+        out.append(f"<p>Water: {_e(', '.join(water))}.</p>")
+    return "\n".join(out)
+
+
+def _calibration_summary(absolute: dict[str, xr.Dataset], immersion: dict[str, xr.Dataset]) -> str:
+    lines = []
+    for lens in dict.fromkeys(list(absolute) + list(immersion)):
+        parts = []
+        a = absolute.get(lens)
+        if a is not None and "inverse_responsivity" in a:
+            vals = ", ".join(f"{b} {_num(a, 'inverse_responsivity', units=False, band=b)}" for b in _bands(a))
+            parts.append(f"R⁻¹ [{_u(a, 'inverse_responsivity')}]: {vals}")
+        i = immersion.get(lens)
+        if i is not None and "immersion_factor" in i:
+            vals = ", ".join(f"{b} {_num(i, 'immersion_factor', units=False, band=b)}" for b in _bands(i))
+            parts.append(f"I: {vals}")
+        if parts:
+            lines.append(f"<li><b>{_e(lens)}</b>: {_e('; '.join(parts))}</li>")
+    if not lines:
+        return ""
+    return "<p>Calibration per lens (± standard uncertainty):</p><ul>" + "".join(lines) + "</ul>"
+
+
 # ---------------------------------------------------------------- diagnostics
 
 def _read_csv(path: Path) -> pd.DataFrame:
@@ -659,13 +1116,19 @@ def _input_count(ds: xr.Dataset) -> str:
 
 def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_effects: Path,
                  unexplained: Path, run_errors: Path, error_history: Path, out_html: Path,
-                 skipped: dict[str, str] | None = None, figures_dir: Path | None = None) -> Path:
+                 skipped: dict[str, str] | None = None, figures_dir: Path | None = None,
+                 geometry: dict[str, Path] | None = None, rolloff: dict[str, Path] | None = None,
+                 spectral: dict[str, Path] | None = None, absolute: dict[str, Path] | None = None,
+                 immersion: dict[str, Path] | None = None) -> Path:
     """Write the calibration report as one self-contained HTML file and return its path.
 
     ``dark`` and ``linearity`` map lens name to artefact path; the four CSVs
     come from the diagnostics stage; ``skipped`` maps a stage name to the
-    reason it did not run. PNG copies of the figures go to ``figures_dir``
-    when given. The file is written to a temporary sibling and renamed.
+    reason it did not run. ``geometry``, ``rolloff``, ``spectral``,
+    ``absolute`` and ``immersion`` (optional) map lens name to that stage's
+    artefact; a stage given as None or empty gets a section saying it was not
+    run. PNG copies of the figures go to ``figures_dir`` when given. The file
+    is written to a temporary sibling and renamed.
     """
     out_html = Path(out_html)
     skipped = dict(skipped or {})
@@ -676,8 +1139,19 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
     unexp = _read_csv(Path(unexplained))
     errors = _read_csv(Path(run_errors))
     history = _read_csv(Path(error_history))
+    later_paths = {"geometry": dict(geometry or {}), "rolloff": dict(rolloff or {}),
+                   "spectral": dict(spectral or {}), "absolute": dict(absolute or {}),
+                   "immersion": dict(immersion or {})}
+    later = {st: {lens: read_artefact(p, st) for lens, p in paths.items()} for st, paths in later_paths.items()}
     all_arts = [("dark", lens, dark[lens], ds) for lens, ds in dark_ds.items()] + \
-               [("linearity", lens, linearity[lens], ds) for lens, ds in lin_ds.items()]
+               [("linearity", lens, linearity[lens], ds) for lens, ds in lin_ds.items()] + \
+               [(st, lens, later_paths[st][lens], ds) for st, arts in later.items() for lens, ds in arts.items()]
+    # section numbers: the later stages sit between linearity and the diagnostics
+    titles = [("summary", "Summary"), ("dark", "Dark frames"), ("linearity", "Linearity"),
+              ("geometry", "Geometry"), ("rolloff", "Roll-off"), ("spectral", "Relative spectral response"),
+              ("absolute", "Absolute spectral radiance"), ("immersion", "Immersion factor"),
+              ("diagnostics", "Diagnostics"), ("skipped", "Stages not run"), ("provenance", "Provenance")]
+    num = {a: i + 1 for i, (a, _) in enumerate(titles)}
 
     body = []
     # 1. summary
@@ -705,6 +1179,7 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
         s.append("<p>Residual error of this run per experiment (rms z = 1 at the noise floor; larger values "
                  "mean the model leaves structure the noise cannot explain):</p>")
         s.append(_table(["experiment", "rms z", "χ²", "dof", "observations"], rows))
+    s.append(_calibration_summary(later["absolute"], later["immersion"]))
     top = _top_effect(missing)
     if top is not None and _as_bool(top.get("significant")):
         s.append(f'<div class="callout">The residuals point to a missing effect: <b>{_e(top["effect"])}</b> '
@@ -717,7 +1192,7 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
     else:
         s.append('<div class="ok">The missing-effect search returned no candidates.</div>')
     if skipped:
-        s.append(f"<p>Stages not run: {_e(', '.join(skipped))} (see section 5).</p>")
+        s.append(f"<p>Stages not run: {_e(', '.join(skipped))} (see section {num['skipped']}).</p>")
     body.append("\n".join(s))
 
     # 2. dark
@@ -738,8 +1213,39 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
         li.append(_linearity_section(lens, ds, figs))
     body.append("\n".join(li))
 
-    # 4. diagnostics
-    dg = ['<h2 id="diagnostics">4. Diagnostics</h2>', "<h3>Missing-effect search</h3>"]
+    # 4-8. geometry, roll-off, spectral, absolute, immersion
+    intros = {
+        "geometry": "Fisheye camera model per lens, medium and band (Section 3.2): projection function against the "
+                    "usual fisheye references, band differences against G, reprojection errors and half field of view.",
+        "rolloff": "Relative illumination against field angle per band and medium, both azimuth planes, with the "
+                   "even 8th-degree polynomial of Eq. (13) (Section 3.3).",
+        "spectral": "Peak-normalised relative spectral response with effective wavelengths and bandwidths "
+                    "(Section 3.4).",
+        "absolute": "Effective band radiance of the calibration source, dark-subtracted DN per second and the "
+                    "calibration coefficient R⁻¹ with its uncertainty budget (Section 3.5).",
+        "immersion": "Log-linear extrapolation of the in-water signal to just below the surface and the immersion "
+                     "factor I (Section 3.6).",
+    }
+    for st in ("geometry", "rolloff", "spectral", "absolute", "immersion"):
+        title = dict(titles)[st]
+        sec = [f'<h2 id="{st}">{num[st]}. {title}</h2>', f"<p>{_e(intros[st])}</p>"]
+        if not later[st]:
+            sec.append(_not_run(st, title.lower(), skipped))
+        for lens, ds in later[st].items():
+            if st == "geometry":
+                sec.append(_geometry_section(lens, ds, figs))
+            elif st == "rolloff":
+                sec.append(_rolloff_section(lens, ds, figs))
+            elif st == "spectral":
+                sec.append(_spectral_section(lens, ds, figs))
+            elif st == "absolute":
+                sec.append(_absolute_section(lens, ds, figs, later["spectral"].get(lens)))
+            else:
+                sec.append(_immersion_section(lens, ds, figs))
+        body.append("\n".join(sec))
+
+    # diagnostics
+    dg = [f'<h2 id="diagnostics">{num["diagnostics"]}. Diagnostics</h2>', "<h3>Missing-effect search</h3>"]
     if missing.empty:
         dg.append('<p class="note">No candidate effects were tested.</p>')
     else:
@@ -786,16 +1292,16 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
         dg.append("<details><summary>Error history table</summary>" + _table(cols, rows, left=3) + "</details>")
     body.append("\n".join(dg))
 
-    # 5. stages not run
-    sk = ['<h2 id="skipped">5. Stages not run</h2>']
+    # stages not run
+    sk = [f'<h2 id="skipped">{num["skipped"]}. Stages not run</h2>']
     if skipped:
         sk.append(_table(["stage", "reason"], [[k, v] for k, v in skipped.items()], left=2))
     else:
         sk.append("<p>All requested stages ran.</p>")
     body.append("\n".join(sk))
 
-    # 6. provenance
-    pr = ['<h2 id="provenance">6. Provenance</h2>']
+    # provenance
+    pr = [f'<h2 id="provenance">{num["provenance"]}. Provenance</h2>']
     rows = [[st, lens, Path(p).name, str(ds.attrs.get("artefact_version", "?")),
              str(ds.attrs.get("pipeline_version", "?")), str(ds.attrs.get("created", "?")),
              str(ds.attrs.get("model_effects", "")).replace(",", ", ") or "(none)",
@@ -816,10 +1322,8 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
               f"with {figs.count} figures.</p>")
     body.append("\n".join(pr))
 
-    nav = ("<nav><ul>" + "".join(f'<li><a href="#{a}">{t}</a></li>' for a, t in (
-        ("summary", "1. Summary"), ("dark", "2. Dark frames"), ("linearity", "3. Linearity"),
-        ("diagnostics", "4. Diagnostics"), ("skipped", "5. Stages not run"), ("provenance", "6. Provenance")))
-        + "</ul></nav>")
+    nav = ("<nav><ul>" + "".join(f'<li><a href="#{a}">{num[a]}. {t}</a></li>' for a, t in titles)
+           + "</ul></nav>")
     doc = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
            "<title>Calibration report</title>"
            f"<style>{CSS}</style></head><body>\n<h1>Camera calibration report</h1>\n{nav}\n"

@@ -106,7 +106,9 @@ def _report(smk) -> None:
     build_report(dark=by_lens("dark"), linearity=by_lens("linearity"),
                  missing_effects=smk.input.missing_effects, unexplained=smk.input.unexplained,
                  run_errors=smk.input.run_errors, error_history=smk.params.error_history,
-                 out_html=smk.output.html, skipped=smk.params.skipped)
+                 out_html=smk.output.html, skipped=smk.params.skipped,
+                 geometry=by_lens("geometry"), rolloff=by_lens("rolloff"), spectral=by_lens("spectral"),
+                 absolute=by_lens("absolute"), immersion=by_lens("immersion"))
 
 
 RUNNERS = {"simulate_dataset": _simulate, "dark": _dark, "linearity": _linearity,
