@@ -18,6 +18,13 @@ CASES = {
 }
 
 
+
+@pytest.fixture(scope="module")
+def config(config):
+    """The session config with exact field angles: these tests use the simulator's true
+    geometry maps, so the field angle carries no calibration error."""
+    return {**config, "rolloff": {**config["rolloff"], "field_angle_sigma_px": 0.0}}
+
 @pytest.fixture(scope="module")
 def reduced(tmp_path_factory, config):
     cache = {}

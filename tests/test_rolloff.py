@@ -28,6 +28,13 @@ def run_stage(tmp_path_factory, config, effects=(), seed=3, model=None):
     return {lens: read_artefact(p, "rolloff") for lens, p in outputs.items()}
 
 
+
+@pytest.fixture(scope="module")
+def config(config):
+    """The session config with exact field angles: these tests use the simulator's true
+    geometry maps, so the field angle carries no calibration error."""
+    return {**config, "rolloff": {**config["rolloff"], "field_angle_sigma_px": 0.0}}
+
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory, config):
     return run_stage(tmp_path_factory, config)

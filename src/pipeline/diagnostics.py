@@ -58,6 +58,8 @@ def observations_from_artefacts(artefacts: dict[str, list]) -> list[Observations
             if not tables:
                 continue
             table = pd.concat(tables, ignore_index=True)
+            if not {"group", "value_dn", "sigma_dn"} <= set(table.columns):
+                continue        # a descriptive table (e.g. the geometry frame list), not residuals
             if "used" in table:
                 table = table[table["used"].astype(int) == 1].reset_index(drop=True)
             out.append(Observations(experiment, level, table))
@@ -95,79 +97,117 @@ def error_figures(observations: list[Observations], model_effects: list[str]) ->
     return out
 
 
+def _candidate_stats(name: str, observations: list[Observations], designs: dict, cfg: dict,
+                     n_candidates: int) -> dict | None:
+    """Drop in chi-square, F test, evidence and amplitude of one candidate added to ``designs``."""
+    effect = get_effect(name)
+    parts = []
+    for obs in observations:
+        S = effect.columns(obs.experiment, obs.level, obs.table)
+        if S is None or not np.any(S):
+            continue
+        X, fit0 = designs[(obs.experiment, obs.level)]
+        k0 = np.linalg.matrix_rank(X) if X.size else 0
+        Xf = np.hstack([X, S])
+        k = np.linalg.matrix_rank(Xf) - k0
+        if k <= 0:
+            continue
+        fit1 = _fit(obs, Xf)
+        coef = fit1.coef[X.shape[1]:]
+        cov = fit1.cov[X.shape[1]:, X.shape[1]:]
+        parts.append({"obs": obs, "fit0": fit0, "fit1": fit1, "k": k, "coef": coef, "cov": cov})
+    if not parts:
+        return None
+    d_chi2 = sum(p["fit0"].chi2 - p["fit1"].chi2 for p in parts)
+    k = sum(p["k"] for p in parts)
+    chi2_1 = sum(p["fit1"].chi2 for p in parts)
+    dof_1 = sum(p["fit1"].dof for p in parts)
+    excess = sum(p["fit0"].chi2 - p["fit0"].dof for p in parts)
+    n = sum(len(p["obs"].table) for p in parts)
+    s2 = max(chi2_1 / max(dof_1, 1), 1.0)
+    f_stat = (d_chi2 / k) / s2
+    p_value = float(stats.f.sf(f_stat, k, max(dof_1, 1)))
+    best = max(parts, key=lambda p: p["fit0"].chi2 - p["fit1"].chi2)
+    # scale the coefficient covariance by the residual variance when the noise is underestimated
+    amp, lo, hi = effect.amplitude(best["obs"].experiment, best["obs"].level, best["obs"].table,
+                                   best["coef"], best["cov"] * max(best["fit1"].chi2 / max(best["fit1"].dof, 1), 1.0))
+    se = float(np.sqrt(max(best["cov"][0, 0], 0.0)))
+    evidence = d_chi2 / s2 - k * np.log(max(n, 2))
+    return {
+        "effect": name,
+        "experiment": "+".join(sorted({p["obs"].experiment for p in parts})),
+        "evidence": evidence,
+        "delta_chi2": d_chi2,
+        "n_params": k,
+        "p_value": p_value,
+        "significant": bool(p_value < cfg["significance_level"] / max(n_candidates, 1) and evidence > 0),
+        "explained_fraction": float(np.clip(d_chi2 / excess, 0.0, 1.0)) if excess > 0 else 0.0,
+        "amplitude": amp, "amplitude_low": lo, "amplitude_high": hi,
+        "units": effect.amplitude_units,
+        "amplitude_name": effect.amplitude_name,
+        "detectable_amplitude": se * stats.norm.isf(cfg["significance_level"] / max(n_candidates, 1) / 2),
+    }
+
+
+def _designs(observations: list[Observations], model_effects: list[str], selected: list[str]) -> dict:
+    """Design and fit per table: the model, plus the columns of candidates already accepted."""
+    out = {}
+    for obs in observations:
+        X = model_design(obs, model_effects)
+        extra = [get_effect(n).columns(obs.experiment, obs.level, obs.table) for n in selected]
+        extra = [c for c in extra if c is not None]
+        if extra:
+            X = np.hstack([X] + extra)
+        out[(obs.experiment, obs.level)] = (X, _fit(obs, X))
+    return out
+
+
 def rank_missing_effects(observations: list[Observations], model_effects: list[str],
                          config: dict) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Rank the effects missing from the model; also report unexplained structure.
 
-    Returns (missing_effects, unexplained) tables.
+    Forward selection: the candidate with the most evidence is ranked first; if
+    it is significant, it is added to the model and the remaining candidates
+    are tested again given it, so that one missing effect does not make its
+    look-alikes significant too. ``conditional_on`` lists the effects already
+    accepted when a row was tested. Returns (missing_effects, unexplained).
     """
     cfg = config["diagnostics"]
     candidates = [name for name in available() if name not in model_effects]
-    results = []
-    base_fits = {}
-    for obs in observations:
-        X = model_design(obs, model_effects)
-        base_fits[(obs.experiment, obs.level)] = (X, _fit(obs, X))
-    for name in candidates:
-        effect = get_effect(name)
-        parts = []
-        for obs in observations:
-            S = effect.columns(obs.experiment, obs.level, obs.table)
-            if S is None or not np.any(S):
-                continue
-            X, fit0 = base_fits[(obs.experiment, obs.level)]
-            k0 = np.linalg.matrix_rank(X) if X.size else 0
-            Xf = np.hstack([X, S])
-            k = np.linalg.matrix_rank(Xf) - k0
-            if k <= 0:
-                continue
-            fit1 = _fit(obs, Xf)
-            coef = fit1.coef[X.shape[1]:]
-            cov = fit1.cov[X.shape[1]:, X.shape[1]:]
-            parts.append({"obs": obs, "fit0": fit0, "fit1": fit1, "k": k, "coef": coef, "cov": cov})
-        if not parts:
-            continue
-        d_chi2 = sum(p["fit0"].chi2 - p["fit1"].chi2 for p in parts)
-        k = sum(p["k"] for p in parts)
-        chi2_1 = sum(p["fit1"].chi2 for p in parts)
-        dof_1 = sum(p["fit1"].dof for p in parts)
-        excess = sum(p["fit0"].chi2 - p["fit0"].dof for p in parts)
-        n = sum(len(p["obs"].table) for p in parts)
-        s2 = max(chi2_1 / max(dof_1, 1), 1.0)
-        f_stat = (d_chi2 / k) / s2
-        p_value = float(stats.f.sf(f_stat, k, max(dof_1, 1)))
-        best = max(parts, key=lambda p: p["fit0"].chi2 - p["fit1"].chi2)
-        # scale the coefficient covariance by the residual variance when the noise is underestimated
-        amp, lo, hi = effect.amplitude(best["obs"].experiment, best["obs"].level, best["obs"].table,
-                                       best["coef"], best["cov"] * max(best["fit1"].chi2 / max(best["fit1"].dof, 1), 1.0))
-        se = float(np.sqrt(max(best["cov"][0, 0], 0.0)))
-        results.append({
-            "effect": name,
-            "experiment": "+".join(sorted({p["obs"].experiment for p in parts})),
-            "evidence": d_chi2 / s2 - k * np.log(max(n, 2)),
-            "delta_chi2": d_chi2,
-            "n_params": k,
-            "p_value": p_value,
-            "explained_fraction": float(np.clip(d_chi2 / excess, 0.0, 1.0)) if excess > 0 else 0.0,
-            "amplitude": amp, "amplitude_low": lo, "amplitude_high": hi,
-            "units": effect.amplitude_units,
-            "amplitude_name": effect.amplitude_name,
-            "detectable_amplitude": se * stats.norm.isf(cfg["significance_level"] / max(len(candidates), 1) / 2),
-        })
-    table = pd.DataFrame(results)
+    m = len(candidates)
+    selected: list[str] = []
+    rows = []
+    remaining = list(candidates)
+    first_round = None
+    while remaining:
+        designs = _designs(observations, model_effects, selected)
+        stats_now = [r for r in (_candidate_stats(n, observations, designs, cfg, m) for n in remaining) if r]
+        if not stats_now:
+            break
+        stats_now.sort(key=lambda r: r["evidence"], reverse=True)
+        if first_round is None:
+            first_round = stats_now
+        top = stats_now[0]
+        top["conditional_on"] = " ".join(selected)
+        if not top["significant"]:
+            for r in stats_now:
+                r["conditional_on"] = " ".join(selected)
+            rows.extend(stats_now)
+            break
+        rows.append(top)
+        selected.append(top["effect"])
+        remaining.remove(top["effect"])
+    table = pd.DataFrame(rows)
     if len(table):
-        m = len(candidates)
-        table["significant"] = (table["p_value"] < cfg["significance_level"] / m) & (table["evidence"] > 0)
-        table = table.sort_values("evidence", ascending=False).reset_index(drop=True)
         table.insert(0, "rank", np.arange(1, len(table) + 1))
         table["note"] = ""
-        # two candidates that explain the residuals equally well: say so instead of picking one
-        sig = table[table["significant"]]
-        if len(sig) >= 2:
-            e1, e2 = sig["evidence"].iloc[0], sig["evidence"].iloc[1]
-            if abs(e1 - e2) < 2.0:
-                names = f"{sig['effect'].iloc[0]} and {sig['effect'].iloc[1]}"
-                table.loc[sig.index[:2], "note"] = f"{names} explain the residuals equally well (evidence within 2)"
+        # two candidates that explain the same residuals equally well: say so instead of picking one
+        if first_round and len(first_round) >= 2 and first_round[0]["significant"]:
+            e1, e2 = first_round[0]["evidence"], first_round[1]["evidence"]
+            if first_round[1]["significant"] and abs(e1 - e2) < max(2.0, 0.02 * abs(e1)):
+                names = f"{first_round[0]['effect']} and {first_round[1]['effect']}"
+                table.loc[table["effect"].isin([first_round[0]["effect"], first_round[1]["effect"]]), "note"] = (
+                    f"{names} explain the residuals equally well; this dataset cannot tell them apart")
     unexplained = _unexplained(observations, model_effects, table, cfg)
     return table, unexplained
 

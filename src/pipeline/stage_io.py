@@ -22,7 +22,9 @@ def _model(config: dict) -> list[str]:
 
 def stage_config(config: dict, stage: str) -> dict:
     """The subset of the config a stage depends on (its rerun trigger and provenance)."""
-    return {"model": config["model"], "bias": config["bias"], stage: config[stage]}
+    from pipeline.workflow import stage_params
+
+    return stage_params(config, stage)
 
 
 def run_dark(dataset: str | Path, config: dict, outputs: dict[str, str | Path], progress=False) -> None:

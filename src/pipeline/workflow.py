@@ -24,7 +24,7 @@ STAGE_EXPERIMENTS = {
 STAGE_SECTIONS = {
     "dark": ("model", "bias", "dark"),
     "linearity": ("model", "bias", "linearity"),
-    "geometry": ("model", "geometry"),
+    "geometry": ("model", "bias", "geometry"),
     "rolloff": ("model", "rolloff"),
     "spectral": ("model", "bias", "spectral"),
     "absolute": ("model", "bias", "absolute"),
@@ -36,7 +36,7 @@ REQUIRED_TAGS = {"exposure_s": "ExposureTime", "iso": "ISOSpeedRatings", "time":
 
 def stage_params(config: dict, stage: str) -> dict:
     """The subset of the configuration a rule uses, so that its params trigger reruns precisely."""
-    return {key: config[key] for key in STAGE_SECTIONS[stage]}
+    return {key: config[key] for key in STAGE_SECTIONS[stage] if key in config}
 
 
 class DatasetIndex:

@@ -76,6 +76,13 @@ def _find_spot(img: np.ndarray, lit: np.ndarray, level: float):
     return cx, cy, comp, radius
 
 
+def _deg_per_px(theta: np.ndarray) -> float:
+    """Angular size of a pixel near the optical axis, from the theta map's gradient."""
+    gy, gx = np.gradient(np.nan_to_num(theta, nan=0.0))
+    near = np.isfinite(theta) & (theta < 20.0)
+    return float(np.median(np.hypot(gx, gy)[near])) if near.any() else float("nan")
+
+
 def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: dict,
                    progress: bool = False) -> dict:
     cfg = config[STAGE]
@@ -111,6 +118,7 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
                 "dark": {b: dark[(lens, medium, b)].mean() for b in BANDS},
                 "dark_var": {b: float(np.mean(dark[(lens, medium, b)].variance())) for b in BANDS},
                 "n_dark": dark[(lens, medium, "G")].n,
+                "deg_per_px": _deg_per_px(theta),
             }
             if static[(lens, medium)]["n_dark"] < 2:
                 from pipeline.errors import InputError
@@ -174,6 +182,7 @@ def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
             "halo_raw_dn": _halo_column(spot_img, annulus, sigma_psf) if annulus.any() else 0.0,
             "saturated": any(f["saturated"] for f in frames),
             "dark_var_dn2": st["dark_var"][band], "n_dark": st["n_dark"],
+            "deg_per_px": st["deg_per_px"],
         })
         del tx, ty
     return pd.DataFrame(rows)
@@ -284,12 +293,19 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
     tab["group"] = tab["lens"] + "/" + tab["band"] + "/" + tab["medium"]
     # normalisation: a0 of a first polynomial fit per group (g(0) = 1)
     norm = {}
+    slope = pd.Series(0.0, index=tab.index)
     for grp, g in tab.groupby("group"):
         ok = ~g["saturated"]
         f = fit_rolloff(g.loc[ok, "theta_deg"], g.loc[ok, "signal_dn"], g.loc[ok, "sigma_raw_dn"])
         norm[grp] = float(f.coefficients[0])
+        step = 0.05
+        slope[g.index] = (evaluate_rolloff(f.coefficients, g["theta_deg"] + step)
+                          - evaluate_rolloff(f.coefficients, g["theta_deg"] - step)) / (2 * step)
     a0 = tab["group"].map(norm)
-    spot = tab.assign(kind="spot", value_dn=tab["signal_dn"] / a0, sigma_dn=tab["sigma_raw_dn"] / a0,
+    # the field angle itself is uncertain (geometric calibration): sigma_g = |dg/dtheta| sigma_theta
+    theta_sigma = config["rolloff"]["field_angle_sigma_px"] * tab["deg_per_px"]
+    sigma_spot = np.hypot(tab["sigma_raw_dn"] / a0, np.abs(slope) / a0 * theta_sigma)
+    spot = tab.assign(kind="spot", value_dn=tab["signal_dn"] / a0, sigma_dn=sigma_spot,
                       halo_column_dn=0.0, **_poly_columns(tab["theta_deg"]))
     spot["used"] = (~spot["saturated"]).astype(int)
     halo = tab.assign(kind="halo", value_dn=tab["annulus_dn"] / a0, sigma_dn=tab["sigma_annulus_dn"] / a0,
