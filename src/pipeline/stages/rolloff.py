@@ -136,22 +136,32 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
             spot_full = _find_spot(sub["G"], st["lit"], cfg["halo_spot_fraction"])[2]
             r_in = float(np.max(dist[spot_full])) + cfg["halo_gap_px"]
             annulus = (dist > r_in) & (dist <= r_in + cfg["halo_width_px"]) & st["lit"]
-            setting_masks[key] = (circle, annulus, spot_full, (cx, cy))
-        circle, annulus, spot_full, (cx, cy) = setting_masks[key]
+            sigma_psf = cfg["stray_light_psf_sigma_fraction"] * st["circle_px"]
+            # pixel indices, not images: a setting keeps a few hundred numbers, never a frame
+            setting_masks[key] = (np.flatnonzero(circle), np.flatnonzero(annulus), np.flatnonzero(spot_full),
+                                  _halo_weights(spot_full, annulus, sigma_psf), (cx, cy))
+        circle, annulus, spot, weights, (cx, cy) = setting_masks[key]
         for bi, band in enumerate(BANDS):
-            img = sub[band]
+            img = sub[band].ravel()
             acc[key + (band,)].append({
-                "circle": img[circle], "annulus_mean": float(img[annulus].mean()) if annulus.any() else np.nan,
-                "spot_img": np.where(spot_full, img, 0.0),
-                "saturated": bool(images.saturated[band][circle].any()),
+                "circle": img[circle], "annulus_mean": float(img[annulus].mean()) if annulus.size else np.nan,
+                "halo": float(weights @ img[spot]) if annulus.size else 0.0,
+                "saturated": bool(images.saturated[band].ravel()[circle].any()),
             })
     return {"acc": acc, "masks": setting_masks, "static": static, "inputs": inputs}
 
 
-def _halo_column(spot_img: np.ndarray, annulus: np.ndarray, sigma_px: float) -> float:
-    """Mean over the annulus of the spot flux convolved with a unit-sum Gaussian of width sigma_px."""
-    spread = ndimage.gaussian_filter(spot_img, sigma_px, mode="constant", truncate=4.0)
-    return float(spread[annulus].mean())
+def _halo_weights(spot: np.ndarray, annulus: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Weights w such that w . spot_values is the mean over the annulus of the spot flux
+    convolved with a unit-sum Gaussian of width ``sigma_px`` (the stray-light model kernel)."""
+    sy, sx = np.nonzero(spot)
+    ay, ax = np.nonzero(annulus)
+    if not ay.size or not sy.size:
+        return np.zeros(sy.size)
+    d2 = (sy[:, None] - ay[None, :]) ** 2 + (sx[:, None] - ax[None, :]) ** 2
+    kernel = np.exp(-0.5 * d2 / sigma_px**2) / (2 * np.pi * sigma_px**2)
+    kernel[d2 > (4 * sigma_px) ** 2] = 0.0
+    return kernel.mean(axis=1)
 
 
 def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
@@ -160,31 +170,27 @@ def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
     for key, frames in reduced["acc"].items():
         lens, medium, az, angle, band = key
         st = reduced["static"][(lens, medium)]
-        circle, annulus, spot_full, (cx, cy) = reduced["masks"][key[:4]]
+        circle, annulus, _, _, (cx, cy) = reduced["masks"][key[:4]]
         bi = BANDS.index(band)
-        theta = st["theta"][bi][circle]
-        phi = np.radians(st["phi"][bi][circle])
+        theta = st["theta"][bi].ravel()[circle]
+        phi = np.radians(st["phi"][bi].ravel()[circle])
         stack = np.array([f["circle"] for f in frames])
         m = len(frames)
-        tx, ty = np.indices(circle.shape)[1], np.indices(circle.shape)[0]
         spot_theta = float(ndimage.map_coordinates(np.nan_to_num(st["theta"][bi]), [[cy], [cx]], order=1)[0])
-        spot_img = np.mean([f["spot_img"] for f in frames], axis=0)
-        sigma_psf = cfg["stray_light_psf_sigma_fraction"] * st["circle_px"]
         rows.append({
             "lens": lens, "band": band, "medium": medium, "azimuth_deg": az, "angle_deg": angle,
-            "n_frames": m, "n_pix": int(circle.sum()), "n_annulus": int(annulus.sum()),
+            "n_frames": m, "n_pix": int(circle.size), "n_annulus": int(annulus.size),
             "signal_dn": float(stack.mean()),
             "diff_var_dn2": float(np.mean(stack.var(axis=0, ddof=1))) if m > 1 else np.nan,
             "theta_deg": float(np.mean(theta)),
             "phi_deg": float(np.degrees(np.arctan2(np.mean(np.sin(phi)), np.mean(np.cos(phi))))),
             "spot_theta_deg": spot_theta, "spot_x_px": cx, "spot_y_px": cy,
             "annulus_dn": float(np.mean([f["annulus_mean"] for f in frames])),
-            "halo_raw_dn": _halo_column(spot_img, annulus, sigma_psf) if annulus.any() else 0.0,
+            "halo_raw_dn": float(np.mean([f["halo"] for f in frames])),
             "saturated": any(f["saturated"] for f in frames),
             "dark_var_dn2": st["dark_var"][band], "n_dark": st["n_dark"],
             "deg_per_px": st["deg_per_px"],
         })
-        del tx, ty
     return pd.DataFrame(rows)
 
 
