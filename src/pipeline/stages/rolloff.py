@@ -165,7 +165,6 @@ def _halo_weights(spot: np.ndarray, annulus: np.ndarray, sigma_px: float) -> np.
 
 
 def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
-    cfg = config[STAGE]
     rows = []
     for key, frames in reduced["acc"].items():
         lens, medium, az, angle, band = key
