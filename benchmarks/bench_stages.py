@@ -1,6 +1,6 @@
 """Time and peak memory of each stage on a simulated dataset.
 
-    python benchmarks/bench_stages.py [--scale tiny|small|full] [--stages dark,linearity] [--repeat N]
+    python benchmarks/bench_stages.py [--scale tiny|small|full] [--stages dark,linearity,...] [--repeat N]
                                       [--experiments geometry]
 
 Simulates the dataset once (kept in benchmarks/out/), then runs every stage
@@ -33,6 +33,9 @@ def child(stage: str, dataset: str, results: str) -> None:
     cfg = load_config(overrides={"dataset": dataset})
     res = Path(results)
     dark = {lens: res / f"dark/{lens}.nc" for lens in LENSES}
+
+    def paths(stage_name):
+        return {lens: res / f"{stage_name}/{lens}.nc" for lens in LENSES}
     t0 = time.perf_counter()
     if stage == "dark":
         stage_io.run_dark(dataset, cfg, dark)
@@ -42,10 +45,29 @@ def child(stage: str, dataset: str, results: str) -> None:
         arts = {s: [res / f"{s}/{lens}.nc" for lens in LENSES] for s in ("dark", "linearity")}
         d = res / "diagnostics"
         stage_io.run_diagnostics(arts, cfg, d / "m.csv", d / "u.csv", d / "e.csv", d / "h.csv")
-    else:
-        import importlib
+    elif stage == "geometry":
+        from pipeline.stages import geometry
 
-        importlib.import_module(f"pipeline.stages.{stage}").run_benchmark(dataset, cfg, res)
+        geometry.run(dataset, cfg, paths("geometry"))
+    elif stage == "rolloff":
+        from pipeline.stages import rolloff
+
+        rolloff.run(dataset, cfg, None, paths("geometry"), paths("rolloff"))
+    elif stage == "spectral":
+        from pipeline.stages import spectral
+
+        spectral.run(dataset, cfg, paths("geometry"), paths("spectral"))
+    elif stage == "absolute":
+        from pipeline.stages import absolute
+
+        absolute.run(dataset, cfg, paths("spectral"), paths("geometry"), paths("absolute"))
+    elif stage == "immersion":
+        from pipeline.stages import immersion
+
+        immersion.run(dataset, cfg, None, paths("geometry"), paths("immersion"),
+                      spectral_path=paths("spectral")[LENSES[0]])
+    else:
+        sys.exit(f"unknown stage {stage}")
     wall = time.perf_counter() - t0
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(json.dumps({"wall_s": wall, "peak_rss_mib": peak_mib}))
@@ -54,7 +76,7 @@ def child(stage: str, dataset: str, results: str) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scale", default="small", choices=["tiny", "small", "full"])
-    ap.add_argument("--stages", default="dark,linearity,diagnostics")
+    ap.add_argument("--stages", default="dark,linearity,geometry,rolloff,spectral,absolute,immersion,diagnostics")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--experiments", default=None,

@@ -395,10 +395,3 @@ def run(dataset: str | Path, config: dict, outputs: dict[str, str | Path], progr
 
 def run_from_snakemake(smk) -> None:
     run(smk.params.dataset, smk.params.config, dict(zip(smk.params.lenses, smk.output.artefacts)))
-
-
-def run_benchmark(dataset, cfg, results_dir) -> None:
-    from pipeline.dataset import open_dataset
-
-    lenses = list(open_dataset(dataset, check_frames=False).lenses)
-    run(dataset, cfg, {lens: Path(results_dir) / STAGE / f"{lens}.nc" for lens in lenses})
