@@ -14,6 +14,8 @@ rule absolute:
         dataset=config["dataset"],
         lenses=LENSES,
         config=stage_params(config, "absolute"),
+    conda:
+        "../envs/pipeline.yaml"
     log:
         "results/logs/absolute.log",
     benchmark:

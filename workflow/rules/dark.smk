@@ -10,6 +10,8 @@ rule dark:
         dataset=config["dataset"],
         lenses=LENSES,
         config=stage_params(config, "dark"),
+    conda:
+        "../envs/pipeline.yaml"
     log:
         "results/logs/dark.log",
     benchmark:

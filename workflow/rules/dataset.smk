@@ -8,6 +8,8 @@ if SIMULATE:
             dataset=directory(config["dataset"]),
         params:
             simulation=config["simulate_if_missing"],
+        conda:
+            "../envs/pipeline.yaml"
         log:
             "results/logs/simulate_dataset.log",
         benchmark:

@@ -13,6 +13,8 @@ rule diagnostics:
         # the ledger grows by one row per experiment and run; it is not an output,
         # so that a rerun appends to it instead of replacing it
         error_history="results/diagnostics/error_history.csv",
+    conda:
+        "../envs/pipeline.yaml"
     log:
         "results/logs/diagnostics.log",
     benchmark:

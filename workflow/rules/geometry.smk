@@ -11,6 +11,8 @@ rule geometry:
         dataset=config["dataset"],
         lenses=LENSES,
         config=stage_params(config, "geometry"),
+    conda:
+        "../envs/pipeline.yaml"
     log:
         "results/logs/geometry.log",
     benchmark:

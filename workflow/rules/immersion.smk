@@ -10,6 +10,8 @@ rule immersion:
         dataset=config["dataset"],
         lenses=LENSES,
         config=stage_params(config, "immersion"),
+    conda:
+        "../envs/pipeline.yaml"
     log:
         "results/logs/immersion.log",
     benchmark:

@@ -11,6 +11,8 @@ rule linearity:
         dataset=config["dataset"],
         lenses=LENSES,
         config=stage_params(config, "linearity"),
+    conda:
+        "../envs/pipeline.yaml"
     log:
         "results/logs/linearity.log",
     benchmark:

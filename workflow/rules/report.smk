@@ -10,6 +10,8 @@ rule report:
         lenses=LENSES,
         skipped=skipped_stages,
         error_history="results/diagnostics/error_history.csv",
+    conda:
+        "../envs/pipeline.yaml"
     log:
         "results/logs/report.log",
     benchmark:

@@ -11,6 +11,8 @@ rule rolloff:
         dataset=config["dataset"],
         lenses=LENSES,
         config=stage_params(config, "rolloff"),
+    conda:
+        "../envs/pipeline.yaml"
     log:
         "results/logs/rolloff.log",
     benchmark:

@@ -12,6 +12,8 @@ rule spectral:
         dataset=config["dataset"],
         lenses=LENSES,
         config=stage_params(config, "spectral"),
+    conda:
+        "../envs/pipeline.yaml"
     log:
         "results/logs/spectral.log",
     benchmark:
