@@ -52,12 +52,7 @@ def noise_floor(figures):
     return 1.0 + 2.0 * np.sqrt(2.0 / figures["dof"].to_numpy())
 
 
-@pytest.mark.parametrize("effect", [
-    "rolloff_azimuth", "immersion_angle",
-    pytest.param("stray_light", marks=pytest.mark.xfail(
-        reason="found first and significant, but with the effect in the model rms_z stays 1.17: "
-               "the halo column does not yet model the halo inside the spot", strict=False)),
-])
+@pytest.mark.parametrize("effect", ["rolloff_azimuth", "immersion_angle", "stray_light"])
 def test_optics_effect_found_and_fixed(effect, reduced, config):
     red = reduced(effect)
     _, ranked, figures = analyse(red, config, [])

@@ -22,8 +22,10 @@
   point-spread function (width a fraction of the image-circle radius; Wei et
   al. 2012, Section 3.4). Roll-off stage term (rows of level ``setting`` with
   ``kind == "halo"``: the mean excess in an annulus just outside the port
-  spot): the spot's flux convolved with the model kernel, ``halo_column_dn``;
-  coefficient f.
+  spot): the port pixels' flux (in each band, all pixels above the port
+  threshold in any band) convolved with the model kernel, ``halo_column_dn``;
+  coefficient f / (1 - f), about f: the measured port pixels have already
+  lost the spread fraction.
 """
 
 from __future__ import annotations

@@ -14,7 +14,10 @@ Streams the roll-off frames once (dark frames first, then the port images):
 * the noise of each setting mean from the frame-to-frame differences, pooled
   per band into a photon-transfer line var = k S + r (no per-point noisy
   variances);
-* the halo: mean excess in an annulus just outside the spot (stray light);
+* the halo: mean excess in an annulus just outside the port's pixels (the
+  union over bands of the pixels above ``halo_spot_fraction`` of each band's
+  peak: the R and B sites are offset from the G sites), and the model's
+  stray-light column, those pixels' flux convolved with the wide kernel;
 * per lens, band and medium: the normalised roll-off and the even
   8th-degree polynomial (radiometry.rolloff.fit_rolloff) over both azimuth
   planes, plus the effects of the model (``rolloff_azimuth``,
@@ -133,7 +136,12 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
             circle = dist <= st["r_avg"]
             if not circle.any():
                 circle = dist <= dist.min() + 1e-9
-            spot_full = _find_spot(sub["G"], st["lit"], cfg["halo_spot_fraction"])[2]
+            # the port's own pixels in every band: the R and B sites sit a quarter band pixel off the
+            # G sites, so at the disc's edge R or B pixels are lit where G is not; the halo column must
+            # convolve all of each band's flux, not only the part inside the G spot
+            spot_full = np.zeros_like(comp)
+            for b in BANDS:
+                spot_full |= _find_spot(sub[b], st["lit"], cfg["halo_spot_fraction"])[2]
             r_in = float(np.max(dist[spot_full])) + cfg["halo_gap_px"]
             annulus = (dist > r_in) & (dist <= r_in + cfg["halo_width_px"]) & st["lit"]
             sigma_psf = cfg["stray_light_psf_sigma_fraction"] * st["circle_px"]
