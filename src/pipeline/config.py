@@ -59,3 +59,21 @@ def load_config(path: str | Path = CONFIG_PATH, overrides: dict | None = None) -
 def defaults() -> dict:
     """The schema's defaults alone (what a stage uses when a config omits a key)."""
     return validate_config({"dataset": "unused"})
+
+
+#: config sections each rule depends on (its params rerun trigger)
+STAGE_SECTIONS = {
+    "dark": ("model", "bias", "dark"),
+    "linearity": ("model", "bias", "linearity"),
+    "geometry": ("model", "bias", "geometry"),
+    "rolloff": ("model", "rolloff"),
+    "spectral": ("model", "bias", "spectral"),
+    "absolute": ("model", "bias", "absolute"),
+    "immersion": ("model", "immersion"),
+    "diagnostics": ("model", "diagnostics"),
+}
+
+
+def stage_params(config: dict, stage: str) -> dict:
+    """The subset of the configuration a rule uses, so that its params trigger reruns precisely."""
+    return {key: config[key] for key in STAGE_SECTIONS[stage] if key in config}

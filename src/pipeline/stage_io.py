@@ -22,7 +22,7 @@ def _model(config: dict) -> list[str]:
 
 def stage_config(config: dict, stage: str) -> dict:
     """The subset of the config a stage depends on (its rerun trigger and provenance)."""
-    from pipeline.workflow import stage_params
+    from pipeline.config import stage_params
 
     return stage_params(config, stage)
 

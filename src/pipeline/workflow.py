@@ -6,6 +6,7 @@ import logging
 import sys
 from pathlib import Path
 
+from pipeline.config import STAGE_SECTIONS, stage_params  # noqa: F401  (used by the rules)
 from pipeline.dataset import Dataset, open_dataset
 from pipeline.errors import InputError
 from pipeline.rawio import read_tags
@@ -20,23 +21,7 @@ STAGE_EXPERIMENTS = {
     "absolute": ("absolute", "spectral", "geometry"),
     "immersion": ("immersion", "geometry"),
 }
-#: config sections each rule depends on (its params rerun trigger)
-STAGE_SECTIONS = {
-    "dark": ("model", "bias", "dark"),
-    "linearity": ("model", "bias", "linearity"),
-    "geometry": ("model", "bias", "geometry"),
-    "rolloff": ("model", "rolloff"),
-    "spectral": ("model", "bias", "spectral"),
-    "absolute": ("model", "bias", "absolute"),
-    "immersion": ("model", "immersion"),
-    "diagnostics": ("model", "diagnostics"),
-}
 REQUIRED_TAGS = {"exposure_s": "ExposureTime", "iso": "ISOSpeedRatings", "time": "DateTimeOriginal"}
-
-
-def stage_params(config: dict, stage: str) -> dict:
-    """The subset of the configuration a rule uses, so that its params trigger reruns precisely."""
-    return {key: config[key] for key in STAGE_SECTIONS[stage] if key in config}
 
 
 class DatasetIndex:

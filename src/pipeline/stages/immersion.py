@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
+from pipeline.config import stage_params
 from pipeline.artefact import read_artefact, sha256_file, write_artefact
 from pipeline.camera import BANDS
 from pipeline.dataset import open_dataset, read_water
@@ -166,7 +167,7 @@ def run(dataset_path, config: dict, dark_paths: dict | None, geometry_paths: dic
     for lens, art in arts.items():
         if lens in outputs:
             write_artefact(art, outputs[lens], stage=STAGE, inputs=inputs,
-                           config_subset={"model": config["model"], STAGE: config[STAGE]}, effects=effects)
+                           config_subset=stage_params(config, STAGE), effects=effects)
     return arts
 
 

@@ -48,6 +48,7 @@ from pipeline.effects import load_plugins
 from pipeline.effects.optics import azimuth_from_coefficients
 from pipeline.fitting import base_design, wls
 from pipeline.frames import iter_frames
+from pipeline.config import stage_params
 from pipeline.geometry.scaramuzza import RAW_SIZE_PX
 from pipeline.moments import RunningMoments
 from pipeline.radiometry.rolloff import evaluate_rolloff, fit_rolloff, normalise_rolloff
@@ -426,10 +427,6 @@ def _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit,
 
 
 # ----------------------------------------------------------------------------- runners
-def _config_subset(config):
-    return {"model": config["model"], STAGE: config[STAGE]}
-
-
 def run(dataset_path, config: dict, dark_paths: dict | None, geometry_paths: dict, outputs: dict,
         progress: bool = False) -> dict[str, xr.Dataset]:
     """Roll-off stage from files to files; ``dark_paths`` is unused (the experiment has its own dark frames)."""
@@ -446,7 +443,7 @@ def run(dataset_path, config: dict, dark_paths: dict | None, geometry_paths: dic
     for lens, art in arts.items():
         if lens in outputs:
             write_artefact(art, Path(outputs[lens]), stage=STAGE, inputs=inputs,
-                           config_subset=_config_subset(config), effects=effects)
+                           config_subset=stage_params(config, STAGE), effects=effects)
     return arts
 
 
