@@ -40,6 +40,9 @@ SCALES = {
     "tiny": Scale("tiny", lens_px=128, dark_frames=5, linearity_frames=4),
     # the default run
     "small": Scale("small", lens_px=576, dark_frames=15, linearity_frames=4),
+    # geometry accuracy test: a third of the real resolution (576-px band images), where
+    # 0.1 degree is ~0.3 band px at the rim; meant for the geometry experiment only
+    "medium": Scale("medium", lens_px=1152, dark_frames=5, linearity_frames=4),
     # the real camera: 6912 x 3456 frames, the paper's frame counts
     "full": Scale("full", lens_px=3456, dark_frames=15, linearity_frames=4),
 }

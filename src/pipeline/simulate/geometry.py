@@ -48,7 +48,7 @@ INNER_CORNERS = (8, 6)
 SQUARE_MM = {"air": 30.0, "water": 20.0}
 MEDIA = ("air", "water")
 #: frames per lens and medium, by scale name (full: real counts unpublished, ~20)
-FRAMES_PER_MEDIUM = {"tiny": 12, "small": 16, "full": 20}
+FRAMES_PER_MEDIUM = {"tiny": 12, "small": 16, "medium": 20, "full": 20}
 #: per-band magnification of f(rho) about the centre (chromatic), per medium
 MAGNIFICATION = {"air": {"R": 1.002, "G": 1.0, "B": 0.9985},
                  "water": {"R": 1.003, "G": 1.0, "B": 0.997}}
