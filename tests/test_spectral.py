@@ -12,7 +12,6 @@ import shutil
 
 import numpy as np
 import pytest
-import xarray as xr
 import yaml
 
 from pipeline.artefact import read_artefact, write_artefact

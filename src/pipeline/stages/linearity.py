@@ -34,6 +34,7 @@ from pipeline.effects import get as get_effect
 from pipeline.effects.catalogue import drift_sigma
 from pipeline.fitting import base_design, ols_line, wls
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
+from pipeline.geometry.image_circle import find_image_circle
 from pipeline.moments import RunningMoments, RunningPearson, corner_mask, radius_map
 from pipeline.stages.dark import dark_level_dn, fit_with_effects, table_to_dataset
 from pipeline.stages.flatfield import flatfield
@@ -41,15 +42,6 @@ from pipeline.stages.flatfield import flatfield
 STAGE = "linearity"
 #: linear-model effects this stage fits as columns (others correct the data)
 COLUMN_EFFECTS = ("shutter_offset", "nonlinearity", "iso_gain")
-
-
-def image_circle(image: np.ndarray, threshold_fraction: float) -> tuple[float, float, float]:
-    """Centre (x, y) and radius of the lit disc: centroid and equal-area radius above a threshold."""
-    level = np.percentile(image, 99.5)
-    floor = np.percentile(image, 1.0)
-    lit = image > floor + threshold_fraction * (level - floor)
-    y, x = np.nonzero(lit)
-    return float(x.mean()), float(y.mean()), float(np.sqrt(lit.sum() / np.pi))
 
 
 def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict, effects: list[str],
@@ -79,7 +71,8 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
             images = dec.lenses[lens]
             if lens not in masks:
                 g = images.bands["G"]
-                cx, cy, radius = image_circle(g, cfg["lit_threshold_fraction"])
+                circle = find_image_circle(g)
+                cx, cy, radius = circle.xc, circle.yc, circle.radius
                 r_mask = radius * cfg["mask_half_angle_deg"] / cfg["nominal_half_fov_deg"]
                 rmap = radius_map(g.shape, (cx, cy))
                 mask = rmap <= r_mask
