@@ -19,19 +19,11 @@ from pipeline.artefact import read_artefact
 from pipeline.errors import InputError
 from pipeline.simulate import simulate_dataset, truth_dir_for
 from pipeline.stages import absolute, spectral
-from pipeline.artefact import write_artefact
 from pipeline.stages.dark import dataset_to_table
-from pipeline.stages.geometry_maps import default_maps_dataset
+from pipeline.stages.geometry_maps import write_default_geometry
 
 LENSES = ("far", "close")
 BAND_SHAPE = (64, 64)   # tiny scale: 128 raw pixels per lens side
-
-
-def write_geometry(folder) -> dict:
-    """Geometry artefacts of the simulator's true (default) model, in air."""
-    return {lens: write_artefact(default_maps_dataset(lens, BAND_SHAPE, media=("air",)), folder / f"{lens}.nc",
-                                 stage="geometry", inputs={}, config_subset={}, effects=[])
-            for lens in LENSES}
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +32,7 @@ def chain(tmp_path_factory, config):
     simulate_dataset(root, scale="tiny", seed=8, experiments=("spectral", "absolute"), progress=False)
     truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())["experiments_truth"]
     out = tmp_path_factory.mktemp("results")
-    geometry = write_geometry(out / "geometry")
+    geometry = write_default_geometry(out / "geometry", LENSES, BAND_SHAPE, media=("air",))
     spec = {lens: out / "spectral" / f"{lens}.nc" for lens in LENSES}
     spectral.run(root, config, geometry, spec)
     outputs = {lens: out / "absolute" / f"{lens}.nc" for lens in LENSES}

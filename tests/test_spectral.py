@@ -14,22 +14,15 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.artefact import read_artefact, write_artefact
+from pipeline.artefact import read_artefact
 from pipeline.errors import InputError
 from pipeline.simulate import simulate_dataset, truth_dir_for
 from pipeline.stages import spectral
 from pipeline.stages.dark import dataset_to_table
-from pipeline.stages.geometry_maps import default_maps_dataset
+from pipeline.stages.geometry_maps import write_default_geometry
 
 LENSES = ("far", "close")
 BAND_SHAPE = (64, 64)   # tiny scale: 128 raw pixels per lens side
-
-
-def write_geometry(folder) -> dict:
-    """Geometry artefacts of the simulator's true (default) model, in air."""
-    return {lens: write_artefact(default_maps_dataset(lens, BAND_SHAPE, media=("air",)), folder / f"{lens}.nc",
-                                 stage="geometry", inputs={}, config_subset={}, effects=[])
-            for lens in LENSES}
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +37,7 @@ def radiometric_dataset(tmp_path_factory):
 def spectral_run(radiometric_dataset, config, tmp_path_factory):
     root, truth = radiometric_dataset
     out = tmp_path_factory.mktemp("results")
-    geometry = write_geometry(out / "geometry")
+    geometry = write_default_geometry(out / "geometry", LENSES, BAND_SHAPE, media=("air",))
     outputs = {lens: out / "spectral" / f"{lens}.nc" for lens in LENSES}
     spectral.run(root, config, geometry, outputs)
     arts = {lens: read_artefact(p, "spectral") for lens, p in outputs.items()}

@@ -85,3 +85,15 @@ def default_maps_dataset(lens: str, band_shape: tuple[int, int], media=MEDIA) ->
     from pipeline.geometry.scaramuzza import default_model
 
     return maps_dataset({(m, b): default_model(lens, m, band_shape) for m in media for b in BANDS}, band_shape)
+
+
+def write_default_geometry(folder, lenses, band_shape: tuple[int, int], media=MEDIA) -> dict:
+    """Write geometry artefacts of the nominal camera (see :func:`default_maps_dataset`) into
+    ``folder``, one per lens; returns lens -> path. For tests of later stages."""
+    from pathlib import Path
+
+    from pipeline.artefact import write_artefact
+
+    return {lens: write_artefact(default_maps_dataset(lens, band_shape, media=media), Path(folder) / f"{lens}.nc",
+                                 stage="geometry", inputs={}, config_subset={}, effects=[])
+            for lens in lenses}
