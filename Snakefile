@@ -3,6 +3,7 @@
 # artefact per lens; diagnostics and the report come last.
 
 import os
+from pathlib import Path
 
 from snakemake.utils import min_version, validate
 
@@ -13,6 +14,11 @@ configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
 validate(config, os.path.join(workflow.basedir, "config", "schema.yaml"))
+
+# The rules' scripts import this checkout's package, also inside a rule's own software env.
+os.environ["PYTHONPATH"] = os.pathsep.join(
+    p for p in (str(Path(workflow.basedir) / "src"), os.environ.get("PYTHONPATH")) if p
+)
 
 
 include: "workflow/rules/common.smk"
@@ -32,3 +38,7 @@ rule all:
     input:
         "results/report/index.html",
     default_target: True
+
+
+onsuccess:
+    print_run_summary()

@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 import yaml
 
+from pipeline.workflow import run_stage
 from pipeline.artefact import read_artefact
 from pipeline.errors import InputError
 from pipeline.simulate import simulate_dataset, truth_dir_for
-from pipeline.stages import absolute, spectral
-from pipeline.stages.dark import dataset_to_table
+from pipeline.observations import dataset_to_table
 from pipeline.stages.geometry_maps import write_default_geometry
 
 LENSES = ("far", "close")
@@ -34,9 +34,9 @@ def chain(tmp_path_factory, config):
     out = tmp_path_factory.mktemp("results")
     geometry = write_default_geometry(out / "geometry", LENSES, BAND_SHAPE, media=("air",))
     spec = {lens: out / "spectral" / f"{lens}.nc" for lens in LENSES}
-    spectral.run(root, config, geometry, spec)
+    run_stage("spectral", root, config, spec, {"geometry": geometry})
     outputs = {lens: out / "absolute" / f"{lens}.nc" for lens in LENSES}
-    absolute.run(root, config, spec, geometry, outputs)
+    run_stage("absolute", root, config, outputs, {"spectral": spec, "geometry": geometry})
     arts = {lens: read_artefact(p, "absolute") for lens, p in outputs.items()}
     return root, truth["absolute"], arts, spec, geometry
 
@@ -90,7 +90,7 @@ def test_missing_reference_wavelength(chain, config, tmp_path):
     path = dst / "absolute" / "source_reference.csv"
     path.write_text("wavelength_nm,radiance_W_sr_m2_nm,uncertainty_rel\n625.0,0.0008,0.03\n")
     with pytest.raises(InputError, match=r"source_reference.csv.*589 nm"):
-        absolute.run(dst, config, spec, geometry, {"far": tmp_path / "far.nc"})
+        run_stage("absolute", dst, config, {"far": tmp_path / "far.nc"}, {"spectral": spec, "geometry": geometry})
 
 
 def test_spectrum_missing_column(chain, config, tmp_path):
@@ -100,7 +100,7 @@ def test_spectrum_missing_column(chain, config, tmp_path):
     lines = path.read_text().splitlines()
     path.write_text("\n".join(",".join(line.split(",")[:2]) for line in lines) + "\n")
     with pytest.raises(InputError, match=r"source_spectrum.csv.*radiance_std"):
-        absolute.run(dst, config, spec, geometry, {"far": tmp_path / "far.nc"})
+        run_stage("absolute", dst, config, {"far": tmp_path / "far.nc"}, {"spectral": spec, "geometry": geometry})
 
 
 def test_spectrum_not_covering_response(chain, config, tmp_path):
@@ -111,4 +111,4 @@ def test_spectrum_not_covering_response(chain, config, tmp_path):
     keep = [lines[0]] + [line for line in lines[1:] if float(line.split(",")[0]) >= 450]
     path.write_text("\n".join(keep) + "\n")
     with pytest.raises(InputError, match=r"source_spectrum.csv.*400-700 nm"):
-        absolute.run(dst, config, spec, geometry, {"far": tmp_path / "far.nc"})
+        run_stage("absolute", dst, config, {"far": tmp_path / "far.nc"}, {"spectral": spec, "geometry": geometry})

@@ -25,6 +25,7 @@ import pytest
 import xarray as xr
 import yaml
 
+from pipeline.workflow import run_stage
 from pipeline.config import load_config
 from pipeline.dataset import write_md5sums
 from pipeline.errors import InputError
@@ -34,7 +35,6 @@ from pipeline.geometry.scaramuzza import FisheyeModel
 from pipeline.simulate import geometry as simgeo
 from pipeline.simulate.dataset import simulate_dataset, truth_dir_for
 from pipeline.simulate.plan import PLANNERS, FrameSpec
-from pipeline.stages import geometry as stage
 from pipeline.stages.geometry_maps import model_from_dataset
 
 LENSES = ("far", "close")
@@ -104,7 +104,7 @@ def test_geometry_stage_recovers_truth(simulated, tmp_path, caplog):
     cfg = load_config(overrides={"dataset": str(root)})
     outputs = {lens: tmp_path / f"{lens}.nc" for lens in LENSES}
     with caplog.at_level("WARNING", logger="pipeline.geometry"):
-        stage.run(root, cfg, outputs)
+        run_stage("geometry", root, cfg, outputs)
     problems = []
     for lens in LENSES:
         art = xr.open_dataset(outputs[lens]).load()
@@ -139,7 +139,7 @@ def test_geometry_stage_recovers_truth(simulated, tmp_path, caplog):
 
     # fault frames: reported, not fatal, with clear reasons
     close = xr.open_dataset(outputs["close"]).load()
-    from pipeline.stages.dark import dataset_to_table
+    from pipeline.observations import dataset_to_table
 
     fr = dataset_to_table(close, "obs_frame")
     files = pd.read_csv(root / "geometry" / "frames.csv")["file"]
@@ -163,7 +163,7 @@ def test_wrong_board_size_stops_clearly(simulated, tmp_path):
     write_md5sums(copy)
     cfg = load_config(overrides={"dataset": str(copy)})
     with pytest.raises(InputError) as exc:
-        stage.run(copy, cfg, {"far": tmp_path / "far.nc"})
+        run_stage("geometry", copy, cfg, {"far": tmp_path / "far.nc"})
     msg = str(exc.value)
     assert "geometry" in msg and "inner_corners/square_mm in dataset.yaml may be wrong" in msg
 
@@ -178,4 +178,4 @@ def test_too_few_frames_stops_clearly(simulated, tmp_path):
     write_md5sums(copy)
     cfg = load_config(overrides={"dataset": str(copy)})
     with pytest.raises(InputError, match="only 3 frames with a board"):
-        stage.run(copy, cfg, {"far": tmp_path / "far.nc"})
+        run_stage("geometry", copy, cfg, {"far": tmp_path / "far.nc"})

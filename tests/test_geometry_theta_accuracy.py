@@ -34,11 +34,11 @@ import pytest
 import xarray as xr
 import yaml
 
+from pipeline.workflow import run_stage
 from pipeline.config import load_config
 from pipeline.geometry.maps import theta_phi_maps
 from pipeline.geometry.scaramuzza import FisheyeModel
 from pipeline.simulate.dataset import simulate_dataset, truth_dir_for
-from pipeline.stages import geometry as stage
 from pipeline.stages.geometry_maps import model_from_dataset
 
 LENSES = ("far", "close")
@@ -53,7 +53,7 @@ def test_theta_map_within_a_tenth_of_a_degree(tmp_path):
     truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())["experiments_truth"]["geometry"]
     cfg = load_config(overrides={"dataset": str(root)})
     outputs = {lens: tmp_path / f"{lens}.nc" for lens in LENSES}
-    stage.run(root, cfg, outputs)
+    run_stage("geometry", root, cfg, outputs)
     problems, table = [], []
     for lens in LENSES:
         art = xr.open_dataset(outputs[lens]).load()

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import yaml
 
+from pipeline.workflow import run_stage
 from pipeline.artefact import read_artefact, write_artefact
 from pipeline.simulate import simulate_dataset, truth_dir_for
 from pipeline.simulate.rolloff import true_geometry_dataset
-from pipeline.stages import immersion
 
 TABLE2_N2 = {"R": 1.738, "G": 1.742, "B": 1.748}
 
@@ -25,7 +25,7 @@ def run_immersion(tmp_path_factory, config):
         write_artefact(true_geometry_dataset(lens, 64), geo[lens], stage="geometry", inputs={}, config_subset={},
                        effects=[])
     outputs = {lens: root.parent / f"immersion_{lens}.nc" for lens in geo}
-    immersion.run(root, config, None, geo, outputs)
+    run_stage("immersion", root, config, outputs, {"geometry": geo})
     return {lens: read_artefact(p, "immersion") for lens, p in outputs.items()}, truth
 
 

@@ -17,7 +17,8 @@ LENSES = ("far", "close")
 def run(tmp_path_factory):
     from pipeline.config import load_config
     from pipeline.simulate import simulate_dataset
-    from pipeline.stage_io import run_dark, run_diagnostics, run_linearity
+    from pipeline.diagnostics import diagnose_artefacts
+    from pipeline.workflow import run_stage
 
     tmp = tmp_path_factory.mktemp("report")
     cfg = load_config()
@@ -26,12 +27,13 @@ def run(tmp_path_factory):
                      experiments=("dark", "linearity"), progress=False)
     dark = {lens: tmp / "dark" / f"{lens}.nc" for lens in LENSES}
     lin = {lens: tmp / "lin" / f"{lens}.nc" for lens in LENSES}
-    run_dark(tmp / "data", cfg, dark)
-    run_linearity(tmp / "data", cfg, dark, lin)
+    run_stage("dark", tmp / "data", cfg, dark)
+    run_stage("linearity", tmp / "data", cfg, lin, {"dark": dark})
     diag = {name: tmp / "diag" / f"{name}.csv"
             for name in ("missing_effects", "unexplained", "run_errors", "error_history")}
-    run_diagnostics({"dark": list(dark.values()), "linearity": list(lin.values())}, cfg,
-                    diag["missing_effects"], diag["unexplained"], diag["run_errors"], diag["error_history"])
+    diagnose_artefacts({"dark": list(dark.values()), "linearity": list(lin.values())}, cfg,
+                       diag["missing_effects"], diag["unexplained"], diag["run_errors"], tmp / "diag" / "ledger",
+                       diag["error_history"])
     out = tmp / "report" / "report.html"
     skipped = {"geometry": "dataset has no geometry/ folder"}
     path = build_report(dark=dark, linearity=lin, out_html=out, skipped=skipped,
@@ -149,7 +151,7 @@ def later(run, config):
     from pipeline.artefact import write_artefact
     from pipeline.simulate import simulate_dataset
     from pipeline.simulate.rolloff import true_geometry_dataset
-    from pipeline.stages import absolute, immersion, rolloff, spectral
+    from pipeline.workflow import run_stage
 
     tmp = run["tmp"] / "later"
     # geometry: "far" with the stage's curve variables, "close" maps only (degrades gracefully)
@@ -159,12 +161,12 @@ def later(run, config):
     paths = {st: {lens: tmp / st / f"{lens}.nc" for lens in LENSES} for st in LATER if st != "geometry"}
     paths["geometry"] = geo
     simulate_dataset(tmp / "roll", scale="tiny", seed=3, experiments=("rolloff",), progress=False)
-    rolloff.run(tmp / "roll", config, None, geo, paths["rolloff"])
+    run_stage("rolloff", tmp / "roll", config, paths["rolloff"], {"geometry": geo})
     simulate_dataset(tmp / "rad", scale="tiny", seed=5, experiments=("spectral", "absolute"), progress=False)
-    spectral.run(tmp / "rad", config, geo, paths["spectral"])
-    absolute.run(tmp / "rad", config, paths["spectral"], geo, paths["absolute"])
+    run_stage("spectral", tmp / "rad", config, paths["spectral"], {"geometry": geo})
+    run_stage("absolute", tmp / "rad", config, paths["absolute"], {"spectral": paths["spectral"], "geometry": geo})
     simulate_dataset(tmp / "imm", scale="tiny", seed=5, experiments=("immersion",), progress=False)
-    immersion.run(tmp / "imm", config, None, geo, paths["immersion"], spectral_path=paths["spectral"]["far"])
+    run_stage("immersion", tmp / "imm", config, paths["immersion"], {"geometry": geo, "spectral": paths["spectral"]})
     out = tmp / "report" / "report.html"
     build_report(dark=run["dark"], linearity=run["lin"], out_html=out, skipped={}, figures_dir=tmp / "figures",
                  **run["diag"], **paths)

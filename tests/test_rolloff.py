@@ -10,11 +10,11 @@ from pipeline.diagnostics import error_figures, observations_from_artefacts, ran
 from pipeline.radiometry.rolloff import default_rolloff, evaluate_rolloff
 from pipeline.simulate import simulate_dataset
 from pipeline.simulate.rolloff import ANGLES_DEG, true_geometry_dataset
-from pipeline.stages import rolloff
-from pipeline.stages.dark import dataset_to_table
+from pipeline.workflow import run_stage
+from pipeline.observations import dataset_to_table
 
 
-def run_stage(tmp_path_factory, config, effects=(), seed=3, model=None):
+def run_rolloff(tmp_path_factory, config, effects=(), seed=3, model=None):
     root = tmp_path_factory.mktemp("roll") / "dataset"
     simulate_dataset(root, scale="tiny", seed=seed, effects=list(effects), experiments=("rolloff",), progress=False)
     geo = {}
@@ -24,7 +24,7 @@ def run_stage(tmp_path_factory, config, effects=(), seed=3, model=None):
                        effects=[])
     cfg = {**config, "model": {**config["model"], "effects": list(model or [])}}
     outputs = {lens: root.parent / f"rolloff_{lens}.nc" for lens in geo}
-    rolloff.run(root, cfg, None, geo, outputs)
+    run_stage("rolloff", root, cfg, outputs, {"geometry": geo})
     return {lens: read_artefact(p, "rolloff") for lens, p in outputs.items()}
 
 
@@ -37,7 +37,7 @@ def config(config):
 
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory, config):
-    return run_stage(tmp_path_factory, config)
+    return run_rolloff(tmp_path_factory, config)
 
 
 def test_rolloff_within_one_percent(clean):

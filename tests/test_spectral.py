@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import yaml
 
+from pipeline.workflow import run_stage
 from pipeline.artefact import read_artefact
 from pipeline.errors import InputError
 from pipeline.simulate import simulate_dataset, truth_dir_for
-from pipeline.stages import spectral
-from pipeline.stages.dark import dataset_to_table
+from pipeline.observations import dataset_to_table
 from pipeline.stages.geometry_maps import write_default_geometry
 
 LENSES = ("far", "close")
@@ -39,7 +39,7 @@ def spectral_run(radiometric_dataset, config, tmp_path_factory):
     out = tmp_path_factory.mktemp("results")
     geometry = write_default_geometry(out / "geometry", LENSES, BAND_SHAPE, media=("air",))
     outputs = {lens: out / "spectral" / f"{lens}.nc" for lens in LENSES}
-    spectral.run(root, config, geometry, outputs)
+    run_stage("spectral", root, config, outputs, {"geometry": geometry})
     arts = {lens: read_artefact(p, "spectral") for lens, p in outputs.items()}
     return arts, truth["experiments_truth"]["spectral"], geometry
 
@@ -101,7 +101,7 @@ def test_photodiode_missing_column(radiometric_dataset, config, spectral_run, tm
     lines = path.read_text().splitlines()
     path.write_text("\n".join(",".join(line.split(",")[:2]) for line in lines) + "\n")
     with pytest.raises(InputError, match="photodiode.csv"):
-        spectral.run(dst, config, spectral_run[2], {"far": tmp_path / "far.nc"})
+        run_stage("spectral", dst, config, {"far": tmp_path / "far.nc"}, {"geometry": spectral_run[2]})
 
 
 def test_photodiode_missing_wavelength(radiometric_dataset, config, spectral_run, tmp_path):
@@ -111,10 +111,10 @@ def test_photodiode_missing_wavelength(radiometric_dataset, config, spectral_run
     lines = [line for line in path.read_text().splitlines() if not line.startswith("550.0,")]
     path.write_text("\n".join(lines) + "\n")
     with pytest.raises(InputError, match=r"photodiode.csv.*550 nm"):
-        spectral.run(dst, config, spectral_run[2], {"far": tmp_path / "far.nc"})
+        run_stage("spectral", dst, config, {"far": tmp_path / "far.nc"}, {"geometry": spectral_run[2]})
 
 
 def test_missing_geometry_is_an_error(radiometric_dataset, config, tmp_path):
     root, _ = radiometric_dataset
     with pytest.raises(InputError, match="geometry"):
-        spectral.run(root, config, {}, {"far": tmp_path / "far.nc"})
+        run_stage("spectral", root, config, {"far": tmp_path / "far.nc"}, {"geometry": {}})

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline.stage_io import run_dark, run_linearity
+from pipeline.workflow import run_stage
 
 LENSES = ("far", "close")
 
@@ -21,8 +21,8 @@ def artefacts(make_dataset, config, tmp_path_factory):
     out = tmp_path_factory.mktemp("results")
     dark = {lens: out / f"dark/{lens}.nc" for lens in LENSES}
     lin = {lens: out / f"linearity/{lens}.nc" for lens in LENSES}
-    run_dark(root, config, dark)
-    run_linearity(root, config, dark, lin)
+    run_stage("dark", root, config, dark)
+    run_stage("linearity", root, config, lin, {"dark": dark})
     return ({k: xr.open_dataset(v).load() for k, v in dark.items()},
             {k: xr.open_dataset(v).load() for k, v in lin.items()}, truth)
 

@@ -31,9 +31,10 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from pipeline.effects import available, get as get_effect
+from pipeline.effects import available, load_plugins
+from pipeline.effects import get as get_effect
 from pipeline.fitting import base_design, wls
-from pipeline.stages.dark import dataset_to_table
+from pipeline.observations import dataset_to_table
 
 #: covariates scanned to say where unexplained structure sits
 COVARIATES = ("exposure_s", "gain", "lens", "band", "sweep", "temperature_c", "frame")
@@ -255,13 +256,55 @@ def _where(observations, experiment, model_effects) -> tuple[str, float]:
     return best, best_val
 
 
-def append_error_history(path: str | Path, figures: pd.DataFrame, model_effects: list[str],
-                         run_time: str | None = None) -> pd.DataFrame:
-    """Append one row per experiment for this run to the ledger (created if absent)."""
-    path = Path(path)
-    run_time = run_time or datetime.now(timezone.utc).isoformat(timespec="seconds")
+def record_error_history(ledger_dir: str | Path, figures: pd.DataFrame, model_effects: list[str],
+                         history_csv: str | Path, run_time: str | None = None) -> pd.DataFrame:
+    """File this run's error figures in the ledger and rebuild the error history from it.
+
+    The ledger is a folder with one CSV per run, never rewritten: a run adds a
+    file, so the history survives reruns of the diagnostics (whose outputs the
+    workflow replaces). ``history_csv`` is all the ledger's rows in time order.
+    """
+    ledger = Path(ledger_dir)
+    ledger.mkdir(parents=True, exist_ok=True)
+    run_time = run_time or datetime.now(timezone.utc).isoformat(timespec="microseconds")
     rows = figures.assign(run_time=run_time, model_effects=" ".join(model_effects) or "(base model)")
-    rows = rows[["run_time", "experiment", "model_effects", "rms_z", "chi2", "dof", "n_obs"]]
+    rows = rows[list(HISTORY_COLUMNS)]
+    stem = run_time.replace(":", "").replace("+", "Z")
+    entry = ledger / f"{stem}.csv"
+    k = 1
+    while entry.exists():           # never overwrite an earlier run's entry
+        entry = ledger / f"{stem}-{k}.csv"
+        k += 1
+    _write_csv_atomic(rows, entry)
+    parts = [pd.read_csv(p) for p in sorted(ledger.glob("*.csv"))]
+    history = pd.concat(parts, ignore_index=True) if parts else rows.iloc[:0]
+    history = history.sort_values("run_time", kind="stable").reset_index(drop=True)
+    _write_csv_atomic(history, Path(history_csv))
+    return history
+
+
+#: columns of the error history, one row per run and experiment
+HISTORY_COLUMNS = ("run_time", "experiment", "model_effects", "rms_z", "chi2", "dof", "n_obs")
+
+
+def _write_csv_atomic(table: pd.DataFrame, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    rows.to_csv(path, mode="a", header=not path.exists(), index=False)
-    return pd.read_csv(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    table.to_csv(tmp, index=False)
+    tmp.replace(path)
+
+
+def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, missing_csv, unexplained_csv,
+                       errors_csv, ledger_dir, history_csv) -> pd.DataFrame:
+    """Rank missing effects over the stages' artefacts, write this run's figures and the error history."""
+    from pipeline.artefact import read_artefact
+
+    load_plugins(config["model"].get("plugins", []))
+    effects = list(config["model"]["effects"])
+    loaded = {exp: [read_artefact(p, exp) for p in paths] for exp, paths in artefacts.items() if paths}
+    obs = observations_from_artefacts(loaded)
+    ranked, unexplained = rank_missing_effects(obs, effects, config)
+    figures = error_figures(obs, effects)
+    for path, table in ((missing_csv, ranked), (unexplained_csv, unexplained), (errors_csv, figures)):
+        _write_csv_atomic(table, Path(path))
+    return record_error_history(ledger_dir, figures, effects, history_csv)

@@ -28,7 +28,7 @@ import pandas as pd  # noqa: E402
 import xarray as xr  # noqa: E402
 
 from pipeline.artefact import read_artefact  # noqa: E402
-from pipeline.stages.dark import dataset_to_table  # noqa: E402
+from pipeline.observations import dataset_to_table  # noqa: E402
 
 try:  # G band pixels average two photosites (see pipeline.stages.linearity.photon_transfer)
     from pipeline.frames import SITES_PER_BAND_PIXEL
@@ -252,7 +252,7 @@ def _dark_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
 
     # centre and width vs exposure and ISO, with the fitted model
     try:
-        from pipeline.stages.dark import dark_level_dn
+        from pipeline.radiometry.dark import dark_level_dn
     except ImportError:  # pragma: no cover
         dark_level_dn = None
     fig, axes = plt.subplots(2, 2, figsize=(11, 6.5))

@@ -1,29 +1,199 @@
-"""What the Snakemake rules need from the package: dataset index, params, script entry point."""
+"""The one stage runner: from dataset files and upstream artefacts to one artefact per lens.
+
+Every stage module in :mod:`pipeline.stages` provides ``compute(ctx)``: it
+reduces the frames of its experiment for one lens (streaming, each frame
+decoded once) and returns that lens's artefact Dataset. Everything else a
+stage needs is done here, once, in the same way for every stage:
+
+* the effects of the model are read and their plugins loaded once;
+* the dataset is opened (validated) and restricted to the lens of the job, so
+  that the two lenses of the camera run as independent jobs;
+* upstream artefacts are read and their stage and version checked;
+* every input that was read is hashed (raw frames from the decoded bytes,
+  ``dataset.yaml``, ``MD5SUMS``, the experiment's sidecars and the upstream
+  artefacts), by path relative to the dataset or the results folder;
+* the artefact is written with its provenance, atomically.
+
+The registry :data:`STAGES` says what each stage reads; the Snakemake rules
+and the command line use it to declare their inputs.
+"""
 
 from __future__ import annotations
 
+import dataclasses
+import importlib
 import logging
+import os
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
-from pipeline.config import STAGE_SECTIONS, stage_params  # noqa: F401  (used by the rules)
+import pandas as pd
+import xarray as xr
+
+from pipeline.artefact import read_artefact, sha256_file, write_artefact
+from pipeline.config import stage_params
 from pipeline.dataset import Dataset, open_dataset
+from pipeline.effects import load_plugins
 from pipeline.errors import InputError
 from pipeline.rawio import read_tags
 
+log = logging.getLogger("pipeline.workflow")
+
+#: files at the dataset's root that every stage reads
+DATASET_FILES = ("dataset.yaml", "MD5SUMS")
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """What one stage reads: its experiment folder, sidecar files and upstream artefacts."""
+
+    name: str
+    experiment: str
+    sidecars: tuple[str, ...] = ()
+    upstream: tuple[str, ...] = ()
+    optional_upstream: tuple[str, ...] = ()
+
+    @property
+    def experiments(self) -> tuple[str, ...]:
+        """Experiment folders the stage needs, its own and those of its required upstream stages."""
+        out = [self.experiment]
+        for name in self.upstream:
+            out += [e for e in STAGES[name].experiments if e not in out]
+        return tuple(out)
+
+    def module(self):
+        return importlib.import_module(f"pipeline.stages.{self.name}")
+
+
+#: the stages in the order of the calibration chain (Larouche et al. 2024, Section 2)
+STAGES: dict[str, StageSpec] = {spec.name: spec for spec in (
+    StageSpec("dark", "dark"),
+    StageSpec("linearity", "linearity", upstream=("dark",)),
+    StageSpec("geometry", "geometry"),
+    StageSpec("rolloff", "rolloff", upstream=("geometry",)),
+    StageSpec("spectral", "spectral", sidecars=("photodiode.csv",), upstream=("geometry",),
+              optional_upstream=("dark",)),
+    StageSpec("absolute", "absolute", sidecars=("source_spectrum.csv", "source_reference.csv"),
+              upstream=("spectral", "geometry"), optional_upstream=("dark",)),
+    StageSpec("immersion", "immersion", sidecars=("water.yaml",), upstream=("geometry",),
+              optional_upstream=("spectral",)),
+)}
+
 #: experiments each stage reads (a stage runs only when all are present)
-STAGE_EXPERIMENTS = {
-    "dark": ("dark",),
-    "linearity": ("linearity", "dark"),
-    "geometry": ("geometry",),
-    "rolloff": ("rolloff", "geometry"),
-    "spectral": ("spectral", "geometry"),
-    "absolute": ("absolute", "spectral", "geometry"),
-    "immersion": ("immersion", "geometry"),
-}
+STAGE_EXPERIMENTS = {name: spec.experiments for name, spec in STAGES.items()}
 REQUIRED_TAGS = {"exposure_s": "ExposureTime", "iso": "ISOSpeedRatings", "time": "DateTimeOriginal"}
 
 
+# --------------------------------------------------------------------------- the model
+def load_model(config: dict) -> list[str]:
+    """The effects of ``model.effects``, after importing the plugin modules that define user effects."""
+    load_plugins(config["model"].get("plugins", []))
+    return list(config["model"]["effects"])
+
+
+# --------------------------------------------------------------------------- one lens
+@dataclass
+class LensDataset(Dataset):
+    """A dataset seen by the job of one lens: only that lens's region, only frames of it or of both."""
+
+    lens: str = ""
+
+    def frames(self, experiment: str) -> pd.DataFrame:
+        frames = super().frames(experiment)
+        if "lens" in frames:
+            frames = frames[frames["lens"].isin([self.lens, "both"])]
+        return frames
+
+
+def lens_view(dataset: Dataset, lens: str) -> LensDataset:
+    if lens not in dataset.lenses:
+        raise InputError(dataset.root / "dataset.yaml", f"has no lens '{lens}' (lenses: {', '.join(dataset.lenses)})")
+    fields = {f.name: getattr(dataset, f.name) for f in dataclasses.fields(Dataset)}
+    fields["lenses"] = {lens: dataset.lenses[lens]}
+    return LensDataset(**fields, lens=lens)
+
+
+@dataclass
+class StageContext:
+    """What ``compute`` receives: the lens's dataset, the config, the model, the upstream artefacts."""
+
+    stage: str
+    lens: str
+    dataset: LensDataset
+    config: dict
+    effects: list[str]
+    upstream: dict[str, xr.Dataset]
+    progress: bool = False
+    #: input path relative to the dataset root -> sha256, filled as frames are decoded
+    inputs: dict[str, str] = field(default_factory=dict)
+
+    def record_frames(self, hashes: dict[str, str], experiment: str | None = None) -> None:
+        """Record the sha256 of decoded frames, given by their path relative to the experiment folder."""
+        experiment = experiment or STAGES[self.stage].experiment
+        for name, sha in hashes.items():
+            self.inputs[f"{experiment}/{name}"] = sha
+
+    @property
+    def params(self) -> dict:
+        """This stage's section of the configuration."""
+        return self.config[self.stage]
+
+
+def _relative(path: Path, root: Path) -> str:
+    try:
+        return str(Path(os.path.relpath(Path(path).resolve(), root.resolve())))
+    except ValueError:      # another drive
+        return str(path)
+
+
+def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: dict[str, str | Path],
+              upstream: dict[str, dict[str, str | Path]] | None = None,
+              progress: bool = False) -> dict[str, xr.Dataset]:
+    """Run ``stage`` for each lens of ``outputs`` (lens -> artefact path); returns the artefacts.
+
+    ``upstream`` maps an upstream stage to its artefacts per lens. A required
+    upstream artefact that is missing stops the stage with a clear message.
+    """
+    spec = STAGES[stage]
+    module = spec.module()
+    effects = load_model(config)
+    ds = dataset if isinstance(dataset, Dataset) else open_dataset(dataset)
+    if spec.experiment not in ds.experiments():
+        raise InputError(ds.root / spec.experiment, "experiment folder is absent")
+    upstream = {name: dict(paths) for name, paths in (upstream or {}).items() if paths}
+    fixed = {name: sha256_file(ds.root / name) for name in DATASET_FILES}
+    for name in spec.sidecars:
+        path = ds.root / spec.experiment / name
+        if not path.is_file():
+            raise InputError(path, "sidecar file is missing")
+        fixed[f"{spec.experiment}/{name}"] = sha256_file(path)
+    out = {}
+    for lens, out_path in outputs.items():
+        out_path = Path(out_path)
+        results_root = out_path.parent.parent
+        artefacts, inputs = {}, dict(fixed)
+        for name in spec.upstream + spec.optional_upstream:
+            path = upstream.get(name, {}).get(lens)
+            if path is None:
+                if name in spec.upstream:
+                    raise InputError(None, f"{stage} stage of lens '{lens}' needs the {name} artefact; "
+                                           f"run the '{name}' stage first")
+                continue
+            artefacts[name] = read_artefact(path, name)
+            inputs[_relative(path, results_root)] = sha256_file(path)
+        ctx = StageContext(stage=stage, lens=lens, dataset=lens_view(ds, lens), config=config,
+                           effects=effects, upstream=artefacts, progress=progress)
+        art = module.compute(ctx)
+        inputs.update(ctx.inputs)
+        write_artefact(art, out_path, stage=stage, inputs=inputs, config_subset=stage_params(config, stage),
+                       effects=effects)
+        log.info("%s %s: wrote %s (%d inputs hashed)", stage, lens, out_path, len(inputs))
+        out[lens] = art
+    return out
+
+
+# --------------------------------------------------------------------------- the dataset index
 class DatasetIndex:
     """A dataset validated once per workflow run: layout, checksums list, frames.csv and tags."""
 
@@ -63,14 +233,30 @@ class DatasetIndex:
             out["field"] = "field/ is present but this version of the pipeline has no field stage yet"
         return out
 
-    def experiment_files(self, experiment: str) -> list[str]:
+    def stage_files(self, stage: str) -> list[str]:
+        """Every dataset file a stage reads: dataset.yaml, MD5SUMS, frames.csv, raw frames, sidecars."""
         dataset = self.load().dataset
-        if experiment not in dataset.experiments():
+        spec = STAGES[stage]
+        if spec.experiment not in dataset.experiments():
             return []
-        return [str(dataset.root / experiment / "frames.csv")] + [str(p) for p in dataset.raw_files(experiment)]
+        folder = dataset.root / spec.experiment
+        return ([str(dataset.root / name) for name in DATASET_FILES] + [str(folder / "frames.csv")]
+                + [str(p) for p in dataset.raw_files(spec.experiment)]
+                + [str(folder / name) for name in spec.sidecars])
+
+    def lens_files(self, stage: str, lens: str) -> list[str]:
+        """The files of :meth:`stage_files` that the job of one lens reads."""
+        dataset = self.load().dataset
+        spec = STAGES[stage]
+        if spec.experiment not in dataset.experiments():
+            return []
+        raws = set(str(p) for p in lens_view(dataset, lens).raw_files(spec.experiment))
+        every = set(str(p) for p in dataset.raw_files(spec.experiment))
+        return [f for f in self.stage_files(stage) if f not in every or f in raws]
 
 
-def _setup_log(path: str | None) -> None:
+# --------------------------------------------------------------------------- the scripts' entry point
+def setup_log(path: str | None) -> None:
     handlers = [logging.StreamHandler(sys.stderr)]
     if path:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -79,25 +265,40 @@ def _setup_log(path: str | None) -> None:
                         force=True)
 
 
-def run_stage_script(smk, stage: str) -> None:
-    """Entry point of the thin workflow scripts: unpack ``snakemake`` and call the package.
-
-    The stage's module provides ``run_from_snakemake(smk)``: ``pipeline.stage_io``
-    for the foundation rules, ``pipeline.stages.<stage>`` for the others.
-    Bad input ends the job with one line naming the file and the problem.
-    """
-    import importlib
-
-    from pipeline import stage_io
-
-    log = smk.log[0] if smk.log else None
-    _setup_log(log)
+def exit_on_input_error(function, *args, **kwargs):
+    """Call ``function``; bad input ends the process with one line naming the file and the problem."""
     try:
-        runner = stage_io.RUNNERS.get(stage)
-        if runner is None:
-            runner = importlib.import_module(f"pipeline.stages.{stage}").run_from_snakemake
-        runner(smk)
+        return function(*args, **kwargs)
     except InputError as exc:
         logging.getLogger("pipeline").error("%s", exc)
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(1)
+
+
+def run_stage_script(smk, stage: str) -> None:
+    """Entry point of the thin stage scripts: one stage, one lens (the rule's ``{lens}`` wildcard)."""
+    setup_log(smk.log[0] if smk.log else None)
+    lens = smk.wildcards.lens
+    upstream = {name: {lens: smk.input[name]} for name in STAGES[stage].upstream + STAGES[stage].optional_upstream
+                if name in smk.input.keys()}
+    exit_on_input_error(run_stage, stage, smk.params.dataset, smk.params.config, {lens: smk.output.artefact},
+                        upstream)
+
+
+# --------------------------------------------------------------------------- what to simulate
+def dataset_to_simulate(config: dict) -> bool:
+    """Whether the workflow must simulate the dataset folder first.
+
+    Only the configured default simulated dataset (``simulate_if_missing.path``)
+    is simulated when absent, or any folder with ``simulate: true``. A folder a
+    user named that does not exist is an error before any job runs, so a
+    mistyped or unmounted path never yields a report of a simulated camera.
+    """
+    path = Path(config["dataset"])
+    if path.exists():
+        return False
+    default = config["simulate_if_missing"]
+    if config.get("simulate") or (default["enabled"] and path.resolve() == Path(default["path"]).resolve()):
+        return True
+    raise InputError(path, "dataset folder not found (check the path; to simulate a dataset into it, "
+                           "add --config simulate=true)")

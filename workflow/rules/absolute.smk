@@ -1,24 +1,23 @@
 # Absolute spectral radiance (Section 2.6, Eq. 9, Table 1): R^-1 per band with its budget.
-# Input functions (common.smk): absolute_inputs (frames.csv, raw frames, source_spectrum.csv,
-# source_reference.csv).
+# One job per lens: the two lenses of the camera are independent sensors.
 
 
 rule absolute:
     input:
-        frames=absolute_inputs,
-        spectral=expand("results/spectral/{lens}.nc", lens=LENSES),
-        geometry=expand("results/geometry/{lens}.nc", lens=LENSES),
+        unpack(stage_inputs("absolute")),
     output:
-        artefacts=expand("results/absolute/{lens}.nc", lens=LENSES),
+        artefact="results/absolute/{lens}.nc",
     params:
         dataset=config["dataset"],
-        lenses=LENSES,
         config=stage_params(config, "absolute"),
+    threads: 1
+    resources:
+        mem_mb=1000,
     conda:
         "../envs/pipeline.yaml"
     log:
-        "results/logs/absolute.log",
+        "results/logs/absolute/{lens}.log",
     benchmark:
-        "results/benchmarks/absolute.tsv"
+        "results/benchmarks/absolute/{lens}.tsv"
     script:
         "../scripts/absolute.py"

@@ -3,16 +3,17 @@
 import sys
 from pathlib import Path
 
-from pipeline.camera import Camera
 from pipeline.errors import InputError
-from pipeline.workflow import STAGE_EXPERIMENTS, DatasetIndex, stage_params
+from pipeline.workflow import STAGES, DatasetIndex, dataset_to_simulate, stage_params
 
-STAGES = list(STAGE_EXPERIMENTS)
+
 
 DATASET = Path(config["dataset"])
-SIMULATE = not DATASET.exists() and config["simulate_if_missing"]["enabled"]
-if not DATASET.exists() and not SIMULATE:
-    sys.exit(f"error: {DATASET}: dataset folder not found (set --config dataset=PATH)")
+try:
+    # simulate only the configured default dataset (or with --config simulate=true), never a path a user gave
+    SIMULATE = dataset_to_simulate(config)
+except InputError as exc:
+    sys.exit(f"error: {exc}")
 
 INDEX = DatasetIndex(DATASET)
 if not SIMULATE:
@@ -22,7 +23,9 @@ if not SIMULATE:
     except InputError as exc:
         sys.exit(f"error: {exc}")
 
-LENSES = INDEX.lenses() if not SIMULATE else list(Camera().lens_names)
+
+wildcard_constraints:
+    lens="[A-Za-z0-9_-]+",
 
 
 def _ready():
@@ -36,67 +39,75 @@ def _ready():
     return INDEX
 
 
-def dark_inputs(wildcards):
-    return _ready().experiment_files("dark")
+def stage_inputs(stage):
+    """Input function of a stage's rule: the files its lens job reads and its upstream artefacts.
 
+    dataset.yaml is an input (editing a lens region or the chessboard reruns what reads it);
+    MD5SUMS is read but only its frames' lines matter, and those frames are inputs themselves,
+    so rewriting MD5SUMS after adding frames to one experiment reruns only that experiment.
+    """
 
-def linearity_inputs(wildcards):
-    return _ready().experiment_files("linearity")
+    def inputs(wildcards):
+        index = _ready()
+        spec = STAGES[stage]
+        files = index.lens_files(stage, wildcards.lens)
+        out = {
+            "files": [f for f in files if not f.endswith("MD5SUMS")],
+            "md5sums": ancient(str(DATASET / "MD5SUMS")),
+        }
+        for name in spec.upstream:
+            out[name] = f"results/{name}/{wildcards.lens}.nc"
+        for name in spec.optional_upstream:
+            if index.stage_runnable(name):
+                out[name] = f"results/{name}/{wildcards.lens}.nc"
+        return out
 
-
-def _with_sidecars(experiment, *names):
-    files = _ready().experiment_files(experiment)
-    return files + [str(DATASET / experiment / name) for name in names] if files else files
-
-
-def geometry_inputs(wildcards):
-    return _ready().experiment_files("geometry")
-
-
-def rolloff_inputs(wildcards):
-    return _ready().experiment_files("rolloff")
-
-
-def spectral_inputs(wildcards):
-    return _with_sidecars("spectral", "photodiode.csv")
-
-
-def absolute_inputs(wildcards):
-    return _with_sidecars("absolute", "source_spectrum.csv", "source_reference.csv")
-
-
-def immersion_inputs(wildcards):
-    index = _ready()
-    out = {"frames": _with_sidecars("immersion", "water.yaml"), "geometry": artefacts_of("geometry")}
-    if index.stage_runnable("spectral"):
-        out["spectral"] = artefacts_of("spectral")
-    return out
+    return inputs
 
 
 def artefacts_of(stage):
-    """Artefact paths of a stage, or none when its experiment is absent from the dataset."""
-    return [f"results/{stage}/{lens}.nc" for lens in LENSES]
+    """Artefact paths of a stage, one per lens of the dataset."""
+    return [f"results/{stage}/{lens}.nc" for lens in _ready().lenses()]
 
 
 def diagnostics_inputs(wildcards):
     index = _ready()
-    out = {}
-    for stage in STAGES:
-        if index.stage_runnable(stage):
-            out[stage] = artefacts_of(stage)
-    return out
+    return {stage: artefacts_of(stage) for stage in STAGES if index.stage_runnable(stage)}
 
 
 def report_inputs(wildcards):
-    index = _ready()
     out = diagnostics_inputs(wildcards)
-    out.update({
-        "missing_effects": "results/diagnostics/missing_effects.csv",
-        "unexplained": "results/diagnostics/unexplained.csv",
-        "run_errors": "results/diagnostics/run_errors.csv",
-    })
+    out.update(
+        {
+            "missing_effects": "results/diagnostics/missing_effects.csv",
+            "unexplained": "results/diagnostics/unexplained.csv",
+            "run_errors": "results/diagnostics/run_errors.csv",
+            "error_history": "results/diagnostics/error_history.csv",
+        }
+    )
     return out
+
+
+def report_lenses(wildcards):
+    return _ready().lenses()
 
 
 def skipped_stages(wildcards):
     return _ready().skipped()
+
+
+def print_run_summary():
+    """After a run: where the report is and, per experiment, what the diagnostics found."""
+    from pipeline.run_summary import summarise_run
+
+    try:
+        skipped = _ready().skipped()
+    except SystemExit:
+        skipped = {}
+    lines = summarise_run(
+        "results",
+        config["model"]["effects"],
+        skipped,
+        config["diagnostics"]["structured_rms_z"],
+    )
+    print("\n".join(lines))

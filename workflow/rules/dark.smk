@@ -1,20 +1,23 @@
 # Dark frames (Section 2.8): bias, fixed pattern, dark current, hot pixels, read noise.
+# One job per lens: the two lenses of the camera are independent sensors.
 
 
 rule dark:
     input:
-        frames=dark_inputs,
+        unpack(stage_inputs("dark")),
     output:
-        artefacts=expand("results/dark/{lens}.nc", lens=LENSES),
+        artefact="results/dark/{lens}.nc",
     params:
         dataset=config["dataset"],
-        lenses=LENSES,
         config=stage_params(config, "dark"),
+    threads: 1
+    resources:
+        mem_mb=1000,
     conda:
         "../envs/pipeline.yaml"
     log:
-        "results/logs/dark.log",
+        "results/logs/dark/{lens}.log",
     benchmark:
-        "results/benchmarks/dark.tsv"
+        "results/benchmarks/dark/{lens}.tsv"
     script:
         "../scripts/dark.py"

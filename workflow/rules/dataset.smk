@@ -1,5 +1,5 @@
-# The default dataset is simulated when the configured folder does not exist.
-# The rule is defined only then, so a user's dataset is never touched.
+# The default dataset is simulated when its configured folder does not exist (or with
+# --config simulate=true). The rule is defined only then, so a user's dataset is never touched.
 
 if SIMULATE:
 
@@ -8,6 +8,9 @@ if SIMULATE:
             dataset=directory(config["dataset"]),
         params:
             simulation=config["simulate_if_missing"],
+        threads: 1
+        resources:
+            mem_mb=1500,
         conda:
             "../envs/pipeline.yaml"
         log:

@@ -8,11 +8,14 @@ rule diagnostics:
         missing_effects="results/diagnostics/missing_effects.csv",
         unexplained="results/diagnostics/unexplained.csv",
         run_errors="results/diagnostics/run_errors.csv",
+        # rebuilt at every run from the append-only ledger folder (one file per run, never rewritten)
+        error_history="results/diagnostics/error_history.csv",
     params:
         config=stage_params(config, "diagnostics"),
-        # the ledger grows by one row per experiment and run; it is not an output,
-        # so that a rerun appends to it instead of replacing it
-        error_history="results/diagnostics/error_history.csv",
+        ledger="results/diagnostics/ledger",
+    threads: 1
+    resources:
+        mem_mb=1000,
     conda:
         "../envs/pipeline.yaml"
     log:

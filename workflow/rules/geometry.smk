@@ -1,21 +1,24 @@
 # Geometric calibration (Sections 2.3 and 3.2): chessboard corners, Scaramuzza fit per
-# lens, medium and band, image circle and half field of view, theta/phi/solid-angle maps.
+# medium and band, image circle and half field of view, theta/phi/solid-angle maps.
+# One job per lens: the two lenses of the camera are independent sensors.
 
 
 rule geometry:
     input:
-        frames=geometry_inputs,
+        unpack(stage_inputs("geometry")),
     output:
-        artefacts=expand("results/geometry/{lens}.nc", lens=LENSES),
+        artefact="results/geometry/{lens}.nc",
     params:
         dataset=config["dataset"],
-        lenses=LENSES,
         config=stage_params(config, "geometry"),
+    threads: 1
+    resources:
+        mem_mb=1500,
     conda:
         "../envs/pipeline.yaml"
     log:
-        "results/logs/geometry.log",
+        "results/logs/geometry/{lens}.log",
     benchmark:
-        "results/benchmarks/geometry.tsv"
+        "results/benchmarks/geometry/{lens}.tsv"
     script:
         "../scripts/geometry.py"

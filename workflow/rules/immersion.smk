@@ -1,20 +1,23 @@
 # Immersion factor (Section 2.7): log-linear extrapolation to 0-, Eq. (11), Eq. (10).
+# One job per lens: the two lenses of the camera are independent sensors.
 
 
 rule immersion:
     input:
-        unpack(immersion_inputs),
+        unpack(stage_inputs("immersion")),
     output:
-        artefacts=expand("results/immersion/{lens}.nc", lens=LENSES),
+        artefact="results/immersion/{lens}.nc",
     params:
         dataset=config["dataset"],
-        lenses=LENSES,
         config=stage_params(config, "immersion"),
+    threads: 1
+    resources:
+        mem_mb=1000,
     conda:
         "../envs/pipeline.yaml"
     log:
-        "results/logs/immersion.log",
+        "results/logs/immersion/{lens}.log",
     benchmark:
-        "results/benchmarks/immersion.tsv"
+        "results/benchmarks/immersion/{lens}.tsv"
     script:
         "../scripts/immersion.py"

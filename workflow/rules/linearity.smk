@@ -1,21 +1,23 @@
 # Linearity (Section 2.2): Pearson maps, sweeps, saturation, photon transfer.
+# One job per lens: the two lenses of the camera are independent sensors.
 
 
 rule linearity:
     input:
-        frames=linearity_inputs,
-        dark=expand("results/dark/{lens}.nc", lens=LENSES),
+        unpack(stage_inputs("linearity")),
     output:
-        artefacts=expand("results/linearity/{lens}.nc", lens=LENSES),
+        artefact="results/linearity/{lens}.nc",
     params:
         dataset=config["dataset"],
-        lenses=LENSES,
         config=stage_params(config, "linearity"),
+    threads: 1
+    resources:
+        mem_mb=1000,
     conda:
         "../envs/pipeline.yaml"
     log:
-        "results/logs/linearity.log",
+        "results/logs/linearity/{lens}.log",
     benchmark:
-        "results/benchmarks/linearity.tsv"
+        "results/benchmarks/linearity/{lens}.tsv"
     script:
         "../scripts/linearity.py"

@@ -7,9 +7,11 @@ rule report:
     output:
         html="results/report/index.html",
     params:
-        lenses=LENSES,
+        lenses=report_lenses,
         skipped=skipped_stages,
-        error_history="results/diagnostics/error_history.csv",
+    threads: 1
+    resources:
+        mem_mb=1500,
     conda:
         "../envs/pipeline.yaml"
     log:

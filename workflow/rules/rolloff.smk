@@ -1,21 +1,23 @@
 # Roll-off (Section 2.4): port spot vs field angle, even polynomial per band and medium.
+# One job per lens: the two lenses of the camera are independent sensors.
 
 
 rule rolloff:
     input:
-        frames=rolloff_inputs,
-        geometry=expand("results/geometry/{lens}.nc", lens=LENSES),
+        unpack(stage_inputs("rolloff")),
     output:
-        artefacts=expand("results/rolloff/{lens}.nc", lens=LENSES),
+        artefact="results/rolloff/{lens}.nc",
     params:
         dataset=config["dataset"],
-        lenses=LENSES,
         config=stage_params(config, "rolloff"),
+    threads: 1
+    resources:
+        mem_mb=1000,
     conda:
         "../envs/pipeline.yaml"
     log:
-        "results/logs/rolloff.log",
+        "results/logs/rolloff/{lens}.log",
     benchmark:
-        "results/benchmarks/rolloff.tsv"
+        "results/benchmarks/rolloff/{lens}.tsv"
     script:
         "../scripts/rolloff.py"

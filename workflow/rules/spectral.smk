@@ -1,22 +1,23 @@
 # Relative spectral response (Section 2.5): response, effective wavelength, bandwidth.
-# Input functions (common.smk): spectral_inputs (frames.csv, raw frames, photodiode.csv).
+# One job per lens: the two lenses of the camera are independent sensors.
 
 
 rule spectral:
     input:
-        frames=spectral_inputs,
-        geometry=expand("results/geometry/{lens}.nc", lens=LENSES),
+        unpack(stage_inputs("spectral")),
     output:
-        artefacts=expand("results/spectral/{lens}.nc", lens=LENSES),
+        artefact="results/spectral/{lens}.nc",
     params:
         dataset=config["dataset"],
-        lenses=LENSES,
         config=stage_params(config, "spectral"),
+    threads: 1
+    resources:
+        mem_mb=1000,
     conda:
         "../envs/pipeline.yaml"
     log:
-        "results/logs/spectral.log",
+        "results/logs/spectral/{lens}.log",
     benchmark:
-        "results/benchmarks/spectral.tsv"
+        "results/benchmarks/spectral/{lens}.tsv"
     script:
         "../scripts/spectral.py"

@@ -1,12 +1,10 @@
 """Rule 'diagnostics': unpack the snakemake object and call the package."""
 
-import sys
-from pathlib import Path
+from pipeline.diagnostics import diagnose_artefacts
+from pipeline.workflow import exit_on_input_error, setup_log
 
-try:
-    from pipeline.workflow import run_stage_script
-except ImportError:  # a rule's conda env has the dependencies but not this checkout's package
-    sys.path.insert(0, str(Path(snakemake.scriptdir).parents[1] / "src"))  # noqa: F821
-    from pipeline.workflow import run_stage_script
-
-run_stage_script(snakemake, "diagnostics")  # noqa: F821 (snakemake injects this object)
+smk = snakemake  # noqa: F821 (snakemake injects this object)
+setup_log(smk.log[0])
+exit_on_input_error(diagnose_artefacts, {stage: list(paths) for stage, paths in smk.input.items()},
+                    smk.params.config, smk.output.missing_effects, smk.output.unexplained, smk.output.run_errors,
+                    smk.params.ledger, smk.output.error_history)

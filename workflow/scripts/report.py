@@ -1,12 +1,12 @@
 """Rule 'report': unpack the snakemake object and call the package."""
 
-import sys
-from pathlib import Path
+from pipeline.report import build_report
+from pipeline.workflow import STAGES, exit_on_input_error, setup_log
 
-try:
-    from pipeline.workflow import run_stage_script
-except ImportError:  # a rule's conda env has the dependencies but not this checkout's package
-    sys.path.insert(0, str(Path(snakemake.scriptdir).parents[1] / "src"))  # noqa: F821
-    from pipeline.workflow import run_stage_script
-
-run_stage_script(snakemake, "report")  # noqa: F821 (snakemake injects this object)
+smk = snakemake  # noqa: F821 (snakemake injects this object)
+setup_log(smk.log[0])
+artefacts = {stage: dict(zip(smk.params.lenses, smk.input[stage])) if stage in smk.input.keys() else {}
+             for stage in STAGES}
+exit_on_input_error(build_report, **artefacts, missing_effects=smk.input.missing_effects,
+                    unexplained=smk.input.unexplained, run_errors=smk.input.run_errors,
+                    error_history=smk.input.error_history, out_html=smk.output.html, skipped=smk.params.skipped)

@@ -1,12 +1,7 @@
-"""Rule 'simulate_dataset': unpack the snakemake object and call the package."""
+"""Rule 'simulate_dataset': unpack the snakemake object and call the simulator's entry point."""
 
-import sys
-from pathlib import Path
+from pipeline.cli import simulate_from_config
+from pipeline.workflow import exit_on_input_error, setup_log
 
-try:
-    from pipeline.workflow import run_stage_script
-except ImportError:  # a rule's conda env has the dependencies but not this checkout's package
-    sys.path.insert(0, str(Path(snakemake.scriptdir).parents[1] / "src"))  # noqa: F821
-    from pipeline.workflow import run_stage_script
-
-run_stage_script(snakemake, "simulate_dataset")  # noqa: F821 (snakemake injects this object)
+setup_log(snakemake.log[0])  # noqa: F821 (snakemake injects this object)
+exit_on_input_error(simulate_from_config, snakemake.output.dataset, snakemake.params.simulation)  # noqa: F821

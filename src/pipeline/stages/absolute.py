@@ -39,13 +39,13 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import read_source_reference, read_source_spectrum
 from pipeline.errors import InputError
 from pipeline.radiometry.absolute import (absolute_calibration_budget, dn_per_second,
                                           lamp_calibration_relative_sigma)
-from pipeline.stages.dark import table_to_dataset
-from pipeline.stages.spectral import _read_optional, central_masks, dark_levels, frame_table, reduce_central
+from pipeline.observations import table_to_dataset
+from pipeline.stages.spectral import central_masks, dark_levels, frame_table, reduce_central
 
 STAGE = "absolute"
 TERMS = ("lamp_calibration", "reference", "spectrometer_noise", "extra", "image")
@@ -191,49 +191,19 @@ def _lens_dataset(rows, wl, scaled, ref_value, ref_rel, fr, cfg) -> xr.Dataset:
     return ds.merge(table_to_dataset(fr, "obs_frame"))
 
 
-def run(dataset: str | Path, config: dict, spectral_paths: dict[str, str | Path],
-        geometry_paths: dict[str, str | Path], outputs: dict[str, str | Path],
-        dark_paths: dict[str, str | Path] | None = None, progress: bool = False) -> dict[str, xr.Dataset]:
-    """Absolute stage from files to files: one artefact per lens in ``outputs``.
-
-    ``spectral_paths``: lens -> spectral artefact (measured response);
-    ``geometry_paths``: lens -> geometry artefact (mask); ``dark_paths``
-    (optional): lens -> dark artefact, used when the experiment has no dark frames.
-    """
-    from pipeline.artefact import sha256_file, write_artefact
-    from pipeline.dataset import open_dataset
-    from pipeline.stage_io import _model, stage_config
-
-    effects = _model(config)
-    ds = open_dataset(dataset)
-    cfg = config[STAGE]
+def compute(ctx) -> xr.Dataset:
+    """The absolute artefact of one lens (the stage runner's contract)."""
+    cfg = ctx.params
+    root = ctx.dataset.root
     # sidecars first: bad input fails before any frame is decoded
-    spectrum_path = ds.root / STAGE / "source_spectrum.csv"
-    reference_path = ds.root / STAGE / "source_reference.csv"
-    spectrum = read_source_spectrum(ds)
-    reference = reference_reading(read_source_reference(ds), reference_path, cfg["reference_wavelength_nm"])
-    geometry = _read_optional(geometry_paths, "geometry")
-    spectral = _read_optional(spectral_paths, "spectral")
-    dark = _read_optional(dark_paths, "dark")
-    lenses = [lens for lens in ds.lenses if lens in outputs]
-    missing = [lens for lens in lenses if lens not in geometry]
-    if missing:
-        raise InputError(None, f"no geometry artefact for lens {', '.join(missing)}")
-    masks = central_masks({lens: geometry[lens] for lens in lenses}, cfg["mask_half_angle_deg"], cfg["mask_min_pixels"])
-    reduced = reduce_central(ds, STAGE, masks, progress=progress)
-    darks = dark_levels(reduced, dark, ds.root / STAGE / "frames.csv")
-    arts = analyse_absolute(reduced, darks, spectral, spectrum, spectrum_path, reference, config)
-    inputs = dict(reduced["inputs"])
-    for path in (spectrum_path, reference_path):
-        inputs[path.name] = sha256_file(path)
-    for lens in lenses:
-        write_artefact(arts[lens], outputs[lens], stage=STAGE, inputs=inputs,
-                       config_subset=stage_config(config, STAGE), effects=effects)
-    return arts
-
-
-def run_from_snakemake(smk) -> None:
-    lenses = list(smk.params.lenses)
-    dark = dict(zip(lenses, smk.input.dark)) if "dark" in smk.input.keys() else None
-    run(smk.params.dataset, smk.params.config, dict(zip(lenses, smk.input.spectral)),
-        dict(zip(lenses, smk.input.geometry)), dict(zip(lenses, smk.output.artefacts)), dark_paths=dark)
+    spectrum = read_source_spectrum(ctx.dataset)
+    reference = reference_reading(read_source_reference(ctx.dataset), root / STAGE / "source_reference.csv",
+                                  cfg["reference_wavelength_nm"])
+    masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"], cfg["mask_min_pixels"])
+    reduced = reduce_central(ctx.dataset, STAGE, masks, progress=ctx.progress)
+    ctx.record_frames(reduced["inputs"])
+    dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
+    darks = dark_levels(reduced, dark, root / STAGE / "frames.csv")
+    arts = analyse_absolute(reduced, darks, {ctx.lens: ctx.upstream["spectral"]}, spectrum,
+                            root / STAGE / "source_spectrum.csv", reference, ctx.config)
+    return arts[ctx.lens]

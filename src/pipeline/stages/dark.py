@@ -25,11 +25,11 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import Dataset
-from pipeline.effects import get as get_effect
 from pipeline.effects.catalogue import drift_sigma
-from pipeline.fitting import base_design, wls
+from pipeline.fitting import base_design
+from pipeline.observations import fit_with_effects, table_to_dataset
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.moments import RunningMoments, corner_mask
 
@@ -153,7 +153,7 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     fr["x_level"] = 1.0
     if fr["temperature_c"].notna().all():
         fr["temperature_ref_c"] = float(fr["temperature_c"].mean())
-    ffit, _ = fit_with_effects(fr, "frame", effects)
+    ffit, _ = fit_with_effects(fr, "frame", effects, STAGE)
     fr["pred_dn"] = ffit.pred
     fr["z"] = ffit.z
 
@@ -167,7 +167,7 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     st["x_b1"] = st["gain"] - 1.0
     if "temperature_ref_c" in fr:
         st["temperature_ref_c"] = fr["temperature_ref_c"].iloc[0]
-    fit, effect_params = fit_with_effects(st, "setting", effects)
+    fit, effect_params = fit_with_effects(st, "setting", effects, STAGE)
     st["pred_dn"] = fit.pred
     st["z"] = fit.z
     names = base_design(st)[1]
@@ -193,30 +193,6 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
             ds["temperature_reference_c"] = ((), temperature["reference_c"],
                                              {"long_name": "reference temperature of the dark model", "units": "degree_C"})
     return out
-
-
-def fit_with_effects(table: pd.DataFrame, level: str, effects: list[str], stage: str = STAGE):
-    """Weighted fit of the base columns plus the columns of the model's effects at this level.
-
-    Returns the fit and, per effect, its coefficients and standard errors.
-    """
-    X, names = base_design(table)
-    extra = []
-    for name in effects:
-        effect = get_effect(name)
-        if effect.corrects_data:
-            continue
-        cols = effect.columns(stage, level, table)
-        if cols is not None:
-            extra.append((name, cols))
-    Xfull = np.hstack([X] + [c for _, c in extra]) if extra else X
-    fit = wls(table["value_dn"].to_numpy(), table["sigma_dn"].to_numpy(), Xfull)
-    out, col = {}, X.shape[1]
-    for name, cols in extra:
-        k = cols.shape[1]
-        out[name] = (fit.coef[col:col + k], np.sqrt(np.diag(fit.cov)[col:col + k]))
-        col += k
-    return fit, out
 
 
 def _lens_dataset(lens, st, fr, per_lens_band, params, dark_rate, drift, fit, ffit, config,
@@ -302,36 +278,8 @@ def _lens_dataset(lens, st, fr, per_lens_band, params, dark_rate, drift, fit, ff
     return ds
 
 
-def table_to_dataset(table: pd.DataFrame, prefix: str) -> xr.Dataset:
-    """Store an observation table as variables ``<prefix>__<column>`` along dimension ``<prefix>``."""
-    data = {}
-    for col in table.columns:
-        values = table[col].to_numpy()
-        if values.dtype == object or values.dtype.kind in "OUS" or str(table[col].dtype) in ("string", "str"):
-            values = table[col].astype(str).to_numpy().astype(str)
-        data[f"{prefix}__{col}"] = (prefix, values)
-    return xr.Dataset(data)
-
-
-def dataset_to_table(ds: xr.Dataset, prefix: str) -> pd.DataFrame:
-    """Inverse of :func:`table_to_dataset`."""
-    cols = {name.split("__", 1)[1]: ds[name].values for name in ds.data_vars if name.startswith(prefix + "__")}
-    return pd.DataFrame(cols)
-
-
-def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
-                  temperature_c: float | None = None) -> float:
-    """Mean dark level predicted by the fitted dark model for one band and setting.
-
-    With the ``temperature`` effect in the dark model and a logged temperature,
-    the level follows it.
-    """
-    b = ds.sel(band=band)
-    gain = iso / 100.0
-    level = float(b["bias_dn"] + b["bias_per_gain_dn"] * (gain - 1.0)
-                  + ds["dark_current_dn_per_s"] * gain * exposure_s)
-    if temperature_c is not None and np.isfinite(temperature_c) and "temperature_bias_dn_per_c" in ds:
-        dt = temperature_c - float(ds["temperature_reference_c"])
-        level += float(ds["temperature_bias_dn_per_c"]) * dt
-        level += float(ds["temperature_dark_dn_per_s_per_c"]) * gain * exposure_s * dt
-    return level
+def compute(ctx) -> xr.Dataset:
+    """The dark artefact of one lens (the stage runner's contract)."""
+    reduced = reduce_dark(ctx.dataset, ctx.config, progress=ctx.progress)
+    ctx.record_frames(reduced["inputs"])
+    return analyse_dark(reduced, ctx.config, ctx.effects)[ctx.lens]

@@ -22,9 +22,9 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.frames import SITES_PER_BAND_PIXEL
-from pipeline.stages.dark import dark_level_dn
+from pipeline.radiometry.dark import dark_level_dn
 
 
 def _smooth_design(y: np.ndarray, x: np.ndarray) -> np.ndarray:

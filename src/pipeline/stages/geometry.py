@@ -39,7 +39,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import Dataset
 from pipeline.errors import InputError
 from pipeline.frames import iter_frames
@@ -47,7 +47,7 @@ from pipeline.geometry.calibrate import calibrate
 from pipeline.geometry.chessboard import Board
 from pipeline.geometry.corners import _upsample_factor, detect_corners
 from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle
-from pipeline.stages.dark import table_to_dataset
+from pipeline.observations import table_to_dataset
 from pipeline.stages.geometry_maps import MEDIA, maps_dataset
 
 STAGE = "geometry"
@@ -372,26 +372,11 @@ def lens_dataset(models, results, circles, frame_rows, points_rows, band_shape, 
     return ds
 
 
-def run(dataset: str | Path, config: dict, outputs: dict[str, str | Path], progress: bool = False) -> dict[str, xr.Dataset]:
-    """Geometry stage from files to files: one artefact per lens in ``outputs``."""
-    from pipeline.artefact import write_artefact
-    from pipeline.dataset import open_dataset
-    from pipeline.stage_io import _model, stage_config
-
-    effects = _model(config)
-    ds = open_dataset(dataset)
-    if STAGE not in ds.experiments():
-        raise InputError(ds.root / STAGE, "experiment folder is absent")
-    reduced = reduce_geometry(ds, config, progress=progress)
-    arts = analyse_geometry(reduced, config, ds.root)
-    missing = [lens for lens in outputs if lens not in arts]
-    if missing:
-        raise InputError(ds.root / STAGE, f"no frames for lens {', '.join(missing)}")
-    for lens, path in outputs.items():
-        write_artefact(arts[lens], path, stage=STAGE, inputs=reduced["inputs"],
-                       config_subset=stage_config(config, STAGE), effects=effects)
-    return arts
-
-
-def run_from_snakemake(smk) -> None:
-    run(smk.params.dataset, smk.params.config, dict(zip(smk.params.lenses, smk.output.artefacts)))
+def compute(ctx) -> xr.Dataset:
+    """The geometry artefact of one lens (the stage runner's contract)."""
+    reduced = reduce_geometry(ctx.dataset, ctx.config, progress=ctx.progress)
+    ctx.record_frames(reduced["inputs"])
+    arts = analyse_geometry(reduced, ctx.config, ctx.dataset.root)
+    if ctx.lens not in arts:
+        raise InputError(ctx.dataset.root / STAGE, f"no frames for lens {ctx.lens}")
+    return arts[ctx.lens]

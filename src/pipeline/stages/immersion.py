@@ -13,16 +13,13 @@ immersion/water.yaml, I by Eq. (11) with its 95 % interval, n_g from Eq. (10).
 from __future__ import annotations
 
 from collections import defaultdict
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.config import stage_params
-from pipeline.artefact import read_artefact, sha256_file, write_artefact
-from pipeline.camera import BANDS
-from pipeline.dataset import open_dataset, read_water
+from pipeline.bands import BANDS
+from pipeline.dataset import read_water
 from pipeline.errors import InputError
 from pipeline.fitting import wls
 from pipeline.frames import iter_frames
@@ -30,7 +27,7 @@ from pipeline.moments import RunningMoments
 from pipeline.radiometry.fresnel import transmittance_air_water
 from pipeline.radiometry.immersion import fit_immersion_factor, window_index_from_immersion_factor
 from pipeline.radiometry.water import refractive_index_water
-from pipeline.stages.dark import table_to_dataset
+from pipeline.observations import table_to_dataset
 
 STAGE = "immersion"
 NOMINAL_WAVELENGTH_NM = {"R": 600.0, "G": 540.0, "B": 480.0}
@@ -151,30 +148,15 @@ def _dataset(res: dict, obs: pd.DataFrame, water: dict) -> xr.Dataset:
     return ds.merge(table_to_dataset(obs, "obs_height"))
 
 
-def run(dataset_path, config: dict, dark_paths: dict | None, geometry_paths: dict, outputs: dict,
-        spectral_path=None, progress: bool = False) -> dict[str, xr.Dataset]:
-    """Immersion stage from files to files; ``dark_paths`` is unused (the experiment has its own dark frames)."""
-    ds = open_dataset(dataset_path)
-    geometry = {lens: read_artefact(p, "geometry") for lens, p in geometry_paths.items()}
-    spectral = read_artefact(spectral_path, "spectral") if spectral_path else None
-    reduced = reduce_immersion(ds, geometry, config, progress=progress)
-    arts = analyse_immersion(reduced, read_water(ds), effective_wavelengths(spectral))
-    inputs = dict(reduced["inputs"])
-    inputs["water.yaml"] = sha256_file(Path(ds.root) / STAGE / "water.yaml")
-    for p in list(geometry_paths.values()) + ([spectral_path] if spectral_path else []):
-        inputs[str(p)] = sha256_file(p)
-    effects = list(config["model"]["effects"])
-    for lens, art in arts.items():
-        if lens in outputs:
-            write_artefact(art, outputs[lens], stage=STAGE, inputs=inputs,
-                           config_subset=stage_params(config, STAGE), effects=effects)
-    return arts
+def compute(ctx) -> xr.Dataset:
+    """The immersion artefact of one lens (the stage runner's contract).
 
-
-def run_from_snakemake(smk) -> None:
-    lenses = list(smk.params.lenses)
-    spectral = smk.input.spectral if "spectral" in smk.input.keys() else None
-    if isinstance(spectral, (list, tuple)):
-        spectral = spectral[0] if spectral else None
-    run(smk.params.dataset, smk.params.config, None, dict(zip(lenses, smk.input.geometry)),
-        dict(zip(lenses, smk.output.artefacts)), spectral_path=spectral)
+    The water's refractive index and t_aw are taken at this lens's effective
+    wavelengths (its spectral artefact) when the spectral stage has run.
+    """
+    reduced = reduce_immersion(ctx.dataset, {ctx.lens: ctx.upstream["geometry"]}, ctx.config, progress=ctx.progress)
+    ctx.record_frames(reduced["inputs"])
+    arts = analyse_immersion(reduced, read_water(ctx.dataset), effective_wavelengths(ctx.upstream.get("spectral")))
+    if ctx.lens not in arts:
+        raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no immersion frames for lens {ctx.lens}")
+    return arts[ctx.lens]

@@ -28,7 +28,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import Dataset
 from pipeline.effects import get as get_effect
 from pipeline.effects.catalogue import drift_sigma
@@ -36,7 +36,8 @@ from pipeline.fitting import base_design, ols_line, wls
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.geometry.image_circle import find_image_circle
 from pipeline.moments import RunningMoments, RunningPearson, corner_mask, radius_map
-from pipeline.stages.dark import dark_level_dn, fit_with_effects, table_to_dataset
+from pipeline.radiometry.dark import dark_level_dn
+from pipeline.observations import effect_coefficients, fit_with_effects, table_to_dataset
 from pipeline.stages.flatfield import flatfield
 
 STAGE = "linearity"
@@ -226,12 +227,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     st["z"] = (st["value_dn"] - pred) / st["sigma_dn"]
     st.loc[~st["used"], "z"] = np.nan
 
-    effect_params = {}
-    col = len(names)
-    for name, cols in extra:
-        k = cols.shape[1]
-        effect_params[name] = (fit.coef[col:col + k], np.sqrt(np.diag(fit.cov)[col:col + k]))
-        col += k
+    effect_params = effect_coefficients(fit, len(names), extra)
 
     # ----- flat field (level "flat"): spatial variance beyond the known noise
     exposure_isos = st.loc[st["sweep"] == "exposure", "iso"]
@@ -377,3 +373,11 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
                             {"long_name": "relative pixel sensitivity in the photon-transfer region (1 = mean)",
                              "units": "1"})
     return ds
+
+
+def compute(ctx) -> xr.Dataset:
+    """The linearity artefact of one lens (the stage runner's contract); frames dark-corrected by its dark model."""
+    dark = {ctx.lens: ctx.upstream["dark"]}
+    reduced = reduce_linearity(ctx.dataset, dark, ctx.config, ctx.effects, progress=ctx.progress)
+    ctx.record_frames(reduced["inputs"])
+    return analyse_linearity(reduced, dark, ctx.config, ctx.effects)[ctx.lens]

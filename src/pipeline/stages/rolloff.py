@@ -33,26 +33,23 @@ from __future__ import annotations
 
 import logging
 from collections import defaultdict
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import xarray as xr
 from scipy import ndimage, optimize
 
-from pipeline.artefact import read_artefact, write_artefact
-from pipeline.camera import BANDS
-from pipeline.dataset import Dataset, open_dataset
+from pipeline.bands import BANDS
+from pipeline.dataset import Dataset
 from pipeline.effects import get as get_effect
-from pipeline.effects import load_plugins
 from pipeline.effects.optics import azimuth_from_coefficients
 from pipeline.fitting import base_design, wls
+from pipeline.errors import InputError
 from pipeline.frames import iter_frames
-from pipeline.config import stage_params
 from pipeline.geometry.scaramuzza import RAW_SIZE_PX
 from pipeline.moments import RunningMoments
 from pipeline.radiometry.rolloff import evaluate_rolloff, fit_rolloff, normalise_rolloff
-from pipeline.stages.dark import table_to_dataset
+from pipeline.observations import table_to_dataset
 
 STAGE = "rolloff"
 MEDIA = ("air", "water")
@@ -426,28 +423,13 @@ def _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit,
     return ds
 
 
-# ----------------------------------------------------------------------------- runners
-def run(dataset_path, config: dict, dark_paths: dict | None, geometry_paths: dict, outputs: dict,
-        progress: bool = False) -> dict[str, xr.Dataset]:
-    """Roll-off stage from files to files; ``dark_paths`` is unused (the experiment has its own dark frames)."""
-    load_plugins(config["model"].get("plugins", []))
-    effects = list(config["model"]["effects"])
-    ds = open_dataset(dataset_path)
-    geometry = {lens: read_artefact(p, "geometry") for lens, p in geometry_paths.items()}
-    reduced = reduce_rolloff(ds, geometry, config, progress=progress)
-    arts = analyse_rolloff(reduced, config, effects)
-    inputs = dict(reduced["inputs"])
-    for lens, p in geometry_paths.items():
-        from pipeline.artefact import sha256_file
-        inputs[str(p)] = sha256_file(p)
-    for lens, art in arts.items():
-        if lens in outputs:
-            write_artefact(art, Path(outputs[lens]), stage=STAGE, inputs=inputs,
-                           config_subset=stage_params(config, STAGE), effects=effects)
-    return arts
-
-
-def run_from_snakemake(smk) -> None:
-    lenses = list(smk.params.lenses)
-    run(smk.params.dataset, smk.params.config, None, dict(zip(lenses, smk.input.geometry)),
-        dict(zip(lenses, smk.output.artefacts)))
+# ----------------------------------------------------------------------------- the stage
+def compute(ctx) -> xr.Dataset:
+    """The roll-off artefact of one lens (the stage runner's contract)."""
+    geometry = {ctx.lens: ctx.upstream["geometry"]}
+    reduced = reduce_rolloff(ctx.dataset, geometry, ctx.config, progress=ctx.progress)
+    ctx.record_frames(reduced["inputs"])
+    arts = analyse_rolloff(reduced, ctx.config, ctx.effects)
+    if ctx.lens not in arts:
+        raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no roll-off frames for lens {ctx.lens}")
+    return arts[ctx.lens]

@@ -44,14 +44,15 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import Dataset, read_photodiode
 from pipeline.errors import InputError
 from pipeline.fitting import base_design, wls
 from pipeline.frames import iter_frames
 from pipeline.moments import RunningMoments
 from pipeline.radiometry.spectral import band_statistics
-from pipeline.stages.dark import dark_level_dn, table_to_dataset
+from pipeline.radiometry.dark import dark_level_dn
+from pipeline.observations import table_to_dataset
 
 STAGE = "spectral"
 #: medium of the lab experiments (the geometry artefact's in-air maps)
@@ -331,51 +332,19 @@ def _lens_dataset(lens, wl, dn, dn_sigma, pd_sig, pd_std, s, s_sigma, cov, stats
     return ds.merge(table_to_dataset(fr, "obs_frame"))
 
 
-# ----------------------------------------------------------------------------- runners
-def _read_optional(paths, stage):
-    from pipeline.artefact import read_artefact
+# ----------------------------------------------------------------------------- the stage
+def compute(ctx) -> xr.Dataset:
+    """The spectral artefact of one lens (the stage runner's contract).
 
-    return {lens: read_artefact(p, stage) for lens, p in (paths or {}).items()}
-
-
-def run(dataset: str | Path, config: dict, geometry_paths: dict[str, str | Path],
-        outputs: dict[str, str | Path], dark_paths: dict[str, str | Path] | None = None,
-        progress: bool = False) -> dict[str, xr.Dataset]:
-    """Spectral stage from files to files: one artefact per lens in ``outputs``.
-
-    ``geometry_paths``: lens -> geometry artefact (its in-air theta maps make the mask);
-    ``dark_paths`` (optional): lens -> dark artefact, used only when the experiment has
-    no dark frames at a signal setting.  Returns the artefact Datasets.
+    The mask comes from the lens's in-air theta map (geometry artefact); the
+    dark artefact, when given, serves only signal settings without dark frames.
     """
-    from pipeline.artefact import sha256_file, write_artefact
-    from pipeline.dataset import open_dataset
-    from pipeline.stage_io import _model, stage_config
-
-    effects = _model(config)
-    ds = open_dataset(dataset)
-    cfg = config[STAGE]
-    geometry = _read_optional(geometry_paths, "geometry")
-    dark = _read_optional(dark_paths, "dark")
-    photodiode = read_photodiode(ds)      # bad sidecar input fails before any frame is decoded
-    lenses = [lens for lens in ds.lenses if lens in outputs]
-    missing = [lens for lens in lenses if lens not in geometry]
-    if missing:
-        raise InputError(None, f"no geometry artefact for lens {', '.join(missing)}")
-    masks = central_masks({lens: geometry[lens] for lens in lenses}, cfg["mask_half_angle_deg"],
-                          cfg["mask_min_pixels"])
-    reduced = reduce_central(ds, STAGE, masks, progress=progress)
-    frames_csv = ds.root / STAGE / "frames.csv"
-    darks = dark_levels(reduced, dark, frames_csv)
-    arts = analyse_spectral(reduced, darks, photodiode, ds.root / STAGE / "photodiode.csv", config)
-    inputs = dict(reduced["inputs"], **{"photodiode.csv": sha256_file(ds.root / STAGE / "photodiode.csv")})
-    for lens in lenses:
-        write_artefact(arts[lens], outputs[lens], stage=STAGE, inputs=inputs,
-                       config_subset=stage_config(config, STAGE), effects=effects)
-    return arts
-
-
-def run_from_snakemake(smk) -> None:
-    lenses = list(smk.params.lenses)
-    dark = dict(zip(lenses, smk.input.dark)) if "dark" in smk.input.keys() else None
-    run(smk.params.dataset, smk.params.config, dict(zip(lenses, smk.input.geometry)),
-        dict(zip(lenses, smk.output.artefacts)), dark_paths=dark)
+    cfg = ctx.params
+    photodiode = read_photodiode(ctx.dataset)      # bad sidecar input fails before any frame is decoded
+    masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"], cfg["mask_min_pixels"])
+    reduced = reduce_central(ctx.dataset, STAGE, masks, progress=ctx.progress)
+    ctx.record_frames(reduced["inputs"])
+    dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
+    darks = dark_levels(reduced, dark, ctx.dataset.root / STAGE / "frames.csv")
+    arts = analyse_spectral(reduced, darks, photodiode, ctx.dataset.root / STAGE / "photodiode.csv", ctx.config)
+    return arts[ctx.lens]
