@@ -1,10 +1,10 @@
 """Time and peak memory of each stage on a simulated dataset.
 
-    python benchmarks/bench_stages.py [--scale tiny|small|full] [--stages dark,linearity,...] [--repeat N]
+    python benchmarks/bench_stages.py [--scale tiny|small|medium|full] [--stages dark,linearity,...] [--repeat N]
                                       [--experiments geometry]
 
-Simulates the dataset once (kept in benchmarks/out/), then runs every stage
-in a fresh Python process, --repeat times, and prints the minimum, median and
+Simulates the dataset once (kept in benchmarks/out/), then runs every stage,
+one lens at a time (one workflow job), in a fresh Python process, --repeat times, and prints the minimum, median and
 maximum wall time and the peak resident memory of the stage's process.
 Results go to benchmarks/out/<scale>.csv as well.
 """
@@ -25,47 +25,25 @@ OUT = HERE / "out"
 LENSES = ("far", "close")
 
 
-def child(stage: str, dataset: str, results: str) -> None:
-    """Run one stage in this process and print wall time and peak RSS as JSON."""
+def child(stage: str, dataset: str, results: str, lens: str) -> None:
+    """Run one stage for one lens (one workflow job) in this process; print wall time and peak RSS as JSON."""
     from pipeline.config import load_config
-    from pipeline import stage_io
+    from pipeline.workflow import STAGES, run_stage
 
     cfg = load_config(overrides={"dataset": dataset})
     res = Path(results)
-    dark = {lens: res / f"dark/{lens}.nc" for lens in LENSES}
-
-    def paths(stage_name):
-        return {lens: res / f"{stage_name}/{lens}.nc" for lens in LENSES}
     t0 = time.perf_counter()
-    if stage == "dark":
-        stage_io.run_dark(dataset, cfg, dark)
-    elif stage == "linearity":
-        stage_io.run_linearity(dataset, cfg, dark, {lens: res / f"linearity/{lens}.nc" for lens in LENSES})
-    elif stage == "diagnostics":
-        arts = {s: [res / f"{s}/{lens}.nc" for lens in LENSES] for s in ("dark", "linearity")}
+    if stage == "diagnostics":
+        from pipeline.diagnostics import diagnose_artefacts
+
+        arts = {s: [res / f"{s}/{ln}.nc" for ln in LENSES] for s in STAGES if (res / s).is_dir()}
         d = res / "diagnostics"
-        stage_io.run_diagnostics(arts, cfg, d / "m.csv", d / "u.csv", d / "e.csv", d / "h.csv")
-    elif stage == "geometry":
-        from pipeline.stages import geometry
-
-        geometry.run(dataset, cfg, paths("geometry"))
-    elif stage == "rolloff":
-        from pipeline.stages import rolloff
-
-        rolloff.run(dataset, cfg, None, paths("geometry"), paths("rolloff"))
-    elif stage == "spectral":
-        from pipeline.stages import spectral
-
-        spectral.run(dataset, cfg, paths("geometry"), paths("spectral"))
-    elif stage == "absolute":
-        from pipeline.stages import absolute
-
-        absolute.run(dataset, cfg, paths("spectral"), paths("geometry"), paths("absolute"))
-    elif stage == "immersion":
-        from pipeline.stages import immersion
-
-        immersion.run(dataset, cfg, None, paths("geometry"), paths("immersion"),
-                      spectral_path=paths("spectral")[LENSES[0]])
+        diagnose_artefacts(arts, cfg, d / "m.csv", d / "u.csv", d / "e.csv", d / "ledger", d / "h.csv")
+    elif stage in STAGES:
+        spec = STAGES[stage]
+        upstream = {name: {lens: res / f"{name}/{lens}.nc"} for name in spec.upstream + spec.optional_upstream
+                    if (res / f"{name}/{lens}.nc").exists()}
+        run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream)
     else:
         sys.exit(f"unknown stage {stage}")
     wall = time.perf_counter() - t0
@@ -75,13 +53,13 @@ def child(stage: str, dataset: str, results: str) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scale", default="small", choices=["tiny", "small", "full"])
+    ap.add_argument("--scale", default="small", choices=["tiny", "small", "medium", "full"])
     ap.add_argument("--stages", default="dark,linearity,geometry,rolloff,spectral,absolute,immersion,diagnostics")
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--experiments", default=None,
                     help="comma-separated experiments to simulate (default: the simulator's default set)")
-    ap.add_argument("--child", nargs=3, metavar=("STAGE", "DATASET", "RESULTS"), help=argparse.SUPPRESS)
+    ap.add_argument("--child", nargs=4, metavar=("STAGE", "DATASET", "RESULTS", "LENS"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         child(*args.child)
@@ -101,21 +79,24 @@ def main() -> None:
     size_mb = sum(p.stat().st_size for p in dataset.rglob("*") if p.is_file()) / 1e6
     rows = []
     print(f"scale {args.scale}: {size_mb:.0f} MB of raw data; {args.repeat} runs per stage")
-    print(f"{'stage':<12} {'min s':>8} {'median s':>9} {'max s':>8} {'peak MiB':>9}")
+    print("one job per stage and lens, as the workflow runs them (the two lenses run side by side on 2 cores)")
+    print(f"{'stage':<12} {'lens':<6} {'min s':>8} {'median s':>9} {'max s':>8} {'peak MiB':>9}")
     for stage in args.stages.split(","):
-        walls, peaks = [], []
-        for _ in range(args.repeat):
-            proc = subprocess.run([sys.executable, __file__, "--child", stage, str(dataset), str(results)],
-                                  capture_output=True, text=True)
-            if proc.returncode != 0:
-                sys.exit(f"{stage} failed:\n{proc.stderr[-2000:]}")
-            m = json.loads(proc.stdout.strip().splitlines()[-1])
-            walls.append(m["wall_s"])
-            peaks.append(m["peak_rss_mib"])
-        row = {"scale": args.scale, "stage": stage, "min_s": min(walls), "median_s": statistics.median(walls),
-               "max_s": max(walls), "peak_rss_mib": max(peaks)}
-        rows.append(row)
-        print(f"{stage:<12} {row['min_s']:8.2f} {row['median_s']:9.2f} {row['max_s']:8.2f} {row['peak_rss_mib']:9.0f}")
+        for lens in (LENSES if stage != "diagnostics" else ("all",)):
+            walls, peaks = [], []
+            for _ in range(args.repeat):
+                proc = subprocess.run([sys.executable, __file__, "--child", stage, str(dataset), str(results), lens],
+                                      capture_output=True, text=True)
+                if proc.returncode != 0:
+                    sys.exit(f"{stage} {lens} failed:\n{proc.stderr[-2000:]}")
+                m = json.loads(proc.stdout.strip().splitlines()[-1])
+                walls.append(m["wall_s"])
+                peaks.append(m["peak_rss_mib"])
+            row = {"scale": args.scale, "stage": stage, "lens": lens, "min_s": min(walls),
+                   "median_s": statistics.median(walls), "max_s": max(walls), "peak_rss_mib": max(peaks)}
+            rows.append(row)
+            print(f"{stage:<12} {lens:<6} {row['min_s']:8.2f} {row['median_s']:9.2f} {row['max_s']:8.2f} "
+                  f"{row['peak_rss_mib']:9.0f}")
     import csv
 
     with open(OUT / f"{args.scale}.csv", "w", newline="") as fh:

@@ -6,6 +6,7 @@ the repository's Snakefile.
 
 from __future__ import annotations
 
+import json
 import shutil
 import subprocess
 import sys
@@ -14,6 +15,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import xarray as xr
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEMAKE = Path(sys.executable).with_name("snakemake")
@@ -29,15 +31,20 @@ def snakemake(workdir: Path, dataset: Path, *args: str, check: bool = True) -> s
     return proc
 
 
-def planned_rules(workdir: Path, dataset: Path) -> set[str]:
-    """Rules a dry run would execute (the job list)."""
-    proc = snakemake(workdir, dataset, "-n", "--quiet", "rules")
-    rules = set()
+def planned_jobs(workdir: Path, dataset: Path, *args: str) -> dict[str, int]:
+    """Jobs a dry run would execute, counted per rule (the job list)."""
+    proc = snakemake(workdir, dataset, "-n", "--quiet", "rules", *args)
+    jobs = {}
     for line in proc.stdout.splitlines():
         parts = line.split()
         if len(parts) == 2 and parts[1].isdigit() and parts[0] not in ("total", "job"):
-            rules.add(parts[0])
-    return rules
+            jobs[parts[0]] = int(parts[1])
+    return jobs
+
+
+def planned_rules(workdir: Path, dataset: Path, *args: str) -> set[str]:
+    """Rules a dry run would execute."""
+    return set(planned_jobs(workdir, dataset, *args))
 
 
 @pytest.fixture(scope="module")
@@ -75,6 +82,60 @@ def test_artefacts_and_report(run):
 def test_nothing_to_do_when_nothing_changed(run):
     workdir, dataset = run
     assert planned_rules(workdir, dataset) == set()
+
+
+def test_each_lens_is_its_own_job_and_the_run_ends_with_a_summary(run, tmp_path):
+    workdir, dataset = run
+    jobs = planned_jobs(workdir, dataset, "--forcerun", "dark")
+    assert jobs["dark"] == 2 and jobs["linearity"] == 2      # one job per lens: --cores 2 runs both at once
+    log = (workdir / "results/logs/dark/far.log").read_text()
+    assert "dark far: wrote" in log
+    with xr.open_dataset(workdir / "results/linearity/far.nc") as ds:
+        hashed = json.loads(ds.attrs["input_sha256"])
+    # every input by path relative to the dataset or the results folder, the upstream artefact included
+    assert {"dataset.yaml", "MD5SUMS", "dark/far.nc"} <= set(hashed)
+    frames = pd.read_csv(dataset / "linearity/frames.csv")
+    mine = frames["lens"].isin(["far", "both"]) & (frames["kind"] == "signal")
+    assert {f"linearity/{f}" for f in frames.loc[mine, "file"]} <= set(hashed)
+    assert not {f"linearity/{f}" for f in frames.loc[~frames["lens"].isin(["far", "both"]), "file"]} & set(hashed)
+    assert not any(Path(k).is_absolute() for k in hashed)
+
+
+def test_a_mistyped_dataset_path_stops_even_with_earlier_results(run):
+    workdir, dataset = run
+    mistyped = dataset.parent / "datset"
+    proc = snakemake(workdir, mistyped, check=False)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0
+    assert [line for line in out.splitlines() if line.startswith("error:")] == [
+        f"error: {mistyped}: dataset folder not found (check the path; to simulate a dataset into it, "
+        "add --config simulate=true)"]
+    assert "Nothing to be done" not in out and not mistyped.exists()
+
+
+def test_a_missing_dataset_is_never_simulated_unless_asked(tmp_path):
+    missing = tmp_path / "mounts" / "calib2024"
+    proc = snakemake(tmp_path, missing, check=False)
+    assert proc.returncode != 0 and "dataset folder not found" in proc.stderr
+    assert not missing.exists() and not (tmp_path / "results").exists()
+    # asked for explicitly: the simulation is planned (dry run: nothing is written)
+    assert "simulate_dataset" in planned_rules(tmp_path, missing, "--config", f"dataset={missing}", "simulate=true")
+    assert not missing.exists()
+
+
+def test_editing_the_chessboard_reruns_nothing_without_geometry(run):
+    workdir, dataset = run
+    meta_path = dataset / "dataset.yaml"
+    original = meta_path.read_text()
+    meta = yaml.safe_load(original)
+    meta["chessboard"]["square_mm"]["air"] = float(meta["chessboard"]["square_mm"]["air"]) + 1.0
+    meta["description"] = "edited"
+    meta_path.write_text(yaml.safe_dump(meta))
+    try:
+        # dark and linearity read neither the chessboard nor the description
+        assert planned_rules(workdir, dataset) == set()
+    finally:
+        meta_path.write_text(original)
 
 
 def test_adding_the_missing_effect_lowers_the_error(run):
@@ -183,3 +244,18 @@ def test_radiometric_chain_runs_and_reruns_only_what_changed(radiometric_run):
     write_md5sums(dataset)
     assert planned_rules(workdir, dataset) == {"rolloff", "spectral", "absolute", "immersion", "diagnostics",
                                                "report", "all"}
+
+
+def test_editing_the_chessboard_reruns_geometry_and_what_depends_on_it(radiometric_run):
+    workdir, dataset = radiometric_run
+    meta_path = dataset / "dataset.yaml"
+    original = meta_path.read_text()
+    meta = yaml.safe_load(original)
+    meta["chessboard"]["square_mm"]["air"] = float(meta["chessboard"]["square_mm"]["air"]) * 1.01
+    meta_path.write_text(yaml.safe_dump(meta))
+    try:
+        jobs = planned_jobs(workdir, dataset)
+        assert jobs["geometry"] == 2
+        assert set(jobs) >= {"geometry", "rolloff", "spectral", "absolute", "immersion", "diagnostics", "report"}
+    finally:
+        meta_path.write_text(original)

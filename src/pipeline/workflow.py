@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import json
 import logging
 import os
 import sys
@@ -53,6 +54,8 @@ class StageSpec:
     sidecars: tuple[str, ...] = ()
     upstream: tuple[str, ...] = ()
     optional_upstream: tuple[str, ...] = ()
+    #: top-level keys of dataset.yaml the stage reads besides ``camera`` and its lens's region
+    reads_meta: tuple[str, ...] = ()
 
     @property
     def experiments(self) -> tuple[str, ...]:
@@ -70,7 +73,7 @@ class StageSpec:
 STAGES: dict[str, StageSpec] = {spec.name: spec for spec in (
     StageSpec("dark", "dark"),
     StageSpec("linearity", "linearity", upstream=("dark",)),
-    StageSpec("geometry", "geometry"),
+    StageSpec("geometry", "geometry", reads_meta=("chessboard",)),
     StageSpec("rolloff", "rolloff", upstream=("geometry",)),
     StageSpec("spectral", "spectral", sidecars=("photodiode.csv",), upstream=("geometry",),
               optional_upstream=("dark",)),
@@ -234,15 +237,27 @@ class DatasetIndex:
         return out
 
     def stage_files(self, stage: str) -> list[str]:
-        """Every dataset file a stage reads: dataset.yaml, MD5SUMS, frames.csv, raw frames, sidecars."""
+        """The experiment's files a stage reads: frames.csv, raw frames, sidecars (and DATASET_FILES at the root)."""
         dataset = self.load().dataset
         spec = STAGES[stage]
         if spec.experiment not in dataset.experiments():
             return []
         folder = dataset.root / spec.experiment
-        return ([str(dataset.root / name) for name in DATASET_FILES] + [str(folder / "frames.csv")]
+        return ([str(folder / "frames.csv")]
                 + [str(p) for p in dataset.raw_files(spec.experiment)]
                 + [str(folder / name) for name in spec.sidecars])
+
+    def dataset_subset(self, stage: str, lens: str) -> dict:
+        """The part of dataset.yaml that the job of one lens reads (its rerun trigger)."""
+        meta = self.load().dataset.meta
+        out = {"camera": meta.get("camera"), "lens": meta.get("lenses", {}).get(lens)}
+        for key in STAGES[stage].reads_meta:
+            out[key] = meta.get(key)
+        return json.loads(json.dumps(out, sort_keys=True, default=str))   # key order of the file does not matter
+
+    def layout_files(self) -> list[str]:
+        """dataset.yaml and MD5SUMS: read by every stage."""
+        return [str(self.load().dataset.root / name) for name in DATASET_FILES]
 
     def lens_files(self, stage: str, lens: str) -> list[str]:
         """The files of :meth:`stage_files` that the job of one lens reads."""
@@ -298,7 +313,8 @@ def dataset_to_simulate(config: dict) -> bool:
     if path.exists():
         return False
     default = config["simulate_if_missing"]
-    if config.get("simulate") or (default["enabled"] and path.resolve() == Path(default["path"]).resolve()):
+    asked = str(config.get("simulate", False)).lower() == "true"     # --config simulate=true gives a string
+    if asked or (default["enabled"] and path.resolve() == Path(default["path"]).resolve()):
         return True
     raise InputError(path, "dataset folder not found (check the path; to simulate a dataset into it, "
                            "add --config simulate=true)")

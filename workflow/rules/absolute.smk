@@ -10,6 +10,7 @@ rule absolute:
     params:
         dataset=config["dataset"],
         config=stage_params(config, "absolute"),
+        dataset_subset=dataset_subset("absolute"),
     threads: 1
     resources:
         mem_mb=1000,

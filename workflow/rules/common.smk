@@ -42,19 +42,18 @@ def _ready():
 def stage_inputs(stage):
     """Input function of a stage's rule: the files its lens job reads and its upstream artefacts.
 
-    dataset.yaml is an input (editing a lens region or the chessboard reruns what reads it);
-    MD5SUMS is read but only its frames' lines matter, and those frames are inputs themselves,
-    so rewriting MD5SUMS after adding frames to one experiment reruns only that experiment.
+    dataset.yaml and MD5SUMS are declared but their time stamps do not trigger reruns:
+    the part of dataset.yaml a job reads is one of its params (see dataset_subset), so editing
+    the chessboard reruns geometry and what depends on it, a lens region that lens's jobs; the
+    lines of MD5SUMS that matter belong to frames that are inputs themselves, so rewriting
+    MD5SUMS after adding frames to one experiment reruns only that experiment's stages.
     """
 
     def inputs(wildcards):
         index = _ready()
         spec = STAGES[stage]
         files = index.lens_files(stage, wildcards.lens)
-        out = {
-            "files": [f for f in files if not f.endswith("MD5SUMS")],
-            "md5sums": ancient(str(DATASET / "MD5SUMS")),
-        }
+        out = {"files": files, "layout": [ancient(f) for f in index.layout_files()]}
         for name in spec.upstream:
             out[name] = f"results/{name}/{wildcards.lens}.nc"
         for name in spec.optional_upstream:
@@ -65,9 +64,18 @@ def stage_inputs(stage):
     return inputs
 
 
+def dataset_subset(stage):
+    """Params function: the part of dataset.yaml that a stage's lens job reads."""
+
+    def subset(wildcards):
+        return _ready().dataset_subset(stage, wildcards.lens)
+
+    return subset
+
+
 def artefacts_of(stage):
     """Artefact paths of a stage, one per lens of the dataset."""
-    return [f"results/{stage}/{lens}.nc" for lens in _ready().lenses()]
+    return [f"results/{stage}/{lens}.nc" for lens in sorted(_ready().lenses())]
 
 
 def diagnostics_inputs(wildcards):
@@ -89,7 +97,7 @@ def report_inputs(wildcards):
 
 
 def report_lenses(wildcards):
-    return _ready().lenses()
+    return sorted(_ready().lenses())
 
 
 def skipped_stages(wildcards):

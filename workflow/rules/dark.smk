@@ -10,6 +10,7 @@ rule dark:
     params:
         dataset=config["dataset"],
         config=stage_params(config, "dark"),
+        dataset_subset=dataset_subset("dark"),
     threads: 1
     resources:
         mem_mb=1000,

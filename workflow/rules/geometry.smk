@@ -11,6 +11,7 @@ rule geometry:
     params:
         dataset=config["dataset"],
         config=stage_params(config, "geometry"),
+        dataset_subset=dataset_subset("geometry"),
     threads: 1
     resources:
         mem_mb=1500,

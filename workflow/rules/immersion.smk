@@ -10,6 +10,7 @@ rule immersion:
     params:
         dataset=config["dataset"],
         config=stage_params(config, "immersion"),
+        dataset_subset=dataset_subset("immersion"),
     threads: 1
     resources:
         mem_mb=1000,

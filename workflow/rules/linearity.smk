@@ -10,6 +10,7 @@ rule linearity:
     params:
         dataset=config["dataset"],
         config=stage_params(config, "linearity"),
+        dataset_subset=dataset_subset("linearity"),
     threads: 1
     resources:
         mem_mb=1000,

@@ -10,6 +10,7 @@ rule rolloff:
     params:
         dataset=config["dataset"],
         config=stage_params(config, "rolloff"),
+        dataset_subset=dataset_subset("rolloff"),
     threads: 1
     resources:
         mem_mb=1000,

@@ -10,6 +10,7 @@ rule spectral:
     params:
         dataset=config["dataset"],
         config=stage_params(config, "spectral"),
+        dataset_subset=dataset_subset("spectral"),
     threads: 1
     resources:
         mem_mb=1000,
