@@ -6,7 +6,10 @@ VENV := .venv
 BIN := $(VENV)/bin
 CORES ?= 2
 
-.PHONY: run test venv bench clean
+.PHONY: run test lint venv bench clean
+
+# what the lint step checks: the import layers (pyproject.toml), the code, the rules' formatting
+LINT_PATHS := src tests benchmarks workflow/scripts
 
 $(BIN)/activate:
 	$(PYTHON) -c 'import sys; assert sys.version_info >= (3, 11), "Python 3.11 or newer is needed"'
@@ -22,7 +25,12 @@ venv: $(VENV)/.installed
 run: $(VENV)/.installed
 	$(BIN)/snakemake --cores $(CORES)
 
-test: $(VENV)/.installed
+lint: $(VENV)/.installed
+	$(BIN)/lint-imports --no-cache
+	$(BIN)/ruff check $(LINT_PATHS)
+	$(BIN)/snakefmt --check Snakefile workflow/rules
+
+test: lint
 	$(BIN)/python -m pytest -n $(CORES) -q
 
 bench: $(VENV)/.installed

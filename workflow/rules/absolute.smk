@@ -7,18 +7,18 @@ rule absolute:
         unpack(stage_inputs("absolute")),
     output:
         artefact="results/absolute/{lens}.nc",
-    params:
-        dataset=config["dataset"],
-        config=stage_params(config, "absolute"),
-        dataset_subset=dataset_subset("absolute"),
-    threads: 1
-    resources:
-        mem_mb=1000,
-    conda:
-        "../envs/pipeline.yaml"
     log:
         "results/logs/absolute/{lens}.log",
     benchmark:
         "results/benchmarks/absolute/{lens}.tsv"
+    conda:
+        "../envs/pipeline.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        dataset=config["dataset"],
+        config=stage_params(config, "absolute"),
+        dataset_subset=dataset_subset("absolute"),
     script:
         "../scripts/absolute.py"

@@ -6,8 +6,6 @@ from pathlib import Path
 from pipeline.errors import InputError
 from pipeline.workflow import STAGES, DatasetIndex, dataset_to_simulate, stage_params
 
-
-
 DATASET = Path(config["dataset"])
 try:
     # simulate only the configured default dataset (or with --config simulate=true), never a path a user gave
@@ -80,7 +78,9 @@ def artefacts_of(stage):
 
 def diagnostics_inputs(wildcards):
     index = _ready()
-    return {stage: artefacts_of(stage) for stage in STAGES if index.stage_runnable(stage)}
+    return {
+        stage: artefacts_of(stage) for stage in STAGES if index.stage_runnable(stage)
+    }
 
 
 def report_inputs(wildcards):

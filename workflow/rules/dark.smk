@@ -7,18 +7,18 @@ rule dark:
         unpack(stage_inputs("dark")),
     output:
         artefact="results/dark/{lens}.nc",
-    params:
-        dataset=config["dataset"],
-        config=stage_params(config, "dark"),
-        dataset_subset=dataset_subset("dark"),
-    threads: 1
-    resources:
-        mem_mb=1000,
-    conda:
-        "../envs/pipeline.yaml"
     log:
         "results/logs/dark/{lens}.log",
     benchmark:
         "results/benchmarks/dark/{lens}.tsv"
+    conda:
+        "../envs/pipeline.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        dataset=config["dataset"],
+        config=stage_params(config, "dark"),
+        dataset_subset=dataset_subset("dark"),
     script:
         "../scripts/dark.py"

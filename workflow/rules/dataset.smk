@@ -6,16 +6,16 @@ if SIMULATE:
     checkpoint simulate_dataset:
         output:
             dataset=directory(config["dataset"]),
-        params:
-            simulation=config["simulate_if_missing"],
-        threads: 1
-        resources:
-            mem_mb=1500,
-        conda:
-            "../envs/pipeline.yaml"
         log:
             "results/logs/simulate_dataset.log",
         benchmark:
             "results/benchmarks/simulate_dataset.tsv"
+        conda:
+            "../envs/pipeline.yaml"
+        threads: 1
+        resources:
+            mem_mb=1500,
+        params:
+            simulation=config["simulate_if_missing"],
         script:
             "../scripts/simulate_dataset.py"

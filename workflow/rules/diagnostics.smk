@@ -10,17 +10,17 @@ rule diagnostics:
         run_errors="results/diagnostics/run_errors.csv",
         # rebuilt at every run from the append-only ledger folder (one file per run, never rewritten)
         error_history="results/diagnostics/error_history.csv",
-    params:
-        config=stage_params(config, "diagnostics"),
-        ledger="results/diagnostics/ledger",
-    threads: 1
-    resources:
-        mem_mb=1000,
-    conda:
-        "../envs/pipeline.yaml"
     log:
         "results/logs/diagnostics.log",
     benchmark:
         "results/benchmarks/diagnostics.tsv"
+    conda:
+        "../envs/pipeline.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        config=stage_params(config, "diagnostics"),
+        ledger="results/diagnostics/ledger",
     script:
         "../scripts/diagnostics.py"

@@ -8,18 +8,18 @@ rule geometry:
         unpack(stage_inputs("geometry")),
     output:
         artefact="results/geometry/{lens}.nc",
-    params:
-        dataset=config["dataset"],
-        config=stage_params(config, "geometry"),
-        dataset_subset=dataset_subset("geometry"),
-    threads: 1
-    resources:
-        mem_mb=1500,
-    conda:
-        "../envs/pipeline.yaml"
     log:
         "results/logs/geometry/{lens}.log",
     benchmark:
         "results/benchmarks/geometry/{lens}.tsv"
+    conda:
+        "../envs/pipeline.yaml"
+    threads: 1
+    resources:
+        mem_mb=1500,
+    params:
+        dataset=config["dataset"],
+        config=stage_params(config, "geometry"),
+        dataset_subset=dataset_subset("geometry"),
     script:
         "../scripts/geometry.py"

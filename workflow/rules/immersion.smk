@@ -7,18 +7,18 @@ rule immersion:
         unpack(stage_inputs("immersion")),
     output:
         artefact="results/immersion/{lens}.nc",
-    params:
-        dataset=config["dataset"],
-        config=stage_params(config, "immersion"),
-        dataset_subset=dataset_subset("immersion"),
-    threads: 1
-    resources:
-        mem_mb=1000,
-    conda:
-        "../envs/pipeline.yaml"
     log:
         "results/logs/immersion/{lens}.log",
     benchmark:
         "results/benchmarks/immersion/{lens}.tsv"
+    conda:
+        "../envs/pipeline.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        dataset=config["dataset"],
+        config=stage_params(config, "immersion"),
+        dataset_subset=dataset_subset("immersion"),
     script:
         "../scripts/immersion.py"

@@ -7,18 +7,18 @@ rule linearity:
         unpack(stage_inputs("linearity")),
     output:
         artefact="results/linearity/{lens}.nc",
-    params:
-        dataset=config["dataset"],
-        config=stage_params(config, "linearity"),
-        dataset_subset=dataset_subset("linearity"),
-    threads: 1
-    resources:
-        mem_mb=1000,
-    conda:
-        "../envs/pipeline.yaml"
     log:
         "results/logs/linearity/{lens}.log",
     benchmark:
         "results/benchmarks/linearity/{lens}.tsv"
+    conda:
+        "../envs/pipeline.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        dataset=config["dataset"],
+        config=stage_params(config, "linearity"),
+        dataset_subset=dataset_subset("linearity"),
     script:
         "../scripts/linearity.py"

@@ -6,17 +6,17 @@ rule report:
         unpack(report_inputs),
     output:
         html="results/report/index.html",
-    params:
-        lenses=report_lenses,
-        skipped=skipped_stages,
-    threads: 1
-    resources:
-        mem_mb=1500,
-    conda:
-        "../envs/pipeline.yaml"
     log:
         "results/logs/report.log",
     benchmark:
         "results/benchmarks/report.tsv"
+    conda:
+        "../envs/pipeline.yaml"
+    threads: 1
+    resources:
+        mem_mb=1500,
+    params:
+        lenses=report_lenses,
+        skipped=skipped_stages,
     script:
         "../scripts/report.py"

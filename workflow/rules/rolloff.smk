@@ -7,18 +7,18 @@ rule rolloff:
         unpack(stage_inputs("rolloff")),
     output:
         artefact="results/rolloff/{lens}.nc",
-    params:
-        dataset=config["dataset"],
-        config=stage_params(config, "rolloff"),
-        dataset_subset=dataset_subset("rolloff"),
-    threads: 1
-    resources:
-        mem_mb=1000,
-    conda:
-        "../envs/pipeline.yaml"
     log:
         "results/logs/rolloff/{lens}.log",
     benchmark:
         "results/benchmarks/rolloff/{lens}.tsv"
+    conda:
+        "../envs/pipeline.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        dataset=config["dataset"],
+        config=stage_params(config, "rolloff"),
+        dataset_subset=dataset_subset("rolloff"),
     script:
         "../scripts/rolloff.py"

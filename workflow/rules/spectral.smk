@@ -7,18 +7,18 @@ rule spectral:
         unpack(stage_inputs("spectral")),
     output:
         artefact="results/spectral/{lens}.nc",
-    params:
-        dataset=config["dataset"],
-        config=stage_params(config, "spectral"),
-        dataset_subset=dataset_subset("spectral"),
-    threads: 1
-    resources:
-        mem_mb=1000,
-    conda:
-        "../envs/pipeline.yaml"
     log:
         "results/logs/spectral/{lens}.log",
     benchmark:
         "results/benchmarks/spectral/{lens}.tsv"
+    conda:
+        "../envs/pipeline.yaml"
+    threads: 1
+    resources:
+        mem_mb=1000,
+    params:
+        dataset=config["dataset"],
+        config=stage_params(config, "spectral"),
+        dataset_subset=dataset_subset("spectral"),
     script:
         "../scripts/spectral.py"
