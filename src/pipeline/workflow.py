@@ -72,7 +72,7 @@ class StageSpec:
 #: the stages in the order of the calibration chain (Larouche et al. 2024, Section 2)
 STAGES: dict[str, StageSpec] = {spec.name: spec for spec in (
     StageSpec("dark", "dark"),
-    StageSpec("linearity", "linearity", upstream=("dark",)),
+    StageSpec("linearity", "linearity", upstream=("dark",), optional_upstream=("geometry",)),
     StageSpec("geometry", "geometry", reads_meta=("chessboard",)),
     StageSpec("rolloff", "rolloff", upstream=("geometry",)),
     StageSpec("spectral", "spectral", sidecars=("photodiode.csv",), upstream=("geometry",),

@@ -32,6 +32,7 @@ from pipeline.bands import BANDS
 from pipeline.dataset import Dataset
 from pipeline.effects import get as get_effect
 from pipeline.effects.catalogue import drift_sigma
+from pipeline.errors import InputError
 from pipeline.fitting import base_design, ols_line, wls
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.geometry.image_circle import find_image_circle
@@ -45,9 +46,41 @@ STAGE = "linearity"
 COLUMN_EFFECTS = ("shutter_offset", "nonlinearity", "iso_gain")
 
 
+def axis_masks(g_image: np.ndarray, geometry: xr.Dataset | None, config: dict) -> tuple[tuple, np.ndarray, np.ndarray, str]:
+    """The averaging mask and the photon-transfer region of one lens, in band pixels.
+
+    With the lens's geometry artefact, both are field-angle cones of the fitted
+    in-air theta map (``mask_half_angle_deg``, ``ptc_half_angle_deg``). Without
+    it, the lit image circle is found in the frame and the angles become radii
+    through an equidistant projection with ``nominal_half_fov_deg`` at the
+    circle's edge. Returns the circle (cx, cy, radius, mask radius), the two
+    masks and the source of the field angles.
+    """
+    cfg = config[STAGE]
+    circle = find_image_circle(g_image)
+    cx, cy, radius = circle.xc, circle.yc, circle.radius
+    r_mask = radius * cfg["mask_half_angle_deg"] / cfg["nominal_half_fov_deg"]
+    if geometry is not None:
+        theta = geometry["theta_deg"].sel(medium="air", band="G").values.astype(float)
+        if theta.shape != g_image.shape:
+            raise InputError(None, f"geometry artefact maps are {theta.shape} band pixels, the linearity frames "
+                                   f"{g_image.shape}: the artefact belongs to another camera or lens region")
+        theta = np.where(np.isfinite(theta), theta, np.inf)
+        mask, ptc_region = theta <= cfg["mask_half_angle_deg"], theta <= cfg["ptc_half_angle_deg"]
+        if mask.any():
+            return (cx, cy, radius, float(np.sqrt(mask.sum() / np.pi))), mask, ptc_region, "geometry artefact"
+    rmap = radius_map(g_image.shape, (cx, cy))
+    mask = rmap <= r_mask
+    ptc_region = rmap <= radius * cfg["ptc_half_angle_deg"] / cfg["nominal_half_fov_deg"]
+    return (cx, cy, radius, r_mask), mask, ptc_region, "image circle and nominal_half_fov_deg"
+
+
 def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict, effects: list[str],
-                     progress: bool = False) -> dict:
-    """Stream the linearity frames of every lens; one decode per frame."""
+                     progress: bool = False, geometry: dict[str, xr.Dataset] | None = None) -> dict:
+    """Stream the linearity frames of every lens; one decode per frame.
+
+    ``geometry`` (lens -> geometry artefact, optional) gives the field angles of the masks.
+    """
     cfg = config["linearity"]
     frames = dataset.frames(STAGE)
     frames = frames[frames["kind"] == "signal"]
@@ -57,7 +90,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
     moments = defaultdict(RunningMoments)     # (lens, band, sweep, setting) -> moments of mask pixels
     pearson = defaultdict(RunningPearson)     # (lens, band, sweep) -> per-pixel r
     first_of_setting = set()
-    frame_rows, inputs, geometry = [], {}, {}
+    frame_rows, inputs, circles, angle_source = [], {}, {}, {}
     max_raw = 0.0
     white = None
     for i, dec in enumerate(iter_frames(dataset, STAGE, frames,
@@ -72,13 +105,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
             images = dec.lenses[lens]
             if lens not in masks:
                 g = images.bands["G"]
-                circle = find_image_circle(g)
-                cx, cy, radius = circle.xc, circle.yc, circle.radius
-                r_mask = radius * cfg["mask_half_angle_deg"] / cfg["nominal_half_fov_deg"]
-                rmap = radius_map(g.shape, (cx, cy))
-                mask = rmap <= r_mask
-                ptc_region = rmap <= radius * cfg["ptc_half_angle_deg"] / cfg["nominal_half_fov_deg"]
-                geometry[lens] = (cx, cy, radius, r_mask)
+                circles[lens], mask, ptc_region, angle_source[lens] = axis_masks(g, (geometry or {}).get(lens), config)
                 masks[lens], ptc[lens] = {}, {}
                 for band in BANDS:
                     m = mask.copy()
@@ -110,7 +137,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     "temperature_c": float(row.get("temperature_c", np.nan)),
                 })
     return {"moments": moments, "pearson": pearson, "frames": pd.DataFrame(frame_rows), "masks": masks,
-            "corners": corners, "geometry": geometry, "ptc": ptc, "inputs": inputs, "max_raw_dn": max_raw,
+            "corners": corners, "geometry": circles, "angle_source": angle_source, "ptc": ptc, "inputs": inputs, "max_raw_dn": max_raw,
             "white_level_dn": white}
 
 
@@ -346,7 +373,8 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
         "mask_centre_x_px": ((), cx, {"long_name": "mask centre (band image column)", "units": "pixel"}),
         "mask_centre_y_px": ((), cy, {"long_name": "mask centre (band image row)", "units": "pixel"}),
         "image_circle_radius_px": ((), radius, {"long_name": "radius of the lit image circle", "units": "pixel"}),
-        "mask_radius_px": ((), r_mask, {"long_name": "radius of the averaging mask", "units": "pixel"}),
+        "mask_radius_px": ((), r_mask, {"long_name": "radius of the averaging mask (equivalent circle)", "units": "pixel",
+                                        "field_angles_from": reduced["angle_source"][lens]}),
         "bias_drift_dn": ((), drift[0], {"long_name": "frame-to-frame black-level spread (0 when not in the model)", "units": "DN"}),
         "rms_z": ((), np.sqrt((np.nansum(st["z"] ** 2) + ffit.chi2 + flat_chi2) / max(fit.dof + ffit.dof + flat_dof, 1)),
                   {"long_name": "RMS of the noise-normalised residuals of the linearity model (1 at the noise floor)", "units": "1"}),
@@ -378,6 +406,7 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
 def compute(ctx) -> xr.Dataset:
     """The linearity artefact of one lens (the stage runner's contract); frames dark-corrected by its dark model."""
     dark = {ctx.lens: ctx.upstream["dark"]}
-    reduced = reduce_linearity(ctx.dataset, dark, ctx.config, ctx.effects, progress=ctx.progress)
+    geometry = {ctx.lens: ctx.upstream["geometry"]} if "geometry" in ctx.upstream else None
+    reduced = reduce_linearity(ctx.dataset, dark, ctx.config, ctx.effects, progress=ctx.progress, geometry=geometry)
     ctx.record_frames(reduced["inputs"])
     return analyse_linearity(reduced, dark, ctx.config, ctx.effects)[ctx.lens]
