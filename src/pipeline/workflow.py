@@ -29,6 +29,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import xarray as xr
 
@@ -82,6 +83,18 @@ STAGES: dict[str, StageSpec] = {spec.name: spec for spec in (
     StageSpec("immersion", "immersion", sidecars=("water.yaml",), upstream=("geometry",),
               optional_upstream=("spectral",)),
 )}
+
+#: Peak memory of one lens job: a fixed part (the interpreter and libraries, measured as the
+#: diagnostics job's peak, which holds no image) plus bytes per band pixel of the lens region,
+#: from the peak of each job in results/benchmarks/ of the small simulated dataset (288 x 288
+#: band pixels per lens, 2026-12-01): (peak - fixed) / pixels. A scheduler is asked for
+#: JOB_MEMORY_HEADROOM times that, and more on each retry. The dark stage's figure is the arithmetic
+#: of its running sums (mean and variance per setting: 14 settings x 3 bands x 2 float64 arrays,
+#: 672 bytes per band pixel), which the small dataset's peak is too close to the fixed part to show.
+JOB_MEMORY_FIXED_MIB = 230.0
+JOB_MEMORY_BYTES_PER_BAND_PIXEL = {"dark": 700.0, "linearity": 400.0, "geometry": 2000.0, "rolloff": 350.0,
+                                   "spectral": 50.0, "absolute": 50.0, "immersion": 50.0}
+JOB_MEMORY_HEADROOM = 1.5
 
 #: experiments each stage reads (a stage runs only when all are present)
 STAGE_EXPERIMENTS = {name: spec.experiments for name, spec in STAGES.items()}
@@ -254,6 +267,13 @@ class DatasetIndex:
         for key in STAGES[stage].reads_meta:
             out[key] = meta.get(key)
         return json.loads(json.dumps(out, sort_keys=True, default=str))   # key order of the file does not matter
+
+    def job_memory_mb(self, stage: str, lens: str, attempt: int = 1) -> int:
+        """Memory to ask a scheduler for, for the job of one stage and lens (see JOB_MEMORY_*)."""
+        (r0, r1), (c0, c1) = self.load().dataset.lenses[lens]
+        band_pixels = (r1 - r0) * (c1 - c0) / 4
+        mib = JOB_MEMORY_FIXED_MIB + JOB_MEMORY_BYTES_PER_BAND_PIXEL[stage] * band_pixels / 2**20
+        return int(np.ceil(JOB_MEMORY_HEADROOM * attempt * mib * 1.048576))
 
     def layout_files(self) -> list[str]:
         """dataset.yaml and MD5SUMS: read by every stage."""

@@ -71,6 +71,15 @@ def dataset_subset(stage):
     return subset
 
 
+def job_memory_mb(stage):
+    """Resources function: memory of one lens job, from the lens region's size (pipeline.workflow)."""
+
+    def memory(wildcards, attempt):
+        return _ready().job_memory_mb(stage, wildcards.lens, attempt)
+
+    return memory
+
+
 def artefacts_of(stage):
     """Artefact paths of a stage, one per lens of the dataset."""
     return [f"results/{stage}/{lens}.nc" for lens in sorted(_ready().lenses())]

@@ -15,7 +15,7 @@ rule dark:
         "../envs/pipeline.yaml"
     threads: 1
     resources:
-        mem_mb=1000,
+        mem_mb=job_memory_mb("dark"),
     params:
         dataset=config["dataset"],
         config=stage_params(config, "dark"),

@@ -16,7 +16,7 @@ rule geometry:
         "../envs/pipeline.yaml"
     threads: 1
     resources:
-        mem_mb=1500,
+        mem_mb=job_memory_mb("geometry"),
     params:
         dataset=config["dataset"],
         config=stage_params(config, "geometry"),

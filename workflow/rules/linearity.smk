@@ -15,7 +15,7 @@ rule linearity:
         "../envs/pipeline.yaml"
     threads: 1
     resources:
-        mem_mb=1000,
+        mem_mb=job_memory_mb("linearity"),
     params:
         dataset=config["dataset"],
         config=stage_params(config, "linearity"),
