@@ -21,3 +21,8 @@ class InputError(Exception):
 
 class ArtefactError(InputError):
     """An artefact that a later stage cannot use (unknown version, wrong stage)."""
+
+
+class ImpossibleResult(InputError):
+    """A physically impossible fit result (negative gain, noise or radiance): the stage stops
+    with this message instead of writing an artefact."""

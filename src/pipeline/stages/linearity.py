@@ -7,7 +7,9 @@ Streams the exposure-time and gain sweeps once and reduces them to:
 * the mean dark-corrected DN in a small mask around the optical axis against
   exposure time and gain, with ordinary regressions and 95 % intervals
   (Fig. 3) and the nonlinearity residuals in percent;
-* the saturation level;
+* the saturation level, found in the data (plateau of the mean or collapse of the variance,
+  radiometry.saturation: full well or ADC, whichever comes first); saturated settings are
+  left out of every fit and counted, and "not reached" is said when nothing saturated;
 * the photon-transfer curve: temporal variance against mean signal gives the
   conversion gain (DN per electron, and electrons per DN) and the read noise
   in electrons;
@@ -32,12 +34,13 @@ from pipeline.bands import BANDS
 from pipeline.dataset import Dataset
 from pipeline.effects import get as get_effect
 from pipeline.effects.catalogue import drift_sigma
-from pipeline.errors import InputError
+from pipeline.errors import ImpossibleResult, InputError
 from pipeline.fitting import base_design, ols_line, wls
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.geometry.image_circle import find_image_circle
 from pipeline.moments import RunningMoments, RunningPearson, corner_mask, radius_map
 from pipeline.radiometry.dark import dark_level_dn
+from pipeline.radiometry.saturation import saturated_settings
 from pipeline.observations import effect_coefficients, fit_with_effects, table_to_dataset
 from pipeline.stages.flatfield import flatfield
 
@@ -225,6 +228,21 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     fr["gain"] = fr["iso"] / 100.0
     fr["group"] = fr["lens"] + "/" + fr["band"] + "/" + fr["sweep"] + "/" + fr["setting"].astype(str)
     fr["x_level"] = 1.0
+    # ----- saturation from the data: the plateau of the mean or the collapse of the variance,
+    # whichever comes first (full well or ADC); a setting above a saturated one is saturated too
+    cfg = config[STAGE]
+    fr["clipped_at_white_level"] = fr["saturated"]
+    per = fr.groupby(["lens", "band", "sweep", "setting"]).agg(
+        iso=("iso", "first"), exposure_s=("exposure_s", "first"), value_dn=("value_dn", "mean"),
+        pixel_var_dn2=("pixel_var_dn2", "first"), clipped=("saturated", "any")).reset_index()
+    per["saturated_in_data"] = False
+    for _, g in per.groupby(["lens", "band", "sweep"]):
+        per.loc[g.index, "saturated_in_data"] = saturated_settings(
+            g["iso"] / 100.0 * g["exposure_s"], g["value_dn"], g["pixel_var_dn2"],
+            cfg["saturation_plateau_fraction"], cfg["saturation_variance_drop"], clipped=g["clipped"])
+    fr = fr.merge(per[["lens", "band", "sweep", "setting", "saturated_in_data"]],
+                  on=["lens", "band", "sweep", "setting"])
+    fr["saturated"] = fr["saturated"] | fr["saturated_in_data"]
     # saturated frames carry no information on drift or noise: left out of the frame-level fit
     ok = ~fr["saturated"].to_numpy()
     ffit = wls(fr["value_dn"].to_numpy()[ok], fr["sigma_dn"].to_numpy()[ok], base_design(fr[ok])[0])
@@ -238,6 +256,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         value_dn=("value_dn", "mean"), frame_sigma=("sigma_dn", "mean"), n_frames=("n_frames", "first"),
         pixel_var_dn2=("pixel_var_dn2", "first"), ptc_var_dn2=("ptc_var_dn2", "first"),
         ptc_mean_dn=("ptc_mean_dn", "first"), saturated=("saturated", "any"),
+        clipped_at_white_level=("clipped_at_white_level", "any"),
         dark_mask_dn=("dark_mask_dn", "mean"), temperature_c=("temperature_c", "mean")).reset_index()
     st["gain"] = st["iso"] / 100.0
     # with bias_drift in the model each frame is corrected against the dark level of the
@@ -247,8 +266,9 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     st["used"] = ~st["saturated"]
     st["group"] = st["lens"] + "/" + st["band"] + "/" + st["sweep"]
     st["x_rate"] = st["gain"] * st["exposure_s"]
-    saturation = reduced["max_raw_dn"] - float(st["dark_mask_dn"].min())
-    st["full_scale_dn"] = saturation
+    saturation = saturation_levels(st, reduced)
+    # scale of the nonlinearity term: the saturation level, or the ADC range where nothing saturated
+    st["full_scale_dn"] = saturation["level_dn"] if saturation["reached"] else saturation["adc_range_dn"]
     fit, names, extra, pred = _fit_model(st, effects)
     st["pred_dn"] = pred
     st["z"] = (st["value_dn"] - pred) / st["sigma_dn"]
@@ -270,6 +290,27 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     return {lens: _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift, saturation,
                                 dark[lens], effects)
             for lens in reduced["geometry"]}
+
+
+def saturation_levels(st: pd.DataFrame, reduced: dict) -> dict:
+    """Saturation level above dark from the saturated settings, or "not reached" with a lower bound.
+
+    Where the raw values reached the white level, the level is the ADC top minus the dark level;
+    where the full well clipped first, the plateau: the largest mean of the saturated settings.
+    """
+    adc_range = reduced["white_level_dn"] - float(st["dark_mask_dn"].min())
+    sat = st[st["saturated"]]
+    unsat = st[~st["saturated"]]
+    lower = float(unsat["value_dn"].max()) if len(unsat) else float("nan")
+    out = {"reached": bool(len(sat)), "n_saturated_settings": int(len(sat)), "lower_bound_dn": lower,
+           "adc_range_dn": adc_range, "level_dn": float("nan"), "by": "not reached"}
+    if len(sat):
+        if reduced["max_raw_dn"] >= reduced["white_level_dn"] - 1 and bool(sat["clipped_at_white_level"].any()):
+            out.update(level_dn=reduced["max_raw_dn"] - float(st["dark_mask_dn"].min()), by="ADC white level")
+        else:
+            # each band's plateau; the sensor saturates at the lowest
+            out.update(level_dn=float(sat.groupby("band")["value_dn"].max().min()), by="full well (plateau)")
+    return out
 
 
 def photon_transfer(st_l: pd.DataFrame, dark_ds: xr.Dataset) -> dict:
@@ -345,6 +386,14 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
     if "ols_pred_dn" in st_l:
         st_l["nonlinearity_pct"] = 100.0 * (st_l["value_dn"] - st_l["ols_pred_dn"]) / st_l["ols_pred_dn"]
     ptc = photon_transfer(st_l, dark_ds)
+    for key, what, unit in (("conversion_gain_dn_per_e", "conversion gain", "DN/electron"),
+                            ("read_noise_e", "read noise", "electron")):
+        value = ptc.get(key, (float("nan"),))[0]
+        if key in ptc and not value > 0:
+            raise ImpossibleResult(None, f"linearity, lens {lens}: the photon-transfer {what} is {value:.4g} {unit}, "
+                                         f"which is not physical; {int((~st_l['used']).sum())} settings were found "
+                                         "saturated and left out: check the sweep (signal level, saturation) and "
+                                         "linearity.saturation_* in the config")
     flat, flat_maps, flat_fit = reduced["flat"]
     flat_chi2 = flat_fit.chi2 if flat_fit is not None else 0.0
     flat_dof = flat_fit.dof if flat_fit is not None else 0
@@ -361,8 +410,14 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
         "rate_dn_per_s": (("sweep", "band"), rate[..., 0],
                           {"long_name": "model slope: dark-corrected DN per second at ISO 100", "units": "DN s-1"}),
         "rate_dn_per_s_sigma": (("sweep", "band"), rate[..., 1], {"long_name": "standard error of rate_dn_per_s", "units": "DN s-1"}),
-        "saturation_dn": ((), saturation, {"long_name": "saturation level above the dark level", "units": "DN",
-                                          "reached": int(reduced["max_raw_dn"] >= reduced["white_level_dn"] - 1)}),
+        "saturation_dn": ((), saturation["level_dn"],
+                          {"long_name": "saturation level above the dark level (NaN when not reached)", "units": "DN",
+                           "reached": int(saturation["reached"]), "saturated_by": saturation["by"]}),
+        "saturation_lower_bound_dn": ((), saturation["lower_bound_dn"],
+                                      {"long_name": "largest unsaturated signal above dark (a lower bound of saturation)",
+                                       "units": "DN"}),
+        "n_saturated_settings": ((), saturation["n_saturated_settings"],
+                                 {"long_name": "settings (lens, band, sweep) left out of every fit as saturated", "units": "1"}),
         "conversion_gain_dn_per_e": ((), ptc.get("conversion_gain_dn_per_e", nan2)[0],
                                      {"long_name": "photon-transfer conversion gain at the exposure-sweep ISO", "units": "DN/electron"}),
         "conversion_gain_dn_per_e_sigma": ((), ptc.get("conversion_gain_dn_per_e", nan2)[1], {"units": "DN/electron"}),
