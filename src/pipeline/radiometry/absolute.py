@@ -3,7 +3,8 @@
 Larouche et al. (2024), Sections 2.1, 2.6 and 3.5.
 
 * Eq. (2): y_DN = (y_raw - y_bias) / (t_int * S_ISO * 0.01), in ADU/s at ISO 100
-  (S_ISO * 0.01 = 1 at ISO 100).
+  (S_ISO * 0.01 = 1 at ISO 100); :func:`pipeline.radiometry.exposure.dn_per_second`,
+  re-exported here.
 * Eq. (9): R_i^-1 = L_i,source / y_DN,i,source, in W sr-1 m-2 nm-1 per ADU/s,
   where L_i,source is the effective band radiance of the source, Eq. (3).
 * Table 1 (W sr-1 m-2 nm-1, ADU/s): R 0.74e-3 / 61e3 = 1.21e-8,
@@ -37,6 +38,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .exposure import dn_per_second
 from .source import (
     REFERENCE_RADIANCE_SIGMA_W_SR_M2_NM,
     REFERENCE_RADIANCE_W_SR_M2_NM,
@@ -51,16 +53,6 @@ __all__ = [
     "lamp_calibration_relative_sigma",
     "absolute_calibration_budget",
 ]
-
-
-def dn_per_second(dn_raw, dn_bias, exposure_s, iso):
-    """Eq. (2): dark-subtracted DN normalised by exposure and gain, ADU/s at ISO 100.
-
-    y = (dn_raw - dn_bias) / (exposure_s * iso * 0.01).  Vectorised.
-    """
-    return (np.asarray(dn_raw, dtype=float) - np.asarray(dn_bias, dtype=float)) / (
-        np.asarray(exposure_s, dtype=float) * np.asarray(iso, dtype=float) * 0.01
-    )
 
 
 def inverse_responsivity(effective_radiance, dn_per_s, effective_radiance_sigma=None, dn_per_s_sigma=None):

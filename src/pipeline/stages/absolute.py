@@ -44,6 +44,7 @@ from pipeline.dataset import read_source_reference, read_source_spectrum
 from pipeline.errors import InputError
 from pipeline.radiometry.absolute import (absolute_calibration_budget, dn_per_second,
                                           lamp_calibration_relative_sigma)
+from pipeline.radiometry.exposure import exposure_gain_s
 from pipeline.stages.dark import table_to_dataset
 from pipeline.stages.spectral import _read_optional, central_masks, dark_levels, frame_table, reduce_central
 
@@ -113,7 +114,7 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
                 mean_map = mom.mean()
                 n_mask = mean_map.size
                 y_k = float(dn_per_second(mean_map.mean(), d["level_dn"], k[5], k[4]))
-                scale = k[5] * k[4] / 100.0
+                scale = exposure_gain_s(k[5], k[4])
                 region_std = float(np.std(mean_map, ddof=1)) / scale
                 se = np.sqrt(float(mom.variance().mean()) / n_mask / mom.n + d["sigma_dn"] ** 2) / scale
                 y += y_k * mom.n

@@ -32,6 +32,7 @@ from pipeline.effects.catalogue import drift_sigma
 from pipeline.fitting import base_design, wls
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.moments import RunningMoments, corner_mask
+from pipeline.radiometry.exposure import gain_from_iso
 
 STAGE = "dark"
 
@@ -128,7 +129,7 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
                     "n_hot": int((hot & circle).sum()), "n_pixels": int(circle.sum()),
                 })
     st = pd.DataFrame(setting_rows)
-    st["gain"] = st["iso"] / 100.0
+    st["gain"] = gain_from_iso(st["iso"])
     st["group"] = st["lens"] + "/" + st["band"]
     st["setting"] = st.groupby(["iso", "exposure_s"], sort=True).ngroup()
 
@@ -327,7 +328,7 @@ def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
     the level follows it.
     """
     b = ds.sel(band=band)
-    gain = iso / 100.0
+    gain = gain_from_iso(iso)
     level = float(b["bias_dn"] + b["bias_per_gain_dn"] * (gain - 1.0)
                   + ds["dark_current_dn_per_s"] * gain * exposure_s)
     if temperature_c is not None and np.isfinite(temperature_c) and "temperature_bias_dn_per_c" in ds:

@@ -36,6 +36,7 @@ from pipeline.fitting import base_design, ols_line, wls
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.geometry.image_circle import find_image_circle
 from pipeline.moments import RunningMoments, RunningPearson, corner_mask, radius_map
+from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso
 from pipeline.stages.dark import dark_level_dn, fit_with_effects, table_to_dataset
 from pipeline.stages.flatfield import flatfield
 
@@ -99,7 +100,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                 region, _ = ptc[lens][band]
                 moments[(lens, band, sweep, key)].add(img[region])
                 if first:
-                    x = key[1] if sweep == "exposure" else key[0] / 100.0
+                    x = key[1] if sweep == "exposure" else gain_from_iso(key[0])
                     pearson[(lens, band, sweep)].add(x, img, ~images.saturated[band])
                 frame_rows.append({
                     "lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
@@ -165,7 +166,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
             sel = fr["lens"] == lens
             dt = fr.loc[sel, "temperature_c"] - float(d["temperature_reference_c"])
             shift = (float(d["temperature_bias_dn_per_c"]) * dt + float(d["temperature_dark_dn_per_s_per_c"])
-                     * fr.loc[sel, "iso"] / 100.0 * fr.loc[sel, "exposure_s"] * dt)
+                     * exposure_gain_s(fr.loc[sel, "exposure_s"], fr.loc[sel, "iso"]) * dt)
             fr.loc[sel, "dark_mask_dn"] += shift
             fr.loc[sel, "dark_corner_dn"] += shift
     fr["setting"] = fr.groupby(["sweep", "iso", "exposure_s"], sort=True).ngroup()
@@ -194,7 +195,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     fr["sigma_dn"] = np.sqrt(np.maximum(fr["pixel_var_dn2"] - drift[0] ** 2, 1e-12) / fr["n_mask"])
     if use_drift:
         fr["sigma_dn"] = np.hypot(fr["sigma_dn"], fr["sigma_corner_dn"])
-    fr["gain"] = fr["iso"] / 100.0
+    fr["gain"] = gain_from_iso(fr["iso"])
     fr["group"] = fr["lens"] + "/" + fr["band"] + "/" + fr["sweep"] + "/" + fr["setting"].astype(str)
     fr["x_level"] = 1.0
     # saturated frames carry no information on drift or noise: left out of the frame-level fit
@@ -211,14 +212,14 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         pixel_var_dn2=("pixel_var_dn2", "first"), ptc_var_dn2=("ptc_var_dn2", "first"),
         ptc_mean_dn=("ptc_mean_dn", "first"), saturated=("saturated", "any"),
         dark_mask_dn=("dark_mask_dn", "mean"), temperature_c=("temperature_c", "mean")).reset_index()
-    st["gain"] = st["iso"] / 100.0
+    st["gain"] = gain_from_iso(st["iso"])
     # with bias_drift in the model each frame is corrected against the dark level of the
     # unlit corners, so no drift is left in the setting mean; without it the drift is
     # unmodelled and not part of the expected noise
     st["sigma_dn"] = st["frame_sigma"] / np.sqrt(st["n_frames"])
     st["used"] = ~st["saturated"]
     st["group"] = st["lens"] + "/" + st["band"] + "/" + st["sweep"]
-    st["x_rate"] = st["gain"] * st["exposure_s"]
+    st["x_rate"] = exposure_gain_s(st["exposure_s"], st["iso"])
     saturation = reduced["max_raw_dn"] - float(st["dark_mask_dn"].min())
     st["full_scale_dn"] = saturation
     fit, names, extra, pred = _fit_model(st, effects)

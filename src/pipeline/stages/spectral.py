@@ -50,6 +50,7 @@ from pipeline.errors import InputError
 from pipeline.fitting import base_design, wls
 from pipeline.frames import iter_frames
 from pipeline.moments import RunningMoments
+from pipeline.radiometry.exposure import exposure_gain_s
 from pipeline.radiometry.spectral import band_statistics
 from pipeline.stages.dark import dark_level_dn, table_to_dataset
 
@@ -268,7 +269,7 @@ def analyse_spectral(reduced: dict, darks: dict, photodiode: pd.DataFrame, photo
                     d = darks[(lens, band, k[4], k[5])]
                     # Eq. (2) normalisation would cancel in the peak normalisation unless the
                     # settings differ between wavelengths: bring every setting to DN per second at ISO 100
-                    norm = k[5] * k[4] / 100.0
+                    norm = exposure_gain_s(k[5], k[4])
                     total += (mom.mean().mean() - d["level_dn"]) / norm * mom.n
                     var_sum += float(mom.variance().mean()) / mom.mean().size / norm**2 * mom.n
                     dsig2 += (d["sigma_dn"] / norm) ** 2 * mom.n
