@@ -12,6 +12,14 @@ import pytest
 
 from pipeline.radiometry import absolute, exposure
 from pipeline.radiometry.exposure import dn_per_second, exposure_gain_s, gain_from_iso
+from pipeline.radiometry.spectral import (
+    band_statistics,
+    band_weights,
+    bandwidth,
+    effective_band_radiance,
+    effective_wavelength,
+    peak_normalise_response,
+)
 
 
 # ----------------------------------------------------------------------------- Eq. (2)
@@ -34,3 +42,50 @@ def test_dn_per_second_hand_values_and_single_home():
     # the same signal at ISO 200 and half the exposure: same y_DN
     assert dn_per_second(6900.0, 800.0, 0.05, 200.0) == pytest.approx(61e3)
     assert absolute.dn_per_second is exposure.dn_per_second
+
+
+# ----------------------------------------------------------------------------- Eq. (3) and Eq. (8)
+WL3 = np.array([500.0, 510.0, 520.0])
+
+
+def test_band_weights_hand():
+    # trapezoid weights on 500, 510, 520 nm: 5, 10, 5 nm; with S = (1, 1, 0): w S = (5, 10, 0) / 15
+    k = band_weights(WL3, [1.0, 1.0, 0.0])
+    assert np.allclose(k, [1 / 3, 2 / 3, 0.0], rtol=1e-15)
+    assert np.allclose(np.sum(band_weights(WL3, np.array([[1.0, 0.5, 0.2], [0.1, 1.0, 0.3]])), axis=-1), 1.0)
+
+
+def test_eq8_is_eq3_of_lambda_hand():
+    s = np.array([1.0, 1.0, 0.0])
+    # hand: (5 * 500 + 10 * 510) / 15 = 506.667 nm
+    assert effective_wavelength(WL3, s) == pytest.approx(7600.0 / 15.0, rel=1e-14)
+    assert effective_band_radiance(WL3, WL3, s) == effective_wavelength(WL3, s)
+    # Eq. (3) of a spectrum 2, 4, 6 W sr-1 m-2 nm-1: (5 * 2 + 10 * 4) / 15 = 3.333
+    assert effective_band_radiance(WL3, [2.0, 4.0, 6.0], s) == pytest.approx(50.0 / 15.0, rel=1e-14)
+    # along another axis
+    two = np.stack([s, s[::-1]], axis=0)
+    assert np.allclose(effective_wavelength(WL3, two.T, axis=0), [7600.0 / 15.0, 2 * 510.0 - 7600.0 / 15.0])
+
+
+def test_band_statistics_is_eq8_and_bandwidth():
+    s = np.array([0.2, 1.0, 0.4])
+    st = band_statistics(WL3, s)
+    # hand: Lambda = 5 * 0.2 + 10 * 1 + 5 * 0.4 = 13 nm
+    assert st["bandwidth_nm"] == pytest.approx(13.0, rel=1e-14) == bandwidth(WL3, s)
+    assert st["effective_wavelength_nm"] == effective_wavelength(WL3, s)
+    assert st["effective_wavelength_nm"] == pytest.approx((500 + 5100 + 1040) / 13.0, rel=1e-14)
+    assert st["half_bandwidth_nm"] == pytest.approx(6.5)
+
+
+def test_peak_normalisation_hand_with_an_unlit_wavelength():
+    # r = dn / pd = (0, 10, 5), peak 10: S = (0, 1, 0.5); sigma_r = 1 each, u_p = 0.1.
+    # var(S_0) = 1 / 100 + 0 = 0.01; var(S_2) = 1 / 100 + 0.25 * 0.01 = 0.0125;
+    # cov(S_0, S_2) = S_0 S_2 u_p^2 = 0; the peak has zero uncertainty.
+    s, sigma, cov = peak_normalise_response([0.0, 20.0, 10.0], [1.0, 2.0, 2.0], [1.0, 2.0, 2.0], 0.0,
+                                            return_covariance=True)
+    assert np.allclose(s, [0.0, 1.0, 0.5])
+    assert np.allclose(sigma, [0.1, 0.0, np.sqrt(0.0125)])
+    assert np.allclose(cov, np.diag([0.01, 0.0, 0.0125]))
+    # photodiode uncertainty of 10 % on the 0.5 point alone adds (0.5 * 0.1)^2
+    _, sigma2 = peak_normalise_response([0.0, 20.0, 10.0], [1.0, 2.0, 2.0], [1.0, 2.0, 2.0], [0.0, 0.0, 0.2])
+    assert sigma2[2] == pytest.approx(np.sqrt(0.0125 + 0.05**2))
