@@ -11,6 +11,7 @@ import pandas as pd
 import pytest
 
 from pipeline.radiometry import absolute, exposure
+from pipeline.radiometry.absolute import absolute_calibration_budget, inverse_responsivity
 from pipeline.radiometry.exposure import dn_per_second, exposure_gain_s, gain_from_iso
 from pipeline.radiometry.spectral import (
     band_statistics,
@@ -89,3 +90,17 @@ def test_peak_normalisation_hand_with_an_unlit_wavelength():
     # photodiode uncertainty of 10 % on the 0.5 point alone adds (0.5 * 0.1)^2
     _, sigma2 = peak_normalise_response([0.0, 20.0, 10.0], [1.0, 2.0, 2.0], [1.0, 2.0, 2.0], [0.0, 0.0, 0.2])
     assert sigma2[2] == pytest.approx(np.sqrt(0.0125 + 0.05**2))
+
+
+# ----------------------------------------------------------------------------- Eq. (9)
+def test_budget_uses_eq9():
+    wl = np.arange(400.0, 701.0, 10.0)
+    flat = np.ones_like(wl)
+    out = absolute_calibration_budget(wl, flat, np.ones_like(wl), 61e3, 1e3, reference_value=0.74e-3,
+                                      reference_sigma=0.0, lamp_relative_sigma=None, extra_relative_sigma=0.1)
+    # flat source scaled to 0.74 mW: L = 0.74e-3, u_L = 10 %; R^-1 = 0.74e-3 / 61e3 = 1.2131e-8,
+    # relative sigma hypot(0.10, 1 / 61) = 10.13 %
+    assert out["inverse_responsivity"] == pytest.approx(1.2131e-8, rel=1e-4)
+    assert out["relative_sigma"] == pytest.approx(np.hypot(0.1, 1 / 61), rel=1e-12)
+    _, s = inverse_responsivity(0.74e-3, 61e3, 0.074e-3, 1e3)
+    assert out["inverse_responsivity_sigma"] == pytest.approx(float(s), rel=1e-12)

@@ -177,12 +177,12 @@ def absolute_calibration_budget(
     contrib["extra"] = float(extra_relative_sigma)
     contrib["image"] = float(dn_per_s_sigma / dn_per_s)
     u_l = float(np.sqrt(sum(v**2 for k, v in contrib.items() if k != "image")))
-    r_inv = l_eff / float(dn_per_s)
-    u_tot = float(np.hypot(u_l, contrib["image"]))
+    r_inv, r_inv_sigma = inverse_responsivity(l_eff, float(dn_per_s), l_eff * u_l, float(dn_per_s_sigma))
+    r_inv, r_inv_sigma = float(r_inv), float(r_inv_sigma)
     return {
         "inverse_responsivity": r_inv,
-        "inverse_responsivity_sigma": r_inv * u_tot,
-        "relative_sigma": u_tot,
+        "inverse_responsivity_sigma": r_inv_sigma,
+        "relative_sigma": r_inv_sigma / abs(r_inv),
         "effective_radiance": l_eff,
         "effective_radiance_sigma": l_eff * u_l,
         "contributions": contrib,

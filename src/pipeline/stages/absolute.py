@@ -45,6 +45,7 @@ from pipeline.errors import InputError
 from pipeline.radiometry.absolute import (absolute_calibration_budget, dn_per_second,
                                           lamp_calibration_relative_sigma)
 from pipeline.radiometry.exposure import exposure_gain_s
+from pipeline.radiometry.source import scale_to_reference
 from pipeline.stages.dark import table_to_dataset
 from pipeline.stages.spectral import _read_optional, central_masks, dark_levels, frame_table, reduce_central
 
@@ -136,7 +137,7 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
                          "n_mask": n_mask, "n_frames": n_tot, "budget": budget,
                          "dark_dn": darks[(lens, band, keys[0][4], keys[0][5])]["level_dn"],
                          "dark_source": darks[(lens, band, keys[0][4], keys[0][5])]["source"]})
-        scaled = spec * (ref_value / np.interp(cfg["reference_wavelength_nm"], wl, spec))
+        scaled = scale_to_reference(wl, spec, cfg["reference_wavelength_nm"], ref_value, ref_value * ref_rel)["radiance"]
         out[lens] = _lens_dataset(rows, wl, scaled, ref_value, ref_rel, fr[fr["lens"] == lens].reset_index(drop=True),
                                   cfg)
     return out
