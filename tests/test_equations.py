@@ -13,6 +13,8 @@ import pytest
 from pipeline.radiometry import absolute, exposure
 from pipeline.radiometry.absolute import absolute_calibration_budget, inverse_responsivity
 from pipeline.radiometry.exposure import dn_per_second, exposure_gain_s, gain_from_iso
+from pipeline.radiometry.fresnel import transmittance_air_water
+from pipeline.radiometry.immersion import n_squared_law_factor
 from pipeline.radiometry.spectral import (
     band_statistics,
     band_weights,
@@ -21,6 +23,7 @@ from pipeline.radiometry.spectral import (
     effective_wavelength,
     peak_normalise_response,
 )
+from pipeline.radiometry.water import refractive_index_water
 
 
 # ----------------------------------------------------------------------------- Eq. (2)
@@ -104,3 +107,47 @@ def test_budget_uses_eq9():
     assert out["relative_sigma"] == pytest.approx(np.hypot(0.1, 1 / 61), rel=1e-12)
     _, s = inverse_responsivity(0.74e-3, 61e3, 0.074e-3, 1e3)
     assert out["inverse_responsivity_sigma"] == pytest.approx(float(s), rel=1e-12)
+
+
+# ----------------------------------------------------------------------------- Eq. (11), n-squared law
+def test_n_squared_law_worked_example():
+    # DESIGN.md, "Immersion": 0.9797 x 1.3317^2 = 1.737 at 600 nm (Table 2); the printed t_aw n_w would be 1.305
+    assert float(n_squared_law_factor(0.9797, 1.3317)) == pytest.approx(1.737, abs=5e-4)
+
+
+def test_immersion_stage_normalises_by_eq2_and_uses_n_squared(monkeypatch):
+    """A hand-made frame table through the immersion stage's analysis: exact I back.
+
+    In-air frames at 0.1 s, ISO 100; in-water frames at 0.05 s, ISO 400 (twice
+    the exposure-gain product), so a stage that skipped Eq. (2) would be off by 2.
+    """
+    from pipeline.stages import immersion
+
+    water = {"temperature_c": 25.0, "salinity_psu": 0.0}
+    lam = {"R": 600.0, "G": 540.0, "B": 480.0}
+    true_i = {"R": 1.69, "G": 1.70, "B": 1.71}
+    dn_air_per_s, k_per_cm = 5267.0, 0.03
+    heights = np.arange(6.0, 11.01, 0.5)
+    wiggle = np.array([1.0, -1.0, 0.5, -0.5, 0.0]) * 1e-3     # frame-to-frame scatter, mean ~ 0 in ln
+    rows = []
+    for band in "RGB":
+        n2 = 0.9797 * 1.3317**2 if band == "R" else float(
+            transmittance_air_water(lam[band], 25.0, 0.0) * refractive_index_water(lam[band], 25.0, 0.0) ** 2)
+        for f in range(5):
+            rows.append(dict(lens="far", band=band, condition="air", water_height_cm=0.0, n_mask=10,
+                             dn=dn_air_per_s * 0.1 * (1 + wiggle[f]), exposure_s=0.1, iso=100.0))
+        for z in heights:
+            for f in range(5):
+                y = dn_air_per_s * n2 / true_i[band] * np.exp(-k_per_cm * z) * (1 + wiggle[f])
+                rows.append(dict(lens="far", band=band, condition="water", water_height_cm=z, n_mask=10,
+                                 dn=y * 0.05 * 4.0, exposure_s=0.05, iso=400.0))
+    # the red band at the paper's worked example: t_aw = 0.9797, n_w = 1.3317 (Table 2, 600 nm)
+    monkeypatch.setattr(immersion, "transmittance_air_water",
+                        lambda wl, t, s: 0.9797 if wl == 600.0 else transmittance_air_water(wl, t, s))
+    monkeypatch.setattr(immersion, "refractive_index_water",
+                        lambda wl, t, s: 1.3317 if wl == 600.0 else refractive_index_water(wl, t, s))
+    art = immersion.analyse_immersion({"frames": pd.DataFrame(rows)}, water, lam)["far"]
+    assert float(art["n2_factor"].sel(band="R")) == pytest.approx(1.737, abs=5e-4)   # DESIGN.md, Table 2
+    assert np.allclose(art["n2_factor"], art["t_aw"] * art["n_w"] ** 2, rtol=1e-15)
+    assert np.allclose(art["dn_air"], dn_air_per_s, rtol=1e-6)
+    assert np.allclose(art["immersion_factor"], [true_i[b] for b in art["band"].values], rtol=1e-5)

@@ -29,7 +29,8 @@ from pipeline.frames import iter_frames
 from pipeline.moments import RunningMoments
 from pipeline.radiometry.fresnel import transmittance_air_water
 from pipeline.radiometry.exposure import exposure_gain_s
-from pipeline.radiometry.immersion import fit_immersion_factor, window_index_from_immersion_factor
+from pipeline.radiometry.immersion import (fit_immersion_factor, n_squared_law_factor,
+                                           window_index_from_immersion_factor)
 from pipeline.radiometry.water import refractive_index_water
 from pipeline.stages.dark import table_to_dataset
 
@@ -99,7 +100,7 @@ def analyse_immersion(reduced: dict, water: dict, wavelengths: dict[str, float])
             lam = wavelengths[band]
             t_aw = float(transmittance_air_water(lam, water["temperature_c"], water["salinity_psu"]))
             n_w = float(refractive_index_water(lam, water["temperature_c"], water["salinity_psu"]))
-            n2 = t_aw * n_w**2
+            n2 = float(n_squared_law_factor(t_aw, n_w))
             fit = fit_immersion_factor(wat["water_height_cm"], wat["dn"], air, n2)
             n_g, n_g_se = window_index_from_immersion_factor(fit.immersion_factor, n_w, fit.immersion_factor_sigma)
             res[band] = dict(fit=fit, t_aw=t_aw, n_w=n_w, n2=n2, n_g=float(n_g), n_g_se=float(n_g_se), lam=lam)
