@@ -15,6 +15,7 @@ from pipeline.radiometry.absolute import absolute_calibration_budget, inverse_re
 from pipeline.radiometry.exposure import dn_per_second, exposure_gain_s, gain_from_iso
 from pipeline.radiometry.fresnel import transmittance_air_water
 from pipeline.radiometry.immersion import n_squared_law_factor
+from pipeline.radiometry.rolloff import evaluate_rolloff, rolloff_design_matrix, rolloff_slope
 from pipeline.radiometry.spectral import (
     band_statistics,
     band_weights,
@@ -151,3 +152,32 @@ def test_immersion_stage_normalises_by_eq2_and_uses_n_squared(monkeypatch):
     assert np.allclose(art["n2_factor"], art["t_aw"] * art["n_w"] ** 2, rtol=1e-15)
     assert np.allclose(art["dn_air"], dn_air_per_s, rtol=1e-6)
     assert np.allclose(art["immersion_factor"], [true_i[b] for b in art["band"].values], rtol=1e-5)
+
+
+# ----------------------------------------------------------------------------- Eq. (13)
+def test_rolloff_design_matrix_hand_and_shapes():
+    # theta = 45 deg, scale 90 deg: u = 0.5 -> 1, 0.25, 0.0625, 0.015625, 0.00390625
+    assert np.allclose(rolloff_design_matrix(45.0, 90.0), [1.0, 0.25, 0.0625, 0.015625, 0.00390625], rtol=1e-15)
+    assert rolloff_design_matrix([10.0, 20.0, 30.0]).shape == (3, 5)
+    assert rolloff_design_matrix(np.zeros((2, 4))).shape == (2, 4, 5)
+    # the paper's red, close lens, air: 0.99726 - 7.806e-5 * 80^2 + ... = 0.5769 (Section 3.3: 0.577)
+    a = np.array([0.99726, -7.806e-5, 4.074e-9, -4.884e-13, 2.406e-17])
+    assert float(rolloff_design_matrix(80.0) @ a) == pytest.approx(0.5769, abs=1e-4)
+    assert evaluate_rolloff(a, 80.0) == float(rolloff_design_matrix(80.0) @ a)
+
+
+def test_rolloff_slope_hand():
+    # g = 1 - 1e-4 theta^2 + 1e-8 theta^4: g' = -2e-4 theta + 4e-8 theta^3; at 10 deg -1.96e-3 per deg
+    c = [1.0, -1e-4, 1e-8, 0.0, 0.0]
+    assert rolloff_slope(c, 10.0) == pytest.approx(-1.96e-3, rel=1e-12)
+    assert rolloff_slope(c, 0.0) == 0.0
+    assert np.allclose(rolloff_slope(c, np.array([-10.0, 10.0])), [1.96e-3, -1.96e-3])
+
+
+def test_rolloff_stage_columns_are_the_design_matrix():
+    from pipeline.stages import rolloff as stage
+
+    cols = stage._poly_columns(np.array([45.0, 90.0]))
+    assert list(cols) == ["x_p0", "x_p2", "x_p4", "x_p6", "x_p8"]
+    assert np.allclose(np.column_stack(list(cols.values())), rolloff_design_matrix([45.0, 90.0], stage.THETA_SCALE_DEG))
+    assert np.allclose(cols["x_p4"], [0.0625, 1.0])
