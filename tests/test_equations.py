@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pipeline.geometry.scaramuzza import FisheyeModel, field_angle_rad
 from pipeline.radiometry import absolute, exposure
 from pipeline.radiometry.absolute import absolute_calibration_budget, inverse_responsivity
 from pipeline.radiometry.exposure import dn_per_second, exposure_gain_s, gain_from_iso
@@ -181,3 +182,26 @@ def test_rolloff_stage_columns_are_the_design_matrix():
     assert list(cols) == ["x_p0", "x_p2", "x_p4", "x_p6", "x_p8"]
     assert np.allclose(np.column_stack(list(cols.values())), rolloff_design_matrix([45.0, 90.0], stage.THETA_SCALE_DEG))
     assert np.allclose(cols["x_p4"], [0.0625, 1.0])
+
+
+# ----------------------------------------------------------------------------- Eq. (5)-(7)
+def test_field_angle_of_rays_eq7_hand():
+    rays = np.array([[1.0, 0.0, 1.0], [0.0, 3.0, 0.0], [0.0, 0.0, -2.0], [3.0, 4.0, 5.0]])
+    # 45, 90, 180 and atan(5 / 5) = 45 degrees
+    assert np.allclose(np.degrees(field_angle_rad(rays)), [45.0, 90.0, 180.0, 45.0])
+
+
+def test_theta_phi_is_eq7_of_eq6():
+    # f(rho) = 100 - 1e-3 rho^2 (Eq. 5), centre (50, 40), no stretch: pixel (80, 80) is at
+    # (x', y') = (30, 40), rho = 50, f = 97.5; tan(theta) = 50 / 97.5 (Eq. 7) -> 27.150 deg
+    m = FisheyeModel((100.0, 0.0, -1e-3), 50.0, 40.0, shape=(100, 100))
+    theta, phi = m.theta_phi(80.0, 80.0)
+    assert float(theta) == pytest.approx(np.degrees(np.arctan(50.0 / 97.5)), rel=1e-14)
+    assert float(phi) == pytest.approx(np.degrees(np.arctan2(40.0, 30.0)), rel=1e-14)
+    # with a stretch [[c, d], [e, 1]] = [[1.1, 0.1], [0.1, 1]]: [u - xc, v - yc] = A [x', y'] (Eq. 6)
+    s = FisheyeModel((100.0, 0.0, -1e-3), 50.0, 40.0, 1.1, 0.1, 0.1, shape=(100, 100))
+    u = 50.0 + 1.1 * 30.0 + 0.1 * 40.0
+    v = 40.0 + 0.1 * 30.0 + 40.0
+    assert float(s.theta_phi(u, v)[0]) == pytest.approx(float(theta), rel=1e-12)
+    uu, vv = s.world2cam(np.array([30.0, 40.0, 97.5]))
+    assert (float(uu), float(vv)) == pytest.approx((u, v), rel=1e-9)
