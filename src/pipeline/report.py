@@ -29,6 +29,7 @@ import xarray as xr  # noqa: E402
 
 from pipeline.artefact import read_artefact  # noqa: E402
 from pipeline.observations import dataset_to_table  # noqa: E402
+from pipeline.radiometry.exposure import gain_from_iso  # noqa: E402
 
 try:  # G band pixels average two photosites (see pipeline.stages.linearity.photon_transfer)
     from pipeline.frames import SITES_PER_BAND_PIXEL
@@ -364,7 +365,7 @@ def _mask(ds: xr.Dataset) -> np.ndarray:
 
 
 def _sweep_x(tab: pd.DataFrame, sweep: str) -> np.ndarray:
-    return (tab["exposure_s"].to_numpy() * 1e3 if sweep == "exposure" else tab["iso"].to_numpy() / 100.0)
+    return (tab["exposure_s"].to_numpy() * 1e3 if sweep == "exposure" else gain_from_iso(tab["iso"].to_numpy()))
 
 
 SWEEP_XLABEL = {"exposure": "exposure time [ms]", "gain": "ISO/100"}

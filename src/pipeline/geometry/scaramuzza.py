@@ -86,7 +86,7 @@ class FisheyeModel:
         return np.array([[self.c, self.d], [self.e, 1.0]])
 
     def f(self, rho):
-        """f(rho) of the polynomial (pixels)."""
+        """f(rho) of the polynomial (pixels), Eq. (5) of Larouche et al. (2024)."""
         return np.polynomial.polynomial.polyval(rho, self.poly)
 
     def df(self, rho):
@@ -96,11 +96,15 @@ class FisheyeModel:
         )
 
     def theta_of_rho(self, rho):
-        """Angle from the optical axis (radians) at radial distance rho (pixels)."""
+        """Angle from the optical axis (radians) at radial distance rho (pixels).
+
+        tan(theta) = rho / f(rho), Eq. (7).
+        """
         rho = np.asarray(rho, dtype=float)
         return np.arctan2(rho, self.f(rho))
 
     def _sensor_xy(self, u, v):
+        """Sensor-plane (x', y') of pixel coordinates (u, v): the affine map of Eq. (6) inverted (pixels)."""
         u = np.asarray(u, dtype=float)
         v = np.asarray(v, dtype=float)
         du, dv = u - self.xc, v - self.yc
@@ -157,13 +161,13 @@ class FisheyeModel:
         Rays outside the model's monotone domain give NaN.
         """
         rays = np.asarray(rays, dtype=float)
-        x, y, z = rays[..., 0], rays[..., 1], rays[..., 2]
+        x, y = rays[..., 0], rays[..., 1]
         r_xy = np.hypot(x, y)
-        theta = np.arctan2(r_xy, z)
-        rho = self.rho_of_theta(theta)
+        rho = self.rho_of_theta(field_angle_rad(rays))
         safe = np.where(r_xy > 0, r_xy, 1.0)
         xs = np.where(r_xy > 0, x / safe, 0.0) * rho
         ys = np.where(r_xy > 0, y / safe, 0.0) * rho
+        # the affine map of Eq. (6): [u - xc, v - yc] = A [x', y']
         u = self.c * xs + self.d * ys + self.xc
         v = self.e * xs + ys + self.yc
         return u, v
@@ -171,8 +175,7 @@ class FisheyeModel:
     def theta_phi(self, u, v, degrees: bool = True):
         """Angle from the optical axis and azimuth of pixel coordinates (u, v)."""
         x, y = self._sensor_xy(u, v)
-        rho = np.hypot(x, y)
-        theta = np.arctan2(rho, self.f(rho))
+        theta = self.theta_of_rho(np.hypot(x, y))
         phi = np.arctan2(y, x)
         if degrees:
             return np.degrees(theta), np.degrees(phi)
@@ -236,6 +239,16 @@ class FisheyeModel:
             shape=tuple(d["shape"]),
             half_fov_deg=None if d.get("half_fov_deg") is None else float(d["half_fov_deg"]),
         )
+
+
+def field_angle_rad(rays) -> np.ndarray:
+    """Angle from the optical axis (radians) of camera-frame rays (..., 3) of any length.
+
+    tan(theta) = hypot(x, y) / z: Eq. (7) for the ray (x', y', f(rho)) a
+    pixel sees; beyond 90 degrees where z < 0.
+    """
+    rays = np.asarray(rays, dtype=float)
+    return np.arctan2(np.hypot(rays[..., 0], rays[..., 1]), rays[..., 2])
 
 
 def fit_poly_to_theta(rho, theta_rad, degree: int = 4) -> tuple[float, ...]:

@@ -3,7 +3,8 @@
 Larouche et al. (2024), Sections 2.1, 2.6 and 3.5.
 
 * Eq. (2): y_DN = (y_raw - y_bias) / (t_int * S_ISO * 0.01), in ADU/s at ISO 100
-  (S_ISO * 0.01 = 1 at ISO 100).
+  (S_ISO * 0.01 = 1 at ISO 100); :func:`pipeline.radiometry.exposure.dn_per_second`,
+  re-exported here.
 * Eq. (9): R_i^-1 = L_i,source / y_DN,i,source, in W sr-1 m-2 nm-1 per ADU/s,
   where L_i,source is the effective band radiance of the source, Eq. (3).
 * Table 1 (W sr-1 m-2 nm-1, ADU/s): R 0.74e-3 / 61e3 = 1.21e-8,
@@ -37,6 +38,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .exposure import dn_per_second
 from .source import (
     REFERENCE_RADIANCE_SIGMA_W_SR_M2_NM,
     REFERENCE_RADIANCE_W_SR_M2_NM,
@@ -51,16 +53,6 @@ __all__ = [
     "lamp_calibration_relative_sigma",
     "absolute_calibration_budget",
 ]
-
-
-def dn_per_second(dn_raw, dn_bias, exposure_s, iso):
-    """Eq. (2): dark-subtracted DN normalised by exposure and gain, ADU/s at ISO 100.
-
-    y = (dn_raw - dn_bias) / (exposure_s * iso * 0.01).  Vectorised.
-    """
-    return (np.asarray(dn_raw, dtype=float) - np.asarray(dn_bias, dtype=float)) / (
-        np.asarray(exposure_s, dtype=float) * np.asarray(iso, dtype=float) * 0.01
-    )
 
 
 def inverse_responsivity(effective_radiance, dn_per_s, effective_radiance_sigma=None, dn_per_s_sigma=None):
@@ -185,12 +177,12 @@ def absolute_calibration_budget(
     contrib["extra"] = float(extra_relative_sigma)
     contrib["image"] = float(dn_per_s_sigma / dn_per_s)
     u_l = float(np.sqrt(sum(v**2 for k, v in contrib.items() if k != "image")))
-    r_inv = l_eff / float(dn_per_s)
-    u_tot = float(np.hypot(u_l, contrib["image"]))
+    r_inv, r_inv_sigma = inverse_responsivity(l_eff, float(dn_per_s), l_eff * u_l, float(dn_per_s_sigma))
+    r_inv, r_inv_sigma = float(r_inv), float(r_inv_sigma)
     return {
         "inverse_responsivity": r_inv,
-        "inverse_responsivity_sigma": r_inv * u_tot,
-        "relative_sigma": u_tot,
+        "inverse_responsivity_sigma": r_inv_sigma,
+        "relative_sigma": r_inv_sigma / abs(r_inv),
         "effective_radiance": l_eff,
         "effective_radiance_sigma": l_eff * u_l,
         "contributions": contrib,

@@ -16,16 +16,9 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-__all__ = ["analogue_gain", "dark_level_dn", "subtract_dark"]
+from pipeline.radiometry.exposure import gain_from_iso
 
-#: ISO speed at which the analogue gain is 1 (the dark model's reference)
-REFERENCE_ISO = 100.0
-
-
-def analogue_gain(iso):
-    """Analogue gain relative to the reference ISO: g = ISO / 100 (Eq. 2's ISO/100)."""
-    return np.asarray(iso, dtype=float) / REFERENCE_ISO if np.ndim(iso) else float(iso) / REFERENCE_ISO
-
+__all__ = ["dark_level_dn", "subtract_dark", "temperature_shift_dn"]
 
 def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
                   temperature_c: float | None = None) -> float:
@@ -35,14 +28,25 @@ def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
     the level follows it.
     """
     b = ds.sel(band=band)
-    gain = analogue_gain(iso)
+    gain = gain_from_iso(iso)
     level = float(b["bias_dn"] + b["bias_per_gain_dn"] * (gain - 1.0)
                   + ds["dark_current_dn_per_s"] * gain * exposure_s)
-    if temperature_c is not None and np.isfinite(temperature_c) and "temperature_bias_dn_per_c" in ds:
-        dt = temperature_c - float(ds["temperature_reference_c"])
-        level += float(ds["temperature_bias_dn_per_c"]) * dt
-        level += float(ds["temperature_dark_dn_per_s_per_c"]) * gain * exposure_s * dt
+    if temperature_c is not None and np.isfinite(temperature_c):
+        level += float(temperature_shift_dn(ds, iso, exposure_s, temperature_c))
     return level
+
+
+def temperature_shift_dn(ds: xr.Dataset, iso, exposure_s, temperature_c):
+    """Change of the dark level with temperature (the ``temperature`` effect), 0 without it.
+
+    Black level and dark current change linearly with the logged temperature
+    about the dark model's reference: dB/dT dT + dD/dT g t dT. Vectorised.
+    """
+    if "temperature_bias_dn_per_c" not in ds:
+        return np.zeros(np.shape(temperature_c)) if np.ndim(temperature_c) else 0.0
+    dt = np.asarray(temperature_c, dtype=float) - float(ds["temperature_reference_c"])
+    return (float(ds["temperature_bias_dn_per_c"]) * dt
+            + float(ds["temperature_dark_dn_per_s_per_c"]) * gain_from_iso(iso) * np.asarray(exposure_s, float) * dt)
 
 
 def subtract_dark(image_dn: np.ndarray, ds: xr.Dataset, band: str, iso: float, exposure_s: float,

@@ -26,6 +26,7 @@ __all__ = [
     "rolloff_design_matrix",
     "fit_rolloff",
     "evaluate_rolloff",
+    "rolloff_slope",
     "normalise_rolloff",
     "PUBLISHED_RED_AIR_CLOSE_LENS",
     "PUBLISHED_ROLLOFF_POINTS",
@@ -33,12 +34,21 @@ __all__ = [
 ]
 
 N_COEFFICIENTS = 5  # a0, a2, a4, a6, a8
+#: Powers of theta in Eq. (13), lowest first.
+ROLLOFF_POWERS = tuple(2 * k for k in range(N_COEFFICIENTS))
 
 
 def rolloff_design_matrix(theta_deg, scale_deg=1.0):
-    """Columns (theta / scale)^(2k), k = 0..4; shape (n, 5)."""
-    u = np.asarray(theta_deg, dtype=float).ravel() / float(scale_deg)
-    return u[:, None] ** (2 * np.arange(N_COEFFICIENTS))[None, :]
+    """Design matrix of Eq. (13): columns (theta / scale)^(2k), k = 0..4.
+
+    theta_deg in degrees, scale_deg in degrees (a scale of the order of the
+    largest angle keeps least-squares fits well conditioned).  Shape: that
+    of ``theta_deg`` plus a last axis of 5, e.g. (n, 5) for n angles; at
+    theta = scale every column is 1.  g(theta) = A(theta) @ a for
+    coefficients a of theta / scale.
+    """
+    u = np.asarray(theta_deg, dtype=float) / float(scale_deg)
+    return u[..., None] ** np.asarray(ROLLOFF_POWERS)
 
 
 @dataclass(frozen=True)
@@ -126,14 +136,26 @@ def evaluate_rolloff(coefficients, theta_deg, covariance=None):
     Coefficients may carry leading batch axes (..., 5).
     """
     c = np.asarray(coefficients, dtype=float)
-    t = np.asarray(theta_deg, dtype=float)
-    powers = t[..., None] ** (2 * np.arange(N_COEFFICIENTS))
+    powers = rolloff_design_matrix(theta_deg)
     g = np.sum(powers * c, axis=-1) if c.ndim == 1 else np.einsum("...k,...k->...", powers, c)
     if covariance is None:
         return g
     cov = np.asarray(covariance, dtype=float)
     var = np.einsum("...i,ij,...j->...", powers, cov, powers)
     return g, np.sqrt(np.clip(var, 0.0, None))
+
+
+def rolloff_slope(coefficients, theta_deg):
+    """dg/dtheta of Eq. (13) in deg^-1: sum_k 2k a_2k theta^(2k - 1), theta in degrees.
+
+    Coefficients (a0, a2, a4, a6, a8) for theta in degrees, as stored; e.g.
+    g = 1 - 1e-4 theta^2 has slope -2e-3 deg^-1 at 10 deg.
+    """
+    c = np.asarray(coefficients, dtype=float)
+    t = np.asarray(theta_deg, dtype=float)
+    # g' = theta * sum_k 2k a_2k theta^(2k - 2): the first four columns of Eq. (13)'s design matrix
+    dc = np.asarray(ROLLOFF_POWERS[1:], dtype=float) * c[..., 1:]
+    return t * np.sum(rolloff_design_matrix(t)[..., :-1] * dc, axis=-1)
 
 
 def normalise_rolloff(coefficients, covariance=None):

@@ -26,6 +26,7 @@ __all__ = [
     "peak_normalise_response",
     "effective_wavelength",
     "bandwidth",
+    "band_weights",
     "band_statistics",
     "effective_band_radiance",
     "DEFAULT_RESPONSE_PARAMETERS",
@@ -61,9 +62,12 @@ def peak_normalise_response(dn, photodiode, dn_sigma=None, photodiode_sigma=None
     return_covariance : bool
         Also return the covariance matrix of S along the last axis.  All
         points share the peak value, so they are positively correlated:
-        cov_ij = S_i S_j (u_i^2 delta_ij + u_p^2 - u_p^2 (delta_ip + delta_jp))
-        with u relative uncertainties of r and p the peak index; S_p = 1
-        exactly, with zero uncertainty.
+        cov_ij = delta_ij sigma_r,i^2 / r_p^2 + S_i S_j u_p^2 for i, j != p,
+        zero on the peak row and column (S_p = 1 exactly), with
+        sigma_r^2 = (sigma_dn / pd)^2 + (dn sigma_pd / pd^2)^2 the absolute
+        uncertainty of r and u_p = sigma_r,p / r_p.  Written with absolute
+        uncertainties of r, so that wavelengths where a band has no signal
+        (dn = 0, e.g. R at 400 nm) keep a finite uncertainty.
 
     Returns
     -------
@@ -72,40 +76,53 @@ def peak_normalise_response(dn, photodiode, dn_sigma=None, photodiode_sigma=None
     dn = np.asarray(dn, dtype=float)
     pd = np.asarray(photodiode, dtype=float)
     r = dn / pd
-    u2 = np.zeros_like(r)
+    sr2 = np.zeros_like(r)
     if dn_sigma is not None:
-        u2 = u2 + (np.asarray(dn_sigma, dtype=float) / dn) ** 2
+        sr2 = sr2 + (np.asarray(dn_sigma, dtype=float) / pd) ** 2
     if photodiode_sigma is not None:
-        u2 = u2 + (np.asarray(photodiode_sigma, dtype=float) / pd) ** 2
+        sr2 = sr2 + (dn * np.asarray(photodiode_sigma, dtype=float) / pd**2) ** 2
     ip = np.argmax(r, axis=-1)
     rp = np.take_along_axis(r, ip[..., None], axis=-1)
-    up2 = np.take_along_axis(u2, ip[..., None], axis=-1)
+    up2 = np.take_along_axis(sr2, ip[..., None], axis=-1) / rp**2
     s = r / rp
     n = r.shape[-1]
-    is_peak = np.arange(n) == ip[..., None]
-    var = np.where(is_peak, 0.0, s**2 * (u2 + up2))
+    not_p = (np.arange(n) != ip[..., None]).astype(float)
+    var = not_p * (sr2 / rp**2 + s**2 * up2)
     sigma = np.sqrt(var)
     if not return_covariance:
         return s, sigma
-    onehot = is_peak.astype(float)
-    # relative covariance of S_i = r_i / r_p: diag(u2) + up2 (1 - e_p)(1 - e_p)^T - diag(u2 at p)
-    not_p = 1.0 - onehot
-    rel = np.einsum("...i,...j->...ij", not_p, not_p) * up2[..., None]
-    rel = rel + np.einsum("...i,ij->...ij", u2 * not_p, np.eye(n))
-    cov = rel * np.einsum("...i,...j->...ij", s, s)
+    cov = np.einsum("...i,...j->...ij", s * not_p, s * not_p) * up2[..., None]
+    cov = cov + np.einsum("...i,ij->...ij", sr2 * not_p / rp**2, np.eye(n))
     return s, sigma, cov
 
 
 def bandwidth(wavelength_nm, response, axis=-1):
-    """Bandwidth Lambda = int S_R dlambda (nm) of a peak-normalised response (trapezoid)."""
-    return np.trapezoid(np.asarray(response, dtype=float), np.asarray(wavelength_nm, dtype=float), axis=axis)
+    """Bandwidth Lambda = int S_R dlambda (nm) of a peak-normalised response (trapezoid, Section 2.5)."""
+    s = np.moveaxis(np.asarray(response, dtype=float), axis, -1)
+    return np.sum(trapezoid_weights(wavelength_nm) * s, axis=-1)
+
+
+def band_weights(wavelength_nm, response):
+    """Normalised weights k_j = w_j S_j / sum_l w_l S_l of Eq. (3), w the trapezoid weights.
+
+    Any quantity X(lambda) sampled on ``wavelength_nm`` has the band average
+    int X S dlambda / int S dlambda = sum_j k_j X_j: Eq. (3) with X the
+    spectral radiance, Eq. (8) with X = lambda.  ``response`` (n,) or
+    (..., n), peak normalisation cancels; the weights sum to 1 along the last axis.
+    """
+    ws = trapezoid_weights(wavelength_nm) * np.asarray(response, dtype=float)
+    return ws / np.sum(ws, axis=-1, keepdims=True)
 
 
 def effective_wavelength(wavelength_nm, response, axis=-1):
-    """Effective wavelength, Eq. (8): int lambda S dlambda / int S dlambda (nm), trapezoid."""
+    """Effective wavelength, Eq. (8): int lambda S dlambda / int S dlambda (nm), trapezoid.
+
+    The band average of lambda itself, i.e. Eq. (3) with L(lambda) = lambda
+    (:func:`effective_band_radiance`).
+    """
     wl = np.asarray(wavelength_nm, dtype=float)
     s = np.moveaxis(np.asarray(response, dtype=float), axis, -1)
-    return np.trapezoid(wl * s, wl, axis=-1) / np.trapezoid(s, wl, axis=-1)
+    return effective_band_radiance(wl, wl, s)
 
 
 def band_statistics(wavelength_nm, response, response_covariance=None):
@@ -120,15 +137,15 @@ def band_statistics(wavelength_nm, response, response_covariance=None):
 
     Returns
     -------
-    dict: ``effective_wavelength_nm``, ``bandwidth_nm``, ``half_bandwidth_nm``
-    and, with a covariance, ``*_sigma`` by linear propagation (gradients
-    of Eq. 8 and of Lambda with respect to each S_i).
+    dict: ``effective_wavelength_nm`` (Eq. 8, :func:`effective_wavelength`),
+    ``bandwidth_nm`` (:func:`bandwidth`), ``half_bandwidth_nm`` and, with a
+    covariance, ``*_sigma`` by linear propagation (gradients of Eq. 8 and
+    of Lambda with respect to each S_i).
     """
     wl = np.asarray(wavelength_nm, dtype=float)
     s = np.asarray(response, dtype=float)
-    w = trapezoid_weights(wl)
-    lam_bw = float(np.sum(w * s))
-    lam_eff = float(np.sum(w * wl * s) / lam_bw)
+    lam_bw = float(bandwidth(wl, s))
+    lam_eff = float(effective_wavelength(wl, s))
     out = {
         "effective_wavelength_nm": lam_eff,
         "bandwidth_nm": lam_bw,
@@ -136,6 +153,7 @@ def band_statistics(wavelength_nm, response, response_covariance=None):
     }
     if response_covariance is not None:
         c = np.asarray(response_covariance, dtype=float)
+        w = trapezoid_weights(wl)
         g_bw = w
         g_eff = w * (wl - lam_eff) / lam_bw
         out["bandwidth_nm_sigma"] = float(np.sqrt(g_bw @ c @ g_bw))
@@ -153,7 +171,8 @@ def effective_band_radiance(
 ):
     """Effective band radiance, Eq. (3), by the trapezoidal rule, with its uncertainty.
 
-    L_eff = sum_k w_k L_k S_k / sum_k w_k S_k, with w the trapezoid weights.
+    L_eff = sum_k w_k L_k S_k / sum_k w_k S_k, with w the trapezoid weights
+    (:func:`band_weights`).
 
     Parameters
     ----------
@@ -173,11 +192,8 @@ def effective_band_radiance(
     L_eff, or (L_eff, sigma) when any uncertainty is given (the two parts
     add in quadrature), in the unit of ``radiance``.
     """
-    wl = np.asarray(wavelength_nm, dtype=float)
     L = np.asarray(radiance, dtype=float)
-    s = np.asarray(response, dtype=float)
-    ws = trapezoid_weights(wl) * s
-    k = ws / np.sum(ws, axis=-1, keepdims=True)
+    k = band_weights(wavelength_nm, response)
     l_eff = np.sum(k * L, axis=-1)
     if radiance_sigma is None and radiance_sigma_correlated is None:
         return l_eff

@@ -45,6 +45,8 @@ from pipeline.errors import InputError
 from pipeline.radiometry.absolute import (absolute_calibration_budget, dn_per_second,
                                           lamp_calibration_relative_sigma)
 from pipeline.observations import table_to_dataset
+from pipeline.radiometry.exposure import exposure_gain_s
+from pipeline.radiometry.source import scale_to_reference
 from pipeline.stages.spectral import central_masks, dark_levels, frame_table, reduce_central
 
 STAGE = "absolute"
@@ -113,7 +115,7 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
                 mean_map = mom.mean()
                 n_mask = mean_map.size
                 y_k = float(dn_per_second(mean_map.mean(), d["level_dn"], k[5], k[4]))
-                scale = k[5] * k[4] / 100.0
+                scale = exposure_gain_s(k[5], k[4])
                 region_std = float(np.std(mean_map, ddof=1)) / scale
                 se = np.sqrt(float(mom.variance().mean()) / n_mask / mom.n + d["sigma_dn"] ** 2) / scale
                 y += y_k * mom.n
@@ -135,7 +137,7 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
                          "n_mask": n_mask, "n_frames": n_tot, "budget": budget,
                          "dark_dn": darks[(lens, band, keys[0][4], keys[0][5])]["level_dn"],
                          "dark_source": darks[(lens, band, keys[0][4], keys[0][5])]["source"]})
-        scaled = spec * (ref_value / np.interp(cfg["reference_wavelength_nm"], wl, spec))
+        scaled = scale_to_reference(wl, spec, cfg["reference_wavelength_nm"], ref_value, ref_value * ref_rel)["radiance"]
         out[lens] = _lens_dataset(rows, wl, scaled, ref_value, ref_rel, fr[fr["lens"] == lens].reset_index(drop=True),
                                   cfg)
     return out

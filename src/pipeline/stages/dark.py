@@ -32,6 +32,7 @@ from pipeline.fitting import base_design
 from pipeline.observations import fit_with_effects, table_to_dataset
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.moments import RunningMoments, corner_mask
+from pipeline.radiometry.exposure import gain_from_iso
 
 STAGE = "dark"
 
@@ -128,7 +129,7 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
                     "n_hot": int((hot & circle).sum()), "n_pixels": int(circle.sum()),
                 })
     st = pd.DataFrame(setting_rows)
-    st["gain"] = st["iso"] / 100.0
+    st["gain"] = gain_from_iso(st["iso"])
     st["group"] = st["lens"] + "/" + st["band"]
     st["setting"] = st.groupby(["iso", "exposure_s"], sort=True).ngroup()
 

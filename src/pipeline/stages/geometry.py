@@ -47,6 +47,7 @@ from pipeline.geometry.calibrate import calibrate
 from pipeline.geometry.chessboard import Board
 from pipeline.geometry.corners import _upsample_factor, detect_corners
 from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle
+from pipeline.geometry.scaramuzza import field_angle_rad
 from pipeline.observations import table_to_dataset
 from pipeline.stages.geometry_maps import MEDIA, maps_dataset
 
@@ -256,7 +257,7 @@ def _points(res, board):
     for i in res.used_frames:
         rvec, t = res.poses[i]
         cam = obj @ _rodrigues(rvec[None])[0].T + t
-        thetas.append(np.degrees(np.arctan2(np.hypot(cam[:, 0], cam[:, 1]), cam[:, 2])))
+        thetas.append(np.degrees(field_angle_rad(cam)))
     # used corners after single-corner outlier removal are a subset: report radius and error only
     return {"rho_px": res.residual_rho_px, "error_px": np.linalg.norm(res.residuals_px, axis=1),
             "theta_board_deg": np.concatenate(thetas) if thetas else np.array([])}

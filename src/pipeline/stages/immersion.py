@@ -25,7 +25,9 @@ from pipeline.fitting import wls
 from pipeline.frames import iter_frames
 from pipeline.moments import RunningMoments
 from pipeline.radiometry.fresnel import transmittance_air_water
-from pipeline.radiometry.immersion import fit_immersion_factor, window_index_from_immersion_factor
+from pipeline.radiometry.exposure import exposure_gain_s
+from pipeline.radiometry.immersion import (fit_immersion_factor, n_squared_law_factor,
+                                           window_index_from_immersion_factor)
 from pipeline.radiometry.water import refractive_index_water
 from pipeline.observations import table_to_dataset
 
@@ -76,15 +78,15 @@ def reduce_immersion(dataset, geometry: dict[str, xr.Dataset], config: dict, pro
                 rows.append({"lens": lens, "band": band, "condition": row["condition"],
                              "water_height_cm": float(row["water_height_cm"]) if medium == "water" else 0.0,
                              "dn": float((img[m] - dark[(lens, band)].mean()[m]).mean()),
-                             "exposure_s": float(dec.raw.exposure_s), "gain": float(dec.raw.iso) / 100.0,
+                             "exposure_s": float(dec.raw.exposure_s), "iso": float(dec.raw.iso),
                              "n_mask": int(m.sum())})
     return {"frames": pd.DataFrame(rows), "inputs": inputs}
 
 
 def analyse_immersion(reduced: dict, water: dict, wavelengths: dict[str, float]) -> dict[str, xr.Dataset]:
     fr = reduced["frames"]
-    # DN per second at ISO 100 (the frames may use different settings)
-    fr = fr.assign(dn=fr["dn"] / (fr["exposure_s"] * fr["gain"]))
+    # DN per second at ISO 100, Eq. (2) (the frames may use different settings)
+    fr = fr.assign(dn=fr["dn"] / exposure_gain_s(fr["exposure_s"], fr["iso"]))
     out = {}
     for lens, fl in fr.groupby("lens"):
         res, obs = {}, []
@@ -95,7 +97,7 @@ def analyse_immersion(reduced: dict, water: dict, wavelengths: dict[str, float])
             lam = wavelengths[band]
             t_aw = float(transmittance_air_water(lam, water["temperature_c"], water["salinity_psu"]))
             n_w = float(refractive_index_water(lam, water["temperature_c"], water["salinity_psu"]))
-            n2 = t_aw * n_w**2
+            n2 = float(n_squared_law_factor(t_aw, n_w))
             fit = fit_immersion_factor(wat["water_height_cm"], wat["dn"], air, n2)
             n_g, n_g_se = window_index_from_immersion_factor(fit.immersion_factor, n_w, fit.immersion_factor_sigma)
             res[band] = dict(fit=fit, t_aw=t_aw, n_w=n_w, n2=n2, n_g=float(n_g), n_g_se=float(n_g_se), lam=lam)

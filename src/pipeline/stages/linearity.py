@@ -39,9 +39,10 @@ from pipeline.fitting import base_design, ols_line, wls
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.geometry.image_circle import find_image_circle
 from pipeline.moments import RunningMoments, RunningPearson, corner_mask, radius_map
-from pipeline.radiometry.dark import dark_level_dn
-from pipeline.radiometry.saturation import saturated_settings
 from pipeline.observations import effect_coefficients, fit_with_effects, table_to_dataset
+from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
+from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso
+from pipeline.radiometry.saturation import saturated_settings
 from pipeline.stages.flatfield import flatfield
 
 STAGE = "linearity"
@@ -130,7 +131,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                 region, _ = ptc[lens][band]
                 moments[(lens, band, sweep, key)].add(img[region])
                 if first:
-                    x = key[1] if sweep == "exposure" else key[0] / 100.0
+                    x = key[1] if sweep == "exposure" else gain_from_iso(key[0])
                     pearson[(lens, band, sweep)].add(x, img, ~images.saturated[band])
                 frame_rows.append({
                     "lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
@@ -194,9 +195,8 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     for lens, d in dark.items():
         if "temperature_bias_dn_per_c" in d and fr["temperature_c"].notna().all():
             sel = fr["lens"] == lens
-            dt = fr.loc[sel, "temperature_c"] - float(d["temperature_reference_c"])
-            shift = (float(d["temperature_bias_dn_per_c"]) * dt + float(d["temperature_dark_dn_per_s_per_c"])
-                     * fr.loc[sel, "iso"] / 100.0 * fr.loc[sel, "exposure_s"] * dt)
+            shift = temperature_shift_dn(d, fr.loc[sel, "iso"].to_numpy(), fr.loc[sel, "exposure_s"].to_numpy(),
+                                         fr.loc[sel, "temperature_c"].to_numpy())
             fr.loc[sel, "dark_mask_dn"] += shift
             fr.loc[sel, "dark_corner_dn"] += shift
     fr["setting"] = fr.groupby(["sweep", "iso", "exposure_s"], sort=True).ngroup()
@@ -225,7 +225,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     fr["sigma_dn"] = np.sqrt(np.maximum(fr["pixel_var_dn2"] - drift[0] ** 2, 1e-12) / fr["n_mask"])
     if use_drift:
         fr["sigma_dn"] = np.hypot(fr["sigma_dn"], fr["sigma_corner_dn"])
-    fr["gain"] = fr["iso"] / 100.0
+    fr["gain"] = gain_from_iso(fr["iso"])
     fr["group"] = fr["lens"] + "/" + fr["band"] + "/" + fr["sweep"] + "/" + fr["setting"].astype(str)
     fr["x_level"] = 1.0
     # ----- saturation from the data: the plateau of the mean or the collapse of the variance,
@@ -238,7 +238,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     per["saturated_in_data"] = False
     for _, g in per.groupby(["lens", "band", "sweep"]):
         per.loc[g.index, "saturated_in_data"] = saturated_settings(
-            g["iso"] / 100.0 * g["exposure_s"], g["value_dn"], g["pixel_var_dn2"],
+            exposure_gain_s(g["exposure_s"], g["iso"]), g["value_dn"], g["pixel_var_dn2"],
             cfg["saturation_plateau_fraction"], cfg["saturation_variance_drop"], clipped=g["clipped"])
     fr = fr.merge(per[["lens", "band", "sweep", "setting", "saturated_in_data"]],
                   on=["lens", "band", "sweep", "setting"])
@@ -258,14 +258,14 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         ptc_mean_dn=("ptc_mean_dn", "first"), saturated=("saturated", "any"),
         clipped_at_white_level=("clipped_at_white_level", "any"),
         dark_mask_dn=("dark_mask_dn", "mean"), temperature_c=("temperature_c", "mean")).reset_index()
-    st["gain"] = st["iso"] / 100.0
+    st["gain"] = gain_from_iso(st["iso"])
     # with bias_drift in the model each frame is corrected against the dark level of the
     # unlit corners, so no drift is left in the setting mean; without it the drift is
     # unmodelled and not part of the expected noise
     st["sigma_dn"] = st["frame_sigma"] / np.sqrt(st["n_frames"])
     st["used"] = ~st["saturated"]
     st["group"] = st["lens"] + "/" + st["band"] + "/" + st["sweep"]
-    st["x_rate"] = st["gain"] * st["exposure_s"]
+    st["x_rate"] = exposure_gain_s(st["exposure_s"], st["iso"])
     saturation = saturation_levels(st, reduced)
     # scale of the nonlinearity term: the saturation level, or the ADC range where nothing saturated
     st["full_scale_dn"] = saturation["level_dn"] if saturation["reached"] else saturation["adc_range_dn"]

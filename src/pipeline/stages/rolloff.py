@@ -48,8 +48,9 @@ from pipeline.errors import InputError
 from pipeline.frames import iter_frames
 from pipeline.geometry.scaramuzza import RAW_SIZE_PX
 from pipeline.moments import RunningMoments
-from pipeline.radiometry.rolloff import evaluate_rolloff, fit_rolloff, normalise_rolloff
 from pipeline.observations import table_to_dataset
+from pipeline.radiometry.rolloff import (ROLLOFF_POWERS, evaluate_rolloff, fit_rolloff, normalise_rolloff,
+                                         rolloff_design_matrix, rolloff_slope)
 
 STAGE = "rolloff"
 MEDIA = ("air", "water")
@@ -223,8 +224,9 @@ def noise_model(tab: pd.DataFrame) -> dict[str, tuple[float, float]]:
 
 # ----------------------------------------------------------------------------- fitting
 def _poly_columns(theta_deg: np.ndarray) -> dict[str, np.ndarray]:
-    u = np.asarray(theta_deg, float) / THETA_SCALE_DEG
-    return {f"x_p{2 * k}": u ** (2 * k) for k in range(5)}
+    """Base columns ``x_p0`` .. ``x_p8``: Eq. (13)'s design matrix in theta / THETA_SCALE_DEG."""
+    a = rolloff_design_matrix(theta_deg, THETA_SCALE_DEG)
+    return {f"x_p{p}": a[..., k] for k, p in enumerate(ROLLOFF_POWERS)}
 
 
 def _fit_setting(obs: pd.DataFrame, effects: list[str]):
@@ -251,10 +253,8 @@ def _fit_setting(obs: pd.DataFrame, effects: list[str]):
 
 
 def _compressed(coef_air, scale, theta):
-    g = evaluate_rolloff(coef_air, scale * theta)
-    h = 1e-3
-    dg = (evaluate_rolloff(coef_air, scale * theta + h) - evaluate_rolloff(coef_air, scale * theta - h)) / (2 * h)
-    return g, theta * dg
+    """g_air(s theta) and its derivative with respect to s, theta g_air'(s theta)."""
+    return evaluate_rolloff(coef_air, scale * theta), theta * rolloff_slope(coef_air, scale * theta)
 
 
 def _water_closure(wat: pd.DataFrame, air_fits: dict, effects: list[str], max_air_deg: float):
@@ -309,9 +309,7 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
         ok = ~g["saturated"]
         f = fit_rolloff(g.loc[ok, "theta_deg"], g.loc[ok, "signal_dn"], g.loc[ok, "sigma_raw_dn"])
         norm[grp] = float(f.coefficients[0])
-        step = 0.05
-        slope[g.index] = (evaluate_rolloff(f.coefficients, g["theta_deg"] + step)
-                          - evaluate_rolloff(f.coefficients, g["theta_deg"] - step)) / (2 * step)
+        slope[g.index] = rolloff_slope(f.coefficients, g["theta_deg"])
     a0 = tab["group"].map(norm)
     # the field angle itself is uncertain (geometric calibration): sigma_g = |dg/dtheta| sigma_theta
     theta_sigma = config["rolloff"]["field_angle_sigma_px"] * tab["deg_per_px"]
@@ -380,8 +378,9 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
 
 
 def _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit, noise, config) -> xr.Dataset:
-    coef = np.full((len(MEDIA), len(BANDS), 5), np.nan)
-    cov = np.full((len(MEDIA), len(BANDS), 5, 5), np.nan)
+    n_coef = len(ROLLOFF_POWERS)
+    coef = np.full((len(MEDIA), len(BANDS), n_coef), np.nan)
+    cov = np.full((len(MEDIA), len(BANDS), n_coef, n_coef), np.nan)
     red = np.full((len(MEDIA), len(BANDS)), np.nan)
     for i, m in enumerate(MEDIA):
         for j, b in enumerate(BANDS):
@@ -412,8 +411,8 @@ def _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit,
             c, se = np.array([amp]), np.array([amp_se])
         data[f"effect_{name}"] = (f"{name}_param", np.asarray(c, float), {"long_name": f"fitted parameter(s) of {name}", "units": units})
         data[f"effect_{name}_sigma"] = (f"{name}_param", np.asarray(se, float), {"units": units})
-    ds = xr.Dataset(data, coords={"medium": list(MEDIA), "band": list(BANDS), "power": [0, 2, 4, 6, 8],
-                                  "power_b": [0, 2, 4, 6, 8]})
+    ds = xr.Dataset(data, coords={"medium": list(MEDIA), "band": list(BANDS), "power": list(ROLLOFF_POWERS),
+                                  "power_b": list(ROLLOFF_POWERS)})
     store = o.assign(used=o["used"].astype(int), saturated=o["saturated"].astype(int))
     ds = ds.merge(table_to_dataset(store, "obs_setting"))
     if len(water_tab):

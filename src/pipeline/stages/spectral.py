@@ -50,9 +50,10 @@ from pipeline.errors import InputError
 from pipeline.fitting import base_design, wls
 from pipeline.frames import iter_frames
 from pipeline.moments import RunningMoments
-from pipeline.radiometry.spectral import band_statistics
-from pipeline.radiometry.dark import dark_level_dn
 from pipeline.observations import table_to_dataset
+from pipeline.radiometry.dark import dark_level_dn
+from pipeline.radiometry.exposure import exposure_gain_s
+from pipeline.radiometry.spectral import band_statistics, peak_normalise_response
 
 STAGE = "spectral"
 #: medium of the lab experiments (the geometry artefact's in-air maps)
@@ -200,31 +201,6 @@ def frame_table(reduced: dict, darks: dict) -> pd.DataFrame:
 
 
 # ----------------------------------------------------------------------------- spectral analysis
-def normalised_response(dn, dn_sigma, photodiode, photodiode_sigma):
-    """Peak-normalised response S = r / r_peak, r = dn / photodiode, with its covariance (last axis).
-
-    Same propagation as :func:`pipeline.radiometry.spectral.peak_normalise_response`
-    written with absolute uncertainties of r, so that wavelengths where a band
-    has no signal (dn = 0, e.g. R at 400 nm) keep a finite uncertainty:
-    cov_ij = delta_ij sigma_r,i^2 / r_p^2 + S_i S_j u_p^2 for i, j != p and zero
-    on the peak row and column (S_p = 1 exactly), u_p the relative uncertainty
-    of r_p, sigma_r^2 = (sigma_dn / pd)^2 + (dn sigma_pd / pd^2)^2.
-    """
-    dn = np.asarray(dn, dtype=float)
-    pd_ = np.asarray(photodiode, dtype=float)
-    r = dn / pd_
-    sr2 = (np.asarray(dn_sigma, dtype=float) / pd_) ** 2 + (dn * np.asarray(photodiode_sigma, dtype=float) / pd_**2) ** 2
-    ip = np.argmax(r, axis=-1)
-    rp = np.take_along_axis(r, ip[..., None], axis=-1)
-    up2 = np.take_along_axis(sr2, ip[..., None], axis=-1) / rp**2
-    s = r / rp
-    n = r.shape[-1]
-    not_p = (np.arange(n) != ip[..., None]).astype(float)
-    cov = np.einsum("...i,...j->...ij", s * not_p, s * not_p) * up2[..., None]
-    cov = cov + np.einsum("...i,ij->...ij", sr2 * not_p / rp**2, np.eye(n))
-    return s, np.sqrt(np.einsum("...ii->...i", cov)), cov
-
-
 def analyse_spectral(reduced: dict, darks: dict, photodiode: pd.DataFrame, photodiode_path: Path,
                      config: dict) -> dict[str, xr.Dataset]:
     """Response, effective wavelength and bandwidth per lens and band."""
@@ -269,7 +245,7 @@ def analyse_spectral(reduced: dict, darks: dict, photodiode: pd.DataFrame, photo
                     d = darks[(lens, band, k[4], k[5])]
                     # Eq. (2) normalisation would cancel in the peak normalisation unless the
                     # settings differ between wavelengths: bring every setting to DN per second at ISO 100
-                    norm = k[5] * k[4] / 100.0
+                    norm = exposure_gain_s(k[5], k[4])
                     total += (mom.mean().mean() - d["level_dn"]) / norm * mom.n
                     var_sum += float(mom.variance().mean()) / mom.mean().size / norm**2 * mom.n
                     dsig2 += (d["sigma_dn"] / norm) ** 2 * mom.n
@@ -277,7 +253,7 @@ def analyse_spectral(reduced: dict, darks: dict, photodiode: pd.DataFrame, photo
                     dark_dn[bi] = d["level_dn"]
                 dn[bi, j] = total / n
                 dn_sigma[bi, j] = np.sqrt(var_sum / n / n + dsig2 / n)
-        s, s_sigma, cov = normalised_response(dn, dn_sigma, pd_sig, pd_std)
+        s, s_sigma, cov = peak_normalise_response(dn, pd_sig, dn_sigma, pd_std, return_covariance=True)
         stats = [band_statistics(wls_nm, s[bi], cov[bi]) for bi in range(len(BANDS))]
         out[lens] = _lens_dataset(lens, wls_nm, dn, dn_sigma, pd_sig, pd_std, s, s_sigma, cov, stats, dark_dn,
                                   n_mask, fr[fr["lens"] == lens].reset_index(drop=True), config,
