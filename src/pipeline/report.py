@@ -1047,7 +1047,8 @@ def _calibration_summary(absolute: dict[str, xr.Dataset], immersion: dict[str, x
 
 # ---------------------------------------------------------------- diagnostics
 
-def _read_csv(path: Path) -> pd.DataFrame:
+def read_csv_or_empty(path: Path) -> pd.DataFrame:
+    """A CSV table, or an empty one when the file is absent or empty (a stage that did not run)."""
     try:
         return pd.read_csv(path)
     except (FileNotFoundError, pd.errors.EmptyDataError):
@@ -1136,10 +1137,10 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
     figs = _Figures(figures_dir)
     dark_ds = {lens: read_artefact(p, "dark") for lens, p in dark.items()}
     lin_ds = {lens: read_artefact(p, "linearity") for lens, p in linearity.items()}
-    missing = _read_csv(Path(missing_effects))
-    unexp = _read_csv(Path(unexplained))
-    errors = _read_csv(Path(run_errors))
-    history = _read_csv(Path(error_history))
+    missing = read_csv_or_empty(Path(missing_effects))
+    unexp = read_csv_or_empty(Path(unexplained))
+    errors = read_csv_or_empty(Path(run_errors))
+    history = read_csv_or_empty(Path(error_history))
     later_paths = {"geometry": dict(geometry or {}), "rolloff": dict(rolloff or {}),
                    "spectral": dict(spectral or {}), "absolute": dict(absolute or {}),
                    "immersion": dict(immersion or {})}

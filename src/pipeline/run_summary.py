@@ -12,14 +12,9 @@ from pathlib import Path
 
 import pandas as pd
 
+from pipeline.report import read_csv_or_empty as _read
+
 __all__ = ["summarise_run"]
-
-
-def _read(path: Path) -> pd.DataFrame:
-    try:
-        return pd.read_csv(path)
-    except (FileNotFoundError, pd.errors.EmptyDataError):
-        return pd.DataFrame()
 
 
 def _amplitude(row) -> str:
