@@ -130,7 +130,7 @@ def simulate_dataset(out: str | Path, scale: str = "small", seed: int = 0,
             "camera": {"make": camera.make, "model": camera.model, "serial": camera.serial},
             "lenses": {lens: {"rows": [i * n, (i + 1) * n], "cols": [0, n]}
                        for i, lens in enumerate(camera.lens_names)},
-            "chessboard": {"inner_corners": [8, 6], "square_mm": {"air": 30.0, "water": 20.0}},
+            "chessboard": geometry.board_design(sc.name).dataset_entry(),
             "description": f"simulated dataset, scale {scale}, seed {seed}",
         }
         (tmp / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
