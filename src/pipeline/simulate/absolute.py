@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.radiometry.source import (REFERENCE_RADIANCE_SIGMA_W_SR_M2_NM, REFERENCE_RADIANCE_W_SR_M2_NM,
                                         REFERENCE_WAVELENGTH_NM, default_source_radiance)
 from pipeline.radiometry.spectral import default_spectral_response, effective_band_radiance

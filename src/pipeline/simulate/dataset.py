@@ -12,7 +12,6 @@ import pandas as pd
 import yaml
 
 from pipeline import __version__
-from pipeline.camera import Camera
 from pipeline.dataset import write_md5sums
 from pipeline.effects import get as get_effect
 from pipeline.errors import InputError
@@ -21,6 +20,7 @@ from pipeline.simulate import lab  # noqa: F401  (registers the dark and lineari
 from pipeline.simulate import immersion, rolloff  # noqa: F401  (registers the roll-off and immersion planners)
 from pipeline.simulate import absolute, spectral  # noqa: F401  (registers the spectral and absolute planners)
 from pipeline.simulate import geometry  # noqa: F401  (registers the geometry planner)
+from pipeline.simulate.camera import Camera
 from pipeline.simulate.plan import PLANNERS, SimContext
 from pipeline.simulate.render import Renderer
 

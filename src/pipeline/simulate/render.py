@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.camera import BANDS, Camera
+from pipeline.bands import BANDS
 from pipeline.geometry.maps import theta_phi_maps
 from pipeline.geometry.scaramuzza import HALF_FOV_DEG, default_model
 from pipeline.radiometry.rolloff import default_rolloff, evaluate_rolloff
+from pipeline.simulate.camera import Camera
 from pipeline.simulate.plan import FrameSpec, LensGeometry
 from pipeline.simulate.sensor import draw_static_pattern, expose
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.geometry.scaramuzza import HALF_FOV_DEG, RAW_SIZE_PX, default_model
 from pipeline.simulate.immersion import true_immersion_factors
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.radiometry.source import QTH_TEMPERATURE_K, planck_radiance
 from pipeline.radiometry.spectral import band_statistics, default_spectral_response
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner

@@ -39,7 +39,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import read_source_reference, read_source_spectrum
 from pipeline.errors import InputError
 from pipeline.radiometry.absolute import (absolute_calibration_budget, dn_per_second,

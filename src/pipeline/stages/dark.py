@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import Dataset
 from pipeline.effects import get as get_effect
 from pipeline.effects.catalogue import drift_sigma

@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.frames import SITES_PER_BAND_PIXEL
 from pipeline.stages.dark import dark_level_dn
 

@@ -39,7 +39,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import Dataset
 from pipeline.errors import InputError
 from pipeline.frames import iter_frames

@@ -21,7 +21,7 @@ import xarray as xr
 
 from pipeline.config import stage_params
 from pipeline.artefact import read_artefact, sha256_file, write_artefact
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import open_dataset, read_water
 from pipeline.errors import InputError
 from pipeline.fitting import wls

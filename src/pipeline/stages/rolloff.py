@@ -41,7 +41,7 @@ import xarray as xr
 from scipy import ndimage, optimize
 
 from pipeline.artefact import read_artefact, write_artefact
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import Dataset, open_dataset
 from pipeline.effects import get as get_effect
 from pipeline.effects import load_plugins

@@ -44,7 +44,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.dataset import Dataset, read_photodiode
 from pipeline.errors import InputError
 from pipeline.fitting import base_design, wls

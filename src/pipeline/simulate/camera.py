@@ -16,8 +16,6 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from pipeline.bands import BANDS  # noqa: F401  (one definition of the band names)
-
 #: 14-bit analogue-to-digital converter.
 ADC_MAX_DN = 2**14 - 1
 
