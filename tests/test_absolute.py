@@ -20,7 +20,8 @@ from pipeline.errors import InputError
 from pipeline.simulate import simulate_dataset, truth_dir_for
 from pipeline.stages import absolute, spectral
 from pipeline.stages.dark import dataset_to_table
-from pipeline.stages.geometry_maps import write_default_geometry
+
+from helpers import write_default_geometry
 
 LENSES = ("far", "close")
 BAND_SHAPE = (64, 64)   # tiny scale: 128 raw pixels per lens side

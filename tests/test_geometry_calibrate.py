@@ -9,7 +9,7 @@ from pipeline.geometry.chessboard import Board, poses_covering_fov, project_poin
 from pipeline.geometry.corners import detect_corners
 from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle, render_flat_field
 from pipeline.geometry.maps import theta_phi_maps
-from pipeline.geometry.scaramuzza import default_model
+from pipeline.simulate.lens import default_model
 
 N_FRAMES = 20
 SIZE = 288

@@ -5,7 +5,7 @@ import pytest
 
 from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle, render_flat_field
 from pipeline.geometry.maps import mask_within, pixel_of_direction, solid_angle_map, theta_phi_maps
-from pipeline.geometry.scaramuzza import default_model
+from pipeline.simulate.lens import default_model
 
 
 @pytest.mark.parametrize("lens,medium,size", [("close", "air", 288), ("far", "water", 288),

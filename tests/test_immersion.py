@@ -8,8 +8,9 @@ import yaml
 
 from pipeline.artefact import read_artefact, write_artefact
 from pipeline.simulate import simulate_dataset, truth_dir_for
-from pipeline.simulate.rolloff import true_geometry_dataset
 from pipeline.stages import immersion
+
+from helpers import true_geometry_dataset
 
 TABLE2_N2 = {"R": 1.738, "G": 1.742, "B": 1.748}
 

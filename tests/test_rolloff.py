@@ -9,9 +9,11 @@ from pipeline.artefact import read_artefact, write_artefact
 from pipeline.diagnostics import error_figures, observations_from_artefacts, rank_missing_effects
 from pipeline.radiometry.rolloff import default_rolloff, evaluate_rolloff
 from pipeline.simulate import simulate_dataset
-from pipeline.simulate.rolloff import ANGLES_DEG, true_geometry_dataset
+from pipeline.simulate.rolloff import ANGLES_DEG
 from pipeline.stages import rolloff
 from pipeline.stages.dark import dataset_to_table
+
+from helpers import true_geometry_dataset
 
 
 def run_stage(tmp_path_factory, config, effects=(), seed=3, model=None):

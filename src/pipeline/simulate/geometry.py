@@ -6,7 +6,7 @@ water at poses that cover the field of view up to its edge
 rendered through the TRUE camera model of every raw pixel's own band:
 
 * per lens and medium the nominal model is the published fit
-  (:func:`pipeline.geometry.scaramuzza.default_model` at raw resolution);
+  (:func:`pipeline.simulate.lens.default_model` at raw resolution);
 * chromatic differences: per band a magnification of the polynomial about its
   centre (R +0.2 %, B -0.15 % in air; +0.3 % / -0.3 % in water, giving
   edge differences of 0.1-0.35 degree against G, the size of Fig. 4c-d) and a
@@ -44,7 +44,8 @@ from scipy.ndimage import maximum_filter, minimum_filter
 from pipeline.bands import BANDS
 from pipeline.geometry.chessboard import Board, board_reflectance, poses_covering_fov, project_points
 from pipeline.geometry.image_circle import ImageCircle, half_fov_from_circle
-from pipeline.geometry.scaramuzza import HALF_FOV_DEG, FisheyeModel, default_model
+from pipeline.geometry.scaramuzza import FisheyeModel
+from pipeline.simulate.lens import HALF_FOV_DEG, default_model
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
 #: the board of the small, medium and full scales (dataset.yaml declares the board of
