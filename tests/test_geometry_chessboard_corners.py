@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from pipeline.geometry.chessboard import Board, poses_covering_fov, render_chessboard
+from pipeline.geometry.chessboard import Board
 from pipeline.geometry.corners import detect_corners
+from pipeline.simulate.chessboard import poses_covering_fov, render_chessboard
 from pipeline.simulate.lens import default_model
 
 

@@ -28,10 +28,11 @@ import yaml
 from pipeline.config import load_config
 from pipeline.dataset import write_md5sums
 from pipeline.errors import InputError
-from pipeline.geometry.chessboard import Board, _look_rotation, project_points
+from pipeline.geometry.chessboard import Board, project_points
 from pipeline.geometry.maps import theta_phi_maps
 from pipeline.geometry.scaramuzza import FisheyeModel
 from pipeline.simulate import geometry as simgeo
+from pipeline.simulate.chessboard import look_rotation
 from pipeline.simulate.dataset import simulate_dataset, truth_dir_for
 from pipeline.simulate.plan import PLANNERS, FrameSpec
 from pipeline.stages import geometry as stage
@@ -49,7 +50,7 @@ def _edge_pose(medium):
     hx, hy = board.half_extent_mm()
     dist = np.hypot(hx, hy) / np.tan(np.radians(15.0))
     import cv2
-    R = _look_rotation(d, 0.0, 0.0, 0.3)
+    R = look_rotation(d, 0.0, 0.0, 0.3)
     return cv2.Rodrigues(R)[0].ravel(), d * dist
 
 

@@ -2,7 +2,7 @@
 
 A planar chessboard, lit uniformly, photographed by each lens in air and in
 water at poses that cover the field of view up to its edge
-(:func:`pipeline.geometry.chessboard.poses_covering_fov`). The board is
+(:func:`pipeline.simulate.chessboard.poses_covering_fov`). The board is
 rendered through the TRUE camera model of every raw pixel's own band:
 
 * per lens and medium the nominal model is the published fit
@@ -42,9 +42,10 @@ import numpy as np
 from scipy.ndimage import maximum_filter, minimum_filter
 
 from pipeline.bands import BANDS
-from pipeline.geometry.chessboard import Board, board_reflectance, poses_covering_fov, project_points
+from pipeline.geometry.chessboard import Board, project_points
 from pipeline.geometry.image_circle import ImageCircle, half_fov_from_circle
 from pipeline.geometry.scaramuzza import FisheyeModel
+from pipeline.simulate.chessboard import board_reflectance, poses_covering_fov
 from pipeline.simulate.lens import HALF_FOV_DEG, default_model
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
@@ -79,7 +80,7 @@ class BoardDesign:
 
     ``half_angle_deg``: half-angle (deg) that the board's half-diagonal
     subtends on the axis and at the edge of the field
-    (:func:`pipeline.geometry.chessboard.poses_covering_fov`).
+    (:func:`pipeline.simulate.chessboard.poses_covering_fov`).
     """
 
     inner_corners: tuple[int, int]
