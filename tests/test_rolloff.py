@@ -7,8 +7,9 @@ import pytest
 
 from pipeline.artefact import read_artefact, write_artefact
 from pipeline.diagnostics import error_figures, observations_from_artefacts, rank_missing_effects
-from pipeline.radiometry.rolloff import default_rolloff, evaluate_rolloff
+from pipeline.radiometry.rolloff import evaluate_rolloff
 from pipeline.simulate import simulate_dataset
+from pipeline.simulate.lens import default_rolloff
 from pipeline.simulate.rolloff import ANGLES_DEG
 from pipeline.stages import rolloff
 from pipeline.stages.dark import dataset_to_table

@@ -8,7 +8,7 @@ Small modules of pure, vectorised functions:
 * ``spectral``  relative spectral response, Eq. (8), bandwidth, Eq. (3)
 * ``source``    Planck radiance, scaling to a reference reading
 * ``absolute``  inverse responsivity, Eq. (9), with its uncertainty budget
-* ``rolloff``   Eq. (13) fit, evaluation and default roll-off
+* ``rolloff``   Eq. (13) fit and evaluation
 """
 
 from . import absolute, fresnel, immersion, rolloff, source, spectral, water

@@ -13,9 +13,9 @@ import numpy as np
 
 from pipeline.bands import BANDS
 from pipeline.geometry.maps import theta_phi_maps
-from pipeline.radiometry.rolloff import default_rolloff, evaluate_rolloff
+from pipeline.radiometry.rolloff import evaluate_rolloff
 from pipeline.simulate.camera import Camera
-from pipeline.simulate.lens import HALF_FOV_DEG, default_model
+from pipeline.simulate.lens import HALF_FOV_DEG, default_model, default_rolloff
 from pipeline.simulate.plan import FrameSpec, LensGeometry
 from pipeline.simulate.sensor import draw_static_pattern, expose
 

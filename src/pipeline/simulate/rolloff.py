@@ -18,7 +18,7 @@ import numpy as np
 from pipeline.bands import BANDS
 from pipeline.geometry.scaramuzza import FisheyeModel
 from pipeline.simulate.immersion import true_immersion_factors
-from pipeline.simulate.lens import HALF_FOV_DEG, RAW_SIZE_PX, default_model
+from pipeline.simulate.lens import HALF_FOV_DEG, RAW_SIZE_PX, default_model, default_rolloff
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
 ANGLES_DEG = {"air": np.arange(-80.0, 80.0 + 1e-9, 5.0), "water": np.arange(-70.0, 70.0 + 1e-9, 2.0)}
@@ -97,8 +97,6 @@ def plan_rolloff(ctx: SimContext) -> ExperimentPlan:
                         frames.append(FrameSpec(lens, "signal", ISO, EXPOSURE_S,
                                                 {"medium": medium, "azimuth_deg": az, "angle_deg": float(angle)},
                                                 scene, medium=medium, light_factor=factor))
-    from pipeline.radiometry.rolloff import default_rolloff
-
     truth = {
         "rolloff_coefficients": {m: {b: default_rolloff(b, m).tolist() for b in BANDS} for m in MEDIA},
         "port_radius_deg": radii,
