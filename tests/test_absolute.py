@@ -20,7 +20,8 @@ from pipeline.artefact import read_artefact
 from pipeline.errors import InputError
 from pipeline.simulate import simulate_dataset, truth_dir_for
 from pipeline.observations import dataset_to_table
-from pipeline.stages.geometry_maps import write_default_geometry
+
+from helpers import write_default_geometry
 
 LENSES = ("far", "close")
 BAND_SHAPE = (64, 64)   # tiny scale: 128 raw pixels per lens side

@@ -7,9 +7,10 @@ import pytest
 
 from pipeline.diagnostics import error_figures, observations_from_artefacts, rank_missing_effects
 from pipeline.simulate import simulate_dataset
-from pipeline.simulate.rolloff import true_geometry_dataset
 from pipeline.dataset import open_dataset
 from pipeline.stages.rolloff import analyse_rolloff, reduce_rolloff
+
+from helpers import true_geometry_dataset
 
 CASES = {
     "rolloff_azimuth": {"amplitude": 0.02, "phi0_deg": 50.0},

@@ -5,11 +5,13 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from pipeline.geometry.calibrate import calibrate
-from pipeline.geometry.chessboard import Board, poses_covering_fov, project_points, render_chessboard
+from pipeline.geometry.chessboard import Board, project_points
 from pipeline.geometry.corners import detect_corners
-from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle, render_flat_field
+from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle
 from pipeline.geometry.maps import theta_phi_maps
-from pipeline.geometry.scaramuzza import default_model
+from pipeline.simulate.chessboard import poses_covering_fov, render_chessboard
+from pipeline.simulate.flat_field import render_flat_field
+from pipeline.simulate.lens import default_model
 
 N_FRAMES = 20
 SIZE = 288

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from pipeline.geometry.chessboard import Board, poses_covering_fov, render_chessboard
+from pipeline.geometry.chessboard import Board
 from pipeline.geometry.corners import detect_corners
-from pipeline.geometry.scaramuzza import default_model
+from pipeline.simulate.chessboard import poses_covering_fov, render_chessboard
+from pipeline.simulate.lens import default_model
 
 
 def test_render_fast_and_truth_inside():

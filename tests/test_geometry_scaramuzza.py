@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from pipeline.geometry.scaramuzza import FisheyeModel, default_model
+from pipeline.geometry.scaramuzza import FisheyeModel
+from pipeline.simulate.lens import default_model
 
 
 def _rays(theta_max_deg, n=4001):

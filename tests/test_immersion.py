@@ -9,7 +9,8 @@ import yaml
 from pipeline.workflow import run_stage
 from pipeline.artefact import read_artefact, write_artefact
 from pipeline.simulate import simulate_dataset, truth_dir_for
-from pipeline.simulate.rolloff import true_geometry_dataset
+
+from helpers import true_geometry_dataset
 
 TABLE2_N2 = {"R": 1.738, "G": 1.742, "B": 1.748}
 

@@ -10,7 +10,7 @@ from pipeline.radiometry.absolute import (
     lamp_calibration_relative_sigma,
 )
 from pipeline.radiometry.source import planck_radiance
-from pipeline.radiometry.spectral import default_spectral_response
+from pipeline.simulate.spectral import default_spectral_response
 
 GRID_NM = np.arange(400.0, 700.0 + 1e-9, 10.0)
 # Table 1 (R, G, B); radiance in W sr-1 m-2 nm-1, DN in ADU/s at ISO 100

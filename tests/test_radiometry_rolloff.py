@@ -1,16 +1,15 @@
-"""Tests of pipeline.radiometry.rolloff (Eq. 13) against the published values and round trips."""
+"""Tests of pipeline.radiometry.rolloff (Eq. 13) and of the simulator's default roll-off
+(pipeline.simulate.lens) against the published values, and round trips."""
 
 import numpy as np
 import pytest
 
 from pipeline.radiometry.rolloff import (
-    PUBLISHED_RED_AIR_CLOSE_LENS,
-    PUBLISHED_ROLLOFF_POINTS,
-    default_rolloff,
     evaluate_rolloff,
     fit_rolloff,
     normalise_rolloff,
 )
+from pipeline.simulate.lens import PUBLISHED_RED_AIR_CLOSE_LENS, PUBLISHED_ROLLOFF_POINTS, default_rolloff
 
 THETA_AIR = np.arange(-80.0, 80.0 + 1e-9, 5.0)  # the in-air experiment
 THETA_WATER = np.arange(-70.0, 70.0 + 1e-9, 2.0)  # the in-water experiment

@@ -1,22 +1,23 @@
-"""Tests of pipeline.radiometry.spectral and pipeline.radiometry.source."""
+"""Tests of pipeline.radiometry.spectral and pipeline.radiometry.source, and of the
+simulator's default response and source against the published values."""
 
 import numpy as np
 import pytest
 
 from pipeline.radiometry.source import (
-    default_source_radiance,
     planck_radiance,
     scale_to_reference,
 )
 from pipeline.radiometry.spectral import (
     band_statistics,
     bandwidth,
-    default_spectral_response,
     effective_band_radiance,
     effective_wavelength,
     peak_normalise_response,
     trapezoid_weights,
 )
+from pipeline.simulate.absolute import default_source_radiance
+from pipeline.simulate.spectral import default_spectral_response
 
 GRID_NM = np.arange(400.0, 700.0 + 1e-9, 10.0)
 # DESIGN.md / Larouche et al. 2024 Section 3.4: lambda_eff +/- Lambda/2

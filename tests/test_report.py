@@ -113,8 +113,9 @@ def _geometry_with_curves(lens: str):
     """
     import numpy as np
 
-    from pipeline.geometry.scaramuzza import default_model
-    from pipeline.simulate.rolloff import true_geometry_dataset
+    from helpers import true_geometry_dataset
+
+    from pipeline.simulate.lens import default_model
     from pipeline.stages.geometry import _projection_curves
 
     ds = true_geometry_dataset(lens, 64)
@@ -150,7 +151,7 @@ def later(run, config):
     """Tiny artefacts of the later stages and a report that includes them (plus dark and linearity)."""
     from pipeline.artefact import write_artefact
     from pipeline.simulate import simulate_dataset
-    from pipeline.simulate.rolloff import true_geometry_dataset
+    from helpers import true_geometry_dataset
     from pipeline.workflow import run_stage
 
     tmp = run["tmp"] / "later"

@@ -7,11 +7,14 @@ import pytest
 
 from pipeline.artefact import read_artefact, write_artefact
 from pipeline.diagnostics import error_figures, observations_from_artefacts, rank_missing_effects
-from pipeline.radiometry.rolloff import default_rolloff, evaluate_rolloff
+from pipeline.radiometry.rolloff import evaluate_rolloff
 from pipeline.simulate import simulate_dataset
-from pipeline.simulate.rolloff import ANGLES_DEG, true_geometry_dataset
-from pipeline.workflow import run_stage
 from pipeline.observations import dataset_to_table
+from pipeline.simulate.lens import default_rolloff
+from pipeline.simulate.rolloff import ANGLES_DEG
+from pipeline.workflow import run_stage
+
+from helpers import true_geometry_dataset
 
 
 def run_rolloff(tmp_path_factory, config, effects=(), seed=3, model=None):

@@ -91,7 +91,11 @@ class Effect:
 
     # ------------------------------------------------------------ simulator
     def prepare(self, rng: np.random.Generator, context: dict) -> None:
-        """Draw the static, per-camera part of the effect (pixel maps, per-ISO factors)."""
+        """Draw the static, per-camera part of the effect (pixel maps, per-ISO factors).
+
+        ``context`` (from the simulator): ``lens_names``, ``lens_shape`` (raw
+        pixels of one lens region) and ``image_circle_radius_band_px``.
+        """
 
     def true_exposure_s(self, exposure_s: float) -> float:
         return exposure_s

@@ -120,9 +120,8 @@ class StrayLight(Effect):
     amplitude_units = "1"
 
     def prepare(self, rng, context):
-        n = context["lens_shape"][0] // 2
-        # image-circle radius of the band image: about 1600/3456 of the lens width (default optics)
-        self.sigma_band_px = self.params["psf_sigma_fraction"] * circle_radius_fraction() * n
+        # the simulator's context gives the image-circle radius of its optics in band pixels
+        self.sigma_band_px = self.params["psf_sigma_fraction"] * context["image_circle_radius_band_px"]
 
     def spread_light(self, photo_rate, lens):
         from scipy.ndimage import gaussian_filter
@@ -142,10 +141,3 @@ class StrayLight(Effect):
         if experiment != "rolloff" or level != "setting" or "halo_column_dn" not in table:
             return None
         return table["halo_column_dn"].to_numpy(float)[:, None]
-
-
-def circle_radius_fraction() -> float:
-    """Image-circle radius over lens-image width of the default optics (air, 91 deg)."""
-    from pipeline.geometry.scaramuzza import RAW_SIZE_PX, default_model
-
-    return default_model("close", "air", (RAW_SIZE_PX, RAW_SIZE_PX)).image_circle_radius() / RAW_SIZE_PX

@@ -1,12 +1,12 @@
 """Geometric calibration of fisheye lenses (Scaramuzza / OCamCalib model).
 
-Modules: :mod:`.scaramuzza` (the camera model and defaults), :mod:`.chessboard`
-(simulated chessboard images), :mod:`.corners` (corner detection),
+Modules: :mod:`.scaramuzza` (the camera model), :mod:`.chessboard` (the
+chessboard and its projection), :mod:`.corners` (corner detection),
 :mod:`.calibrate` (calibration from detected corners), :mod:`.image_circle`
 (image circle and half field of view), :mod:`.maps` (per-pixel theta, phi and
 solid angle maps). Conventions are in :mod:`.scaramuzza`'s docstring.
 """
 
-from .scaramuzza import FisheyeModel, default_model
+from .scaramuzza import FisheyeModel
 
-__all__ = ["FisheyeModel", "default_model"]
+__all__ = ["FisheyeModel"]

@@ -20,8 +20,7 @@ Conventions (used by every module of :mod:`pipeline.geometry`):
 - Band images are the 2 x 2 Bayer super-pixels of the raw mosaic: band pixel
   ``i`` covers raw pixels ``2i`` and ``2i + 1``, so its centre is raw
   coordinate ``2i + 0.5``, i.e. ``u_band = (u_raw - 0.5) / 2`` (the same rule
-  as scaling by ``s = 1/2``). The published centres are taken as 0-based
-  pixel-centre coordinates of the 3456-pixel raw lens image.
+  as scaling by ``s = 1/2``).
 """
 
 from __future__ import annotations
@@ -29,25 +28,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-
-#: Raw lens image size (pixels) on which the published fits were made.
-RAW_SIZE_PX = 3456
-
-#: Published OCamCalib fits on the raw 3456 x 3456 lens image (green band, air).
-#: Coefficients ascending, a1 = 0; centre (xc, yc) in raw pixels.
-PUBLISHED_FITS = {
-    "close": {
-        "poly": (1019.25, 0.0, -3.0382e-4, -2.1491e-8, -2.8016e-11),
-        "centre": (1731.51, 1710.86),
-    },
-    "far": {
-        "poly": (1016.48, 0.0, -3.9436e-4, 1.5171e-7, -1.1177e-10),
-        "centre": (1743.76, 1724.99),
-    },
-}
-
-#: Half field of view (degrees) at the edge of the image circle, per medium.
-HALF_FOV_DEG = {"air": 91.0, "water": 76.0}
 
 #: Number of samples of the theta(rho) lookup table used to invert f(rho).
 _LUT_SAMPLES = 512
@@ -62,7 +42,7 @@ class FisheyeModel:
     poly : ascending coefficients (a0, a1, a2, ...) of f(rho), a1 = 0, pixels.
     xc, yc : principal point, pixels (u, v).
     c, d, e : stretch matrix ``[[c, d], [e, 1]]``.
-    shape : image shape (rows, cols) the model belongs to.
+    shape : image shape (rows, cols) the model belongs to (keyword only).
     half_fov_deg : theta at the edge of the image circle (field stop), or None.
     """
 
@@ -72,7 +52,7 @@ class FisheyeModel:
     c: float = 1.0
     d: float = 0.0
     e: float = 0.0
-    shape: tuple[int, int] = (RAW_SIZE_PX, RAW_SIZE_PX)
+    shape: tuple[int, int] = field(kw_only=True)
     half_fov_deg: float | None = None
     meta: dict = field(default_factory=dict, compare=False)
 
@@ -266,50 +246,3 @@ def fit_poly_to_theta(rho, theta_rad, degree: int = 4) -> tuple[float, ...]:
     sol, *_ = np.linalg.lstsq(M * w[:, None], b * w, rcond=None)
     poly = [sol[0], 0.0] + list(sol[1:])
     return tuple(float(a) for a in poly)
-
-
-def water_model(air: FisheyeModel, half_fov_water_deg: float = HALF_FOV_DEG["water"],
-                degree: int = 4) -> FisheyeModel:
-    """In-water model derived from an in-air model with a half FOV.
-
-    A flat port cannot give the measured 76 degrees (Snell at a flat
-    interface caps the in-water field at asin(1/1.333) = 48.6 degrees); the
-    camera's curved front element loses part of its power instead. We model
-    this as a uniform compression of the field angle,
-    theta_water(rho) = theta_air(rho) * 76 / 91, with the image circle
-    unchanged on the sensor, and refit the Scaramuzza polynomial to it.
-    """
-    if air.half_fov_deg is None:
-        raise ValueError("air model needs half_fov_deg")
-    r_circle = air.image_circle_radius()
-    k = half_fov_water_deg / air.half_fov_deg
-    rho = np.linspace(0.0, 1.05 * r_circle, 400)
-    theta_w = air.theta_of_rho(rho) * k
-    poly = fit_poly_to_theta(rho, theta_w, degree)
-    return replace(air, poly=poly, half_fov_deg=half_fov_water_deg)
-
-
-def default_model(lens: str = "close", medium: str = "air",
-                  band_shape: tuple[int, int] | int = (1728, 1728)) -> FisheyeModel:
-    """Default model of one lens in one medium for a band image of band_shape.
-
-    Built from the published raw 3456-pixel fit: band images of size N are
-    the raw lens image scaled by s = N / 3456 (N = 1728 are the true 2 x 2
-    super-pixels). Stretch is identity (not published). The image circle is
-    where the air model reaches 91 degrees (about 1600 raw pixels for the
-    close lens); in water the same circle sees 76 degrees.
-    """
-    if lens not in PUBLISHED_FITS:
-        raise ValueError(f"lens must be one of {sorted(PUBLISHED_FITS)}, got {lens!r}")
-    if medium not in HALF_FOV_DEG:
-        raise ValueError(f"medium must be one of {sorted(HALF_FOV_DEG)}, got {medium!r}")
-    if np.isscalar(band_shape):
-        band_shape = (int(band_shape), int(band_shape))
-    fit = PUBLISHED_FITS[lens]
-    raw = FisheyeModel(poly=fit["poly"], xc=fit["centre"][0], yc=fit["centre"][1],
-                       shape=(RAW_SIZE_PX, RAW_SIZE_PX), half_fov_deg=HALF_FOV_DEG["air"])
-    s = band_shape[1] / RAW_SIZE_PX
-    model = raw.scaled(s, shape=tuple(band_shape))
-    if medium == "water":
-        model = water_model(model)
-    return replace(model, meta={"lens": lens, "medium": medium})

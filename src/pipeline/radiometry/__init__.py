@@ -9,7 +9,7 @@ Small modules of pure, vectorised functions:
 * ``spectral``  peak-normalised response, Eq. (8), bandwidth, Eq. (3)
 * ``source``    Planck radiance, scaling to a reference reading
 * ``absolute``  inverse responsivity, Eq. (9), with its uncertainty budget
-* ``rolloff``   Eq. (13): design matrix, fit, evaluation, slope (and the default roll-off)
+* ``rolloff``   Eq. (13): design matrix, fit, evaluation, slope
 """
 
 from . import absolute, exposure, fresnel, immersion, rolloff, source, spectral, water

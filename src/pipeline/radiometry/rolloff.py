@@ -1,4 +1,4 @@
-"""Roll-off (relative illumination) g(theta): even polynomial fit, evaluation, defaults.
+"""Roll-off (relative illumination) g(theta): even polynomial fit and evaluation.
 
 Larouche et al. (2024), Sections 2.4 and 3.3, Eq. (13):
 
@@ -16,10 +16,8 @@ the normal equations stay well conditioned.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
-from scipy import optimize
 
 __all__ = [
     "RolloffFit",
@@ -28,9 +26,6 @@ __all__ = [
     "evaluate_rolloff",
     "rolloff_slope",
     "normalise_rolloff",
-    "PUBLISHED_RED_AIR_CLOSE_LENS",
-    "PUBLISHED_ROLLOFF_POINTS",
-    "default_rolloff",
 ]
 
 N_COEFFICIENTS = 5  # a0, a2, a4, a6, a8
@@ -173,69 +168,3 @@ def normalise_rolloff(coefficients, covariance=None):
     jac[:, 0] = -c / a0**2
     jac[0, :] = 0.0
     return out, jac @ np.asarray(covariance, dtype=float) @ jac.T
-
-
-#: Close lens, air, red band (supplement Table S2 of Larouche et al. 2024, via DESIGN.md).
-PUBLISHED_RED_AIR_CLOSE_LENS = np.array([0.99726, -7.806e-5, 4.074e-9, -4.884e-13, 2.406e-17])
-
-#: Published roll-off values (Section 3.3): (medium, band) -> {theta_deg: g}.
-PUBLISHED_ROLLOFF_POINTS = {
-    ("air", "B"): {70.0: 0.728, 80.0: 0.645},
-    ("air", "G"): {70.0: 0.719, 80.0: 0.637},
-    ("air", "R"): {70.0: 0.669, 80.0: 0.577},
-    ("water", "B"): {70.0: 0.570},
-    ("water", "G"): {70.0: 0.562},
-    ("water", "R"): {70.0: 0.491},
-}
-
-
-@lru_cache(maxsize=None)
-def _default_table():
-    red = PUBLISHED_RED_AIR_CLOSE_LENS / PUBLISHED_RED_AIR_CLOSE_LENS[0]
-    air = {"R": red}
-    # B and G in air: the red shape plus c2 theta^2 + c4 theta^4 chosen to pass
-    # exactly through the published values at 70 and 80 deg.
-    m = np.array([[70.0**2, 70.0**4], [80.0**2, 80.0**4]])
-    for band in ("B", "G"):
-        pts = PUBLISHED_ROLLOFF_POINTS[("air", band)]
-        rhs = np.array([pts[70.0] - evaluate_rolloff(red, 70.0), pts[80.0] - evaluate_rolloff(red, 80.0)])
-        c2, c4 = np.linalg.solve(m, rhs)
-        a = red.copy()
-        a[1] += c2
-        a[2] += c4
-        air[band] = a
-    # Water: the air curve compressed toward small angles, g_w(theta) =
-    # g_air(k theta) (Section 3.3: "almost the same shape ... compressed"),
-    # k chosen so that g_w(70) equals the published value; k ~ 1.26-1.27,
-    # close to the ratio of half fields of view 91 / 76 = 1.20.
-    water = {}
-    for band, a in air.items():
-        target = PUBLISHED_ROLLOFF_POINTS[("water", band)][70.0]
-        theta_air = optimize.brentq(lambda t: evaluate_rolloff(a, t) - target, 60.0, 95.0, xtol=1e-12)
-        k = theta_air / 70.0
-        water[band] = a * k ** (2.0 * np.arange(N_COEFFICIENTS))
-    return {"air": air, "water": water}
-
-
-def default_rolloff(band, medium="air"):
-    """Default "true" roll-off coefficients (a0..a8, theta in degrees) for the simulator.
-
-    band : "R", "G" or "B"; medium : "air" or "water".  All have g(0) = 1.
-
-    * air, R: the published close-lens red coefficients divided by their
-      a0 = 0.99726 (g(70) = 0.6708, g(80) = 0.5785; published 0.669, 0.577).
-    * air, B and G: the red shape plus a2 and a4 corrections that pass
-      through the published 70 and 80 deg values exactly.
-    * water: g_air(k theta) with k set by the published 70 deg value.
-
-    Monotone decreasing from 0 to 91 deg (air) and 0 to 76 deg (water).
-    Returns a new (5,) array.
-    """
-    band = band.upper()
-    medium = medium.lower()
-    table = _default_table()
-    if medium not in table:
-        raise ValueError(f"medium must be 'air' or 'water', not {medium!r}")
-    if band not in table[medium]:
-        raise ValueError(f"band must be 'R', 'G' or 'B', not {band!r}")
-    return table[medium][band].copy()

@@ -22,7 +22,6 @@ __all__ = [
     "REFERENCE_RADIANCE_SIGMA_W_SR_M2_NM",
     "planck_radiance",
     "scale_to_reference",
-    "default_source_radiance",
 ]
 
 PLANCK_H_J_S = 6.62607015e-34
@@ -106,15 +105,3 @@ def scale_to_reference(
     out["radiance"] = s * np.asarray(scale)[..., None]
     out["relative_sigma_correlated"] = np.sqrt(u_rel2)
     return out
-
-
-def default_source_radiance(wavelength_nm, temperature_k=QTH_TEMPERATURE_K):
-    """Simulator's calibration-source radiance, W sr-1 m-2 nm-1.
-
-    A Planck spectrum at ``temperature_k`` scaled to 6.8e-4 W sr-1 m-2 nm-1
-    at 589 nm (exact scaling, no interpolation).  With the default spectral
-    response its effective band radiances are about 0.74, 0.48, 0.26 mW
-    sr-1 m-2 nm-1 (R, G, B), as in Table 1 of Larouche et al. (2024).
-    """
-    b = planck_radiance(wavelength_nm, temperature_k)
-    return b * (REFERENCE_RADIANCE_W_SR_M2_NM / planck_radiance(REFERENCE_WAVELENGTH_NM, temperature_k))

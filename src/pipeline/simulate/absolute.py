@@ -23,11 +23,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.camera import BANDS
-from pipeline.radiometry.source import (REFERENCE_RADIANCE_SIGMA_W_SR_M2_NM, REFERENCE_RADIANCE_W_SR_M2_NM,
-                                        REFERENCE_WAVELENGTH_NM, default_source_radiance)
-from pipeline.radiometry.spectral import default_spectral_response, effective_band_radiance
+from pipeline.bands import BANDS
+from pipeline.radiometry.source import (QTH_TEMPERATURE_K, REFERENCE_RADIANCE_SIGMA_W_SR_M2_NM,
+                                        REFERENCE_RADIANCE_W_SR_M2_NM, REFERENCE_WAVELENGTH_NM, planck_radiance)
+from pipeline.radiometry.spectral import effective_band_radiance
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
+from pipeline.simulate.spectral import default_spectral_response
 
 SIGNAL_FRAMES = 10
 DARK_FRAMES = 5
@@ -42,6 +43,18 @@ SPECTROMETER_RELATIVE_NOISE = 0.003
 SPECTROMETER_COUNTS_AT_REFERENCE = 20000.0
 
 _FINE_NM = np.arange(380.0, 720.0 + 1e-9, 0.1)
+
+
+def default_source_radiance(wavelength_nm, temperature_k=QTH_TEMPERATURE_K):
+    """Simulator's calibration-source radiance, W sr-1 m-2 nm-1.
+
+    A Planck spectrum at ``temperature_k`` scaled to 6.8e-4 W sr-1 m-2 nm-1
+    at 589 nm (exact scaling, no interpolation).  With the default spectral
+    response its effective band radiances are about 0.74, 0.48, 0.26 mW
+    sr-1 m-2 nm-1 (R, G, B), as in Table 1 of Larouche et al. (2024).
+    """
+    b = planck_radiance(wavelength_nm, temperature_k)
+    return b * (REFERENCE_RADIANCE_W_SR_M2_NM / planck_radiance(REFERENCE_WAVELENGTH_NM, temperature_k))
 
 
 def true_effective_band_radiance() -> dict[str, float]:

@@ -12,7 +12,6 @@ import pandas as pd
 import yaml
 
 from pipeline import __version__
-from pipeline.camera import Camera
 from pipeline.dataset import write_md5sums
 from pipeline.effects import get as get_effect
 from pipeline.errors import InputError
@@ -21,6 +20,7 @@ from pipeline.simulate import lab  # noqa: F401  (registers the dark and lineari
 from pipeline.simulate import immersion, rolloff  # noqa: F401  (registers the roll-off and immersion planners)
 from pipeline.simulate import absolute, spectral  # noqa: F401  (registers the spectral and absolute planners)
 from pipeline.simulate import geometry  # noqa: F401  (registers the geometry planner)
+from pipeline.simulate.camera import Camera
 from pipeline.simulate.plan import PLANNERS, SimContext
 from pipeline.simulate.render import Renderer
 
@@ -130,7 +130,7 @@ def simulate_dataset(out: str | Path, scale: str = "small", seed: int = 0,
             "camera": {"make": camera.make, "model": camera.model, "serial": camera.serial},
             "lenses": {lens: {"rows": [i * n, (i + 1) * n], "cols": [0, n]}
                        for i, lens in enumerate(camera.lens_names)},
-            "chessboard": {"inner_corners": [8, 6], "square_mm": {"air": 30.0, "water": 20.0}},
+            "chessboard": geometry.board_design(sc.name).dataset_entry(),
             "description": f"simulated dataset, scale {scale}, seed {seed}",
         }
         (tmp / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))

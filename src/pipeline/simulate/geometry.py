@@ -2,11 +2,11 @@
 
 A planar chessboard, lit uniformly, photographed by each lens in air and in
 water at poses that cover the field of view up to its edge
-(:func:`pipeline.geometry.chessboard.poses_covering_fov`). The board is
+(:func:`pipeline.simulate.chessboard.poses_covering_fov`). The board is
 rendered through the TRUE camera model of every raw pixel's own band:
 
 * per lens and medium the nominal model is the published fit
-  (:func:`pipeline.geometry.scaramuzza.default_model` at raw resolution);
+  (:func:`pipeline.simulate.lens.default_model` at raw resolution);
 * chromatic differences: per band a magnification of the polynomial about its
   centre (R +0.2 %, B -0.15 % in air; +0.3 % / -0.3 % in water, giving
   edge differences of 0.1-0.35 degree against G, the size of Fig. 4c-d) and a
@@ -25,6 +25,10 @@ model scaled by 1/2 with the site offset: R centre +0.25 band px, B -0.25 band
 px relative to the cell centre convention of
 :meth:`pipeline.geometry.scaramuzza.FisheyeModel.scaled` (G).
 
+Board: 8 x 6 inner corners (30 mm squares in air, 20 mm in water); the tiny
+scale's coarse images use a board with fewer, larger squares
+(:data:`BOARD_BY_SCALE`). dataset.yaml declares the board of the scale.
+
 Frame counts: the real counts are not published per lens (16 in air, 20 in
 water for one calibration, Section 2.3); we use ``FRAMES_PER_MEDIUM``
 (20 per lens and medium at the full scale).
@@ -32,18 +36,21 @@ water for one calibration, Section 2.3); we use ``FRAMES_PER_MEDIUM``
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.ndimage import maximum_filter, minimum_filter
 
-from pipeline.camera import BANDS
-from pipeline.geometry.chessboard import Board, board_reflectance, poses_covering_fov, project_points
+from pipeline.bands import BANDS
+from pipeline.geometry.chessboard import Board, project_points
 from pipeline.geometry.image_circle import ImageCircle, half_fov_from_circle
-from pipeline.geometry.scaramuzza import HALF_FOV_DEG, FisheyeModel, default_model
+from pipeline.geometry.scaramuzza import FisheyeModel
+from pipeline.simulate.chessboard import board_reflectance, poses_covering_fov
+from pipeline.simulate.lens import HALF_FOV_DEG, default_model
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
-#: the board the simulator's dataset.yaml declares (simulate/dataset.py writes the same)
+#: the board of the small, medium and full scales (dataset.yaml declares the board of
+#: :func:`board_design`)
 INNER_CORNERS = (8, 6)
 SQUARE_MM = {"air": 30.0, "water": 20.0}
 MEDIA = ("air", "water")
@@ -65,6 +72,46 @@ WHITE_DN = {"R": 8000.0, "G": 10000.0, "B": 6000.0}
 REFLECTANCE = {"white": 0.9, "black": 0.05, "background": 0.35}
 #: board half-angle (deg) on the axis and at the edge of the field
 BOARD_HALF_ANGLE_DEG = (50.0, 20.0)
+
+
+@dataclass(frozen=True)
+class BoardDesign:
+    """The chessboard the lab photographs and how large it appears.
+
+    ``half_angle_deg``: half-angle (deg) that the board's half-diagonal
+    subtends on the axis and at the edge of the field
+    (:func:`pipeline.simulate.chessboard.poses_covering_fov`).
+    """
+
+    inner_corners: tuple[int, int]
+    square_mm: dict
+    half_angle_deg: tuple[float, float]
+
+    def board(self, medium: str) -> Board:
+        return Board(*self.inner_corners, self.square_mm[medium])
+
+    def dataset_entry(self) -> dict:
+        """The ``chessboard`` entry of dataset.yaml."""
+        return {"inner_corners": list(self.inner_corners), "square_mm": dict(self.square_mm)}
+
+
+BOARD = BoardDesign(INNER_CORNERS, SQUARE_MM, BOARD_HALF_ANGLE_DEG)
+#: Boards by scale name where :data:`BOARD` cannot be resolved. A chessboard is
+#: detectable only when each square spans at least two pixels (the sampling
+#: limit). At the tiny scale (64-px band images, about 3 deg per band pixel) the
+#: 8 x 6 board's smallest square images to 1.5 band px in the median pose (0.8 at
+#: worst) and the board is found in 0 to 5 of 12 frames; a lab with so coarse a
+#: camera uses a board with fewer, larger squares, held closer: 5 x 4 inner
+#: corners (odd sum: the orientation stays unambiguous), half-angles 55 deg on the
+#: axis and 35 deg at the edge, whose smallest square images to 2.9 band px in the
+#: median pose (1.9 at worst). Square sizes keep the distances of a lab bench
+#: (0.2-0.4 m in air) and a tank (0.13-0.26 m in water).
+BOARD_BY_SCALE = {"tiny": BoardDesign((5, 4), {"air": 60.0, "water": 40.0}, (55.0, 35.0))}
+
+
+def board_design(scale_name: str) -> BoardDesign:
+    """The board the simulated lab uses at a scale (dataset.yaml declares it)."""
+    return BOARD_BY_SCALE.get(scale_name, BOARD)
 
 
 def magnified(model: FisheyeModel, m: float) -> FisheyeModel:
@@ -176,10 +223,10 @@ def white_radiance(ctx: SimContext) -> dict:
 
 def plan_poses(ctx: SimContext, lens: str, medium: str, n: int):
     raw = true_raw_models(lens, medium, ctx.scale.lens_px)["G"]
-    board = Board(*INNER_CORNERS, SQUARE_MM[medium])
+    design = board_design(ctx.scale.name)
     seed = int(ctx.rng.integers(2**31))
-    return poses_covering_fov(n, HALF_FOV_DEG[medium], seed, board=board, model=raw,
-                              board_half_angle_deg=BOARD_HALF_ANGLE_DEG)
+    return poses_covering_fov(n, HALF_FOV_DEG[medium], seed, board=design.board(medium), model=raw,
+                              board_half_angle_deg=design.half_angle_deg)
 
 
 @planner("geometry")
@@ -188,10 +235,12 @@ def plan_geometry(ctx: SimContext) -> ExperimentPlan:
     lens_px = ctx.scale.lens_px
     radiance = white_radiance(ctx)
     frames = []
-    truth = {"inner_corners": list(INNER_CORNERS), "square_mm": dict(SQUARE_MM), "supersample": SUPERSAMPLE,
-             "exposure_s": EXPOSURE_S, "iso": ISO, "white_radiance": radiance, "models": {}, "frames": []}
+    design = board_design(ctx.scale.name)
+    truth = {**design.dataset_entry(), "board_half_angle_deg": list(design.half_angle_deg),
+             "supersample": SUPERSAMPLE, "exposure_s": EXPOSURE_S, "iso": ISO, "white_radiance": radiance,
+             "models": {}, "frames": []}
     for medium in MEDIA:
-        board = Board(*INNER_CORNERS, SQUARE_MM[medium])
+        board = design.board(medium)
         for lens in ctx.camera.lens_names:
             raw = true_raw_models(lens, medium, lens_px)
             models = truth["models"].setdefault(lens, {}).setdefault(medium, {})

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.camera import BANDS, DarkPlan, LinearityPlan
+from pipeline.bands import BANDS
+from pipeline.simulate.camera import DarkPlan, LinearityPlan
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
 

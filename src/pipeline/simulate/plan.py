@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.camera import Camera
+from pipeline.simulate.camera import Camera
 
 
 @dataclass

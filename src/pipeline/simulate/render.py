@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.camera import BANDS, Camera
+from pipeline.bands import BANDS
 from pipeline.geometry.maps import theta_phi_maps
-from pipeline.geometry.scaramuzza import HALF_FOV_DEG, default_model
-from pipeline.radiometry.rolloff import default_rolloff, evaluate_rolloff
+from pipeline.radiometry.rolloff import evaluate_rolloff
+from pipeline.simulate.camera import Camera
+from pipeline.simulate.lens import HALF_FOV_DEG, default_model, default_rolloff
 from pipeline.simulate.plan import FrameSpec, LensGeometry
 from pipeline.simulate.sensor import draw_static_pattern, expose
 
@@ -29,7 +30,10 @@ class Renderer:
         self.seed = seed
         self.effects = effects
         static = np.random.default_rng([seed, 7919])
-        context = {"lens_names": camera.lens_names, "lens_shape": self.shape}
+        context = {"lens_names": camera.lens_names, "lens_shape": self.shape,
+                   # image-circle radius of the default optics (close lens, air) in band pixels
+                   "image_circle_radius_band_px": default_model(
+                       "close", "air", (lens_px // 2, lens_px // 2)).image_circle_radius()}
         for effect in effects:
             effect.prepare(static, context)
         self.patterns = {lens: draw_static_pattern(static, self.shape, camera.sensor)

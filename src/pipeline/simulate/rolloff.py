@@ -11,18 +11,23 @@ frames with the same settings are taken in each medium.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
-from pipeline.camera import BANDS
-from pipeline.geometry.scaramuzza import HALF_FOV_DEG, RAW_SIZE_PX, default_model
+from pipeline.bands import BANDS
+from pipeline.geometry.scaramuzza import FisheyeModel
 from pipeline.simulate.immersion import true_immersion_factors
+from pipeline.simulate.lens import HALF_FOV_DEG, RAW_SIZE_PX, default_model, default_rolloff
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
 ANGLES_DEG = {"air": np.arange(-80.0, 80.0 + 1e-9, 5.0), "water": np.arange(-70.0, 70.0 + 1e-9, 2.0)}
 AZIMUTHS_DEG = (0.0, 90.0)
+MEDIA = ("air", "water")
 #: angular radius of the port at the full scale (2.54 cm port seen from ~40 cm: about 1.8 deg)
 PORT_RADIUS_FULL_DEG = 1.8
-#: averaging circle of the stage's default config, raw pixels of the full-resolution lens image
+#: the paper's averaging circle (Section 2.4), raw pixels of the full-resolution lens image
+#: (the stage's default ``rolloff.spot_radius_deg`` is the same circle in degrees)
 SPOT_RADIUS_PX_FULL = 15.0
 EXPOSURE_S = 0.18
 ISO = 100.0
@@ -76,7 +81,7 @@ def plan_rolloff(ctx: SimContext) -> ExperimentPlan:
     immersion = true_immersion_factors()
     frames = []
     radii = {}
-    for medium in ("air", "water"):
+    for medium in MEDIA:
         radius = port_radius_deg(band_px, medium)
         radii[medium] = radius
         factor = 1.0 if medium == "air" else BandFactor({b: 1.0 / immersion["immersion_factor"][b] for b in BANDS})
@@ -92,10 +97,8 @@ def plan_rolloff(ctx: SimContext) -> ExperimentPlan:
                         frames.append(FrameSpec(lens, "signal", ISO, EXPOSURE_S,
                                                 {"medium": medium, "azimuth_deg": az, "angle_deg": float(angle)},
                                                 scene, medium=medium, light_factor=factor))
-    from pipeline.radiometry.rolloff import default_rolloff
-
     truth = {
-        "rolloff_coefficients": {m: {b: default_rolloff(b, m).tolist() for b in BANDS} for m in ("air", "water")},
+        "rolloff_coefficients": {m: {b: default_rolloff(b, m).tolist() for b in BANDS} for m in MEDIA},
         "port_radius_deg": radii,
         "immersion_factor": immersion["immersion_factor"],
         "exposure_s": EXPOSURE_S, "iso": ISO, "frames_per_setting": FRAMES_PER_SETTING,
@@ -107,22 +110,17 @@ def plan_rolloff(ctx: SimContext) -> ExperimentPlan:
 SITE_SHIFT_PX = {"R": 0.25, "G": 0.0, "B": -0.25}
 
 
-def true_geometry_dataset(lens: str, band_px: int):
-    """Geometry artefact maps of the simulator's true optics at each band's CFA site.
+def true_band_models(lens: str, band_px: int) -> dict[tuple[str, str], FisheyeModel]:
+    """The simulator's true optics at each band's CFA site: (medium, band) -> band-image model.
 
     The R and B band pixels are single sites a quarter band pixel from the
     band-pixel centre (the G pixel averages two sites around it), so their
-    true maps are the default model shifted by that amount: what a per-band
-    geometry calibration finds. For tests of the stages without running the
-    geometry stage.
+    true models are the default model shifted by that amount: what a per-band
+    geometry calibration finds.
     """
-    from dataclasses import replace
-
-    from pipeline.stages.geometry_maps import MEDIA, maps_dataset
-
     models = {}
     for medium in MEDIA:
         base = default_model(lens, medium, (band_px, band_px))
         for b in BANDS:
             models[(medium, b)] = replace(base, xc=base.xc + SITE_SHIFT_PX[b], yc=base.yc + SITE_SHIFT_PX[b])
-    return maps_dataset(models, (band_px, band_px))
+    return models

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.camera import SensorParams
 from pipeline.effects.base import Effect
+from pipeline.simulate.camera import SensorParams
 
 
 @dataclass

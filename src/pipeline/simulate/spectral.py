@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.camera import BANDS
+from pipeline.bands import BANDS
 from pipeline.radiometry.source import QTH_TEMPERATURE_K, planck_radiance
-from pipeline.radiometry.spectral import band_statistics, default_spectral_response
+from pipeline.radiometry.spectral import band_statistics
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
 #: monochromator grid of Section 2.5 (nm)
@@ -44,7 +44,49 @@ GRATING_WIDTH_NM = 160.0
 PHOTODIODE_RELATIVE_NOISE = 0.005
 PHOTODIODE_SCALE = 250.0
 
+#: fine wavelength grid (nm) of the true response's peak and band integrals
 _FINE_NM = np.arange(380.0, 720.0 + 1e-9, 0.1)
+
+
+#: Default "true" response of the simulator's camera: per band, a sum of two
+#: Gaussians A1 exp(-(l - m1)^2 / 2 s1^2) + A2 exp(-(l - m2)^2 / 2 s2^2) with
+#: A1 = 1, stored as (A2, m1_nm, s1_nm, m2_nm, s2_nm).  Tuned (by least
+#: squares, then rounded) so that on the 400-700 nm, 10 nm grid the
+#: effective wavelength and half bandwidth are R 600.3 / 37.9, G 539.7 /
+#: 60.0, B 480.0 / 49.0 nm against DESIGN.md's 600 / 38, 540 / 60,
+#: 480 / 49; peaks at 596, 527 and 465 nm (published: near 600, 520, 460).
+DEFAULT_RESPONSE_PARAMETERS = {
+    "R": (0.155, 594.0, 27.0, 639.0, 30.0),
+    "G": (0.656, 515.0, 33.6, 576.0, 34.9),
+    "B": (0.54, 457.6, 28.1, 510.5, 35.0),
+}
+
+
+def _two_gaussians(wl, params):
+    a2, m1, s1, m2, s2 = params
+    return np.exp(-0.5 * ((wl - m1) / s1) ** 2) + a2 * np.exp(-0.5 * ((wl - m2) / s2) ** 2)
+
+
+def default_spectral_response(wavelength_nm):
+    """Default "true" relative spectral response of the simulator's camera.
+
+    Parameters
+    ----------
+    wavelength_nm : array_like, nm (designed for 380-720 nm; the Gaussian
+        tails are below 0.02 of the peak at 380 and 720 nm for R and G, and
+        for B at 720 nm; B keeps 0.02 at 380 nm).
+
+    Returns
+    -------
+    dict band ("R", "G", "B") -> array shaped like ``wavelength_nm``,
+    normalised to a peak of 1 (peak located on a 0.1 nm grid).
+    """
+    wl = np.asarray(wavelength_nm, dtype=float)
+    out = {}
+    for band, p in DEFAULT_RESPONSE_PARAMETERS.items():
+        peak = _two_gaussians(_FINE_NM, p).max()
+        out[band] = _two_gaussians(wl, p) / peak
+    return out
 
 
 def grating_efficiency(wavelength_nm):

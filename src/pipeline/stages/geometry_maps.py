@@ -75,25 +75,3 @@ def model_from_dataset(ds: xr.Dataset, medium: str, band: str) -> FisheyeModel:
                         d=float(sel["stretch_d"]), e=float(sel["stretch_e"]),
                         shape=(ds.sizes["y"], ds.sizes["x"]), half_fov_deg=half if np.isfinite(half) else None)
 
-
-def default_maps_dataset(lens: str, band_shape: tuple[int, int], media=MEDIA) -> xr.Dataset:
-    """Maps of the simulator's nominal camera (published fits, no per-band differences).
-
-    For tests of later stages that need a geometry artefact without running the
-    geometry calibration.
-    """
-    from pipeline.geometry.scaramuzza import default_model
-
-    return maps_dataset({(m, b): default_model(lens, m, band_shape) for m in media for b in BANDS}, band_shape)
-
-
-def write_default_geometry(folder, lenses, band_shape: tuple[int, int], media=MEDIA) -> dict:
-    """Write geometry artefacts of the nominal camera (see :func:`default_maps_dataset`) into
-    ``folder``, one per lens; returns lens -> path. For tests of later stages."""
-    from pathlib import Path
-
-    from pipeline.artefact import write_artefact
-
-    return {lens: write_artefact(default_maps_dataset(lens, band_shape, media=media), Path(folder) / f"{lens}.nc",
-                                 stage="geometry", inputs={}, config_subset={}, effects=[])
-            for lens in lenses}

@@ -6,8 +6,9 @@ Streams the roll-off frames once (dark frames first, then the port images):
   the same medium;
 * the port spot: the brightest pixel of the smoothed G image, the connected
   pixels above half its level, their flux-weighted centroid;
-* the mean in a circle of ``rolloff.spot_radius_px_full`` (raw pixels of the
-  full-resolution lens image) scaled to the band image, at least 1 px; the
+* the mean in a circle of ``rolloff.spot_radius_deg`` around it, in band
+  pixels through the angular size of a pixel near the axis (from the geometry
+  artefact's theta map), at least 1 px; the
   field angle and azimuth of the point from the geometry artefact's maps
   (Section 3.3: "converted into absolute angles using the angular
   calibration"), averaged over the same pixels so that value and angle pair;
@@ -46,7 +47,6 @@ from pipeline.effects.optics import azimuth_from_coefficients
 from pipeline.fitting import base_design, wls
 from pipeline.errors import InputError
 from pipeline.frames import iter_frames
-from pipeline.geometry.scaramuzza import RAW_SIZE_PX
 from pipeline.moments import RunningMoments
 from pipeline.observations import table_to_dataset
 from pipeline.radiometry.rolloff import (ROLLOFF_POWERS, evaluate_rolloff, fit_rolloff, normalise_rolloff,
@@ -112,15 +112,15 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
             theta = geo["theta_deg"].sel(band="G").values.astype(float)
             half = float(geo["half_fov_deg"].sel(band="G"))
             lit = np.isfinite(theta) & (theta <= half - 1.0)
-            n_band = theta.shape[1]
+            deg_per_px = _deg_per_px(theta)
             static[(lens, medium)] = {
                 "lit": lit, "theta": geo["theta_deg"].values, "phi": geo["phi_deg"].values,
-                "r_avg": max(1.0, cfg["spot_radius_px_full"] * n_band / RAW_SIZE_PX),
+                "r_avg": max(1.0, cfg["spot_radius_deg"] / deg_per_px),
                 "circle_px": float(np.sqrt(np.sum(np.isfinite(theta) & (theta <= half)) / np.pi)),
                 "dark": {b: dark[(lens, medium, b)].mean() for b in BANDS},
                 "dark_var": {b: float(np.mean(dark[(lens, medium, b)].variance())) for b in BANDS},
                 "n_dark": dark[(lens, medium, "G")].n,
-                "deg_per_px": _deg_per_px(theta),
+                "deg_per_px": deg_per_px,
             }
             if static[(lens, medium)]["n_dark"] < 2:
                 from pipeline.errors import InputError

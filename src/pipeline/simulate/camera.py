@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from pipeline.bands import BANDS  # noqa: F401  (one definition of the band names)
+from pipeline.simulate.lens import RAW_SIZE_PX
 
 #: 14-bit analogue-to-digital converter.
 ADC_MAX_DN = 2**14 - 1
@@ -108,7 +108,7 @@ class Camera:
     serial: str = "SIM-0001"
     lens_names: tuple = ("far", "close")
     #: full-resolution lens region (raw pixels, square)
-    lens_px_full: int = 3456
+    lens_px_full: int = RAW_SIZE_PX
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -1,0 +1,156 @@
+"""The default camera's lenses: published geometry and roll-off, in air and in water.
+
+Facts from ``DESIGN.md`` ("Facts for the simulator's default camera") and
+Larouche et al. (2024):
+
+* geometry (Sections 2.3 and 3.2): OCamCalib fits
+  f(rho) = a0 + a2 rho^2 + a3 rho^3 + a4 rho^4 on the full 3456-pixel raw
+  lens image, half field of view 91 degrees in air and 76 in water. The
+  published centres are taken as 0-based pixel-centre coordinates of that
+  image (conventions of :mod:`pipeline.geometry.scaramuzza`);
+* roll-off (Section 3.3, Eq. 13): the published close-lens red coefficients
+  in air and the published values at 70 and 80 degrees per band and medium.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from functools import lru_cache
+
+import numpy as np
+from scipy import optimize
+
+from pipeline.geometry.scaramuzza import FisheyeModel, fit_poly_to_theta
+from pipeline.radiometry.rolloff import N_COEFFICIENTS, evaluate_rolloff
+
+#: Raw lens image size (pixels) on which the published fits were made.
+RAW_SIZE_PX = 3456
+
+#: Published OCamCalib fits on the raw 3456 x 3456 lens image (green band, air).
+#: Coefficients ascending, a1 = 0; centre (xc, yc) in raw pixels.
+PUBLISHED_FITS = {
+    "close": {
+        "poly": (1019.25, 0.0, -3.0382e-4, -2.1491e-8, -2.8016e-11),
+        "centre": (1731.51, 1710.86),
+    },
+    "far": {
+        "poly": (1016.48, 0.0, -3.9436e-4, 1.5171e-7, -1.1177e-10),
+        "centre": (1743.76, 1724.99),
+    },
+}
+
+#: Half field of view (degrees) at the edge of the image circle, per medium.
+HALF_FOV_DEG = {"air": 91.0, "water": 76.0}
+
+
+def water_model(air: FisheyeModel, half_fov_water_deg: float = HALF_FOV_DEG["water"],
+                degree: int = 4) -> FisheyeModel:
+    """In-water model derived from an in-air model with a half FOV.
+
+    A flat port cannot give the measured 76 degrees (Snell at a flat
+    interface caps the in-water field at asin(1/1.333) = 48.6 degrees); the
+    camera's curved front element loses part of its power instead. We model
+    this as a uniform compression of the field angle,
+    theta_water(rho) = theta_air(rho) * 76 / 91, with the image circle
+    unchanged on the sensor, and refit the Scaramuzza polynomial to it.
+    """
+    if air.half_fov_deg is None:
+        raise ValueError("air model needs half_fov_deg")
+    r_circle = air.image_circle_radius()
+    k = half_fov_water_deg / air.half_fov_deg
+    rho = np.linspace(0.0, 1.05 * r_circle, 400)
+    theta_w = air.theta_of_rho(rho) * k
+    poly = fit_poly_to_theta(rho, theta_w, degree)
+    return replace(air, poly=poly, half_fov_deg=half_fov_water_deg)
+
+
+def default_model(lens: str = "close", medium: str = "air",
+                  band_shape: tuple[int, int] | int = (1728, 1728)) -> FisheyeModel:
+    """Default model of one lens in one medium for a band image of band_shape.
+
+    Built from the published raw 3456-pixel fit: band images of size N are
+    the raw lens image scaled by s = N / 3456 (N = 1728 are the true 2 x 2
+    super-pixels). Stretch is identity (not published). The image circle is
+    where the air model reaches 91 degrees (about 1600 raw pixels for the
+    close lens); in water the same circle sees 76 degrees.
+    """
+    if lens not in PUBLISHED_FITS:
+        raise ValueError(f"lens must be one of {sorted(PUBLISHED_FITS)}, got {lens!r}")
+    if medium not in HALF_FOV_DEG:
+        raise ValueError(f"medium must be one of {sorted(HALF_FOV_DEG)}, got {medium!r}")
+    if np.isscalar(band_shape):
+        band_shape = (int(band_shape), int(band_shape))
+    fit = PUBLISHED_FITS[lens]
+    raw = FisheyeModel(poly=fit["poly"], xc=fit["centre"][0], yc=fit["centre"][1],
+                       shape=(RAW_SIZE_PX, RAW_SIZE_PX), half_fov_deg=HALF_FOV_DEG["air"])
+    s = band_shape[1] / RAW_SIZE_PX
+    model = raw.scaled(s, shape=tuple(band_shape))
+    if medium == "water":
+        model = water_model(model)
+    return replace(model, meta={"lens": lens, "medium": medium})
+
+
+#: Close lens, air, red band (supplement Table S2 of Larouche et al. 2024, via DESIGN.md).
+PUBLISHED_RED_AIR_CLOSE_LENS = np.array([0.99726, -7.806e-5, 4.074e-9, -4.884e-13, 2.406e-17])
+
+#: Published roll-off values (Section 3.3): (medium, band) -> {theta_deg: g}.
+PUBLISHED_ROLLOFF_POINTS = {
+    ("air", "B"): {70.0: 0.728, 80.0: 0.645},
+    ("air", "G"): {70.0: 0.719, 80.0: 0.637},
+    ("air", "R"): {70.0: 0.669, 80.0: 0.577},
+    ("water", "B"): {70.0: 0.570},
+    ("water", "G"): {70.0: 0.562},
+    ("water", "R"): {70.0: 0.491},
+}
+
+
+@lru_cache(maxsize=None)
+def _default_table():
+    red = PUBLISHED_RED_AIR_CLOSE_LENS / PUBLISHED_RED_AIR_CLOSE_LENS[0]
+    air = {"R": red}
+    # B and G in air: the red shape plus c2 theta^2 + c4 theta^4 chosen to pass
+    # exactly through the published values at 70 and 80 deg.
+    m = np.array([[70.0**2, 70.0**4], [80.0**2, 80.0**4]])
+    for band in ("B", "G"):
+        pts = PUBLISHED_ROLLOFF_POINTS[("air", band)]
+        rhs = np.array([pts[70.0] - evaluate_rolloff(red, 70.0), pts[80.0] - evaluate_rolloff(red, 80.0)])
+        c2, c4 = np.linalg.solve(m, rhs)
+        a = red.copy()
+        a[1] += c2
+        a[2] += c4
+        air[band] = a
+    # Water: the air curve compressed toward small angles, g_w(theta) =
+    # g_air(k theta) (Section 3.3: "almost the same shape ... compressed"),
+    # k chosen so that g_w(70) equals the published value; k ~ 1.26-1.27,
+    # close to the ratio of half fields of view 91 / 76 = 1.20.
+    water = {}
+    for band, a in air.items():
+        target = PUBLISHED_ROLLOFF_POINTS[("water", band)][70.0]
+        theta_air = optimize.brentq(lambda t: evaluate_rolloff(a, t) - target, 60.0, 95.0, xtol=1e-12)
+        k = theta_air / 70.0
+        water[band] = a * k ** (2.0 * np.arange(N_COEFFICIENTS))
+    return {"air": air, "water": water}
+
+
+def default_rolloff(band, medium="air"):
+    """Default "true" roll-off coefficients (a0..a8, theta in degrees) for the simulator.
+
+    band : "R", "G" or "B"; medium : "air" or "water".  All have g(0) = 1.
+
+    * air, R: the published close-lens red coefficients divided by their
+      a0 = 0.99726 (g(70) = 0.6708, g(80) = 0.5785; published 0.669, 0.577).
+    * air, B and G: the red shape plus a2 and a4 corrections that pass
+      through the published 70 and 80 deg values exactly.
+    * water: g_air(k theta) with k set by the published 70 deg value.
+
+    Monotone decreasing from 0 to 91 deg (air) and 0 to 76 deg (water).
+    Returns a new (5,) array.
+    """
+    band = band.upper()
+    medium = medium.lower()
+    table = _default_table()
+    if medium not in table:
+        raise ValueError(f"medium must be 'air' or 'water', not {medium!r}")
+    if band not in table[medium]:
+        raise ValueError(f"band must be 'R', 'G' or 'B', not {band!r}")
+    return table[medium][band].copy()
