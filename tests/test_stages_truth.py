@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+import yaml
 
 from pipeline.workflow import run_stage
 
@@ -104,3 +105,41 @@ def test_linearity_pearson_and_rate(artefacts):
             got = float(ds["rate_dn_per_s"].sel(sweep="exposure", band=band))
             np.testing.assert_allclose(got, expected, rtol=0.01)
         assert float(ds["line_r"].min()) > 0.999
+
+
+@pytest.fixture(scope="module")
+def full_well_artefacts(config, tmp_path_factory):
+    """A camera whose full well fills at 10,000 DN above the bias at ISO 100 (12,500 e- at
+    0.8 DN/e-), below the ADC's 15,583: the 500 ms point of the exposure sweep plateaus
+    below the white level, so no raw value marks it."""
+    from pipeline.simulate import simulate_dataset, truth_dir_for
+
+    root = tmp_path_factory.mktemp("fullwell") / "dataset"
+    simulate_dataset(root, scale="tiny", seed=22, effects=[("dark_current", {}), ("hot_pixels", {})],
+                     experiments=("dark", "linearity"), progress=False, sensor={"full_well_e": 12500.0})
+    truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())
+    out = tmp_path_factory.mktemp("results")
+    dark = {lens: out / f"dark/{lens}.nc" for lens in LENSES}
+    lin = {lens: out / f"linearity/{lens}.nc" for lens in LENSES}
+    run_stage("dark", root, config, dark)
+    run_stage("linearity", root, config, lin, {"dark": dark})
+    return {k: xr.open_dataset(v).load() for k, v in lin.items()}, truth
+
+
+def test_full_well_before_the_adc_is_found_and_left_out(full_well_artefacts):
+    lin, truth = full_well_artefacts
+    assert truth["derived"]["saturated_by"] == "full well"
+    k_true = truth["derived"]["conversion_gain_dn_per_e_iso100"]
+    for lens in LENSES:
+        ds = lin[lens]
+        sat = ds["saturation_dn"]
+        assert int(sat.attrs["reached"]) == 1 and sat.attrs["saturated_by"] == "full well (plateau)"
+        # every pixel of the mask sits at K x full well: the plateau is known to the read noise over
+        # the mask (2 DN / sqrt(~100 pixels x 4 frames)) plus the dark model's level (0.1 DN)
+        assert abs(float(sat) - truth["derived"]["saturation_dn"]) < 2.0, float(sat)
+        assert int(ds["n_saturated_settings"]) >= 1
+        # with the plateau left out, photon transfer gives the true gain (same tolerance as above),
+        # where before it gave a negative gain and read noise
+        k = float(ds["conversion_gain_dn_per_e"])
+        assert abs(k - k_true) < max(4 * float(ds["conversion_gain_dn_per_e_sigma"]), 0.05 * k_true), k
+        assert float(ds["read_noise_e"]) > 0

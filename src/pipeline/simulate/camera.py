@@ -36,6 +36,10 @@ class SensorParams:
     #: offset fixed-pattern noise after the amplifier (ADU, RMS): independent of gain.
     offset_fpn_dn: float = 1.5
     adc_max_dn: int = ADC_MAX_DN
+    #: full-well capacity (electrons); None: the well never fills before the ADC clips (the default
+    #: camera, whose exposure sweep saturates at the 14-bit top). A finite well clips each pixel's
+    #: electrons, so at low ISO the signal can plateau below the white level.
+    full_well_e: float | None = None
 
     def conversion_gain(self, iso: float) -> float:
         """Nominal ADU per electron at ``iso``."""

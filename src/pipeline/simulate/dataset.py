@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from datetime import datetime, timedelta
 from pathlib import Path
 
@@ -20,7 +20,7 @@ from pipeline.simulate import lab  # noqa: F401  (registers the dark and lineari
 from pipeline.simulate import immersion, rolloff  # noqa: F401  (registers the roll-off and immersion planners)
 from pipeline.simulate import absolute, spectral  # noqa: F401  (registers the spectral and absolute planners)
 from pipeline.simulate import geometry  # noqa: F401  (registers the geometry planner)
-from pipeline.simulate.camera import Camera
+from pipeline.simulate.camera import Camera, SensorParams
 from pipeline.simulate.plan import PLANNERS, SimContext
 from pipeline.simulate.render import Renderer
 
@@ -62,7 +62,7 @@ def truth_dir_for(dataset: str | Path) -> Path:
 
 def simulate_dataset(out: str | Path, scale: str = "small", seed: int = 0,
                      effects: list[tuple[str, dict]] = (), experiments=EXPERIMENTS,
-                     progress: bool = True) -> Path:
+                     progress: bool = True, sensor: dict | None = None) -> Path:
     """Simulate the calibration experiments into ``out`` (which must not exist yet).
 
     The dataset is written to a temporary sibling folder and renamed at the
@@ -81,7 +81,10 @@ def simulate_dataset(out: str | Path, scale: str = "small", seed: int = 0,
         raise InputError(None, f"the simulator does not write {', '.join(unknown)} yet; "
                                f"it writes {', '.join(PLANNERS)}")
     sc = SCALES[scale]
-    camera = Camera()
+    try:
+        camera = Camera(sensor=replace(SensorParams(), **(sensor or {})))
+    except TypeError as exc:
+        raise InputError(None, f"unknown sensor parameter in {sorted(sensor or {})} ({exc})") from None
     effect_objs = [get_effect(name, **params) for name, params in effects]
     renderer = Renderer(camera, sc.lens_px, seed, effect_objs)
     ctx = SimContext(camera=camera, scale=sc, seed=seed, rng=np.random.default_rng([seed, 104729]))
@@ -165,7 +168,9 @@ def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects,
             # temporal noise of one raw pixel in the dark at ISO 100 and zero exposure:
             # amplified read noise plus rounding to integers
             "read_noise_dn_iso100": float(np.sqrt((k100 * s.read_noise_e) ** 2 + 1 / 12)),
-            "saturation_dn": float(s.adc_max_dn - s.bias_dn),
+            # the ADC's top above the bias, or the full well at ISO 100 when that fills first
+            "saturation_dn": float(min(s.adc_max_dn - s.bias_dn, k100 * s.full_well_e if s.full_well_e else np.inf)),
+            "saturated_by": "full well" if s.full_well_e and k100 * s.full_well_e < s.adc_max_dn - s.bias_dn else "ADC",
         },
     }
     if any(e.name == "dark_current" for e in effects):

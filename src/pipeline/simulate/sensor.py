@@ -3,6 +3,7 @@
 DN = bias + offset FPN (ADU) + K * offset FPN (e-) + frame offset
      + response(K * (Poisson(photo-electrons + dark electrons)))
      + K * read noise (e-) * N(0, 1),
+with the electrons clipped at the full well when the sensor has one,
 rounded and clipped to the 14-bit range, with K = conversion gain at ISO 100
 times ISO/100 times the effects' gain factor (Larouche et al. 2024, Eq. 1).
 """
@@ -58,6 +59,8 @@ def expose(rng: np.random.Generator, *, lens: str, photo_rate_e_per_s, exposure_
     mean_e = np.asarray(photo_rate_e_per_s, dtype=np.float64) * t_true + np.asarray(dark_rate) * exposure_s
     mean_e = np.broadcast_to(mean_e, shape)
     electrons = rng.poisson(mean_e).astype(np.float64)
+    if sensor.full_well_e is not None:
+        electrons = np.minimum(electrons, sensor.full_well_e)
     signal_dn = k * electrons
     full_scale = sensor.adc_max_dn - sensor.bias_dn
     for effect in effects:
