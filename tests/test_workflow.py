@@ -289,8 +289,11 @@ def test_downstream_stages_on_the_fitted_geometry_recover_the_truth(radiometric_
             rel = float(absolute["inverse_responsivity"].sel(band=band)) / \
                 truth["absolute"]["bands"][band]["inverse_responsivity"] - 1
             assert abs(rel) < 0.02, (lens, band, rel)
+            # immersion: the error within 4 of its stated standard uncertainty (0.002 to 0.004 here: the
+            # log-linear fit over 11 heights of 5 frames, and the in-air mask mean) and under 1.2 % of I
             i_err = float(immersion["immersion_factor"].sel(band=band)) - truth["immersion"]["immersion_factor"][band]
-            assert abs(i_err) < 0.01, (lens, band, i_err)
+            i_sigma = float(immersion["immersion_factor_sigma"].sel(band=band))
+            assert abs(i_err) < 4 * i_sigma and abs(i_err) < 0.02, (lens, band, i_err, i_sigma)
             for medium, top_deg, tol in (("air", 80.0, 0.015), ("water", 70.0, 0.025)):
                 theta = np.arange(0.0, top_deg + 1.0, 5.0)
                 fitted = evaluate_rolloff(rolloff["rolloff_coefficients"].sel(medium=medium, band=band).values, theta)
