@@ -7,9 +7,9 @@ import sys
 from pathlib import Path
 
 from pipeline.config import STAGE_SECTIONS, stage_params  # noqa: F401  (used by the rules)
-from pipeline.dataset import Dataset, open_dataset
+from pipeline.dataset import Dataset
 from pipeline.errors import InputError
-from pipeline.rawio import read_tags
+from pipeline.validation import format_problems, inspect_dataset, raise_problems
 
 #: experiments each stage reads (a stage runs only when all are present)
 STAGE_EXPERIMENTS = {
@@ -21,7 +21,6 @@ STAGE_EXPERIMENTS = {
     "absolute": ("absolute", "spectral", "geometry"),
     "immersion": ("immersion", "geometry"),
 }
-REQUIRED_TAGS = {"exposure_s": "ExposureTime", "iso": "ISOSpeedRatings", "time": "DateTimeOriginal"}
 
 
 class DatasetIndex:
@@ -32,14 +31,12 @@ class DatasetIndex:
         self.dataset: Dataset | None = None
 
     def load(self) -> "DatasetIndex":
+        """Validate once (``pipeline.validation``); on problems print them grouped and raise InputError."""
         if self.dataset is None:
-            dataset = open_dataset(self.root)
-            for experiment in dataset.experiments():
-                for path in dataset.raw_files(experiment):
-                    tags = read_tags(path)
-                    for key, name in REQUIRED_TAGS.items():
-                        if tags.get(key) in (None, 0, 0.0):
-                            raise InputError(path, f"{name} tag is missing or zero")
+            dataset, problems = inspect_dataset(self.root)
+            if problems:
+                print(format_problems(problems, self.root), file=sys.stderr)
+                raise_problems(problems, self.root)
             self.dataset = dataset
         return self
 
