@@ -31,7 +31,8 @@ from pipeline.errors import InputError, Problem
 __all__ = [
     "EXPERIMENTS", "COMMON_COLUMNS", "EXPERIMENT_COLUMNS", "OPTIONAL_COLUMNS", "TAG_COLUMNS", "SIDECARS",
     "COLUMN_MEANINGS", "KINDS", "CHOICES", "LAYOUT_VERSION",
-    "Dataset", "open_dataset", "inspect_layout", "check_sidecars", "check_md5", "write_md5sums",
+    "Dataset", "LayoutCheck", "open_dataset", "inspect_layout", "check_sidecars", "check_checksums", "check_md5",
+    "write_md5sums", "read_csv_table",
     "read_photodiode", "read_source_spectrum", "read_source_reference",
     "read_water", "read_reference_radiometer", "read_site",
 ]
@@ -220,6 +221,19 @@ def _read_csv(path: Path, required, problems: list[Problem], what: str
     if not n_records:
         _note(problems, path, "no data rows", "add one row per frame or reading")
     return header, rows
+
+
+def read_csv_table(path, required=(), what: str = "the table") -> tuple[list[str] | None,
+                                                                       list[tuple[int, dict[str, str]]],
+                                                                       list[Problem]]:
+    """A CSV file as (header, [(line number, row dict)], problems), checked as frames.csv is.
+
+    Values are stripped and blank lines skipped; ``required`` columns must be
+    present; ``what`` says what the file should hold (the fix of its problems).
+    """
+    problems: list[Problem] = []
+    header, rows = _read_csv(Path(path), tuple(required), problems, what)
+    return header, rows, problems
 
 
 def _number(value: str, *, allow_empty: bool = False) -> float:
