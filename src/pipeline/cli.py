@@ -10,7 +10,6 @@ import argparse
 import sys
 
 from pipeline import __version__
-from pipeline.effects.base import parse_effect_spec
 from pipeline.errors import InputError
 
 #: exit codes (documented in --help and the README)
@@ -72,6 +71,7 @@ examples:
 
 def simulate_from_config(out, simulation: dict) -> None:
     """Simulate the default dataset from the ``simulate_if_missing`` config section."""
+    from pipeline.effects.base import parse_effect_spec
     from pipeline.simulate import simulate_dataset
 
     effects = [parse_effect_spec(s) for s in simulation["effects"]]
@@ -89,9 +89,16 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
                                           max(len(name) for name in action.choices) + 2 * self._indent_increment + 2)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def _scale(name: str) -> str:
+    """--scale NAME, checked against the simulator's scales (imported only when the option is used)."""
     from pipeline.simulate import SCALES
 
+    if name not in SCALES:
+        raise argparse.ArgumentTypeError(f"unknown scale {name!r}; choose one of {', '.join(SCALES)}")
+    return name
+
+
+def build_parser() -> argparse.ArgumentParser:
     def fmt(prog):
         return _HelpFormatter(prog, max_help_position=HELP_COLUMN)
     parser = argparse.ArgumentParser(prog="python -m pipeline", description=DESCRIPTION, epilog=EXAMPLES,
@@ -122,7 +129,8 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Simulate the calibration experiments of the default dual-fisheye camera.",
                          epilog=SIMULATE_EXAMPLES, formatter_class=fmt)
     sim.add_argument("--out", required=True, help="dataset folder to create (must not exist)")
-    sim.add_argument("--scale", choices=list(SCALES), default="small")
+    sim.add_argument("--scale", type=_scale, default="small", metavar="NAME",
+                     help="size of the simulated dataset (default: small; an unknown name lists the scales)")
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--effect", action="append", default=[], metavar="NAME[:param=value,...]",
                      help="switch on a true effect of the simulated camera (repeatable)")
@@ -153,6 +161,7 @@ def _validate(args) -> int:
 
 
 def _simulate(args) -> int:
+    from pipeline.effects.base import parse_effect_spec
     from pipeline.simulate import simulate_dataset
     from pipeline.simulate.dataset import EXPERIMENTS, truth_dir_for
 
