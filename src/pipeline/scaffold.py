@@ -556,7 +556,9 @@ def describe_result(result: InitResult) -> str:
         lines.append("still to fill in (python -m pipeline validate lists the same):")
         lines.append(format_problems(result.remaining, result.out))
         lines.append("")
+        lines.append("fill these in the frames.csv files (or correct the lab log and run init-dataset again into "
+                     "a new folder),")
         lines.append(f"then run: python -m pipeline validate {result.out}")
     else:
-        lines.append("the dataset validates; run: snakemake --cores 2 --config dataset=" + str(result.out))
+        lines.append("the dataset validates; run: snakemake --cores 2 --config dataset=" + str(result.out.resolve()))
     return "\n".join(lines)
