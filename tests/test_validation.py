@@ -150,7 +150,7 @@ def test_workflow_start_up_check_uses_the_same_code(planted, capsys):
         DatasetIndex(root).load()
     assert err.value.problems == validate_dataset(root)
     assert str(err.value).startswith(f"{root / 'dataset.yaml'}: camera.make must be a non-empty string "
-                                     f"(and {len(expected) - 1} more problems")
+                                     f"(and {len(expected) - 1} more problems; listed above)")
     printed = capsys.readouterr().err
     assert printed.startswith(f"{len(expected)} problems in 4 files of {root}:")
 

@@ -21,8 +21,7 @@ from pipeline.dataset import (TAG_COLUMNS, Dataset, LayoutCheck, check_checksums
 from pipeline.errors import InputError, Problem
 from pipeline.rawio import TAG_NAMES, read_tags
 
-__all__ = ["REQUIRED_TAGS", "validate_dataset", "inspect_dataset", "check_tags", "format_problems",
-           "ok_line", "raise_problems"]
+__all__ = ["REQUIRED_TAGS", "validate_dataset", "inspect_dataset", "check_tags", "format_problems", "ok_line"]
 
 #: tags every calibration frame needs (RawFrame field -> tag name); frames.csv never replaces them
 REQUIRED_TAGS = {key: TAG_NAMES[key] for key in ("exposure_s", "iso", "time")}
@@ -163,12 +162,6 @@ def validate_dataset(root, *, checksums: bool = False) -> list[Problem]:
     return inspect_dataset(root, checksums=checksums)[1]
 
 
-def raise_problems(problems: list[Problem], root) -> None:
-    """One InputError for a non-empty list (first problem, count of the others)."""
-    if problems:
-        raise InputError.from_problems(problems, f"python -m pipeline validate {root} lists them all")
-
-
 def ok_line(dataset: Dataset) -> str:
     """``ok: 169 frames in 2 experiments (dark, linearity)``."""
     experiments = dataset.experiments()
@@ -201,7 +194,8 @@ def _display(path: Path | None, root: Path | None) -> str:
         return "(no file)"
     if root is not None:
         try:
-            return Path(path).relative_to(root).as_posix() or "."
+            rel = Path(path).relative_to(root).as_posix()
+            return rel if rel not in ("", ".") else str(path)
         except ValueError:
             pass
     return str(path)

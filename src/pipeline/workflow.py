@@ -9,7 +9,7 @@ from pathlib import Path
 from pipeline.config import STAGE_SECTIONS, stage_params  # noqa: F401  (used by the rules)
 from pipeline.dataset import Dataset
 from pipeline.errors import InputError
-from pipeline.validation import format_problems, inspect_dataset, raise_problems
+from pipeline.validation import format_problems, inspect_dataset
 
 #: experiments each stage reads (a stage runs only when all are present)
 STAGE_EXPERIMENTS = {
@@ -36,7 +36,7 @@ class DatasetIndex:
             dataset, problems = inspect_dataset(self.root)
             if problems:
                 print(format_problems(problems, self.root), file=sys.stderr)
-                raise_problems(problems, self.root)
+                raise InputError.from_problems(problems, "listed above")
             self.dataset = dataset
         return self
 
