@@ -69,8 +69,8 @@ def planted(dataset):
         (victim, None, None, "ExposureTime tag is missing or zero"),
         (victim, None, None, "ISOSpeedRatings tag is missing or zero"),
         (victim, None, None, "DateTimeOriginal tag is missing or zero"),
-        (root / "dataset.yaml", None, None, "lenses.close (rows [128, 300), cols [0, 128)) does not fit the "
-                                            "256 x 128 frames"),
+        (root / "dataset.yaml", None, None,
+         "lenses.close (rows [128, 300), cols [0, 128)) does not fit the 256 x 128 frames"),
     ]
     return root, expected
 

@@ -83,7 +83,7 @@ class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
 
     def add_argument(self, action):
         super().add_argument(action)
-        if isinstance(action, argparse._SubParsersAction):  # noqa: SLF001 - argparse has no public hook
+        if isinstance(action, argparse._SubParsersAction):
             # the command names are listed one indent deeper than the width argparse measured
             self._action_max_length = max(self._action_max_length,
                                           max(len(name) for name in action.choices) + 2 * self._indent_increment + 2)

@@ -16,8 +16,7 @@ from collections import Counter
 from datetime import datetime
 from pathlib import Path
 
-from pipeline.dataset import (TAG_COLUMNS, Dataset, LayoutCheck, check_checksums, check_sidecars,
-                              inspect_layout)
+from pipeline.dataset import Dataset, LayoutCheck, check_checksums, check_sidecars, inspect_layout
 from pipeline.errors import InputError, Problem
 from pipeline.rawio import TAG_NAMES, read_tags
 
@@ -62,9 +61,9 @@ def _copy_problems(csv_path: Path, line: int, row: dict, tags: dict) -> list[Pro
                            "the tags are the truth: copy the tag's value or leave the cell empty"))
 
     exposure, iso, stamp = row.get("exposure_s"), row.get("iso"), row.get("time")
-    if isinstance(exposure, float) and not math.isnan(exposure) and tags.get("exposure_s"):
-        if abs(exposure - tags["exposure_s"]) > EXPOSURE_COPY_REL_TOL * tags["exposure_s"]:
-            differs("exposure_s", f"{tags['exposure_s']:.9g}", f"{exposure:.9g}")
+    if (isinstance(exposure, float) and not math.isnan(exposure) and tags.get("exposure_s")
+            and abs(exposure - tags["exposure_s"]) > EXPOSURE_COPY_REL_TOL * tags["exposure_s"]):
+        differs("exposure_s", f"{tags['exposure_s']:.9g}", f"{exposure:.9g}")
     if isinstance(iso, float) and not math.isnan(iso) and tags.get("iso") and iso != tags["iso"]:
         differs("iso", f"{tags['iso']:g}", f"{iso:g}")
     if isinstance(stamp, str) and stamp and tags.get("time") is not None:
