@@ -179,10 +179,14 @@ def test_stage_artefacts_equal_the_original(original, scaffolded, config, tmp_pa
 def test_flat_folder_with_experiment_column_and_copy(original, tmp_path):
     raw = _raw_folder(original, tmp_path / "raw", flat=True)
     log = _lab_log(original, raw / "lab_log.csv", with_experiment=True)   # the log may sit among the files
+    table = pd.read_csv(log, dtype=str, keep_default_na=False)
+    table["operator"] = "A. N. Other"                                       # a column frames.csv has not
+    table.to_csv(log, index=False)
     proc = _cli("init-dataset", str(raw), str(tmp_path / "dataset"), "--lab-log", str(log), "--copy")
     assert proc.returncode == 0, proc.stderr
     out = tmp_path / "dataset"
-    assert f"wrote {out}:" in proc.stdout and "(copied)" in proc.stdout and "left out" not in proc.stdout
+    assert f"wrote {out}:" in proc.stdout and "(copied)" in proc.stdout and "neither raw frames nor sidecars" not in proc.stdout
+    assert "note: lab log columns left out: operator" in proc.stdout
     assert not any(p.is_symlink() for p in out.rglob("*"))
     for experiment in EXPERIMENTS:
         a, b = _frames(original, experiment), _frames(out, experiment)

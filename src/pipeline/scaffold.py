@@ -68,6 +68,8 @@ MAX_CIRCLE_FRAMES = 16
 CORNER_SIZE_FRACTION = 1 / 8
 #: a lit circle stands this many noise sigmas above the unlit corners (dark frames stay near 0)
 MIN_LIT_CONTRAST_SIGMA = 10.0
+#: standard deviation over median absolute deviation of a normal distribution
+MAD_TO_SIGMA = 1.4826
 #: floor of the corners' noise in DN (integer samples: quantisation alone gives about 0.3)
 NOISE_FLOOR_DN = 1.0
 #: a fisheye image circle has a radius of at least this fraction of half the region's short side
@@ -154,15 +156,19 @@ def _target(source_rel: str, in_experiment_folder: bool) -> str:
     return "/".join(["raw", *parts])
 
 
-def _read_lab_log(log: Path, raws: dict[str, RawEntry], problems: list[Problem]) -> list[str]:
-    """Apply the lab log to the raw entries (experiment and lab columns); returns its usable columns."""
+def _read_lab_log(log: Path, raws: dict[str, RawEntry], problems: list[Problem]) -> tuple[list[str], list[str]]:
+    """Apply the lab log to the raw entries (experiment and lab columns).
+
+    Returns the log's columns that frames.csv takes and those it leaves out.
+    """
     header, rows, found = read_csv_table(log, (LOG_FILE_COLUMN,), _LOG_FIX)
     problems += found
     if header is None or LOG_FILE_COLUMN not in header:
-        return []
+        return [], []
     lab_columns = set(COMMON_COLUMNS[1:]) | set(OPTIONAL_COLUMNS) | {c for cs in EXPERIMENT_COLUMNS.values()
                                                                      for c in cs}
     usable = [c for c in header if c in lab_columns]
+    unused = [c for c in header if c not in lab_columns and c not in (LOG_FILE_COLUMN, LOG_EXPERIMENT_COLUMN)]
     by_name = Counter(PurePosixPath(rel).name for rel in raws)
     name_to_rel = {PurePosixPath(rel).name: rel for rel in raws}
     seen: dict[str, int] = {}
@@ -205,7 +211,7 @@ def _read_lab_log(log: Path, raws: dict[str, RawEntry], problems: list[Problem])
                 continue
             entry.experiment = experiment
         entry.lab = {c: row[c] for c in usable}
-    return usable
+    return usable, unused
 
 
 # ---------------------------------------------------------------------------
@@ -240,7 +246,7 @@ def _lit_contrast_sigma(band: np.ndarray) -> float:
     yy, xx = np.ogrid[:h, :w]
     centre = band[(yy - (h - 1) / 2) ** 2 + (xx - (w - 1) / 2) ** 2 <= k ** 2]
     outside = float(np.median(corners))
-    noise = max(1.4826 * float(np.median(np.abs(corners - outside))), NOISE_FLOOR_DN)
+    noise = max(MAD_TO_SIGMA * float(np.median(np.abs(corners - outside))), NOISE_FLOOR_DN)
     return (float(np.median(centre)) - outside) / noise
 
 
@@ -280,10 +286,11 @@ def find_lens_circles(lenses: list[LensProposal], entries: dict[str, list[RawEnt
     reasons: dict[str, str] = {}
     decoded = 0
     for experiment, entry in _circle_candidates(entries):
+        if all(lens.radius_px is not None for lens in lenses) or decoded >= max_frames:
+            break
+        # a frame the lab log assigns to one lens lights only that lens
         todo = [lens for lens in lenses if lens.radius_px is None
                 and entry.lab.get("lens", "") in ("", "both", lens.name)]
-        if not any(lens.radius_px is None for lens in lenses) or decoded >= max_frames:
-            break
         if not todo:
             continue
         try:
@@ -341,7 +348,7 @@ def plan_dataset(raw_dir, lab_log=None, *, find_circles: bool = True) -> Scaffol
         rel = path.relative_to(raw_dir).as_posix()
         top = rel.split("/", 1)[0] if "/" in rel else None
         raws[rel] = RawEntry(source=path, source_rel=rel, experiment=top if top in EXPERIMENTS else None)
-    log_columns = _read_lab_log(log, raws, problems) if log is not None else []
+    log_columns, unused_columns = _read_lab_log(log, raws, problems) if log is not None else ([], [])
     for rel, entry in raws.items():
         if entry.experiment is None:
             top = rel.split("/", 1)[0] if "/" in rel else ""
@@ -392,6 +399,9 @@ def plan_dataset(raw_dir, lab_log=None, *, find_circles: bool = True) -> Scaffol
         else:
             ignored.append(rel)
     notes = []
+    if unused_columns:
+        notes.append(f"lab log columns left out: {', '.join(unused_columns)} (frames.csv holds only the columns "
+                     "of DATASET.md; the tags give exposure, ISO and time)")
     camera, shape = _camera_and_shape(ordered, notes)
     lenses = propose_lens_regions(*shape) if shape else []
     if find_circles and lenses:
