@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from pipeline.dataset import (
-    EXPERIMENT_COLUMNS, EXPERIMENTS, Dataset, check_md5, open_dataset, read_photodiode,
+    EXPERIMENT_COLUMNS, EXPERIMENTS, Dataset, check_md5, inspect_layout, open_dataset, read_photodiode,
     read_reference_radiometer, read_site, read_source_reference, read_source_spectrum, read_water,
     write_md5sums,
 )
@@ -290,6 +290,55 @@ def test_bad_md5sums(ds_root):
 def test_missing_root(tmp_path):
     with pytest.raises(InputError, match="dataset folder not found"):
         open_dataset(tmp_path / "nothing")
+
+
+# --------------------------------------------------------------------- several problems at once
+
+
+def test_several_mistakes_are_reported_together(ds_root):
+    root = ds_root.resolve()
+    meta = yaml.safe_load((root / "dataset.yaml").read_text())
+    meta["camera"].pop("model")
+    (root / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+    (root / "MD5SUMS").write_text((root / "MD5SUMS").read_text() + "not-a-checksum  x\n")
+    n_md5 = len((root / "MD5SUMS").read_text().splitlines())
+
+    def lin(f):
+        f.loc[0, "lens"] = "middle"
+        f.loc[1, "sweep"] = "iso"
+        return f
+    _rewrite_csv(root / "linearity" / "frames.csv", lin)
+
+    def spec(f):
+        f.loc[0, "wavelength_nm"] = "blue"
+        return f
+    _rewrite_csv(root / "spectral" / "frames.csv", spec)
+    (root / "dark" / "raw" / "d1.dng").unlink()
+    check = inspect_layout(root)
+    found = [(p.path, p.line, p.column) for p in check.problems]
+    assert found == [
+        (root / "dataset.yaml", None, None),
+        (root / "MD5SUMS", n_md5, None),
+        (root / "dark" / "frames.csv", 3, "file"),
+        (root / "linearity" / "frames.csv", 2, "lens"),
+        (root / "linearity" / "frames.csv", 3, "sweep"),
+        (root / "spectral" / "frames.csv", 2, "wavelength_nm"),
+    ]
+    assert all(p.fix for p in check.problems)
+    with pytest.raises(InputError) as err:
+        open_dataset(root)
+    assert str(err.value) == (f"{root / 'dataset.yaml'}: camera.model must be a non-empty string "
+                              f"(and 5 more problems; python -m pipeline validate {root} lists them all)")
+    assert err.value.problems == check.problems
+
+
+def test_sidecar_reader_reports_every_bad_row(tmp_path):
+    path = tmp_path / "photodiode.csv"
+    path.write_text("wavelength_nm,signal,signal_std\n450,x,0.1\n460,1.0,-0.5\n470,1.0\n")
+    with pytest.raises(InputError) as err:
+        read_photodiode(path)
+    assert [(p.line, p.column) for p in err.value.problems] == [(4, None), (2, "signal"), (3, "signal_std")]
+    assert str(err.value).startswith(f"{path}: line 4: 2 fields but the header has 3 (and 2 more problems")
 
 
 # --------------------------------------------------------------------- sidecars

@@ -59,7 +59,8 @@ def test_round_trip_pixels_pattern_and_tags(tmp_path, pattern):
     assert tags["cfa_pattern"] == pattern
     assert tags["exposure_s"] == 1 / 3 and tags["iso"] == 800.0 and tags["time"] == T0
     assert set(tags) == {"path", "exposure_s", "iso", "time", "black_level", "white_level",
-                         "cfa_pattern", "make", "model"}
+                         "cfa_pattern", "make", "model", "serial", "shape"}
+    assert tags["serial"] == "SIM-0001" and tags["shape"] == cfa.shape
 
 
 def test_dng_structure(tmp_path):
@@ -250,6 +251,7 @@ def test_real_canon():
     assert missing_tags(frame) == ["ExposureTime", "ISOSpeedRatings", "DateTimeOriginal"]
     tags = read_tags(CANON)
     assert tags["cfa_pattern"] == "RGGB" and tags["black_level"] == 2056.0
+    assert tags["shape"] == frame.cfa.shape  # the visible mosaic, from the tags alone
     assert missing_tags(tags) == ["ExposureTime", "ISOSpeedRatings", "DateTimeOriginal"]
     with pytest.raises(InputError) as err:
         read_raw(CANON)
@@ -264,6 +266,8 @@ def test_real_blackmagic():
     assert frame.cfa_pattern == "RGGB"
     assert frame.black_level == 512.0 and frame.white_level == 65535.0
     assert frame.make is None and frame.model is None
+    tags = read_tags(BLACKMAGIC)
+    assert tags["shape"] == frame.cfa.shape and tags["serial"] == "f6845270-68de-40e7-9688-2492e35e94c0"
     assert missing_tags(frame) == ["ExposureTime", "ISOSpeedRatings", "DateTimeOriginal", "Make", "Model"]
     with pytest.raises(InputError) as err:
         read_raw(BLACKMAGIC)

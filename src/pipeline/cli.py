@@ -1,53 +1,198 @@
-"""Command line: ``python -m pipeline simulate --out DIR --scale tiny|small|full --seed N --effect NAME[:p=v,...]``."""
+"""Command line: ``python -m pipeline COMMAND`` (init-dataset, validate, simulate).
+
+It only parses arguments and calls the package; the workflow itself runs with
+``snakemake``.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
 
-from pipeline.effects.base import parse_effect_spec
+from pipeline import __version__
 from pipeline.errors import InputError
+
+#: exit codes (documented in --help and the README)
+EXIT_OK = 0
+EXIT_BAD_INPUT = 1       # the dataset has problems, a file cannot be read, OUT already exists
+EXIT_USAGE = 2           # unknown command or option, missing argument (argparse's own code)
+EXIT_INTERRUPTED = 130   # Ctrl-C (128 + SIGINT, as shells report it)
+#: column where --help starts the one-line descriptions (room for 'init-dataset')
+HELP_COLUMN = 28
+
+DESCRIPTION = """\
+Calibrate a RAW camera as a radiometer. These commands lay out a lab's raw
+files as a calibration dataset (../shared/DATASET.md), check it, or simulate
+one; the calibration itself runs with snakemake."""
+
+EXAMPLES = f"""\
+examples:
+  python -m pipeline init-dataset /data/raw /data/calib2024 --lab-log /data/lab_log.csv
+  python -m pipeline validate /data/calib2024
+  snakemake --cores 2 --config dataset=/data/calib2024
+  python -m pipeline simulate --out data/sim-tiny --scale tiny --seed 1
+
+exit codes:
+  {EXIT_OK}    ok
+  {EXIT_BAD_INPUT}    bad input: the dataset has problems, a file cannot be read, OUT already exists
+  {EXIT_USAGE}    usage error: unknown command or option, missing argument
+  {EXIT_INTERRUPTED}  interrupted (Ctrl-C)
+
+Run 'python -m pipeline COMMAND --help' for the options of one command."""
+
+INIT_EXAMPLES = """\
+RAW_DIR holds either one sub-folder per experiment (dark/, linearity/,
+geometry/, rolloff/, spectral/, absolute/, immersion/, field/), or raw files
+plus a lab log whose 'experiment' column names the experiment of each file.
+The lab log is a CSV file with a 'file' column (path relative to RAW_DIR, or
+the file name) and any of the columns only the lab knows (lens, kind, sweep,
+medium, azimuth_deg, angle_deg, wavelength_nm, condition, water_height_cm,
+temperature_c). The raw files are linked (or copied with --copy), never
+modified; OUT must not exist.
+
+examples:
+  python -m pipeline init-dataset /data/raw /data/calib2024
+  python -m pipeline init-dataset /data/raw /data/calib2024 --lab-log /data/lab_log.csv --copy"""
+
+VALIDATE_EXAMPLES = """\
+Lists every problem at once, grouped by file (line, column, what is wrong,
+how to fix it), and exits 1 when there is any; prints one 'ok: ...' line and
+exits 0 otherwise. The workflow runs the same checks before any stage.
+
+examples:
+  python -m pipeline validate /data/calib2024
+  python -m pipeline validate /data/calib2024 --checksums"""
+
+SIMULATE_EXAMPLES = """\
+examples:
+  python -m pipeline simulate --out data/sim-tiny --scale tiny --seed 1
+  python -m pipeline simulate --out data/sim --effect shutter_offset:offset_s=0.0004 --experiments dark,linearity"""
 
 
 def simulate_from_config(out, simulation: dict) -> None:
     """Simulate the default dataset from the ``simulate_if_missing`` config section."""
+    from pipeline.effects.base import parse_effect_spec
     from pipeline.simulate import simulate_dataset
 
     effects = [parse_effect_spec(s) for s in simulation["effects"]]
     simulate_dataset(out, scale=simulation["scale"], seed=simulation["seed"], effects=effects)
 
 
-def main(argv: list[str] | None = None) -> int:
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Keeps the epilog's layout; leaves room for the indented command names before their help."""
+
+    def add_argument(self, action):
+        super().add_argument(action)
+        if isinstance(action, argparse._SubParsersAction):
+            # the command names are listed one indent deeper than the width argparse measured
+            self._action_max_length = max(self._action_max_length,
+                                          max(len(name) for name in action.choices) + 2 * self._indent_increment + 2)
+
+
+def _scale(name: str) -> str:
+    """--scale NAME, checked against the simulator's scales (imported only when the option is used)."""
     from pipeline.simulate import SCALES
 
-    parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-    sim = sub.add_parser("simulate", help="write a simulated calibration dataset and its truth folder")
+    if name not in SCALES:
+        raise argparse.ArgumentTypeError(f"unknown scale {name!r}; choose one of {', '.join(SCALES)}")
+    return name
+
+
+def build_parser() -> argparse.ArgumentParser:
+    def fmt(prog):
+        return _HelpFormatter(prog, max_help_position=HELP_COLUMN)
+    parser = argparse.ArgumentParser(prog="python -m pipeline", description=DESCRIPTION, epilog=EXAMPLES,
+                                     formatter_class=fmt)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, title="commands", metavar="COMMAND")
+
+    init = sub.add_parser("init-dataset", help="lay out a folder of raw files as a calibration dataset",
+                          description="Write dataset.yaml, a frames.csv per experiment and MD5SUMS from a "
+                                      "folder of raw files (and a lab log).",
+                          epilog=INIT_EXAMPLES, formatter_class=fmt)
+    init.add_argument("raw_dir", metavar="RAW_DIR", help="folder of raw files (read only)")
+    init.add_argument("out", metavar="OUT", help="dataset folder to create (must not exist)")
+    init.add_argument("--lab-log", metavar="LOG.csv", default=None,
+                      help="CSV lab log: file, experiment and the columns only the lab knows")
+    init.add_argument("--copy", action="store_true",
+                      help="copy the raw files instead of linking to them (for a dataset to move or upload)")
+
+    val = sub.add_parser("validate", help="list every problem of a dataset at once (exit 1 if any)",
+                         description="Check dataset.yaml, MD5SUMS, every frames.csv, the tags of every frame "
+                                     "and the sidecar files.",
+                         epilog=VALIDATE_EXAMPLES, formatter_class=fmt)
+    val.add_argument("dataset", metavar="DATASET", help="dataset folder")
+    val.add_argument("--checksums", action="store_true",
+                     help="also read every file and compare its MD5 with MD5SUMS (slow)")
+
+    sim = sub.add_parser("simulate", help="write a simulated calibration dataset and its truth folder",
+                         description="Simulate the calibration experiments of the default dual-fisheye camera.",
+                         epilog=SIMULATE_EXAMPLES, formatter_class=fmt)
     sim.add_argument("--out", required=True, help="dataset folder to create (must not exist)")
-    sim.add_argument("--scale", choices=list(SCALES), default="small")
+    sim.add_argument("--scale", type=_scale, default="small", metavar="NAME",
+                     help="size of the simulated dataset (default: small; an unknown name lists the scales)")
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--effect", action="append", default=[], metavar="NAME[:param=value,...]",
                      help="switch on a true effect of the simulated camera (repeatable)")
     sim.add_argument("--experiments", default=None,
                      help="comma-separated experiments to simulate (default: all the simulator writes)")
+    sim.add_argument("--full-well-e", type=float, default=None, metavar="ELECTRONS",
+                     help="full-well capacity of the simulated sensor (default: none; the ADC clips first)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def _init_dataset(args) -> int:
+    from pipeline.scaffold import describe_result, init_dataset
+
+    result = init_dataset(args.raw_dir, args.out, lab_log=args.lab_log, copy=args.copy)
+    print(describe_result(result))
+    return EXIT_OK
+
+
+def _validate(args) -> int:
+    from pipeline.validation import format_problems, inspect_dataset, ok_line
+
+    dataset, problems = inspect_dataset(args.dataset, checksums=args.checksums)
+    if problems:
+        print(format_problems(problems, args.dataset))
+        print(f"\nfix them and run: python -m pipeline validate {args.dataset}")
+        return EXIT_BAD_INPUT
+    print(ok_line(dataset))
+    return EXIT_OK
+
+
+def _simulate(args) -> int:
+    from pipeline.effects.base import parse_effect_spec
+    from pipeline.simulate import simulate_dataset
+    from pipeline.simulate.dataset import EXPERIMENTS, truth_dir_for
+
+    effects = [parse_effect_spec(s) for s in args.effect]
+    experiments = tuple(e for e in args.experiments.split(",") if e) if args.experiments else EXPERIMENTS
+    sensor = {"full_well_e": args.full_well_e} if args.full_well_e is not None else None
+    out = simulate_dataset(args.out, scale=args.scale, seed=args.seed, effects=effects,
+                           experiments=experiments, progress=not args.no_progress, sensor=sensor)
+    print(f"dataset: {out}\ntruth:   {truth_dir_for(out)}")
+    return EXIT_OK
+
+
+COMMANDS = {"init-dataset": _init_dataset, "validate": _validate, "simulate": _simulate}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)   # exits with EXIT_USAGE on a usage error
     try:
-        if args.command == "simulate":
-            from pipeline.simulate import simulate_dataset
-            from pipeline.simulate.dataset import truth_dir_for
-
-            from pipeline.simulate.dataset import EXPERIMENTS
-
-            effects = [parse_effect_spec(s) for s in args.effect]
-            experiments = tuple(e for e in args.experiments.split(",") if e) if args.experiments else EXPERIMENTS
-            out = simulate_dataset(args.out, scale=args.scale, seed=args.seed, effects=effects,
-                                   experiments=experiments, progress=not args.no_progress)
-            print(f"dataset: {out}\ntruth:   {truth_dir_for(out)}")
+        return COMMANDS[args.command](args)
     except InputError as exc:
+        if len(exc.problems) > 1:
+            from pipeline.validation import format_problems
+
+            print(format_problems(exc.problems), file=sys.stderr)
         print(f"error: {exc}", file=sys.stderr)
-        return 1
-    return 0
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

@@ -2,30 +2,37 @@
 
 ``open_dataset`` checks dataset.yaml, MD5SUMS and every present frames.csv and
 returns a :class:`Dataset`.  Sidecar readers (``read_photodiode`` ...) validate
-the instrument files the same way.  Every problem raises
-:class:`pipeline.errors.InputError` with one line naming the file (and the line
-and column where it applies) and what is wrong; the first problem found wins.
+the instrument files the same way.  The checks collect every problem they
+find as :class:`pipeline.errors.Problem` records (file, line, column, what is
+wrong, how to fix it); ``inspect_layout`` returns them all, and the readers
+raise one :class:`pipeline.errors.InputError` whose line names the first
+problem and counts the others.  ``pipeline.validation`` adds the checks that
+need the raw files' tags.
 """
 
 from __future__ import annotations
 
 import csv
+import difflib
 import hashlib
 import io
 import math
 import re
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path, PurePosixPath
 from typing import Any
 
 import pandas as pd
 import yaml
 
-from pipeline.errors import InputError
+from pipeline.errors import InputError, Problem
 
 __all__ = [
-    "EXPERIMENTS", "COMMON_COLUMNS", "EXPERIMENT_COLUMNS", "OPTIONAL_COLUMNS",
-    "Dataset", "open_dataset", "check_md5", "write_md5sums",
+    "EXPERIMENTS", "COMMON_COLUMNS", "EXPERIMENT_COLUMNS", "OPTIONAL_COLUMNS", "TAG_COLUMNS", "SIDECARS",
+    "COLUMN_MEANINGS", "KINDS", "CHOICES", "LAYOUT_VERSION",
+    "Dataset", "LayoutCheck", "open_dataset", "inspect_layout", "check_sidecars", "check_checksums", "check_md5",
+    "write_md5sums", "read_csv_table",
     "read_photodiode", "read_source_spectrum", "read_source_reference",
     "read_water", "read_reference_radiometer", "read_site",
 ]
@@ -46,15 +53,79 @@ EXPERIMENT_COLUMNS: dict[str, tuple[str, ...]] = {
 }
 # Columns that may appear in any frames.csv.
 OPTIONAL_COLUMNS = ("temperature_c",)
+# Copies of the tags that may appear in any frames.csv (init-dataset writes them so
+# that a lab can tell its frames apart); the tags stay the truth, and a copy that
+# disagrees with its tag is a problem.
+TAG_COLUMNS = ("exposure_s", "iso", "time")
+# Instrument files of each experiment (DATASET.md, Sidecars).
+SIDECARS: dict[str, tuple[str, ...]] = {
+    "spectral": ("photodiode.csv",),
+    "absolute": ("source_spectrum.csv", "source_reference.csv"),
+    "immersion": ("water.yaml",),
+    "field": ("reference_radiometer.csv", "site.yaml"),
+}
+# What each frames.csv column holds (DATASET.md): the "how to fix it" of its problems.
+COLUMN_MEANINGS = {
+    "file": "a path inside the experiment folder, e.g. raw/IMG_0001.dng",
+    "lens": "the lens that faces the source or target ({lenses}), or both",
+    "kind": "signal (source on) or dark (source off or lens capped, same settings)",
+    "sweep": "exposure (ISO fixed, time varies) or gain (time fixed, ISO varies)",
+    "medium": "air or water",
+    "azimuth_deg": "the rotation plane in degrees (0 or 90)",
+    "angle_deg": "the signed camera rotation in degrees that puts the sphere port at that field angle",
+    "wavelength_nm": "the monochromator setting in nm (empty for dark frames)",
+    "condition": "air or water",
+    "water_height_cm": "the water height above the lens in cm (empty in air)",
+    "temperature_c": "the sensor or room temperature in degrees C, or empty",
+    "exposure_s": "the ExposureTime tag in s, or empty",
+    "iso": "the ISOSpeedRatings tag, or empty",
+    "time": "the DateTimeOriginal tag as ISO 8601 (2021-03-18T16:02:00.5), or empty",
+}
 
 KINDS = ("signal", "dark")
-_CHOICES = {"sweep": ("exposure", "gain"), "medium": ("air", "water"), "condition": ("air", "water")}
+CHOICES = {"kind": KINDS, "sweep": ("exposure", "gain"), "medium": ("air", "water"),
+           "condition": ("air", "water")}
 _NUMERIC = ("azimuth_deg", "angle_deg", "wavelength_nm", "water_height_cm", "temperature_c")
+_TAG_NUMBERS = ("exposure_s", "iso")
 _MD5_LINE = re.compile(r"^([0-9a-fA-F]{32}) [ *](.+)$")
+#: a folder whose name is at least this similar to an experiment's (difflib ratio)
+#: is taken for a misspelt experiment ("Dark", "linearty"), not for a lab's own folder
+TYPO_SIMILARITY = 0.8
+_MORE_HINT = "python -m pipeline validate {root} lists them all"
 
 
 # ---------------------------------------------------------------------------
 # small parsing helpers
+
+
+class _Bad(Exception):
+    """A value is wrong: the message (no file or line) and how to fix it."""
+
+    def __init__(self, message: str, fix: str = ""):
+        super().__init__(message)
+        self.message = message
+        self.fix = fix
+
+
+def _note(problems: list[Problem], path: Path | None, message: str, fix: str = "", *,
+          line: int | None = None, column: str | None = None) -> None:
+    problems.append(Problem(path=path, line=line, column=column, message=message, fix=fix))
+
+
+def _check(problems: list[Problem], path: Path, fn, *args, line: int | None = None,
+           column: str | None = None, **kwargs):
+    """``fn(*args, **kwargs)``, or None with a problem noted when it raises _Bad."""
+    try:
+        return fn(*args, **kwargs)
+    except _Bad as bad:
+        _note(problems, path, bad.message, bad.fix, line=line, column=column)
+        return None
+
+
+def _raise_if(problems: list[Problem], root: Path | None = None) -> None:
+    if problems:
+        hint = _MORE_HINT.format(root=root) if root is not None else ""
+        raise InputError.from_problems(problems, hint)
 
 
 def _relpath(text: str) -> str | None:
@@ -68,38 +139,51 @@ def _relpath(text: str) -> str | None:
     return "/".join(parts)
 
 
-def _read_yaml(path: Path) -> Any:
+def _read_text(path: Path, problems: list[Problem], what: str, encoding: str = "utf-8") -> str | None:
     if not path.is_file():
-        raise InputError(path, "file not found")
+        _note(problems, path, "file not found", f"write {what}")
+        return None
     try:
-        return yaml.safe_load(path.read_text(encoding="utf-8"))
+        return path.read_text(encoding=encoding)
     except UnicodeDecodeError:
-        raise InputError(path, "not UTF-8 text") from None
+        _note(problems, path, "not UTF-8 text", "save the file as UTF-8 text")
+    except OSError as exc:
+        _note(problems, path, f"cannot read file ({exc.strerror or exc})", "check the file's permissions")
+    return None
+
+
+def _read_yaml(path: Path, problems: list[Problem], what: str) -> tuple[bool, Any]:
+    """(True, data) when the file parses; (False, None) with a problem noted otherwise."""
+    text = _read_text(path, problems, what)
+    if text is None:
+        return False, None
+    try:
+        return True, yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}: " if mark is not None else ""
         reason = getattr(exc, "problem", None) or "invalid YAML"
-        raise InputError(path, f"{where}not valid YAML ({reason})") from None
-    except OSError as exc:
-        raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
+        _note(problems, path, f"{where}not valid YAML ({reason})",
+              "fix the YAML syntax there (brackets, quotes, indentation)")
+        return False, None
 
 
-def _read_csv(path: Path, required) -> tuple[list[str], list[tuple[int, dict[str, str]]]]:
+def _read_csv(path: Path, required, problems: list[Problem], what: str
+              ) -> tuple[list[str] | None, list[tuple[int, dict[str, str]]]]:
     """Header and (line number, row dict) pairs; values stripped, blank lines skipped.
 
-    Checks the ``required`` columns are present and that there is at least one row.
+    Notes a problem for every ragged row (which is left out), for missing
+    ``required`` columns and for a table without rows.  The header is None when
+    the file cannot be read as a table at all.
     """
-    if not path.is_file():
-        raise InputError(path, "file not found")
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError:
-        raise InputError(path, "not UTF-8 text") from None
-    except OSError as exc:
-        raise InputError(path, f"cannot read file ({exc.strerror or exc})") from None
+    text = _read_text(path, problems, what, encoding="utf-8-sig")
+    if text is None:
+        return None, []
     reader = csv.reader(io.StringIO(text))
     header: list[str] | None = None
     rows: list[tuple[int, dict[str, str]]] = []
+    n_records = 0
+    ragged_fix = "give every row one value per column (an empty value still needs its comma)"
     try:
         for record in reader:
             if not record or all(not f.strip() for f in record):
@@ -107,59 +191,81 @@ def _read_csv(path: Path, required) -> tuple[list[str], list[tuple[int, dict[str
             if header is None:
                 header = [h.strip() for h in record]
                 if any(not h for h in header):
-                    raise InputError(path, f"line {reader.line_num}: empty column name in header")
+                    _note(problems, path, "empty column name in header", "name every column of the first line",
+                          line=reader.line_num)
+                    return None, []
                 dupes = sorted({h for h in header if header.count(h) > 1})
                 if dupes:
-                    raise InputError(path, f"line {reader.line_num}: duplicate column {dupes[0]!r}")
+                    _note(problems, path, f"duplicate column {dupes[0]!r}", "keep one column of each name",
+                          line=reader.line_num)
+                    return None, []
                 continue
+            n_records += 1
             if len(record) != len(header):
-                raise InputError(path, f"line {reader.line_num}: {len(record)} fields but the header has {len(header)}")
+                _note(problems, path, f"{len(record)} fields but the header has {len(header)}", ragged_fix,
+                      line=reader.line_num)
+                continue
             rows.append((reader.line_num, {h: v.strip() for h, v in zip(header, record)}))
     except csv.Error as exc:
-        raise InputError(path, f"line {reader.line_num}: malformed CSV ({exc})") from None
+        _note(problems, path, f"malformed CSV ({exc})", "check the quotes on that line", line=reader.line_num)
+        return None, []
     if header is None:
-        raise InputError(path, "empty file (no header line)")
-    _require_columns(path, header, required)
-    if not rows:
-        raise InputError(path, "no data rows")
+        _note(problems, path, "empty file (no header line)", f"write {what}")
+        return None, []
+    missing = [c for c in required if c not in header]
+    if missing:
+        _note(problems, path, f"missing column {', '.join(repr(c) for c in missing)} "
+                              f"(required: {', '.join(required)})",
+              f"add the column{'s' if len(missing) > 1 else ''} to the header line (DATASET.md says what "
+              "each holds)")
+    if not n_records:
+        _note(problems, path, "no data rows", "add one row per frame or reading")
     return header, rows
 
 
-def _require_columns(path: Path, header: list[str], required) -> None:
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise InputError(path, f"missing column {', '.join(repr(c) for c in missing)} "
-                               f"(required: {', '.join(required)})")
+def read_csv_table(path, required=(), what: str = "the table") -> tuple[list[str] | None,
+                                                                       list[tuple[int, dict[str, str]]],
+                                                                       list[Problem]]:
+    """A CSV file as (header, [(line number, row dict)], problems), checked as frames.csv is.
+
+    Values are stripped and blank lines skipped; ``required`` columns must be
+    present; ``what`` says what the file should hold (the fix of its problems).
+    """
+    problems: list[Problem] = []
+    header, rows = _read_csv(Path(path), tuple(required), problems, what)
+    return header, rows, problems
 
 
-def _number(path: Path, line: int, column: str, value: str, *, allow_empty: bool = False) -> float:
+def _number(value: str, *, allow_empty: bool = False) -> float:
     if value == "":
         if allow_empty:
             return math.nan
-        raise InputError(path, f"line {line}, column {column!r}: value is empty")
+        raise _Bad("value is empty")
     try:
         number = float(value)
     except ValueError:
-        raise InputError(path, f"line {line}, column {column!r}: {value!r} is not a number") from None
+        raise _Bad(f"{value!r} is not a number") from None
     if not math.isfinite(number):
-        raise InputError(path, f"line {line}, column {column!r}: {value!r} is not a finite number")
+        raise _Bad(f"{value!r} is not a finite number")
     return number
 
 
-def _choice(path: Path, line: int, column: str, value: str, allowed) -> str:
+def _choice(value: str, allowed) -> str:
     if value not in allowed:
-        raise InputError(path, f"line {line}, column {column!r}: {value!r} is not one of {', '.join(allowed)}")
+        if value == "":
+            raise _Bad(f"value is empty (one of {', '.join(allowed)})")
+        raise _Bad(f"{value!r} is not one of {', '.join(allowed)}")
     return value
 
 
-def _yaml_number(path: Path, where: str, value: Any, *, low: float | None = None,
+def _yaml_number(where: str, value: Any, *, low: float | None = None,
                  high: float | None = None, positive: bool = False) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InputError(path, f"{where} must be a number, got {value!r}")
+        raise _Bad(f"{where} must be a number, got {value!r}")
     if positive and value <= 0:
-        raise InputError(path, f"{where} must be positive, got {value!r}")
+        raise _Bad(f"{where} must be positive, got {value!r}")
     if (low is not None and value < low) or (high is not None and value > high):
-        raise InputError(path, f"{where} must be within [{low}, {high}], got {value!r}")
+        raise _Bad(f"{where} must be within [{low}, {high}], got {value!r}")
     return float(value)
 
 
@@ -174,85 +280,124 @@ def _md5_file(path: Path) -> str:
 # ---------------------------------------------------------------------------
 # dataset.yaml and MD5SUMS
 
+_LENSES_FIX = "give each lens as name: {rows: [start, stop], cols: [start, stop]} in raw pixels"
 
-def _parse_span(path: Path, where: str, span: Any) -> tuple[int, int]:
+
+def _parse_span(where: str, span: Any) -> tuple[int, int]:
     if (not isinstance(span, (list, tuple)) or len(span) != 2
             or not all(isinstance(v, int) and not isinstance(v, bool) for v in span)):
-        raise InputError(path, f"{where} must be a [start, stop] pair of integers, got {span!r}")
+        raise _Bad(f"{where} must be a [start, stop] pair of integers, got {span!r}", _LENSES_FIX)
     start, stop = span
     if not 0 <= start < stop:
-        raise InputError(path, f"{where} [{start}, {stop}) must have 0 <= start < stop")
+        raise _Bad(f"{where} [{start}, {stop}) must have 0 <= start < stop", _LENSES_FIX)
     if start % 2 or stop % 2:
-        raise InputError(path, f"{where} [{start}, {stop}) must start and stop on even pixels (Bayer grid)")
+        raise _Bad(f"{where} [{start}, {stop}) must start and stop on even pixels (Bayer grid)",
+                   "round start and stop to even pixel numbers")
     return start, stop
 
 
-def _validate_meta(path: Path, meta: Any) -> dict[str, tuple[tuple[int, int], tuple[int, int]]]:
+def _check_meta(path: Path, meta: Any, problems: list[Problem]
+                ) -> dict[str, tuple[tuple[int, int], tuple[int, int]]] | None:
+    """Check dataset.yaml; returns the lens regions (None when they are unusable)."""
     if not isinstance(meta, dict):
-        raise InputError(path, "must be a YAML mapping (layout, camera, lenses, ...)")
+        _note(problems, path, "must be a YAML mapping (layout, camera, lenses, ...)",
+              "write the keys of DATASET.md: layout, camera, lenses (python -m pipeline init-dataset does)")
+        return None
     if "layout" not in meta:
-        raise InputError(path, "missing key 'layout'")
-    if meta["layout"] != LAYOUT_VERSION or isinstance(meta["layout"], bool):
-        raise InputError(path, f"layout is {meta['layout']!r}; this pipeline reads layout {LAYOUT_VERSION}")
+        _note(problems, path, "missing key 'layout'", f"add 'layout: {LAYOUT_VERSION}'")
+    elif meta["layout"] != LAYOUT_VERSION or isinstance(meta["layout"], bool):
+        _note(problems, path, f"layout is {meta['layout']!r}; this pipeline reads layout {LAYOUT_VERSION}",
+              f"lay the dataset out as DATASET.md version {LAYOUT_VERSION} says, then set 'layout: "
+              f"{LAYOUT_VERSION}'")
     camera = meta.get("camera")
+    camera_fix = "write camera: {make: ..., model: ..., serial: ...} as the Make and Model tags of the raw files say"
     if not isinstance(camera, dict):
-        raise InputError(path, "missing or invalid 'camera' (need a mapping with make and model)")
-    for key in ("make", "model"):
-        if not isinstance(camera.get(key), str) or not camera[key].strip():
-            raise InputError(path, f"camera.{key} must be a non-empty string")
-    if "serial" in camera and not isinstance(camera["serial"], (str, int)):
-        raise InputError(path, "camera.serial must be a string")
+        _note(problems, path, "missing or invalid 'camera' (need a mapping with make and model)", camera_fix)
+    else:
+        for key in ("make", "model"):
+            if not isinstance(camera.get(key), str) or not camera[key].strip():
+                _note(problems, path, f"camera.{key} must be a non-empty string", camera_fix)
+        if "serial" in camera and not isinstance(camera["serial"], (str, int)):
+            _note(problems, path, "camera.serial must be a string", "quote the serial number: serial: \"1234\"")
     lenses_raw = meta.get("lenses")
+    lenses: dict[str, tuple[tuple[int, int], tuple[int, int]]] | None = {}
     if not isinstance(lenses_raw, dict) or not lenses_raw:
-        raise InputError(path, "missing or empty 'lenses' (need name: {rows: [a, b], cols: [a, b]})")
-    lenses = {}
-    for name, region in lenses_raw.items():
-        if not isinstance(name, str) or not name or name == "both":
-            raise InputError(path, f"invalid lens name {name!r}")
-        if not isinstance(region, dict) or "rows" not in region or "cols" not in region:
-            raise InputError(path, f"lenses.{name} needs rows and cols")
-        lenses[name] = (_parse_span(path, f"lenses.{name}.rows", region["rows"]),
-                        _parse_span(path, f"lenses.{name}.cols", region["cols"]))
+        _note(problems, path, "missing or empty 'lenses' (need name: {rows: [a, b], cols: [a, b]})", _LENSES_FIX)
+        lenses = None
+    else:
+        for name, region in lenses_raw.items():
+            if not isinstance(name, str) or not name or name == "both":
+                _note(problems, path, f"invalid lens name {name!r}",
+                      "name each lens with a word other than 'both' (e.g. far, close)")
+                lenses = None
+                continue
+            if not isinstance(region, dict) or "rows" not in region or "cols" not in region:
+                _note(problems, path, f"lenses.{name} needs rows and cols", _LENSES_FIX)
+                lenses = None
+                continue
+            rows = _check(problems, path, _parse_span, f"lenses.{name}.rows", region["rows"])
+            cols = _check(problems, path, _parse_span, f"lenses.{name}.cols", region["cols"])
+            if rows is None or cols is None:
+                lenses = None
+            elif lenses is not None:
+                lenses[name] = (rows, cols)
     board = meta.get("chessboard")
     if board is not None:
+        board_fix = "write chessboard: {inner_corners: [columns, rows], square_mm: {air: 30.0, water: 20.0}}"
         if not isinstance(board, dict):
-            raise InputError(path, "chessboard must be a mapping")
-        corners = board.get("inner_corners")
-        if (not isinstance(corners, (list, tuple)) or len(corners) != 2
-                or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 2 for v in corners)):
-            raise InputError(path, f"chessboard.inner_corners must be two integers >= 2, got {corners!r}")
-        squares = board.get("square_mm")
-        if not isinstance(squares, dict) or not squares:
-            raise InputError(path, "chessboard.square_mm must map medium (air, water) to a size in mm")
-        for medium, size in squares.items():
-            if medium not in _CHOICES["medium"]:
-                raise InputError(path, f"chessboard.square_mm: unknown medium {medium!r} (air or water)")
-            _yaml_number(path, f"chessboard.square_mm.{medium}", size, positive=True)
+            _note(problems, path, "chessboard must be a mapping", board_fix)
+        else:
+            corners = board.get("inner_corners")
+            if (not isinstance(corners, (list, tuple)) or len(corners) != 2
+                    or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 2 for v in corners)):
+                _note(problems, path, f"chessboard.inner_corners must be two integers >= 2, got {corners!r}",
+                      "count the inner corners of the board along each side: [columns, rows]")
+            squares = board.get("square_mm")
+            if not isinstance(squares, dict) or not squares:
+                _note(problems, path, "chessboard.square_mm must map medium (air, water) to a size in mm",
+                      board_fix)
+            else:
+                for medium, size in squares.items():
+                    if medium not in CHOICES["medium"]:
+                        _note(problems, path, f"chessboard.square_mm: unknown medium {medium!r} (air or water)",
+                              board_fix)
+                    else:
+                        _check(problems, path, _yaml_number, f"chessboard.square_mm.{medium}", size, positive=True)
     if "description" in meta and meta["description"] is not None and not isinstance(meta["description"], str):
-        raise InputError(path, "description must be text")
+        _note(problems, path, "description must be text", "quote the description")
     return lenses
 
 
-def _read_md5sums(path: Path) -> dict[str, str]:
-    if not path.is_file():
-        raise InputError(path, "file not found")
+def _check_md5sums(path: Path, problems: list[Problem], lines_of: dict[str, int] | None = None
+                   ) -> dict[str, str] | None:
+    """MD5SUMS as {relative path: md5}; None when the file cannot be read.
+
+    ``lines_of``, when given, receives the line number of each path.
+    """
+    text = _read_text(path, problems, "MD5SUMS: one '<md5>  <relative path>' line per file of the dataset "
+                                      "(python -m pipeline init-dataset writes it)")
+    if text is None:
+        return None
     sums: dict[str, str] = {}
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except UnicodeDecodeError:
-        raise InputError(path, "not UTF-8 text") from None
-    for number, line in enumerate(lines, start=1):
+    for number, line in enumerate(text.splitlines(), start=1):
         if not line.strip():
             continue
         match = _MD5_LINE.match(line.rstrip("\r"))
         if not match:
-            raise InputError(path, f"line {number}: expected '<32 hex digits>  <relative path>'")
+            _note(problems, path, "expected '<32 hex digits>  <relative path>'",
+                  "write the checksum, two spaces and the path relative to the dataset folder", line=number)
+            continue
         rel = _relpath(match.group(2))
         if rel is None:
-            raise InputError(path, f"line {number}: path {match.group(2)!r} is not relative to the dataset")
+            _note(problems, path, f"path {match.group(2)!r} is not relative to the dataset",
+                  "write the path relative to the dataset folder, e.g. dark/raw/IMG_0001.dng", line=number)
+            continue
         if rel in sums:
-            raise InputError(path, f"line {number}: {rel} is listed twice")
+            _note(problems, path, f"{rel} is listed twice", "delete one of the two lines", line=number)
+            continue
         sums[rel] = match.group(1).lower()
+        if lines_of is not None:
+            lines_of[rel] = number
     return sums
 
 
@@ -260,52 +405,98 @@ def _read_md5sums(path: Path) -> dict[str, str]:
 # frames.csv
 
 
-def _validate_frames(dataset: "Dataset", experiment: str) -> pd.DataFrame:
-    folder = dataset.root / experiment
+def _check_frames(root: Path, experiment: str, lenses, md5sums: dict[str, str] | None,
+                  problems: list[Problem]) -> tuple[pd.DataFrame, list[int]]:
+    """Check one frames.csv; returns its rows (plus an absolute ``path``) and their line numbers.
+
+    ``lenses`` and ``md5sums`` may be None when dataset.yaml or MD5SUMS could not
+    be read: the checks that need them are then left out.  ``path`` is None on
+    rows whose file is not a path inside the experiment folder.
+    """
+    folder = root / experiment
     path = folder / "frames.csv"
     specific = EXPERIMENT_COLUMNS[experiment]
-    header, rows = _read_csv(path, COMMON_COLUMNS + specific)
-    lens_names = tuple(dataset.lenses) + ("both",)
+    header, rows = _read_csv(path, COMMON_COLUMNS + specific, problems,
+                             f"{experiment}/frames.csv: one row per raw frame with the columns "
+                             f"{', '.join(COMMON_COLUMNS + specific)} (python -m pipeline init-dataset writes it)")
+    if header is None:
+        return pd.DataFrame(columns=list(COMMON_COLUMNS + specific) + ["path"]), []
+    lens_names = tuple(lenses) + ("both",) if lenses is not None else None
+    meaning = dict(COLUMN_MEANINGS)
+    meaning["lens"] = meaning["lens"].format(lenses=", ".join(lenses) if lenses else "dataset.yaml's lenses")
+
+    def bad(line, column, message, fix=None):
+        _note(problems, path, message, fix if fix is not None else f"write {meaning[column]}",
+              line=line, column=column)
+
+    def choose(line, column, value, allowed):
+        try:
+            _choice(value, allowed)
+        except _Bad as exc:
+            bad(line, column, exc.message)
+
     seen: dict[str, int] = {}
-    records = []
+    records, lines = [], []
     for line, row in rows:
         rec: dict[str, Any] = dict(row)
-        rel = _relpath(row["file"])
-        if rel is None:
-            what = "value is empty" if not row["file"] else f"{row['file']!r} is not a path inside {experiment}/"
-            raise InputError(path, f"line {line}, column 'file': {what}")
-        if rel in seen:
-            raise InputError(path, f"line {line}, column 'file': {rel} already listed on line {seen[rel]}")
-        seen[rel] = line
-        _choice(path, line, "lens", row["lens"], lens_names)
-        kind = _choice(path, line, "kind", row["kind"], KINDS)
-        if experiment == "dark" and kind != "dark":
-            raise InputError(path, f"line {line}, column 'kind': {kind!r} but every frame in dark/ must be 'dark'")
-        for column, allowed in _CHOICES.items():
-            if column in specific:
-                _choice(path, line, column, row[column], allowed)
-        for column in _NUMERIC:
+        rec["path"] = None
+        records.append(rec)
+        lines.append(line)
+        rel = None
+        if "file" in row:
+            rel = _relpath(row["file"])
+            if rel is None:
+                what = "value is empty" if not row["file"] else f"{row['file']!r} is not a path inside {experiment}/"
+                bad(line, "file", what)
+            elif rel in seen:
+                bad(line, "file", f"{rel} already listed on line {seen[rel]}", "delete one of the two rows")
+                rel = None
+            else:
+                seen[rel] = line
+        kind = row.get("kind")
+        if "lens" in row and lens_names is not None:
+            choose(line, "lens", row["lens"], lens_names)
+        for column, allowed in CHOICES.items():
+            if column in row and (column == "kind" or column in specific):
+                choose(line, column, row[column], allowed)
+        if experiment == "dark" and kind == "signal":
+            bad(line, "kind", f"{kind!r} but every frame in dark/ must be 'dark'",
+                "write dark (dark/ holds only dark frames; signal frames belong to their experiment)")
+        for column in _NUMERIC + _TAG_NUMBERS:
             if column not in row:
                 continue
-            # Numbers may be empty for dark frames, the optional temperature, and
-            # water height in air; otherwise they are required.
-            allow_empty = (kind == "dark" or column == "temperature_c"
+            # Numbers may be empty for dark frames, the optional temperature, the tag
+            # copies and water height in air; otherwise they are required.
+            allow_empty = (kind == "dark" or column in ("temperature_c",) + _TAG_NUMBERS
                            or (column == "water_height_cm" and row.get("condition") == "air"))
-            rec[column] = _number(path, line, column, row[column], allow_empty=allow_empty)
+            try:
+                rec[column] = _number(row[column], allow_empty=allow_empty)
+            except _Bad as exc:
+                rec[column] = math.nan
+                bad(line, column, exc.message)
+        if row.get("time"):
+            try:
+                datetime.fromisoformat(row["time"])
+            except ValueError:
+                bad(line, "time", f"{row['time']!r} is not an ISO 8601 time")
+        if rel is None:
+            continue
         full = folder / rel
-        if not full.is_file():
-            raise InputError(path, f"line {line}, column 'file': {rel} does not exist")
-        key = f"{experiment}/{rel}"
-        if key not in dataset.md5sums:
-            raise InputError(path, f"line {line}, column 'file': {key} is not listed in MD5SUMS")
         rec["file"] = rel
         rec["path"] = full
-        records.append(rec)
+        if not full.is_file():
+            bad(line, "file", f"{rel} does not exist",
+                "put the raw file there, correct the path or delete the row")
+            continue
+        key = f"{experiment}/{rel}"
+        if md5sums is not None and key not in md5sums:
+            bad(line, "file", f"{key} is not listed in MD5SUMS", "add its '<md5>  <path>' line to MD5SUMS")
     frame = pd.DataFrame.from_records(records, columns=header + ["path"])
-    for column in _NUMERIC:
+    for column in _NUMERIC + _TAG_NUMBERS:
         if column in frame:
             frame[column] = frame[column].astype(float)
-    return frame
+    return frame, lines
+
 
 
 @dataclass
@@ -330,7 +521,10 @@ class Dataset:
             folder = self.root / experiment
             if not folder.is_dir():
                 raise InputError(folder, "experiment folder is absent")
-            self._frames[experiment] = _validate_frames(self, experiment)
+            problems: list[Problem] = []
+            frame, _ = _check_frames(self.root, experiment, self.lenses, self.md5sums, problems)
+            _raise_if(problems, self.root)
+            self._frames[experiment] = frame
         return self._frames[experiment].copy()
 
     def raw_files(self, experiment: str) -> list[Path]:
@@ -338,21 +532,80 @@ class Dataset:
         return list(self.frames(experiment)["path"])
 
 
-def open_dataset(root, check_frames: bool = True) -> Dataset:
-    """Open and validate a dataset folder; raises InputError on the first problem."""
+@dataclass
+class LayoutCheck:
+    """What ``inspect_layout`` found: the parsed files and every problem of the layout."""
+
+    root: Path
+    meta: Any = None
+    lenses: dict[str, tuple[tuple[int, int], tuple[int, int]]] | None = None
+    md5sums: dict[str, str] | None = None
+    #: experiment -> (frames table as Dataset.frames gives it, CSV line of each row)
+    tables: dict[str, tuple[pd.DataFrame, list[int]]] = field(default_factory=dict)
+    problems: list[Problem] = field(default_factory=list)
+
+    def experiments(self) -> list[str]:
+        return [name for name in EXPERIMENTS if (self.root / name).is_dir()]
+
+    def dataset(self) -> Dataset:
+        """The Dataset, or one InputError naming the first problem and counting the others."""
+        _raise_if(self.problems, self.root)
+        frames = {exp: table for exp, (table, _) in self.tables.items()}
+        return Dataset(root=self.root, meta=self.meta, lenses=self.lenses, md5sums=self.md5sums, _frames=frames)
+
+
+def _check_folders(root: Path, problems: list[Problem]) -> None:
+    """A folder named almost like an experiment is a misspelt experiment the stages would miss."""
+    for child in sorted(root.iterdir()):
+        if not child.is_dir() or child.name in EXPERIMENTS or child.name.startswith("."):
+            continue
+        close = difflib.get_close_matches(child.name.lower(), EXPERIMENTS, n=1, cutoff=TYPO_SIMILARITY)
+        if close:
+            _note(problems, child, f"folder {child.name!r} is not an experiment of DATASET.md",
+                  f"rename it {close[0]!r} (experiment folders: {', '.join(EXPERIMENTS)})")
+
+
+def inspect_layout(root, check_frames: bool = True) -> LayoutCheck:
+    """Check dataset.yaml, MD5SUMS and every present frames.csv; collect every problem."""
     root = Path(root)
     if not root.is_dir():
-        raise InputError(root, "dataset folder not found")
+        what = "is a file, not a folder" if root.exists() else "dataset folder not found"
+        return LayoutCheck(root=root, problems=[Problem(
+            root, message=what, fix="check the path (a mistyped name, a drive not mounted?)")])
     root = root.resolve()
+    check = LayoutCheck(root=root)
+    problems = check.problems
+    _check_folders(root, problems)
     meta_path = root / "dataset.yaml"
-    meta = _read_yaml(meta_path)
-    lenses = _validate_meta(meta_path, meta)
-    md5sums = _read_md5sums(root / "MD5SUMS")
-    dataset = Dataset(root=root, meta=meta, lenses=lenses, md5sums=md5sums)
-    if check_frames:
-        for experiment in dataset.experiments():
-            dataset.frames(experiment)
-    return dataset
+    parsed, check.meta = _read_yaml(meta_path, problems, "dataset.yaml: camera, lens regions and targets as "
+                                                         "DATASET.md says (python -m pipeline init-dataset "
+                                                         "writes it)")
+    if parsed:
+        check.lenses = _check_meta(meta_path, check.meta, problems)
+    md5_lines: dict[str, int] = {}
+    check.md5sums = _check_md5sums(root / "MD5SUMS", problems, md5_lines)
+    if not check_frames:
+        return check
+    referenced = set()
+    for experiment in check.experiments():
+        table, lines = _check_frames(root, experiment, check.lenses, check.md5sums, problems)
+        check.tables[experiment] = (table, lines)
+        referenced.update(f"{experiment}/{rel}" for rel in table["file"])
+    if check.md5sums is not None:
+        for rel in check.md5sums:
+            if rel not in referenced and not (root / rel).is_file():
+                _note(problems, root / "MD5SUMS", f"{rel} is listed but the file is absent",
+                      "put the file back or delete its line", line=md5_lines[rel])
+    return check
+
+
+def open_dataset(root, check_frames: bool = True) -> Dataset:
+    """Open and validate a dataset folder.
+
+    Raises one InputError when anything is wrong: its line names the first
+    problem and counts the others (``inspect_layout`` returns them all).
+    """
+    return inspect_layout(root, check_frames=check_frames).dataset()
 
 
 def check_md5(dataset: Dataset, relative_path, md5_hex: str) -> None:
@@ -370,6 +623,21 @@ def check_md5(dataset: Dataset, relative_path, md5_hex: str) -> None:
     expected = dataset.md5sums[rel]
     if expected != md5_hex.lower():
         raise InputError(full, f"checksum mismatch (MD5SUMS says {expected}, file is {md5_hex.lower()})")
+
+
+def check_checksums(root, md5sums: dict[str, str]) -> list[Problem]:
+    """Read every file MD5SUMS lists and compare its MD5 (slow: reads every byte)."""
+    root = Path(root)
+    problems: list[Problem] = []
+    for rel, expected in md5sums.items():
+        path = root / rel
+        if not path.is_file():
+            continue
+        actual = _md5_file(path)
+        if actual != expected:
+            _note(problems, path, f"checksum mismatch (MD5SUMS says {expected}, file is {actual})",
+                  "restore the file as it was recorded, or write its new MD5SUMS line if the change is wanted")
+    return problems
 
 
 def write_md5sums(root) -> None:
@@ -393,53 +661,202 @@ def _sidecar_path(source, relative: str) -> Path:
     return source.root / relative if isinstance(source, Dataset) else Path(source)
 
 
-def _numeric_table(path: Path, columns: tuple[str, ...], *, nonnegative=(), positive=()) -> pd.DataFrame:
-    header, rows = _read_csv(path, columns)
+def _numeric_table(path: Path, columns: tuple[str, ...], problems: list[Problem], what: str, *,
+                   nonnegative=(), positive=()) -> pd.DataFrame:
+    header, rows = _read_csv(path, columns, problems, what)
     data = {c: [] for c in columns}
+    if header is None or any(c not in header for c in columns):
+        return pd.DataFrame(data)
     for line, row in rows:
         for column in columns:
-            value = _number(path, line, column, row[column])
-            if column in positive and value <= 0:
-                raise InputError(path, f"line {line}, column {column!r}: {value!r} must be positive")
-            if column in nonnegative and value < 0:
-                raise InputError(path, f"line {line}, column {column!r}: {value!r} must not be negative")
+            value = _check(problems, path, _number, row[column], line=line, column=column)
+            if value is None:
+                value = math.nan
+            elif column in positive and value <= 0:
+                _note(problems, path, f"{value!r} must be positive", f"write {what}", line=line, column=column)
+            elif column in nonnegative and value < 0:
+                _note(problems, path, f"{value!r} must not be negative", f"write {what}", line=line, column=column)
             data[column].append(value)
     return pd.DataFrame(data)
 
 
+def _photodiode(path: Path, problems: list[Problem]) -> pd.DataFrame:
+    return _numeric_table(path, ("wavelength_nm", "signal", "signal_std"), problems,
+                          "the photodiode reading per monochromator wavelength: wavelength_nm (> 0), "
+                          "signal, signal_std (>= 0)",
+                          positive=("wavelength_nm",), nonnegative=("signal_std",))
+
+
+def _source_spectrum(path: Path, problems: list[Problem]) -> pd.DataFrame:
+    return _numeric_table(path, ("wavelength_nm", "radiance", "radiance_std"), problems,
+                          "the sphere port's relative spectrum: wavelength_nm (> 0), radiance, radiance_std (>= 0)",
+                          positive=("wavelength_nm",), nonnegative=("radiance_std",))
+
+
+def _source_reference(path: Path, problems: list[Problem]) -> pd.DataFrame:
+    return _numeric_table(path, ("wavelength_nm", "radiance_W_sr_m2_nm", "uncertainty_rel"), problems,
+                          "the port's absolute radiance: wavelength_nm (> 0), radiance_W_sr_m2_nm (> 0), "
+                          "uncertainty_rel (>= 0)",
+                          positive=("wavelength_nm", "radiance_W_sr_m2_nm"), nonnegative=("uncertainty_rel",))
+
+
+def _yaml_mapping(path: Path, problems: list[Problem], what: str, mapping_message: str) -> dict | None:
+    parsed, data = _read_yaml(path, problems, what)
+    if not parsed:
+        return None
+    if not isinstance(data, dict):
+        _note(problems, path, mapping_message, f"write {what}")
+        return None
+    return data
+
+
+def _water(path: Path, problems: list[Problem]) -> dict:
+    what = "temperature_c and salinity_psu of the tank water"
+    data = _yaml_mapping(path, problems, what, "must be a YAML mapping with temperature_c and salinity_psu")
+    if data is None:
+        return {}
+    out = dict(data)
+    for key, low, high in (("temperature_c", -5.0, 60.0), ("salinity_psu", 0.0, 60.0)):
+        if key not in data:
+            _note(problems, path, f"missing key {key!r}", f"write {what}")
+        else:
+            out[key] = _check(problems, path, _yaml_number, key, data[key], low=low, high=high)
+    return out
+
+
+def _reference_radiometer(path: Path, problems: list[Problem]) -> pd.DataFrame:
+    what = "the reference radiometer's readings: time (ISO 8601, UTC) and one L_<nm> column per channel"
+    header, rows = _read_csv(path, ("time",), problems, what)
+    channels = {}
+    for column in header or ():
+        match = re.fullmatch(r"L_(\d+(?:\.\d+)?)", column)
+        if match:
+            channels[column] = float(match.group(1))
+    if header is not None and not channels:
+        _note(problems, path, "no radiance columns (expected L_<nm>, e.g. L_443)",
+              "name each radiance column L_<wavelength in nm>")
+    if header is None or "time" not in header or not channels:
+        frame = pd.DataFrame({"time": pd.DatetimeIndex([], tz="UTC")})
+        frame.attrs["channels_nm"] = list(channels.values())
+        return frame
+    times, values = [], {c: [] for c in channels}
+    for line, row in rows:
+        try:
+            stamp = pd.Timestamp(row["time"])
+        except (ValueError, TypeError):
+            stamp = None
+        if stamp is None or pd.isna(stamp):
+            _note(problems, path, f"{row['time']!r} is not an ISO 8601 time",
+                  "write times as 2021-03-18T20:02:00.166Z (UTC)", line=line, column="time")
+            continue
+        stamp = stamp.tz_localize("UTC") if stamp.tzinfo is None else stamp.tz_convert("UTC")
+        times.append(stamp)
+        for column in channels:
+            value = _check(problems, path, _number, row[column], allow_empty=True, line=line, column=column)
+            values[column].append(math.nan if value is None else value)
+    frame = pd.DataFrame({"time": pd.DatetimeIndex(times), **values})
+    frame.attrs["channels_nm"] = list(channels.values())
+    return frame
+
+
+def _site(path: Path, problems: list[Problem]) -> dict:
+    what = ("latitude_deg, longitude_deg, camera_clock_utc_offset_h and reference: "
+            "{name, channels_nm, fwhm_nm, half_fov_deg}")
+    data = _yaml_mapping(path, problems, what, "must be a YAML mapping")
+    if data is None:
+        return {}
+    out = dict(data)
+    for key, low, high in (("latitude_deg", -90.0, 90.0), ("longitude_deg", -180.0, 360.0),
+                           ("camera_clock_utc_offset_h", -14.0, 14.0)):
+        if key not in data:
+            _note(problems, path, f"missing key {key!r}", f"write {what}")
+        else:
+            out[key] = _check(problems, path, _yaml_number, key, data[key], low=low, high=high)
+    ref = data.get("reference")
+    if not isinstance(ref, dict):
+        _note(problems, path, "missing or invalid 'reference' (need name, channels_nm, fwhm_nm, half_fov_deg)",
+              f"write {what}")
+        return out
+    ref = dict(ref)
+    absent = [key for key in ("name", "channels_nm", "fwhm_nm", "half_fov_deg") if key not in ref]
+    for key in absent:
+        _note(problems, path, f"missing key 'reference.{key}'", f"write {what}")
+    if "name" in ref and (not isinstance(ref["name"], str) or not ref["name"].strip()):
+        _note(problems, path, "reference.name must be a non-empty string", "name the reference instrument")
+    channels = ref.get("channels_nm")
+    if "channels_nm" in ref:
+        if not isinstance(channels, list) or not channels:
+            _note(problems, path, "reference.channels_nm must be a non-empty list of wavelengths",
+                  "list the channel wavelengths in nm: [412, 443, ...]")
+            channels = None
+        else:
+            ref["channels_nm"] = [_check(problems, path, _yaml_number, "reference.channels_nm", v, positive=True)
+                                  for v in channels]
+    if "fwhm_nm" in ref:
+        fwhm = ref["fwhm_nm"]
+        if isinstance(fwhm, list):
+            if channels is not None and len(fwhm) != len(channels):
+                _note(problems, path, f"reference.fwhm_nm has {len(fwhm)} values for {len(channels)} channels",
+                      "give one width per channel, or one width for all")
+            ref["fwhm_nm"] = [_check(problems, path, _yaml_number, "reference.fwhm_nm", v, positive=True)
+                              for v in fwhm]
+        else:
+            ref["fwhm_nm"] = _check(problems, path, _yaml_number, "reference.fwhm_nm", fwhm, positive=True)
+    if "half_fov_deg" in ref:
+        ref["half_fov_deg"] = _check(problems, path, _yaml_number, "reference.half_fov_deg", ref["half_fov_deg"],
+                                     low=0.0, high=90.0)
+    out["reference"] = ref
+    return out
+
+
+#: sidecar (relative to the dataset) -> its checking reader
+_SIDECAR_READERS = {
+    "spectral/photodiode.csv": _photodiode,
+    "absolute/source_spectrum.csv": _source_spectrum,
+    "absolute/source_reference.csv": _source_reference,
+    "immersion/water.yaml": _water,
+    "field/reference_radiometer.csv": _reference_radiometer,
+    "field/site.yaml": _site,
+}
+assert set(_SIDECAR_READERS) == {f"{exp}/{name}" for exp, names in SIDECARS.items() for name in names}
+
+
+def check_sidecars(root, experiments) -> list[Problem]:
+    """Every problem of the sidecar files of the given (present) experiments."""
+    root = Path(root)
+    problems: list[Problem] = []
+    for experiment in experiments:
+        for name in SIDECARS.get(experiment, ()):
+            _SIDECAR_READERS[f"{experiment}/{name}"](root / experiment / name, problems)
+    return problems
+
+
+def _read_sidecar(source, relative: str):
+    path = _sidecar_path(source, relative)
+    problems: list[Problem] = []
+    value = _SIDECAR_READERS[relative](path, problems)
+    _raise_if(problems)
+    return value
+
+
 def read_photodiode(source) -> pd.DataFrame:
     """spectral/photodiode.csv: wavelength_nm, signal, signal_std (a Dataset or a path)."""
-    return _numeric_table(_sidecar_path(source, "spectral/photodiode.csv"),
-                          ("wavelength_nm", "signal", "signal_std"),
-                          positive=("wavelength_nm",), nonnegative=("signal_std",))
+    return _read_sidecar(source, "spectral/photodiode.csv")
 
 
 def read_source_spectrum(source) -> pd.DataFrame:
     """absolute/source_spectrum.csv: wavelength_nm, radiance, radiance_std."""
-    return _numeric_table(_sidecar_path(source, "absolute/source_spectrum.csv"),
-                          ("wavelength_nm", "radiance", "radiance_std"),
-                          positive=("wavelength_nm",), nonnegative=("radiance_std",))
+    return _read_sidecar(source, "absolute/source_spectrum.csv")
 
 
 def read_source_reference(source) -> pd.DataFrame:
     """absolute/source_reference.csv: wavelength_nm, radiance_W_sr_m2_nm, uncertainty_rel."""
-    return _numeric_table(_sidecar_path(source, "absolute/source_reference.csv"),
-                          ("wavelength_nm", "radiance_W_sr_m2_nm", "uncertainty_rel"),
-                          positive=("wavelength_nm", "radiance_W_sr_m2_nm"), nonnegative=("uncertainty_rel",))
+    return _read_sidecar(source, "absolute/source_reference.csv")
 
 
 def read_water(source) -> dict:
     """immersion/water.yaml: {temperature_c, salinity_psu} as floats."""
-    path = _sidecar_path(source, "immersion/water.yaml")
-    data = _read_yaml(path)
-    if not isinstance(data, dict):
-        raise InputError(path, "must be a YAML mapping with temperature_c and salinity_psu")
-    out = dict(data)
-    for key, low, high in (("temperature_c", -5.0, 60.0), ("salinity_psu", 0.0, 60.0)):
-        if key not in data:
-            raise InputError(path, f"missing key {key!r}")
-        out[key] = _yaml_number(path, key, data[key], low=low, high=high)
-    return out
+    return _read_sidecar(source, "immersion/water.yaml")
 
 
 def read_reference_radiometer(source) -> pd.DataFrame:
@@ -448,64 +865,9 @@ def read_reference_radiometer(source) -> pd.DataFrame:
     Empty radiance cells become NaN (instrument drop-outs).  The channel
     wavelengths are in ``df.attrs["channels_nm"]`` (same order as the columns).
     """
-    path = _sidecar_path(source, "field/reference_radiometer.csv")
-    header, rows = _read_csv(path, ("time",))
-    channels = {}
-    for column in header:
-        match = re.fullmatch(r"L_(\d+(?:\.\d+)?)", column)
-        if match:
-            channels[column] = float(match.group(1))
-    if not channels:
-        raise InputError(path, "no radiance columns (expected L_<nm>, e.g. L_443)")
-    times, values = [], {c: [] for c in channels}
-    for line, row in rows:
-        try:
-            stamp = pd.Timestamp(row["time"])
-        except (ValueError, TypeError):
-            stamp = None
-        if stamp is None or pd.isna(stamp):
-            raise InputError(path, f"line {line}, column 'time': {row['time']!r} is not an ISO 8601 time")
-        stamp = stamp.tz_localize("UTC") if stamp.tzinfo is None else stamp.tz_convert("UTC")
-        times.append(stamp)
-        for column in channels:
-            values[column].append(_number(path, line, column, row[column], allow_empty=True))
-    frame = pd.DataFrame({"time": pd.DatetimeIndex(times), **values})
-    frame.attrs["channels_nm"] = list(channels.values())
-    return frame
+    return _read_sidecar(source, "field/reference_radiometer.csv")
 
 
 def read_site(source) -> dict:
     """field/site.yaml: position, camera clock offset and the reference instrument."""
-    path = _sidecar_path(source, "field/site.yaml")
-    data = _read_yaml(path)
-    if not isinstance(data, dict):
-        raise InputError(path, "must be a YAML mapping")
-    out = dict(data)
-    for key, low, high in (("latitude_deg", -90.0, 90.0), ("longitude_deg", -180.0, 360.0),
-                           ("camera_clock_utc_offset_h", -14.0, 14.0)):
-        if key not in data:
-            raise InputError(path, f"missing key {key!r}")
-        out[key] = _yaml_number(path, key, data[key], low=low, high=high)
-    ref = data.get("reference")
-    if not isinstance(ref, dict):
-        raise InputError(path, "missing or invalid 'reference' (need name, channels_nm, fwhm_nm, half_fov_deg)")
-    ref = dict(ref)
-    for key in ("name", "channels_nm", "fwhm_nm", "half_fov_deg"):
-        if key not in ref:
-            raise InputError(path, f"missing key 'reference.{key}'")
-    if not isinstance(ref["name"], str) or not ref["name"].strip():
-        raise InputError(path, "reference.name must be a non-empty string")
-    channels = ref["channels_nm"]
-    if not isinstance(channels, list) or not channels:
-        raise InputError(path, "reference.channels_nm must be a non-empty list of wavelengths")
-    ref["channels_nm"] = [_yaml_number(path, "reference.channels_nm", v, positive=True) for v in channels]
-    fwhm = ref["fwhm_nm"]
-    if isinstance(fwhm, list):
-        if len(fwhm) != len(channels):
-            raise InputError(path, f"reference.fwhm_nm has {len(fwhm)} values for {len(channels)} channels")
-        ref["fwhm_nm"] = [_yaml_number(path, "reference.fwhm_nm", v, positive=True) for v in fwhm]
-    else:
-        ref["fwhm_nm"] = _yaml_number(path, "reference.fwhm_nm", fwhm, positive=True)
-    ref["half_fov_deg"] = _yaml_number(path, "reference.half_fov_deg", ref["half_fov_deg"], low=0.0, high=90.0)
-    out["reference"] = ref
-    return out
+    return _read_sidecar(source, "field/site.yaml")

@@ -28,6 +28,7 @@ from pipeline.errors import InputError
 __all__ = ["RawFrame", "read_raw", "read_tags", "missing_tags", "write_dng", "TAG_NAMES"]
 
 # TIFF / EXIF / DNG tag codes used here.
+_IMAGE_WIDTH, _IMAGE_LENGTH = 256, 257
 _MAKE, _MODEL = 271, 272
 _STRIP_OFFSETS, _STRIP_COUNTS = 273, 279
 _TILE_OFFSETS, _TILE_COUNTS = 324, 325
@@ -41,6 +42,7 @@ _CFA_PLANE_COLOR, _CFA_LAYOUT = 50710, 50711
 _BLACK_DIM, _BLACK, _WHITE = 50713, 50714, 50717
 _COLOR_MATRIX1, _AS_SHOT_NEUTRAL = 50721, 50728
 _SERIAL, _ILLUMINANT1 = 50735, 50778
+_BODY_SERIAL = 42033
 _ACTIVE_AREA = 50829
 
 _PHOTOMETRIC_CFA = 32803
@@ -265,6 +267,18 @@ class _TagSource:
         grid = np.roll(grid, (-top, -left), axis=(0, 1))
         return "".join(grid.ravel())
 
+    def visible_shape(self) -> tuple[int, int] | None:
+        """(rows, cols) of the raw image inside ActiveArea: the mosaic ``read_raw`` returns."""
+        area = _values(self.raw.tags.get(_ACTIVE_AREA))
+        if area and len(area) == 4:
+            top, left, bottom, right = (int(v) for v in area)
+            return (bottom - top, right - left) if bottom > top and right > left else None
+        length = _values(self.raw.tags.get(_IMAGE_LENGTH))
+        width = _values(self.raw.tags.get(_IMAGE_WIDTH))
+        if length and width and length[0] > 0 and width[0] > 0:
+            return int(length[0]), int(width[0])
+        return None
+
 
 def _tags_from_tiff(path: Path, tif: tifffile.TiffFile, file_size: int) -> dict:
     src = _TagSource(tif)
@@ -283,12 +297,14 @@ def _tags_from_tiff(path: Path, tif: tifffile.TiffFile, file_size: int) -> dict:
         "cfa_pattern": src.cfa_pattern(),
         "make": _text(src.value(_MAKE)),
         "model": _text(src.value(_MODEL)),
+        "serial": _text(src.value(_SERIAL)) or _text(src.value(_BODY_SERIAL)),
+        "shape": src.visible_shape(),
     }
 
 
 def _empty_tags(path: Path) -> dict:
     return {"path": path, "exposure_s": None, "iso": None, "time": None, "black_level": None,
-            "white_level": None, "cfa_pattern": None, "make": None, "model": None}
+            "white_level": None, "cfa_pattern": None, "make": None, "model": None, "serial": None, "shape": None}
 
 
 def _check_require(path: Path, tags: dict, require) -> None:
@@ -309,7 +325,8 @@ def read_tags(path) -> dict:
     """Tags of one raw file without decoding pixels.
 
     Keys: path, exposure_s, iso, time, black_level, white_level, cfa_pattern,
-    make, model.  Absent, empty or zero tags are None.
+    make, model, serial (CameraSerialNumber or the EXIF BodySerialNumber) and
+    shape ((rows, cols) of the visible mosaic).  Absent, empty or zero tags are None.
     """
     path = Path(path)
     if not path.exists():

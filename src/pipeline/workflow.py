@@ -38,7 +38,7 @@ from pipeline.config import stage_params
 from pipeline.dataset import Dataset, open_dataset
 from pipeline.effects import load_plugins
 from pipeline.errors import InputError
-from pipeline.rawio import read_tags
+from pipeline.validation import format_problems, inspect_dataset
 
 log = logging.getLogger("pipeline.workflow")
 
@@ -98,7 +98,6 @@ JOB_MEMORY_HEADROOM = 1.5
 
 #: experiments each stage reads (a stage runs only when all are present)
 STAGE_EXPERIMENTS = {name: spec.experiments for name, spec in STAGES.items()}
-REQUIRED_TAGS = {"exposure_s": "ExposureTime", "iso": "ISOSpeedRatings", "time": "DateTimeOriginal"}
 
 
 # --------------------------------------------------------------------------- the model
@@ -218,14 +217,12 @@ class DatasetIndex:
         self.dataset: Dataset | None = None
 
     def load(self) -> "DatasetIndex":
+        """Validate once (``pipeline.validation``); on problems print them grouped and raise InputError."""
         if self.dataset is None:
-            dataset = open_dataset(self.root)
-            for experiment in dataset.experiments():
-                for path in dataset.raw_files(experiment):
-                    tags = read_tags(path)
-                    for key, name in REQUIRED_TAGS.items():
-                        if tags.get(key) in (None, 0, 0.0):
-                            raise InputError(path, f"{name} tag is missing or zero")
+            dataset, problems = inspect_dataset(self.root)
+            if problems:
+                print(format_problems(problems, self.root), file=sys.stderr)
+                raise InputError.from_problems(problems, "listed above")
             self.dataset = dataset
         return self
 

@@ -1,0 +1,574 @@
+"""Lay out a folder of raw files as a calibration dataset (DATASET.md): ``init-dataset``.
+
+A lab has folders of raw files and a lab notebook, not our layout.  From a
+folder with one sub-folder per experiment (``dark/``, ``linearity/``, ...),
+or one folder plus a CSV lab log whose ``experiment`` column names the
+experiment of each file, :func:`init_dataset` writes the layout of DATASET.md:
+
+- ``dataset.yaml``: make, model and serial from the tags; lens regions proposed
+  from the frame size (a dual-fisheye frame of H x W with H = 2W holds two
+  square regions stacked), each checked for a lit image circle with the
+  geometry package's circle fit on a frame, for the user to confirm;
+- ``<experiment>/frames.csv``: one row per raw file in acquisition order, the
+  copies of the tags filled (``exposure_s``, ``iso``, ``time``) and the columns
+  only the lab knows (lens, kind, sweep, ...) filled from the lab log, or empty;
+- the raw files as symbolic links to the originals (``copy=True`` copies
+  them), and the sidecar files found beside them; then ``MD5SUMS``.
+
+The raw files are only read.  ``out`` must not exist: the layout is written to
+a temporary sibling folder and renamed at the end, so a failure never leaves a
+half-written dataset.  The dataset is then validated: what it still lacks is
+what the user has to fill in.
+
+It uses the io layer and the geometry package's image-circle fit; only the
+command line imports it.
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+import shutil
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from pipeline.bands import cut_region, split_bands
+from pipeline.dataset import (COMMON_COLUMNS, EXPERIMENT_COLUMNS, EXPERIMENTS, LAYOUT_VERSION, OPTIONAL_COLUMNS,
+                              SIDECARS, TAG_COLUMNS, TYPO_SIMILARITY, read_csv_table, write_md5sums)
+from pipeline.errors import InputError, Problem
+from pipeline.rawio import read_raw, read_tags
+
+__all__ = ["RAW_SUFFIXES", "LensProposal", "RawEntry", "ScaffoldPlan", "InitResult", "plan_dataset",
+           "propose_lens_regions", "find_lens_circles", "write_dataset", "init_dataset", "describe_result"]
+
+#: raw files the layout holds (DATASET.md: DNG 1.4), compared case-insensitively
+RAW_SUFFIXES = (".dng",)
+#: lab-log columns: the raw file (path relative to RAW_DIR, or its name when unique) and its experiment
+LOG_FILE_COLUMN, LOG_EXPERIMENT_COLUMN = "file", "experiment"
+#: lens names of a frame holding two square regions stacked (H = 2W): the dual-fisheye
+#: camera of DATASET.md's example writes the far lens above the close one
+STACKED_LENSES = ("far", "close")
+#: lens names of a frame holding two square regions side by side (W = 2H)
+SIDE_BY_SIDE_LENSES = ("left", "right")
+#: lens name of a frame that is one region (any other aspect ratio)
+SINGLE_LENS = "main"
+#: experiments whose frames light the whole image circle first (uniform sources),
+#: then those with structured scenes; dark frames never show the circle
+CIRCLE_EXPERIMENTS = ("linearity", "absolute", "immersion", "spectral", "field", "geometry", "rolloff")
+#: frames decoded at most to find the image circles (each decode reads a whole raw file)
+MAX_CIRCLE_FRAMES = 16
+#: side of the corner squares, as a fraction of the region's short side: they lie outside
+#: the circle inscribed in a square region (their inner corner is at 0.53 of the side
+#: from the centre, beyond the circle's 0.5)
+CORNER_SIZE_FRACTION = 1 / 8
+#: a lit circle stands this many noise sigmas above the unlit corners (dark frames stay near 0)
+MIN_LIT_CONTRAST_SIGMA = 10.0
+#: standard deviation over median absolute deviation of a normal distribution
+MAD_TO_SIGMA = 1.4826
+#: floor of the corners' noise in DN (integer samples: quantisation alone gives about 0.3)
+NOISE_FLOOR_DN = 1.0
+#: a fisheye image circle has a radius of at least this fraction of half the region's short side
+MIN_CIRCLE_RADIUS_FRACTION = 0.25
+#: edge points scattered more than this (band pixels RMS) about the fit are not one circle
+MAX_CIRCLE_FIT_RMS_PX = 2.0
+
+_LOG_FIX = "give each raw file one row: file (path relative to RAW_DIR, or the file name), experiment, lab columns"
+
+
+@dataclass
+class RawEntry:
+    """One raw file of RAW_DIR and where it goes in the dataset."""
+
+    source: Path                 # absolute path of the original
+    source_rel: str              # path relative to RAW_DIR (POSIX)
+    experiment: str | None
+    target: str = ""             # path relative to the experiment folder, raw/...
+    tags: dict | None = None
+    lab: dict[str, str] = field(default_factory=dict)   # lab-log values of frames.csv columns
+
+
+@dataclass
+class LensProposal:
+    """A lens region (raw pixel rows and columns, [start, stop)) and what its check found."""
+
+    name: str
+    rows: tuple[int, int]
+    cols: tuple[int, int]
+    centre_row_px: float | None = None    # image circle, raw pixels of the frame
+    centre_col_px: float | None = None
+    radius_px: float | None = None
+    frame: str | None = None              # dataset path of the frame the circle was fitted on
+    note: str = ""
+
+
+@dataclass
+class ScaffoldPlan:
+    """Everything init-dataset will write, found from RAW_DIR and the lab log (nothing written yet)."""
+
+    raw_dir: Path
+    lab_log: Path | None
+    entries: dict[str, list[RawEntry]]            # experiment -> frames in acquisition order
+    sidecars: dict[str, list[Path]]               # experiment -> instrument files to carry over
+    ignored: list[str]                            # files of RAW_DIR that are neither
+    lab_columns: dict[str, list[str]]             # experiment -> frames.csv columns only the lab knows
+    camera: dict[str, str]
+    frame_shape: tuple[int, int] | None
+    lenses: list[LensProposal]
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class InitResult:
+    out: Path
+    plan: ScaffoldPlan
+    copied: bool
+    remaining: list[Problem]                      # what validate still reports: the user fills it in
+
+
+# ---------------------------------------------------------------------------
+# reading RAW_DIR and the lab log
+
+
+def _raw_and_other_files(raw_dir: Path) -> tuple[list[Path], list[Path]]:
+    raws, others = [], []
+    for folder, dirs, files in os.walk(raw_dir):
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        for name in sorted(files):
+            if name.startswith("."):
+                continue
+            path = Path(folder) / name
+            (raws if path.suffix.lower() in RAW_SUFFIXES else others).append(path)
+    return raws, others
+
+
+def _target(source_rel: str, in_experiment_folder: bool) -> str:
+    """raw/<path inside the experiment folder>, without a doubled raw/ component."""
+    parts = list(PurePosixPath(source_rel).parts)
+    if in_experiment_folder:
+        parts = parts[1:]
+    if len(parts) > 1 and parts[0].lower() == "raw":
+        parts = parts[1:]
+    return "/".join(["raw", *parts])
+
+
+def _read_lab_log(log: Path, raws: dict[str, RawEntry], problems: list[Problem]) -> tuple[list[str], list[str]]:
+    """Apply the lab log to the raw entries (experiment and lab columns).
+
+    Returns the log's columns that frames.csv takes and those it leaves out.
+    """
+    header, rows, found = read_csv_table(log, (LOG_FILE_COLUMN,), _LOG_FIX)
+    problems += found
+    if header is None or LOG_FILE_COLUMN not in header:
+        return [], []
+    lab_columns = set(COMMON_COLUMNS[1:]) | set(OPTIONAL_COLUMNS) | {c for cs in EXPERIMENT_COLUMNS.values()
+                                                                     for c in cs}
+    usable = [c for c in header if c in lab_columns]
+    unused = [c for c in header if c not in lab_columns and c not in (LOG_FILE_COLUMN, LOG_EXPERIMENT_COLUMN)]
+    by_name = Counter(PurePosixPath(rel).name for rel in raws)
+    name_to_rel = {PurePosixPath(rel).name: rel for rel in raws}
+    seen: dict[str, int] = {}
+    for line, row in rows:
+        value = row[LOG_FILE_COLUMN].replace("\\", "/").strip("/")
+        experiment = row.get(LOG_EXPERIMENT_COLUMN, "")
+        if experiment and experiment not in EXPERIMENTS:
+            close = difflib.get_close_matches(experiment.lower(), EXPERIMENTS, n=1, cutoff=TYPO_SIMILARITY)
+            problems.append(Problem(log, line, LOG_EXPERIMENT_COLUMN, f"{experiment!r} is not an experiment",
+                                    f"write {close[0]!r}" if close else f"write one of {', '.join(EXPERIMENTS)}"))
+            experiment = ""
+        rel = None
+        for candidate in (value, f"{experiment}/{value}" if experiment else None):
+            if candidate in raws:
+                rel = candidate
+                break
+        if rel is None and "/" not in value:
+            if by_name[value] == 1:
+                rel = name_to_rel[value]
+            elif by_name[value] > 1:
+                problems.append(Problem(log, line, LOG_FILE_COLUMN,
+                                        f"{by_name[value]} raw files are named {value!r}",
+                                        "give the path relative to RAW_DIR"))
+                continue
+        if rel is None:
+            problems.append(Problem(log, line, LOG_FILE_COLUMN, f"no raw file {value!r} under RAW_DIR",
+                                    "correct the name, add the file or delete the row"))
+            continue
+        if rel in seen:
+            problems.append(Problem(log, line, LOG_FILE_COLUMN, f"{rel} already listed on line {seen[rel]}",
+                                    "delete one of the two rows"))
+            continue
+        seen[rel] = line
+        entry = raws[rel]
+        if experiment:
+            if entry.experiment is not None and entry.experiment != experiment:
+                problems.append(Problem(log, line, LOG_EXPERIMENT_COLUMN,
+                                        f"{experiment!r} but the file is in the {entry.experiment}/ folder",
+                                        "correct the experiment or move the file"))
+                continue
+            entry.experiment = experiment
+        entry.lab = {c: row[c] for c in usable}
+    return usable, unused
+
+
+# ---------------------------------------------------------------------------
+# lens regions
+
+
+def propose_lens_regions(rows_px: int, cols_px: int) -> list[LensProposal]:
+    """Lens regions of a frame of rows_px x cols_px raw pixels, on even pixels (Bayer grid).
+
+    Two square regions stacked when rows = 2 cols (the dual-fisheye frame),
+    side by side when cols = 2 rows, else the whole frame as one region.
+    """
+    def even(n):
+        return n // 2 * 2
+
+    if rows_px == 2 * cols_px:
+        side = even(cols_px)
+        return [LensProposal(name, (i * side, (i + 1) * side), (0, side)) for i, name in enumerate(STACKED_LENSES)]
+    if cols_px == 2 * rows_px:
+        side = even(rows_px)
+        return [LensProposal(name, (0, side), (i * side, (i + 1) * side))
+                for i, name in enumerate(SIDE_BY_SIDE_LENSES)]
+    return [LensProposal(SINGLE_LENS, (0, even(rows_px)), (0, even(cols_px)))]
+
+
+def _lit_contrast_sigma(band: np.ndarray) -> float:
+    """(centre median - corner median) / corner noise of a band image: large for a lit circle."""
+    h, w = band.shape
+    k = max(1, int(min(h, w) * CORNER_SIZE_FRACTION))
+    corners = np.concatenate([band[:k, :k].ravel(), band[:k, -k:].ravel(),
+                              band[-k:, :k].ravel(), band[-k:, -k:].ravel()])
+    yy, xx = np.ogrid[:h, :w]
+    centre = band[(yy - (h - 1) / 2) ** 2 + (xx - (w - 1) / 2) ** 2 <= k ** 2]
+    outside = float(np.median(corners))
+    noise = max(MAD_TO_SIGMA * float(np.median(np.abs(corners - outside))), NOISE_FLOOR_DN)
+    return (float(np.median(centre)) - outside) / noise
+
+
+def _circle_in(band: np.ndarray):
+    """The lit image circle of a band image (geometry's circle fit), or None with the reason."""
+    from pipeline.geometry.image_circle import find_image_circle
+
+    if _lit_contrast_sigma(band) < MIN_LIT_CONTRAST_SIGMA:
+        return None, "not lit (or lit up to its corners)"
+    try:
+        circle = find_image_circle(band)
+    except ValueError as exc:
+        return None, f"no circle found ({exc})"
+    h, w = band.shape
+    if not (0 <= circle.xc < w and 0 <= circle.yc < h):
+        return None, "the fitted circle's centre lies outside the region"
+    if circle.radius < MIN_CIRCLE_RADIUS_FRACTION * min(h, w) / 2:
+        return None, f"the fitted circle is small (radius {2 * circle.radius:.0f} px): a spot, not the image circle"
+    if circle.rms_px > MAX_CIRCLE_FIT_RMS_PX:
+        return None, f"the edge is not one circle (RMS {circle.rms_px:.1f} px)"
+    return circle, ""
+
+
+def _circle_candidates(entries: dict[str, list[RawEntry]]) -> list[tuple[str, RawEntry]]:
+    """Frames likely to show the image circles: lit experiments first, brightest settings first."""
+    out = []
+    for experiment in CIRCLE_EXPERIMENTS:
+        frames = [e for e in entries.get(experiment, []) if e.lab.get("kind", "") != "dark" and e.tags]
+        frames.sort(key=lambda e: (-(e.tags.get("exposure_s") or 0) * (e.tags.get("iso") or 0), e.target))
+        out += [(experiment, e) for e in frames]
+    return out
+
+
+def find_lens_circles(lenses: list[LensProposal], entries: dict[str, list[RawEntry]],
+                      max_frames: int = MAX_CIRCLE_FRAMES) -> None:
+    """Fit each region's image circle on the first candidate frame that lights it (fills ``lenses``)."""
+    reasons: dict[str, str] = {}
+    decoded = 0
+    for experiment, entry in _circle_candidates(entries):
+        if all(lens.radius_px is not None for lens in lenses) or decoded >= max_frames:
+            break
+        # a frame the lab log assigns to one lens lights only that lens
+        todo = [lens for lens in lenses if lens.radius_px is None
+                and entry.lab.get("lens", "") in ("", "both", lens.name)]
+        if not todo:
+            continue
+        try:
+            raw = read_raw(entry.source, require=())
+        except InputError:
+            continue
+        decoded += 1
+        for lens in todo:
+            try:
+                region = cut_region(raw.cfa, lens.rows, lens.cols)
+            except ValueError as exc:
+                reasons[lens.name] = f"the region does not fit the frame ({exc})"
+                continue
+            band = split_bands(region, raw.cfa_pattern)["G"]
+            circle, reason = _circle_in(band)
+            if circle is None:
+                reasons.setdefault(lens.name, reason)
+                continue
+            # band pixel i covers raw pixels 2i and 2i + 1 of the region
+            lens.centre_row_px = lens.rows[0] + 2 * circle.yc + 0.5
+            lens.centre_col_px = lens.cols[0] + 2 * circle.xc + 0.5
+            lens.radius_px = 2 * circle.radius
+            lens.frame = f"{experiment}/{entry.target}"
+            lens.note = ""
+    for lens in lenses:
+        if lens.radius_px is None:
+            why = reasons.get(lens.name, "no frame outside dark/ to look at")
+            lens.note = (f"no lit image circle found in {decoded} frame{'s' if decoded != 1 else ''} "
+                         f"({why}): check this region; a rectilinear lens (the whole region lit) "
+                         "needs 'projection: rectilinear'")
+
+
+# ---------------------------------------------------------------------------
+# the plan
+
+
+def plan_dataset(raw_dir, lab_log=None, *, find_circles: bool = True) -> ScaffoldPlan:
+    """Find the raw files, their experiments, tags and lab-log values, and propose the lens regions.
+
+    Reads RAW_DIR and the lab log only.  Raises one InputError (with every
+    problem in ``problems``) when a raw file cannot be placed: no experiment
+    folder and no lab-log experiment, a lab-log row naming no file, ...
+    """
+    raw_dir = Path(raw_dir)
+    if not raw_dir.is_dir():
+        raise InputError(raw_dir, "raw folder not found" if not raw_dir.exists() else "is not a folder")
+    raw_dir = raw_dir.resolve()
+    log = Path(lab_log).resolve() if lab_log is not None else None
+    raw_paths, other_paths = _raw_and_other_files(raw_dir)
+    if not raw_paths:
+        raise InputError(raw_dir, f"no raw files ({', '.join(RAW_SUFFIXES)}) in this folder or below")
+    problems: list[Problem] = []
+    raws: dict[str, RawEntry] = {}
+    for path in raw_paths:
+        rel = path.relative_to(raw_dir).as_posix()
+        top = rel.split("/", 1)[0] if "/" in rel else None
+        raws[rel] = RawEntry(source=path, source_rel=rel, experiment=top if top in EXPERIMENTS else None)
+    log_columns, unused_columns = _read_lab_log(log, raws, problems) if log is not None else ([], [])
+    for rel, entry in raws.items():
+        if entry.experiment is None:
+            top = rel.split("/", 1)[0] if "/" in rel else ""
+            close = difflib.get_close_matches(top.lower(), EXPERIMENTS, n=1, cutoff=TYPO_SIMILARITY) if top else []
+            fix = (f"rename the folder {top!r} to {close[0]!r}, or give the file's experiment in the lab log"
+                   if close else "put it in an experiment folder (dark/, linearity/, ...) or give its "
+                                 "experiment in the lab log (--lab-log)")
+            problems.append(Problem(entry.source, message="no experiment for this raw file", fix=fix))
+            continue
+        entry.target = _target(rel, in_experiment_folder=rel.split("/", 1)[0] == entry.experiment)
+    entries: dict[str, list[RawEntry]] = {}
+    for entry in raws.values():
+        if entry.experiment is not None:
+            entries.setdefault(entry.experiment, []).append(entry)
+    for experiment, items in entries.items():
+        targets = Counter(e.target for e in items)
+        for e in items:
+            if targets[e.target] > 1:
+                problems.append(Problem(e.source, message=f"another raw file also becomes {experiment}/{e.target}",
+                                        fix="rename one of them"))
+    if problems:
+        raise InputError.from_problems(problems, "the list above says what to change")
+    # tags (each file's header only)
+    for items in entries.values():
+        for e in items:
+            try:
+                e.tags = read_tags(e.source)
+            except InputError:
+                e.tags = None   # validation reports the file after it is laid out
+        items.sort(key=lambda e: (e.tags is None or e.tags.get("time") is None,
+                                  e.tags.get("time").isoformat() if e.tags and e.tags.get("time") else "",
+                                  e.target))
+    ordered = {exp: entries[exp] for exp in EXPERIMENTS if exp in entries}
+    # sidecars beside the raw files (in the experiment folder, or at the top for a flat folder)
+    sidecars: dict[str, list[Path]] = {}
+    ignored = []
+    owners = {name: exp for exp, names in SIDECARS.items() for name in names}
+    for path in other_paths:
+        rel = path.relative_to(raw_dir).as_posix()
+        parts = rel.split("/")
+        name = parts[-1]
+        experiment = owners.get(name)
+        placed = experiment in ordered and (parts[:-1] == [experiment] or len(parts) == 1)
+        if log is not None and path == log:
+            continue
+        if placed:
+            sidecars.setdefault(experiment, []).append(path)
+        else:
+            ignored.append(rel)
+    notes = []
+    if unused_columns:
+        notes.append(f"lab log columns left out: {', '.join(unused_columns)} (frames.csv holds only the columns "
+                     "of DATASET.md; the tags give exposure, ISO and time)")
+    camera, shape = _camera_and_shape(ordered, notes)
+    lenses = propose_lens_regions(*shape) if shape else []
+    if find_circles and lenses:
+        find_lens_circles(lenses, ordered)
+    lab_columns = {exp: list(COMMON_COLUMNS[1:]) + list(EXPERIMENT_COLUMNS[exp])
+                   + [c for c in OPTIONAL_COLUMNS if c in log_columns] for exp in ordered}
+    return ScaffoldPlan(raw_dir=raw_dir, lab_log=log, entries=ordered, sidecars=sidecars, ignored=ignored,
+                        lab_columns=lab_columns, camera=camera, frame_shape=shape, lenses=lenses, notes=notes)
+
+
+def _camera_and_shape(entries: dict[str, list[RawEntry]], notes: list[str]):
+    tags = [e.tags for items in entries.values() for e in items if e.tags]
+    camera = {}
+    for key in ("make", "model", "serial"):
+        values = Counter(t[key] for t in tags if t.get(key))
+        if values:
+            camera[key] = values.most_common(1)[0][0]
+            if len(values) > 1:
+                notes.append(f"the raw files name {len(values)} values of the {key} tag "
+                             f"({', '.join(sorted(values))}): one camera per dataset")
+        elif key != "serial":
+            camera[key] = ""
+    if "serial" not in camera:
+        notes.append("the tags give no serial number: add camera.serial to dataset.yaml if you know it")
+    shapes = Counter(t["shape"] for t in tags if t.get("shape"))
+    shape = shapes.most_common(1)[0][0] if shapes else None
+    if shape is None:
+        notes.append("no frame size in the tags: give the lens regions in dataset.yaml by hand")
+    return camera, shape
+
+
+# ---------------------------------------------------------------------------
+# writing
+
+
+def _frames_table(experiment: str, items: list[RawEntry], lab_columns: list[str]) -> pd.DataFrame:
+    defaults = {"kind": "dark", "lens": "both"} if experiment == "dark" else {}
+    rows = []
+    for e in items:
+        row = {"file": e.target}
+        for column in lab_columns:
+            row[column] = e.lab.get(column, "") or defaults.get(column, "")
+        tags = e.tags or {}
+        row["exposure_s"] = repr(float(tags["exposure_s"])) if tags.get("exposure_s") else ""
+        row["iso"] = f"{tags['iso']:g}" if tags.get("iso") else ""
+        row["time"] = tags["time"].isoformat() if tags.get("time") else ""
+        rows.append(row)
+    return pd.DataFrame(rows, columns=["file", *lab_columns, *TAG_COLUMNS])
+
+
+def _dataset_yaml(plan: ScaffoldPlan) -> str:
+    meta = {"layout": LAYOUT_VERSION, "camera": plan.camera,
+            "lenses": {lens.name: {"rows": list(lens.rows), "cols": list(lens.cols)} for lens in plan.lenses},
+            "description": ""}
+    head = ("# Laid out by `python -m pipeline init-dataset` from the raw files' tags (DATASET.md).\n"
+            "# Confirm the lens regions ([start, stop) raw pixel rows and columns) and write a description.\n")
+    return head + yaml.safe_dump(meta, sort_keys=False, default_flow_style=None)
+
+
+def _place(source: Path, target: Path, copy: bool) -> None:
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if copy:
+        shutil.copy2(source, target)
+        return
+    try:
+        target.symlink_to(source)
+    except OSError as exc:
+        raise InputError(target, f"cannot create a symbolic link here ({exc.strerror or exc}); "
+                                 "use --copy to copy the raw files") from None
+
+
+def write_dataset(plan: ScaffoldPlan, out, copy: bool = False) -> Path:
+    """Write the layout of ``plan`` to ``out`` (which must not exist), through a temporary folder."""
+    out = Path(out)
+    if out.exists() or out.is_symlink():
+        raise InputError(out, "already exists; init-dataset never overwrites a folder (choose another OUT)")
+    tmp = out.parent / f".{out.name}.partial"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    try:
+        (tmp / "dataset.yaml").write_text(_dataset_yaml(plan), encoding="utf-8")
+        for experiment, items in plan.entries.items():
+            folder = tmp / experiment
+            folder.mkdir()
+            for e in items:
+                _place(e.source, folder / e.target, copy)
+            for path in plan.sidecars.get(experiment, []):
+                _place(path, folder / path.name, copy)
+            _frames_table(experiment, items, plan.lab_columns[experiment]).to_csv(
+                folder / "frames.csv", index=False)
+        write_md5sums(tmp)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    tmp.rename(out)
+    return out
+
+
+def init_dataset(raw_dir, out, lab_log=None, copy: bool = False) -> InitResult:
+    """Plan, write and validate: the dataset at ``out`` and what the user must still fill in."""
+    from pipeline.validation import validate_dataset
+
+    out = Path(out)
+    if out.exists() or out.is_symlink():
+        raise InputError(out, "already exists; init-dataset never overwrites a folder (choose another OUT)")
+    plan = plan_dataset(raw_dir, lab_log)
+    write_dataset(plan, out, copy=copy)
+    return InitResult(out=out, plan=plan, copied=copy, remaining=validate_dataset(out))
+
+
+# ---------------------------------------------------------------------------
+# what the terminal shows
+
+
+def _span(span: tuple[int, int]) -> str:
+    return f"[{span[0]}, {span[1]})"
+
+
+def describe_result(result: InitResult) -> str:
+    """What init-dataset wrote, the lens regions to confirm, and what is left to fill in."""
+    from pipeline.validation import format_problems
+
+    plan = result.plan
+    lines = [f"wrote {result.out}:"]
+    width = max(len(f"{exp}/frames.csv") for exp in plan.entries) + 2
+    cam = " ".join(plan.camera.get(k, "") for k in ("make", "model", "serial") if plan.camera.get(k))
+    lenses = ", ".join(lens.name for lens in plan.lenses) or "none"
+    lines.append(f"  {'dataset.yaml':<{width}s}camera {cam or '(unknown)'}; lenses {lenses}")
+    how = "copied" if result.copied else "linked to the originals"
+    for experiment, items in plan.entries.items():
+        extra = [p.name for p in plan.sidecars.get(experiment, [])]
+        lines.append(f"  {experiment + '/frames.csv':<{width}s}{len(items)} frames ({how})"
+                     + (f"; {', '.join(extra)}" if extra else ""))
+    n_files = sum(1 for line in (result.out / "MD5SUMS").read_text().splitlines() if line.strip())
+    lines.append(f"  {'MD5SUMS':<{width}s}{n_files} files")
+    if plan.frame_shape:
+        rows, cols = plan.frame_shape
+        lines.append("")
+        lines.append(f"lens regions proposed from the {rows} x {cols} frames (confirm them in dataset.yaml):")
+        name_width = max(len(lens.name) for lens in plan.lenses)
+        for lens in plan.lenses:
+            where = f"  {lens.name + ':':<{name_width + 1}s} rows {_span(lens.rows)}, cols {_span(lens.cols)}"
+            if lens.radius_px is not None:
+                where += (f": image circle at row {lens.centre_row_px:.1f}, col {lens.centre_col_px:.1f}, "
+                          f"radius {lens.radius_px:.1f} px ({lens.frame})")
+            else:
+                where += f": {lens.note}"
+            lines.append(where)
+    if plan.notes:
+        lines.append("")
+        lines += [f"note: {note}" for note in plan.notes]
+    if plan.ignored:
+        shown = ", ".join(plan.ignored[:5]) + (", ..." if len(plan.ignored) > 5 else "")
+        lines.append(f"note: left out {len(plan.ignored)} file{'s' if len(plan.ignored) != 1 else ''} that are "
+                     f"neither raw frames nor sidecars: {shown}")
+    if not result.copied:
+        lines.append("note: the raw files are symbolic links into the raw folder: use --copy for a dataset "
+                     "to move or upload")
+    lines.append("")
+    if result.remaining:
+        lines.append("still to fill in (python -m pipeline validate lists the same):")
+        lines.append(format_problems(result.remaining, result.out))
+        lines.append("")
+        lines.append("fill these in the frames.csv files (or correct the lab log and run init-dataset again into "
+                     "a new folder),")
+        lines.append(f"then run: python -m pipeline validate {result.out}")
+    else:
+        lines.append("the dataset validates; run: snakemake --cores 2 --config dataset=" + str(result.out.resolve()))
+    return "\n".join(lines)

@@ -1,0 +1,279 @@
+"""Every problem of a dataset at once: layout, the tags of every frame, sidecars.
+
+``validate_dataset(root)`` returns a list of :class:`pipeline.errors.Problem`
+(file, line, column, what is wrong, how to fix it), empty when the dataset is
+fine; ``format_problems`` groups them for a person to read (one block per
+file, identical problems on many rows merged into line ranges, identical
+problems of many raw files merged per folder).  The command line's
+``validate`` and the workflow's start-up check both call ``inspect_dataset``.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections import Counter
+from datetime import datetime
+from pathlib import Path
+
+from pipeline.dataset import Dataset, LayoutCheck, check_checksums, check_sidecars, inspect_layout
+from pipeline.errors import InputError, Problem
+from pipeline.rawio import TAG_NAMES, read_tags
+
+__all__ = ["REQUIRED_TAGS", "validate_dataset", "inspect_dataset", "check_tags", "format_problems", "ok_line"]
+
+#: tags every calibration frame needs (RawFrame field -> tag name); frames.csv never replaces them
+REQUIRED_TAGS = {key: TAG_NAMES[key] for key in ("exposure_s", "iso", "time")}
+#: a copy of ExposureTime in frames.csv matches its tag within this relative difference
+#: (the copy init-dataset writes is exact; a hand-typed 0.0083 for 1/120 s is not a copy)
+EXPOSURE_COPY_REL_TOL = 1e-6
+#: a copy of DateTimeOriginal in frames.csv matches its tag within this many seconds
+#: (a copy written to whole seconds still matches)
+TIME_COPY_TOL_S = 1.0
+#: line ranges listed per merged problem before the rest is only counted
+MAX_RANGES_SHOWN = 6
+#: file names listed per merged folder problem before the rest is only counted
+MAX_NAMES_SHOWN = 4
+
+_TAG_FIX = ("use the file exactly as the camera wrote it (a converted or edited copy may have lost "
+            "its tags); the tags are the truth about each exposure")
+
+
+def check_tags(raw_path: Path) -> tuple[dict | None, list[Problem]]:
+    """The tags of one raw file and the problems of the tags a calibration frame needs."""
+    try:
+        tags = read_tags(raw_path)
+    except InputError as exc:
+        return None, [Problem(Path(raw_path), message=exc.problem,
+                              fix="replace it with the file as the camera wrote it")]
+    problems = [Problem(Path(raw_path), message=f"{name} tag is missing or zero", fix=_TAG_FIX)
+                for key, name in REQUIRED_TAGS.items() if tags.get(key) in (None, 0, 0.0)]
+    return tags, problems
+
+
+def _copy_problems(csv_path: Path, line: int, row: dict, tags: dict) -> list[Problem]:
+    """Problems of the tag copies (exposure_s, iso, time) a frames.csv row may hold."""
+    out = []
+
+    def differs(column, tag_value, text):
+        out.append(Problem(csv_path, line, column, f"{text} but the file's {REQUIRED_TAGS[column]} tag says "
+                                                   f"{tag_value}",
+                           "the tags are the truth: copy the tag's value or leave the cell empty"))
+
+    exposure, iso, stamp = row.get("exposure_s"), row.get("iso"), row.get("time")
+    if (isinstance(exposure, float) and not math.isnan(exposure) and tags.get("exposure_s")
+            and abs(exposure - tags["exposure_s"]) > EXPOSURE_COPY_REL_TOL * tags["exposure_s"]):
+        differs("exposure_s", f"{tags['exposure_s']:.9g}", f"{exposure:.9g}")
+    if isinstance(iso, float) and not math.isnan(iso) and tags.get("iso") and iso != tags["iso"]:
+        differs("iso", f"{tags['iso']:g}", f"{iso:g}")
+    if isinstance(stamp, str) and stamp and tags.get("time") is not None:
+        try:
+            copy = datetime.fromisoformat(stamp)
+        except ValueError:
+            copy = None  # frames.csv's own check reports it
+        if copy is not None and abs((copy - tags["time"]).total_seconds()) > TIME_COPY_TOL_S:
+            differs("time", tags["time"].isoformat(), stamp)
+    return out
+
+
+def _frame_problems(check: LayoutCheck) -> list[Problem]:
+    """Tags of every frame frames.csv lists, its tag copies, and the frame size against the lenses."""
+    problems: list[Problem] = []
+    shapes: dict[tuple[int, int], list[Path]] = {}
+    for experiment, (table, lines) in check.tables.items():
+        csv_path = check.root / experiment / "frames.csv"
+        for (_, row), line in zip(table.iterrows(), lines):
+            path = row["path"]
+            if path is None or not Path(path).is_file():
+                continue
+            tags, found = check_tags(path)
+            problems += found
+            if tags is None:
+                continue
+            problems += _copy_problems(csv_path, line, row.to_dict(), tags)
+            if tags.get("shape"):
+                shapes.setdefault(tags["shape"], []).append(Path(path))
+    if not shapes:
+        return problems
+    common = max(shapes, key=lambda s: len(shapes[s]))
+    for shape, paths in shapes.items():
+        if shape != common:
+            problems += [Problem(p, message=f"frame is {shape[0]} x {shape[1]} pixels but most frames are "
+                                            f"{common[0]} x {common[1]}",
+                                 fix="keep one camera mode per dataset (same resolution in every frame)")
+                         for p in paths]
+    if check.lenses:
+        rows_px, cols_px = common
+        for name, ((r0, r1), (c0, c1)) in check.lenses.items():
+            if r1 > rows_px or c1 > cols_px:
+                problems.append(Problem(check.root / "dataset.yaml",
+                                        message=f"lenses.{name} (rows [{r0}, {r1}), cols [{c0}, {c1})) does "
+                                                f"not fit the {rows_px} x {cols_px} frames",
+                                        fix="give the region in raw pixels of the frame "
+                                            "(python -m pipeline init-dataset proposes regions)"))
+    return problems
+
+
+def _chessboard_problems(check: LayoutCheck) -> list[Problem]:
+    """The geometry stage needs the chessboard of dataset.yaml, with a square size per medium used."""
+    if "geometry" not in check.tables or not isinstance(check.meta, dict):
+        return []
+    path = check.root / "dataset.yaml"
+    fix = "write chessboard: {inner_corners: [columns, rows], square_mm: {air: 30.0, water: 20.0}}"
+    board = check.meta.get("chessboard")
+    if board is None:
+        return [Problem(path, message="geometry/ is present but there is no 'chessboard' entry", fix=fix)]
+    squares = board.get("square_mm") if isinstance(board, dict) else None
+    if not isinstance(squares, dict):
+        return []  # the layout check reports it
+    table, _ = check.tables["geometry"]
+    used = sorted({m for m in table.get("medium", []) if m in ("air", "water")})
+    return [Problem(path, message=f"chessboard.square_mm has no size for medium {m!r} "
+                                  "(geometry/frames.csv uses it)", fix=f"add square_mm: {{{m}: <size in mm>}}")
+            for m in used if m not in squares]
+
+
+def inspect_dataset(root, *, checksums: bool = False) -> tuple[Dataset | None, list[Problem]]:
+    """The dataset (None unless it is fine) and every problem found.
+
+    Checks dataset.yaml, MD5SUMS, every frames.csv, the tags every frame needs
+    (and the copies of them a frames.csv may hold), the frame size against the
+    lens regions, the chessboard when geometry/ is present, and the sidecar
+    files.  ``checksums`` also reads every file and compares its MD5 with
+    MD5SUMS (slow: the stages compare them anyway while they decode).
+    """
+    check = inspect_layout(root)
+    if not check.root.is_dir():
+        return None, list(check.problems)
+    problems = list(check.problems)
+    problems += _chessboard_problems(check)
+    problems += check_sidecars(check.root, check.experiments())
+    problems += _frame_problems(check)
+    if checksums and check.md5sums:
+        problems += check_checksums(check.root, check.md5sums)
+    if problems:
+        return None, problems
+    return check.dataset(), []
+
+
+def validate_dataset(root, *, checksums: bool = False) -> list[Problem]:
+    """Every problem of the dataset at ``root``; empty when it is fine."""
+    return inspect_dataset(root, checksums=checksums)[1]
+
+
+def ok_line(dataset: Dataset) -> str:
+    """``ok: 169 frames in 2 experiments (dark, linearity)``."""
+    experiments = dataset.experiments()
+    n = sum(len(dataset.frames(e)) for e in experiments)
+    return (f"ok: {n} frame{'s' if n != 1 else ''} in {len(experiments)} experiment"
+            f"{'s' if len(experiments) != 1 else ''} ({', '.join(experiments) or 'none'})")
+
+
+# ---------------------------------------------------------------------------
+# formatting
+
+
+def _ranges(lines: list[int]) -> tuple[str, int]:
+    """'2-40, 42, 50-60' (at most MAX_RANGES_SHOWN ranges) and the number of lines."""
+    values = sorted(set(lines))
+    spans: list[list[int]] = []
+    for v in values:
+        if spans and v == spans[-1][1] + 1:
+            spans[-1][1] = v
+        else:
+            spans.append([v, v])
+    text = ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in spans[:MAX_RANGES_SHOWN])
+    if len(spans) > MAX_RANGES_SHOWN:
+        text += ", ..."
+    return text, len(values)
+
+
+def _display(path: Path | None, root: Path | None) -> str:
+    if path is None:
+        return "(no file)"
+    if root is not None:
+        try:
+            rel = Path(path).relative_to(root).as_posix()
+            return rel if rel not in ("", ".") else str(path)
+        except ValueError:
+            pass
+    return str(path)
+
+
+#: the parts of a message that vary from row to row (quoted values, paths, numbers)
+_VARYING = re.compile(r"'[^']*'|\"[^\"]*\"|[\w.\-]*/[\w./\-]*|\b\d+(?:\.\d+)?\b")
+
+
+def _template(message: str) -> str:
+    """The message with its varying parts blanked: problems of one kind share it."""
+    return _VARYING.sub("_", message)
+
+
+def _group(problems: list[Problem], root: Path | None) -> dict[str, list[dict]]:
+    """Header (file, or folder for per-file problems) -> merged entries, in order of appearance.
+
+    Problems of one kind (same file, column, fix and message template) on
+    several lines merge into one entry; so do file-level problems of one kind
+    in several files of one folder (the tags of many raw files, say).
+    """
+    folder_count = Counter((p.path.parent, _template(p.message), p.fix) for p in problems
+                           if p.path is not None and p.line is None and p.column is None)
+    blocks: dict[str, list[dict]] = {}
+    index: dict[tuple, dict] = {}
+    for p in problems:
+        per_file = p.path is not None and p.line is None and p.column is None
+        if per_file and folder_count[(p.path.parent, _template(p.message), p.fix)] > 1:
+            header = _display(p.path.parent, root).rstrip("/") + "/"
+            key = ("folder", p.path.parent, _template(p.message), p.fix)
+        else:
+            header = _display(p.path, root)
+            key = ("file", p.path, p.column, _template(p.message), p.fix)
+        entry = index.get(key)
+        if entry is None:
+            entry = index[key] = {"problems": [], "column": p.column, "fix": p.fix, "folder": key[0] == "folder"}
+            blocks.setdefault(header, []).append(entry)
+        entry["problems"].append(p)
+    return blocks
+
+
+def _entry_text(entry: dict) -> str:
+    problems = entry["problems"]
+    first = problems[0]
+    variants = len({p.message for p in problems})
+    if entry["folder"]:
+        names = sorted(p.path.name for p in problems)
+        shown = ", ".join(names[:MAX_NAMES_SHOWN]) + (", ..." if len(names) > MAX_NAMES_SHOWN else "")
+        text = first.message if variants == 1 else f"{first.message} (and {variants - 1} more like it)"
+        return f"{text}: {shown} [{len(names)} files]"
+    lines = [p.line for p in problems if p.line is not None]
+    where = []
+    if lines:
+        ranges, count = _ranges(lines)
+        where.append(f"line{'s' if count > 1 else ''} {ranges}")
+    if entry["column"] is not None:
+        where.append(f"column {entry['column']!r}")
+    text = (", ".join(where) + ": " if where else "") + first.message
+    if variants > 1:
+        text += f", and {variants - 1} more like it"
+    if len(problems) > 1:
+        text += f" [{len(problems)} rows]" if lines else f" [{len(problems)} times]"
+    return text
+
+
+def format_problems(problems: list[Problem], root=None) -> str:
+    """The problems grouped by file, with a count, for a person to read (several lines)."""
+    if root is not None:
+        root = Path(root).resolve() if Path(root).exists() else Path(root)
+    blocks = _group(problems, root)
+    n_files = len({p.path for p in problems})
+    out = [f"{len(problems)} problem{'s' if len(problems) != 1 else ''} in {n_files} "
+           f"file{'s' if n_files != 1 else ''}" + (f" of {root}" if root is not None else "") + ":"]
+    for header, entries in blocks.items():
+        count = sum(len(e["problems"]) for e in entries)
+        out.append("")
+        out.append(f"{header} ({count} problem{'s' if count != 1 else ''})")
+        for entry in entries:
+            out.append(f"  {_entry_text(entry)}")
+            if entry["fix"]:
+                out.append(f"      fix: {entry['fix']}")
+    return "\n".join(out)
