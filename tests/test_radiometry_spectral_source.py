@@ -135,8 +135,8 @@ def test_planck_wien_and_stefan_boltzmann():
 def test_planck_hand_value_589nm():
     # 2 h c^2 / l^5 / (exp(hc / l k T) - 1) * 1e-9 at 589 nm, 2796 K
     h, c, k = 6.62607015e-34, 299792458.0, 1.380649e-23
-    l = 589e-9
-    hand = 2 * h * c**2 / l**5 / np.expm1(h * c / (l * k * 2796.0)) * 1e-9
+    lam = 589e-9
+    hand = 2 * h * c**2 / lam**5 / np.expm1(h * c / (lam * k * 2796.0)) * 1e-9
     assert planck_radiance(589.0, 2796.0) == pytest.approx(hand, rel=1e-12)
     assert planck_radiance(589.0, 2796.0) == pytest.approx(269.9, abs=0.1)
 

@@ -301,3 +301,19 @@ def test_downstream_stages_on_the_fitted_geometry_recover_the_truth(radiometric_
                 assert np.abs(fitted / true - 1).max() < tol, (lens, medium, band)
         for ds in (spectral, absolute, immersion, rolloff):
             ds.close()
+
+
+def test_the_default_tiny_simulation_runs_through_the_whole_workflow(tmp_path):
+    """What `python -m pipeline simulate --scale tiny` writes by default (every experiment,
+    the command line's default seed) calibrates end to end."""
+    dataset = tmp_path / "tiny"
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "simulate", "--out", str(dataset), "--scale", "tiny",
+                           "--no-progress"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    run = snakemake(tmp_path, dataset)
+    for stage in ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion"):
+        for lens in LENSES:
+            with xr.open_dataset(tmp_path / f"results/{stage}/{lens}.nc") as ds:
+                assert ds.attrs["artefact"] == stage
+    assert (tmp_path / "results/report/index.html").exists()
+    assert "Calibration report:" in run.stdout + run.stderr

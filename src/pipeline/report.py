@@ -1311,7 +1311,7 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
             for st, lens, p, ds in all_arts]
     pr.append(_table(["stage", "lens", "file", "artefact version", "pipeline version", "created",
                       "model effects", "input files", "config sha256"], rows, left=3))
-    for st, lens, p, ds in all_arts:
+    for st, lens, _path, ds in all_arts:
         cfg = ds.attrs.get("config")
         if cfg:
             try:

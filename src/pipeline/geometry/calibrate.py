@@ -171,7 +171,7 @@ def _linear_init(frames, centre, degree, r_norm):
     if not np.all(np.isfinite(sol)) or b[0] <= 0:
         return None
     poses = []
-    for i, (up, vp, X, Y, H, r31, r32, *_r) in enumerate(parts):
+    for i, (_up, _vp, _X, _Y, H, r31, r32, *_r) in enumerate(parts):
         r11, r12, r21, r22, t1, t2 = H
         r1 = np.array([r11, r21, r31])
         r2 = np.array([r12, r22, r32])

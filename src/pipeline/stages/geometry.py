@@ -311,7 +311,7 @@ def lens_dataset(models, results, circles, frame_rows, points_rows, band_shape, 
     for medium in media:
         i = media.index(medium)
         g = BANDS.index("G")
-        for j, band in enumerate(BANDS):
+        for j in range(len(BANDS)):
             diff_curve[i, j] = theta_curve[i, j] - theta_curve[i, g]
             d = ds["theta_deg"].values[i, j] - ds["theta_deg"].values[i, g]
             inside = ds["theta_deg"].values[i, g] <= ds["half_fov_deg"].values[i, g]
@@ -337,8 +337,10 @@ def lens_dataset(models, results, circles, frame_rows, points_rows, band_shape, 
     for k, v in refs.items():
         ds[f"reference_{k}_theta_deg"] = (dims3, v, {"long_name": f"{k} projection with focal length a0", "units": "degree"})
     ds["theta_difference_vs_green_deg"] = (dims3, diff_curve, {"long_name": "theta(rho) of the band minus G (Fig. 4c-d)", "units": "degree"})
-    ds["theta_map_max_difference_vs_green_deg"] = (dims2, diff_map_max, {"long_name": "largest |theta - theta_G| over the field of view", "units": "degree"})
-    ds["error_vs_radius_px"] = (("medium", "band", "radius_bin"), err_bins, {"long_name": "mean reprojection error in radial bins (Fig. S1)", "units": "pixel"})
+    ds["theta_map_max_difference_vs_green_deg"] = (dims2, diff_map_max,
+                                                   {"long_name": "largest |theta - theta_G| over the field of view", "units": "degree"})
+    ds["error_vs_radius_px"] = (("medium", "band", "radius_bin"), err_bins,
+                                {"long_name": "mean reprojection error in radial bins (Fig. S1)", "units": "pixel"})
     ds["error_vs_radius_count"] = (("medium", "band", "radius_bin"), err_count, {"long_name": "corners in the radial bin", "units": "1"})
     ds["error_vs_radius_rho_px"] = (("medium", "band", "radius_bin"), bin_rho, {"long_name": "radial bin centre", "units": "pixel"})
     # per-frame table (obs_frame) and per-corner points (points)

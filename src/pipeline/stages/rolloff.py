@@ -147,8 +147,8 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
             # pixel indices, not images: a setting keeps a few hundred numbers, never a frame
             setting_masks[key] = (np.flatnonzero(circle), np.flatnonzero(annulus), np.flatnonzero(spot_full),
                                   _halo_weights(spot_full, annulus, sigma_psf), (cx, cy))
-        circle, annulus, spot, weights, (cx, cy) = setting_masks[key]
-        for bi, band in enumerate(BANDS):
+        circle, annulus, spot, weights, (_cx, _cy) = setting_masks[key]
+        for band in BANDS:
             img = sub[band].ravel()
             acc[key + (band,)].append({
                 "circle": img[circle], "annulus_mean": float(img[annulus].mean()) if annulus.size else np.nan,
@@ -393,11 +393,15 @@ def _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit,
     data = {
         "rolloff_coefficients": (("medium", "band", "power"), coef,
                                  {"long_name": "roll-off g(theta) = sum a_k theta^k, Eq. (13), normalised g(0) = 1", "units": "degree^-k"}),
-        "rolloff_covariance": (("medium", "band", "power", "power_b"), cov, {"long_name": "covariance of rolloff_coefficients", "units": "degree^-(k+l)"}),
+        "rolloff_covariance": (("medium", "band", "power", "power_b"), cov,
+                               {"long_name": "covariance of rolloff_coefficients", "units": "degree^-(k+l)"}),
         "rolloff_reduced_chi2": (("medium", "band"), red, {"long_name": "reduced chi-square of the roll-off fit", "units": "1"}),
-        "water_compression": (("band",), comp, {"long_name": "s in g_water(theta) = c g_air(s theta) (closure, Section 3.3)", "units": "1"}),
-        "noise_slope_dn": (("band",), np.array([noise[b][0] for b in BANDS]), {"long_name": "pixel variance per DN of signal (pooled)", "units": "DN"}),
-        "noise_read_dn2": (("band",), np.array([noise[b][1] for b in BANDS]), {"long_name": "pixel variance at zero signal (pooled)", "units": "DN2"}),
+        "water_compression": (("band",), comp,
+                              {"long_name": "s in g_water(theta) = c g_air(s theta) (closure, Section 3.3)", "units": "1"}),
+        "noise_slope_dn": (("band",), np.array([noise[b][0] for b in BANDS]),
+                           {"long_name": "pixel variance per DN of signal (pooled)", "units": "DN"}),
+        "noise_read_dn2": (("band",), np.array([noise[b][1] for b in BANDS]),
+                           {"long_name": "pixel variance at zero signal (pooled)", "units": "DN2"}),
         "rms_z": ((), float(np.sqrt(np.nanmean(z**2))) if np.isfinite(z).any() else np.nan,
                   {"long_name": "RMS of the noise-normalised residuals of the roll-off model", "units": "1"}),
     }
