@@ -157,7 +157,7 @@ def test_chain_inverts_the_forward_model(medium):
     assert out.units == "W sr-1 m-2 nm-1"
     assert not out.flags.any()
     # the split: random terms per pixel, systematic terms of the calibration
-    assert set(out.random_var) == {"read", "dark", "shot"}
+    assert set(out.random_var) == {"read", "dark", "shot", "prnu"}
     assert {"dark_model", "shutter_offset", "iso_gain", "nonlinearity", "rolloff", "inverse_responsivity"} <= set(
         out.systematic_var)
     assert ("immersion_factor" in out.systematic_var) == (medium == "water")
@@ -173,3 +173,10 @@ def test_chain_without_the_effects_is_eq_2_and_4():
     out = mm.measure_band(raw, frame, _dark(), _response(), cal, np.array([0.0]), "air", ())
     # (2000 - 800) / 0.1 = 12000 DN/s; times R^-1
     np.testing.assert_allclose(out.value, [12000 * 1.2e-8])
+
+
+def test_flat_field_where_not_measured():
+    m = mm.Measured(value=np.array([100.0, 100.0]), units="DN s-1")
+    out = mm.correct_flat_field(m, np.array([1.25, np.nan]), ("prnu",), prnu_sigma_rel=0.01)
+    np.testing.assert_allclose(out.value, [80.0, 100.0])
+    np.testing.assert_allclose(out.random_var["prnu"], [0.0, 1.0])

@@ -26,10 +26,12 @@ exposure-and-gain step of DESIGN.md's chain written in DN.
 Uncertainty goes forward with the value, to first order, in two parts kept as
 named variances (in the units of the current value):
 
-* random, different from pixel to pixel and frame to frame: ``shot`` (signal
-  electrons, from the photon-transfer conversion gain), ``read`` (the dark
-  stage's temporal noise at that ISO), ``dark`` (dark-current electrons and
-  the pixel-to-pixel offset pattern that the mean dark level leaves);
+* random, different from pixel to pixel (and, but for the fixed patterns,
+  frame to frame): ``shot`` (signal electrons, from the photon-transfer
+  conversion gain), ``read`` (the dark stage's temporal noise at that ISO),
+  ``dark`` (dark-current electrons and the pixel-to-pixel offset pattern that
+  the mean dark level leaves), ``prnu`` (sensitivity of pixels the flat field
+  does not cover);
 * systematic, common to every pixel of a band (calibration terms): the dark
   model's parameters, shutter offset, ISO gain factor, nonlinearity, roll-off
   (from its covariance, a function of theta), immersion factor and the R^-1
@@ -291,12 +293,21 @@ def normalise_exposure(m: Measured, response: ResponseModel, frame: FrameSetting
     return dataclasses.replace(out, systematic_var={**out.systematic_var, **extra})
 
 
-def correct_flat_field(m: Measured, flat_field, effects) -> Measured:
-    """Divide by the relative pixel sensitivity (``prnu``: the linearity stage's flat field, mean 1)."""
+def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float = 0.0) -> Measured:
+    """Divide by the relative pixel sensitivity (``prnu``: the linearity stage's flat field, mean 1).
+
+    Where the flat field was not measured (NaN: outside the region the
+    linearity stage saw), the pixel's sensitivity is unknown by the fitted
+    PRNU spread: value kept, random term ``prnu`` = (value * prnu_sigma_rel)^2.
+    """
     if "prnu" not in effects or flat_field is None:
         return m
     flat = np.asarray(flat_field, dtype=float)
-    return m.scaled(1.0 / np.where(flat > 0, flat, np.nan), m.units)
+    measured = np.isfinite(flat) & (flat > 0)
+    out = m.scaled(1.0 / np.where(measured, flat, 1.0), m.units)
+    rand = dict(out.random_var)
+    rand["prnu"] = np.where(measured, 0.0, (out.value * prnu_sigma_rel) ** 2)
+    return dataclasses.replace(out, random_var=rand)
 
 
 def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration) -> Measured:
@@ -347,7 +358,7 @@ def to_radiance(m: Measured, calibration: BandCalibration) -> Measured:
 # --------------------------------------------------------------------------- the chain
 def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: ResponseModel,
                  calibration: BandCalibration, theta_deg, medium: str, effects, *, saturated=None,
-                 hot_mask=None, flat_field=None) -> Measured:
+                 hot_mask=None, flat_field=None, prnu_sigma_rel: float = 0.0) -> Measured:
     """One band image of one lens from raw DN to spectral radiance: the whole inverse of Eq. (4)."""
     effects = tuple(effects)
     m = from_raw(image_dn, saturated)
@@ -357,7 +368,7 @@ def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: Resp
     m = flag_saturation(m, response)
     m = linearise(m, response, effects)
     m = normalise_exposure(m, response, frame, effects)
-    m = correct_flat_field(m, flat_field, effects)
+    m = correct_flat_field(m, flat_field, effects, prnu_sigma_rel)
     m = correct_rolloff(m, theta_deg, calibration)
     m = correct_immersion(m, calibration, medium)
     return to_radiance(m, calibration)
