@@ -31,7 +31,12 @@ def main(argv: list[str] | None = None) -> int:
     sim.add_argument("--experiments", default=None,
                      help="comma-separated experiments to simulate (default: all the simulator writes)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from pipeline.apply import add_apply_parser, apply_command
+
+    add_apply_parser(sub)
     args = parser.parse_args(argv)
+    if args.command == "apply":
+        return apply_command(args)
     try:
         if args.command == "simulate":
             from pipeline.simulate import simulate_dataset

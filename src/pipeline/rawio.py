@@ -82,6 +82,7 @@ class RawFrame:
     model: str | None
     md5: str
     sha256: str = ""     # sha256 hex of the same bytes (artefact provenance)
+    serial: str | None = None   # camera serial number (DNG CameraSerialNumber)
 
 
 # ---------------------------------------------------------------------------
@@ -283,12 +284,13 @@ def _tags_from_tiff(path: Path, tif: tifffile.TiffFile, file_size: int) -> dict:
         "cfa_pattern": src.cfa_pattern(),
         "make": _text(src.value(_MAKE)),
         "model": _text(src.value(_MODEL)),
+        "serial": _text(src.value(_SERIAL)),
     }
 
 
 def _empty_tags(path: Path) -> dict:
     return {"path": path, "exposure_s": None, "iso": None, "time": None, "black_level": None,
-            "white_level": None, "cfa_pattern": None, "make": None, "model": None}
+            "white_level": None, "cfa_pattern": None, "make": None, "model": None, "serial": None}
 
 
 def _check_require(path: Path, tags: dict, require) -> None:
@@ -373,7 +375,7 @@ def read_raw(path, require=("exposure_s", "iso", "time")) -> RawFrame:
     return RawFrame(
         path=path, cfa=cfa, exposure_s=tags["exposure_s"], iso=tags["iso"], time=tags["time"],
         black_level=float(black), white_level=float(white), cfa_pattern=pattern,
-        make=tags["make"], model=tags["model"], md5=md5, sha256=sha256,
+        make=tags["make"], model=tags["model"], md5=md5, sha256=sha256, serial=tags.get("serial"),
     )
 
 
