@@ -59,7 +59,7 @@ def test_round_trip_pixels_pattern_and_tags(tmp_path, pattern):
     assert tags["cfa_pattern"] == pattern
     assert tags["exposure_s"] == 1 / 3 and tags["iso"] == 800.0 and tags["time"] == T0
     assert set(tags) == {"path", "exposure_s", "iso", "time", "black_level", "white_level",
-                         "cfa_pattern", "make", "model"}
+                         "cfa_pattern", "make", "model", "serial"}
 
 
 def test_dng_structure(tmp_path):
