@@ -23,7 +23,7 @@ from pipeline.errors import ArtefactError
 
 #: schema version of each stage's output; bump when a stage's variables change meaning
 ARTEFACT_VERSIONS = {"dark": 1, "linearity": 1, "geometry": 1, "rolloff": 1, "spectral": 1,
-                     "absolute": 1, "immersion": 1}
+                     "absolute": 1, "immersion": 1, "calibration": 1}
 
 
 def sha256_file(path: str | Path, chunk: int = 1 << 22) -> str:

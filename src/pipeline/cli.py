@@ -1,4 +1,4 @@
-"""Command line: ``python -m pipeline COMMAND`` (init-dataset, validate, simulate).
+"""Command line: ``python -m pipeline COMMAND`` (init-dataset, validate, simulate, apply).
 
 It only parses arguments and calls the package; the workflow itself runs with
 ``snakemake``.
@@ -22,14 +22,16 @@ HELP_COLUMN = 28
 
 DESCRIPTION = """\
 Calibrate a RAW camera as a radiometer. These commands lay out a lab's raw
-files as a calibration dataset (../shared/DATASET.md), check it, or simulate
-one; the calibration itself runs with snakemake."""
+files as a calibration dataset (../shared/DATASET.md), check it, simulate one,
+or turn raw frames into radiance with a calibration bundle; the calibration
+itself runs with snakemake."""
 
 EXAMPLES = f"""\
 examples:
   python -m pipeline init-dataset /data/raw /data/calib2024 --lab-log /data/lab_log.csv
   python -m pipeline validate /data/calib2024
   snakemake --cores 2 --config dataset=/data/calib2024
+  python -m pipeline apply --calibration results/calibration/SIM-0001.nc sky.dng -o sky.nc
   python -m pipeline simulate --out data/sim-tiny --scale tiny --seed 1
 
 exit codes:
@@ -139,6 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--full-well-e", type=float, default=None, metavar="ELECTRONS",
                      help="full-well capacity of the simulated sensor (default: none; the ADC clips first)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from pipeline.apply import add_apply_parser
+
+    add_apply_parser(sub)
     return parser
 
 
@@ -176,7 +181,13 @@ def _simulate(args) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"init-dataset": _init_dataset, "validate": _validate, "simulate": _simulate}
+def _apply(args) -> int:
+    from pipeline.apply import apply_command
+
+    return apply_command(args)
+
+
+COMMANDS = {"init-dataset": _init_dataset, "validate": _validate, "simulate": _simulate, "apply": _apply}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -71,6 +71,7 @@ STAGE_SECTIONS = {
     "absolute": ("model", "bias", "absolute"),
     "immersion": ("model", "immersion"),
     "diagnostics": ("model", "diagnostics"),
+    "calibration": ("model", "calibration"),
 }
 
 

@@ -51,16 +51,19 @@ def iter_frames(dataset: Dataset, experiment: str, frames: pd.DataFrame | None =
     for _, row in rows:
         raw = read_raw(row["path"])
         check_md5(dataset, row["path"], raw.md5)
-        out = {}
-        for lens in lenses:
-            rows_span, cols_span = dataset.lenses[lens]
-            try:
-                region = cut_region(raw.cfa, rows_span, cols_span)
-            except ValueError as exc:
-                raise InputError(row["path"], f"lens '{lens}' region does not fit the frame ({exc})") from None
-            sat = region >= (raw.white_level - saturation_margin_dn)
-            out[lens] = LensImages(
-                bands=split_bands(region, raw.cfa_pattern),
-                saturated={b: v > 0 for b, v in split_bands(sat.astype(np.uint16), raw.cfa_pattern).items()},
-            )
+        out = {lens: lens_images(raw, dataset.lenses[lens], lens, saturation_margin_dn) for lens in lenses}
         yield DecodedFrame(row=row, raw=raw, lenses=out)
+
+
+def lens_images(raw: RawFrame, region_span, lens: str, saturation_margin_dn: float = 1.0) -> LensImages:
+    """One lens's band images of a decoded frame; ``region_span`` is its (rows, cols) in the mosaic."""
+    rows_span, cols_span = region_span
+    try:
+        region = cut_region(raw.cfa, rows_span, cols_span)
+    except ValueError as exc:
+        raise InputError(raw.path, f"lens '{lens}' region does not fit the frame ({exc})") from None
+    sat = region >= (raw.white_level - saturation_margin_dn)
+    return LensImages(
+        bands=split_bands(region, raw.cfa_pattern),
+        saturated={b: v > 0 for b, v in split_bands(sat.astype(np.uint16), raw.cfa_pattern).items()},
+    )

@@ -84,6 +84,7 @@ class RawFrame:
     model: str | None
     md5: str
     sha256: str = ""     # sha256 hex of the same bytes (artefact provenance)
+    serial: str | None = None   # camera serial number (DNG CameraSerialNumber)
 
 
 # ---------------------------------------------------------------------------
@@ -390,7 +391,7 @@ def read_raw(path, require=("exposure_s", "iso", "time")) -> RawFrame:
     return RawFrame(
         path=path, cfa=cfa, exposure_s=tags["exposure_s"], iso=tags["iso"], time=tags["time"],
         black_level=float(black), white_level=float(white), cfa_pattern=pattern,
-        make=tags["make"], model=tags["model"], md5=md5, sha256=sha256,
+        make=tags["make"], model=tags["model"], md5=md5, sha256=sha256, serial=tags.get("serial"),
     )
 
 

@@ -5,6 +5,8 @@ from pathlib import Path
 
 from pipeline.errors import InputError
 from pipeline.workflow import STAGES, DatasetIndex, dataset_to_simulate, stage_params
+from pipeline.calibration import BUNDLE_STAGES as CALIBRATION_STAGES
+from pipeline.calibration import REQUIRED_STAGES as CALIBRATION_REQUIRED
 
 DATASET = Path(config["dataset"])
 try:
@@ -92,8 +94,34 @@ def diagnostics_inputs(wildcards):
     }
 
 
+def camera_meta(wildcards):
+    """Params function: dataset.yaml's camera (make, model, serial) and lens regions, written into the bundle."""
+    meta = _ready().load().dataset.meta
+    return {"camera": meta.get("camera", {}), "lenses": meta.get("lenses", {})}
+
+
+def calibration_bundle():
+    """The bundle of the dataset's camera, or nothing when the dataset lacks a stage it needs."""
+    index = _ready()
+    if not all(index.stage_runnable(stage) for stage in CALIBRATION_REQUIRED):
+        return {}
+    serial = str(camera_meta(None)["camera"].get("serial") or "camera")
+    return {"calibration": f"results/calibration/{serial}.nc"}
+
+
+def calibration_inputs(wildcards):
+    """Input function of the calibration rule: every artefact of the stages the dataset can run."""
+    index = _ready()
+    return {
+        stage: artefacts_of(stage)
+        for stage in CALIBRATION_STAGES
+        if index.stage_runnable(stage)
+    }
+
+
 def report_inputs(wildcards):
     out = diagnostics_inputs(wildcards)
+    out.update(calibration_bundle())
     out.update(
         {
             "missing_effects": "results/diagnostics/missing_effects.csv",

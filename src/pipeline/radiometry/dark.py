@@ -18,7 +18,15 @@ import xarray as xr
 
 from pipeline.radiometry.exposure import gain_from_iso
 
-__all__ = ["dark_level_dn", "subtract_dark", "temperature_shift_dn"]
+__all__ = ["dark_model_level_dn", "dark_level_dn", "subtract_dark", "temperature_shift_dn"]
+
+
+def dark_model_level_dn(bias_dn, bias_per_gain_dn, dark_current_dn_per_s, gain, exposure_s):
+    """The dark model b0 + b1 (g - 1) + D g t in DN, from its parameters (vectorised).
+
+    E.g. b0 = 800, b1 = 0.7, D = 0.5 DN/s at g = 4 and t = 1 s -> 800 + 2.1 + 2 = 804.1 DN.
+    """
+    return bias_dn + bias_per_gain_dn * (gain - 1.0) + dark_current_dn_per_s * gain * exposure_s
 
 def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
                   temperature_c: float | None = None) -> float:
@@ -29,8 +37,8 @@ def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
     """
     b = ds.sel(band=band)
     gain = gain_from_iso(iso)
-    level = float(b["bias_dn"] + b["bias_per_gain_dn"] * (gain - 1.0)
-                  + ds["dark_current_dn_per_s"] * gain * exposure_s)
+    level = float(dark_model_level_dn(b["bias_dn"], b["bias_per_gain_dn"], ds["dark_current_dn_per_s"], gain,
+                                      exposure_s))
     if temperature_c is not None and np.isfinite(temperature_c):
         level += float(temperature_shift_dn(ds, iso, exposure_s, temperature_c))
     return level

@@ -1,0 +1,317 @@
+"""The calibration bundle: everything ``apply`` needs, gathered from the stage artefacts into one file.
+
+One NetCDF file per camera (``results/calibration/<serial>.nc``) with a
+``lens`` dimension, so that it opens in xarray as one Dataset: the dark model
+and hot-pixel mask (Section 2.8), the linearity stage's conversion gain,
+shutter offset, per-ISO gain factors, nonlinearity, saturation level and flat
+field (Section 2.2), the geometry maps theta, phi and solid angle per medium
+and band with the fitted model (Section 2.3), the roll-off with its
+covariance and calibrated field angle (Section 2.4, Eq. 13), effective
+wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
+(Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
+noise-equivalent radiance and limit of detection (Section 3.8). It is a
+versioned artefact (``artefact = calibration``) carrying the sha256 of every
+artefact it came from, the model's effects and the camera's make, model and
+serial number.
+
+:func:`band_parameters` turns the bundle back into the small parameter
+objects of :mod:`pipeline.radiometry.measurement`, so ``apply`` and the NER
+use the same chain.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+from pipeline.artefact import model_effects, read_artefact, sha256_file, write_artefact
+from pipeline.bands import BANDS
+from pipeline.config import defaults, stage_params
+from pipeline.errors import InputError
+from pipeline.frames import SITES_PER_BAND_PIXEL
+from pipeline.radiometry import measurement as mm
+
+__all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "build_bundle", "read_bundle", "band_parameters",
+           "calibrated_isos", "noise_equivalent_radiance"]
+
+#: stages a bundle is gathered from, in the order of the calibration chain
+BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
+#: without these there is no radiance: dark level, pixel directions, roll-off, R^-1
+REQUIRED_STAGES = ("dark", "linearity", "geometry", "rolloff", "absolute")
+GEOMETRY_SCALARS = ("xc_px", "yc_px", "stretch_c", "stretch_d", "stretch_e", "half_fov_deg",
+                    "circle_xc_px", "circle_yc_px", "circle_radius_px")
+
+
+def _relative(path: Path, root: Path) -> str:
+    try:
+        return os.path.relpath(Path(path).resolve(), root.resolve())
+    except ValueError:
+        return str(path)
+
+
+def _stack(per_lens: dict[str, xr.DataArray | xr.Dataset], lenses: list[str]):
+    return xr.concat([per_lens[lens] for lens in lenses], dim="lens", join="exact").assign_coords(lens=lenses)
+
+
+def _dark_part(ds: xr.Dataset) -> xr.Dataset:
+    keep = ["bias_dn", "bias_dn_sigma", "bias_per_gain_dn", "bias_per_gain_dn_sigma", "dark_current_dn_per_s",
+            "dark_current_dn_per_s_sigma", "read_noise_dn", "hot_pixel_mask", "temperature_bias_dn_per_c",
+            "temperature_dark_dn_per_s_per_c", "temperature_reference_c"]
+    out = ds[[v for v in keep if v in ds]].drop_vars(["setting", "hist_bin"], errors="ignore")
+    out["offset_pattern_dn"] = ds["fpn_map_dn"].std(("y", "x")).assign_attrs(
+        long_name="spatial spread of the pixel offsets about the dark model's level (ISO 100, shortest exposure)",
+        units="DN")
+    out["calibrated_exposure_s_min"] = ((), float(ds["setting_exposure_s"].min()),
+                                        {"long_name": "shortest exposure of the dark model", "units": "s"})
+    out["calibrated_exposure_s_max"] = ((), float(ds["setting_exposure_s"].max()),
+                                        {"long_name": "longest exposure of the dark model", "units": "s"})
+    return out.rename({"iso": "dark_iso"})
+
+
+def _linearity_part(ds: xr.Dataset) -> xr.Dataset:
+    out = xr.Dataset()
+    for name in ("conversion_gain_dn_per_e", "conversion_gain_dn_per_e_sigma", "saturation_dn",
+                 "nonlinearity_full_scale_dn"):
+        if name in ds:
+            out[name] = ds[name]
+    scalar = {"shutter_offset": ("shutter_offset_s", "s"), "nonlinearity": ("nonlinearity_beta", "1")}
+    for effect, (name, units) in scalar.items():
+        if f"effect_{effect}" in ds:
+            out[name] = ((), float(ds[f"effect_{effect}"].values[0]), {"long_name": f"fitted {effect}", "units": units})
+            out[f"{name}_sigma"] = ((), float(ds[f"effect_{effect}_sigma"].values[0]), {"units": units})
+    if "effect_iso_gain" in ds:
+        isos = ds["effect_iso_gain_iso"].values.astype(float)
+        out = out.assign_coords(gain_iso=("gain_iso", isos, {"long_name": "ISO of the fitted gain factor", "units": "1"}))
+        out["iso_gain_factor"] = ("gain_iso", 1.0 + ds["effect_iso_gain"].values,
+                                  {"long_name": "true gain over ISO/100 (1 at the lowest ISO)", "units": "1"})
+        out["iso_gain_factor_sigma"] = ("gain_iso", ds["effect_iso_gain_sigma"].values, {"units": "1"})
+    if "flat_field" in ds:
+        out["flat_field"] = ds["flat_field"]
+    if "effect_prnu" in ds:
+        # the linearity stage fits sigma_rel^2 (effects.catalogue.Prnu)
+        out["prnu_sigma_rel"] = ((), float(np.sqrt(max(float(ds["effect_prnu"].values[0]), 0.0))),
+                                 {"long_name": "pixel response non-uniformity, relative spread", "units": "1"})
+    return out
+
+
+def _geometry_part(ds: xr.Dataset) -> xr.Dataset:
+    return ds[["theta_deg", "phi_deg", "solid_angle_sr", "poly", *GEOMETRY_SCALARS]]
+
+
+def _rolloff_part(ds: xr.Dataset) -> xr.Dataset:
+    out = ds[["rolloff_coefficients", "rolloff_covariance"]]
+    kind = ds["obs_setting__kind"].values.astype(str)
+    used = ds["obs_setting__used"].values.astype(bool)
+    medium = ds["obs_setting__medium"].values.astype(str)
+    theta = np.abs(ds["obs_setting__theta_deg"].values.astype(float))
+    reach = [float(np.nanmax(theta[(kind == "spot") & used & (medium == m)], initial=np.nan))
+             for m in ds["medium"].values]
+    out["calibrated_field_angle_deg"] = ("medium", np.array(reach),
+                                         {"long_name": "largest field angle the roll-off was measured at", "units": "degree"})
+    return out
+
+
+def _spectral_part(ds: xr.Dataset) -> xr.Dataset:
+    keep = ["effective_wavelength_nm", "effective_wavelength_nm_sigma", "bandwidth_nm", "half_bandwidth_nm", "response"]
+    return ds[[v for v in keep if v in ds]]
+
+
+def _absolute_part(ds: xr.Dataset) -> xr.Dataset:
+    out = ds[["inverse_responsivity", "inverse_responsivity_sigma", "relative_sigma", "uncertainty_contribution"]]
+    return out.rename({"relative_sigma": "inverse_responsivity_relative_sigma"})
+
+
+def _immersion_part(ds: xr.Dataset) -> xr.Dataset:
+    return ds[["immersion_factor", "immersion_factor_sigma"]]
+
+
+PARTS = {"dark": _dark_part, "linearity": _linearity_part, "geometry": _geometry_part, "rolloff": _rolloff_part,
+         "spectral": _spectral_part, "absolute": _absolute_part, "immersion": _immersion_part}
+
+
+def calibrated_isos(bundle: xr.Dataset, effects) -> np.ndarray:
+    """ISOs a frame may have: those of the dark model, and with ``iso_gain`` only those with a gain factor."""
+    isos = bundle["dark_iso"].values.astype(float)
+    if "iso_gain" in effects and "gain_iso" in bundle.coords:
+        allowed = set(bundle["gain_iso"].values.astype(float)) | {float(isos.min())}
+        isos = np.array([i for i in isos if i in allowed])
+    return isos
+
+
+def band_parameters(bundle: xr.Dataset, lens: str, band: str, medium: str, frame: mm.FrameSettings,
+                    effects) -> tuple[mm.DarkModel, mm.ResponseModel, mm.BandCalibration]:
+    """The measurement chain's parameter objects for one lens, band, medium and frame setting."""
+    b = bundle.sel(lens=lens)
+
+    def num(name, default=0.0, **sel):
+        if name not in b:
+            return default
+        value = b[name].sel(**sel) if sel else b[name]
+        return float(value)
+
+    read = b["read_noise_dn"].sel(band=band).sel(dark_iso=frame.iso, method="nearest")
+    dark = mm.DarkModel(
+        bias_dn=num("bias_dn", band=band), bias_dn_sigma=num("bias_dn_sigma", band=band),
+        bias_per_gain_dn=num("bias_per_gain_dn", band=band), bias_per_gain_dn_sigma=num("bias_per_gain_dn_sigma", band=band),
+        dark_current_dn_per_s=num("dark_current_dn_per_s"), dark_current_dn_per_s_sigma=num("dark_current_dn_per_s_sigma"),
+        temperature_bias_dn_per_c=num("temperature_bias_dn_per_c"),
+        temperature_dark_dn_per_s_per_c=num("temperature_dark_dn_per_s_per_c"),
+        temperature_reference_c=num("temperature_reference_c", float("nan")),
+        read_noise_dn=float(read), offset_pattern_dn=num("offset_pattern_dn", band=band),
+        sites_per_pixel=SITES_PER_BAND_PIXEL[band])
+    factor, factor_sigma = 1.0, 0.0
+    if "iso_gain_factor" in b and float(frame.iso) in set(b["gain_iso"].values.astype(float)):
+        factor = num("iso_gain_factor", gain_iso=float(frame.iso))
+        factor_sigma = num("iso_gain_factor_sigma", gain_iso=float(frame.iso))
+    response = mm.ResponseModel(
+        conversion_gain_dn_per_e=num("conversion_gain_dn_per_e"),
+        shutter_offset_s=num("shutter_offset_s"), shutter_offset_s_sigma=num("shutter_offset_s_sigma"),
+        iso_gain_factor=factor, iso_gain_factor_sigma=factor_sigma,
+        nonlinearity_beta=num("nonlinearity_beta"), nonlinearity_beta_sigma=num("nonlinearity_beta_sigma"),
+        full_scale_dn=num("nonlinearity_full_scale_dn", float("nan")), saturation_dn=num("saturation_dn", float("nan")))
+    immersion, immersion_sigma = 1.0, 0.0
+    if medium == "water":
+        immersion, immersion_sigma = num("immersion_factor", band=band), num("immersion_factor_sigma", band=band)
+    calibration = mm.BandCalibration(
+        rolloff_coefficients=b["rolloff_coefficients"].sel(medium=medium, band=band).values.astype(float),
+        rolloff_covariance=b["rolloff_covariance"].sel(medium=medium, band=band).values.astype(float),
+        calibrated_field_angle_deg=num("calibrated_field_angle_deg", float("inf"), medium=medium),
+        inverse_responsivity=num("inverse_responsivity", band=band),
+        inverse_responsivity_relative_sigma=num("inverse_responsivity_relative_sigma", band=band),
+        immersion_factor=immersion, immersion_factor_sigma=immersion_sigma)
+    return dark, response, calibration
+
+
+def noise_equivalent_radiance(dark: mm.DarkModel, response: mm.ResponseModel, calibration: mm.BandCalibration,
+                              frame: mm.FrameSettings, effects, snr: float = 1.0) -> float:
+    """Radiance on the optical axis whose signal is ``snr`` times its random noise (Section 3.8).
+
+    The chain's random variance of a dark-corrected signal s (DN) is a + b s
+    (read noise, dark electrons and offset pattern; shot noise), read off the
+    chain itself at s = 0 and s = 1; s = (snr^2 b + sqrt(snr^4 b^2 + 4 snr^2 a)) / 2
+    solves s = snr sqrt(a + b s); the radiance follows through the chain's
+    exposure, gain and R^-1 steps (roll-off 1 and flat field 1 on the axis).
+    """
+    def variance(signal_dn):
+        m = mm.subtract_dark(mm.from_raw(np.zeros(1)), dark, frame, effects)
+        m = mm.Measured(value=np.array([signal_dn], float), units="DN", random_var=m.random_var)
+        return float(mm.add_shot_noise(m, dark, response, frame, effects).random_sigma[0] ** 2)
+
+    a = variance(0.0)
+    b = variance(1.0) - a
+    s = 0.5 * (snr**2 * b + np.sqrt(snr**4 * b**2 + 4.0 * snr**2 * a))
+    m = mm.normalise_exposure(mm.Measured(value=np.array([s]), units="DN"), response, frame, effects)
+    return float(mm.to_radiance(m, calibration).value[0])
+
+
+def _noise_floor(bundle: xr.Dataset, effects, cfg: dict) -> xr.Dataset:
+    frame = mm.FrameSettings(exposure_s=float(cfg["noise_equivalent_exposure_s"]), iso=float(cfg["noise_equivalent_iso"]))
+    lenses, bands = list(bundle["lens"].values), list(BANDS)
+    ner = np.full((len(lenses), len(bands)), np.nan)
+    lod = np.full_like(ner, np.nan)
+    for i, lens in enumerate(lenses):
+        for j, band in enumerate(bands):
+            dark, response, cal = band_parameters(bundle, lens, band, "air", frame, effects)
+            ner[i, j] = noise_equivalent_radiance(dark, response, cal, frame, effects, 1.0)
+            lod[i, j] = noise_equivalent_radiance(dark, response, cal, frame, effects, float(cfg["detection_snr"]))
+    at = f"ISO {frame.iso:g}, {frame.exposure_s:g} s, one band pixel on the optical axis, in air"
+    return xr.Dataset({
+        "noise_equivalent_radiance": (("lens", "band"), ner, {
+            "long_name": f"radiance at SNR 1 ({at}; Section 3.8)", "units": "W sr-1 m-2 nm-1",
+            "iso": frame.iso, "exposure_s": frame.exposure_s}),
+        "limit_of_detection": (("lens", "band"), lod, {
+            "long_name": f"radiance at SNR {cfg['detection_snr']:g} ({at}; Section 3.8)", "units": "W sr-1 m-2 nm-1",
+            "iso": frame.iso, "exposure_s": frame.exposure_s, "snr": float(cfg["detection_snr"])}),
+    }, coords={"lens": lenses, "band": bands})
+
+
+def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Path, camera: dict,
+                 lens_regions: dict[str, dict], config: dict | None = None) -> xr.Dataset:
+    """Gather the stage artefacts ({stage: {lens: path}}) into the calibration bundle at ``out_path``.
+
+    ``camera`` is dataset.yaml's ``camera`` section (make, model, serial),
+    ``lens_regions`` its ``lenses`` section ({lens: {rows: [r0, r1], cols: [c0, c1]}}).
+    Every lens needs the stages of :data:`REQUIRED_STAGES`; spectral and
+    immersion are taken when present (without immersion the bundle has no
+    water). All artefacts must have been fitted with the same model.
+    """
+    config = config if config is not None else defaults()
+    out_path = Path(out_path)
+    results_root = out_path.parent.parent
+    missing = [s for s in REQUIRED_STAGES if not artefacts.get(s)]
+    if missing:
+        raise InputError(out_path, f"the calibration bundle needs the {', '.join(missing)} artefact(s)")
+    lenses = sorted(artefacts["dark"])
+    effects, first, inputs = None, None, {}
+    parts: dict[str, dict[str, xr.Dataset]] = {}
+    for stage in BUNDLE_STAGES:
+        paths = artefacts.get(stage) or {}
+        if not paths:
+            continue
+        if sorted(paths) != lenses:
+            raise InputError(out_path, f"the {stage} artefacts are for lenses {sorted(paths)}, the dark ones for {lenses}")
+        parts[stage] = {}
+        for lens in lenses:
+            ds = read_artefact(paths[lens], stage)
+            found = model_effects(ds)
+            if effects is None:
+                effects, first = found, paths[lens]
+            elif found != effects:
+                raise InputError(paths[lens], f"was fitted with the model [{', '.join(found)}], {first} with "
+                                              f"[{', '.join(effects)}]: rerun the stages with one model")
+            inputs[_relative(paths[lens], results_root)] = sha256_file(paths[lens])
+            parts[stage][lens] = PARTS[stage](ds)
+    merged = []
+    for stage, per_lens in parts.items():
+        try:
+            merged.append(_stack(per_lens, lenses))
+        except ValueError as exc:
+            raise InputError(out_path, f"the {stage} artefacts of the lenses do not line up ({exc})") from None
+    bundle = xr.merge(merged, compat="override", combine_attrs="drop_conflicts")
+    bundle.attrs = {}
+    for lens in lenses:
+        for band in BANDS:
+            value = float(bundle["inverse_responsivity"].sel(lens=lens, band=band))
+            mm.check_inverse_responsivity(value, f"of lens {lens}, band {band} ")
+    bundle["lens"].attrs.update(long_name="lens of the camera (dataset.yaml lenses)")
+    media = ["air"] + (["water"] if "immersion" in parts else [])
+    bundle = bundle.merge(_noise_floor(bundle, effects, config["calibration"]))
+    try:
+        span = np.array([[lens_regions[lens]["rows"], lens_regions[lens]["cols"]] for lens in lenses], dtype=int)
+    except (KeyError, TypeError, ValueError):
+        raise InputError(out_path, f"lens regions (dataset.yaml lenses) are needed for lenses {lenses}") from None
+    bundle["lens_region_px"] = (("lens", "axis", "bound"), span,
+                                {"long_name": "lens region of the raw mosaic: rows then columns, [start, stop)",
+                                 "units": "pixel"})
+    bundle.attrs.update({
+        "title": "calibration bundle of a RAW camera as a radiometer (Larouche et al. 2024)",
+        "camera_make": str(camera.get("make", "")), "camera_model": str(camera.get("model", "")),
+        "camera_serial": str(camera.get("serial", "")),
+        "media": ",".join(media), "stages": ",".join(parts),
+    })
+    write_artefact(bundle, out_path, stage="calibration", inputs=inputs,
+                   config_subset=stage_params(config, "calibration"), effects=list(effects))
+    return bundle
+
+
+def read_bundle(path: str | Path) -> xr.Dataset:
+    """Open a calibration bundle (loaded), refusing another artefact or an unknown version."""
+    return read_artefact(path, "calibration")
+
+
+def build_bundle_script(smk) -> None:
+    """Entry point of the ``calibration`` rule's thin script: the stage artefacts of both lenses -> the bundle."""
+    from pipeline.workflow import exit_on_input_error, setup_log
+
+    setup_log(smk.log[0] if smk.log else None)
+    artefacts = {}
+    for stage in BUNDLE_STAGES:
+        if stage in smk.input.keys():
+            paths = smk.input[stage]
+            paths = [paths] if isinstance(paths, str) else list(paths)
+            artefacts[stage] = {Path(p).stem: p for p in paths}
+    exit_on_input_error(build_bundle, artefacts, smk.output.bundle, smk.params.camera["camera"],
+                        smk.params.camera["lenses"], smk.params.config)
