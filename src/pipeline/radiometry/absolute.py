@@ -101,6 +101,7 @@ def absolute_calibration_budget(
     lamp_relative_sigma="manufacturer",
     lamp_reference_correlation=0.0,
     extra_relative_sigma=0.0,
+    response_relative_sigma=0.0,
 ):
     """R^-1 of one band from the source spectrum, the reference reading and the image DN.
 
@@ -125,6 +126,9 @@ def absolute_calibration_budget(
     lamp_reference_correlation : rho in [0, 1], see the module docstring
     extra_relative_sigma : further relative uncertainty of the source
         radiance (e.g. 0.06 to match the paper's 10.4-11 %)
+    response_relative_sigma : relative uncertainty of y_DN from the fitted
+        response corrections (shutter offset, ISO gain factor, nonlinearity)
+        applied by the measurement chain; common to every frame of the band
 
     Returns
     -------
@@ -133,7 +137,7 @@ def absolute_calibration_budget(
     ``effective_radiance`` (W sr-1 m-2 nm-1), ``effective_radiance_sigma``,
     ``contributions`` (relative standard uncertainty of each term:
     ``lamp_calibration``, ``reference``, ``spectrometer_noise``, ``extra``,
-    ``image``) and ``dominant`` (name of the largest term).
+    ``image``, ``response``) and ``dominant`` (name of the largest term).
     """
     wl = np.asarray(wavelength_nm, dtype=float)
     spec = np.asarray(source_spectrum, dtype=float)
@@ -176,8 +180,10 @@ def absolute_calibration_budget(
 
     contrib["extra"] = float(extra_relative_sigma)
     contrib["image"] = float(dn_per_s_sigma / dn_per_s)
-    u_l = float(np.sqrt(sum(v**2 for k, v in contrib.items() if k != "image")))
-    r_inv, r_inv_sigma = inverse_responsivity(l_eff, float(dn_per_s), l_eff * u_l, float(dn_per_s_sigma))
+    contrib["response"] = float(response_relative_sigma)
+    u_l = float(np.sqrt(sum(v**2 for k, v in contrib.items() if k not in ("image", "response"))))
+    y_sigma = float(dn_per_s) * float(np.hypot(contrib["image"], contrib["response"]))
+    r_inv, r_inv_sigma = inverse_responsivity(l_eff, float(dn_per_s), l_eff * u_l, y_sigma)
     r_inv, r_inv_sigma = float(r_inv), float(r_inv_sigma)
     return {
         "inverse_responsivity": r_inv,
