@@ -77,9 +77,9 @@ STAGES: dict[str, StageSpec] = {spec.name: spec for spec in (
     StageSpec("geometry", "geometry", reads_meta=("chessboard",)),
     StageSpec("rolloff", "rolloff", upstream=("geometry",)),
     StageSpec("spectral", "spectral", sidecars=("photodiode.csv",), upstream=("geometry",),
-              optional_upstream=("dark",)),
+              optional_upstream=("dark", "linearity")),
     StageSpec("absolute", "absolute", sidecars=("source_spectrum.csv", "source_reference.csv"),
-              upstream=("spectral", "geometry"), optional_upstream=("dark",)),
+              upstream=("spectral", "geometry"), optional_upstream=("dark", "linearity")),
     StageSpec("immersion", "immersion", sidecars=("water.yaml",), upstream=("geometry",),
               optional_upstream=("spectral",)),
 )}

@@ -12,6 +12,13 @@ Per lens and band:
   the B tail below 400 nm, about +0.9 % on B's L and R^-1);
 * y_DN, Eq. (2): dark-subtracted mean DN in the ``absolute.mask_half_angle_deg``
   mask (geometry artefact, in air), divided by exposure time and ISO/100;
+  when the lens's linearity artefact is given, each pixel of the mask goes
+  through the measurement chain's ``linearise`` and ``normalise_exposure``
+  (:func:`pipeline.radiometry.response.response_corrected`) with the effects
+  that artefact fitted (nonlinearity, true exposure t + dt, gain ISO/100 f_ISO,
+  and its flat field when it fitted ``prnu``),
+  as ``apply`` does; the artefact's ``response_corrections`` attribute names
+  them, and their fitted uncertainties are the budget's ``response`` term;
 * R^-1 = L / y_DN, Eq. (9), and its uncertainty budget
   (:func:`pipeline.radiometry.absolute.absolute_calibration_budget`):
   spectrometer calibration lamp (manufacturer 9.1 % at 400 nm to 6.9 % at
@@ -25,8 +32,10 @@ Dark level: the experiment's dark frames at the same setting, or the dark
 artefact's model when there are none (:func:`pipeline.stages.spectral.dark_levels`).
 
 Observation table (closure): frame level, one row per frame, lens and band
-(signal and dark frames): ``value_dn`` the dark-corrected mask mean,
-``sigma_dn`` its temporal noise, one free level per group
+(signal and dark frames): ``value_dn`` the dark-corrected mask mean
+(linearised when the nonlinearity was fitted), ``sigma_dn`` its temporal
+noise, ``dn_per_s`` and ``dn_per_s_sigma`` the same through the response
+corrections, one free level per group
 ``lens/band/kind/setting`` (``x_level``); covariates ``frame``, ``iso``,
 ``exposure_s``.
 """
@@ -42,15 +51,15 @@ import xarray as xr
 from pipeline.bands import BANDS
 from pipeline.dataset import read_source_reference, read_source_spectrum
 from pipeline.errors import InputError
-from pipeline.radiometry.absolute import (absolute_calibration_budget, dn_per_second,
-                                          lamp_calibration_relative_sigma)
+from pipeline.radiometry.absolute import absolute_calibration_budget, lamp_calibration_relative_sigma
 from pipeline.observations import table_to_dataset
-from pipeline.radiometry.exposure import exposure_gain_s
+from pipeline.radiometry.measurement import FrameSettings
+from pipeline.radiometry.response import flat_field_at, response_corrected, response_effects
 from pipeline.radiometry.source import scale_to_reference
 from pipeline.stages.spectral import central_masks, dark_levels, frame_table, reduce_central
 
 STAGE = "absolute"
-TERMS = ("lamp_calibration", "reference", "spectrometer_noise", "extra", "image")
+TERMS = ("lamp_calibration", "reference", "spectrometer_noise", "extra", "image", "response")
 
 
 def reference_reading(table: pd.DataFrame, path: Path, wavelength_nm: float,
@@ -84,10 +93,13 @@ def response_on_grid(wavelength_nm: np.ndarray, response_nm: np.ndarray, respons
 
 
 def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset], spectrum: pd.DataFrame,
-                     spectrum_path: Path, reference: tuple[float, float], config: dict) -> dict[str, xr.Dataset]:
+                     spectrum_path: Path, reference: tuple[float, float], config: dict,
+                     linearity: dict[str, xr.Dataset] | None = None) -> dict[str, xr.Dataset]:
+    """R^-1 and its budget per lens and band; ``linearity`` (lens -> artefact), when given, corrects y_DN."""
     cfg = config[STAGE]
     moments = reduced["moments"]
-    fr = frame_table(reduced, darks)
+    linearity = linearity or {}
+    fr = frame_table(reduced, darks, linearity)
     if fr[fr["kind"] == "signal"]["saturated"].any():
         raise InputError(spectrum_path.parent / "frames.csv", "saturated pixels in the averaging mask")
     wl = spectrum["wavelength_nm"].to_numpy(float)
@@ -100,6 +112,7 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
         if lens not in spectral:
             raise InputError(None, f"no spectral artefact for lens {lens}")
         sp = spectral[lens]
+        lin = linearity.get(lens)
         resp_nm = sp["wavelength_nm"].values.astype(float)
         check_spectrum(spectrum, spectrum_path, cfg["reference_wavelength_nm"], resp_nm)
         rows = []
@@ -107,24 +120,31 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
             keys = [k for k in moments if k[0] == lens and k[1] == band and k[2] == "signal"]
             if not keys:
                 raise InputError(spectrum_path.parent / "frames.csv", f"no signal frames for lens {lens}")
-            # Eq. (2) per setting, then the frame-weighted mean over settings (usually one: ISO 100, 0.1 s)
-            y, y_var_std, y_var_se, n_tot, n_mask = 0.0, 0.0, 0.0, 0, 0
+            # Eq. (2) per setting through the chain's response steps, then the frame-weighted mean
+            # over settings (usually one: ISO 100, 0.1 s)
+            y, y_var_std, y_var_se, y_resp_sum, n_tot, n_mask = 0.0, 0.0, 0.0, 0.0, 0, 0
             for k in keys:
                 mom = moments[k]
                 d = darks[(lens, band, k[4], k[5])]
                 mean_map = mom.mean()
                 n_mask = mean_map.size
-                y_k = float(dn_per_second(mean_map.mean(), d["level_dn"], k[5], k[4]))
-                scale = exposure_gain_s(k[5], k[4])
-                region_std = float(np.std(mean_map, ddof=1)) / scale
-                se = np.sqrt(float(mom.variance().mean()) / n_mask / mom.n + d["sigma_dn"] ** 2) / scale
+                frame = FrameSettings(exposure_s=k[5], iso=k[4])
+                se_dn = np.sqrt(float(mom.variance().mean()) / n_mask / mom.n + d["sigma_dn"] ** 2)
+                flat = flat_field_at(lin, band, reduced["masks"][(lens, band)])
+                _, pixels = response_corrected(mean_map - d["level_dn"], lin, band, frame, flat_field=flat)
+                _, mean = response_corrected(float(mean_map.mean()) - d["level_dn"], lin, band, frame, se_dn)
+                y_k = float(np.mean(pixels.value))
+                region_std = float(np.std(pixels.value, ddof=1))
                 y += y_k * mom.n
                 y_var_std += (region_std * mom.n) ** 2
-                y_var_se += (se * mom.n) ** 2
+                y_var_se += (float(mean.random_sigma) * mom.n) ** 2
+                # the fitted response parameters are common to all settings: their errors add linearly
+                y_resp_sum += float(mean.systematic_sigma) * mom.n
                 n_tot += mom.n
             y /= n_tot
             y_std = np.sqrt(y_var_std) / n_tot
             y_se = np.sqrt(y_var_se) / n_tot
+            y_resp = y_resp_sum / n_tot
             y_sigma = y_std if cfg["image_sigma"] == "region_std" else y_se
             s = response_on_grid(wl, resp_nm, sp["response"].sel(band=band).values.astype(float))
             budget = absolute_calibration_budget(
@@ -132,14 +152,15 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
                 reference_wavelength_nm=cfg["reference_wavelength_nm"], reference_value=ref_value,
                 reference_sigma=ref_value * ref_rel, lamp_relative_sigma=lamp,
                 lamp_reference_correlation=cfg["lamp_reference_correlation"],
-                extra_relative_sigma=cfg["extra_relative_sigma"])
-            rows.append({"band": band, "y": y, "y_sigma": y_sigma, "y_std": y_std, "y_se": y_se,
+                extra_relative_sigma=cfg["extra_relative_sigma"], response_relative_sigma=y_resp / y)
+            rows.append({"band": band, "y": y, "y_sigma": y_sigma, "y_std": y_std, "y_se": y_se, "y_resp": y_resp,
                          "n_mask": n_mask, "n_frames": n_tot, "budget": budget,
                          "dark_dn": darks[(lens, band, keys[0][4], keys[0][5])]["level_dn"],
                          "dark_source": darks[(lens, band, keys[0][4], keys[0][5])]["source"]})
         scaled = scale_to_reference(wl, spec, cfg["reference_wavelength_nm"], ref_value, ref_value * ref_rel)["radiance"]
         out[lens] = _lens_dataset(rows, wl, scaled, ref_value, ref_rel, fr[fr["lens"] == lens].reset_index(drop=True),
                                   cfg)
+        out[lens].attrs["response_corrections"] = ",".join(response_effects(lin))
     return out
 
 
@@ -160,13 +181,17 @@ def _lens_dataset(rows, wl, scaled, ref_value, ref_rel, fr, cfg) -> xr.Dataset:
                                     "units": "W sr-1 m-2 nm-1"}),
             "effective_radiance_sigma": ("band", bud("effective_radiance_sigma"),
                                          {"long_name": "standard uncertainty of the effective band radiance", "units": "W sr-1 m-2 nm-1"}),
-            "dn_per_s": ("band", col("y"), {"long_name": "dark-subtracted DN per second at ISO 100 in the mask, Eq. (2) (Table 1)",
+            "dn_per_s": ("band", col("y"), {"long_name": "dark-subtracted DN per second at ISO 100 in the mask, Eq. (2) with "
+                                                         "the fitted response corrections (Table 1)",
                                             "units": "DN s-1"}),
             "dn_per_s_sigma": ("band", col("y_sigma"), {"long_name": f"uncertainty of dn_per_s used in the budget ({cfg['image_sigma']})",
                                                         "units": "DN s-1"}),
             "dn_per_s_region_std": ("band", col("y_std"), {"long_name": "spatial spread of the frame-averaged image in the mask", "units": "DN s-1"}),
             "dn_per_s_standard_error": ("band", col("y_se"),
                                         {"long_name": "standard error of the mask mean (temporal noise and dark level)", "units": "DN s-1"}),
+            "dn_per_s_response_sigma": ("band", col("y_resp"),
+                                        {"long_name": "uncertainty of dn_per_s from the fitted response corrections "
+                                                      "(attribute response_corrections)", "units": "DN s-1"}),
             "inverse_responsivity": ("band", bud("inverse_responsivity"),
                                      {"long_name": "calibration coefficient R^-1, Eq. (9) (Table 1)",
                                       "units": "W sr-1 m-2 nm-1 s DN-1"}),
@@ -207,6 +232,7 @@ def compute(ctx) -> xr.Dataset:
     ctx.record_frames(reduced["inputs"])
     dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
     darks = dark_levels(reduced, dark, root / STAGE / "frames.csv")
+    linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else {}
     arts = analyse_absolute(reduced, darks, {ctx.lens: ctx.upstream["spectral"]}, spectrum,
-                            root / STAGE / "source_spectrum.csv", reference, ctx.config)
+                            root / STAGE / "source_spectrum.csv", reference, ctx.config, linearity)
     return arts[ctx.lens]

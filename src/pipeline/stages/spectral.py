@@ -18,6 +18,15 @@ exposure (mean of their mask pixels, which also removes the fixed pattern);
 when the experiment has none, the dark artefact's model
 (:func:`pipeline.stages.dark.dark_level_dn`) plus its fixed pattern in the mask.
 
+Response corrections: when the lens's linearity artefact is given, each
+setting's dark-corrected signal goes through the measurement chain's
+``linearise`` and ``normalise_exposure`` (its mask pixels also through
+``correct_flat_field``) with the effects that artefact fitted
+(:func:`pipeline.radiometry.response.response_corrected`); the artefact's
+``response_corrections`` attribute names them. At one setting for every
+wavelength the exposure corrections cancel in the peak normalisation; the
+nonlinearity does not.
+
 Uncertainty of each mean: temporal variance of the mask pixels (running
 moments across the frames of one wavelength) divided by the number of pixels
 and frames, plus the uncertainty of the dark level; the photodiode's
@@ -52,7 +61,8 @@ from pipeline.frames import iter_frames
 from pipeline.moments import RunningMoments
 from pipeline.observations import table_to_dataset
 from pipeline.radiometry.dark import dark_level_dn
-from pipeline.radiometry.exposure import exposure_gain_s
+from pipeline.radiometry.measurement import FrameSettings
+from pipeline.radiometry.response import flat_field_at, response_corrected, response_effects
 from pipeline.radiometry.spectral import band_statistics, peak_normalise_response
 
 STAGE = "spectral"
@@ -169,8 +179,16 @@ def dark_levels(reduced: dict, dark: dict[str, xr.Dataset] | None, frames_csv: P
     return out
 
 
-def frame_table(reduced: dict, darks: dict) -> pd.DataFrame:
-    """Frame-level observation table: dark-corrected mask means with their temporal noise."""
+def frame_table(reduced: dict, darks: dict, linearity: dict[str, xr.Dataset] | None = None) -> pd.DataFrame:
+    """Frame-level observation table: dark-corrected mask means with their temporal noise.
+
+    ``value_dn`` and ``sigma_dn`` in DN above dark, linearised when the lens's
+    linearity artefact (``linearity``: lens -> artefact) fitted the
+    nonlinearity; ``dn_per_s`` and ``dn_per_s_sigma`` the same per second at
+    ISO 100 through the chain's response corrections (Eq. 2 with the true
+    exposure and gain; the nominal Eq. 2 without a linearity artefact).
+    """
+    linearity = linearity or {}
     fr = reduced["frames"].copy()
     moments = reduced["moments"]
     levels, sig = [], []
@@ -181,8 +199,13 @@ def frame_table(reduced: dict, darks: dict) -> pd.DataFrame:
         var = mom.variance()
         sig.append(np.sqrt(max(float(var.mean()), 1e-12) / var.size))
     fr["dark_dn"] = levels
-    fr["value_dn"] = fr["mask_mean_dn"] - fr["dark_dn"]
-    fr["sigma_dn"] = sig
+    corrected = [response_corrected(value, linearity.get(lens), band, FrameSettings(exposure_s=t, iso=iso), sigma)
+                 for value, sigma, lens, band, t, iso in zip(fr["mask_mean_dn"] - fr["dark_dn"], sig, fr["lens"],
+                                                             fr["band"], fr["exposure_s"], fr["iso"])]
+    fr["value_dn"] = [float(linear.value) for linear, _ in corrected]
+    fr["sigma_dn"] = [float(linear.random_sigma) for linear, _ in corrected]
+    fr["dn_per_s"] = [float(rate.value) for _, rate in corrected]
+    fr["dn_per_s_sigma"] = [float(rate.random_sigma) for _, rate in corrected]
     fr["n_mask"] = [int(reduced["masks"][(lens, band)].sum()) for lens, band in zip(fr["lens"], fr["band"])]
     wl = fr["wavelength_nm"].map(lambda w: "none" if w == NO_WAVELENGTH else f"{w:g}")
     fr["group"] = fr["lens"] + "/" + fr["band"] + "/" + fr["kind"] + "/" + wl + "/" + \
@@ -202,10 +225,15 @@ def frame_table(reduced: dict, darks: dict) -> pd.DataFrame:
 
 # ----------------------------------------------------------------------------- spectral analysis
 def analyse_spectral(reduced: dict, darks: dict, photodiode: pd.DataFrame, photodiode_path: Path,
-                     config: dict) -> dict[str, xr.Dataset]:
-    """Response, effective wavelength and bandwidth per lens and band."""
+                     config: dict, linearity: dict[str, xr.Dataset] | None = None) -> dict[str, xr.Dataset]:
+    """Response, effective wavelength and bandwidth per lens and band.
+
+    ``linearity`` (lens -> artefact), when given, brings every setting to DN
+    per second at ISO 100 through the chain's response corrections.
+    """
     moments = reduced["moments"]
-    fr = frame_table(reduced, darks)
+    linearity = linearity or {}
+    fr = frame_table(reduced, darks, linearity)
     sig = fr[fr["kind"] == "signal"]
     if sig["saturated"].any():
         bad = sig[sig["saturated"] == 1].iloc[0]
@@ -215,6 +243,7 @@ def analyse_spectral(reduced: dict, darks: dict, photodiode: pd.DataFrame, photo
     pd_wl = photodiode["wavelength_nm"].to_numpy(float)
     out = {}
     for lens in sorted({k[0] for k in moments}):
+        lin = linearity.get(lens)
         keys = [k for k in moments if k[0] == lens and k[2] == "signal"]
         wls_nm = np.array(sorted({k[3] for k in keys}))
         if wls_nm.size < 2:
@@ -244,11 +273,17 @@ def analyse_spectral(reduced: dict, darks: dict, photodiode: pd.DataFrame, photo
                     mom = moments[k]
                     d = darks[(lens, band, k[4], k[5])]
                     # Eq. (2) normalisation would cancel in the peak normalisation unless the
-                    # settings differ between wavelengths: bring every setting to DN per second at ISO 100
-                    norm = exposure_gain_s(k[5], k[4])
-                    total += (mom.mean().mean() - d["level_dn"]) / norm * mom.n
-                    var_sum += float(mom.variance().mean()) / mom.mean().size / norm**2 * mom.n
-                    dsig2 += (d["sigma_dn"] / norm) ** 2 * mom.n
+                    # settings differ between wavelengths: bring every setting to DN per second at ISO 100,
+                    # through the chain's response corrections when the linearity artefact is given
+                    frame = FrameSettings(exposure_s=k[5], iso=k[4])
+                    flat = flat_field_at(lin, band, reduced["masks"][(lens, band)])
+                    _, pixels = response_corrected(mom.mean() - d["level_dn"], lin, band, frame, flat_field=flat)
+                    # a unit random term through the chain: its first-order slope, DN s-1 per DN
+                    _, unit = response_corrected(float(mom.mean().mean()) - d["level_dn"], lin, band, frame, 1.0)
+                    slope = float(unit.random_sigma)
+                    total += float(np.mean(pixels.value)) * mom.n
+                    var_sum += float(mom.variance().mean()) / mom.mean().size * slope**2 * mom.n
+                    dsig2 += (d["sigma_dn"] * slope) ** 2 * mom.n
                     n += mom.n
                     dark_dn[bi] = d["level_dn"]
                 dn[bi, j] = total / n
@@ -259,6 +294,7 @@ def analyse_spectral(reduced: dict, darks: dict, photodiode: pd.DataFrame, photo
                                   n_mask, fr[fr["lens"] == lens].reset_index(drop=True), config,
                                   darks_source={b: darks[next((lens, b, k[4], k[5]) for k in keys if k[1] == b)]["source"]
                                                 for b in BANDS})
+        out[lens].attrs["response_corrections"] = ",".join(response_effects(lin))
     return out
 
 
@@ -313,7 +349,9 @@ def compute(ctx) -> xr.Dataset:
     """The spectral artefact of one lens (the stage runner's contract).
 
     The mask comes from the lens's in-air theta map (geometry artefact); the
-    dark artefact, when given, serves only signal settings without dark frames.
+    dark artefact, when given, serves only signal settings without dark frames;
+    the linearity artefact, when given, corrects every setting's signal
+    through the measurement chain (``response_corrections`` attribute).
     """
     cfg = ctx.params
     photodiode = read_photodiode(ctx.dataset)      # bad sidecar input fails before any frame is decoded
@@ -322,5 +360,7 @@ def compute(ctx) -> xr.Dataset:
     ctx.record_frames(reduced["inputs"])
     dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
     darks = dark_levels(reduced, dark, ctx.dataset.root / STAGE / "frames.csv")
-    arts = analyse_spectral(reduced, darks, photodiode, ctx.dataset.root / STAGE / "photodiode.csv", ctx.config)
+    linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else {}
+    arts = analyse_spectral(reduced, darks, photodiode, ctx.dataset.root / STAGE / "photodiode.csv", ctx.config,
+                            linearity)
     return arts[ctx.lens]
