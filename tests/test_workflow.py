@@ -60,11 +60,11 @@ def run(make_dataset, tmp_path_factory):
 
 def test_artefacts_and_report(run):
     workdir, _ = run
-    for stage in ("dark", "linearity"):
+    for stage, version in (("dark", 1), ("linearity", 2)):
         for lens in LENSES:
             ds = xr.open_dataset(workdir / f"results/{stage}/{lens}.nc")
             assert ds.attrs["artefact"] == stage
-            assert int(ds.attrs["artefact_version"]) == 1
+            assert int(ds.attrs["artefact_version"]) == version
             assert len(ds.attrs["config_sha256"]) == 64
             assert ds.attrs["model_effects"] == "dark_current,hot_pixels"
             ds.close()
