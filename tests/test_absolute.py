@@ -113,3 +113,24 @@ def test_spectrum_not_covering_response(chain, config, tmp_path):
     path.write_text("\n".join(keep) + "\n")
     with pytest.raises(InputError, match=r"source_spectrum.csv.*400-700 nm"):
         run_stage("absolute", dst, config, {"far": tmp_path / "far.nc"}, {"spectral": spec, "geometry": geometry})
+
+
+def test_named_extra_uncertainty_components_enter_the_budget(chain, config, tmp_path):
+    """absolute.extra_uncertainty: none by default; each named component adds in quadrature, and
+    the R^-1 value itself does not move."""
+    root, _, arts, spec, geometry = chain
+    for lens in LENSES:
+        assert float(arts[lens]["uncertainty_contribution"].sel(term="extra").max()) == 0.0
+    components = [{"name": "sphere_drift", "relative_sigma": 0.03, "reason": "lab log, 2 h warm-up"},
+                  {"name": "stray_light", "relative_sigma": 0.04}]
+    cfg = {**config, "absolute": {**config["absolute"], "extra_uncertainty": components}}
+    out = tmp_path / "far.nc"
+    run_stage("absolute", root, cfg, {"far": out}, {"spectral": spec, "geometry": geometry})
+    new, old = read_artefact(out, "absolute"), arts["far"]
+    np.testing.assert_allclose(new["uncertainty_contribution"].sel(term="extra").values, 0.05, rtol=1e-12)
+    np.testing.assert_allclose(new["inverse_responsivity"].values, old["inverse_responsivity"].values, rtol=1e-12)
+    np.testing.assert_allclose(new["relative_sigma"].values ** 2, old["relative_sigma"].values ** 2 + 0.05**2, rtol=1e-9)
+    assert "sphere_drift" in new.attrs["extra_uncertainty"]
+    twice = {**config, "absolute": {**config["absolute"], "extra_uncertainty": components[:1] * 2}}
+    with pytest.raises(InputError, match="given twice"):
+        run_stage("absolute", root, twice, {"far": tmp_path / "x.nc"}, {"spectral": spec, "geometry": geometry})

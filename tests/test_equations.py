@@ -102,8 +102,8 @@ def test_budget_uses_eq9():
     wl = np.arange(400.0, 701.0, 10.0)
     flat = np.ones_like(wl)
     out = absolute_calibration_budget(wl, flat, np.ones_like(wl), 61e3, 1e3, reference_value=0.74e-3,
-                                      reference_sigma=0.0, lamp_relative_sigma=None, extra_relative_sigma=0.1)
-    # flat source scaled to 0.74 mW: L = 0.74e-3, u_L = 10 %; R^-1 = 0.74e-3 / 61e3 = 1.2131e-8,
+                                      reference_sigma=0.0, lamp_relative_sigma=None, extra_components={"a": 0.08, "b": 0.06})
+    # flat source scaled to 0.74 mW: L = 0.74e-3, u_L = hypot(8 %, 6 %) = 10 %; R^-1 = 0.74e-3 / 61e3 = 1.2131e-8,
     # relative sigma hypot(0.10, 1 / 61) = 10.13 %
     assert out["inverse_responsivity"] == pytest.approx(1.2131e-8, rel=1e-4)
     assert out["relative_sigma"] == pytest.approx(np.hypot(0.1, 1 / 61), rel=1e-12)

@@ -69,7 +69,7 @@ def test_budget_simulated_camera_recovers_table1():
         # stated terms alone: 8.6-9.3 %, short of the published 10.4-11 %
         assert 0.085 < out["relative_sigma"] < 0.095
         # with a further 6 % source term the published totals come back within 0.5 pp
-        out6 = _budget(band, DN_S[i], DN_S_SIGMA[i], extra_relative_sigma=0.06)
+        out6 = _budget(band, DN_S[i], DN_S_SIGMA[i], extra_components={"unexplained_source": 0.06})
         assert out6["relative_sigma"] == pytest.approx(R_INV_REL_SIGMA[i], abs=0.005), band
         assert out6["inverse_responsivity_sigma"] == pytest.approx(out6["relative_sigma"] * out6["inverse_responsivity"])
 

@@ -23,9 +23,9 @@ Which terms dominate (Section 3.5 and Table 1)
     2796 K Planck source, Table 1 DN); the published
     10.4-11 % implies about 6 % more in the source radiance that the text
     does not break down (spectrometer noise/stray light, sphere drift);
-    extra_relative_sigma = 0.06 gives 10.5, 10.7, 11.1 %. So
-    ``spectrometer_noise`` or ``extra_relative_sigma`` must carry it to
-    reproduce the paper.
+    one further component of 0.06 gives 10.5, 10.7, 11.1 %. So
+    ``spectrometer_noise`` or a named ``extra_components`` entry must carry
+    it to reproduce the paper; by default there is none.
 
     Note: a calibration-lamp error that is a pure scale factor cancels when
     the spectrum is rescaled at 589 nm; the paper nevertheless counts it in
@@ -100,7 +100,7 @@ def absolute_calibration_budget(
     reference_sigma=REFERENCE_RADIANCE_SIGMA_W_SR_M2_NM,
     lamp_relative_sigma="manufacturer",
     lamp_reference_correlation=0.0,
-    extra_relative_sigma=0.0,
+    extra_components=None,
     response_relative_sigma=0.0,
 ):
     """R^-1 of one band from the source spectrum, the reference reading and the image DN.
@@ -124,8 +124,10 @@ def absolute_calibration_budget(
     lamp_relative_sigma : "manufacturer" (9.1 % at 400 nm to 6.9 % at
         800 nm), a scalar, an (n,) array, or None to leave it out
     lamp_reference_correlation : rho in [0, 1], see the module docstring
-    extra_relative_sigma : further relative uncertainty of the source
-        radiance (e.g. 0.06 to match the paper's 10.4-11 %)
+    extra_components : mapping name -> relative standard uncertainty of the
+        source radiance that the user supplies (e.g. sphere drift measured
+        in the lab); independent of each other and of the other terms; each
+        is reported as ``extra:<name>``, their quadrature sum as ``extra``
     response_relative_sigma : relative uncertainty of y_DN from the fitted
         response corrections (shutter offset, ISO gain factor, nonlinearity)
         applied by the measurement chain; common to every frame of the band
@@ -178,10 +180,14 @@ def absolute_calibration_budget(
         # (the reference point enters the band average with a small weight)
         contrib["spectrometer_noise"] = float(np.hypot(band_noise / l_eff, ref_noise))
 
-    contrib["extra"] = float(extra_relative_sigma)
+    extras = {f"extra:{name}": float(value) for name, value in (extra_components or {}).items()}
+    if any(v < 0 for v in extras.values()):
+        raise ValueError(f"extra uncertainty components must be >= 0, got {extras}")
+    contrib["extra"] = float(np.sqrt(sum(v**2 for v in extras.values())))
     contrib["image"] = float(dn_per_s_sigma / dn_per_s)
     contrib["response"] = float(response_relative_sigma)
     u_l = float(np.sqrt(sum(v**2 for k, v in contrib.items() if k not in ("image", "response"))))
+    contrib.update(extras)      # listed one by one; already in u_l through their sum 'extra'
     y_sigma = float(dn_per_s) * float(np.hypot(contrib["image"], contrib["response"]))
     r_inv, r_inv_sigma = inverse_responsivity(l_eff, float(dn_per_s), l_eff * u_l, y_sigma)
     r_inv, r_inv_sigma = float(r_inv), float(r_inv_sigma)
@@ -192,5 +198,5 @@ def absolute_calibration_budget(
         "effective_radiance": l_eff,
         "effective_radiance_sigma": l_eff * u_l,
         "contributions": contrib,
-        "dominant": max(contrib, key=contrib.get),
+        "dominant": max((k for k in contrib if not k.startswith("extra:")), key=contrib.get),
     }

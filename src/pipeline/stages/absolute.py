@@ -42,6 +42,7 @@ corrections, one free level per group
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -60,6 +61,16 @@ from pipeline.stages.spectral import central_masks, dark_levels, frame_table, re
 
 STAGE = "absolute"
 TERMS = ("lamp_calibration", "reference", "spectrometer_noise", "extra", "image", "response")
+
+
+def extra_components(cfg: dict) -> dict[str, float]:
+    """The user's named source-radiance uncertainties (``absolute.extra_uncertainty``), name -> relative sigma."""
+    out = {}
+    for item in cfg.get("extra_uncertainty", []):
+        if item["name"] in out:
+            raise InputError(None, f"config absolute.extra_uncertainty: the name '{item['name']}' is given twice")
+        out[item["name"]] = float(item["relative_sigma"])
+    return out
 
 
 def reference_reading(table: pd.DataFrame, path: Path, wavelength_nm: float,
@@ -152,7 +163,7 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
                 reference_wavelength_nm=cfg["reference_wavelength_nm"], reference_value=ref_value,
                 reference_sigma=ref_value * ref_rel, lamp_relative_sigma=lamp,
                 lamp_reference_correlation=cfg["lamp_reference_correlation"],
-                extra_relative_sigma=cfg["extra_relative_sigma"], response_relative_sigma=y_resp / y)
+                extra_components=extra_components(cfg), response_relative_sigma=y_resp / y)
             rows.append({"band": band, "y": y, "y_sigma": y_sigma, "y_std": y_std, "y_se": y_se, "y_resp": y_resp,
                          "n_mask": n_mask, "n_frames": n_tot, "budget": budget,
                          "dark_dn": darks[(lens, band, keys[0][4], keys[0][5])]["level_dn"],
@@ -161,6 +172,8 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
         out[lens] = _lens_dataset(rows, wl, scaled, ref_value, ref_rel, fr[fr["lens"] == lens].reset_index(drop=True),
                                   cfg)
         out[lens].attrs["response_corrections"] = ",".join(response_effects(lin))
+        # the 'extra' term of the budget is the quadrature sum of these named components
+        out[lens].attrs["extra_uncertainty"] = json.dumps(cfg.get("extra_uncertainty", []))
     return out
 
 
