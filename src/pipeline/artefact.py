@@ -24,9 +24,10 @@ from pipeline.errors import ArtefactError
 #: schema version of each stage's output; bump when a stage's variables change meaning.
 #: linearity 2: saturation found in the data (saturation_dn NaN when not reached, its lower bound,
 #: the count of saturated settings); spectral 2 and absolute 2: frames corrected by the fitted
-#: response (linearity artefact) and, for absolute, a 'response' term in the budget.
+#: response (linearity artefact) and, for absolute, a 'response' term in the budget; immersion 2:
+#: the same for its air and water frames.
 ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 1, "rolloff": 1, "spectral": 2,
-                     "absolute": 2, "immersion": 1, "calibration": 1}
+                     "absolute": 2, "immersion": 2, "calibration": 1}
 
 
 def sha256_file(path: str | Path, chunk: int = 1 << 22) -> str:

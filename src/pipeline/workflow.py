@@ -81,7 +81,7 @@ STAGES: dict[str, StageSpec] = {spec.name: spec for spec in (
     StageSpec("absolute", "absolute", sidecars=("source_spectrum.csv", "source_reference.csv"),
               upstream=("spectral", "geometry"), optional_upstream=("dark", "linearity")),
     StageSpec("immersion", "immersion", sidecars=("water.yaml",), upstream=("geometry",),
-              optional_upstream=("spectral",)),
+              optional_upstream=("spectral", "linearity")),
 )}
 
 #: Peak memory of one lens job: a fixed part (the interpreter and libraries, measured as the

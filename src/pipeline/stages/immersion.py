@@ -26,6 +26,8 @@ from pipeline.frames import iter_frames
 from pipeline.moments import RunningMoments
 from pipeline.radiometry.fresnel import transmittance_air_water
 from pipeline.radiometry.exposure import exposure_gain_s
+from pipeline.radiometry.measurement import FrameSettings
+from pipeline.radiometry.response import response_corrected, response_effects
 from pipeline.radiometry.immersion import (fit_immersion_factor, n_squared_law_factor,
                                            window_index_from_immersion_factor)
 from pipeline.radiometry.water import refractive_index_water
@@ -83,10 +85,35 @@ def reduce_immersion(dataset, geometry: dict[str, xr.Dataset], config: dict, pro
     return {"frames": pd.DataFrame(rows), "inputs": inputs}
 
 
-def analyse_immersion(reduced: dict, water: dict, wavelengths: dict[str, float]) -> dict[str, xr.Dataset]:
-    fr = reduced["frames"]
-    # DN per second at ISO 100, Eq. (2) (the frames may use different settings)
-    fr = fr.assign(dn=fr["dn"] / exposure_gain_s(fr["exposure_s"], fr["iso"]))
+def response_normalised(fr: pd.DataFrame, linearity: xr.Dataset | None) -> np.ndarray:
+    """Each frame's mask DN as DN s-1 at ISO 100 (Eq. 2), through the measurement chain's response steps.
+
+    With the lens's linearity artefact, the fitted response corrections of its
+    model (shutter offset: true exposure t + dt; per-ISO gain factors;
+    inverse nonlinearity) are applied (radiometry.response.response_corrected),
+    so air and water frames taken at different settings compare on the true
+    exposure; without it, the nominal t ISO/100. The mask mean is corrected
+    (not pixel by pixel): the 1.5 degree masks are small enough that the
+    pixel-to-pixel response spread averages out in the ratio.
+    """
+    if linearity is None:
+        return (fr["dn"] / exposure_gain_s(fr["exposure_s"], fr["iso"])).to_numpy(float)
+    out = np.empty(len(fr))
+    for k, (_, r) in enumerate(fr.iterrows()):
+        frame = FrameSettings(exposure_s=float(r["exposure_s"]), iso=float(r["iso"]))
+        _, per_s = response_corrected(float(r["dn"]), linearity, r["band"], frame)
+        out[k] = float(per_s.value)
+    return out
+
+
+def analyse_immersion(reduced: dict, water: dict, wavelengths: dict[str, float],
+                      linearity: dict[str, xr.Dataset] | None = None) -> dict[str, xr.Dataset]:
+    fr = reduced["frames"].copy()
+    # DN per second at ISO 100, Eq. (2) (the frames may use different settings), per lens through
+    # the fitted response when its linearity artefact is given
+    for lens in fr["lens"].unique():
+        sel = fr["lens"] == lens
+        fr.loc[sel, "dn"] = response_normalised(fr[sel], (linearity or {}).get(lens))
     out = {}
     for lens, fl in fr.groupby("lens"):
         res, obs = {}, []
@@ -116,6 +143,7 @@ def analyse_immersion(reduced: dict, water: dict, wavelengths: dict[str, float])
             per["used"] = 1
             obs.append(per.drop(columns=["var"]))
         out[lens] = _dataset(res, pd.concat(obs, ignore_index=True), water)
+        out[lens].attrs["response_corrections"] = ",".join(response_effects((linearity or {}).get(lens)))
     return out
 
 
@@ -160,7 +188,9 @@ def compute(ctx) -> xr.Dataset:
     """
     reduced = reduce_immersion(ctx.dataset, {ctx.lens: ctx.upstream["geometry"]}, ctx.config, progress=ctx.progress)
     ctx.record_frames(reduced["inputs"])
-    arts = analyse_immersion(reduced, read_water(ctx.dataset), effective_wavelengths(ctx.upstream.get("spectral")))
+    linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else None
+    arts = analyse_immersion(reduced, read_water(ctx.dataset), effective_wavelengths(ctx.upstream.get("spectral")),
+                             linearity)
     if ctx.lens not in arts:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no immersion frames for lens {ctx.lens}")
     return arts[ctx.lens]
