@@ -21,6 +21,7 @@ and the command line use it to declare their inputs.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import importlib
 import json
 import logging
@@ -206,6 +207,62 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
         log.info("%s %s: wrote %s (%d inputs hashed)", stage, lens, out_path, len(inputs))
         out[lens] = art
     return out
+
+
+# --------------------------------------------------------------------------- the code a stage runs
+PACKAGE_ROOT = Path(__file__).resolve().parent
+
+
+def _module_path(name: str) -> Path | None:
+    parts = name.split(".")[1:]
+    if not parts:
+        return PACKAGE_ROOT / "__init__.py"
+    rel = Path(*parts)
+    for path in (PACKAGE_ROOT / rel.with_suffix(".py"), PACKAGE_ROOT / rel / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def _package_imports(path: Path) -> set[str]:
+    """The ``pipeline.*`` modules a source file imports (at any depth of the file)."""
+    import ast
+
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "pipeline":
+            out.add(node.module)
+            out.update(f"{node.module}.{a.name}" for a in node.names)      # "from pipeline.x import module"
+        elif isinstance(node, ast.Import):
+            out.update(a.name for a in node.names if a.name.split(".")[0] == "pipeline")
+    return out
+
+
+def stage_code_modules(stage: str) -> list[str]:
+    """The package's modules whose code a stage's job runs: its module and all it imports, transitively."""
+    seen, todo = set(), [f"pipeline.stages.{stage}", "pipeline.workflow"]
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        path = _module_path(name)
+        if path is None:
+            continue
+        seen.add(name)
+        parts = name.split(".")
+        # a module also runs its packages' __init__ (e.g. pipeline.effects registers the built-in effects)
+        todo += [".".join(parts[:k]) for k in range(2, len(parts))]
+        todo += sorted(_package_imports(path))
+    return sorted(seen)
+
+
+def stage_code_sha256(stage: str) -> str:
+    """sha256 of the source of every module a stage runs: a rule's param, so a code change reruns it."""
+    h = hashlib.sha256()
+    for name in stage_code_modules(stage):
+        h.update(name.encode())
+        h.update(_module_path(name).read_bytes())
+    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------- the dataset index

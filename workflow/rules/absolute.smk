@@ -20,5 +20,7 @@ rule absolute:
         dataset=config["dataset"],
         config=stage_params(config, "absolute"),
         dataset_subset=dataset_subset("absolute"),
+        # the package code the job runs: editing it reruns the stage and what depends on it
+        code=stage_code_sha256("absolute"),
     script:
         "../scripts/absolute.py"

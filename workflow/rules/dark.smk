@@ -20,5 +20,7 @@ rule dark:
         dataset=config["dataset"],
         config=stage_params(config, "dark"),
         dataset_subset=dataset_subset("dark"),
+        # the package code the job runs: editing it reruns the stage and what depends on it
+        code=stage_code_sha256("dark"),
     script:
         "../scripts/dark.py"

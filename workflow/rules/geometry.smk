@@ -21,5 +21,7 @@ rule geometry:
         dataset=config["dataset"],
         config=stage_params(config, "geometry"),
         dataset_subset=dataset_subset("geometry"),
+        # the package code the job runs: editing it reruns the stage and what depends on it
+        code=stage_code_sha256("geometry"),
     script:
         "../scripts/geometry.py"

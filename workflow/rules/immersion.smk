@@ -20,5 +20,7 @@ rule immersion:
         dataset=config["dataset"],
         config=stage_params(config, "immersion"),
         dataset_subset=dataset_subset("immersion"),
+        # the package code the job runs: editing it reruns the stage and what depends on it
+        code=stage_code_sha256("immersion"),
     script:
         "../scripts/immersion.py"

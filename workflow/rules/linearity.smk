@@ -20,5 +20,7 @@ rule linearity:
         dataset=config["dataset"],
         config=stage_params(config, "linearity"),
         dataset_subset=dataset_subset("linearity"),
+        # the package code the job runs: editing it reruns the stage and what depends on it
+        code=stage_code_sha256("linearity"),
     script:
         "../scripts/linearity.py"

@@ -20,5 +20,7 @@ rule rolloff:
         dataset=config["dataset"],
         config=stage_params(config, "rolloff"),
         dataset_subset=dataset_subset("rolloff"),
+        # the package code the job runs: editing it reruns the stage and what depends on it
+        code=stage_code_sha256("rolloff"),
     script:
         "../scripts/rolloff.py"

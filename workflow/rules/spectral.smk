@@ -20,5 +20,7 @@ rule spectral:
         dataset=config["dataset"],
         config=stage_params(config, "spectral"),
         dataset_subset=dataset_subset("spectral"),
+        # the package code the job runs: editing it reruns the stage and what depends on it
+        code=stage_code_sha256("spectral"),
     script:
         "../scripts/spectral.py"
