@@ -902,6 +902,56 @@ def _spectral_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
     return "\n".join(out)
 
 
+def snr_against_radiance(radiance, ner: float, lod: float, lod_snr: float):
+    """Signal-to-noise ratio at each radiance, from the noise-equivalent radiance and the limit of detection.
+
+    The measurement chain's random noise is sigma^2 = a + b L (read and dark noise, shot noise) in
+    radiance units; NER is where L = sigma (SNR 1), the limit of detection where L = k sigma. The
+    two conditions give b = (LoD^2 / k^2 - NER^2) / (LoD - NER), a = NER^2 - b NER, and
+    SNR(L) = L / sqrt(a + b L) (Section 3.8).
+    """
+    b = (lod**2 / lod_snr**2 - ner**2) / (lod - ner)
+    a = ner**2 - b * ner
+    radiance = np.asarray(radiance, dtype=float)
+    return radiance / np.sqrt(a + b * radiance)
+
+
+def _noise_floor_section(bundle: xr.Dataset | None, figs: _Figures) -> str:
+    """NER and limit of detection per lens and band from the calibration bundle, and SNR against radiance."""
+    if bundle is None or "noise_equivalent_radiance" not in bundle:
+        return ""
+    ner, lod = bundle["noise_equivalent_radiance"], bundle["limit_of_detection"]
+    k = float(lod.attrs.get("snr", 3.0))
+    at = f"ISO {lod.attrs.get('iso', 100):g}, {lod.attrs.get('exposure_s', 1):g} s"
+    rows = [[str(lens), str(band), f"{float(ner.sel(lens=lens, band=band)):.3g}",
+             f"{float(lod.sel(lens=lens, band=band)):.3g}"]
+            for lens in bundle["lens"].values for band in bundle["band"].values]
+    out = [f'<h3 id="noise-floor">Noise-equivalent radiance and limit of detection ({_e(at)})</h3>',
+           "<p>From the calibration bundle: the radiance on the optical axis whose signal equals its random "
+           f"noise (NER, SNR 1) and the limit of detection (SNR {k:g}), through the measurement chain with "
+           "the dark stage's read noise, the photon-transfer gain and R⁻¹ (Section 3.8; the paper reports "
+           "NER 1.1e-7, 4.5e-8, 1.1e-7 and limits 4.6e-7, 1.8e-7, 4.6e-7 W sr⁻¹ m⁻² nm⁻¹ for R, G, B).</p>",
+           _table(["lens", "band", "NER [W sr⁻¹ m⁻² nm⁻¹]", f"limit of detection, SNR {k:g} [W sr⁻¹ m⁻² nm⁻¹]"],
+                  rows, left=2)]
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    radiance = np.logspace(-9, -1, 200)
+    for lens, style in zip(bundle["lens"].values, ("-", "--", ":")):
+        for band in bundle["band"].values:
+            n, d = float(ner.sel(lens=lens, band=band)), float(lod.sel(lens=lens, band=band))
+            if np.isfinite(n) and np.isfinite(d) and d > n > 0:
+                ax.loglog(radiance, snr_against_radiance(radiance, n, d, k), style, color=BAND_COLOURS.get(str(band)),
+                          label=f"{lens} {band}")
+    ax.axhline(k, color="0.4", lw=0.8)
+    ax.set_xlabel("spectral radiance [W sr⁻¹ m⁻² nm⁻¹]")
+    ax.set_ylabel(f"signal-to-noise ratio ({at})")
+    ax.legend(fontsize=8, ncol=2)
+    ax.grid(True, which="both", alpha=0.3)
+    out.append(figs.embed(fig, "snr_against_radiance",
+                          f"Signal-to-noise ratio of one pixel on the optical axis against spectral radiance ({at}); "
+                          f"the grey line is SNR {k:g}, the limit of detection."))
+    return "\n".join(out)
+
+
 def _absolute_section(lens: str, ds: xr.Dataset, figs: _Figures, spectral: xr.Dataset | None) -> str:
     out = [f'<h3 id="absolute-{_e(lens)}">Lens “{_e(lens)}”</h3>']
     bands = _bands(ds)
@@ -1121,7 +1171,7 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                  skipped: dict[str, str] | None = None, figures_dir: Path | None = None,
                  geometry: dict[str, Path] | None = None, rolloff: dict[str, Path] | None = None,
                  spectral: dict[str, Path] | None = None, absolute: dict[str, Path] | None = None,
-                 immersion: dict[str, Path] | None = None) -> Path:
+                 immersion: dict[str, Path] | None = None, calibration: Path | None = None) -> Path:
     """Write the calibration report as one self-contained HTML file and return its path.
 
     ``dark`` and ``linearity`` map lens name to artefact path; the four CSVs
@@ -1129,7 +1179,8 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
     reason it did not run. ``geometry``, ``rolloff``, ``spectral``,
     ``absolute`` and ``immersion`` (optional) map lens name to that stage's
     artefact; a stage given as None or empty gets a section saying it was not
-    run. PNG copies of the figures go to ``figures_dir`` when given. The file
+    run. ``calibration`` (optional) is the calibration bundle: its noise-equivalent
+    radiance and limit of detection go into the absolute section. PNG copies of the figures go to ``figures_dir`` when given. The file
     is written to a temporary sibling and renamed.
     """
     out_html = Path(out_html)
@@ -1244,6 +1295,8 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                 sec.append(_absolute_section(lens, ds, figs, later["spectral"].get(lens)))
             else:
                 sec.append(_immersion_section(lens, ds, figs))
+        if st == "absolute" and calibration is not None:
+            sec.append(_noise_floor_section(read_artefact(calibration, "calibration"), figs))
         body.append("\n".join(sec))
 
     # diagnostics

@@ -9,4 +9,5 @@ artefacts = {stage: dict(zip(smk.params.lenses, smk.input[stage])) if stage in s
              for stage in STAGES}
 exit_on_input_error(build_report, **artefacts, missing_effects=smk.input.missing_effects,
                     unexplained=smk.input.unexplained, run_errors=smk.input.run_errors,
-                    error_history=smk.input.error_history, out_html=smk.output.html, skipped=smk.params.skipped)
+                    error_history=smk.input.error_history, out_html=smk.output.html, skipped=smk.params.skipped,
+                    calibration=smk.input.calibration if "calibration" in smk.input.keys() else None)
