@@ -946,6 +946,7 @@ def _noise_floor_section(bundle: xr.Dataset | None, figs: _Figures) -> str:
     ax.set_ylabel(f"signal-to-noise ratio ({at})")
     ax.legend(fontsize=8, ncol=2)
     ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
     out.append(figs.embed(fig, "snr_against_radiance",
                           f"Signal-to-noise ratio of one pixel on the optical axis against spectral radiance ({at}); "
                           f"the grey line is SNR {k:g}, the limit of detection."))
