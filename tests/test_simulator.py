@@ -65,3 +65,15 @@ def test_command_line(tmp_path):
                           "--effect", "dark_current:rate=x"], capture_output=True, text=True)
     assert bad.returncode == 1
     assert bad.stderr.strip().count("\n") == 0 and bad.stderr.startswith("error:")
+
+
+def test_a_scale_object_sets_the_frame_counts(tmp_path):
+    """A benchmark's own Scale (the lens region of one scale, fewer frames per setting) is accepted."""
+    from pipeline.simulate.dataset import SCALES, Scale
+
+    fewer = Scale("tiny", lens_px=SCALES["tiny"].lens_px, dark_frames=2, linearity_frames=2)
+    root = simulate_dataset(tmp_path / "d", scale=fewer, seed=1, experiments=("dark",), progress=False)
+    n_default = len(open_dataset(simulate_dataset(tmp_path / "e", scale="tiny", seed=1, experiments=("dark",),
+                                                  progress=False)).frames("dark"))
+    assert len(open_dataset(root).frames("dark")) * SCALES["tiny"].dark_frames == n_default * 2
+    assert yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())["scale"]["dark_frames"] == 2

@@ -267,7 +267,9 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     )
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.name}.tmp")
-    big = {name: {"zlib": True, "complevel": 4} for name, var in ds.data_vars.items()
+    # zlib level 1 with the byte shuffle: about as small as level 4 without it, and the write is most of
+    # apply's time at the full scale (benchmarks/bench_apply.py)
+    big = {name: {"zlib": True, "complevel": 1, "shuffle": True} for name, var in ds.data_vars.items()
            if var.dtype.kind in "fiu" and var.size > 1024}
     ds.to_netcdf(tmp, engine="netcdf4", encoding=big)
     os.replace(tmp, out_path)

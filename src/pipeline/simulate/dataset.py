@@ -60,18 +60,21 @@ def truth_dir_for(dataset: str | Path) -> Path:
     return dataset.parent / f"{dataset.name}.truth"
 
 
-def simulate_dataset(out: str | Path, scale: str = "small", seed: int = 0,
+def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 0,
                      effects: list[tuple[str, dict]] = (), experiments=EXPERIMENTS,
                      progress: bool = True, sensor: dict | None = None) -> Path:
     """Simulate the calibration experiments into ``out`` (which must not exist yet).
 
     The dataset is written to a temporary sibling folder and renamed at the
     end, so a crash never leaves a half-written dataset; the truth goes to
-    :func:`truth_dir_for` ``(out)``.
+    :func:`truth_dir_for` ``(out)``. ``scale`` is a name of :data:`SCALES` or
+    a :class:`Scale` (e.g. the full lens region with fewer frames per setting,
+    for a benchmark); the scale's ``name`` chooses the chessboard and the
+    geometry frame count.
     """
     out = Path(out)
     truth = truth_dir_for(out)
-    if scale not in SCALES:
+    if not isinstance(scale, Scale) and scale not in SCALES:
         raise InputError(None, f"unknown scale '{scale}'; choose one of {', '.join(SCALES)}")
     for path in (out, truth):
         if path.exists():
@@ -80,7 +83,7 @@ def simulate_dataset(out: str | Path, scale: str = "small", seed: int = 0,
     if unknown:
         raise InputError(None, f"the simulator does not write {', '.join(unknown)} yet; "
                                f"it writes {', '.join(PLANNERS)}")
-    sc = SCALES[scale]
+    sc = scale if isinstance(scale, Scale) else SCALES[scale]
     try:
         camera = Camera(sensor=replace(SensorParams(), **(sensor or {})))
     except TypeError as exc:
@@ -103,7 +106,7 @@ def simulate_dataset(out: str | Path, scale: str = "small", seed: int = 0,
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=total, unit="frame", desc=f"simulating {scale} dataset", leave=False,
+        bar = tqdm(total=total, unit="frame", desc=f"simulating {sc.name} dataset", leave=False,
                    disable=None)
     clock = START_TIME
     try:
@@ -134,7 +137,7 @@ def simulate_dataset(out: str | Path, scale: str = "small", seed: int = 0,
             "lenses": {lens: {"rows": [i * n, (i + 1) * n], "cols": [0, n]}
                        for i, lens in enumerate(camera.lens_names)},
             "chessboard": geometry.board_design(sc.name).dataset_entry(),
-            "description": f"simulated dataset, scale {scale}, seed {seed}",
+            "description": f"simulated dataset, scale {sc.name}, seed {seed}",
         }
         (tmp / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
         write_md5sums(tmp)

@@ -1,0 +1,189 @@
+"""Time ``apply`` on one full-resolution frame against the decode of the same frame, in the same run.
+
+    python benchmarks/bench_apply.py [--repeat 5] [--work /tmp/bench-apply] [--seed 1]
+
+The decode floor is what every stage pays per frame: ``pipeline.rawio.read_raw``
+(rawpy decode and tags) of the DNG plus ``pipeline.bands.split_bands`` of each
+lens region. ``apply`` is ``pipeline.apply.apply_calibration(bundle, [frame],
+"air", out)``: decode, the measurement chain on every band pixel of both
+lenses, the sphere grid and the NetCDF write. Each is run ``--repeat`` times,
+each run in a fresh Python process, alternating; the script prints the
+minimum and median wall time, the peak resident memory of each process
+(``ru_maxrss``) and the ratio apply / decode of the medians.
+
+The calibration bundle (made once, kept in ``--work``; several GB, keep it
+out of the repository) has the real camera's 6912 x 3456 frame and
+1728 x 1728 band images, but is not the full simulated dataset: simulating
+the experiments the bundle needs at the full scale takes about 1,300 frames
+at 2 to 6 s each (over an hour on 2 cores). So:
+
+* dark, linearity and absolute are simulated at the full lens region
+  (3456 px) with 3 dark frames and 2 linearity frames per setting instead of
+  15 and 4 (a :class:`pipeline.simulate.dataset.Scale` of this script) and the
+  absolute experiment's own counts; their stages run on those frames at full
+  resolution (hot-pixel mask, read noise, dark model, gain, R^-1);
+* geometry is not fitted: its artefact holds the simulator's true per-band
+  maps at the full resolution (what the tests hand later stages; the
+  geometry stage itself costs about 5 min per lens at this scale);
+* roll-off and spectral (per-band coefficients only, no pixel maps) are
+  simulated and fitted at the small scale with their full frame counts.
+
+``apply`` reads only the bundle's values, so its cost is that of a bundle made
+from the whole dataset; its radiances are not a truth test (tests/test_apply.py
+is). The frame timed is the first signal frame of the full-scale absolute
+experiment (ISO 100, calibrated exposure).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+LENSES = ("far", "close")
+EFFECTS = [("dark_current", {}), ("hot_pixels", {})]
+FULL_EXPERIMENTS = ("dark", "linearity", "absolute")
+SMALL_EXPERIMENTS = ("rolloff", "spectral")
+
+
+def _simulate(folder: str, scale, seed: int, experiments) -> float:
+    from pipeline.simulate import simulate_dataset
+
+    t0 = time.perf_counter()
+    simulate_dataset(folder, scale=scale, seed=seed, effects=EFFECTS, experiments=experiments, progress=False)
+    return time.perf_counter() - t0
+
+
+def _true_geometry(folder: Path, band_px: int, effects) -> dict:
+    from pipeline.artefact import write_artefact
+    from pipeline.simulate.rolloff import true_band_models
+    from pipeline.stages.geometry_maps import maps_dataset
+
+    import numpy as np
+
+    from pipeline.bands import BANDS
+
+    paths = {}
+    for lens in LENSES:
+        models = true_band_models(lens, band_px)
+        ds = maps_dataset(models, (band_px, band_px))
+        for name, value in (("circle_xc_px", lambda m: m.xc), ("circle_yc_px", lambda m: m.yc),
+                            ("circle_radius_px", lambda m: m.image_circle_radius())):
+            ds[name] = (("medium", "band"), np.array([[value(models[(m, b)]) for b in BANDS]
+                                                      for m in ds["medium"].values]), {"units": "pixel"})
+        paths[lens] = write_artefact(ds, folder / f"{lens}.nc", stage="geometry", inputs={}, config_subset={},
+                                     effects=effects)
+    return paths
+
+
+def build(work: Path, seed: int) -> tuple[Path, Path]:
+    """The full-resolution bundle and the frame to time (made once; see the module docstring)."""
+    import yaml
+
+    from pipeline.calibration import build_bundle
+    from pipeline.config import load_config
+    from pipeline.simulate.dataset import SCALES, Scale
+    from pipeline.workflow import STAGES, load_model, run_stage
+
+    full, small = work / "dataset-full-reduced", work / "dataset-small"
+    results = work / "results"
+    bundle = results / "calibration" / "bundle.nc"
+    if not bundle.exists():
+        reduced = Scale("full", lens_px=SCALES["full"].lens_px, dark_frames=3, linearity_frames=2)
+        jobs = [(str(full), reduced, seed, FULL_EXPERIMENTS), (str(small), "small", seed, SMALL_EXPERIMENTS)]
+        jobs = [j for j in jobs if not Path(j[0]).exists()]
+        with ProcessPoolExecutor(max_workers=2) as pool:
+            for job, took in zip(jobs, pool.map(_simulate, *zip(*jobs))):
+                print(f"simulated {job[0]} ({', '.join(job[3])}) in {took:.0f} s", flush=True)
+        cfg = load_config()
+        effects = load_model(cfg)
+        t0 = time.perf_counter()
+        art = {}
+        for tag, root in (("small", small), ("full", full)):
+            meta = yaml.safe_load((root / "dataset.yaml").read_text())
+            band_px = (meta["lenses"]["far"]["rows"][1] - meta["lenses"]["far"]["rows"][0]) // 2
+            art[tag] = {"geometry": _true_geometry(results / f"geometry-{tag}", band_px, effects)}
+        for tag, root, stages in (("small", small, ("rolloff", "spectral")), ("full", full, ("dark", "linearity"))):
+            for stage in stages:
+                spec = STAGES[stage]
+                upstream = {n: art[tag][n] for n in spec.upstream + spec.optional_upstream if n in art[tag]}
+                art[tag][stage] = {lens: results / f"{stage}-{tag}" / f"{lens}.nc" for lens in LENSES}
+                if not all(p.exists() for p in art[tag][stage].values()):
+                    run_stage(stage, root, cfg, art[tag][stage], upstream)
+        art["full"]["spectral"] = art["small"]["spectral"]
+        spec = STAGES["absolute"]
+        art["full"]["absolute"] = {lens: results / "absolute-full" / f"{lens}.nc" for lens in LENSES}
+        if not all(p.exists() for p in art["full"]["absolute"].values()):
+            run_stage("absolute", full, cfg, art["full"]["absolute"],
+                      {n: art["full"][n] for n in spec.upstream + spec.optional_upstream if n in art["full"]})
+        art["full"]["rolloff"] = art["small"]["rolloff"]
+        meta = yaml.safe_load((full / "dataset.yaml").read_text())
+        build_bundle(art["full"], bundle, meta["camera"], meta["lenses"], cfg)
+        print(f"stages and bundle in {time.perf_counter() - t0:.0f} s", flush=True)
+    frames = [line.split(",") for line in (full / "absolute" / "frames.csv").read_text().splitlines()[1:]]
+    frame = full / "absolute" / next(f for f, _, kind in frames if kind == "signal")
+    return bundle, frame
+
+
+def child(what: str, frame: str, bundle: str, out: str) -> None:
+    """One timed call in this fresh process; prints wall time and peak RSS as JSON."""
+    import yaml
+
+    from pipeline.apply import apply_calibration
+    from pipeline.bands import cut_region, split_bands
+    from pipeline.rawio import read_raw
+
+    meta = yaml.safe_load((Path(frame).parents[2] / "dataset.yaml").read_text())
+    t0 = time.perf_counter()
+    if what == "decode":
+        raw = read_raw(frame)
+        for lens in LENSES:
+            region = meta["lenses"][lens]
+            split_bands(cut_region(raw.cfa, region["rows"], region["cols"]), raw.cfa_pattern)
+    else:
+        apply_calibration(bundle, [frame], "air", out, overwrite=True)
+    wall = time.perf_counter() - t0
+    print(json.dumps({"wall_s": wall, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--work", default="/tmp/bench-apply", help="folder for the datasets, artefacts and bundle")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--child", nargs=4, metavar=("WHAT", "FRAME", "BUNDLE", "OUT"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        child(*args.child)
+        return
+    work = Path(args.work)
+    bundle, frame = build(work, args.seed)
+    out = work / "apply-out.nc"
+    print(f"frame {frame} ({frame.stat().st_size / 1e6:.0f} MB), bundle {bundle} ({bundle.stat().st_size / 1e6:.0f} MB)")
+    runs = {"decode": [], "apply": []}
+    for _ in range(args.repeat):
+        for what in runs:
+            proc = subprocess.run([sys.executable, __file__, "--child", what, str(frame), str(bundle), str(out)],
+                                  capture_output=True, text=True)
+            if proc.returncode != 0:
+                sys.exit(f"{what} failed:\n{proc.stderr[-2000:]}")
+            runs[what].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    print(f"{args.repeat} runs each, each in a fresh process")
+    print(f"{'':<8} {'min ms':>8} {'median ms':>10} {'peak MiB':>9}")
+    med = {}
+    for what, rs in runs.items():
+        walls = [r["wall_s"] * 1e3 for r in rs]
+        med[what] = statistics.median(walls)
+        print(f"{what:<8} {min(walls):8.0f} {med[what]:10.0f} {max(r['peak_rss_mib'] for r in rs):9.0f}")
+    print(f"apply / decode (medians): {med['apply'] / med['decode']:.2f}")
+
+
+if __name__ == "__main__":
+    main()
