@@ -4,7 +4,13 @@ import sys
 from pathlib import Path
 
 from pipeline.errors import InputError
-from pipeline.workflow import STAGES, DatasetIndex, dataset_to_simulate, stage_code_sha256, stage_params
+from pipeline.workflow import (
+    STAGES,
+    DatasetIndex,
+    dataset_to_simulate,
+    stage_code_sha256,
+    stage_params,
+)
 from pipeline.calibration import BUNDLE_STAGES as CALIBRATION_STAGES
 from pipeline.calibration import REQUIRED_STAGES as CALIBRATION_REQUIRED
 
