@@ -16,6 +16,7 @@ configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 validate(config, os.path.join(workflow.basedir, "config", "schema.yaml"))
 
 # The rules' scripts import this checkout's package, also inside a rule's own software env.
+# (The workflow sets this variable for its jobs and never requires it, so it is no `envvars:` entry.)
 os.environ["PYTHONPATH"] = os.pathsep.join(
     p for p in (str(Path(workflow.basedir) / "src"), os.environ.get("PYTHONPATH")) if p
 )

@@ -18,7 +18,7 @@ import xarray as xr
 
 from pipeline.radiometry.exposure import gain_from_iso
 
-__all__ = ["dark_model_level_dn", "dark_level_dn", "subtract_dark", "temperature_shift_dn"]
+__all__ = ["dark_model_level_dn", "dark_level_dn", "temperature_model_shift_dn", "temperature_shift_dn"]
 
 
 def dark_model_level_dn(bias_dn, bias_per_gain_dn, dark_current_dn_per_s, gain, exposure_s):
@@ -27,6 +27,13 @@ def dark_model_level_dn(bias_dn, bias_per_gain_dn, dark_current_dn_per_s, gain, 
     E.g. b0 = 800, b1 = 0.7, D = 0.5 DN/s at g = 4 and t = 1 s -> 800 + 2.1 + 2 = 804.1 DN.
     """
     return bias_dn + bias_per_gain_dn * (gain - 1.0) + dark_current_dn_per_s * gain * exposure_s
+
+
+def temperature_model_shift_dn(bias_dn_per_c, dark_dn_per_s_per_c, reference_c, gain, exposure_s, temperature_c):
+    """The ``temperature`` effect's change of the dark level, from its parameters (vectorised):
+    (dB/dT + dD/dT g t) (T - T_ref), in DN."""
+    dt = np.asarray(temperature_c, dtype=float) - reference_c
+    return (bias_dn_per_c + dark_dn_per_s_per_c * gain * np.asarray(exposure_s, dtype=float)) * dt
 
 def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
                   temperature_c: float | None = None) -> float:
@@ -52,12 +59,5 @@ def temperature_shift_dn(ds: xr.Dataset, iso, exposure_s, temperature_c):
     """
     if "temperature_bias_dn_per_c" not in ds:
         return np.zeros(np.shape(temperature_c)) if np.ndim(temperature_c) else 0.0
-    dt = np.asarray(temperature_c, dtype=float) - float(ds["temperature_reference_c"])
-    return (float(ds["temperature_bias_dn_per_c"]) * dt
-            + float(ds["temperature_dark_dn_per_s_per_c"]) * gain_from_iso(iso) * np.asarray(exposure_s, float) * dt)
-
-
-def subtract_dark(image_dn: np.ndarray, ds: xr.Dataset, band: str, iso: float, exposure_s: float,
-                  temperature_c: float | None = None) -> np.ndarray:
-    """A band image with the dark model's level removed (DN above dark)."""
-    return np.asarray(image_dn, dtype=float) - dark_level_dn(ds, band, iso, exposure_s, temperature_c)
+    return temperature_model_shift_dn(float(ds["temperature_bias_dn_per_c"]), float(ds["temperature_dark_dn_per_s_per_c"]),
+                                      float(ds["temperature_reference_c"]), gain_from_iso(iso), exposure_s, temperature_c)

@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.errors import ImpossibleResult
-from pipeline.radiometry.dark import dark_model_level_dn
+from pipeline.radiometry.dark import dark_model_level_dn, temperature_model_shift_dn
 from pipeline.radiometry.exposure import gain_from_iso
 from pipeline.radiometry.rolloff import evaluate_rolloff
 
@@ -203,8 +203,8 @@ def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects) -
     level = dark_model_level_dn(dark.bias_dn, dark.bias_per_gain_dn, current, gain, frame.exposure_s)
     if "temperature" in effects and frame.temperature_c is not None and np.isfinite(frame.temperature_c) \
             and np.isfinite(dark.temperature_reference_c):
-        dt = frame.temperature_c - dark.temperature_reference_c
-        level += (dark.temperature_bias_dn_per_c + dark.temperature_dark_dn_per_s_per_c * gain * frame.exposure_s) * dt
+        level += temperature_model_shift_dn(dark.temperature_bias_dn_per_c, dark.temperature_dark_dn_per_s_per_c,
+                                            dark.temperature_reference_c, gain, frame.exposure_s, frame.temperature_c)
     sites = dark.sites_per_pixel
     shape = m.value.shape
     rand = dict(m.random_var)
