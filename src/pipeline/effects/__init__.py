@@ -24,3 +24,4 @@ from pipeline.effects import catalogue as _catalogue  # noqa: F401  (registers t
 
 __all__ = ["CATALOGUE", "Effect", "available", "get", "load_plugins", "register"]
 from pipeline.effects import optics as _optics  # noqa: F401,E402  (registers the roll-off and immersion effects)
+from pipeline.effects import field as _field  # noqa: F401,E402  (registers the field effects)

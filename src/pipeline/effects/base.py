@@ -133,6 +133,14 @@ class Effect:
         """Factor on every dark-current rate at ``temperature_c``."""
         return 1.0
 
+    def camera_clock_offset_s(self) -> float:
+        """Camera clock minus true time (s) of the frames a camera with this effect writes."""
+        return 0.0
+
+    def sky_spectral_exponent(self, hours_since_start: float) -> float:
+        """Exponent a of a factor (lambda / 550 nm)^(-a) on the simulated sky spectrum at that time."""
+        return 0.0
+
     def truth(self) -> dict:
         """What the simulator writes to the truth folder for this effect."""
         return {k: _plain(v) for k, v in self.params.items()}
