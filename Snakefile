@@ -32,6 +32,7 @@ include: "workflow/rules/spectral.smk"
 include: "workflow/rules/absolute.smk"
 include: "workflow/rules/immersion.smk"
 include: "workflow/rules/calibration.smk"
+include: "workflow/rules/field.smk"
 include: "workflow/rules/diagnostics.smk"
 include: "workflow/rules/report.smk"
 

@@ -301,17 +301,3 @@ def read_bundle(path: str | Path) -> xr.Dataset:
     """Open a calibration bundle (loaded), refusing another artefact or an unknown version."""
     return read_artefact(path, "calibration")
 
-
-def build_bundle_script(smk) -> None:
-    """Entry point of the ``calibration`` rule's thin script: the stage artefacts of both lenses -> the bundle."""
-    from pipeline.workflow import exit_on_input_error, setup_log
-
-    setup_log(smk.log[0] if smk.log else None)
-    artefacts = {}
-    for stage in BUNDLE_STAGES:
-        if stage in smk.input.keys():
-            paths = smk.input[stage]
-            paths = [paths] if isinstance(paths, str) else list(paths)
-            artefacts[stage] = {Path(p).stem: p for p in paths}
-    exit_on_input_error(build_bundle, artefacts, smk.output.bundle, smk.params.camera["camera"],
-                        smk.params.camera["lenses"], smk.params.config)

@@ -72,6 +72,7 @@ STAGE_SECTIONS = {
     "immersion": ("model", "immersion"),
     "diagnostics": ("model", "diagnostics"),
     "calibration": ("model", "calibration"),
+    "field": ("model", "apply", "field"),
 }
 
 

@@ -35,6 +35,8 @@ import pandas as pd
 import xarray as xr
 
 from pipeline.artefact import read_artefact, sha256_file, write_artefact
+from pipeline.calibration import REQUIRED_STAGES as BUNDLE_REQUIRED_STAGES
+from pipeline.calibration import BUNDLE_STAGES, build_bundle, read_bundle
 from pipeline.config import stage_params
 from pipeline.dataset import Dataset, open_dataset
 from pipeline.effects import load_plugins
@@ -58,12 +60,17 @@ class StageSpec:
     optional_upstream: tuple[str, ...] = ()
     #: top-level keys of dataset.yaml the stage reads besides ``camera`` and its lens's region
     reads_meta: tuple[str, ...] = ()
+    #: the stage applies the calibration bundle (every lab stage of both lenses) to its frames
+    bundle: bool = False
+    #: the stage runs only for the lenses its frames.csv names (the field: the lens at the zenith)
+    lenses_from_frames: bool = False
 
     @property
     def experiments(self) -> tuple[str, ...]:
         """Experiment folders the stage needs, its own and those of its required upstream stages."""
         out = [self.experiment]
-        for name in self.upstream:
+        needs = self.upstream + (BUNDLE_REQUIRED_STAGES if self.bundle else ())
+        for name in needs:
             out += [e for e in STAGES[name].experiments if e not in out]
         return tuple(out)
 
@@ -83,6 +90,8 @@ STAGES: dict[str, StageSpec] = {spec.name: spec for spec in (
               upstream=("spectral", "geometry"), optional_upstream=("dark", "linearity")),
     StageSpec("immersion", "immersion", sidecars=("water.yaml",), upstream=("geometry",),
               optional_upstream=("spectral", "linearity")),
+    StageSpec("field", "field", sidecars=("reference_radiometer.csv", "site.yaml"), bundle=True,
+              lenses_from_frames=True),
 )}
 
 #: Peak memory of one lens job: a fixed part (the interpreter and libraries, measured as the
@@ -94,7 +103,9 @@ STAGES: dict[str, StageSpec] = {spec.name: spec for spec in (
 #: 672 bytes per band pixel), which the small dataset's peak is too close to the fixed part to show.
 JOB_MEMORY_FIXED_MIB = 230.0
 JOB_MEMORY_BYTES_PER_BAND_PIXEL = {"dark": 700.0, "linearity": 400.0, "geometry": 2000.0, "rolloff": 350.0,
-                                   "spectral": 50.0, "absolute": 50.0, "immersion": 50.0}
+                                   "spectral": 50.0, "absolute": 50.0, "immersion": 50.0,
+                                   # the field applies the bundle (every per-pixel map of both lenses) to one frame at a time
+                                   "field": 400.0}
 JOB_MEMORY_HEADROOM = 1.5
 
 #: experiments each stage reads (a stage runs only when all are present)
@@ -141,6 +152,8 @@ class StageContext:
     effects: list[str]
     upstream: dict[str, xr.Dataset]
     progress: bool = False
+    #: the calibration bundle (stages with ``bundle``), opened with :func:`pipeline.calibration.read_bundle`
+    bundle: xr.Dataset | None = None
     #: input path relative to the dataset root -> sha256, filled as frames are decoded
     inputs: dict[str, str] = field(default_factory=dict)
 
@@ -165,11 +178,12 @@ def _relative(path: Path, root: Path) -> str:
 
 def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: dict[str, str | Path],
               upstream: dict[str, dict[str, str | Path]] | None = None,
-              progress: bool = False) -> dict[str, xr.Dataset]:
+              progress: bool = False, bundle: str | Path | None = None) -> dict[str, xr.Dataset]:
     """Run ``stage`` for each lens of ``outputs`` (lens -> artefact path); returns the artefacts.
 
     ``upstream`` maps an upstream stage to its artefacts per lens. A required
     upstream artefact that is missing stops the stage with a clear message.
+    ``bundle`` is the calibration bundle that a stage with ``bundle`` applies.
     """
     spec = STAGES[stage]
     module = spec.module()
@@ -184,6 +198,11 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
         if not path.is_file():
             raise InputError(path, "sidecar file is missing")
         fixed[f"{spec.experiment}/{name}"] = sha256_file(path)
+    calibration = None
+    if spec.bundle:
+        if bundle is None:
+            raise InputError(None, f"{stage} stage needs the calibration bundle; run the 'calibration' rule first")
+        calibration = read_bundle(bundle)
     out = {}
     for lens, out_path in outputs.items():
         out_path = Path(out_path)
@@ -198,8 +217,10 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
                 continue
             artefacts[name] = read_artefact(path, name)
             inputs[_relative(path, results_root)] = sha256_file(path)
+        if calibration is not None:
+            inputs[_relative(bundle, results_root)] = sha256_file(bundle)
         ctx = StageContext(stage=stage, lens=lens, dataset=lens_view(ds, lens), config=config,
-                           effects=effects, upstream=artefacts, progress=progress)
+                           effects=effects, upstream=artefacts, progress=progress, bundle=calibration)
         art = module.compute(ctx)
         inputs.update(ctx.inputs)
         write_artefact(art, out_path, stage=stage, inputs=inputs, config_subset=stage_params(config, stage),
@@ -286,6 +307,15 @@ class DatasetIndex:
     def lenses(self) -> list[str]:
         return list(self.load().dataset.lenses)
 
+    def stage_lenses(self, stage: str) -> list[str]:
+        """The lenses a stage runs for: every lens, or those its frames.csv names (``lenses_from_frames``)."""
+        lenses = self.lenses()
+        spec = STAGES[stage]
+        if not spec.lenses_from_frames or spec.experiment not in self.dataset.experiments():
+            return lenses
+        named = set(self.dataset.frames(spec.experiment)["lens"].astype(str))
+        return lenses if "both" in named else [lens for lens in lenses if lens in named]
+
     def stage_runnable(self, stage: str) -> bool:
         present = set(self.load().dataset.experiments())
         return all(exp in present for exp in STAGE_EXPERIMENTS[stage])
@@ -297,10 +327,6 @@ class DatasetIndex:
             missing = [e for e in needs if e not in present]
             if missing:
                 out[stage] = f"the dataset has no {', '.join(m + '/' for m in missing)} folder"
-        if "field" not in present:
-            out["field"] = "the dataset has no field/ folder"
-        else:
-            out["field"] = "field/ is present but this version of the pipeline has no field stage yet"
         return out
 
     def stage_files(self, stage: str) -> list[str]:
@@ -370,8 +396,22 @@ def run_stage_script(smk, stage: str) -> None:
     lens = smk.wildcards.lens
     upstream = {name: {lens: smk.input[name]} for name in STAGES[stage].upstream + STAGES[stage].optional_upstream
                 if name in smk.input.keys()}
+    bundle = smk.input["calibration"] if "calibration" in smk.input.keys() else None
     exit_on_input_error(run_stage, stage, smk.params.dataset, smk.params.config, {lens: smk.output.artefact},
-                        upstream)
+                        upstream, bundle=bundle)
+
+
+def build_bundle_script(smk) -> None:
+    """Entry point of the ``calibration`` rule's thin script: the stage artefacts of both lenses -> the bundle."""
+    setup_log(smk.log[0] if smk.log else None)
+    artefacts = {}
+    for stage in BUNDLE_STAGES:
+        if stage in smk.input.keys():
+            paths = smk.input[stage]
+            paths = [paths] if isinstance(paths, str) else list(paths)
+            artefacts[stage] = {Path(p).stem: p for p in paths}
+    exit_on_input_error(build_bundle, artefacts, smk.output.bundle, smk.params.camera["camera"],
+                        smk.params.camera["lenses"], smk.params.config)
 
 
 # --------------------------------------------------------------------------- what to simulate

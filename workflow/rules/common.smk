@@ -65,6 +65,8 @@ def stage_inputs(stage):
         for name in spec.optional_upstream:
             if index.stage_runnable(name):
                 out[name] = f"results/{name}/{wildcards.lens}.nc"
+        if spec.bundle:
+            out.update(calibration_bundle())
         return out
 
     return inputs
@@ -89,8 +91,10 @@ def job_memory_mb(stage):
 
 
 def artefacts_of(stage):
-    """Artefact paths of a stage, one per lens of the dataset."""
-    return [f"results/{stage}/{lens}.nc" for lens in sorted(_ready().lenses())]
+    """Artefact paths of a stage, one per lens it runs for (the field: the lens at the zenith)."""
+    return [
+        f"results/{stage}/{lens}.nc" for lens in sorted(_ready().stage_lenses(stage))
+    ]
 
 
 def diagnostics_inputs(wildcards):
