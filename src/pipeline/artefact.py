@@ -29,6 +29,11 @@ from pipeline.errors import ArtefactError
 ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 1, "rolloff": 1, "spectral": 2,
                      "absolute": 2, "immersion": 2, "calibration": 1}
 
+#: stages a calibration bundle is gathered from, in the order of the calibration chain
+BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
+#: without these a bundle gives no radiance: dark level, pixel directions, roll-off, R^-1
+BUNDLE_REQUIRED_STAGES = ("dark", "linearity", "geometry", "rolloff", "absolute")
+
 
 def sha256_file(path: str | Path, chunk: int = 1 << 22) -> str:
     h = hashlib.sha256()

@@ -27,20 +27,19 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from pipeline.artefact import model_effects, read_artefact, sha256_file, write_artefact
+from pipeline.artefact import BUNDLE_REQUIRED_STAGES, BUNDLE_STAGES, model_effects, read_artefact, sha256_file, write_artefact
 from pipeline.bands import BANDS
 from pipeline.config import defaults, stage_params
+from pipeline.entry import exit_on_input_error, setup_log
 from pipeline.errors import InputError
 from pipeline.frames import SITES_PER_BAND_PIXEL
 from pipeline.radiometry import measurement as mm
 
 __all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "build_bundle", "read_bundle", "band_parameters",
-           "calibrated_isos", "noise_equivalent_radiance"]
+           "calibrated_isos", "noise_equivalent_radiance", "build_bundle_script"]
 
-#: stages a bundle is gathered from, in the order of the calibration chain
-BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
-#: without these there is no radiance: dark level, pixel directions, roll-off, R^-1
-REQUIRED_STAGES = ("dark", "linearity", "geometry", "rolloff", "absolute")
+#: stages a bundle is gathered from (in the order of the calibration chain) and those it cannot lack
+BUNDLE_STAGES, REQUIRED_STAGES = BUNDLE_STAGES, BUNDLE_REQUIRED_STAGES
 GEOMETRY_SCALARS = ("xc_px", "yc_px", "stretch_c", "stretch_d", "stretch_e", "half_fov_deg",
                     "circle_xc_px", "circle_yc_px", "circle_radius_px")
 
@@ -301,3 +300,15 @@ def read_bundle(path: str | Path) -> xr.Dataset:
     """Open a calibration bundle (loaded), refusing another artefact or an unknown version."""
     return read_artefact(path, "calibration")
 
+
+def build_bundle_script(smk) -> None:
+    """Entry point of the ``calibration`` rule's thin script: the stage artefacts of both lenses -> the bundle."""
+    setup_log(smk.log[0] if smk.log else None)
+    artefacts = {}
+    for stage in BUNDLE_STAGES:
+        if stage in smk.input.keys():
+            paths = smk.input[stage]
+            paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
+            artefacts[stage] = {Path(p).stem: str(p) for p in paths}
+    exit_on_input_error(build_bundle, artefacts, smk.output.bundle, smk.params.camera["camera"],
+                        smk.params.camera["lenses"], smk.params.config)

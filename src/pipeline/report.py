@@ -1172,7 +1172,8 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                  skipped: dict[str, str] | None = None, figures_dir: Path | None = None,
                  geometry: dict[str, Path] | None = None, rolloff: dict[str, Path] | None = None,
                  spectral: dict[str, Path] | None = None, absolute: dict[str, Path] | None = None,
-                 immersion: dict[str, Path] | None = None, calibration: Path | None = None) -> Path:
+                 immersion: dict[str, Path] | None = None, calibration: Path | None = None,
+                 field: dict[str, Path] | None = None) -> Path:
     """Write the calibration report as one self-contained HTML file and return its path.
 
     ``dark`` and ``linearity`` map lens name to artefact path; the four CSVs

@@ -34,12 +34,11 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.artefact import read_artefact, sha256_file, write_artefact
-from pipeline.calibration import REQUIRED_STAGES as BUNDLE_REQUIRED_STAGES
-from pipeline.calibration import BUNDLE_STAGES, build_bundle, read_bundle
+from pipeline.artefact import BUNDLE_REQUIRED_STAGES, read_artefact, sha256_file, write_artefact
 from pipeline.config import stage_params
 from pipeline.dataset import Dataset, open_dataset
 from pipeline.effects import load_plugins
+from pipeline.entry import exit_on_input_error, setup_log
 from pipeline.errors import InputError
 from pipeline.validation import format_problems, inspect_dataset
 
@@ -152,7 +151,7 @@ class StageContext:
     effects: list[str]
     upstream: dict[str, xr.Dataset]
     progress: bool = False
-    #: the calibration bundle (stages with ``bundle``), opened with :func:`pipeline.calibration.read_bundle`
+    #: the calibration bundle (stages with ``bundle``), opened as the ``calibration`` artefact
     bundle: xr.Dataset | None = None
     #: input path relative to the dataset root -> sha256, filled as frames are decoded
     inputs: dict[str, str] = field(default_factory=dict)
@@ -202,7 +201,7 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
     if spec.bundle:
         if bundle is None:
             raise InputError(None, f"{stage} stage needs the calibration bundle; run the 'calibration' rule first")
-        calibration = read_bundle(bundle)
+        calibration = read_artefact(bundle, "calibration")
     out = {}
     for lens, out_path in outputs.items():
         out_path = Path(out_path)
@@ -371,23 +370,10 @@ class DatasetIndex:
 
 
 # --------------------------------------------------------------------------- the scripts' entry point
-def setup_log(path: str | None) -> None:
-    handlers = [logging.StreamHandler(sys.stderr)]
-    if path:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        handlers.append(logging.FileHandler(path, mode="w"))
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s", handlers=handlers,
-                        force=True)
-
-
-def exit_on_input_error(function, *args, **kwargs):
-    """Call ``function``; bad input ends the process with one line naming the file and the problem."""
-    try:
-        return function(*args, **kwargs)
-    except InputError as exc:
-        logging.getLogger("pipeline").error("%s", exc)
-        print(f"error: {exc}", file=sys.stderr)
-        sys.exit(1)
+def artefacts_by_lens(paths) -> dict[str, str]:
+    """Artefact paths of one stage (``results/<stage>/<lens>.nc``) keyed by lens."""
+    paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
+    return {Path(p).stem: str(p) for p in paths}
 
 
 def run_stage_script(smk, stage: str) -> None:
@@ -399,19 +385,6 @@ def run_stage_script(smk, stage: str) -> None:
     bundle = smk.input["calibration"] if "calibration" in smk.input.keys() else None
     exit_on_input_error(run_stage, stage, smk.params.dataset, smk.params.config, {lens: smk.output.artefact},
                         upstream, bundle=bundle)
-
-
-def build_bundle_script(smk) -> None:
-    """Entry point of the ``calibration`` rule's thin script: the stage artefacts of both lenses -> the bundle."""
-    setup_log(smk.log[0] if smk.log else None)
-    artefacts = {}
-    for stage in BUNDLE_STAGES:
-        if stage in smk.input.keys():
-            paths = smk.input[stage]
-            paths = [paths] if isinstance(paths, str) else list(paths)
-            artefacts[stage] = {Path(p).stem: p for p in paths}
-    exit_on_input_error(build_bundle, artefacts, smk.output.bundle, smk.params.camera["camera"],
-                        smk.params.camera["lenses"], smk.params.config)
 
 
 # --------------------------------------------------------------------------- what to simulate

@@ -1,5 +1,5 @@
 """Rule 'calibration': unpack the snakemake object and call the package."""
 
-from pipeline.workflow import build_bundle_script
+from pipeline.calibration import build_bundle_script
 
 build_bundle_script(snakemake)  # noqa: F821 (snakemake injects this object)

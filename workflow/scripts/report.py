@@ -1,12 +1,11 @@
 """Rule 'report': unpack the snakemake object and call the package."""
 
 from pipeline.report import build_report
-from pipeline.workflow import STAGES, exit_on_input_error, setup_log
+from pipeline.workflow import STAGES, artefacts_by_lens, exit_on_input_error, setup_log
 
 smk = snakemake  # noqa: F821 (snakemake injects this object)
 setup_log(smk.log[0])
-artefacts = {stage: dict(zip(smk.params.lenses, smk.input[stage])) if stage in smk.input.keys() else {}
-             for stage in STAGES}
+artefacts = {stage: artefacts_by_lens(smk.input[stage]) if stage in smk.input.keys() else {} for stage in STAGES}
 exit_on_input_error(build_report, **artefacts, missing_effects=smk.input.missing_effects,
                     unexplained=smk.input.unexplained, run_errors=smk.input.run_errors,
                     error_history=smk.input.error_history, out_html=smk.output.html, skipped=smk.params.skipped,
