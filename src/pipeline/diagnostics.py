@@ -37,7 +37,10 @@ from pipeline.fitting import base_design, wls
 from pipeline.observations import dataset_to_table
 
 #: covariates scanned to say where unexplained structure sits
-COVARIATES = ("exposure_s", "gain", "lens", "band", "sweep", "temperature_c", "frame")
+COVARIATES = ("exposure_s", "gain", "lens", "band", "sweep", "temperature_c", "frame", "time_s")
+#: a numeric covariate with more distinct values is also scanned in this many quantile bins (a step or a bend
+#: that a straight line misses)
+COVARIATE_BINS = 6
 
 
 @dataclass
@@ -233,24 +236,41 @@ def _unexplained(observations, model_effects, ranked: pd.DataFrame, cfg) -> pd.D
     return pd.DataFrame(rows, columns=["experiment", "rms_z", "covariate", "association", "message"])
 
 
+def _explained_share(z: np.ndarray, groups: np.ndarray) -> float:
+    """Share of the residual variance explained by group means, adjusted for the number of groups.
+
+    eta^2 = SS_between / SS_total would credit k groups with (k - 1)/(n - 1) of pure noise; the
+    adjusted share 1 - (1 - eta^2)(n - 1)/(n - k) is 0 on average for noise.
+    """
+    n, k = len(z), len(np.unique(groups))
+    if n - k < 1 or k < 2:
+        return 0.0
+    total = float(np.sum((z - z.mean()) ** 2)) or 1.0
+    means = pd.Series(z).groupby(groups).transform("mean").to_numpy()
+    eta2 = float(np.sum((means - z.mean()) ** 2) / total)
+    return max(0.0, 1.0 - (1.0 - eta2) * (n - 1) / (n - k))
+
+
 def _where(observations, experiment, model_effects) -> tuple[str, float]:
-    """The covariate that explains most of the residual variance (eta squared / R^2)."""
+    """The covariate that explains most of the residual variance (adjusted eta squared, or R^2 of a line)."""
     best, best_val = "no single covariate", 0.0
     for obs in observations:
         if obs.experiment != experiment:
             continue
         z = _fit(obs, model_design(obs, model_effects)).z
-        total = float(np.sum((z - z.mean()) ** 2)) or 1.0
         for cov in COVARIATES:
             if cov not in obs.table:
                 continue
             values = obs.table[cov]
-            if values.dtype.kind in "fi" and values.nunique() > 6:
-                r = np.corrcoef(values.to_numpy(float), z)[0, 1]
-                val = float(r**2) if np.isfinite(r) else 0.0
+            if values.dtype.kind in "fi" and values.nunique() > COVARIATE_BINS:
+                x = values.to_numpy(float)
+                r = np.corrcoef(x, z)[0, 1]
+                n = len(z)
+                line = float(max(0.0, 1.0 - (1.0 - r**2) * (n - 1) / (n - 2))) if np.isfinite(r) and n > 2 else 0.0
+                bins = pd.qcut(x, COVARIATE_BINS, labels=False, duplicates="drop")
+                val = max(line, _explained_share(z, np.asarray(bins)))
             else:
-                means = pd.Series(z).groupby(values.to_numpy()).transform("mean")
-                val = float(np.sum((means - z.mean()) ** 2) / total)
+                val = _explained_share(z, values.astype(str).to_numpy())
             if val > best_val:
                 best, best_val = f"{cov} ({obs.level} level)", val
     return best, best_val
