@@ -358,7 +358,7 @@ class Sky:
 
     def _spectra(self, zen: np.ndarray) -> SkySpectra:
         """SPECTRL2 at every time, or on a ``SPECTRUM_STEP_S`` grid interpolated linearly in time for long series."""
-        day = int(self.times_utc[0].dayofyear)
+        day = int(self.times_utc[0].day_of_year)
         if not self._long_series():
             return clear_sky_spectra(zen, day, self.atmosphere)
         grid_t = np.arange(self.t_s.min(), self.t_s.max() + SPECTRUM_STEP_S, SPECTRUM_STEP_S)
