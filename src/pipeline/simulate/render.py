@@ -9,8 +9,6 @@ then any stray-light spreading, then :func:`pipeline.simulate.sensor.expose`
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 
 from pipeline.bands import BANDS
@@ -22,7 +20,6 @@ from pipeline.simulate.plan import FrameSpec, LensGeometry
 from pipeline.simulate.sensor import draw_static_pattern, expose
 
 
-@lru_cache(maxsize=8)
 def lens_geometry(lens: str, medium: str, lens_px: int) -> LensGeometry:
     """True viewing directions of the raw pixels of one lens region (default model at raw resolution)."""
     shape = (lens_px, lens_px)
@@ -59,11 +56,15 @@ class Renderer:
         self.band_index = band_index_map(lens_px)
         k100 = camera.sensor.conversion_gain_dn_per_e_iso100
         self.resp_e = np.array([camera.radiometry.responsivity_dn_s_per_radiance[b] / k100 for b in BANDS])
+        self._geometry = {}
         self._unit_rate = {}
 
     def geometry(self, lens: str, medium: str) -> LensGeometry:
         """True viewing directions of the raw pixels (default model at raw resolution)."""
-        return lens_geometry(lens, medium, self.n)
+        key = (lens, medium)
+        if key not in self._geometry:
+            self._geometry[key] = lens_geometry(lens, medium, self.n)
+        return self._geometry[key]
 
     def unit_rate(self, lens: str, medium: str) -> np.ndarray:
         """Photo-electrons per second per unit band radiance, roll-off and optics effects included."""
