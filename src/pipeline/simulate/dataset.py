@@ -20,6 +20,7 @@ from pipeline.simulate import lab  # noqa: F401  (registers the dark and lineari
 from pipeline.simulate import immersion, rolloff  # noqa: F401  (registers the roll-off and immersion planners)
 from pipeline.simulate import absolute, spectral  # noqa: F401  (registers the spectral and absolute planners)
 from pipeline.simulate import geometry  # noqa: F401  (registers the geometry planner)
+from pipeline.simulate import field  # noqa: F401  (registers the field planner)
 from pipeline.simulate.camera import Camera, SensorParams
 from pipeline.simulate.plan import PLANNERS, SimContext
 from pipeline.simulate.render import Renderer
@@ -48,7 +49,7 @@ SCALES = {
 }
 
 #: experiments simulated by default, in acquisition order
-EXPERIMENTS = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
+EXPERIMENTS = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion", "field")
 START_TIME = datetime(2021, 3, 10, 9, 0, 0)
 #: seconds between the end of one exposure and the start of the next
 FRAME_INTERVAL_S = 1.5
@@ -90,7 +91,8 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
         raise InputError(None, f"unknown sensor parameter in {sorted(sensor or {})} ({exc})") from None
     effect_objs = [get_effect(name, **params) for name, params in effects]
     renderer = Renderer(camera, sc.lens_px, seed, effect_objs)
-    ctx = SimContext(camera=camera, scale=sc, seed=seed, rng=np.random.default_rng([seed, 104729]))
+    ctx = SimContext(camera=camera, scale=sc, seed=seed, rng=np.random.default_rng([seed, 104729]),
+                     effects=effect_objs)
 
     tmp = out.parent / f".{out.name}.partial"
     tmp_truth = out.parent / f".{truth.name}.partial"
@@ -114,17 +116,21 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
             (tmp / exp / "raw").mkdir(parents=True)
             rows = []
             for i, spec in enumerate(plans[exp].frames):
-                spec.file = f"raw/IMG_{clock:%Y%m%d_%H%M%S}_{i:05d}.dng"
+                # frames that carry their own camera-clock time (the field hour) keep it; the lab
+                # experiments follow the running clock
+                stamp = spec.time if spec.time is not None else clock
+                spec.file = f"raw/IMG_{stamp:%Y%m%d_%H%M%S}_{i:05d}.dng"
                 frame = renderer.render(i, exp_id + 1, spec)
                 write_dng(tmp / exp / spec.file, frame, exposure_s=spec.exposure_s, iso=spec.iso,
-                          time=clock, black_level=round(camera.sensor.bias_dn),
+                          time=stamp, black_level=round(camera.sensor.bias_dn),
                           white_level=camera.sensor.adc_max_dn, cfa_pattern="RGGB",
                           make=camera.make, model=camera.model, serial=camera.serial)
                 row = {"file": spec.file, "lens": spec.lens, "kind": spec.kind, **spec.extra}
                 if spec.temperature_c is not None:
                     row["temperature_c"] = round(spec.temperature_c, 2)
                 rows.append(row)
-                clock += timedelta(seconds=spec.exposure_s + FRAME_INTERVAL_S)
+                if spec.time is None:
+                    clock += timedelta(seconds=spec.exposure_s + FRAME_INTERVAL_S)
                 if bar is not None:
                     bar.update()
             pd.DataFrame(rows).to_csv(tmp / exp / "frames.csv", index=False)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import datetime
 
 import numpy as np
 
@@ -40,6 +41,10 @@ class FrameSpec:
     #: extra factor on the light (e.g. 1/immersion factor in water), per band index or scalar
     light_factor: Callable | float = 1.0
     file: str = ""
+    #: camera clock (local time, as DateTimeOriginal) of this frame; None: the simulator's running lab clock
+    time: datetime | None = None
+    #: lenses the light reaches; None: ``lens`` (both lenses for "both")
+    lit: tuple[str, ...] | None = None
 
 
 @dataclass
@@ -55,6 +60,7 @@ class SimContext:
     scale: object             # simulate.dataset.Scale
     seed: int
     rng: np.random.Generator  # static draws of the planners (deterministic per seed)
+    effects: list = field(default_factory=list)   # the true effects switched on (pipeline.effects objects)
 
 
 PLANNERS: dict[str, Callable[[SimContext], ExperimentPlan]] = {}

@@ -20,6 +20,21 @@ from pipeline.simulate.plan import FrameSpec, LensGeometry
 from pipeline.simulate.sensor import draw_static_pattern, expose
 
 
+def lens_geometry(lens: str, medium: str, lens_px: int) -> LensGeometry:
+    """True viewing directions of the raw pixels of one lens region (default model at raw resolution)."""
+    shape = (lens_px, lens_px)
+    model = default_model(lens, medium, band_shape=shape)
+    theta, phi = theta_phi_maps(model, shape)
+    theta = np.where(np.isfinite(theta), theta, 180.0)
+    return LensGeometry(theta, phi, theta <= HALF_FOV_DEG[medium])
+
+
+def band_index_map(lens_px: int) -> np.ndarray:
+    """Band index (0 R, 1 G, 2 B) of every raw pixel of an RGGB lens region."""
+    site = np.array([[0, 1], [1, 2]], dtype=np.int8)
+    return np.tile(site, (lens_px // 2, lens_px // 2))
+
+
 class Renderer:
     """Holds the static per-lens maps of one simulated camera."""
 
@@ -38,8 +53,7 @@ class Renderer:
             effect.prepare(static, context)
         self.patterns = {lens: draw_static_pattern(static, self.shape, camera.sensor)
                          for lens in camera.lens_names}
-        site = np.array([[0, 1], [1, 2]], dtype=np.int8)      # RGGB -> band index
-        self.band_index = np.tile(site, (lens_px // 2, lens_px // 2))
+        self.band_index = band_index_map(lens_px)
         k100 = camera.sensor.conversion_gain_dn_per_e_iso100
         self.resp_e = np.array([camera.radiometry.responsivity_dn_s_per_radiance[b] / k100 for b in BANDS])
         self._geometry = {}
@@ -49,10 +63,7 @@ class Renderer:
         """True viewing directions of the raw pixels (default model at raw resolution)."""
         key = (lens, medium)
         if key not in self._geometry:
-            model = default_model(lens, medium, band_shape=self.shape)
-            theta, phi = theta_phi_maps(model, self.shape)
-            theta = np.where(np.isfinite(theta), theta, 180.0)
-            self._geometry[key] = LensGeometry(theta, phi, theta <= HALF_FOV_DEG[medium])
+            self._geometry[key] = lens_geometry(lens, medium, self.n)
         return self._geometry[key]
 
     def unit_rate(self, lens: str, medium: str) -> np.ndarray:
@@ -72,7 +83,8 @@ class Renderer:
         return self._unit_rate[key]
 
     def photo_rate(self, lens: str, spec: FrameSpec):
-        if spec.radiance is None or spec.lens not in (lens, "both"):
+        lit = spec.lit if spec.lit is not None else (self.camera.lens_names if spec.lens == "both" else (spec.lens,))
+        if spec.radiance is None or lens not in lit:
             return 0.0
         if callable(spec.radiance):
             lbar = spec.radiance(lens, self.geometry(lens, spec.medium), self.band_index)
