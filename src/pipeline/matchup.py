@@ -30,6 +30,8 @@ positive radiances for the ratio statistics).
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 from scipy import stats
 
@@ -148,8 +150,11 @@ def bootstrap_interval(statistic, y, x, level: float = 0.95, n_resamples: int = 
     is kept. NaN bounds when the statistic does not vary over the resamples.
     """
     y, x = _pair(y, x)
-    res = stats.bootstrap((y, x), statistic, paired=True, vectorized=True, confidence_level=level,
-                          n_resamples=n_resamples, method=method, rng=np.random.default_rng(seed))
+    with warnings.catch_warnings():
+        # a statistic constant over the resamples (or NaN in some, e.g. r of one repeated pair) has no interval
+        warnings.simplefilter("ignore", stats.DegenerateDataWarning)
+        res = stats.bootstrap((y, x), statistic, paired=True, vectorized=True, confidence_level=level,
+                              n_resamples=n_resamples, method=method, rng=np.random.default_rng(seed))
     return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
 
