@@ -69,6 +69,7 @@ that exceeds 1. The reference is then taken at t - c.
 
 from __future__ import annotations
 
+import logging
 from datetime import timedelta
 
 import numpy as np
@@ -85,6 +86,8 @@ from pipeline.matchup import BOOTSTRAPPED, STATISTIC_UNITS, matchup_statistics
 from pipeline.observations import fit_with_effects, table_to_dataset
 from pipeline.radiometry import measurement as mm
 from pipeline.radiometry.spectral import band_weights
+
+log = logging.getLogger("pipeline.stages.field")
 
 STAGE = "field"
 MEDIUM = "air"
@@ -400,6 +403,13 @@ def compute(ctx) -> xr.Dataset:
     valid = {b: (st[("nearest", b)]["count"] >= min_n) & (st[("convolved", b)]["count"] >= min_n) & np.isfinite(y[b])
              for b in BANDS}
     no_reference = ~np.logical_and.reduce([valid[b] for b in BANDS])
+    if no_reference.any():
+        log.warning("field %s: %d of %d frames have fewer than %d reference samples within %g s and are not "
+                    "match-ups: %s", ctx.lens, int(no_reference.sum()), len(frames), min_n, width,
+                    ", ".join(frames["file"][no_reference]))
+    if clock is not None:
+        log.info("field %s: camera clock offset %.2f +- %.2f s (camera minus UTC)", ctx.lens, clock["offset_s"],
+                 clock["offset_se_s"])
 
     # statistics per band and comparison
     names = list(BOOTSTRAPPED)
