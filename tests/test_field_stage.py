@@ -331,3 +331,23 @@ def test_artefact_round_trip(field, tmp_path):
     back = xr.open_dataset(path).load()
     assert float(back["stat_mupd"].sel(band="G", comparison="nearest")) == pytest.approx(
         float(ds["stat_mupd"].sel(band="G", comparison="nearest")))
+
+
+def test_negative_radiance_stops_the_stage(field, tmp_path):
+    import shutil
+
+    from pipeline.errors import ImpossibleResult
+    from pipeline.rawio import read_raw
+
+    root = tmp_path / "dark-sky"
+    shutil.copytree(field["base"] / "A", root)
+    path = root / "field" / "raw" / "SKY_000.dng"
+    raw = read_raw(path)
+    # 40 DN below the black level everywhere: a mask mean of -40 DN against a per-pixel noise of a few DN
+    cfa = np.full(raw.cfa.shape, round(raw.black_level) - 40, np.uint16)
+    write_dng(path, cfa, exposure_s=raw.exposure_s, iso=raw.iso, time=raw.time, black_level=raw.black_level,
+              white_level=raw.white_level, make=raw.make, model=raw.model, serial=raw.serial)
+    write_md5sums(root)
+    with pytest.raises(ImpossibleResult, match="SKY_000.dng.*below zero"):
+        run_stage("field", root, field["config"], {LENS: tmp_path / "out" / "field" / f"{LENS}.nc"},
+                  bundle=field["bundle_path"])
