@@ -261,8 +261,10 @@ def test_known_clock_offset_is_recovered_and_diagnosed(field):
     assert 0 < float(fitted["clock_offset_s_sigma"]) < 2.0
     base = field["arts"]["B"]
     assert float(base["clock_offset_s"]) == 0.0
-    # shifting the reference removes the structure the wrong clock leaves
-    assert float(fitted["rms_z"]) < 0.5 * float(base["rms_z"])
+    # shifting the reference removes the structure the wrong clock leaves: back to the noise floor
+    # (30 rows, 3 scales and the offset: rms_z = 1 +- 0.14; the diagnostics call 1.5 structured)
+    assert float(fitted["rms_z"]) < 1.5 < float(base["rms_z"])
+    assert float(field["arts"]["A"]["rms_z"]) < 1.5
     # without the effect in the model, the diagnostics find it in the field table, with the offset as amplitude
     obs = observations_from_artefacts({"field": [base]})
     assert [(o.experiment, o.level) for o in obs] == [("field", "frame")]

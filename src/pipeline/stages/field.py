@@ -25,9 +25,10 @@ channel (drop-outs, NaN, are left out); a frame with fewer than
 The reference's white noise per sample is estimated from successive
 differences (von Neumann: var = mean(diff^2) / 2, insensitive to slow
 changes); the noise of the window mean is that over the count, and the
-reference's true variation within the window is the window variance minus
-the white noise (a camera frame samples an instant, the reference mean a
-window). ``dref_dt`` is the slope of a straight line fitted to the window's
+reference's true variation within the window (a camera frame samples an
+instant, the reference mean a window) is the variance of the samples about
+the window's straight line minus the white noise: a steady trend leaves a
+centred mean equal to the value at the centre, clouds and steps do not. ``dref_dt`` is the slope of a straight line fitted to the window's
 samples (the series smoothed over the window, differentiated).
 
 Two comparisons per band:
@@ -201,16 +202,23 @@ class WindowedSeries:
             noise = (self.sd2[dhi] - self.sd2[dlo]) / (2.0 * nd)
             st, st2, stv = self.st[hi] - self.st[lo], self.st2[hi] - self.st2[lo], self.stv[hi] - self.stv[lo]
             sxx = st2 - st**2 / n
-            slope = (stv - st * s / n) / sxx
+            sxy = stv - st * s / n
+            slope = sxy / sxx
+            # scatter about the window's straight line: what a centred mean does not average out
+            line_var = np.clip(((n - 1) * var - sxy**2 / sxx) / (n - 2), 0.0, None)
+        fit = (n > 2) & (sxx > 0)
         return {"count": n.astype(int), "mean": np.where(n > 0, mean, np.nan), "std": np.where(n > 1, np.sqrt(var), np.nan),
-                "noise_var": np.where(nd > 0, noise, np.nan), "slope": np.where((n > 2) & (sxx > 0), slope, np.nan)}
+                "noise_var": np.where(nd > 0, noise, np.nan), "slope": np.where(fit, slope, np.nan),
+                "line_var": np.where(fit, line_var, np.nan)}
 
 
 def window_uncertainty(st: dict) -> np.ndarray:
-    """Standard uncertainty of the window mean as the value at the frame's instant: noise of the mean and
-    the true variation within the window (window variance minus the white noise), in quadrature."""
+    """Standard uncertainty of the window mean as the value at the frame's instant, in quadrature: the white
+    noise of the mean and the reference's true variation within the window that a centred mean does not
+    average out (its scatter about the window's straight line minus the white noise; a steady trend
+    averages out, clouds and steps do not)."""
     noise = np.nan_to_num(st["noise_var"], nan=0.0)
-    var = np.nan_to_num(st["std"], nan=0.0) ** 2
+    var = np.nan_to_num(st["line_var"], nan=0.0)
     return np.sqrt(noise / np.maximum(st["count"], 1) + np.clip(var - noise, 0.0, None))
 
 
@@ -511,7 +519,7 @@ def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_referen
         data[f"reference_{comp}_count"] = (fb, ref(comp, "count"), _attrs("reference samples in the window", "1"))
         data[f"reference_{comp}_sigma"] = (fb, np.stack([window_uncertainty(st[(comp, b)]) for b in BANDS], axis=1),
                                            _attrs("uncertainty of the window mean as the value at the frame's instant "
-                                                  "(noise of the mean, variation within the window)", RAD))
+                                                  "(noise of the mean, variation about the window's line)", RAD))
         data[f"reference_{comp}_slope"] = (fb, ref(comp, "slope"),
                                            _attrs("d reference / dt from a line fitted to the window's samples",
                                                   "W sr-1 m-2 nm-1 s-1"))
