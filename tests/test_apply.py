@@ -15,34 +15,16 @@ from datetime import datetime
 import numpy as np
 import pytest
 import xarray as xr
-import yaml
 
 from pipeline.apply import apply_calibration, bin_on_sphere, sphere_coordinates
 from pipeline.calibration import BUNDLE_STAGES, build_bundle, read_bundle
 from pipeline.errors import InputError
 from pipeline.radiometry import measurement as mm
 from pipeline.rawio import read_raw, write_dng
-from pipeline.workflow import STAGES, run_stage
 
 LENSES = ("far", "close")
 #: the absolute stage's averaging mask (config absolute.mask_half_angle_deg)
 CENTRAL_MASK_DEG = 5.0
-
-
-@pytest.fixture(scope="module")
-def calibrated(make_dataset, config, tmp_path_factory):
-    root, truth = make_dataset(seed=5, experiments=tuple(BUNDLE_STAGES))
-    out = tmp_path_factory.mktemp("results")
-    artefacts = {}
-    for stage in BUNDLE_STAGES:
-        spec = STAGES[stage]
-        upstream = {name: artefacts[name] for name in spec.upstream + spec.optional_upstream if name in artefacts}
-        artefacts[stage] = {lens: out / stage / f"{lens}.nc" for lens in LENSES}
-        run_stage(stage, root, config, artefacts[stage], upstream)
-    meta = yaml.safe_load((root / "dataset.yaml").read_text())
-    bundle_path = out / "calibration" / f"{meta['camera']['serial']}.nc"
-    build_bundle(artefacts, bundle_path, meta["camera"], meta["lenses"], config)
-    return root, truth, out, artefacts, bundle_path, meta
 
 
 def _signal_frame(root, lens):

@@ -205,3 +205,11 @@ def test_theta_phi_is_eq7_of_eq6():
     assert float(s.theta_phi(u, v)[0]) == pytest.approx(float(theta), rel=1e-12)
     uu, vv = s.world2cam(np.array([30.0, 40.0, 97.5]))
     assert (float(uu), float(vv)) == pytest.approx((u, v), rel=1e-9)
+
+
+# ----------------------------------------------------------------------------- Eq. (12)
+def test_mupd_eq12_hand():
+    from pipeline.matchup import mupd
+
+    # pairs (reference, camera) (1, 3) and (2, 2): 2 * 100 / 2 * (|1 - 3| / 4 + 0) = 50 %
+    assert mupd(np.array([3.0, 2.0]), np.array([1.0, 2.0])) == pytest.approx(50.0)

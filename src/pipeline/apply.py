@@ -41,7 +41,7 @@ from pipeline.frames import lens_images
 from pipeline.radiometry import measurement as mm
 from pipeline.rawio import read_raw
 
-__all__ = ["apply_calibration", "check_frame", "sphere_coordinates", "bin_on_sphere", "add_apply_parser",
+__all__ = ["apply_calibration", "band_radiance", "check_frame", "sphere_coordinates", "bin_on_sphere", "add_apply_parser",
            "apply_command"]
 
 #: flags that keep a pixel out of the sphere grid
@@ -116,6 +116,30 @@ def _outside_circle(bundle: xr.Dataset, lens: str, medium: str, band: str, shape
     return (r > float(g["circle_radius_px"])) | ~np.isfinite(theta) | (theta > float(g["half_fov_deg"]))
 
 
+def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str, effects,
+                  frame: mm.FrameSettings, window=None) -> mm.Measured:
+    """The measurement chain on one band image of one lens, or on its crop ``window = (row_slice, col_slice)``.
+
+    ``images`` are the lens's band images of a decoded frame (:func:`pipeline.frames.lens_images`);
+    every per-pixel map of the bundle (theta, image circle, hot pixels, flat field) is cut to the
+    same window, so the crop's radiance equals that part of the whole image's.
+    """
+    shape = bundle["theta_deg"].shape[-2:]
+    image = images.bands[band]
+    if image.shape != tuple(shape):
+        raise InputError(None, f"lens '{lens}' band image is {image.shape}, the calibration's {tuple(shape)}")
+    win = (slice(None), slice(None)) if window is None else tuple(window)
+    dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
+    theta = bundle["theta_deg"].sel(lens=lens, medium=medium, band=band).values.astype(float)
+    theta = np.where(_outside_circle(bundle, lens, medium, band, shape), np.nan, theta)
+    b = bundle.sel(lens=lens, band=band)
+    return mm.measure_band(image[win], frame, dark, response, cal, theta[win], medium, effects,
+                           saturated=images.saturated[band][win],
+                           hot_mask=b["hot_pixel_mask"].values[win] if "hot_pixel_mask" in b else None,
+                           flat_field=b["flat_field"].values[win] if "flat_field" in b else None,
+                           prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0)
+
+
 def _frame_radiance(raw, bundle, medium, effects, negative_sigma):
     """Radiance, random and systematic sigma, flags of one decoded frame: arrays (lens, band, y, x)."""
     lenses = list(bundle["lens"].values)
@@ -127,18 +151,10 @@ def _frame_radiance(raw, bundle, medium, effects, negative_sigma):
         span = bundle["lens_region_px"].sel(lens=lens).values
         images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
         for j, band in enumerate(BANDS):
-            image = images.bands[band]
-            if image.shape != tuple(shape):
-                raise InputError(raw.path, f"lens '{lens}' band image is {image.shape}, the calibration's {tuple(shape)}")
-            dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
-            theta = bundle["theta_deg"].sel(lens=lens, medium=medium, band=band).values.astype(float)
-            theta = np.where(_outside_circle(bundle, lens, medium, band, shape), np.nan, theta)
-            b = bundle.sel(lens=lens, band=band)
-            m = mm.measure_band(image, frame, dark, response, cal, theta, medium, effects,
-                                saturated=images.saturated[band],
-                                hot_mask=b["hot_pixel_mask"].values if "hot_pixel_mask" in b else None,
-                                flat_field=b["flat_field"].values if "flat_field" in b else None,
-                                prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0)
+            if images.bands[band].shape != tuple(shape):
+                raise InputError(raw.path, f"lens '{lens}' band image is {images.bands[band].shape}, "
+                                           f"the calibration's {tuple(shape)}")
+            m = band_radiance(images, bundle, lens, band, medium, effects, frame)
             inside = ~(m.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE).astype(bool)
             good = inside & ~(m.flags & (mm.FLAG_SATURATED | mm.FLAG_HOT)).astype(bool) & np.isfinite(m.value)
             if good.any():

@@ -27,7 +27,8 @@ from pipeline.errors import ArtefactError
 #: response (linearity artefact) and, for absolute, a 'response' term in the budget; immersion 2:
 #: the same for its air and water frames.
 ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 1, "rolloff": 1, "spectral": 2,
-                     "absolute": 2, "immersion": 2, "calibration": 1}
+                     "absolute": 2, "immersion": 2, "calibration": 1,
+                     "field": 1}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

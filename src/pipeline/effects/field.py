@@ -15,7 +15,36 @@
 
 from __future__ import annotations
 
+import numpy as np
+import pandas as pd
+from scipy import stats
+
 from pipeline.effects.base import Effect, register
+
+
+def band_scale(table: pd.DataFrame) -> np.ndarray:
+    """The fitted camera/reference scale of each row's band, pred_dn / x_scale (1 where unknown).
+
+    The base model of the field table is camera = k_b x reference; the
+    effects' columns are in the camera's units, so they carry k_b.
+    """
+    if "pred_dn" not in table or "x_scale" not in table:
+        return np.ones(len(table))
+    pred = table["pred_dn"].to_numpy(float)
+    x = table["x_scale"].to_numpy(float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        k = pred / x
+    return np.where(np.isfinite(k) & (x != 0), k, 1.0)
+
+
+def _field_frame(experiment: str, level: str, table: pd.DataFrame, needed: tuple[str, ...]) -> bool:
+    return experiment == "field" and level == "frame" and all(c in table for c in needed)
+
+
+def _normal_interval(coef, cov) -> tuple[float, float, float]:
+    se = float(np.sqrt(max(cov[0, 0], 0.0)))
+    q = float(stats.norm.ppf(0.975))
+    return float(coef[0]), float(coef[0] - q * se), float(coef[0] + q * se)
 
 
 @register
@@ -26,9 +55,23 @@ class ClockOffset(Effect):
     truth_defaults = {"offset_s": 30.0}
     amplitude_name = "clock_offset_s"
     amplitude_units = "s"
+    #: with the effect in the model the field stage fits the offset by shifting the reference series
+    corrects_data = True
 
     def camera_clock_offset_s(self) -> float:
         return float(self.params["offset_s"])
+
+    def columns(self, experiment, level, table):
+        """-k_b dref/dt. A camera clock ahead of UTC by c seconds takes the reference at t + c:
+        x = ref(t + c) = ref(t) + c dref/dt, while the camera saw k_b ref(t); so
+        value = pred + c (-k_b dref/dt) and the coefficient is the offset c in seconds."""
+        if not _field_frame(experiment, level, table, ("dref_dt",)):
+            return None
+        return (-table["dref_dt"].to_numpy(float) * band_scale(table))[:, None]
+
+    def amplitude(self, experiment, level, table, coef, cov):
+        """The camera clock offset (s) and its 95 % interval (normal)."""
+        return _normal_interval(coef, cov)
 
 
 @register
@@ -39,6 +82,20 @@ class SpectralMismatch(Effect):
     truth_defaults = {"exponent_change_per_h": 1.5}
     amplitude_name = "spectral_mismatch_factor"
     amplitude_units = "1"
+    #: with the effect in the model the field stage predicts with the band-convolved reference
+    corrects_data = True
+
+    def columns(self, experiment, level, table):
+        """k_b (ref_convolved - ref_nearest): the camera follows the band-convolved reference, so
+        against the nearest channel the coefficient is 1 (0 when the in-band slope does not matter)."""
+        if not _field_frame(experiment, level, table, ("ref_convolved", "ref_nearest")):
+            return None
+        diff = table["ref_convolved"].to_numpy(float) - table["ref_nearest"].to_numpy(float)
+        return (diff * band_scale(table))[:, None]
+
+    def amplitude(self, experiment, level, table, coef, cov):
+        """The factor on the band-convolved minus nearest-channel difference (about 1 when missing)."""
+        return _normal_interval(coef, cov)
 
     def sky_spectral_exponent(self, hours_since_start: float) -> float:
         return float(self.params["exponent_change_per_h"]) * float(hours_since_start)

@@ -1,0 +1,592 @@
+"""Field match-up stage: the calibration bundle applied to sky frames against a reference radiometer
+(Larouche et al. 2024, Sections 2.9 and 3.8, Eq. 12, Fig. 10; Burggraaff et al. 2022, Section 2.6).
+
+For the lens that ``field/frames.csv`` names (the one at the zenith), each
+frame is decoded once and checked against the bundle (camera, ISO, exposure);
+the measurement chain (:func:`pipeline.apply.band_radiance`) runs on the crop
+of the band images that holds the mask only: theta <= ``field.mask_half_angle_deg``
+on the bundle's in-air theta map, or the ``field.min_mask_pixels`` pixels
+nearest the axis when the mask holds fewer. Pixels flagged saturated, hot or
+outside the image circle are left out. Per frame and band: the mask mean
+radiance, its random standard error (the chain's random sigma, independent
+between pixels: sqrt(sum sigma^2) / n), its systematic sigma (the mean of the
+chain's systematic sigma: common to all frames of a band, kept apart and not
+in the match-up weights) and the spatial spread in the mask (standard
+deviation of the pixels). The middle frame also goes through the chain over
+the whole lens and is binned on the sphere (``field.sky_map_grid_deg``).
+
+Time: DateTimeOriginal (+ SubSecTimeOriginal) is the camera's local clock;
+UTC = local - ``camera_clock_utc_offset_h`` (site.yaml).
+
+Reference: samples in [t - w/2, t + w/2] around each frame's UTC time t
+(w = ``field.reference_window_s``): mean, standard deviation and count per
+channel (drop-outs, NaN, are left out); a frame with fewer than
+``field.min_reference_samples`` samples is not a match-up (counted, listed).
+The reference's white noise per sample is estimated from successive
+differences (von Neumann: var = mean(diff^2) / 2, insensitive to slow
+changes); the noise of the window mean is that over the count, and the
+reference's true variation within the window (a camera frame samples an
+instant, the reference mean a window) is the variance of the samples about
+the window's straight line minus the white noise: a steady trend leaves a
+centred mean equal to the value at the centre, clouds and steps do not. ``dref_dt`` is the slope of a straight line fitted to the window's
+samples (the series smoothed over the window, differentiated).
+
+Two comparisons per band:
+
+* ``nearest``: the channel nearest the band's effective wavelength (bundle);
+* ``convolved``: the channels treated as samples of the spectrum at their
+  centre wavelengths (10 nm FWHM), interpolated linearly in wavelength onto
+  the measured response's wavelengths that lie inside the channels' span and
+  averaged with Eq. (3), sum S L / sum S (trapezoid weights, as the spectral
+  stage's effective wavelength). Response wavelengths outside the span are
+  dropped (no extrapolation); the fraction of the response there is stored
+  (``response_outside_reference_fraction``). The convolved value is linear
+  in the channel values, so it is formed once per reference sample.
+
+Per band and comparison, every statistic of :mod:`pipeline.matchup`
+(MUPD, zeta, SSPB, r, RMSE about the fit and the 1:1 line with paired
+bootstrap intervals; OLS and errors-in-both lines) on the match-ups; the
+ODR weights are the camera's random standard error and the reference's
+window uncertainty (noise of the mean and variation within the window).
+
+Observation table (``obs_frame``, FIELD_SPEC.md): one row per match-up and
+band; base model camera = k_b x reference (one scale per band, fitted with
+:func:`pipeline.observations.fit_with_effects`); ``sigma_dn`` adds the
+camera's random standard error and k_b times the reference's window
+uncertainty in quadrature, k_b the median camera/reference ratio of the band
+(fixed before the fit). With ``spectral_mismatch`` in ``model.effects`` the
+prediction is the band-convolved reference, the nearest channel otherwise.
+With ``clock_offset`` in the model the camera clock offset c (camera - UTC, s)
+is fitted by shifting the reference series: the chi-square of the base model
+(profiled over the band scales, each frame's sigma at that shift) is
+evaluated on a grid of ``field.clock_offset_grid_s`` steps within +/-
+``field.clock_offset_search_s``, minimised per point over the frames that
+are match-ups at that shift (reduced chi-square), refined by a bounded scalar
+minimisation within one grid step; the standard error is sqrt(2 / chi2'')
+from the curvature of a parabola fitted to the total chi-square at five
+points one grid step apart around the minimum, times sqrt(reduced chi2) when
+that exceeds 1. The reference is then taken at t - c.
+"""
+
+from __future__ import annotations
+
+import logging
+from datetime import timedelta
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+from scipy import optimize
+
+from pipeline.apply import EXCLUDED_FROM_GRID, band_radiance, bin_on_sphere, check_frame, sphere_coordinates
+from pipeline.bands import BANDS
+from pipeline.dataset import read_reference_radiometer, read_site
+from pipeline.errors import ImpossibleResult, InputError
+from pipeline.frames import iter_frames
+from pipeline.matchup import BOOTSTRAPPED, STATISTIC_UNITS, matchup_statistics
+from pipeline.observations import fit_with_effects, table_to_dataset
+from pipeline.radiometry import measurement as mm
+from pipeline.radiometry.spectral import band_weights
+
+log = logging.getLogger("pipeline.stages.field")
+
+STAGE = "field"
+MEDIUM = "air"
+COMPARISONS = ("nearest", "convolved")
+RAD = "W sr-1 m-2 nm-1"
+#: flags that keep a pixel out of the mask mean
+MASK_EXCLUDED = mm.FLAG_SATURATED | mm.FLAG_HOT | mm.FLAG_OUTSIDE_IMAGE_CIRCLE
+
+
+# --------------------------------------------------------------------------- the mask
+def field_masks(bundle: xr.Dataset, lens: str, half_angle_deg: float, min_pixels: int):
+    """Per band the mask (theta <= half angle, or the ``min_pixels`` nearest the axis) and the crop holding them all.
+
+    Returns ({band: boolean mask of the crop}, (row_slice, col_slice)).
+    """
+    full = {}
+    for band in BANDS:
+        g = bundle.sel(lens=lens, medium=MEDIUM, band=band)
+        theta = g["theta_deg"].values.astype(float)
+        y, x = np.indices(theta.shape)
+        outside = np.hypot(x - float(g["circle_xc_px"]), y - float(g["circle_yc_px"])) > float(g["circle_radius_px"])
+        theta = np.where(outside | ~np.isfinite(theta), np.inf, theta)
+        mask = theta <= half_angle_deg
+        if mask.sum() < min_pixels:
+            order = np.argsort(theta, axis=None)[:min_pixels]
+            mask = np.zeros(theta.shape, bool)
+            mask.flat[order] = True
+            mask &= np.isfinite(theta)
+        if not mask.any():
+            raise InputError(None, f"lens {lens}, band {band}: the bundle's theta map has no pixel near the axis")
+        full[band] = mask
+    union = np.logical_or.reduce(list(full.values()))
+    rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
+    window = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
+    return {band: m[window] for band, m in full.items()}, window
+
+
+def mask_statistics(m: mm.Measured, mask: np.ndarray) -> dict:
+    """Mean, random standard error, systematic sigma and spatial spread of the chain's radiance in the mask."""
+    good = mask & ((m.flags & MASK_EXCLUDED) == 0) & np.isfinite(m.value)
+    n = int(good.sum())
+    if n == 0:
+        return {"mean": np.nan, "random_se": np.nan, "systematic": np.nan, "spread": np.nan, "n": 0,
+                "n_saturated": int((mask & ((m.flags & mm.FLAG_SATURATED) > 0)).sum())}
+    v = m.value[good]
+    return {"mean": float(v.mean()), "random_se": float(np.sqrt(np.sum(m.random_sigma[good] ** 2)) / n),
+            "systematic": float(m.systematic_sigma[good].mean()),
+            "spread": float(v.std(ddof=1)) if n > 1 else np.nan, "n": n,
+            "n_saturated": int((mask & ((m.flags & mm.FLAG_SATURATED) > 0)).sum())}
+
+
+# --------------------------------------------------------------------------- the reference
+def convolution_weights(channels_nm, response_nm, response) -> tuple[np.ndarray, float]:
+    """Weights w_c with sum_c w_c L_c = Eq. (3) of the channels interpolated linearly onto the response.
+
+    Only response wavelengths inside [first channel, last channel] are used;
+    also returns the fraction of the response (trapezoid) that lies outside.
+    """
+    ch = np.asarray(channels_nm, float)
+    order = np.argsort(ch)
+    wl = np.asarray(response_nm, float)
+    s = np.nan_to_num(np.asarray(response, float))      # as measured: the spectral stage's Eq. (8) uses the same values
+    inside = (wl >= ch[order[0]]) & (wl <= ch[order[-1]])
+    if inside.sum() < 2:
+        raise InputError(None, f"the measured response ({wl.min():g}-{wl.max():g} nm) does not overlap the reference "
+                               f"channels ({ch.min():g}-{ch.max():g} nm)")
+    k = band_weights(wl[inside], s[inside])
+    # linear interpolation as a matrix: row j holds the hat functions of the channels at wl[j]
+    eye = np.eye(ch.size)[order]
+    hats = np.stack([np.interp(wl[inside], ch[order], eye[:, c]) for c in range(ch.size)], axis=1)
+    total = float(np.trapezoid(s, wl)) if wl.size > 1 else 0.0
+    kept = float(np.trapezoid(s[inside], wl[inside]))
+    return k @ hats, (1.0 - kept / total) if total > 0 else 0.0
+
+
+class WindowedSeries:
+    """Windowed statistics of a time series (times sorted, values with NaN drop-outs) by cumulative sums."""
+
+    def __init__(self, times_s: np.ndarray, values: np.ndarray):
+        self.t = np.asarray(times_s, float)
+        v = np.asarray(values, float)
+        ok = np.isfinite(v)
+        z = np.where(ok, v, 0.0)
+        tt = self.t - self.t[0]            # numerically small times for the slope sums
+        self._t0 = self.t[0]
+
+        def cum(a):
+            return np.concatenate([[0.0], np.cumsum(a)])
+
+        self.n, self.s, self.s2 = cum(ok.astype(float)), cum(z), cum(z**2)
+        self.st, self.st2, self.stv = cum(np.where(ok, tt, 0.0)), cum(np.where(ok, tt**2, 0.0)), cum(z * tt)
+        d = np.diff(v)
+        dok = np.isfinite(d)
+        self.nd, self.sd2 = cum(dok.astype(float)), cum(np.where(dok, d, 0.0) ** 2)
+
+    def stats(self, centres_s, width_s: float) -> dict:
+        """Per centre: count, mean, std (ddof 1), white-noise variance per sample, slope (per s)."""
+        c = np.asarray(centres_s, float)
+        lo = np.searchsorted(self.t, c - width_s / 2.0, "left")
+        hi = np.searchsorted(self.t, c + width_s / 2.0, "right")
+        n = self.n[hi] - self.n[lo]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s, s2 = self.s[hi] - self.s[lo], self.s2[hi] - self.s2[lo]
+            mean = s / n
+            var = np.clip((s2 - n * mean**2) / (n - 1), 0.0, None)
+            # differences between samples lo..hi-1: indices lo..hi-2 of diff
+            last = self.nd.size - 1
+            dlo = np.minimum(lo, last)
+            dhi = np.maximum(np.minimum(hi - 1, last), dlo)
+            nd = self.nd[dhi] - self.nd[dlo]
+            noise = (self.sd2[dhi] - self.sd2[dlo]) / (2.0 * nd)
+            st, st2, stv = self.st[hi] - self.st[lo], self.st2[hi] - self.st2[lo], self.stv[hi] - self.stv[lo]
+            sxx = st2 - st**2 / n
+            sxy = stv - st * s / n
+            slope = sxy / sxx
+            # scatter about the window's straight line: what a centred mean does not average out
+            line_var = np.clip(((n - 1) * var - sxy**2 / sxx) / (n - 2), 0.0, None)
+        fit = (n > 2) & (sxx > 0)
+        return {"count": n.astype(int), "mean": np.where(n > 0, mean, np.nan), "std": np.where(n > 1, np.sqrt(var), np.nan),
+                "noise_var": np.where(nd > 0, noise, np.nan), "slope": np.where(fit, slope, np.nan),
+                "line_var": np.where(fit, line_var, np.nan)}
+
+
+def window_uncertainty(st: dict) -> np.ndarray:
+    """Standard uncertainty of the window mean as the value at the frame's instant, in quadrature: the white
+    noise of the mean and the reference's true variation within the window that a centred mean does not
+    average out (its scatter about the window's straight line minus the white noise; a steady trend
+    averages out, clouds and steps do not)."""
+    noise = np.nan_to_num(st["noise_var"], nan=0.0)
+    var = np.nan_to_num(st["line_var"], nan=0.0)
+    return np.sqrt(noise / np.maximum(st["count"], 1) + np.clip(var - noise, 0.0, None))
+
+
+def spectral_slope(channels_nm, spectrum, wavelength_nm: float) -> float:
+    """d ln L / d ln lambda of a channel spectrum at ``wavelength_nm``: the slope between the two channels around it."""
+    ch = np.asarray(channels_nm, float)
+    L = np.asarray(spectrum, float)
+    ok = np.isfinite(L) & (L > 0)
+    ch, L = ch[ok], L[ok]
+    if ch.size < 2:
+        return float("nan")
+    order = np.argsort(ch)
+    ch, L = ch[order], L[order]
+    i = int(np.clip(np.searchsorted(ch, wavelength_nm), 1, ch.size - 1))
+    return float((np.log(L[i]) - np.log(L[i - 1])) / (np.log(ch[i]) - np.log(ch[i - 1])))
+
+
+# --------------------------------------------------------------------------- the clock offset
+def _profile_chi2(y, sy, series: dict, centres, width, min_samples):
+    """chi^2 of camera = k_b x reference per band (k_b profiled out) and its number of points."""
+    chi2, n = 0.0, 0
+    for band, ws in series.items():
+        st = ws.stats(centres, width)
+        x = st["mean"]
+        ok = (st["count"] >= min_samples) & np.isfinite(y[band]) & np.isfinite(x)
+        if ok.sum() < 2:
+            continue
+        ratio = np.median(y[band][ok] / x[ok])
+        s2 = sy[band][ok] ** 2 + (ratio * window_uncertainty(st)[ok]) ** 2
+        w = 1.0 / s2
+        k = np.sum(w * x[ok] * y[band][ok]) / np.sum(w * x[ok] ** 2)
+        chi2 += float(np.sum(w * (y[band][ok] - k * x[ok]) ** 2))
+        n += int(ok.sum()) - 1
+    return chi2, n
+
+
+def fit_clock_offset(y, sy, series, times_s, width, min_samples, search_s, step_s) -> dict:
+    """Camera clock minus UTC (s) that makes the shifted reference fit the camera best (see the module docstring)."""
+    grid = np.arange(-search_s, search_s + 0.5 * step_s, step_s)
+
+    def reduced(c):
+        chi2, dof = _profile_chi2(y, sy, series, times_s - c, width, min_samples)
+        return chi2 / dof if dof > 0 else np.inf
+
+    curve = np.array([reduced(c) for c in grid])
+    if not np.isfinite(curve).any():
+        raise InputError(None, "no match-ups at any clock offset within the search range")
+    best = float(grid[int(np.nanargmin(curve))])
+    res = optimize.minimize_scalar(reduced, bounds=(best - step_s, best + step_s), method="bounded")
+    c = float(res.x) if res.fun <= reduced(best) else best
+    pts = c + step_s * np.arange(-2, 3)
+    chi = np.array([_profile_chi2(y, sy, series, times_s - p, width, min_samples)[0] for p in pts])
+    a2 = np.polyfit(pts - c, chi, 2)[0]
+    chi2, dof = _profile_chi2(y, sy, series, times_s - c, width, min_samples)
+    se = float(np.sqrt(2.0 / (2.0 * a2))) if a2 > 0 else float("nan")
+    se *= float(np.sqrt(max(chi2 / max(dof, 1), 1.0)))
+    return {"offset_s": c, "offset_se_s": se, "grid_s": grid, "reduced_chi2": curve, "chi2": chi2, "dof": dof}
+
+
+# --------------------------------------------------------------------------- the stage
+def _sun_zenith_deg(times_utc: pd.DatetimeIndex, site: dict) -> np.ndarray:
+    from pvlib.solarposition import get_solarposition
+
+    pos = get_solarposition(times_utc, site["latitude_deg"], site["longitude_deg"], altitude=site.get("altitude_m"))
+    return pos["zenith"].to_numpy(float)
+
+
+def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma):
+    """Stream the field frames: per frame and band the mask numbers; the middle frame's sky map."""
+    bundle, lens = ctx.bundle, ctx.lens
+    frames = ctx.dataset.frames(STAGE)
+    middle = len(frames) // 2
+    rows, inputs, sky = [], {}, None
+    span = bundle["lens_region_px"].sel(lens=lens).values
+    region = ctx.dataset.lenses[lens]
+    if [list(map(int, region[0])), list(map(int, region[1]))] != [list(map(int, span[0])), list(map(int, span[1]))]:
+        raise InputError(ctx.dataset.root / "dataset.yaml", f"lens '{lens}' region {region} differs from the "
+                                                             f"calibration bundle's {span.tolist()}")
+    for i, dec in enumerate(iter_frames(ctx.dataset, STAGE, frames, lenses=[lens], progress=ctx.progress)):
+        raw, row = dec.raw, dec.row
+        inputs[row["file"]] = raw.sha256
+        check_frame(raw, bundle, ctx.effects)
+        temp = float(row["temperature_c"]) if "temperature_c" in row and pd.notna(row.get("temperature_c")) else None
+        frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso), temperature_c=temp)
+        images = dec.lenses[lens]
+        out = {"file": row["file"], "local_time": raw.time, "exposure_s": frame.exposure_s, "iso": frame.iso}
+        for band in BANDS:
+            m = band_radiance(images, bundle, lens, band, MEDIUM, ctx.effects, frame, window=window)
+            st = mask_statistics(m, masks[band])
+            if st["n"] == 0:
+                raise InputError(row["path"], f"band {band}: every pixel of the {ctx.params['mask_half_angle_deg']:g} "
+                                              f"degree mask is saturated or flagged ({st['n_saturated']} saturated): "
+                                              "choose a shorter exposure")
+            if st["mean"] < -negative_sigma * st["random_se"]:
+                raise ImpossibleResult(row["path"], f"band {band}: mean radiance {st['mean']:.3g} {RAD} in the mask is "
+                                                    f"{-st['mean'] / st['random_se']:.1f} standard errors below zero: "
+                                                    "the dark level or the calibration does not fit this frame")
+            out.update({f"{k}_{band}": v for k, v in st.items()})
+        if i == middle:
+            sky = _sky_map(images, bundle, lens, frame, ctx.effects, grid_deg, row["file"])
+        rows.append(out)
+    if not rows:
+        raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no frames of lens '{lens}'")
+    return pd.DataFrame(rows), inputs, sky
+
+
+def _sky_map(images, bundle, lens, frame, effects, grid_deg, name):
+    theta = bundle["theta_deg"].sel(lens=lens, medium=MEDIUM)
+    phi = bundle["phi_deg"].sel(lens=lens, medium=MEDIUM)
+    means, counts = [], []
+    for band in BANDS:
+        m = band_radiance(images, bundle, lens, band, MEDIUM, effects, frame)
+        zen, azi = sphere_coordinates(theta.sel(band=band).values, phi.sel(band=band).values, True)
+        val = np.where((m.flags & EXCLUDED_FROM_GRID) == 0, m.value, np.nan)
+        mean, _, count = bin_on_sphere(zen, azi, val, grid_deg)
+        means.append(mean)
+        counts.append(count)
+    return {"mean": np.stack(means), "count": np.stack(counts), "file": name}
+
+
+def compute(ctx) -> xr.Dataset:
+    """The field artefact of the zenith lens (the stage runner's contract)."""
+    cfg = ctx.params
+    root = ctx.dataset.root
+    bundle = ctx.bundle
+    if bundle is None:
+        raise InputError(None, "the field stage needs the calibration bundle")
+    if ctx.lens not in list(bundle["lens"].values):
+        raise InputError(None, f"the calibration bundle has no lens '{ctx.lens}'")
+    # sidecars first: bad input fails before any frame is decoded
+    site = read_site(ctx.dataset)
+    reference = read_reference_radiometer(ctx.dataset)
+    ref_path = root / STAGE / "reference_radiometer.csv"
+    channels = np.asarray(reference.attrs["channels_nm"], float)
+    if len(reference) < 2:
+        raise InputError(ref_path, "needs at least two readings")
+    masks, window = field_masks(bundle, ctx.lens, float(cfg["mask_half_angle_deg"]), int(cfg["min_mask_pixels"]))
+    frames, inputs, sky = _reduce_frames(ctx, masks, window, float(cfg["sky_map_grid_deg"]),
+                                         float(ctx.config["apply"]["negative_mean_sigma"]))
+    ctx.record_frames(inputs)
+
+    # camera time (local) -> UTC, seconds since the first frame
+    offset_h = float(site["camera_clock_utc_offset_h"])
+    utc = pd.DatetimeIndex([t - timedelta(hours=offset_h) for t in frames["local_time"]]).tz_localize("UTC")
+    t0 = utc.min()
+    t_cam = np.asarray((utc - t0).total_seconds(), float)
+    ref_t = np.asarray((pd.DatetimeIndex(reference["time"]) - t0).total_seconds(), float)
+    order = np.argsort(ref_t, kind="stable")
+    ref_t = ref_t[order]
+    ref_values = reference[[c for c in reference.columns if c != "time"]].to_numpy(float)[order]
+    if ref_t[-1] < t_cam.min() or ref_t[0] > t_cam.max():
+        raise InputError(ref_path, f"covers {reference['time'].min()} to {reference['time'].max()}, none of the frames "
+                                   f"({utc.min()} to {utc.max()} UTC after the camera clock's offset of {offset_h:g} h)")
+
+    # the two reference series of each band: nearest channel, band-convolved
+    lam_eff = bundle["effective_wavelength_nm"].sel(lens=ctx.lens).values.astype(float)
+    resp_nm = bundle["wavelength_nm"].values.astype(float)
+    nearest_idx, conv_w, outside = {}, {}, {}
+    for j, band in enumerate(BANDS):
+        nearest_idx[band] = int(np.argmin(np.abs(channels - lam_eff[j])))
+        resp = bundle["response"].sel(lens=ctx.lens, band=band).values.astype(float)
+        conv_w[band], outside[band] = convolution_weights(channels, resp_nm, resp)
+    used_ch = {band: conv_w[band] != 0 for band in BANDS}
+    conv_series = {}
+    for band in BANDS:
+        vals = ref_values[:, used_ch[band]] @ conv_w[band][used_ch[band]]
+        conv_series[band] = vals          # NaN where any weighted channel dropped out
+    near_series = {band: ref_values[:, nearest_idx[band]] for band in BANDS}
+    width = float(cfg["reference_window_s"])
+    min_n = int(cfg["min_reference_samples"])
+    ws = {("nearest", b): WindowedSeries(ref_t, near_series[b]) for b in BANDS}
+    ws.update({("convolved", b): WindowedSeries(ref_t, conv_series[b]) for b in BANDS})
+    predict = "convolved" if "spectral_mismatch" in ctx.effects else "nearest"
+    y = {b: frames[f"mean_{b}"].to_numpy(float) for b in BANDS}
+    sy = {b: frames[f"random_se_{b}"].to_numpy(float) for b in BANDS}
+
+    clock = None
+    shift = 0.0
+    if "clock_offset" in ctx.effects:
+        clock = fit_clock_offset(y, sy, {b: ws[(predict, b)] for b in BANDS}, t_cam, width, min_n,
+                                 float(cfg["clock_offset_search_s"]), float(cfg["clock_offset_grid_s"]))
+        shift = clock["offset_s"]
+    centres = t_cam - shift
+    st = {key: w.stats(centres, width) for key, w in ws.items()}
+    channel_st = [WindowedSeries(ref_t, ref_values[:, c]).stats(centres, width) for c in range(channels.size)]
+    channel_mean = np.stack([c["mean"] for c in channel_st], axis=1)       # (frame, channel)
+    sun_zenith = _sun_zenith_deg(utc - pd.to_timedelta(shift, unit="s"), site)
+
+    # match-ups: enough reference samples for both comparisons and a camera value
+    valid = {b: (st[("nearest", b)]["count"] >= min_n) & (st[("convolved", b)]["count"] >= min_n) & np.isfinite(y[b])
+             for b in BANDS}
+    no_reference = ~np.logical_and.reduce([valid[b] for b in BANDS])
+    if no_reference.any():
+        log.warning("field %s: %d of %d frames have fewer than %d reference samples within %g s and are not "
+                    "match-ups: %s", ctx.lens, int(no_reference.sum()), len(frames), min_n, width,
+                    ", ".join(frames["file"][no_reference]))
+    if clock is not None:
+        log.info("field %s: camera clock offset %.2f +- %.2f s (camera minus UTC)", ctx.lens, clock["offset_s"],
+                 clock["offset_se_s"])
+
+    # statistics per band and comparison
+    names = list(BOOTSTRAPPED)
+    fits = ("ols", "odr")
+    fit_keys = ("slope", "slope_low", "slope_high", "slope_se", "intercept", "intercept_low", "intercept_high", "intercept_se")
+    stat = {n: np.full((len(BANDS), 2), np.nan) for n in names + [f"{n}_{e}" for n in names for e in ("low", "high")]
+            + [f"{f}_{k}" for f in fits for k in fit_keys]}
+    n_matchups = np.zeros((len(BANDS), 2), int)
+    level, resamples, seed = float(cfg["confidence_level"]), int(cfg["bootstrap_resamples"]), int(cfg["bootstrap_seed"])
+    for j, band in enumerate(BANDS):
+        ok = valid[band]
+        for c, comp in enumerate(COMPARISONS):
+            s = st[(comp, band)]
+            x = s["mean"][ok]
+            sx = window_uncertainty(s)[ok]
+            eps = np.finfo(float).eps
+            out = matchup_statistics(y[band][ok], x, np.maximum(sy[band][ok], eps * np.abs(y[band][ok])),
+                                     np.maximum(sx, eps * np.abs(x)), level, resamples, seed + 97 * (2 * j + c),
+                                     cfg["bootstrap_method"])
+            n_matchups[j, c] = out.pop("n")
+            for key, value in out.items():
+                stat[key][j, c] = value
+
+    # the observation table
+    rows = []
+    for j, band in enumerate(BANDS):
+        pred_series = st[(predict, band)]
+        ratio = np.nanmedian(y[band][valid[band]] / pred_series["mean"][valid[band]]) if valid[band].any() else np.nan
+        ref_sigma = window_uncertainty(pred_series)
+        for f in np.flatnonzero(valid[band]):
+            rows.append({
+                "group": band, "band": band, "frame": int(f), "time_s": float(t_cam[f] - shift),
+                "value_dn": y[band][f], "sigma_dn": float(np.hypot(sy[band][f], ratio * ref_sigma[f])),
+                "x_scale": float(pred_series["mean"][f]),
+                "ref_nearest": float(st[("nearest", band)]["mean"][f]),
+                "ref_convolved": float(st[("convolved", band)]["mean"][f]),
+                "dref_dt": float(pred_series["slope"][f]),
+                "spectral_slope": spectral_slope(channels, channel_mean[f], lam_eff[j]),
+                "sun_zenith_deg": float(sun_zenith[f]),
+            })
+    table = pd.DataFrame(rows, columns=["group", "band", "frame", "time_s", "value_dn", "sigma_dn", "x_scale",
+                                        "ref_nearest", "ref_convolved", "dref_dt", "spectral_slope", "sun_zenith_deg"])
+    few = [b for b in BANDS if valid[b].sum() < 3]
+    if few:
+        # three points are the fewest a line with an interval (N - 2 degrees of freedom) needs
+        raise InputError(ref_path, f"only {min(int(valid[b].sum()) for b in few)} of {len(frames)} frames have "
+                                   f"{min_n} or more reference samples within {width:g} s (band {few[0]}): "
+                                   "a match-up needs at least 3")
+    fit, _ = fit_with_effects(table, "frame", ctx.effects, STAGE)
+    table["pred_dn"] = fit.pred
+    table["z"] = fit.z
+    scales = np.array([float(np.nanmean((table["pred_dn"] / table["x_scale"])[table["band"] == b])) for b in BANDS])
+    return _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_reference, stat, n_matchups,
+                    table, fit, scales, nearest_idx, channels, lam_eff, conv_w, outside, sky, predict, sun_zenith,
+                    masks, window)
+
+
+def _attrs(long_name, units, **extra):
+    return {"long_name": long_name, "units": units, **extra}
+
+
+def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_reference, stat, n_matchups, table, fit,
+             scales, nearest_idx, channels, lam_eff, conv_w, outside, sky, predict, sun_zenith, masks, window):
+    cfg = ctx.params
+    fb = ("frame", "band")
+
+    def per_band(key):
+        return np.stack([frames[f"{key}_{b}"].to_numpy(float) for b in BANDS], axis=1)
+
+    def ref(comp, key):
+        return np.stack([st[(comp, b)][key] for b in BANDS], axis=1)
+
+    data = {
+        "time_utc": ("frame", np.array([t.isoformat() for t in utc], dtype=str),
+                     {"long_name": "frame time in UTC (camera clock minus the site's time-zone offset)"}),
+        "time_s": ("frame", t_cam, _attrs("frame time since the first frame (camera clock, UTC)", "s")),
+        "frame_file": ("frame", frames["file"].to_numpy(str), {"long_name": "raw frame"}),
+        "exposure_s": ("frame", frames["exposure_s"].to_numpy(float), _attrs("exposure time (tag)", "s")),
+        "iso": ("frame", frames["iso"].to_numpy(float), _attrs("ISO speed (tag)", "1")),
+        "sun_zenith_deg": ("frame", sun_zenith, _attrs("solar zenith angle at the frame's reference time (SPA, pvlib)",
+                                                       "degree")),
+        "camera_radiance": (fb, per_band("mean"), _attrs("camera mean radiance in the mask, inverse of Eq. (4)", RAD)),
+        "camera_random_sigma": (fb, per_band("random_se"),
+                                _attrs("random standard error of the mask mean (shot, read, dark noise)", RAD)),
+        "camera_systematic_sigma": (fb, per_band("systematic"),
+                                    _attrs("systematic standard uncertainty (calibration), common to all frames of a band",
+                                           RAD)),
+        "camera_spatial_spread": (fb, per_band("spread"), _attrs("standard deviation of the pixel radiances in the mask", RAD)),
+        "mask_n_pixels": (fb, per_band("n"), _attrs("unflagged band pixels averaged in the mask", "1")),
+        "mask_n_saturated": (fb, per_band("n_saturated"), _attrs("saturated band pixels in the mask (left out)", "1")),
+        "is_matchup": (fb, np.stack([valid[b] for b in BANDS], axis=1).astype(np.int8),
+                       _attrs("1: enough reference samples in the window (a match-up)", "1")),
+    }
+    for comp in COMPARISONS:
+        what = ("channel nearest the band's effective wavelength" if comp == "nearest"
+                else "channels interpolated linearly in wavelength and averaged with the measured response, Eq. (3)")
+        data[f"reference_{comp}"] = (fb, ref(comp, "mean"), _attrs(f"reference window mean, {what}", RAD))
+        data[f"reference_{comp}_std"] = (fb, ref(comp, "std"), _attrs("standard deviation of the reference in the window", RAD))
+        data[f"reference_{comp}_count"] = (fb, ref(comp, "count"), _attrs("reference samples in the window", "1"))
+        data[f"reference_{comp}_sigma"] = (fb, np.stack([window_uncertainty(st[(comp, b)]) for b in BANDS], axis=1),
+                                           _attrs("uncertainty of the window mean as the value at the frame's instant "
+                                                  "(noise of the mean, variation about the window's line)", RAD))
+        data[f"reference_{comp}_slope"] = (fb, ref(comp, "slope"),
+                                           _attrs("d reference / dt from a line fitted to the window's samples",
+                                                  "W sr-1 m-2 nm-1 s-1"))
+    comp_dims = ("band", "comparison")
+    for name, value in stat.items():
+        base = name.rsplit("_", 1)[0] if name.endswith(("_low", "_high")) else name
+        if base in STATISTIC_UNITS:
+            units = RAD if STATISTIC_UNITS[base] == "data" else STATISTIC_UNITS[base]
+            long = base.replace("_", " ")
+            if name.endswith("_low") or name.endswith("_high"):
+                long = (f"{'lower' if name.endswith('_low') else 'upper'} bound of the paired bootstrap interval of the "
+                        f"{long} ({cfg['confidence_level']:g}, {cfg['bootstrap_method']}, "
+                        f"{cfg['bootstrap_resamples']} resamples)")
+        else:
+            fitname, key = name.split("_", 1)
+            units = RAD if key.startswith("intercept") else "1"
+            long = f"{'ordinary least squares' if fitname == 'ols' else 'errors-in-both (ODR)'} {key.replace('_', ' ')} " \
+                   f"of camera against reference (intervals Student-t at {cfg['confidence_level']:g})"
+        data[f"stat_{name}"] = (comp_dims, value, _attrs(long, units))
+    data["n_matchups"] = (comp_dims, n_matchups, _attrs("number of match-ups", "1"))
+    data["n_frames_without_reference"] = ((), int(no_reference.sum()),
+                                          _attrs(f"frames with fewer than {cfg['min_reference_samples']} reference samples "
+                                                 f"in the {cfg['reference_window_s']:g} s window (not match-ups)", "1"))
+    data["effective_wavelength_nm"] = ("band", lam_eff, _attrs("effective wavelength of the band (bundle, Eq. 8)", "nm"))
+    data["nearest_channel_nm"] = ("band", np.array([channels[nearest_idx[b]] for b in BANDS]),
+                                  _attrs("reference channel nearest the effective wavelength", "nm"))
+    data["convolution_weight"] = (("band", "channel_nm"), np.stack([conv_w[b] for b in BANDS]),
+                                  _attrs("weight of each reference channel in the band-convolved reference", "1"))
+    data["response_outside_reference_fraction"] = ("band", np.array([outside[b] for b in BANDS]),
+                                                   _attrs("fraction of the measured response outside the channels' span "
+                                                          "(left out of the convolution)", "1"))
+    data["band_scale"] = ("band", scales, _attrs(f"fitted camera / reference scale k_b (reference: {predict})", "1"))
+    data["mask_half_angle_deg"] = ((), float(cfg["mask_half_angle_deg"]), _attrs("averaging mask around the axis", "degree"))
+    data["rms_z"] = ((), fit.rms_z, _attrs("RMS of the noise-normalised match-up residuals (1 at the noise floor)", "1"))
+    data["clock_offset_s"] = ((), float(shift), _attrs("camera clock minus UTC applied to the reference times "
+                                                      "(fitted with clock_offset in the model, 0 otherwise)", "s"))
+    coords = {"frame": np.arange(len(frames)), "band": list(BANDS), "comparison": list(COMPARISONS),
+              "channel_nm": ("channel_nm", channels, _attrs("reference channel centre wavelength", "nm"))}
+    if clock is not None:
+        data["clock_offset_s_sigma"] = ((), clock["offset_se_s"],
+                                        _attrs("standard error of the fitted clock offset (chi-square curvature)", "s"))
+        data["clock_search_reduced_chi2"] = ("clock_search_s", clock["reduced_chi2"],
+                                             _attrs("reduced chi-square of the base model against the clock offset", "1"))
+        coords["clock_search_s"] = ("clock_search_s", clock["grid_s"], _attrs("trial camera clock offset", "s"))
+    if sky is not None:
+        grid = float(cfg["sky_map_grid_deg"])
+        n_z, n_a = sky["mean"].shape[1:]
+        coords["zenith"] = ("zenith", (np.arange(n_z) + 0.5) * grid, _attrs("zenith angle of the cell centre", "degree"))
+        coords["azimuth"] = ("azimuth", (np.arange(n_a) + 0.5) * grid, _attrs("azimuth of the cell centre", "degree"))
+        data["sky_radiance"] = (("band", "zenith", "azimuth"), sky["mean"],
+                                _attrs("all-sky radiance of the middle frame: mean of the unflagged pixels in the cell", RAD,
+                                       frame_file=sky["file"]))
+        data["sky_count"] = (("band", "zenith", "azimuth"), sky["count"], _attrs("pixels binned into the cell", "1"))
+    ds = xr.Dataset(data, coords=coords, attrs={
+        "title": "field match-up of the camera against a reference radiometer (Larouche et al. 2024, Section 2.9)",
+        "lens": ctx.lens, "medium": MEDIUM, "prediction": predict,
+        "reference_window_s": float(cfg["reference_window_s"]), "confidence_level": float(cfg["confidence_level"]),
+        "mask_window_px": f"rows {window[0].start}:{window[0].stop}, cols {window[1].start}:{window[1].stop}",
+        "interpolation": "reference channels as samples at their centre wavelengths, linear in wavelength; response "
+                         "wavelengths outside the channels' span left out",
+    })
+    obs = table_to_dataset(table, "obs_frame")
+    units = {"value_dn": RAD, "sigma_dn": RAD, "x_scale": RAD, "pred_dn": RAD, "ref_nearest": RAD, "ref_convolved": RAD,
+             "dref_dt": "W sr-1 m-2 nm-1 s-1", "spectral_slope": "1", "sun_zenith_deg": "degree", "time_s": "s",
+             "z": "1", "frame": "1"}
+    for col, u in units.items():
+        obs[f"obs_frame__{col}"].attrs.update(units=u, long_name=f"match-up table: {col}")
+    for col in ("group", "band"):
+        obs[f"obs_frame__{col}"].attrs.update(long_name=f"match-up table: {col}")
+    return ds.merge(obs)
