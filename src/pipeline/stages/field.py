@@ -52,8 +52,8 @@ window uncertainty (noise of the mean and variation within the window).
 Observation table (``obs_frame``, FIELD_SPEC.md): one row per match-up and
 band; base model camera = k_b x reference (one scale per band, fitted with
 :func:`pipeline.observations.fit_with_effects`); ``sigma_dn`` adds the
-camera's random standard error and k_b times the reference's window
-uncertainty in quadrature, k_b the median camera/reference ratio of the band
+camera's random standard error, k_b times the reference's window
+uncertainty and the mask's sampling term (:func:`mask_sampling_sigma`) in quadrature, k_b the median camera/reference ratio of the band
 (fixed before the fit). With ``spectral_mismatch`` in ``model.effects`` the
 prediction is the band-convolved reference, the nearest channel otherwise.
 With ``clock_offset`` in the model the camera clock offset c (camera - UTC, s)
@@ -138,6 +138,19 @@ def mask_statistics(m: mm.Measured, mask: np.ndarray) -> dict:
             "systematic": float(m.systematic_sigma[good].mean()),
             "spread": float(v.std(ddof=1)) if n > 1 else np.nan, "n": n,
             "n_saturated": int((mask & ((m.flags & mm.FLAG_SATURATED) > 0)).sum())}
+
+
+def mask_sampling_sigma(spread, n_pixels):
+    """How far the camera's mask mean may sit from the reference's cone mean when the sky varies inside the mask.
+
+    The camera samples the cone at ``n_pixels`` pixel directions, the reference integrates it; with
+    structure in the mask (cloud edges) the two means differ by about the standard error of the pixel
+    sample, spread / sqrt(n). For a clear sky the spread, hence the term, is small. It is an upper
+    estimate for pixels that integrate their whole footprint, whose difference from the cone is
+    confined to the pixels on the mask's edge.
+    """
+    spread = np.nan_to_num(np.asarray(spread, float))
+    return spread / np.sqrt(np.maximum(np.asarray(n_pixels, float), 1.0))
 
 
 # --------------------------------------------------------------------------- the reference
@@ -394,6 +407,8 @@ def compute(ctx) -> xr.Dataset:
     predict = "convolved" if "spectral_mismatch" in ctx.effects else "nearest"
     y = {b: frames[f"mean_{b}"].to_numpy(float) for b in BANDS}
     sy = {b: frames[f"random_se_{b}"].to_numpy(float) for b in BANDS}
+    sampling = {b: mask_sampling_sigma(frames[f"spread_{b}"].to_numpy(float), frames[f"n_{b}"].to_numpy(float))
+                if cfg["mask_sampling_term"] else np.zeros(len(frames)) for b in BANDS}
 
     clock = None
     shift = 0.0
@@ -450,7 +465,8 @@ def compute(ctx) -> xr.Dataset:
         for f in np.flatnonzero(valid[band]):
             rows.append({
                 "group": band, "band": band, "frame": int(f), "time_s": float(t_cam[f] - shift),
-                "value_dn": y[band][f], "sigma_dn": float(np.hypot(sy[band][f], ratio * ref_sigma[f])),
+                "value_dn": y[band][f],
+                "sigma_dn": float(np.sqrt(sy[band][f] ** 2 + (ratio * ref_sigma[f]) ** 2 + sampling[band][f] ** 2)),
                 "x_scale": float(pred_series["mean"][f]),
                 "ref_nearest": float(st[("nearest", band)]["mean"][f]),
                 "ref_convolved": float(st[("convolved", band)]["mean"][f]),
