@@ -41,7 +41,7 @@ from pipeline.frames import lens_images
 from pipeline.radiometry import measurement as mm
 from pipeline.rawio import read_raw
 
-__all__ = ["apply_calibration", "check_frame", "sphere_coordinates", "bin_on_sphere", "add_apply_parser",
+__all__ = ["apply_calibration", "band_radiance", "check_frame", "sphere_coordinates", "bin_on_sphere", "add_apply_parser",
            "apply_command"]
 
 #: flags that keep a pixel out of the sphere grid
@@ -108,12 +108,65 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     return mean.reshape(shape), spread.reshape(shape), count.reshape(shape).astype(np.int32)
 
 
-def _outside_circle(bundle: xr.Dataset, lens: str, medium: str, band: str, shape) -> np.ndarray:
-    g = bundle.sel(lens=lens, medium=medium, band=band)
-    y, x = np.indices(shape)
-    r = np.hypot(x - float(g["circle_xc_px"]), y - float(g["circle_yc_px"]))
-    theta = g["theta_deg"].values
+def _outside_circle(g: xr.Dataset, theta: np.ndarray, rows: slice, cols: slice, shape) -> np.ndarray:
+    """Pixels of the crop ``rows, cols`` of a band image (full ``shape``) outside the image circle or the half FOV."""
+    y = np.arange(shape[0])[rows]
+    x = np.arange(shape[1])[cols]
+    r = np.hypot(x[None, :] - float(g["circle_xc_px"]), y[:, None] - float(g["circle_yc_px"]))
     return (r > float(g["circle_radius_px"])) | ~np.isfinite(theta) | (theta > float(g["half_fov_deg"]))
+
+
+def _crop(b: xr.Dataset, name: str, rows: slice, cols: slice):
+    return b[name].isel(y=rows, x=cols).values if name in b else None
+
+
+def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str, effects,
+                  frame: mm.FrameSettings, window=None, *, negative_sigma: float | None = None,
+                  source=None) -> mm.Measured:
+    """The measurement chain on one band image of one lens: raw DN to radiance with its uncertainty.
+
+    ``images`` is what :func:`pipeline.frames.lens_images` returns for
+    ``lens``; ``frame`` the frame's exposure settings. With ``window =
+    (row_slice, col_slice)`` only that crop of the band image runs (and the
+    same crop of theta, the hot-pixel mask and the flat field), and the
+    result has the crop's shape; each pixel's result is the one of the whole
+    image. Pixels outside the image circle (or beyond the half field of view)
+    have no direction: NaN, flagged :data:`~pipeline.radiometry.measurement.FLAG_OUTSIDE_IMAGE_CIRCLE`.
+    A mean radiance over the unflagged pixels inside the circle more than
+    ``negative_sigma`` (default ``apply.negative_mean_sigma``) standard
+    errors below zero raises :class:`~pipeline.errors.ImpossibleResult`;
+    ``source`` names the frame in the messages.
+    """
+    effects = tuple(effects)
+    image = images.bands[band]
+    g = bundle.sel(lens=lens, medium=medium, band=band)
+    shape = g["theta_deg"].shape
+    if image.shape != tuple(shape):
+        raise InputError(source, f"lens '{lens}' band image is {image.shape}, the calibration's {tuple(shape)}")
+    rows, cols = (slice(None), slice(None)) if window is None else window
+    rows = slice(*rows.indices(shape[0]))
+    cols = slice(*cols.indices(shape[1]))
+    theta = np.asarray(_crop(g, "theta_deg", rows, cols), dtype=float)
+    theta = np.where(_outside_circle(g, theta, rows, cols, shape), np.nan, theta)
+    dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
+    b = bundle.sel(lens=lens, band=band)
+    m = mm.measure_band(image[rows, cols], frame, dark, response, cal, theta, medium, effects,
+                        saturated=images.saturated[band][rows, cols],
+                        hot_mask=_crop(b, "hot_pixel_mask", rows, cols),
+                        flat_field=_crop(b, "flat_field", rows, cols),
+                        prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0)
+    if negative_sigma is None:
+        negative_sigma = float(defaults()["apply"]["negative_mean_sigma"])
+    good = (m.flags & (mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT)) == 0
+    good &= np.isfinite(m.value)
+    if good.any():
+        mean = float(np.mean(m.value[good]))
+        se = float(np.sqrt(np.sum(m.random_sigma[good] ** 2))) / good.sum()
+        if mean < -negative_sigma * se:
+            raise ImpossibleResult(source, f"lens {lens}, band {band}: mean radiance {mean:.3g} W sr-1 m-2 nm-1 "
+                                           f"over the image circle is {-mean / se:.1f} standard errors below "
+                                           "zero: the dark level or the calibration does not fit this frame")
+    return m
 
 
 def _frame_radiance(raw, bundle, medium, effects, negative_sigma):
@@ -127,30 +180,11 @@ def _frame_radiance(raw, bundle, medium, effects, negative_sigma):
         span = bundle["lens_region_px"].sel(lens=lens).values
         images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
         for j, band in enumerate(BANDS):
-            image = images.bands[band]
-            if image.shape != tuple(shape):
-                raise InputError(raw.path, f"lens '{lens}' band image is {image.shape}, the calibration's {tuple(shape)}")
-            dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
-            theta = bundle["theta_deg"].sel(lens=lens, medium=medium, band=band).values.astype(float)
-            theta = np.where(_outside_circle(bundle, lens, medium, band, shape), np.nan, theta)
-            b = bundle.sel(lens=lens, band=band)
-            m = mm.measure_band(image, frame, dark, response, cal, theta, medium, effects,
-                                saturated=images.saturated[band],
-                                hot_mask=b["hot_pixel_mask"].values if "hot_pixel_mask" in b else None,
-                                flat_field=b["flat_field"].values if "flat_field" in b else None,
-                                prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0)
-            inside = ~(m.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE).astype(bool)
-            good = inside & ~(m.flags & (mm.FLAG_SATURATED | mm.FLAG_HOT)).astype(bool) & np.isfinite(m.value)
-            if good.any():
-                mean = float(np.mean(m.value[good]))
-                se = float(np.sqrt(np.sum(m.random_sigma[good] ** 2))) / good.sum()
-                if mean < -negative_sigma * se:
-                    raise ImpossibleResult(raw.path, f"lens {lens}, band {band}: mean radiance {mean:.3g} W sr-1 m-2 nm-1 "
-                                                     f"over the image circle is {-mean / se:.1f} standard errors below "
-                                                     "zero: the dark level or the calibration does not fit this frame")
-            out["radiance"][i, j] = np.where(inside, m.value, np.nan)
-            out["random"][i, j] = np.where(inside, m.random_sigma, np.nan)
-            out["systematic"][i, j] = np.where(inside, m.systematic_sigma, np.nan)
+            m = band_radiance(images, bundle, lens, band, medium, effects, frame,
+                              negative_sigma=negative_sigma, source=raw.path)
+            out["radiance"][i, j] = m.value
+            out["random"][i, j] = m.random_sigma
+            out["systematic"][i, j] = m.systematic_sigma
             flags[i, j] = m.flags
     return out, flags
 
