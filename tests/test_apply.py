@@ -240,3 +240,12 @@ def test_command_line(calibrated, tmp_path, capsys):
     assert xr.open_dataset(out).attrs["medium"] == "water"
     assert main(["apply", "--calibration", str(bundle_path), str(_signal_frame(root, "close")), "-o", str(out)]) == 1
     assert "--overwrite" in capsys.readouterr().err
+    # the sphere grid only: the same grid, no pixel maps
+    grid_only = tmp_path / "grid.nc"
+    assert main(["apply", "--calibration", str(bundle_path), "--medium", "water", "--no-pixels",
+                 str(_signal_frame(root, "close")), "-o", str(grid_only)]) == 0
+    with xr.open_dataset(out) as full, xr.open_dataset(grid_only) as sphere:
+        assert "radiance" not in sphere and "theta_deg" not in sphere and sphere.attrs["pixel_maps"] == 0
+        for name in ("sphere_radiance", "sphere_radiance_random_sigma", "sphere_radiance_systematic_sigma",
+                     "sphere_count"):
+            np.testing.assert_allclose(sphere[name].values, full[name].values, rtol=1e-6, err_msg=name)

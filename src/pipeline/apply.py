@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -82,30 +83,6 @@ def sphere_coordinates(theta_deg, phi_deg, looks_up: bool):
     if looks_up:
         return theta, np.mod(phi, 360.0)
     return 180.0 - theta, np.mod(-phi, 360.0)
-
-
-def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
-    """Mean, spread (standard deviation) and count of ``values`` per zenith/azimuth cell; NaN where empty.
-
-    Every finite value falls into its cell (no nearest-pixel choice); the
-    arrays returned have shape (180 / grid, 360 / grid).
-    """
-    n_z, n_a = int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
-    z = np.asarray(zenith_deg, float).ravel()
-    a = np.asarray(azimuth_deg, float).ravel()
-    v = np.asarray(values, float).ravel()
-    ok = np.isfinite(z) & np.isfinite(a) & np.isfinite(v)
-    iz = np.clip((z[ok] / grid_deg).astype(int), 0, n_z - 1)
-    ia = np.clip((a[ok] / grid_deg).astype(int), 0, n_a - 1)
-    cell = iz * n_a + ia
-    count = np.bincount(cell, minlength=n_z * n_a).astype(float)
-    total = np.bincount(cell, weights=v[ok], minlength=n_z * n_a)
-    mean = np.where(count > 0, total / np.where(count > 0, count, 1), np.nan)
-    dev = v[ok] - mean[cell]
-    var = np.bincount(cell, weights=dev**2, minlength=n_z * n_a)
-    spread = np.where(count > 1, np.sqrt(var / np.where(count > 1, count - 1, 1)), np.nan)
-    shape = (n_z, n_a)
-    return mean.reshape(shape), spread.reshape(shape), count.reshape(shape).astype(np.int32)
 
 
 def _outside_circle(g: xr.Dataset, theta: np.ndarray, rows: slice, cols: slice, shape) -> np.ndarray:
@@ -169,24 +146,78 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
     return m
 
 
-def _frame_radiance(raw, bundle, medium, effects, negative_sigma):
-    """Radiance, random and systematic sigma, flags of one decoded frame: arrays (lens, band, y, x)."""
+def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dtype):
+    """Radiance, random and systematic sigma (``dtype``) and flags of one lens of a decoded frame: (band, y, x)."""
+    span = bundle["lens_region_px"].sel(lens=lens).values
+    images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
+    out = {"radiance": [], "random": [], "systematic": [], "flags": []}
+    for band in BANDS:
+        m = band_radiance(images, bundle, lens, band, medium, effects, frame,
+                          negative_sigma=negative_sigma, source=raw.path)
+        out["radiance"].append(m.value.astype(dtype, copy=False))
+        out["random"].append(m.random_sigma.astype(dtype, copy=False))
+        out["systematic"].append(m.systematic_sigma.astype(dtype, copy=False))
+        out["flags"].append(m.flags)
+    return {k: np.stack(v) for k, v in out.items()}
+
+
+def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=float, pool=None):
+    """Radiance, random and systematic sigma, flags of one decoded frame: arrays (lens, band, y, x).
+
+    With a thread ``pool`` the lenses run side by side (numpy releases the
+    GIL in its array operations); ``bundle`` must then be in memory.
+    """
     lenses = list(bundle["lens"].values)
-    shape = bundle["theta_deg"].shape[-2:]
-    out = {k: np.full((len(lenses), len(BANDS)) + shape, np.nan) for k in ("radiance", "random", "systematic")}
-    flags = np.zeros((len(lenses), len(BANDS)) + shape, np.uint8)
     frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
-    for i, lens in enumerate(lenses):
-        span = bundle["lens_region_px"].sel(lens=lens).values
-        images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
-        for j, band in enumerate(BANDS):
-            m = band_radiance(images, bundle, lens, band, medium, effects, frame,
-                              negative_sigma=negative_sigma, source=raw.path)
-            out["radiance"][i, j] = m.value
-            out["random"][i, j] = m.random_sigma
-            out["systematic"][i, j] = m.systematic_sigma
-            flags[i, j] = m.flags
-    return out, flags
+    args = (medium, effects, frame, negative_sigma, dtype)
+    if pool is None:
+        per_lens = [_lens_radiance(raw, bundle, lens, *args) for lens in lenses]
+    else:
+        per_lens = [f.result() for f in [pool.submit(_lens_radiance, raw, bundle, lens, *args) for lens in lenses]]
+    out = {k: np.stack([r[k] for r in per_lens]) for k in ("radiance", "random", "systematic")}
+    return out, np.stack([r["flags"] for r in per_lens])
+
+
+def _sphere_cells(zenith_deg, azimuth_deg, grid_deg: float) -> np.ndarray:
+    """Index of the zenith/azimuth cell of every direction (row-major on the grid); -1 where undefined."""
+    n_z, n_a = int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
+    z = np.asarray(zenith_deg, float).ravel()
+    a = np.asarray(azimuth_deg, float).ravel()
+    ok = np.isfinite(z) & np.isfinite(a)
+    cell = np.full(z.shape, -1, np.int32)
+    iz = np.clip((z[ok] / grid_deg).astype(int), 0, n_z - 1)
+    ia = np.clip((a[ok] / grid_deg).astype(int), 0, n_a - 1)
+    cell[ok] = iz * n_a + ia
+    return cell.reshape(np.shape(zenith_deg))
+
+
+def _bin_cells(cell: np.ndarray, values, n_cells: int, extra=()):
+    """Mean, spread and count of ``values`` per cell (``cell`` >= 0, value finite); the means of ``extra`` there."""
+    v = np.asarray(values).ravel()
+    ok = (cell.ravel() >= 0) & np.isfinite(v)
+    c = cell.ravel()[ok]
+    v = v[ok].astype(float)
+    count = np.bincount(c, minlength=n_cells).astype(float)
+    has = count > 0
+    mean = np.where(has, np.bincount(c, weights=v, minlength=n_cells) / np.where(has, count, 1), np.nan)
+    dev = v - mean[c]
+    var = np.bincount(c, weights=dev * dev, minlength=n_cells)
+    spread = np.where(count > 1, np.sqrt(var / np.where(count > 1, count - 1, 1)), np.nan)
+    means = [np.where(has, np.bincount(c, weights=np.asarray(x).ravel()[ok].astype(float), minlength=n_cells)
+                      / np.where(has, count, 1), np.nan) for x in extra]
+    return mean, spread, count.astype(np.int32), means
+
+
+def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
+    """Mean, spread (standard deviation) and count of ``values`` per zenith/azimuth cell; NaN where empty.
+
+    Every finite value falls into its cell (no nearest-pixel choice); the
+    arrays returned have shape (180 / grid, 360 / grid).
+    """
+    shape = (int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg)))
+    cell = _sphere_cells(zenith_deg, azimuth_deg, grid_deg)
+    mean, spread, count, _ = _bin_cells(cell, values, shape[0] * shape[1])
+    return mean.reshape(shape), spread.reshape(shape), count.reshape(shape)
 
 
 def _attrs(long_name, units, **extra):
@@ -194,12 +225,15 @@ def _attrs(long_name, units, **extra):
 
 
 def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: float | None = None, *,
-                      overwrite: bool = False, zenith_lens: str = ZENITH_LENS, config: dict | None = None) -> Path:
+                      overwrite: bool = False, zenith_lens: str = ZENITH_LENS, config: dict | None = None,
+                      pixels: bool = True) -> Path:
     """Turn raw frames into radiance maps with the calibration bundle; write ``out_path`` (NetCDF).
 
-    Returns the path written. Each frame is decoded once. The output is
-    written to a temporary name and renamed; an existing ``out_path`` is
-    replaced only with ``overwrite``.
+    Returns the path written. Each frame is decoded once. The sphere grid is
+    always written; the per-pixel maps (radiance, uncertainties, flags and
+    the geometry of every band pixel of both lenses) only with ``pixels``.
+    The output is written to a temporary name and renamed; an existing
+    ``out_path`` is replaced only with ``overwrite``.
     """
     config = config if config is not None else defaults()
     cfg = config["apply"]
@@ -208,69 +242,83 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     if out_path.exists() and not overwrite:
         raise InputError(out_path, "exists; add --overwrite to replace it")
     bundle_path = Path(bundle_path)
-    bundle = read_bundle(bundle_path)
-    effects = model_effects(bundle)
-    if medium not in _media(bundle):
-        raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(_media(bundle))})")
+    with read_bundle(bundle_path, load=False) as on_disk:
+        effects = model_effects(on_disk)
+        if medium not in _media(on_disk):
+            raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(_media(on_disk))})")
+        # only this medium, and the solid angles only when the pixel maps are written
+        skip = [] if pixels else ["solid_angle_sr"]
+        bundle = on_disk.drop_vars(skip).sel(medium=[medium]).load()
     raw_paths = [Path(p) for p in raw_paths]
     if not raw_paths:
         raise InputError(None, "no raw frames to apply the calibration to")
     lenses = list(bundle["lens"].values)
     if zenith_lens not in lenses:
         zenith_lens = lenses[0]
-    results, meta = [], []
-    for path in raw_paths:
-        raw = read_raw(path)
-        check_frame(raw, bundle, effects)
-        results.append(_frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"])))
-        meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
-    radiance = np.stack([r[0]["radiance"] for r in results])
-    random = np.stack([r[0]["random"] for r in results])
-    systematic = np.stack([r[0]["systematic"] for r in results])
-    flags = np.stack([r[1] for r in results])
-    geo = bundle[["theta_deg", "phi_deg", "solid_angle_sr"]].sel(medium=medium)
-    zen = np.empty(geo["theta_deg"].shape)
+    geo = bundle[["theta_deg", "phi_deg"] + (["solid_angle_sr"] if pixels else [])].sel(medium=medium)
+    zen = np.empty(geo["theta_deg"].shape, np.float32 if pixels else float)
     azi = np.empty_like(zen)
     for i, lens in enumerate(lenses):
         zen[i], azi[i] = sphere_coordinates(geo["theta_deg"].values[i], geo["phi_deg"].values[i], lens == zenith_lens)
     n_z, n_a = int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
+    # the cell of every band pixel, once per lens and band (not per frame): (band, lens * y * x)
+    cells = np.stack([_sphere_cells(zen[:, j], azi[:, j], grid_deg).ravel() for j in range(len(BANDS))])
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
-    for f in range(len(raw_paths)):
-        for j in range(len(BANDS)):
-            use = (flags[f, :, j] & EXCLUDED_FROM_GRID) == 0
-            val = np.where(use, radiance[f, :, j], np.nan)
-            grid["mean"][f, j], grid["spread"][f, j], count[f, j] = bin_on_sphere(zen[:, j], azi[:, j], val, grid_deg)
-            rnd, _, _ = bin_on_sphere(zen[:, j], azi[:, j], np.where(use, random[f, :, j] ** 2, np.nan), grid_deg)
-            sy, _, _ = bin_on_sphere(zen[:, j], azi[:, j], np.where(use, systematic[f, :, j], np.nan), grid_deg)
-            grid["random"][f, j] = np.sqrt(rnd / np.where(count[f, j] > 0, count[f, j], 1))
-            grid["systematic"][f, j] = sy
+    maps, meta = [], []
+    with ThreadPoolExecutor(max_workers=min(2, len(lenses))) as pool:
+        for f, path in enumerate(raw_paths):
+            raw = read_raw(path)
+            check_frame(raw, bundle, effects)
+            r, flags = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]),
+                                       dtype=np.float32 if pixels else float, pool=pool)
+            meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
+            for j in range(len(BANDS)):
+                use = (flags[:, j] & EXCLUDED_FROM_GRID) == 0
+                cell = np.where(use.ravel(), cells[j], -1)
+                mean, spread, n, (rnd, sy) = _bin_cells(cell, r["radiance"][:, j], n_z * n_a,
+                                                        extra=(np.square(r["random"][:, j], dtype=float),
+                                                               r["systematic"][:, j]))
+                grid["mean"][f, j], grid["spread"][f, j] = mean.reshape(n_z, n_a), spread.reshape(n_z, n_a)
+                count[f, j] = n.reshape(n_z, n_a)
+                grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
+                grid["systematic"][f, j] = sy.reshape(n_z, n_a)
+            if pixels:
+                maps.append((r, flags))
+            del r, flags
     rad_units = "W sr-1 m-2 nm-1"
     convention = SPHERE_CONVENTION.format(zenith=zenith_lens)
     flag_values = np.array(list(mm.FLAG_MEANINGS.values()), np.uint8)
-    ds = xr.Dataset(
-        {
-            "radiance": (("frame", "lens", "band", "y", "x"), radiance.astype(np.float32),
+    pixel_vars = {}
+    if pixels:
+        pixel_dims = ("frame", "lens", "band", "y", "x")
+        pixel_vars = {
+            "radiance": (pixel_dims, np.stack([m[0]["radiance"] for m in maps]),
                          _attrs("effective spectral radiance of the band pixel, inverse of Eq. (4)", rad_units)),
-            "radiance_random_sigma": (("frame", "lens", "band", "y", "x"), random.astype(np.float32),
+            "radiance_random_sigma": (pixel_dims, np.stack([m[0]["random"] for m in maps]),
                                       _attrs("random standard uncertainty (shot, read, dark noise), independent between "
                                              "pixels and frames", rad_units)),
-            "radiance_systematic_sigma": (("frame", "lens", "band", "y", "x"), systematic.astype(np.float32),
+            "radiance_systematic_sigma": (pixel_dims, np.stack([m[0]["systematic"] for m in maps]),
                                           _attrs("systematic standard uncertainty (calibration terms), common to the "
                                                  "pixels of a band", rad_units)),
-            "quality_flag": (("frame", "lens", "band", "y", "x"), flags,
+            "quality_flag": (pixel_dims, np.stack([m[1] for m in maps]),
                              {"long_name": "quality flag bits", "units": "1", "flag_masks": flag_values,
                               "flag_meanings": " ".join(mm.FLAG_MEANINGS)}),
-            "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values,
+            "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values.astype(np.float32),
                           _attrs("angle of the viewing direction from the lens's optical axis", "degree")),
-            "phi_deg": (("lens", "band", "y", "x"), geo["phi_deg"].values,
+            "phi_deg": (("lens", "band", "y", "x"), geo["phi_deg"].values.astype(np.float32),
                         _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
-            "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values,
+            "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values.astype(np.float32),
                                _attrs("solid angle seen by the band pixel", "sr")),
-            "zenith_deg": (("lens", "band", "y", "x"), zen, _attrs("zenith angle of the pixel's direction on the sphere", "degree",
-                                                               convention=convention)),
-            "azimuth_deg": (("lens", "band", "y", "x"), azi, _attrs("azimuth of the pixel's direction on the sphere", "degree",
-                                                                convention=convention)),
+            "zenith_deg": (("lens", "band", "y", "x"), zen, _attrs("zenith angle of the pixel's direction on the sphere",
+                                                               "degree", convention=convention)),
+            "azimuth_deg": (("lens", "band", "y", "x"), azi, _attrs("azimuth of the pixel's direction on the sphere",
+                                                                "degree", convention=convention)),
+        }
+        del maps
+    ds = xr.Dataset(
+        {
+            **pixel_vars,
             "sphere_radiance": (("frame", "band", "zenith", "azimuth"), grid["mean"],
                                 _attrs("mean radiance of the unflagged pixels in the cell (NaN: no pixel)", rad_units)),
             "sphere_radiance_spread": (("frame", "band", "zenith", "azimuth"), grid["spread"],
@@ -292,7 +340,7 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
         },
         attrs={
             "Conventions": "CF-1.10", "title": "spectral radiance from raw frames (Larouche et al. 2024, inverse of Eq. 4)",
-            "medium": medium, "grid_deg": grid_deg, "sphere_convention": convention,
+            "medium": medium, "grid_deg": grid_deg, "sphere_convention": convention, "pixel_maps": int(pixels),
             "calibration_bundle": str(bundle_path), "calibration_created": bundle.attrs.get("created", ""),
             "camera_serial": bundle.attrs.get("camera_serial", ""), "model_effects": ",".join(effects),
             "uncertainty": "random: shot, read and dark noise of each pixel and frame; systematic: dark model, "
@@ -320,6 +368,9 @@ def add_apply_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", required=True, help="NetCDF file to write")
     p.add_argument("--grid-deg", type=float, default=None, help="zenith/azimuth cell size (default: apply.grid_deg)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    p.add_argument("--pixels", action=argparse.BooleanOptionalAction, default=True,
+                   help="write the per-pixel maps of both lenses besides the sphere grid (default); "
+                        "--no-pixels writes the sphere grid only")
     return p
 
 
@@ -327,7 +378,7 @@ def apply_command(args) -> int:
     """Run ``apply`` from parsed arguments; bad input prints one line and returns 1."""
     try:
         out = apply_calibration(args.calibration, args.raw, args.medium, args.out, args.grid_deg,
-                                overwrite=args.overwrite)
+                                overwrite=args.overwrite, pixels=args.pixels)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -68,23 +68,37 @@ def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict
     return path
 
 
-def read_artefact(path: str | Path, stage: str) -> xr.Dataset:
-    """Open a stage's artefact (loaded into memory), refusing an unknown stage or version."""
+def read_artefact(path: str | Path, stage: str, *, load: bool = True) -> xr.Dataset:
+    """Open a stage's artefact, refusing an unknown stage or version.
+
+    Loaded into memory (and the file closed) by default; with ``load=False``
+    the variables stay on disk until read and the caller closes the Dataset.
+    """
     path = Path(path)
     if not path.exists():
         raise ArtefactError(path, f"{stage} artefact is missing; run the '{stage}' stage first")
     try:
-        with xr.open_dataset(path, engine="netcdf4") as ds:
-            ds = ds.load()
+        ds = xr.open_dataset(path, engine="netcdf4")
     except (OSError, ValueError) as exc:
         raise ArtefactError(path, f"not a readable NetCDF artefact ({exc.__class__.__name__})") from None
-    found = ds.attrs.get("artefact")
-    if found != stage:
-        raise ArtefactError(path, f"is a '{found}' artefact, expected '{stage}'")
-    version = int(ds.attrs.get("artefact_version", -1))
-    if version != ARTEFACT_VERSIONS[stage]:
-        raise ArtefactError(path, f"{stage} artefact version {version} is not the supported version "
-                                  f"{ARTEFACT_VERSIONS[stage]}; rerun the '{stage}' stage")
+    try:
+        found = ds.attrs.get("artefact")
+        if found != stage:
+            raise ArtefactError(path, f"is a '{found}' artefact, expected '{stage}'")
+        version = int(ds.attrs.get("artefact_version", -1))
+        if version != ARTEFACT_VERSIONS[stage]:
+            raise ArtefactError(path, f"{stage} artefact version {version} is not the supported version "
+                                      f"{ARTEFACT_VERSIONS[stage]}; rerun the '{stage}' stage")
+        if load:
+            try:
+                ds.load()
+            except (OSError, ValueError, RuntimeError) as exc:
+                raise ArtefactError(path, f"not a readable NetCDF artefact ({exc.__class__.__name__})") from None
+    except BaseException:
+        ds.close()
+        raise
+    if load:
+        ds.close()
     return ds
 
 

@@ -297,9 +297,13 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
     return bundle
 
 
-def read_bundle(path: str | Path) -> xr.Dataset:
-    """Open a calibration bundle (loaded), refusing another artefact or an unknown version."""
-    return read_artefact(path, "calibration")
+def read_bundle(path: str | Path, *, load: bool = True) -> xr.Dataset:
+    """Open a calibration bundle, refusing another artefact or an unknown version.
+
+    Loaded by default; ``load=False`` leaves the variables on disk (read when
+    selected; the caller closes the Dataset).
+    """
+    return read_artefact(path, "calibration", load=load)
 
 
 def build_bundle_script(smk) -> None:
