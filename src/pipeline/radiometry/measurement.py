@@ -87,11 +87,11 @@ class Measured:
 
     @property
     def random_sigma(self) -> np.ndarray:
-        return np.sqrt(sum(self.random_var.values(), np.zeros_like(self.value)))
+        return _root_sum(self.random_var.values(), self.value)
 
     @property
     def systematic_sigma(self) -> np.ndarray:
-        return np.sqrt(sum(self.systematic_var.values(), np.zeros_like(self.value)))
+        return _root_sum(self.systematic_var.values(), self.value)
 
     def scaled(self, factor, units: str, **extra_systematic) -> "Measured":
         """value * factor, every variance times factor^2, plus new systematic terms (already in the new units)."""
@@ -106,6 +106,14 @@ class Measured:
         flags = np.zeros(np.shape(self.value), np.uint8) if self.flags is None else self.flags.copy()
         flags[np.broadcast_to(np.asarray(where, bool), flags.shape)] |= np.uint8(bit)
         return dataclasses.replace(self, flags=flags)
+
+
+def _root_sum(variances, like) -> np.ndarray:
+    """sqrt of the sum of variances (arrays broadcastable to ``like``), accumulated in one array."""
+    total = np.zeros(np.shape(like), dtype=np.result_type(like, np.float32))
+    for v in variances:
+        total += v
+    return np.sqrt(total, out=total)
 
 
 @dataclass(frozen=True)
@@ -206,14 +214,14 @@ def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects) -
         level += temperature_model_shift_dn(dark.temperature_bias_dn_per_c, dark.temperature_dark_dn_per_s_per_c,
                                             dark.temperature_reference_c, gain, frame.exposure_s, frame.temperature_c)
     sites = dark.sites_per_pixel
-    shape = m.value.shape
+    # the same for every pixel: 0-d arrays (broadcast), maps only once a per-pixel factor scales them
     rand = dict(m.random_var)
-    rand["read"] = np.full(shape, dark.read_noise_dn**2 / sites)
-    rand["dark"] = np.full(shape, dark.offset_pattern_dn**2)
+    rand["read"] = np.asarray(dark.read_noise_dn**2 / sites, dtype=float)
+    rand["dark"] = np.asarray(dark.offset_pattern_dn**2, dtype=float)
     sys_var = dict(m.systematic_var)
-    sys_var["dark_model"] = np.full(shape, dark.bias_dn_sigma**2 + ((gain - 1.0) * dark.bias_per_gain_dn_sigma) ** 2
-                                    + ((gain * frame.exposure_s * dark.dark_current_dn_per_s_sigma) ** 2
-                                       if "dark_current" in effects else 0.0))
+    sys_var["dark_model"] = np.asarray(dark.bias_dn_sigma**2 + ((gain - 1.0) * dark.bias_per_gain_dn_sigma) ** 2
+                                       + ((gain * frame.exposure_s * dark.dark_current_dn_per_s_sigma) ** 2
+                                          if "dark_current" in effects else 0.0), dtype=float)
     return dataclasses.replace(m, value=m.value - level, random_var=rand, systematic_var=sys_var)
 
 

@@ -131,13 +131,35 @@ def evaluate_rolloff(coefficients, theta_deg, covariance=None):
     Coefficients may carry leading batch axes (..., 5).
     """
     c = np.asarray(coefficients, dtype=float)
+    if c.ndim == 1:
+        # one set of coefficients (a band image): Horner's rule in u = theta^2, no (..., 5) design matrix;
+        # the variance J C J^T = sum_k d_k u^k with d_k the sum of C's k-th anti-diagonal (k = 0..8)
+        u = np.square(np.asarray(theta_deg, dtype=float))
+        g = _horner(c, u)
+        if covariance is None:
+            return g
+        cov = np.asarray(covariance, dtype=float)
+        flipped = cov[::-1]
+        d = np.array([np.trace(flipped, offset=k) for k in range(-(len(c) - 1), len(c))])
+        var = _horner(d, u)
+        np.clip(var, 0.0, None, out=var)
+        return g, np.sqrt(var, out=var)
     powers = rolloff_design_matrix(theta_deg)
-    g = np.sum(powers * c, axis=-1) if c.ndim == 1 else np.einsum("...k,...k->...", powers, c)
+    g = np.einsum("...k,...k->...", powers, c)
     if covariance is None:
         return g
     cov = np.asarray(covariance, dtype=float)
     var = np.einsum("...i,ij,...j->...", powers, cov, powers)
     return g, np.sqrt(np.clip(var, 0.0, None))
+
+
+def _horner(coefficients, u):
+    """sum_k coefficients[k] u^k (lowest order first), in as few temporaries as the size of u."""
+    out = np.full(np.shape(u), coefficients[-1], dtype=float)
+    for a in coefficients[-2::-1]:
+        out *= u
+        out += a
+    return out
 
 
 def rolloff_slope(coefficients, theta_deg):
