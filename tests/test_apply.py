@@ -76,6 +76,24 @@ def test_bundle_contents_and_provenance(calibrated):
         assert "units" in bundle[name].attrs or bundle[name].dtype.kind in "iub", name
 
 
+def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
+    import shutil
+
+    import netCDF4
+
+    from pipeline.errors import ArtefactError
+
+    _, _, _, _, bundle_path, _ = calibrated
+    with xr.open_dataset(bundle_path) as ds:
+        assert ds["theta_deg"].encoding.get("contiguous") and not ds["theta_deg"].encoding.get("zlib")
+    old = tmp_path / "v1.nc"
+    shutil.copy(bundle_path, old)
+    with netCDF4.Dataset(old, "a") as nc:
+        nc.artefact_version = 1
+    with pytest.raises(ArtefactError, match="calibration artefact version 1 is not the supported version 2"):
+        apply_calibration(old, [_signal_frame(calibrated[0], "far")], "air", tmp_path / "out.nc")
+
+
 def test_absolute_frame_recovers_the_port_radiance(calibrated, applied):
     _, truth, _, _, _, _ = calibrated
     bands = truth["experiments_truth"]["absolute"]["bands"]

@@ -25,9 +25,10 @@ from pipeline.errors import ArtefactError
 #: linearity 2: saturation found in the data (saturation_dn NaN when not reached, its lower bound,
 #: the count of saturated settings); spectral 2 and absolute 2: frames corrected by the fitted
 #: response (linearity artefact) and, for absolute, a 'response' term in the budget; immersion 2:
-#: the same for its air and water frames.
+#: the same for its air and water frames; calibration 2: the per-pixel maps stored uncompressed and
+#: contiguous (a band image of one lens and medium reads as one block), see pipeline.calibration.
 ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 1, "rolloff": 1, "spectral": 2,
-                     "absolute": 2, "immersion": 2, "calibration": 1}
+                     "absolute": 2, "immersion": 2, "calibration": 2}
 
 
 def sha256_file(path: str | Path, chunk: int = 1 << 22) -> str:
@@ -44,8 +45,12 @@ def config_sha256(config_subset: dict) -> str:
 
 
 def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict[str, str],
-                   config_subset: dict, effects: list[str]) -> Path:
-    """Write ``ds`` with the provenance attributes; ``inputs`` maps file name -> sha256."""
+                   config_subset: dict, effects: list[str], encoding: dict | None = None) -> Path:
+    """Write ``ds`` with the provenance attributes; ``inputs`` maps file name -> sha256.
+
+    Variables larger than 1024 values are stored zlib-compressed (level 4)
+    unless ``encoding`` names them (netCDF4 encodings by variable).
+    """
     path = Path(path)
     ds = ds.copy()
     ds.attrs.update({
@@ -61,8 +66,9 @@ def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict
     })
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    encoding = {name: {"zlib": True, "complevel": 4} for name, var in ds.data_vars.items()
-                if var.dtype.kind in "fiub" and var.size > 1024}
+    default = {name: {"zlib": True, "complevel": 4} for name, var in ds.data_vars.items()
+               if var.dtype.kind in "fiub" and var.size > 1024}
+    encoding = {**default, **(encoding or {})}
     ds.to_netcdf(tmp, engine="netcdf4", encoding=encoding)
     os.replace(tmp, path)
     return path
