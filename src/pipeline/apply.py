@@ -78,8 +78,10 @@ def _media(bundle: xr.Dataset) -> list[str]:
 
 def sphere_coordinates(theta_deg, phi_deg, looks_up: bool):
     """Zenith angle and azimuth (deg) of a lens pixel's direction, by the sphere convention of this module."""
-    theta = np.asarray(theta_deg, float)
-    phi = np.asarray(phi_deg, float)
+    theta, phi = np.asarray(theta_deg), np.asarray(phi_deg)
+    # float32 maps stay float32 (as the bundle's are); anything else becomes float64
+    theta = theta if theta.dtype.kind == "f" else theta.astype(float)
+    phi = phi if phi.dtype.kind == "f" else phi.astype(float)
     if looks_up:
         return theta, np.mod(phi, 360.0)
     return 180.0 - theta, np.mod(-phi, 360.0)
@@ -147,7 +149,7 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
 
 
 def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dtype):
-    """Radiance, random and systematic sigma (``dtype``) and flags of one lens of a decoded frame: (band, y, x)."""
+    """Radiance, random and systematic sigma (``dtype``) and flags of one lens of a decoded frame, per band."""
     span = bundle["lens_region_px"].sel(lens=lens).values
     images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
     out = {"radiance": [], "random": [], "systematic": [], "flags": []}
@@ -158,11 +160,12 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dt
         out["random"].append(m.random_sigma.astype(dtype, copy=False))
         out["systematic"].append(m.systematic_sigma.astype(dtype, copy=False))
         out["flags"].append(m.flags)
-    return {k: np.stack(v) for k, v in out.items()}
+        del m
+    return out
 
 
 def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=float, pool=None):
-    """Radiance, random and systematic sigma, flags of one decoded frame: arrays (lens, band, y, x).
+    """Radiance, random and systematic sigma, flags of one decoded frame: per lens, lists over the bands.
 
     With a thread ``pool`` the lenses run side by side (numpy releases the
     GIL in its array operations); ``bundle`` must then be in memory.
@@ -171,18 +174,16 @@ def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=float, p
     frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
     args = (medium, effects, frame, negative_sigma, dtype)
     if pool is None:
-        per_lens = [_lens_radiance(raw, bundle, lens, *args) for lens in lenses]
-    else:
-        per_lens = [f.result() for f in [pool.submit(_lens_radiance, raw, bundle, lens, *args) for lens in lenses]]
-    out = {k: np.stack([r[k] for r in per_lens]) for k in ("radiance", "random", "systematic")}
-    return out, np.stack([r["flags"] for r in per_lens])
+        return [_lens_radiance(raw, bundle, lens, *args) for lens in lenses]
+    return [f.result() for f in [pool.submit(_lens_radiance, raw, bundle, lens, *args) for lens in lenses]]
 
 
 def _sphere_cells(zenith_deg, azimuth_deg, grid_deg: float) -> np.ndarray:
     """Index of the zenith/azimuth cell of every direction (row-major on the grid); -1 where undefined."""
     n_z, n_a = int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
-    z = np.asarray(zenith_deg, float).ravel()
-    a = np.asarray(azimuth_deg, float).ravel()
+    z, a = np.asarray(zenith_deg).ravel(), np.asarray(azimuth_deg).ravel()
+    z = z if z.dtype.kind == "f" else z.astype(float)
+    a = a if a.dtype.kind == "f" else a.astype(float)
     ok = np.isfinite(z) & np.isfinite(a)
     cell = np.full(z.shape, -1, np.int32)
     iz = np.clip((z[ok] / grid_deg).astype(int), 0, n_z - 1)
@@ -191,20 +192,26 @@ def _sphere_cells(zenith_deg, azimuth_deg, grid_deg: float) -> np.ndarray:
     return cell.reshape(np.shape(zenith_deg))
 
 
-def _bin_cells(cell: np.ndarray, values, n_cells: int, extra=()):
-    """Mean, spread and count of ``values`` per cell (``cell`` >= 0, value finite); the means of ``extra`` there."""
-    v = np.asarray(values).ravel()
-    ok = (cell.ravel() >= 0) & np.isfinite(v)
-    c = cell.ravel()[ok]
-    v = v[ok].astype(float)
-    count = np.bincount(c, minlength=n_cells).astype(float)
+def _bin_cells(cells, values, n_cells: int, extra=()):
+    """Mean, spread and count per cell of ``values`` (a list of arrays, e.g. one per lens, with their ``cells``).
+
+    A value enters where its cell is >= 0 and it is finite; ``extra`` (a list
+    of such lists) are averaged over the same pixels of each cell.
+    """
+    picked = []
+    for i, (cell, v) in enumerate(zip(cells, values)):
+        v = np.asarray(v).ravel()
+        cell = np.asarray(cell).ravel()
+        ok = (cell >= 0) & np.isfinite(v)
+        picked.append((cell[ok], v[ok].astype(float), [np.asarray(x[i]).ravel()[ok].astype(float) for x in extra]))
+    count = sum(np.bincount(c, minlength=n_cells) for c, _, _ in picked).astype(float)
     has = count > 0
-    mean = np.where(has, np.bincount(c, weights=v, minlength=n_cells) / np.where(has, count, 1), np.nan)
-    dev = v - mean[c]
-    var = np.bincount(c, weights=dev * dev, minlength=n_cells)
+    per = np.where(has, count, 1)
+    mean = np.where(has, sum(np.bincount(c, weights=v, minlength=n_cells) for c, v, _ in picked) / per, np.nan)
+    var = sum(np.bincount(c, weights=np.square(v - mean[c]), minlength=n_cells) for c, v, _ in picked)
     spread = np.where(count > 1, np.sqrt(var / np.where(count > 1, count - 1, 1)), np.nan)
-    means = [np.where(has, np.bincount(c, weights=np.asarray(x).ravel()[ok].astype(float), minlength=n_cells)
-                      / np.where(has, count, 1), np.nan) for x in extra]
+    means = [np.where(has, sum(np.bincount(c, weights=x[k], minlength=n_cells) for c, _, x in picked) / per, np.nan)
+             for k in range(len(extra))]
     return mean, spread, count.astype(np.int32), means
 
 
@@ -216,7 +223,7 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     """
     shape = (int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg)))
     cell = _sphere_cells(zenith_deg, azimuth_deg, grid_deg)
-    mean, spread, count, _ = _bin_cells(cell, values, shape[0] * shape[1])
+    mean, spread, count, _ = _bin_cells([cell], [values], shape[0] * shape[1])
     return mean.reshape(shape), spread.reshape(shape), count.reshape(shape)
 
 
@@ -256,13 +263,17 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     if zenith_lens not in lenses:
         zenith_lens = lenses[0]
     geo = bundle[["theta_deg", "phi_deg"] + (["solid_angle_sr"] if pixels else [])].sel(medium=medium)
-    zen = np.empty(geo["theta_deg"].shape, np.float32 if pixels else float)
-    azi = np.empty_like(zen)
-    for i, lens in enumerate(lenses):
-        zen[i], azi[i] = sphere_coordinates(geo["theta_deg"].values[i], geo["phi_deg"].values[i], lens == zenith_lens)
     n_z, n_a = int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
-    # the cell of every band pixel, once per lens and band (not per frame): (band, lens * y * x)
-    cells = np.stack([_sphere_cells(zen[:, j], azi[:, j], grid_deg).ravel() for j in range(len(BANDS))])
+    # the cell of every band pixel, once per lens and band (not per frame): [lens][band] (y, x)
+    cells, zen, azi = [], [], []
+    for i, lens in enumerate(lenses):
+        cells.append([])
+        for j in range(len(BANDS)):
+            z, a = sphere_coordinates(geo["theta_deg"].values[i, j], geo["phi_deg"].values[i, j], lens == zenith_lens)
+            cells[i].append(_sphere_cells(z, a, grid_deg))
+            if pixels:
+                zen.append(z.astype(np.float32, copy=False))
+                azi.append(a.astype(np.float32, copy=False))
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
     maps, meta = [], []
@@ -270,22 +281,24 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
         for f, path in enumerate(raw_paths):
             raw = read_raw(path)
             check_frame(raw, bundle, effects)
-            r, flags = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]),
+            per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]),
                                        dtype=np.float32 if pixels else float, pool=pool)
             meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
+            del raw
             for j in range(len(BANDS)):
-                use = (flags[:, j] & EXCLUDED_FROM_GRID) == 0
-                cell = np.where(use.ravel(), cells[j], -1)
-                mean, spread, n, (rnd, sy) = _bin_cells(cell, r["radiance"][:, j], n_z * n_a,
-                                                        extra=(np.square(r["random"][:, j], dtype=float),
-                                                               r["systematic"][:, j]))
+                use = [np.where((r["flags"][j] & EXCLUDED_FROM_GRID) == 0, cells[i][j], -1)
+                       for i, r in enumerate(per_lens)]
+                mean, spread, n, (rnd, sy) = _bin_cells(
+                    use, [r["radiance"][j] for r in per_lens], n_z * n_a,
+                    extra=([np.square(r["random"][j], dtype=float) for r in per_lens],
+                           [r["systematic"][j] for r in per_lens]))
                 grid["mean"][f, j], grid["spread"][f, j] = mean.reshape(n_z, n_a), spread.reshape(n_z, n_a)
                 count[f, j] = n.reshape(n_z, n_a)
                 grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
                 grid["systematic"][f, j] = sy.reshape(n_z, n_a)
             if pixels:
-                maps.append((r, flags))
-            del r, flags
+                maps.append({k: np.stack([np.stack(r[k]) for r in per_lens]) for k in per_lens[0]})
+            del per_lens
     rad_units = "W sr-1 m-2 nm-1"
     convention = SPHERE_CONVENTION.format(zenith=zenith_lens)
     flag_values = np.array(list(mm.FLAG_MEANINGS.values()), np.uint8)
@@ -293,15 +306,15 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     if pixels:
         pixel_dims = ("frame", "lens", "band", "y", "x")
         pixel_vars = {
-            "radiance": (pixel_dims, np.stack([m[0]["radiance"] for m in maps]),
+            "radiance": (pixel_dims, np.stack([m["radiance"] for m in maps]),
                          _attrs("effective spectral radiance of the band pixel, inverse of Eq. (4)", rad_units)),
-            "radiance_random_sigma": (pixel_dims, np.stack([m[0]["random"] for m in maps]),
+            "radiance_random_sigma": (pixel_dims, np.stack([m["random"] for m in maps]),
                                       _attrs("random standard uncertainty (shot, read, dark noise), independent between "
                                              "pixels and frames", rad_units)),
-            "radiance_systematic_sigma": (pixel_dims, np.stack([m[0]["systematic"] for m in maps]),
+            "radiance_systematic_sigma": (pixel_dims, np.stack([m["systematic"] for m in maps]),
                                           _attrs("systematic standard uncertainty (calibration terms), common to the "
                                                  "pixels of a band", rad_units)),
-            "quality_flag": (pixel_dims, np.stack([m[1] for m in maps]),
+            "quality_flag": (pixel_dims, np.stack([m["flags"] for m in maps]),
                              {"long_name": "quality flag bits", "units": "1", "flag_masks": flag_values,
                               "flag_meanings": " ".join(mm.FLAG_MEANINGS)}),
             "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values.astype(np.float32),
@@ -310,10 +323,10 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
                         _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
             "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values.astype(np.float32),
                                _attrs("solid angle seen by the band pixel", "sr")),
-            "zenith_deg": (("lens", "band", "y", "x"), zen, _attrs("zenith angle of the pixel's direction on the sphere",
-                                                               "degree", convention=convention)),
-            "azimuth_deg": (("lens", "band", "y", "x"), azi, _attrs("azimuth of the pixel's direction on the sphere",
-                                                                "degree", convention=convention)),
+            "zenith_deg": (("lens", "band", "y", "x"), np.stack(zen).reshape(geo["theta_deg"].shape),
+                           _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
+            "azimuth_deg": (("lens", "band", "y", "x"), np.stack(azi).reshape(geo["theta_deg"].shape),
+                            _attrs("azimuth of the pixel's direction on the sphere", "degree", convention=convention)),
         }
         del maps
     ds = xr.Dataset(

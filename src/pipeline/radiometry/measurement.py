@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -85,12 +86,14 @@ class Measured:
     systematic_var: dict[str, np.ndarray] = field(default_factory=dict)
     flags: np.ndarray | None = None
 
-    @property
+    @cached_property
     def random_sigma(self) -> np.ndarray:
+        """sqrt of the sum of the random variances (computed once per value)."""
         return _root_sum(self.random_var.values(), self.value)
 
-    @property
+    @cached_property
     def systematic_sigma(self) -> np.ndarray:
+        """sqrt of the sum of the systematic variances (computed once per value)."""
         return _root_sum(self.systematic_var.values(), self.value)
 
     def scaled(self, factor, units: str, **extra_systematic) -> "Measured":
@@ -332,8 +335,7 @@ def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration) -> Mea
     out = m.scaled(1.0 / g, m.units)
     out = dataclasses.replace(out, systematic_var={**out.systematic_var, "rolloff": (out.value * g_sigma / g) ** 2})
     out = out.flagged(~np.isfinite(theta), FLAG_OUTSIDE_IMAGE_CIRCLE)
-    return out.flagged(np.nan_to_num(theta, nan=0.0) > calibration.calibrated_field_angle_deg,
-                       FLAG_BEYOND_CALIBRATED_ANGLE)
+    return out.flagged(theta > calibration.calibrated_field_angle_deg, FLAG_BEYOND_CALIBRATED_ANGLE)  # NaN: False
 
 
 def correct_immersion(m: Measured, calibration: BandCalibration, medium: str) -> Measured:
