@@ -28,6 +28,7 @@ import argparse
 import os
 import sys
 from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -95,6 +96,11 @@ def _outside_circle(g: xr.Dataset, theta: np.ndarray, rows: slice, cols: slice, 
     return (r > float(g["circle_radius_px"])) | ~np.isfinite(theta) | (theta > float(g["half_fov_deg"]))
 
 
+@lru_cache(maxsize=1)
+def _default_negative_sigma() -> float:
+    return float(defaults()["apply"]["negative_mean_sigma"])
+
+
 def _crop(b: xr.Dataset, name: str, rows: slice, cols: slice):
     return b[name].isel(y=rows, x=cols).values if name in b else None
 
@@ -135,7 +141,7 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
                         flat_field=_crop(b, "flat_field", rows, cols),
                         prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0)
     if negative_sigma is None:
-        negative_sigma = float(defaults()["apply"]["negative_mean_sigma"])
+        negative_sigma = _default_negative_sigma()
     good = (m.flags & (mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT)) == 0
     good &= np.isfinite(m.value)
     if good.any():
@@ -184,12 +190,15 @@ def _sphere_cells(zenith_deg, azimuth_deg, grid_deg: float) -> np.ndarray:
     z, a = np.asarray(zenith_deg).ravel(), np.asarray(azimuth_deg).ravel()
     z = z if z.dtype.kind == "f" else z.astype(float)
     a = a if a.dtype.kind == "f" else a.astype(float)
-    ok = np.isfinite(z) & np.isfinite(a)
-    cell = np.full(z.shape, -1, np.int32)
-    iz = np.clip((z[ok] / grid_deg).astype(int), 0, n_z - 1)
-    ia = np.clip((a[ok] / grid_deg).astype(int), 0, n_a - 1)
-    cell[ok] = iz * n_a + ia
-    return cell.reshape(np.shape(zenith_deg))
+    bad = ~(np.isfinite(z) & np.isfinite(a))
+    iz = np.where(bad, 0, z / grid_deg).astype(np.int32)
+    np.clip(iz, 0, n_z - 1, out=iz)
+    ia = np.where(bad, 0, a / grid_deg).astype(np.int32)
+    np.clip(ia, 0, n_a - 1, out=ia)
+    iz *= n_a
+    iz += ia
+    iz[bad] = -1
+    return iz.reshape(np.shape(zenith_deg))
 
 
 def _bin_cells(cells, values, n_cells: int, extra=()):
@@ -253,9 +262,11 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
         effects = model_effects(on_disk)
         if medium not in _media(on_disk):
             raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(_media(on_disk))})")
-        # only this medium, and the solid angles only when the pixel maps are written
-        skip = [] if pixels else ["solid_angle_sr"]
-        bundle = on_disk.drop_vars(skip).sel(medium=[medium]).load()
+        # only this medium, the solid angles only when the pixel maps are written, the flat field and the
+        # hot-pixel mask only when the model has their effect (the chain's steps skip them otherwise)
+        skip = ([] if pixels else ["solid_angle_sr"]) + ([] if "prnu" in effects else ["flat_field"]) \
+            + ([] if "hot_pixels" in effects else ["hot_pixel_mask"])
+        bundle = on_disk.drop_vars(skip, errors="ignore").sel(medium=[medium]).load()
     raw_paths = [Path(p) for p in raw_paths]
     if not raw_paths:
         raise InputError(None, "no raw frames to apply the calibration to")
