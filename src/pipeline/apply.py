@@ -287,13 +287,17 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
                 azi.append(a.astype(np.float32, copy=False))
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
-    maps, meta = [], []
+    meta = []
+    if pixels:
+        shape = (len(raw_paths),) + geo["theta_deg"].shape
+        maps = {"radiance": np.empty(shape, np.float32), "random": np.empty(shape, np.float32),
+                "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
     with ThreadPoolExecutor(max_workers=min(2, len(lenses))) as pool:
         for f, path in enumerate(raw_paths):
             raw = read_raw(path)
             check_frame(raw, bundle, effects)
-            per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]),
-                                       dtype=np.float32 if pixels else float, pool=pool)
+            # float64 into the grid; the pixel maps are stored float32
+            per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool)
             meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
             del raw
             for j in range(len(BANDS)):
@@ -308,7 +312,10 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
                 grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
                 grid["systematic"][f, j] = sy.reshape(n_z, n_a)
             if pixels:
-                maps.append({k: np.stack([np.stack(r[k]) for r in per_lens]) for k in per_lens[0]})
+                for i, r in enumerate(per_lens):
+                    for k, arrays in r.items():
+                        for j, a in enumerate(arrays):
+                            maps[k][f, i, j] = a
             del per_lens
     rad_units = "W sr-1 m-2 nm-1"
     convention = SPHERE_CONVENTION.format(zenith=zenith_lens)
@@ -317,15 +324,15 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     if pixels:
         pixel_dims = ("frame", "lens", "band", "y", "x")
         pixel_vars = {
-            "radiance": (pixel_dims, np.stack([m["radiance"] for m in maps]),
+            "radiance": (pixel_dims, maps["radiance"],
                          _attrs("effective spectral radiance of the band pixel, inverse of Eq. (4)", rad_units)),
-            "radiance_random_sigma": (pixel_dims, np.stack([m["random"] for m in maps]),
+            "radiance_random_sigma": (pixel_dims, maps["random"],
                                       _attrs("random standard uncertainty (shot, read, dark noise), independent between "
                                              "pixels and frames", rad_units)),
-            "radiance_systematic_sigma": (pixel_dims, np.stack([m["systematic"] for m in maps]),
+            "radiance_systematic_sigma": (pixel_dims, maps["systematic"],
                                           _attrs("systematic standard uncertainty (calibration terms), common to the "
                                                  "pixels of a band", rad_units)),
-            "quality_flag": (pixel_dims, np.stack([m["flags"] for m in maps]),
+            "quality_flag": (pixel_dims, maps["flags"],
                              {"long_name": "quality flag bits", "units": "1", "flag_masks": flag_values,
                               "flag_meanings": " ".join(mm.FLAG_MEANINGS)}),
             "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values.astype(np.float32),
@@ -373,10 +380,12 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     )
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.name}.tmp")
-    # zlib level 1 with the byte shuffle: about as small as level 4 without it, and the write is most of
-    # apply's time at the full scale (benchmarks/bench_apply.py)
+    # the sphere grid: zlib level 1 with the byte shuffle (about as small as level 4 without it)
     big = {name: {"zlib": True, "complevel": 1, "shuffle": True} for name, var in ds.data_vars.items()
            if var.dtype.kind in "fiu" and var.size > 1024}
+    # the per-pixel maps uncompressed: compressing them (zlib level 1) was most of apply's time at the full
+    # scale (9 of 22 s) for a file half the size (benchmarks/bench_apply.py; --no-pixels when size matters)
+    big.update({name: {"zlib": False, "contiguous": True} for name, var in ds.data_vars.items() if "y" in var.dims})
     ds.to_netcdf(tmp, engine="netcdf4", encoding=big)
     os.replace(tmp, out_path)
     return out_path
