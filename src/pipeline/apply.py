@@ -9,7 +9,9 @@ holds, per frame, lens and band: radiance (W sr-1 m-2 nm-1), its random and
 systematic standard uncertainty, theta, phi, solid angle and a quality flag;
 and the same binned onto a regular zenith/azimuth grid joining both lenses
 into the full sphere (mean, spread and count of the pixels in each cell; NaN
-where none falls).
+where none falls). With ``pixels=False`` (``--no-pixels``) only the sphere
+grid is written. :func:`band_radiance` is the chain on one band image of one
+lens (or a window of it), for any caller.
 
 Sphere convention: the lens named ``zenith_lens`` (default ``close``) looks
 at the zenith, its pixel (theta, phi) is zenith angle theta and azimuth phi;
