@@ -52,7 +52,7 @@ import numpy as np
 from pipeline.errors import ImpossibleResult
 from pipeline.radiometry.dark import dark_model_level_dn, temperature_model_shift_dn
 from pipeline.radiometry.exposure import gain_from_iso
-from pipeline.radiometry.rolloff import evaluate_rolloff
+from pipeline.radiometry.rolloff import rolloff_on_image
 
 __all__ = [
     "FLAG_SATURATED", "FLAG_HOT", "FLAG_OUTSIDE_IMAGE_CIRCLE", "FLAG_BEYOND_CALIBRATED_ANGLE", "FLAG_MEANINGS",
@@ -329,9 +329,9 @@ def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration) -> Mea
     """
     theta = np.asarray(theta_deg, dtype=float)
     if calibration.rolloff_covariance is None:
-        g, g_sigma = evaluate_rolloff(calibration.rolloff_coefficients, theta), np.zeros(theta.shape)
+        g, g_sigma = rolloff_on_image(calibration.rolloff_coefficients, theta), np.zeros(theta.shape)
     else:
-        g, g_sigma = evaluate_rolloff(calibration.rolloff_coefficients, theta, calibration.rolloff_covariance)
+        g, g_sigma = rolloff_on_image(calibration.rolloff_coefficients, theta, calibration.rolloff_covariance)
     out = m.scaled(1.0 / g, m.units)
     out = dataclasses.replace(out, systematic_var={**out.systematic_var, "rolloff": (out.value * g_sigma / g) ** 2})
     out = out.flagged(~np.isfinite(theta), FLAG_OUTSIDE_IMAGE_CIRCLE)
