@@ -113,7 +113,9 @@ class Measured:
 
 def _root_sum(variances, like) -> np.ndarray:
     """sqrt of the sum of variances (arrays broadcastable to ``like``), accumulated in one array."""
-    total = np.zeros(np.shape(like), dtype=np.result_type(like, np.float32))
+    variances = list(variances)
+    # the dtype the sum would have had (float64 terms promote a float32 value), at least float32
+    total = np.zeros(np.shape(like), dtype=np.result_type(np.float32, like, *(np.asarray(v).dtype for v in variances)))
     for v in variances:
         total += v
     return np.sqrt(total, out=total)
