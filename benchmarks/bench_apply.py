@@ -6,10 +6,12 @@ The decode floor is what every stage pays per frame: ``pipeline.rawio.read_raw``
 (rawpy decode and tags) of the DNG plus ``pipeline.bands.split_bands`` of each
 lens region. ``apply`` is ``pipeline.apply.apply_calibration(bundle, [frame],
 "air", out)``: decode, the measurement chain on every band pixel of both
-lenses, the sphere grid and the NetCDF write. Each is run ``--repeat`` times,
-each run in a fresh Python process, alternating; the script prints the
-minimum and median wall time, the peak resident memory of each process
-(``ru_maxrss``) and the ratio apply / decode of the medians.
+lenses, the sphere grid and the NetCDF write; ``apply-grid`` the same with
+``pixels=False`` (``--no-pixels``: the sphere grid only, no per-pixel maps
+written). Each is run ``--repeat`` times, each run in a fresh Python process,
+alternating; the script prints the minimum and median wall time, the peak
+resident memory of each process (``ru_maxrss``) and the ratios apply / decode
+of the medians.
 
 The calibration bundle (made once, kept in ``--work``; several GB, keep it
 out of the repository) has the real camera's 6912 x 3456 frame and
@@ -148,7 +150,7 @@ def child(what: str, frame: str, bundle: str, out: str) -> None:
             region = meta["lenses"][lens]
             split_bands(cut_region(raw.cfa, region["rows"], region["cols"]), raw.cfa_pattern)
     else:
-        apply_calibration(bundle, [frame], "air", out, overwrite=True)
+        apply_calibration(bundle, [frame], "air", out, overwrite=True, pixels=what == "apply")
     wall = time.perf_counter() - t0
     print(json.dumps({"wall_s": wall, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 
@@ -167,7 +169,7 @@ def main() -> None:
     bundle, frame = build(work, args.seed)
     out = work / "apply-out.nc"
     print(f"frame {frame} ({frame.stat().st_size / 1e6:.0f} MB), bundle {bundle} ({bundle.stat().st_size / 1e6:.0f} MB)")
-    runs = {"decode": [], "apply": []}
+    runs = {"decode": [], "apply": [], "apply-grid": []}
     for _ in range(args.repeat):
         for what in runs:
             proc = subprocess.run([sys.executable, __file__, "--child", what, str(frame), str(bundle), str(out)],
@@ -176,13 +178,14 @@ def main() -> None:
                 sys.exit(f"{what} failed:\n{proc.stderr[-2000:]}")
             runs[what].append(json.loads(proc.stdout.strip().splitlines()[-1]))
     print(f"{args.repeat} runs each, each in a fresh process")
-    print(f"{'':<8} {'min ms':>8} {'median ms':>10} {'peak MiB':>9}")
+    print(f"{'':<10} {'min ms':>8} {'median ms':>10} {'peak MiB':>9}")
     med = {}
     for what, rs in runs.items():
         walls = [r["wall_s"] * 1e3 for r in rs]
         med[what] = statistics.median(walls)
-        print(f"{what:<8} {min(walls):8.0f} {med[what]:10.0f} {max(r['peak_rss_mib'] for r in rs):9.0f}")
-    print(f"apply / decode (medians): {med['apply'] / med['decode']:.2f}")
+        print(f"{what:<10} {min(walls):8.0f} {med[what]:10.0f} {max(r['peak_rss_mib'] for r in rs):9.0f}")
+    print(f"apply / decode (medians): {med['apply'] / med['decode']:.2f} with the pixel maps, "
+          f"{med['apply-grid'] / med['decode']:.2f} the sphere grid only (--no-pixels)")
 
 
 if __name__ == "__main__":

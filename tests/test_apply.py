@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline.apply import apply_calibration, bin_on_sphere, sphere_coordinates
+from pipeline.apply import apply_calibration, band_radiance, bin_on_sphere, sphere_coordinates
 from pipeline.calibration import BUNDLE_STAGES, build_bundle, read_bundle
 from pipeline.errors import InputError
+from pipeline.frames import lens_images
 from pipeline.radiometry import measurement as mm
 from pipeline.rawio import read_raw, write_dng
 
@@ -57,6 +58,24 @@ def test_bundle_contents_and_provenance(calibrated):
         assert "units" in bundle[name].attrs or bundle[name].dtype.kind in "iub", name
 
 
+def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
+    import shutil
+
+    import netCDF4
+
+    from pipeline.errors import ArtefactError
+
+    _, _, _, _, bundle_path, _ = calibrated
+    with xr.open_dataset(bundle_path) as ds:
+        assert ds["theta_deg"].encoding.get("contiguous") and not ds["theta_deg"].encoding.get("zlib")
+    old = tmp_path / "v1.nc"
+    shutil.copy(bundle_path, old)
+    with netCDF4.Dataset(old, "a") as nc:
+        nc.artefact_version = 1
+    with pytest.raises(ArtefactError, match="calibration artefact version 1 is not the supported version 2"):
+        apply_calibration(old, [_signal_frame(calibrated[0], "far")], "air", tmp_path / "out.nc")
+
+
 def test_absolute_frame_recovers_the_port_radiance(calibrated, applied):
     _, truth, _, _, _, _ = calibrated
     bands = truth["experiments_truth"]["absolute"]["bands"]
@@ -77,6 +96,33 @@ def test_absolute_frame_recovers_the_port_radiance(calibrated, applied):
             assert abs(mean - expected) < 3 * sigma, (lens, band, mean, expected, sigma)
             # the stated systematic part is the R^-1 budget (8-11 %), not more than twice it
             assert 0.05 < systematic.mean() / mean < 0.25
+
+
+def test_band_radiance_on_a_crop_is_the_whole_image_result_there(calibrated, applied):
+    """A consistency check of the cropping (the field stage runs the chain on windows): the crop of a
+    band image, with the matching crops of theta, hot-pixel mask and flat field, gives exactly the
+    whole image's values, uncertainties and flags there; the whole image is what apply wrote."""
+    root, _, _, _, bundle_path, _ = calibrated
+    bundle = read_bundle(bundle_path)
+    raw = read_raw(_signal_frame(root, "far"))
+    frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
+    span = bundle["lens_region_px"].sel(lens="far").values
+    images = lens_images(raw, (tuple(span[0]), tuple(span[1])), "far")
+    effects = bundle.attrs["model_effects"].split(",")
+    ny, nx = bundle["theta_deg"].shape[-2:]
+    # across the image circle's edge and into a corner
+    window = (slice(1, ny // 2 + 3), slice(nx // 3, None))
+    for band in ("R", "G", "B"):
+        whole = band_radiance(images, bundle, "far", band, "air", effects, frame)
+        crop = band_radiance(images, bundle, "far", band, "air", effects, frame, window=window)
+        assert crop.value.shape == whole.value[window].shape
+        outside = (crop.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) > 0
+        assert outside.any() and (~outside).any()
+        for name in ("value", "random_sigma", "systematic_sigma", "flags"):
+            np.testing.assert_array_equal(getattr(crop, name), getattr(whole, name)[window], err_msg=name)
+        written = applied["far"].sel(frame=0, lens="far", band=band)
+        np.testing.assert_array_equal(written["radiance"].values, whole.value.astype(np.float32))
+        np.testing.assert_array_equal(written["quality_flag"].values, whole.flags)
 
 
 def test_outside_the_image_circle_is_nan_and_flagged(applied):
@@ -194,3 +240,12 @@ def test_command_line(calibrated, tmp_path, capsys):
     assert xr.open_dataset(out).attrs["medium"] == "water"
     assert main(["apply", "--calibration", str(bundle_path), str(_signal_frame(root, "close")), "-o", str(out)]) == 1
     assert "--overwrite" in capsys.readouterr().err
+    # the sphere grid only: the same grid, no pixel maps
+    grid_only = tmp_path / "grid.nc"
+    assert main(["apply", "--calibration", str(bundle_path), "--medium", "water", "--no-pixels",
+                 str(_signal_frame(root, "close")), "-o", str(grid_only)]) == 0
+    with xr.open_dataset(out) as full, xr.open_dataset(grid_only) as sphere:
+        assert "radiance" not in sphere and "theta_deg" not in sphere and sphere.attrs["pixel_maps"] == 0
+        for name in ("sphere_radiance", "sphere_radiance_random_sigma", "sphere_radiance_systematic_sigma",
+                     "sphere_count"):
+            np.testing.assert_allclose(sphere[name].values, full[name].values, rtol=1e-6, err_msg=name)

@@ -133,3 +133,21 @@ def test_fit_input_validation():
         fit_rolloff([0.0, 10.0, 20.0], [1.0, 0.9, 0.8])
     with pytest.raises(ValueError):
         fit_rolloff(THETA_AIR, np.ones_like(THETA_AIR), sigma=0.0)
+
+
+def test_rolloff_on_image_is_evaluate_rolloff_by_horner():
+    from pipeline.radiometry.rolloff import rolloff_on_image
+
+    rng = np.random.default_rng(3)
+    truth = default_rolloff("R", "air")
+    fit = fit_rolloff(THETA_AIR, evaluate_rolloff(truth, THETA_AIR) + rng.normal(0, 2e-3, THETA_AIR.size),
+                      np.full(THETA_AIR.size, 2e-3))
+    theta = np.linspace(0.0, 95.0, 20001).reshape(1, -1)
+    g, sg = evaluate_rolloff(fit.coefficients, theta, fit.covariance)
+    g1, sg1 = rolloff_on_image(fit.coefficients, theta, fit.covariance)
+    assert g1.shape == theta.shape
+    np.testing.assert_allclose(g1, g, rtol=1e-14)
+    np.testing.assert_allclose(sg1, sg, rtol=1e-10)
+    assert rolloff_on_image(fit.coefficients, 80.0) == pytest.approx(float(evaluate_rolloff(fit.coefficients, 80.0)),
+                                                                     rel=1e-14)
+    assert np.isnan(rolloff_on_image(fit.coefficients, np.array([np.nan]))[0])

@@ -9,7 +9,9 @@ holds, per frame, lens and band: radiance (W sr-1 m-2 nm-1), its random and
 systematic standard uncertainty, theta, phi, solid angle and a quality flag;
 and the same binned onto a regular zenith/azimuth grid joining both lenses
 into the full sphere (mean, spread and count of the pixels in each cell; NaN
-where none falls).
+where none falls). With ``pixels=False`` (``--no-pixels``) only the sphere
+grid is written. :func:`band_radiance` is the chain on one band image of one
+lens (or a window of it), for any caller.
 
 Sphere convention: the lens named ``zenith_lens`` (default ``close``) looks
 at the zenith, its pixel (theta, phi) is zenith angle theta and azimuth phi;
@@ -27,6 +29,8 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -77,11 +81,149 @@ def _media(bundle: xr.Dataset) -> list[str]:
 
 def sphere_coordinates(theta_deg, phi_deg, looks_up: bool):
     """Zenith angle and azimuth (deg) of a lens pixel's direction, by the sphere convention of this module."""
-    theta = np.asarray(theta_deg, float)
-    phi = np.asarray(phi_deg, float)
+    theta, phi = np.asarray(theta_deg), np.asarray(phi_deg)
+    # float32 maps stay float32 (as the bundle's are); anything else becomes float64
+    theta = theta if theta.dtype.kind == "f" else theta.astype(float)
+    phi = phi if phi.dtype.kind == "f" else phi.astype(float)
     if looks_up:
         return theta, np.mod(phi, 360.0)
     return 180.0 - theta, np.mod(-phi, 360.0)
+
+
+def _outside_circle(g: xr.Dataset, theta: np.ndarray, rows: slice, cols: slice, shape) -> np.ndarray:
+    """Pixels of the crop ``rows, cols`` of a band image (full ``shape``) outside the image circle or the half FOV."""
+    y = np.arange(shape[0])[rows]
+    x = np.arange(shape[1])[cols]
+    r = np.hypot(x[None, :] - float(g["circle_xc_px"]), y[:, None] - float(g["circle_yc_px"]))
+    return (r > float(g["circle_radius_px"])) | ~np.isfinite(theta) | (theta > float(g["half_fov_deg"]))
+
+
+@lru_cache(maxsize=1)
+def _default_negative_sigma() -> float:
+    return float(defaults()["apply"]["negative_mean_sigma"])
+
+
+def _crop(b: xr.Dataset, name: str, rows: slice, cols: slice):
+    return b[name].isel(y=rows, x=cols).values if name in b else None
+
+
+def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str, effects,
+                  frame: mm.FrameSettings, window=None, *, negative_sigma: float | None = None,
+                  source=None) -> mm.Measured:
+    """The measurement chain on one band image of one lens: raw DN to radiance with its uncertainty.
+
+    ``images`` is what :func:`pipeline.frames.lens_images` returns for
+    ``lens``; ``frame`` the frame's exposure settings. With ``window =
+    (row_slice, col_slice)`` only that crop of the band image runs (and the
+    same crop of theta, the hot-pixel mask and the flat field), and the
+    result has the crop's shape; each pixel's result is the one of the whole
+    image. Pixels outside the image circle (or beyond the half field of view)
+    have no direction: NaN, flagged :data:`~pipeline.radiometry.measurement.FLAG_OUTSIDE_IMAGE_CIRCLE`.
+    A mean radiance over the unflagged pixels inside the circle more than
+    ``negative_sigma`` (default ``apply.negative_mean_sigma``) standard
+    errors below zero raises :class:`~pipeline.errors.ImpossibleResult`;
+    ``source`` names the frame in the messages.
+    """
+    effects = tuple(effects)
+    image = images.bands[band]
+    g = bundle.sel(lens=lens, medium=medium, band=band)
+    shape = g["theta_deg"].shape
+    if image.shape != tuple(shape):
+        raise InputError(source, f"lens '{lens}' band image is {image.shape}, the calibration's {tuple(shape)}")
+    rows, cols = (slice(None), slice(None)) if window is None else window
+    rows = slice(*rows.indices(shape[0]))
+    cols = slice(*cols.indices(shape[1]))
+    theta = np.asarray(_crop(g, "theta_deg", rows, cols), dtype=float)
+    theta = np.where(_outside_circle(g, theta, rows, cols, shape), np.nan, theta)
+    dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
+    b = bundle.sel(lens=lens, band=band)
+    m = mm.measure_band(image[rows, cols], frame, dark, response, cal, theta, medium, effects,
+                        saturated=images.saturated[band][rows, cols],
+                        hot_mask=_crop(b, "hot_pixel_mask", rows, cols),
+                        flat_field=_crop(b, "flat_field", rows, cols),
+                        prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0)
+    if negative_sigma is None:
+        negative_sigma = _default_negative_sigma()
+    good = (m.flags & (mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT)) == 0
+    good &= np.isfinite(m.value)
+    if good.any():
+        mean = float(np.mean(m.value[good]))
+        se = float(np.sqrt(np.sum(m.random_sigma[good] ** 2))) / good.sum()
+        if mean < -negative_sigma * se:
+            raise ImpossibleResult(source, f"lens {lens}, band {band}: mean radiance {mean:.3g} W sr-1 m-2 nm-1 "
+                                           f"over the image circle is {-mean / se:.1f} standard errors below "
+                                           "zero: the dark level or the calibration does not fit this frame")
+    return m
+
+
+def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dtype):
+    """Radiance, random and systematic sigma (``dtype``) and flags of one lens of a decoded frame, per band."""
+    span = bundle["lens_region_px"].sel(lens=lens).values
+    images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
+    out = {"radiance": [], "random": [], "systematic": [], "flags": []}
+    for band in BANDS:
+        m = band_radiance(images, bundle, lens, band, medium, effects, frame,
+                          negative_sigma=negative_sigma, source=raw.path)
+        out["radiance"].append(m.value.astype(dtype, copy=False))
+        out["random"].append(m.random_sigma.astype(dtype, copy=False))
+        out["systematic"].append(m.systematic_sigma.astype(dtype, copy=False))
+        out["flags"].append(m.flags)
+        del m
+    return out
+
+
+def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=float, pool=None):
+    """Radiance, random and systematic sigma, flags of one decoded frame: per lens, lists over the bands.
+
+    With a thread ``pool`` the lenses run side by side (numpy releases the
+    GIL in its array operations); ``bundle`` must then be in memory.
+    """
+    lenses = list(bundle["lens"].values)
+    frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
+    args = (medium, effects, frame, negative_sigma, dtype)
+    if pool is None:
+        return [_lens_radiance(raw, bundle, lens, *args) for lens in lenses]
+    return [f.result() for f in [pool.submit(_lens_radiance, raw, bundle, lens, *args) for lens in lenses]]
+
+
+def _sphere_cells(zenith_deg, azimuth_deg, grid_deg: float) -> np.ndarray:
+    """Index of the zenith/azimuth cell of every direction (row-major on the grid); -1 where undefined."""
+    n_z, n_a = int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
+    z, a = np.asarray(zenith_deg).ravel(), np.asarray(azimuth_deg).ravel()
+    z = z if z.dtype.kind == "f" else z.astype(float)
+    a = a if a.dtype.kind == "f" else a.astype(float)
+    bad = ~(np.isfinite(z) & np.isfinite(a))
+    iz = np.where(bad, 0, z / grid_deg).astype(np.int32)
+    np.clip(iz, 0, n_z - 1, out=iz)
+    ia = np.where(bad, 0, a / grid_deg).astype(np.int32)
+    np.clip(ia, 0, n_a - 1, out=ia)
+    iz *= n_a
+    iz += ia
+    iz[bad] = -1
+    return iz.reshape(np.shape(zenith_deg))
+
+
+def _bin_cells(cells, values, n_cells: int, extra=()):
+    """Mean, spread and count per cell of ``values`` (a list of arrays, e.g. one per lens, with their ``cells``).
+
+    A value enters where its cell is >= 0 and it is finite; ``extra`` (a list
+    of such lists) are averaged over the same pixels of each cell.
+    """
+    picked = []
+    for i, (cell, v) in enumerate(zip(cells, values)):
+        v = np.asarray(v).ravel()
+        cell = np.asarray(cell).ravel()
+        ok = (cell >= 0) & np.isfinite(v)
+        picked.append((cell[ok], v[ok].astype(float), [np.asarray(x[i]).ravel()[ok].astype(float) for x in extra]))
+    count = sum(np.bincount(c, minlength=n_cells) for c, _, _ in picked).astype(float)
+    has = count > 0
+    per = np.where(has, count, 1)
+    mean = np.where(has, sum(np.bincount(c, weights=v, minlength=n_cells) for c, v, _ in picked) / per, np.nan)
+    var = sum(np.bincount(c, weights=np.square(v - mean[c]), minlength=n_cells) for c, v, _ in picked)
+    spread = np.where(count > 1, np.sqrt(var / np.where(count > 1, count - 1, 1)), np.nan)
+    means = [np.where(has, sum(np.bincount(c, weights=x[k], minlength=n_cells) for c, _, x in picked) / per, np.nan)
+             for k in range(len(extra))]
+    return mean, spread, count.astype(np.int32), means
 
 
 def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
@@ -90,85 +232,10 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     Every finite value falls into its cell (no nearest-pixel choice); the
     arrays returned have shape (180 / grid, 360 / grid).
     """
-    n_z, n_a = int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
-    z = np.asarray(zenith_deg, float).ravel()
-    a = np.asarray(azimuth_deg, float).ravel()
-    v = np.asarray(values, float).ravel()
-    ok = np.isfinite(z) & np.isfinite(a) & np.isfinite(v)
-    iz = np.clip((z[ok] / grid_deg).astype(int), 0, n_z - 1)
-    ia = np.clip((a[ok] / grid_deg).astype(int), 0, n_a - 1)
-    cell = iz * n_a + ia
-    count = np.bincount(cell, minlength=n_z * n_a).astype(float)
-    total = np.bincount(cell, weights=v[ok], minlength=n_z * n_a)
-    mean = np.where(count > 0, total / np.where(count > 0, count, 1), np.nan)
-    dev = v[ok] - mean[cell]
-    var = np.bincount(cell, weights=dev**2, minlength=n_z * n_a)
-    spread = np.where(count > 1, np.sqrt(var / np.where(count > 1, count - 1, 1)), np.nan)
-    shape = (n_z, n_a)
-    return mean.reshape(shape), spread.reshape(shape), count.reshape(shape).astype(np.int32)
-
-
-def _outside_circle(bundle: xr.Dataset, lens: str, medium: str, band: str, shape) -> np.ndarray:
-    g = bundle.sel(lens=lens, medium=medium, band=band)
-    y, x = np.indices(shape)
-    r = np.hypot(x - float(g["circle_xc_px"]), y - float(g["circle_yc_px"]))
-    theta = g["theta_deg"].values
-    return (r > float(g["circle_radius_px"])) | ~np.isfinite(theta) | (theta > float(g["half_fov_deg"]))
-
-
-def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str, effects,
-                  frame: mm.FrameSettings, window=None) -> mm.Measured:
-    """The measurement chain on one band image of one lens, or on its crop ``window = (row_slice, col_slice)``.
-
-    ``images`` are the lens's band images of a decoded frame (:func:`pipeline.frames.lens_images`);
-    every per-pixel map of the bundle (theta, image circle, hot pixels, flat field) is cut to the
-    same window, so the crop's radiance equals that part of the whole image's.
-    """
-    shape = bundle["theta_deg"].shape[-2:]
-    image = images.bands[band]
-    if image.shape != tuple(shape):
-        raise InputError(None, f"lens '{lens}' band image is {image.shape}, the calibration's {tuple(shape)}")
-    win = (slice(None), slice(None)) if window is None else tuple(window)
-    dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
-    theta = bundle["theta_deg"].sel(lens=lens, medium=medium, band=band).values.astype(float)
-    theta = np.where(_outside_circle(bundle, lens, medium, band, shape), np.nan, theta)
-    b = bundle.sel(lens=lens, band=band)
-    return mm.measure_band(image[win], frame, dark, response, cal, theta[win], medium, effects,
-                           saturated=images.saturated[band][win],
-                           hot_mask=b["hot_pixel_mask"].values[win] if "hot_pixel_mask" in b else None,
-                           flat_field=b["flat_field"].values[win] if "flat_field" in b else None,
-                           prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0)
-
-
-def _frame_radiance(raw, bundle, medium, effects, negative_sigma):
-    """Radiance, random and systematic sigma, flags of one decoded frame: arrays (lens, band, y, x)."""
-    lenses = list(bundle["lens"].values)
-    shape = bundle["theta_deg"].shape[-2:]
-    out = {k: np.full((len(lenses), len(BANDS)) + shape, np.nan) for k in ("radiance", "random", "systematic")}
-    flags = np.zeros((len(lenses), len(BANDS)) + shape, np.uint8)
-    frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
-    for i, lens in enumerate(lenses):
-        span = bundle["lens_region_px"].sel(lens=lens).values
-        images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
-        for j, band in enumerate(BANDS):
-            if images.bands[band].shape != tuple(shape):
-                raise InputError(raw.path, f"lens '{lens}' band image is {images.bands[band].shape}, "
-                                           f"the calibration's {tuple(shape)}")
-            m = band_radiance(images, bundle, lens, band, medium, effects, frame)
-            inside = ~(m.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE).astype(bool)
-            good = inside & ~(m.flags & (mm.FLAG_SATURATED | mm.FLAG_HOT)).astype(bool) & np.isfinite(m.value)
-            if good.any():
-                mean = float(np.mean(m.value[good]))
-                se = float(np.sqrt(np.sum(m.random_sigma[good] ** 2))) / good.sum()
-                if mean < -negative_sigma * se:
-                    raise ImpossibleResult(raw.path, f"lens {lens}, band {band}: mean radiance {mean:.3g} W sr-1 m-2 nm-1 "
-                                                     f"over the image circle is {-mean / se:.1f} standard errors below "
-                                                     "zero: the dark level or the calibration does not fit this frame")
-            out["radiance"][i, j] = np.where(inside, m.value, np.nan)
-            out["random"][i, j] = np.where(inside, m.random_sigma, np.nan)
-            out["systematic"][i, j] = np.where(inside, m.systematic_sigma, np.nan)
-            flags[i, j] = m.flags
-    return out, flags
+    shape = (int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg)))
+    cell = _sphere_cells(zenith_deg, azimuth_deg, grid_deg)
+    mean, spread, count, _ = _bin_cells([cell], [values], shape[0] * shape[1])
+    return mean.reshape(shape), spread.reshape(shape), count.reshape(shape)
 
 
 def _attrs(long_name, units, **extra):
@@ -176,12 +243,15 @@ def _attrs(long_name, units, **extra):
 
 
 def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: float | None = None, *,
-                      overwrite: bool = False, zenith_lens: str = ZENITH_LENS, config: dict | None = None) -> Path:
+                      overwrite: bool = False, zenith_lens: str = ZENITH_LENS, config: dict | None = None,
+                      pixels: bool = True) -> Path:
     """Turn raw frames into radiance maps with the calibration bundle; write ``out_path`` (NetCDF).
 
-    Returns the path written. Each frame is decoded once. The output is
-    written to a temporary name and renamed; an existing ``out_path`` is
-    replaced only with ``overwrite``.
+    Returns the path written. Each frame is decoded once. The sphere grid is
+    always written; the per-pixel maps (radiance, uncertainties, flags and
+    the geometry of every band pixel of both lenses) only with ``pixels``.
+    The output is written to a temporary name and renamed; an existing
+    ``out_path`` is replaced only with ``overwrite``.
     """
     config = config if config is not None else defaults()
     cfg = config["apply"]
@@ -190,69 +260,98 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     if out_path.exists() and not overwrite:
         raise InputError(out_path, "exists; add --overwrite to replace it")
     bundle_path = Path(bundle_path)
-    bundle = read_bundle(bundle_path)
-    effects = model_effects(bundle)
-    if medium not in _media(bundle):
-        raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(_media(bundle))})")
+    with read_bundle(bundle_path, load=False) as on_disk:
+        effects = model_effects(on_disk)
+        if medium not in _media(on_disk):
+            raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(_media(on_disk))})")
+        # only this medium, the solid angles only when the pixel maps are written, the flat field and the
+        # hot-pixel mask only when the model has their effect (the chain's steps skip them otherwise)
+        skip = ([] if pixels else ["solid_angle_sr"]) + ([] if "prnu" in effects else ["flat_field"]) \
+            + ([] if "hot_pixels" in effects else ["hot_pixel_mask"])
+        bundle = on_disk.drop_vars(skip, errors="ignore").sel(medium=[medium]).load()
     raw_paths = [Path(p) for p in raw_paths]
     if not raw_paths:
         raise InputError(None, "no raw frames to apply the calibration to")
     lenses = list(bundle["lens"].values)
     if zenith_lens not in lenses:
         zenith_lens = lenses[0]
-    results, meta = [], []
-    for path in raw_paths:
-        raw = read_raw(path)
-        check_frame(raw, bundle, effects)
-        results.append(_frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"])))
-        meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
-    radiance = np.stack([r[0]["radiance"] for r in results])
-    random = np.stack([r[0]["random"] for r in results])
-    systematic = np.stack([r[0]["systematic"] for r in results])
-    flags = np.stack([r[1] for r in results])
-    geo = bundle[["theta_deg", "phi_deg", "solid_angle_sr"]].sel(medium=medium)
-    zen = np.empty(geo["theta_deg"].shape)
-    azi = np.empty_like(zen)
-    for i, lens in enumerate(lenses):
-        zen[i], azi[i] = sphere_coordinates(geo["theta_deg"].values[i], geo["phi_deg"].values[i], lens == zenith_lens)
+    geo = bundle[["theta_deg", "phi_deg"] + (["solid_angle_sr"] if pixels else [])].sel(medium=medium)
     n_z, n_a = int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
+    # the cell of every band pixel, once per lens and band (not per frame): [lens][band] (y, x)
+    cells, zen, azi = [], [], []
+    for i, lens in enumerate(lenses):
+        cells.append([])
+        for j in range(len(BANDS)):
+            z, a = sphere_coordinates(geo["theta_deg"].values[i, j], geo["phi_deg"].values[i, j], lens == zenith_lens)
+            cells[i].append(_sphere_cells(z, a, grid_deg))
+            if pixels:
+                zen.append(z.astype(np.float32, copy=False))
+                azi.append(a.astype(np.float32, copy=False))
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
-    for f in range(len(raw_paths)):
-        for j in range(len(BANDS)):
-            use = (flags[f, :, j] & EXCLUDED_FROM_GRID) == 0
-            val = np.where(use, radiance[f, :, j], np.nan)
-            grid["mean"][f, j], grid["spread"][f, j], count[f, j] = bin_on_sphere(zen[:, j], azi[:, j], val, grid_deg)
-            rnd, _, _ = bin_on_sphere(zen[:, j], azi[:, j], np.where(use, random[f, :, j] ** 2, np.nan), grid_deg)
-            sy, _, _ = bin_on_sphere(zen[:, j], azi[:, j], np.where(use, systematic[f, :, j], np.nan), grid_deg)
-            grid["random"][f, j] = np.sqrt(rnd / np.where(count[f, j] > 0, count[f, j], 1))
-            grid["systematic"][f, j] = sy
+    meta = []
+    if pixels:
+        shape = (len(raw_paths),) + geo["theta_deg"].shape
+        maps = {"radiance": np.empty(shape, np.float32), "random": np.empty(shape, np.float32),
+                "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
+    with ThreadPoolExecutor(max_workers=min(2, len(lenses))) as pool:
+        for f, path in enumerate(raw_paths):
+            raw = read_raw(path)
+            check_frame(raw, bundle, effects)
+            # float64 into the grid; the pixel maps are stored float32
+            per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool)
+            meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
+            del raw
+            for j in range(len(BANDS)):
+                use = [np.where((r["flags"][j] & EXCLUDED_FROM_GRID) == 0, cells[i][j], -1)
+                       for i, r in enumerate(per_lens)]
+                mean, spread, n, (rnd, sy) = _bin_cells(
+                    use, [r["radiance"][j] for r in per_lens], n_z * n_a,
+                    extra=([np.square(r["random"][j], dtype=float) for r in per_lens],
+                           [r["systematic"][j] for r in per_lens]))
+                grid["mean"][f, j], grid["spread"][f, j] = mean.reshape(n_z, n_a), spread.reshape(n_z, n_a)
+                count[f, j] = n.reshape(n_z, n_a)
+                grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
+                grid["systematic"][f, j] = sy.reshape(n_z, n_a)
+            if pixels:
+                for i, r in enumerate(per_lens):
+                    for k, arrays in r.items():
+                        for j, a in enumerate(arrays):
+                            maps[k][f, i, j] = a
+            del per_lens
     rad_units = "W sr-1 m-2 nm-1"
     convention = SPHERE_CONVENTION.format(zenith=zenith_lens)
     flag_values = np.array(list(mm.FLAG_MEANINGS.values()), np.uint8)
-    ds = xr.Dataset(
-        {
-            "radiance": (("frame", "lens", "band", "y", "x"), radiance.astype(np.float32),
+    pixel_vars = {}
+    if pixels:
+        pixel_dims = ("frame", "lens", "band", "y", "x")
+        pixel_vars = {
+            "radiance": (pixel_dims, maps["radiance"],
                          _attrs("effective spectral radiance of the band pixel, inverse of Eq. (4)", rad_units)),
-            "radiance_random_sigma": (("frame", "lens", "band", "y", "x"), random.astype(np.float32),
+            "radiance_random_sigma": (pixel_dims, maps["random"],
                                       _attrs("random standard uncertainty (shot, read, dark noise), independent between "
                                              "pixels and frames", rad_units)),
-            "radiance_systematic_sigma": (("frame", "lens", "band", "y", "x"), systematic.astype(np.float32),
+            "radiance_systematic_sigma": (pixel_dims, maps["systematic"],
                                           _attrs("systematic standard uncertainty (calibration terms), common to the "
                                                  "pixels of a band", rad_units)),
-            "quality_flag": (("frame", "lens", "band", "y", "x"), flags,
+            "quality_flag": (pixel_dims, maps["flags"],
                              {"long_name": "quality flag bits", "units": "1", "flag_masks": flag_values,
                               "flag_meanings": " ".join(mm.FLAG_MEANINGS)}),
-            "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values,
+            "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values.astype(np.float32),
                           _attrs("angle of the viewing direction from the lens's optical axis", "degree")),
-            "phi_deg": (("lens", "band", "y", "x"), geo["phi_deg"].values,
+            "phi_deg": (("lens", "band", "y", "x"), geo["phi_deg"].values.astype(np.float32),
                         _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
-            "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values,
+            "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values.astype(np.float32),
                                _attrs("solid angle seen by the band pixel", "sr")),
-            "zenith_deg": (("lens", "band", "y", "x"), zen, _attrs("zenith angle of the pixel's direction on the sphere", "degree",
-                                                               convention=convention)),
-            "azimuth_deg": (("lens", "band", "y", "x"), azi, _attrs("azimuth of the pixel's direction on the sphere", "degree",
-                                                                convention=convention)),
+            "zenith_deg": (("lens", "band", "y", "x"), np.stack(zen).reshape(geo["theta_deg"].shape),
+                           _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
+            "azimuth_deg": (("lens", "band", "y", "x"), np.stack(azi).reshape(geo["theta_deg"].shape),
+                            _attrs("azimuth of the pixel's direction on the sphere", "degree", convention=convention)),
+        }
+        del maps
+    ds = xr.Dataset(
+        {
+            **pixel_vars,
             "sphere_radiance": (("frame", "band", "zenith", "azimuth"), grid["mean"],
                                 _attrs("mean radiance of the unflagged pixels in the cell (NaN: no pixel)", rad_units)),
             "sphere_radiance_spread": (("frame", "band", "zenith", "azimuth"), grid["spread"],
@@ -274,7 +373,7 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
         },
         attrs={
             "Conventions": "CF-1.10", "title": "spectral radiance from raw frames (Larouche et al. 2024, inverse of Eq. 4)",
-            "medium": medium, "grid_deg": grid_deg, "sphere_convention": convention,
+            "medium": medium, "grid_deg": grid_deg, "sphere_convention": convention, "pixel_maps": int(pixels),
             "calibration_bundle": str(bundle_path), "calibration_created": bundle.attrs.get("created", ""),
             "camera_serial": bundle.attrs.get("camera_serial", ""), "model_effects": ",".join(effects),
             "uncertainty": "random: shot, read and dark noise of each pixel and frame; systematic: dark model, "
@@ -283,10 +382,12 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     )
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.name}.tmp")
-    # zlib level 1 with the byte shuffle: about as small as level 4 without it, and the write is most of
-    # apply's time at the full scale (benchmarks/bench_apply.py)
+    # the sphere grid: zlib level 1 with the byte shuffle (about as small as level 4 without it)
     big = {name: {"zlib": True, "complevel": 1, "shuffle": True} for name, var in ds.data_vars.items()
            if var.dtype.kind in "fiu" and var.size > 1024}
+    # the per-pixel maps uncompressed: compressing them (zlib level 1) was most of apply's time at the full
+    # scale (9 of 22 s) for a file half the size (benchmarks/bench_apply.py; --no-pixels when size matters)
+    big.update({name: {"zlib": False, "contiguous": True} for name, var in ds.data_vars.items() if "y" in var.dims})
     ds.to_netcdf(tmp, engine="netcdf4", encoding=big)
     os.replace(tmp, out_path)
     return out_path
@@ -302,6 +403,9 @@ def add_apply_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("-o", "--out", required=True, help="NetCDF file to write")
     p.add_argument("--grid-deg", type=float, default=None, help="zenith/azimuth cell size (default: apply.grid_deg)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    p.add_argument("--pixels", action=argparse.BooleanOptionalAction, default=True,
+                   help="write the per-pixel maps of both lenses besides the sphere grid (default); "
+                        "--no-pixels writes the sphere grid only")
     return p
 
 
@@ -309,7 +413,7 @@ def apply_command(args) -> int:
     """Run ``apply`` from parsed arguments; bad input prints one line and returns 1."""
     try:
         out = apply_calibration(args.calibration, args.raw, args.medium, args.out, args.grid_deg,
-                                overwrite=args.overwrite)
+                                overwrite=args.overwrite, pixels=args.pixels)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

@@ -25,10 +25,10 @@ from pipeline.errors import ArtefactError
 #: linearity 2: saturation found in the data (saturation_dn NaN when not reached, its lower bound,
 #: the count of saturated settings); spectral 2 and absolute 2: frames corrected by the fitted
 #: response (linearity artefact) and, for absolute, a 'response' term in the budget; immersion 2:
-#: the same for its air and water frames.
+#: the same for its air and water frames; calibration 2: the per-pixel maps stored uncompressed and
+#: contiguous (a band image of one lens and medium reads as one block), see pipeline.calibration.
 ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 1, "rolloff": 1, "spectral": 2,
-                     "absolute": 2, "immersion": 2, "calibration": 1,
-                     "field": 1}
+                     "absolute": 2, "immersion": 2, "calibration": 2, "field": 1}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
@@ -50,8 +50,12 @@ def config_sha256(config_subset: dict) -> str:
 
 
 def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict[str, str],
-                   config_subset: dict, effects: list[str]) -> Path:
-    """Write ``ds`` with the provenance attributes; ``inputs`` maps file name -> sha256."""
+                   config_subset: dict, effects: list[str], encoding: dict | None = None) -> Path:
+    """Write ``ds`` with the provenance attributes; ``inputs`` maps file name -> sha256.
+
+    Variables larger than 1024 values are stored zlib-compressed (level 4)
+    unless ``encoding`` names them (netCDF4 encodings by variable).
+    """
     path = Path(path)
     ds = ds.copy()
     ds.attrs.update({
@@ -67,30 +71,45 @@ def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict
     })
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    encoding = {name: {"zlib": True, "complevel": 4} for name, var in ds.data_vars.items()
-                if var.dtype.kind in "fiub" and var.size > 1024}
+    default = {name: {"zlib": True, "complevel": 4} for name, var in ds.data_vars.items()
+               if var.dtype.kind in "fiub" and var.size > 1024}
+    encoding = {**default, **(encoding or {})}
     ds.to_netcdf(tmp, engine="netcdf4", encoding=encoding)
     os.replace(tmp, path)
     return path
 
 
-def read_artefact(path: str | Path, stage: str) -> xr.Dataset:
-    """Open a stage's artefact (loaded into memory), refusing an unknown stage or version."""
+def read_artefact(path: str | Path, stage: str, *, load: bool = True) -> xr.Dataset:
+    """Open a stage's artefact, refusing an unknown stage or version.
+
+    Loaded into memory (and the file closed) by default; with ``load=False``
+    the variables stay on disk until read and the caller closes the Dataset.
+    """
     path = Path(path)
     if not path.exists():
         raise ArtefactError(path, f"{stage} artefact is missing; run the '{stage}' stage first")
     try:
-        with xr.open_dataset(path, engine="netcdf4") as ds:
-            ds = ds.load()
+        ds = xr.open_dataset(path, engine="netcdf4")
     except (OSError, ValueError) as exc:
         raise ArtefactError(path, f"not a readable NetCDF artefact ({exc.__class__.__name__})") from None
-    found = ds.attrs.get("artefact")
-    if found != stage:
-        raise ArtefactError(path, f"is a '{found}' artefact, expected '{stage}'")
-    version = int(ds.attrs.get("artefact_version", -1))
-    if version != ARTEFACT_VERSIONS[stage]:
-        raise ArtefactError(path, f"{stage} artefact version {version} is not the supported version "
-                                  f"{ARTEFACT_VERSIONS[stage]}; rerun the '{stage}' stage")
+    try:
+        found = ds.attrs.get("artefact")
+        if found != stage:
+            raise ArtefactError(path, f"is a '{found}' artefact, expected '{stage}'")
+        version = int(ds.attrs.get("artefact_version", -1))
+        if version != ARTEFACT_VERSIONS[stage]:
+            raise ArtefactError(path, f"{stage} artefact version {version} is not the supported version "
+                                      f"{ARTEFACT_VERSIONS[stage]}; rerun the '{stage}' stage")
+        if load:
+            try:
+                ds.load()
+            except (OSError, ValueError, RuntimeError) as exc:
+                raise ArtefactError(path, f"not a readable NetCDF artefact ({exc.__class__.__name__})") from None
+    except BaseException:
+        ds.close()
+        raise
+    if load:
+        ds.close()
     return ds
 
 

@@ -10,9 +10,10 @@ covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``) carrying the sha256 of every
-artefact it came from, the model's effects and the camera's make, model and
-serial number.
+versioned artefact (``artefact = calibration``, version 2: the per-pixel
+maps stored uncompressed and contiguous; version 1 files are refused with a
+line asking to rebuild) carrying the sha256 of every artefact it came from,
+the model's effects and the camera's make, model and serial number.
 
 :func:`band_parameters` turns the bundle back into the small parameter
 objects of :mod:`pipeline.radiometry.measurement`, so ``apply`` and the NER
@@ -291,14 +292,22 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
         "camera_serial": str(camera.get("serial", "")),
         "media": ",".join(media), "stages": ",".join(parts),
     })
+    # the per-pixel maps uncompressed and contiguous: apply reads one lens, band and medium of them
+    # as one block, where decompressing them cost it seconds at the full resolution
+    maps = {name: {"zlib": False, "contiguous": True} for name, var in bundle.data_vars.items()
+            if var.dims[-2:] == ("y", "x")}
     write_artefact(bundle, out_path, stage="calibration", inputs=inputs,
-                   config_subset=stage_params(config, "calibration"), effects=list(effects))
+                   config_subset=stage_params(config, "calibration"), effects=list(effects), encoding=maps)
     return bundle
 
 
-def read_bundle(path: str | Path) -> xr.Dataset:
-    """Open a calibration bundle (loaded), refusing another artefact or an unknown version."""
-    return read_artefact(path, "calibration")
+def read_bundle(path: str | Path, *, load: bool = True) -> xr.Dataset:
+    """Open a calibration bundle, refusing another artefact or an unknown version.
+
+    Loaded by default; ``load=False`` leaves the variables on disk (read when
+    selected; the caller closes the Dataset).
+    """
+    return read_artefact(path, "calibration", load=load)
 
 
 def build_bundle_script(smk) -> None:

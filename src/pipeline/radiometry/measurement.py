@@ -45,13 +45,14 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
 from pipeline.errors import ImpossibleResult
 from pipeline.radiometry.dark import dark_model_level_dn, temperature_model_shift_dn
 from pipeline.radiometry.exposure import gain_from_iso
-from pipeline.radiometry.rolloff import evaluate_rolloff
+from pipeline.radiometry.rolloff import rolloff_on_image
 
 __all__ = [
     "FLAG_SATURATED", "FLAG_HOT", "FLAG_OUTSIDE_IMAGE_CIRCLE", "FLAG_BEYOND_CALIBRATED_ANGLE", "FLAG_MEANINGS",
@@ -85,13 +86,15 @@ class Measured:
     systematic_var: dict[str, np.ndarray] = field(default_factory=dict)
     flags: np.ndarray | None = None
 
-    @property
+    @cached_property
     def random_sigma(self) -> np.ndarray:
-        return np.sqrt(sum(self.random_var.values(), np.zeros_like(self.value)))
+        """sqrt of the sum of the random variances (computed once per value)."""
+        return _root_sum(self.random_var.values(), self.value)
 
-    @property
+    @cached_property
     def systematic_sigma(self) -> np.ndarray:
-        return np.sqrt(sum(self.systematic_var.values(), np.zeros_like(self.value)))
+        """sqrt of the sum of the systematic variances (computed once per value)."""
+        return _root_sum(self.systematic_var.values(), self.value)
 
     def scaled(self, factor, units: str, **extra_systematic) -> "Measured":
         """value * factor, every variance times factor^2, plus new systematic terms (already in the new units)."""
@@ -106,6 +109,16 @@ class Measured:
         flags = np.zeros(np.shape(self.value), np.uint8) if self.flags is None else self.flags.copy()
         flags[np.broadcast_to(np.asarray(where, bool), flags.shape)] |= np.uint8(bit)
         return dataclasses.replace(self, flags=flags)
+
+
+def _root_sum(variances, like) -> np.ndarray:
+    """sqrt of the sum of variances (arrays broadcastable to ``like``), accumulated in one array."""
+    variances = list(variances)
+    # the dtype the sum would have had (float64 terms promote a float32 value), at least float32
+    total = np.zeros(np.shape(like), dtype=np.result_type(np.float32, like, *(np.asarray(v).dtype for v in variances)))
+    for v in variances:
+        total += v
+    return np.sqrt(total, out=total)
 
 
 @dataclass(frozen=True)
@@ -206,14 +219,14 @@ def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects) -
         level += temperature_model_shift_dn(dark.temperature_bias_dn_per_c, dark.temperature_dark_dn_per_s_per_c,
                                             dark.temperature_reference_c, gain, frame.exposure_s, frame.temperature_c)
     sites = dark.sites_per_pixel
-    shape = m.value.shape
+    # the same for every pixel: 0-d arrays (broadcast), maps only once a per-pixel factor scales them
     rand = dict(m.random_var)
-    rand["read"] = np.full(shape, dark.read_noise_dn**2 / sites)
-    rand["dark"] = np.full(shape, dark.offset_pattern_dn**2)
+    rand["read"] = np.asarray(dark.read_noise_dn**2 / sites, dtype=float)
+    rand["dark"] = np.asarray(dark.offset_pattern_dn**2, dtype=float)
     sys_var = dict(m.systematic_var)
-    sys_var["dark_model"] = np.full(shape, dark.bias_dn_sigma**2 + ((gain - 1.0) * dark.bias_per_gain_dn_sigma) ** 2
-                                    + ((gain * frame.exposure_s * dark.dark_current_dn_per_s_sigma) ** 2
-                                       if "dark_current" in effects else 0.0))
+    sys_var["dark_model"] = np.asarray(dark.bias_dn_sigma**2 + ((gain - 1.0) * dark.bias_per_gain_dn_sigma) ** 2
+                                       + ((gain * frame.exposure_s * dark.dark_current_dn_per_s_sigma) ** 2
+                                          if "dark_current" in effects else 0.0), dtype=float)
     return dataclasses.replace(m, value=m.value - level, random_var=rand, systematic_var=sys_var)
 
 
@@ -318,14 +331,13 @@ def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration) -> Mea
     """
     theta = np.asarray(theta_deg, dtype=float)
     if calibration.rolloff_covariance is None:
-        g, g_sigma = evaluate_rolloff(calibration.rolloff_coefficients, theta), np.zeros(theta.shape)
+        g, g_sigma = rolloff_on_image(calibration.rolloff_coefficients, theta), np.zeros(theta.shape)
     else:
-        g, g_sigma = evaluate_rolloff(calibration.rolloff_coefficients, theta, calibration.rolloff_covariance)
+        g, g_sigma = rolloff_on_image(calibration.rolloff_coefficients, theta, calibration.rolloff_covariance)
     out = m.scaled(1.0 / g, m.units)
     out = dataclasses.replace(out, systematic_var={**out.systematic_var, "rolloff": (out.value * g_sigma / g) ** 2})
     out = out.flagged(~np.isfinite(theta), FLAG_OUTSIDE_IMAGE_CIRCLE)
-    return out.flagged(np.nan_to_num(theta, nan=0.0) > calibration.calibrated_field_angle_deg,
-                       FLAG_BEYOND_CALIBRATED_ANGLE)
+    return out.flagged(theta > calibration.calibrated_field_angle_deg, FLAG_BEYOND_CALIBRATED_ANGLE)  # NaN: False
 
 
 def correct_immersion(m: Measured, calibration: BandCalibration, medium: str) -> Measured:

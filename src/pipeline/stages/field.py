@@ -319,7 +319,8 @@ def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma):
         images = dec.lenses[lens]
         out = {"file": row["file"], "local_time": raw.time, "exposure_s": frame.exposure_s, "iso": frame.iso}
         for band in BANDS:
-            m = band_radiance(images, bundle, lens, band, MEDIUM, ctx.effects, frame, window=window)
+            m = band_radiance(images, bundle, lens, band, MEDIUM, ctx.effects, frame, window=window,
+                              negative_sigma=negative_sigma, source=row["path"])
             st = mask_statistics(m, masks[band])
             if st["n"] == 0:
                 raise InputError(row["path"], f"band {band}: every pixel of the {ctx.params['mask_half_angle_deg']:g} "
@@ -331,7 +332,7 @@ def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma):
                                                     "the dark level or the calibration does not fit this frame")
             out.update({f"{k}_{band}": v for k, v in st.items()})
         if i == middle:
-            sky = _sky_map(images, bundle, lens, frame, ctx.effects, grid_deg, row["file"])
+            sky = _sky_map(images, bundle, lens, frame, ctx.effects, grid_deg, row["path"])
         rows.append(out)
     if not rows:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no frames of lens '{lens}'")
@@ -343,7 +344,7 @@ def _sky_map(images, bundle, lens, frame, effects, grid_deg, name):
     phi = bundle["phi_deg"].sel(lens=lens, medium=MEDIUM)
     means, counts = [], []
     for band in BANDS:
-        m = band_radiance(images, bundle, lens, band, MEDIUM, effects, frame)
+        m = band_radiance(images, bundle, lens, band, MEDIUM, effects, frame, source=name)
         zen, azi = sphere_coordinates(theta.sel(band=band).values, phi.sel(band=band).values, True)
         val = np.where((m.flags & EXCLUDED_FROM_GRID) == 0, m.value, np.nan)
         mean, _, count = bin_on_sphere(zen, azi, val, grid_deg)
