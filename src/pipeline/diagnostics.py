@@ -236,24 +236,31 @@ def _unexplained(observations, model_effects, ranked: pd.DataFrame, cfg) -> pd.D
     return pd.DataFrame(rows, columns=["experiment", "rms_z", "covariate", "association", "message"])
 
 
-def _explained_share(z: np.ndarray, groups: np.ndarray) -> float:
-    """Share of the residual variance explained by group means, adjusted for the number of groups.
+def _grouping_test(z: np.ndarray, groups: np.ndarray) -> tuple[float, float]:
+    """F-test p-value of group means of the residuals, and the share of their variance they explain.
 
-    eta^2 = SS_between / SS_total would credit k groups with (k - 1)/(n - 1) of pure noise; the
-    adjusted share 1 - (1 - eta^2)(n - 1)/(n - k) is 0 on average for noise.
+    The share is adjusted for the number of groups, 1 - (1 - eta^2)(n - 1)/(n - k), so that noise scores
+    0 on average (eta^2 = SS_between / SS_total would credit k groups with (k - 1)/(n - 1) of noise).
     """
     n, k = len(z), len(np.unique(groups))
     if n - k < 1 or k < 2:
-        return 0.0
+        return 1.0, 0.0
     total = float(np.sum((z - z.mean()) ** 2)) or 1.0
     means = pd.Series(z).groupby(groups).transform("mean").to_numpy()
-    eta2 = float(np.sum((means - z.mean()) ** 2) / total)
-    return max(0.0, 1.0 - (1.0 - eta2) * (n - 1) / (n - k))
+    between = float(np.sum((means - z.mean()) ** 2))
+    within = max(total - between, 1e-300)
+    p = float(stats.f.sf((between / (k - 1)) / (within / (n - k)), k - 1, n - k))
+    return p, max(0.0, 1.0 - (1.0 - between / total) * (n - 1) / (n - k))
 
 
 def _where(observations, experiment, model_effects) -> tuple[str, float]:
-    """The covariate that explains most of the residual variance (adjusted eta squared, or R^2 of a line)."""
-    best, best_val = "no single covariate", 0.0
+    """The covariate whose grouping of the residuals is most significant (F test), with the variance share it explains.
+
+    A numeric covariate with many values is tested as a straight line and in quantile bins (a step or a
+    bend), a categorical one by its levels; the most significant wins, so that many small groups (one per
+    frame) do not outscore a physical covariate with few bins that explains the same structure.
+    """
+    best, best_p, best_val = "no single covariate", 1.0, 0.0
     for obs in observations:
         if obs.experiment != experiment:
             continue
@@ -262,17 +269,20 @@ def _where(observations, experiment, model_effects) -> tuple[str, float]:
             if cov not in obs.table:
                 continue
             values = obs.table[cov]
+            tests = []
             if values.dtype.kind in "fi" and values.nunique() > COVARIATE_BINS:
                 x = values.to_numpy(float)
                 r = np.corrcoef(x, z)[0, 1]
                 n = len(z)
-                line = float(max(0.0, 1.0 - (1.0 - r**2) * (n - 1) / (n - 2))) if np.isfinite(r) and n > 2 else 0.0
-                bins = pd.qcut(x, COVARIATE_BINS, labels=False, duplicates="drop")
-                val = max(line, _explained_share(z, np.asarray(bins)))
+                if np.isfinite(r) and n > 2:
+                    t = r * np.sqrt((n - 2) / max(1.0 - r**2, 1e-300))
+                    tests.append((float(2 * stats.t.sf(abs(t), n - 2)), max(0.0, 1.0 - (1.0 - r**2) * (n - 1) / (n - 2))))
+                tests.append(_grouping_test(z, np.asarray(pd.qcut(x, COVARIATE_BINS, labels=False, duplicates="drop"))))
             else:
-                val = _explained_share(z, values.astype(str).to_numpy())
-            if val > best_val:
-                best, best_val = f"{cov} ({obs.level} level)", val
+                tests.append(_grouping_test(z, values.astype(str).to_numpy()))
+            p, val = min(tests)
+            if p < best_p:
+                best, best_p, best_val = f"{cov} ({obs.level} level)", p, val
     return best, best_val
 
 

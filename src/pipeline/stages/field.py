@@ -332,19 +332,19 @@ def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma):
                                                     "the dark level or the calibration does not fit this frame")
             out.update({f"{k}_{band}": v for k, v in st.items()})
         if i == middle:
-            sky = _sky_map(images, bundle, lens, frame, ctx.effects, grid_deg, row["path"])
+            sky = _sky_map(images, bundle, lens, frame, ctx.effects, grid_deg, row["file"], row["path"])
         rows.append(out)
     if not rows:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no frames of lens '{lens}'")
     return pd.DataFrame(rows), inputs, sky
 
 
-def _sky_map(images, bundle, lens, frame, effects, grid_deg, name):
+def _sky_map(images, bundle, lens, frame, effects, grid_deg, name, source):
     theta = bundle["theta_deg"].sel(lens=lens, medium=MEDIUM)
     phi = bundle["phi_deg"].sel(lens=lens, medium=MEDIUM)
     means, counts = [], []
     for band in BANDS:
-        m = band_radiance(images, bundle, lens, band, MEDIUM, effects, frame, source=name)
+        m = band_radiance(images, bundle, lens, band, MEDIUM, effects, frame, source=source)
         zen, azi = sphere_coordinates(theta.sel(band=band).values, phi.sel(band=band).values, True)
         val = np.where((m.flags & EXCLUDED_FROM_GRID) == 0, m.value, np.nan)
         mean, _, count = bin_on_sphere(zen, azi, val, grid_deg)
