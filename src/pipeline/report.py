@@ -30,6 +30,7 @@ import xarray as xr  # noqa: E402
 from pipeline.artefact import read_artefact  # noqa: E402
 from pipeline.observations import dataset_to_table  # noqa: E402
 from pipeline.radiometry.exposure import gain_from_iso  # noqa: E402
+from pipeline.report_field import field_section  # noqa: E402
 
 try:  # G band pixels average two photosites (see pipeline.stages.linearity.photon_transfer)
     from pipeline.frames import SITES_PER_BAND_PIXEL
@@ -1196,7 +1197,7 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
     history = read_csv_or_empty(Path(error_history))
     later_paths = {"geometry": dict(geometry or {}), "rolloff": dict(rolloff or {}),
                    "spectral": dict(spectral or {}), "absolute": dict(absolute or {}),
-                   "immersion": dict(immersion or {})}
+                   "immersion": dict(immersion or {}), "field": dict(field or {})}
     later = {st: {lens: read_artefact(p, st) for lens, p in paths.items()} for st, paths in later_paths.items()}
     all_arts = [("dark", lens, dark[lens], ds) for lens, ds in dark_ds.items()] + \
                [("linearity", lens, linearity[lens], ds) for lens, ds in lin_ds.items()] + \
@@ -1205,7 +1206,7 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
     titles = [("summary", "Summary"), ("dark", "Dark frames"), ("linearity", "Linearity"),
               ("geometry", "Geometry"), ("rolloff", "Roll-off"), ("spectral", "Relative spectral response"),
               ("absolute", "Absolute spectral radiance"), ("immersion", "Immersion factor"),
-              ("diagnostics", "Diagnostics"), ("skipped", "Stages not run"), ("provenance", "Provenance")]
+              ("field", "Field match-up"), ("diagnostics", "Diagnostics"), ("skipped", "Stages not run"), ("provenance", "Provenance")]
     num = {a: i + 1 for i, (a, _) in enumerate(titles)}
 
     body = []
@@ -1280,8 +1281,11 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                     "calibration coefficient R⁻¹ with its uncertainty budget (Section 3.5).",
         "immersion": "Log-linear extrapolation of the in-water signal to just below the surface and the immersion "
                      "factor I (Section 3.6).",
+        "field": "The calibration bundle applied to sky frames of the lens at the zenith and compared with a co-located "
+                 "reference radiometer (Sections 2.9 and 3.8, Eq. 12, Fig. 10): the only closure of the lab "
+                 "calibration against data it was not fitted on.",
     }
-    for st in ("geometry", "rolloff", "spectral", "absolute", "immersion"):
+    for st in ("geometry", "rolloff", "spectral", "absolute", "immersion", "field"):
         title = dict(titles)[st]
         sec = [f'<h2 id="{st}">{num[st]}. {title}</h2>', f"<p>{_e(intros[st])}</p>"]
         if not later[st]:
@@ -1295,6 +1299,8 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                 sec.append(_spectral_section(lens, ds, figs))
             elif st == "absolute":
                 sec.append(_absolute_section(lens, ds, figs, later["spectral"].get(lens)))
+            elif st == "field":
+                sec.append(field_section(lens, ds, figs))
             else:
                 sec.append(_immersion_section(lens, ds, figs))
         if st == "absolute" and calibration is not None:

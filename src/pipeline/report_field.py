@@ -1,0 +1,158 @@
+"""The report's field section: the camera against the reference radiometer (Larouche et al. 2024, Section 2.9, Fig. 10).
+
+Per lens at the zenith: the match-up statistics per band and comparison (nearest channel, band-convolved
+reference) with their intervals, the time series and scatter of Fig. 10, and the all-sky radiance map
+of one field frame. Figures are drawn here; the report embeds them.
+"""
+
+from __future__ import annotations
+
+import html
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import xarray as xr  # noqa: E402
+
+__all__ = ["field_section"]
+
+BAND_COLOURS = {"R": "tab:red", "G": "tab:green", "B": "tab:blue"}
+COMPARISON_LABELS = {"nearest": "nearest channel", "convolved": "band-convolved reference"}
+
+
+def _e(x) -> str:
+    return html.escape(str(x))
+
+
+def _num(x, digits: int = 3) -> str:
+    x = float(x)
+    return "n/a" if not np.isfinite(x) else f"{x:.{digits}g}"
+
+
+def _interval(ds, name, b, c, digits=3) -> str:
+    v = ds[name].isel(band=b, comparison=c)
+    lo, hi = ds[f"{name}_low"].isel(band=b, comparison=c), ds[f"{name}_high"].isel(band=b, comparison=c)
+    return f"{_num(v, digits)} [{_num(lo, digits)}, {_num(hi, digits)}]"
+
+
+def _table(header, rows) -> str:
+    head = "".join(f"<th>{_e(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(f'<td class="{"l" if i == 0 else ""}">{_e(c)}</td>' for i, c in enumerate(r))
+                   + "</tr>" for r in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
+
+
+def _statistics_table(ds: xr.Dataset) -> str:
+    level = float(ds.attrs.get("confidence_level", 0.95))
+    rows = []
+    for b, band in enumerate(ds["band"].values):
+        for c, comp in enumerate(ds["comparison"].values):
+            rows.append([f"{band} ({_num(ds['effective_wavelength_nm'].isel(band=b), 4)} nm) vs "
+                         + (f"{_num(ds['nearest_channel_nm'].isel(band=b), 4)} nm" if comp == "nearest"
+                            else "convolved"),
+                         int(ds["n_matchups"].isel(band=b, comparison=c)),
+                         _interval(ds, "stat_mupd", b, c), _interval(ds, "stat_median_symmetric_accuracy", b, c),
+                         _interval(ds, "stat_signed_symmetric_bias", b, c),
+                         f"{_num(ds['stat_ols_slope'].isel(band=b, comparison=c))} "
+                         f"[{_num(ds['stat_ols_slope_low'].isel(band=b, comparison=c))}, "
+                         f"{_num(ds['stat_ols_slope_high'].isel(band=b, comparison=c))}]",
+                         _num(ds["stat_ols_intercept"].isel(band=b, comparison=c)),
+                         f"{_num(ds['stat_odr_slope'].isel(band=b, comparison=c))} ± "
+                         f"{_num(ds['stat_odr_slope_se'].isel(band=b, comparison=c), 2)}",
+                         _interval(ds, "stat_pearson_r", b, c), _num(ds["stat_rmse_about_fit"].isel(band=b, comparison=c)),
+                         _num(ds["stat_rmse_one_to_one"].isel(band=b, comparison=c))])
+    return (f"<p>Match-up statistics per band ({100 * level:.0f} % intervals: paired bootstrap for MUPD, ζ, SSPB "
+            "and r; Student t for the OLS line). MUPD is Eq. (12); ζ the median symmetric accuracy and SSPB the "
+            "signed symmetric percentage bias (Burggraaff et al. 2022); ODR the errors-in-both line weighted by "
+            "both instruments' uncertainties; RMSE in W sr⁻¹ m⁻² nm⁻¹. Published for the real camera: MUPD 21.1, "
+            "20.3, 18.6 % (R, G, B) against the nearest channels.</p>"
+            + _table(["band vs reference", "N", "MUPD %", "ζ %", "SSPB %", "OLS slope", "OLS intercept",
+                      "ODR slope", "Pearson r", "RMSE about fit", "RMSE about 1:1"], rows))
+
+
+def _figure_series(ds: xr.Dataset, figs, lens: str) -> str:
+    bands = list(ds["band"].values)
+    t_min = ds["time_s"].values / 60.0
+    fig, axes = plt.subplots(len(bands), 2, figsize=(10, 2.8 * len(bands)), squeeze=False)
+    for j, band in enumerate(bands):
+        colour = BAND_COLOURS.get(str(band), "k")
+        cam = ds["camera_radiance"].sel(band=band).values
+        err = np.hypot(ds["camera_random_sigma"].sel(band=band).values, ds["camera_systematic_sigma"].sel(band=band).values)
+        ax = axes[j, 0]
+        for comp, style in (("nearest", "-"), ("convolved", "--")):
+            ax.plot(t_min, ds[f"reference_{comp}"].sel(band=band).values, style, color="0.3", lw=1,
+                    label=f"reference, {COMPARISON_LABELS[comp]}")
+        ax.errorbar(t_min, cam, yerr=err, fmt="o", ms=3, color=colour, capsize=2, label=f"camera {band}")
+        ax.set_xlabel("minutes since the first frame (UTC)")
+        ax.set_ylabel("L [W sr⁻¹ m⁻² nm⁻¹]")
+        ax.legend(fontsize=7)
+        ax = axes[j, 1]
+        for comp, marker in (("nearest", "o"), ("convolved", "s")):
+            ref = ds[f"reference_{comp}"].sel(band=band).values
+            ok = ds["is_matchup"].sel(band=band).values.astype(bool)
+            ax.plot(ref[ok], cam[ok], marker, ms=3, color=colour, alpha=0.8 if comp == "convolved" else 0.4,
+                    label=COMPARISON_LABELS[comp])
+            c = list(ds["comparison"].values).index(comp)
+            b = bands.index(band)
+            m, q = float(ds["stat_ols_slope"].isel(band=b, comparison=c)), float(ds["stat_ols_intercept"].isel(band=b, comparison=c))
+            xs = np.array([np.nanmin(ref[ok]), np.nanmax(ref[ok])])
+            ax.plot(xs, m * xs + q, "-" if comp == "convolved" else ":", color=colour, lw=1)
+        lim = [np.nanmin(cam) * 0.9, np.nanmax(cam) * 1.1]
+        ax.plot(lim, lim, "k:", lw=1, label="1:1")
+        ax.set_xlabel("reference L")
+        ax.set_ylabel("camera L")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    return figs.embed(fig, f"field_{lens}_matchup",
+                      f"Lens {_e(lens)}: sky radiance at the zenith (mask of {_num(ds['mask_half_angle_deg'])} degrees) "
+                      "from the camera (error bars: random and systematic standard uncertainty) and the reference "
+                      f"averaged over {_num(ds.attrs.get('reference_window_s', np.nan))} s around each frame, nearest "
+                      "channel and band-convolved; right: camera against reference with the OLS lines and the 1:1 "
+                      "line. Analogue of Larouche et al. (2024) Fig. 10.")
+
+
+def _figure_sky(ds: xr.Dataset, figs, lens: str) -> str:
+    if "sky_radiance" not in ds:
+        return ""
+    bands = list(ds["band"].values)
+    zen = ds["zenith"].values
+    azi = np.deg2rad(ds["azimuth"].values)
+    up = zen <= 90.0
+    fig, axes = plt.subplots(1, len(bands), figsize=(4 * len(bands), 4), subplot_kw={"projection": "polar"})
+    for ax, band in zip(np.atleast_1d(axes), bands):
+        values = ds["sky_radiance"].sel(band=band).values[up]
+        mesh = ax.pcolormesh(azi, zen[up], values, shading="auto", cmap="viridis",
+                             norm=matplotlib.colors.LogNorm(vmin=np.nanpercentile(values, 1), vmax=np.nanpercentile(values, 99.5)))
+        ax.set_theta_zero_location("N")
+        ax.set_theta_direction(-1)
+        ax.set_ylim(0, 90)
+        ax.set_title(f"band {band}")
+        fig.colorbar(mesh, ax=ax, shrink=0.7, label="L [W sr⁻¹ m⁻² nm⁻¹]")
+    fig.tight_layout()
+    frame = ds["sky_radiance"].attrs.get("frame_file", "")
+    return figs.embed(fig, f"field_{lens}_sky",
+                      f"Lens {_e(lens)}: all-sky radiance of the middle field frame {_e(frame)} from the calibration "
+                      "bundle (zenith at the centre, zenith angle radially to 90 degrees, azimuth of the sphere "
+                      "convention of apply); white cells hold no unflagged pixel (the saturated sun disc, beyond "
+                      "the calibrated field angle).")
+
+
+def field_section(lens: str, ds: xr.Dataset, figs) -> str:
+    """HTML of one field artefact: statistics, Fig. 10 analogue, all-sky map, fitted field terms."""
+    out = [f'<h3 id="field-{_e(lens)}">Lens “{_e(lens)}” at the zenith</h3>']
+    out.append(_statistics_table(ds))
+    notes = [["frames, match-ups", f"{ds.sizes['frame']}, {int(ds['n_matchups'].min())} to {int(ds['n_matchups'].max())} "
+              f"per band; {int(ds['n_frames_without_reference'])} without reference data in the window"],
+             ["prediction of the model", f"{COMPARISON_LABELS.get(ds.attrs.get('prediction', ''), ds.attrs.get('prediction', ''))}"],
+             ["band scales camera / reference", ", ".join(f"{b} {_num(v, 4)}" for b, v in
+                                                         zip(ds["band"].values, ds["band_scale"].values))],
+             ["rms of the normalised residuals about the scales (1 = noise floor)", _num(ds["rms_z"])],
+             ["camera clock minus UTC applied", f"{_num(ds['clock_offset_s'], 4)} s"
+              + (" (fitted: clock_offset in the model)" if "clock_offset" in str(ds.attrs.get("model_effects", ""))
+                 else " (not fitted: clock_offset not in the model)")]]
+    out.append(_table(["quantity", "value"], notes))
+    out.append(_figure_series(ds, figs, lens))
+    out.append(_figure_sky(ds, figs, lens))
+    return "\n".join(out)
