@@ -138,7 +138,8 @@ def _frame_radiance(raw, bundle, medium, effects, negative_sigma):
                                 saturated=images.saturated[band],
                                 hot_mask=b["hot_pixel_mask"].values if "hot_pixel_mask" in b else None,
                                 flat_field=b["flat_field"].values if "flat_field" in b else None,
-                                prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0)
+                                prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
+                                phi_deg=bundle["phi_deg"].sel(lens=lens, medium=medium, band=band).values)
             inside = ~(m.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE).astype(bool)
             good = inside & ~(m.flags & (mm.FLAG_SATURATED | mm.FLAG_HOT)).astype(bool) & np.isfinite(m.value)
             if good.any():
