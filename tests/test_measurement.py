@@ -210,3 +210,12 @@ def test_linearised_shot_noise_is_that_of_the_linear_signal():
     out = mm.linearise(m, response, ("nonlinearity",))
     np.testing.assert_allclose(out.value, s, rtol=1e-12)
     np.testing.assert_allclose(out.random_var["shot"], k * s, rtol=1e-12)
+
+
+def test_flat_field_noise_and_unmeasured_prnu_per_band_pixel():
+    """Where the flat field was measured its own noise is the random ``prnu`` term; where it was not,
+    the per-site PRNU spread averages over the sites of the band pixel (G: two)."""
+    m = mm.Measured(value=np.full(2, 100.0), units="DN s-1")
+    out = mm.correct_flat_field(m, np.array([1.0, np.nan]), ("prnu",), prnu_sigma_rel=0.01,
+                                flat_field_sigma=np.array([0.003, np.nan]), sites=2)
+    np.testing.assert_allclose(out.random_var["prnu"], [(100 * 0.003) ** 2, (100 * 0.01) ** 2 / 2])

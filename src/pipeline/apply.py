@@ -138,6 +138,7 @@ def _frame_radiance(raw, bundle, medium, effects, negative_sigma):
                                 saturated=images.saturated[band],
                                 hot_mask=b["hot_pixel_mask"].values if "hot_pixel_mask" in b else None,
                                 flat_field=b["flat_field"].values if "flat_field" in b else None,
+                                flat_field_sigma=b["flat_field_sigma"].values if "flat_field_sigma" in b else None,
                                 prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
                                 phi_deg=bundle["phi_deg"].sel(lens=lens, medium=medium, band=band).values)
             inside = ~(m.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE).astype(bool)

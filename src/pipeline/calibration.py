@@ -90,6 +90,8 @@ def _linearity_part(ds: xr.Dataset) -> xr.Dataset:
         out["iso_gain_factor_sigma"] = ("gain_iso", ds["effect_iso_gain_sigma"].values, {"units": "1"})
     if "flat_field" in ds:
         out["flat_field"] = ds["flat_field"]
+    if "flat_field_sigma" in ds:
+        out["flat_field_sigma"] = ds["flat_field_sigma"]
     if "effect_prnu" in ds:
         # the linearity stage fits sigma_rel^2 (effects.catalogue.Prnu)
         out["prnu_sigma_rel"] = ((), float(np.sqrt(max(float(ds["effect_prnu"].values[0]), 0.0))),

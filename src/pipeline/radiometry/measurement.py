@@ -307,12 +307,18 @@ def normalise_exposure(m: Measured, response: ResponseModel, frame: FrameSetting
     return dataclasses.replace(out, systematic_var={**out.systematic_var, **extra})
 
 
-def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float = 0.0) -> Measured:
+def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float = 0.0,
+                       flat_field_sigma=None, sites: int = 1) -> Measured:
     """Divide by the relative pixel sensitivity (``prnu``: the linearity stage's flat field, mean 1).
 
     Where the flat field was not measured (NaN: outside the region the
     linearity stage saw), the pixel's sensitivity is unknown by the fitted
-    PRNU spread: value kept, random term ``prnu`` = (value * prnu_sigma_rel)^2.
+    PRNU spread: value kept, random term ``prnu`` = (value * prnu_sigma_rel)^2 / sites
+    (``prnu_sigma_rel`` is the spread of one raw site, the linearity stage's
+    S^2 / sites term; a band pixel of ``sites`` sites averages their patterns).
+    Where it was measured, ``prnu`` is the noise of the measured flat field,
+    (value * flat_field_sigma)^2: fixed from frame to frame, random from pixel
+    to pixel.
     """
     if "prnu" not in effects or flat_field is None:
         return m
@@ -320,7 +326,9 @@ def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float =
     measured = np.isfinite(flat) & (flat > 0)
     out = m.scaled(1.0 / np.where(measured, flat, 1.0), m.units)
     rand = dict(out.random_var)
-    rand["prnu"] = np.where(measured, 0.0, (out.value * prnu_sigma_rel) ** 2)
+    flat_rel = 0.0 if flat_field_sigma is None else np.nan_to_num(np.asarray(flat_field_sigma, float)) / np.where(
+        measured, flat, 1.0)
+    rand["prnu"] = np.where(measured, (out.value * flat_rel) ** 2, (out.value * prnu_sigma_rel) ** 2 / sites)
     return dataclasses.replace(out, random_var=rand)
 
 
@@ -387,7 +395,8 @@ def to_radiance(m: Measured, calibration: BandCalibration) -> Measured:
 # --------------------------------------------------------------------------- the chain
 def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: ResponseModel,
                  calibration: BandCalibration, theta_deg, medium: str, effects, *, saturated=None,
-                 hot_mask=None, flat_field=None, prnu_sigma_rel: float = 0.0, phi_deg=None) -> Measured:
+                 hot_mask=None, flat_field=None, prnu_sigma_rel: float = 0.0, phi_deg=None,
+                 flat_field_sigma=None) -> Measured:
     """One band image of one lens from raw DN to spectral radiance: the whole inverse of Eq. (4)."""
     effects = tuple(effects)
     m = from_raw(image_dn, saturated)
@@ -397,7 +406,7 @@ def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: Resp
     m = flag_saturation(m, response)
     m = linearise(m, response, effects)
     m = normalise_exposure(m, response, frame, effects)
-    m = correct_flat_field(m, flat_field, effects, prnu_sigma_rel)
+    m = correct_flat_field(m, flat_field, effects, prnu_sigma_rel, flat_field_sigma, dark.sites_per_pixel)
     m = correct_rolloff(m, theta_deg, calibration, phi_deg, effects)
     m = correct_immersion(m, calibration, medium)
     return to_radiance(m, calibration)

@@ -455,9 +455,13 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
     if len(flat):
         ds = ds.merge(table_to_dataset(flat[flat["lens"] == lens].reset_index(drop=True), "obs_flat"))
     if lens in flat_maps:
-        ds["flat_field"] = (("band", "y", "x"), flat_maps[lens],
+        flat_map, flat_sigma = flat_maps[lens]
+        ds["flat_field"] = (("band", "y", "x"), flat_map,
                             {"long_name": "relative pixel sensitivity in the photon-transfer region (1 = mean)",
                              "units": "1"})
+        ds["flat_field_sigma"] = (("band", "y", "x"), flat_sigma,
+                                  {"long_name": "standard uncertainty of flat_field (noise of the sweep frames and "
+                                                "of the dark offset map)", "units": "1"})
     return ds
 
 
