@@ -23,6 +23,15 @@ chain splits its uncertainty:
   against the axis, over the stated uncertainty of that difference (roll-off and the other
   terms that are not a common scale of the band), which is where an effect the chain leaves
   uncorrected across the field (an azimuthal roll-off, stray light at the rim) shows.
+
+The systematic check is one-sided in effect: it bounds the deviations from above. Whether the stated
+systematic sigma is also not too large (band-mean z of order 1) cannot be told from one dataset: the
+simulator does not yet draw the lab's systematic errors (lamp, reference radiometer) per dataset, so the
+realised band-mean deviations are 0.3 % to 3 % against a stated 8.5 % to 9.5 % (|z| 0.03 to 0.33); that is
+the coverage test over seeds of issue 8, item 3.
+
+Run time: about 40 to 60 s, nearly all of it the module fixture (simulating and calibrating the tiny
+dataset with every effect on).
 """
 
 from __future__ import annotations
@@ -258,10 +267,12 @@ def random_spread(g: Group) -> tuple[float, int]:
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "the random sigma leaves out the per-pixel noise of the linearity stage's fitted flat field (its spread is "
-    "1.06-1.19 % in R and 1.41-1.48 % in B against the simulated 1 % PRNU, so the flat-field correction adds "
-    "0.4-1 % of per-pixel noise: R and B spreads 1.02-1.09), and it overstates the far lens's G "
-    "(spreads 0.91 in air, 0.95 in water; close lens G 0.96 and 1.09): cause not isolated"))
+    "random sigma understated by a few per cent: the linearity stage's photon-transfer conversion gain is "
+    "0.753 and 0.766 DN/e- (close, far) against the simulated 0.8, 3.4 to 4.7 of its stated sigma low (the "
+    "nonlinearity's compression of the variance and the bias drift in the temporal variance are not taken out "
+    "of the photon-transfer points; each alone lowers it to 0.78 in a dark+linearity simulation), so the shot "
+    "variance is 4-6 % low: spreads 1.02-1.07; and the close lens's in-water G spread is 1.18, its excess at "
+    "the axis (rms 1.35 below 10 deg) and at 60-70 deg, cause not isolated"))
 def test_random_part_has_unit_spread(groups):
     """Each of the 12 spreads rests on n - p (about 2,000 - 28) independent pixels: standard error
     1 / sqrt(2 (n - p)), about 0.016; allowed |spread - 1| <= 3 standard errors."""
@@ -318,19 +329,19 @@ def shape_z(g: Group) -> list[tuple[str, float]]:
     return out
 
 
-def test_shape_across_the_field_within_its_stated_uncertainty(groups):
-    """All cells of all 12 groups (about 300) at once, Bonferroni bound at 95 % (c about 3.8)."""
-    cells = [z for g in groups for z in shape_z(g)]
+@pytest.mark.parametrize("lens", [
+    "close",
+    pytest.param("far", marks=pytest.mark.xfail(strict=True, reason=(
+        "the roll-off stage's rolloff_azimuth fit of the far lens is off by more than its stated uncertainty: "
+        "A = 0.0245 +/- 0.0012 and phi0 = 47 +/- 3 deg against the simulated 0.03 and 30 deg (close lens "
+        "0.0282 +/- 0.0012, 26 +/- 2.4 deg; the geometry's phi agrees with the true one within 0.1 deg), so the "
+        "azimuthal term the chain divides out leaves about 1 % at 60-80 deg (water/far/B, 60-70 deg, "
+        "quadrant 1: z = -3.9)"))),
+])
+def test_shape_across_the_field_within_its_stated_uncertainty(groups, lens):
+    """All cells of the lens's 6 groups (about 150) at once, Bonferroni bound at 95 % (c about 3.6).
+    Without the chain's azimuthal roll-off step this fails for both lenses (|z| up to 4.5)."""
+    cells = [z for g in groups if g.lens == lens for z in shape_z(g)]
     c = stats.norm.ppf(1.0 - (1.0 - CONFIDENCE) / (2 * len(cells)))
     bad = [f"{name}: {z:+.1f}" for name, z in cells if abs(z) > c]
     assert not bad, f"{len(bad)} of {len(cells)} cells beyond {c:.2f}: " + "; ".join(bad[:12])
-
-
-def test_report_figures(groups):
-    for g in groups:
-        spread, dof = random_spread(g)
-        zs = [z for _, z in shape_z(g)]
-        n = len(g.deviation)
-        z_sys = np.mean(g.deviation) / np.hypot(np.mean(g.systematic_sigma), np.sqrt(np.sum(g.random_sigma**2)) / n)
-        print(f"{g.medium} {g.lens} {g.band} n={n} dof={dof} spread={spread:.3f} z_sys={z_sys:+.2f} "
-              f"shape max|z|={np.max(np.abs(zs)):.1f} rms={np.sqrt(np.mean(np.square(zs))):.1f}")
