@@ -178,7 +178,7 @@ def sky(calibrated, tmp_path_factory):
 #: total degree 6 (28 terms), enough for the smooth calibration errors (roll-off and azimuth up to 80 deg)
 SMOOTH_DEGREE = 6
 #: standard errors of a sample spread allowed: 3, so that with 12 spreads one strays beyond by chance
-#: with probability about 12 x 0.27 % = 3 %
+#: with probability about 12 x 0.27 % = 3 % (the spread estimates are close to normal at n - p ~ 2,000)
 SPREAD_SE_FACTOR = 3.0
 #: confidence of the systematic and shape bounds (Bonferroni over the draws: valid whatever their correlation)
 CONFIDENCE = 0.95
@@ -266,18 +266,18 @@ def random_spread(g: Group) -> tuple[float, int]:
     return float(np.sqrt(np.sum(resid**2) / dof)), dof
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "random sigma understated by a few per cent: the linearity stage's photon-transfer conversion gain is "
-    "0.753 and 0.766 DN/e- (close, far) against the simulated 0.8, 3.4 to 4.7 of its stated sigma low (the "
-    "nonlinearity's compression of the variance and the bias drift in the temporal variance are not taken out "
-    "of the photon-transfer points; each alone lowers it to 0.78 in a dark+linearity simulation), so the shot "
-    "variance is 4-6 % low: spreads 1.02-1.07; and the close lens's in-water G spread is 1.18, its excess at "
-    "the axis (rms 1.35 below 10 deg) and at 60-70 deg, cause not isolated"))
-def test_random_part_has_unit_spread(groups):
-    """Each of the 12 spreads rests on n - p (about 2,000 - 28) independent pixels: standard error
+@pytest.mark.parametrize("lens", [
+    "far",
+    pytest.param("close", marks=pytest.mark.xfail(strict=True, reason=(
+        "close lens: its G spread is 1.06 in air and 1.17 in water (tolerance 0.046), the in-water excess at the "
+        "rim of the water field (rms 1.37 at 60-70 deg) and on the axis, cause not isolated; its photon-transfer "
+        "conversion gain, 0.775 +/- 0.008 DN/e- against the simulated 0.8, leaves the shot variance 3 % low"))),
+])
+def test_random_part_has_unit_spread(groups, lens):
+    """Each of the lens's 6 spreads rests on n - p (about 2,000 - 28) independent pixels: standard error
     1 / sqrt(2 (n - p)), about 0.016; allowed |spread - 1| <= 3 standard errors."""
     bad = []
-    for g in groups:
+    for g in (g for g in groups if g.lens == lens):
         spread, dof = random_spread(g)
         tol = SPREAD_SE_FACTOR / np.sqrt(2.0 * (dof - 1))
         if abs(spread - 1.0) > tol:
