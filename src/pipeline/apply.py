@@ -263,8 +263,9 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
             "medium": medium, "grid_deg": grid_deg, "sphere_convention": convention,
             "calibration_bundle": str(bundle_path), "calibration_created": bundle.attrs.get("created", ""),
             "camera_serial": bundle.attrs.get("camera_serial", ""), "model_effects": ",".join(effects),
-            "uncertainty": "random: shot, read and dark noise of each pixel and frame; systematic: dark model, "
-                           "shutter offset, ISO gain, nonlinearity, roll-off, immersion factor and R^-1, common to a band",
+            "uncertainty": "random: shot, read and dark noise of each pixel and frame, and the flat field's noise "
+                           "(or PRNU where unmeasured) of each pixel; systematic: dark model, shutter offset, ISO gain, "
+                           "nonlinearity, roll-off (and its azimuthal term), immersion factor and R^-1, common to a band",
         },
     )
     out_path.parent.mkdir(parents=True, exist_ok=True)
