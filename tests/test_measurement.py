@@ -180,3 +180,42 @@ def test_flat_field_where_not_measured():
     out = mm.correct_flat_field(m, np.array([1.25, np.nan]), ("prnu",), prnu_sigma_rel=0.01)
     np.testing.assert_allclose(out.value, [80.0, 100.0])
     np.testing.assert_allclose(out.random_var["prnu"], [0.0, 1.0])
+
+
+def test_rolloff_azimuth_term_is_divided_out_with_its_uncertainty():
+    cal = mm.BandCalibration(rolloff_coefficients=np.array([1.0, 0, 0, 0, 0]), inverse_responsivity=1.0,
+                             rolloff_azimuth_amplitude=0.03, rolloff_azimuth_amplitude_sigma=0.001,
+                             rolloff_azimuth_phi0_deg=30.0, rolloff_azimuth_phi0_deg_sigma=2.0)
+    theta, phi = np.array([0.0, 45.0, 90.0, 90.0]), np.array([0.0, 30.0, 210.0, 120.0])
+    m = mm.Measured(value=np.ones(4), units="DN s-1")
+    out = mm.correct_rolloff(m, theta, cal, phi, ("rolloff_azimuth",))
+    # 1 + A (theta / 90) cos(phi - phi0): 1, 1.015, 0.97, 1
+    np.testing.assert_allclose(out.value, 1.0 / np.array([1.0, 1.015, 0.97, 1.0]))
+    rel = np.sqrt(out.systematic_var["rolloff_azimuth"]) / out.value
+    # at phi - phi0 = 90 deg only phi0's uncertainty counts: A sin(90) sigma_phi0
+    np.testing.assert_allclose(rel[3], 0.03 * np.radians(2.0), rtol=1e-9)
+    np.testing.assert_allclose(rel[2], 0.001 / 0.97, rtol=1e-9)
+    # without the effect in the model, nothing
+    np.testing.assert_allclose(mm.correct_rolloff(m, theta, cal, phi, ()).value, 1.0)
+
+
+def test_linearised_shot_noise_is_that_of_the_linear_signal():
+    """The sensor bends the noisy signal: a reading m = s (1 - beta s / F) has variance N'(s)^2 k s, so
+    after the inverse the shot variance is k s."""
+    k, beta, full = 0.8, 0.05, 15000.0
+    s = np.array([1000.0, 8000.0])
+    reading = s * (1 - beta * s / full)
+    m = mm.Measured(value=reading, units="DN", random_var={"shot": k * reading})
+    response = mm.ResponseModel(conversion_gain_dn_per_e=k, nonlinearity_beta=beta, full_scale_dn=full)
+    out = mm.linearise(m, response, ("nonlinearity",))
+    np.testing.assert_allclose(out.value, s, rtol=1e-12)
+    np.testing.assert_allclose(out.random_var["shot"], k * s, rtol=1e-12)
+
+
+def test_flat_field_noise_and_unmeasured_prnu_per_band_pixel():
+    """Where the flat field was measured its own noise is the random ``prnu`` term; where it was not,
+    the per-site PRNU spread averages over the sites of the band pixel (G: two)."""
+    m = mm.Measured(value=np.full(2, 100.0), units="DN s-1")
+    out = mm.correct_flat_field(m, np.array([1.0, np.nan]), ("prnu",), prnu_sigma_rel=0.01,
+                                flat_field_sigma=np.array([0.003, np.nan]), sites=2)
+    np.testing.assert_allclose(out.random_var["prnu"], [(100 * 0.003) ** 2, (100 * 0.01) ** 2 / 2])

@@ -141,7 +141,9 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
                         saturated=images.saturated[band][rows, cols],
                         hot_mask=_crop(b, "hot_pixel_mask", rows, cols),
                         flat_field=_crop(b, "flat_field", rows, cols),
-                        prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0)
+                        flat_field_sigma=_crop(b, "flat_field_sigma", rows, cols),
+                        prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
+                        phi_deg=_crop(g, "phi_deg", rows, cols))
     if negative_sigma is None:
         negative_sigma = _default_negative_sigma()
     good = (m.flags & (mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT)) == 0
@@ -266,7 +268,7 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
             raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(_media(on_disk))})")
         # only this medium, the solid angles only when the pixel maps are written, the flat field and the
         # hot-pixel mask only when the model has their effect (the chain's steps skip them otherwise)
-        skip = ([] if pixels else ["solid_angle_sr"]) + ([] if "prnu" in effects else ["flat_field"]) \
+        skip = ([] if pixels else ["solid_angle_sr"]) + ([] if "prnu" in effects else ["flat_field", "flat_field_sigma"]) \
             + ([] if "hot_pixels" in effects else ["hot_pixel_mask"])
         bundle = on_disk.drop_vars(skip, errors="ignore").sel(medium=[medium]).load()
     raw_paths = [Path(p) for p in raw_paths]
@@ -376,8 +378,9 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
             "medium": medium, "grid_deg": grid_deg, "sphere_convention": convention, "pixel_maps": int(pixels),
             "calibration_bundle": str(bundle_path), "calibration_created": bundle.attrs.get("created", ""),
             "camera_serial": bundle.attrs.get("camera_serial", ""), "model_effects": ",".join(effects),
-            "uncertainty": "random: shot, read and dark noise of each pixel and frame; systematic: dark model, "
-                           "shutter offset, ISO gain, nonlinearity, roll-off, immersion factor and R^-1, common to a band",
+            "uncertainty": "random: shot, read and dark noise of each pixel and frame, and the flat field's noise "
+                           "(or PRNU where unmeasured) of each pixel; systematic: dark model, shutter offset, ISO gain, "
+                           "nonlinearity, roll-off (and its azimuthal term), immersion factor and R^-1, common to a band",
         },
     )
     out_path.parent.mkdir(parents=True, exist_ok=True)

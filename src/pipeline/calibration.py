@@ -31,6 +31,7 @@ import xarray as xr
 from pipeline.artefact import BUNDLE_REQUIRED_STAGES, BUNDLE_STAGES, model_effects, read_artefact, sha256_file, write_artefact
 from pipeline.bands import BANDS
 from pipeline.config import defaults, stage_params
+from pipeline.effects.optics import AZIMUTH_THETA_REF_DEG
 from pipeline.entry import exit_on_input_error, setup_log
 from pipeline.errors import InputError
 from pipeline.frames import SITES_PER_BAND_PIXEL
@@ -90,6 +91,8 @@ def _linearity_part(ds: xr.Dataset) -> xr.Dataset:
         out["iso_gain_factor_sigma"] = ("gain_iso", ds["effect_iso_gain_sigma"].values, {"units": "1"})
     if "flat_field" in ds:
         out["flat_field"] = ds["flat_field"]
+    if "flat_field_sigma" in ds:
+        out["flat_field_sigma"] = ds["flat_field_sigma"]
     if "effect_prnu" in ds:
         # the linearity stage fits sigma_rel^2 (effects.catalogue.Prnu)
         out["prnu_sigma_rel"] = ((), float(np.sqrt(max(float(ds["effect_prnu"].values[0]), 0.0))),
@@ -111,6 +114,12 @@ def _rolloff_part(ds: xr.Dataset) -> xr.Dataset:
              for m in ds["medium"].values]
     out["calibrated_field_angle_deg"] = ("medium", np.array(reach),
                                          {"long_name": "largest field angle the roll-off was measured at", "units": "degree"})
+    if "effect_rolloff_azimuth" in ds:
+        # the polynomial is the even part; the odd term 1 + A (theta / theta_ref) cos(phi - phi0) goes with it
+        for name, var, units in (("rolloff_azimuth_amplitude", "effect_rolloff_azimuth", "1"),
+                                 ("rolloff_azimuth_phi0_deg", "effect_rolloff_azimuth_phi0_deg", "degree")):
+            out[name] = ((), float(np.ravel(ds[var].values)[0]), {"long_name": f"fitted {var[7:]}", "units": units})
+            out[f"{name}_sigma"] = ((), float(np.ravel(ds[f"{var}_sigma"].values)[0]), {"units": units})
     return out
 
 
@@ -181,7 +190,12 @@ def band_parameters(bundle: xr.Dataset, lens: str, band: str, medium: str, frame
         calibrated_field_angle_deg=num("calibrated_field_angle_deg", float("inf"), medium=medium),
         inverse_responsivity=num("inverse_responsivity", band=band),
         inverse_responsivity_relative_sigma=num("inverse_responsivity_relative_sigma", band=band),
-        immersion_factor=immersion, immersion_factor_sigma=immersion_sigma)
+        immersion_factor=immersion, immersion_factor_sigma=immersion_sigma,
+        rolloff_azimuth_amplitude=num("rolloff_azimuth_amplitude"),
+        rolloff_azimuth_amplitude_sigma=num("rolloff_azimuth_amplitude_sigma"),
+        rolloff_azimuth_phi0_deg=num("rolloff_azimuth_phi0_deg"),
+        rolloff_azimuth_phi0_deg_sigma=num("rolloff_azimuth_phi0_deg_sigma"),
+        rolloff_azimuth_theta_ref_deg=AZIMUTH_THETA_REF_DEG)
     return dark, response, calibration
 
 

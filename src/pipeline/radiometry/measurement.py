@@ -183,7 +183,8 @@ class BandCalibration:
     ``rolloff_coefficients`` (a0, a2, a4, a6, a8) for theta in degrees with
     ``rolloff_covariance``; ``calibrated_field_angle_deg`` the largest angle
     the roll-off was measured at; ``immersion_factor`` 1 in air;
-    ``inverse_responsivity`` in W sr-1 m-2 nm-1 per DN s-1 (ISO 100).
+    ``inverse_responsivity`` in W sr-1 m-2 nm-1 per DN s-1 (ISO 100); the
+    ``rolloff_azimuth_*`` terms the azimuthal part of the roll-off (``rolloff_azimuth``).
     """
 
     rolloff_coefficients: np.ndarray
@@ -193,6 +194,13 @@ class BandCalibration:
     calibrated_field_angle_deg: float = float("inf")
     immersion_factor: float = 1.0
     immersion_factor_sigma: float = 0.0
+    #: ``rolloff_azimuth``: g(theta, phi) = g(theta) (1 + A (theta / theta_ref) cos(phi - phi0)), the
+    #: roll-off stage's odd term (its polynomial is the even part, fitted with that term removed)
+    rolloff_azimuth_amplitude: float = 0.0
+    rolloff_azimuth_amplitude_sigma: float = 0.0
+    rolloff_azimuth_phi0_deg: float = 0.0
+    rolloff_azimuth_phi0_deg_sigma: float = 0.0
+    rolloff_azimuth_theta_ref_deg: float = 90.0
 
 
 # --------------------------------------------------------------------------- the steps
@@ -278,6 +286,12 @@ def linearise(m: Measured, response: ResponseModel, effects) -> Measured:
     s = 2.0 * m.value / (1.0 + root)
     slope = 1.0 / root
     out = m.scaled(slope, m.units)
+    if "shot" in m.random_var:
+        # the electrons' Poisson noise is k s in the linear signal s (the sensor bends the noisy signal):
+        # the shot term k m of the bent reading m becomes k s, not k m slope^2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.where(m.value > 0, s / np.where(m.value > 0, m.value, 1.0), 1.0)
+        out = dataclasses.replace(out, random_var={**out.random_var, "shot": m.random_var["shot"] * ratio})
     ds_dbeta = s**2 / full / root
     sys_var = dict(out.systematic_var)
     sys_var["nonlinearity"] = (ds_dbeta * response.nonlinearity_beta_sigma) ** 2
@@ -306,12 +320,18 @@ def normalise_exposure(m: Measured, response: ResponseModel, frame: FrameSetting
     return dataclasses.replace(out, systematic_var={**out.systematic_var, **extra})
 
 
-def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float = 0.0) -> Measured:
+def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float = 0.0,
+                       flat_field_sigma=None, sites: int = 1) -> Measured:
     """Divide by the relative pixel sensitivity (``prnu``: the linearity stage's flat field, mean 1).
 
     Where the flat field was not measured (NaN: outside the region the
     linearity stage saw), the pixel's sensitivity is unknown by the fitted
-    PRNU spread: value kept, random term ``prnu`` = (value * prnu_sigma_rel)^2.
+    PRNU spread: value kept, random term ``prnu`` = (value * prnu_sigma_rel)^2 / sites
+    (``prnu_sigma_rel`` is the spread of one raw site, the linearity stage's
+    S^2 / sites term; a band pixel of ``sites`` sites averages their patterns).
+    Where it was measured, ``prnu`` is the noise of the measured flat field,
+    (value * flat_field_sigma)^2: fixed from frame to frame, random from pixel
+    to pixel.
     """
     if "prnu" not in effects or flat_field is None:
         return m
@@ -319,12 +339,18 @@ def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float =
     measured = np.isfinite(flat) & (flat > 0)
     out = m.scaled(1.0 / np.where(measured, flat, 1.0), m.units)
     rand = dict(out.random_var)
-    rand["prnu"] = np.where(measured, 0.0, (out.value * prnu_sigma_rel) ** 2)
+    flat_rel = 0.0 if flat_field_sigma is None else np.nan_to_num(np.asarray(flat_field_sigma, float)) / np.where(
+        measured, flat, 1.0)
+    rand["prnu"] = np.where(measured, (out.value * flat_rel) ** 2, (out.value * prnu_sigma_rel) ** 2 / sites)
     return dataclasses.replace(out, random_var=rand)
 
 
-def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration) -> Measured:
+def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration, phi_deg=None, effects=()) -> Measured:
     """Divide by the roll-off g(theta), Eq. (13) (Section 2.4); systematic term ``rolloff`` from its covariance.
+
+    With ``rolloff_azimuth`` (and the pixel azimuths ``phi_deg``) also by its
+    azimuthal factor 1 + A (theta / theta_ref) cos(phi - phi0); systematic
+    term ``rolloff_azimuth`` from the uncertainties of A and phi0.
 
     Pixels without a viewing direction (theta NaN) are flagged outside the
     image circle; field angles beyond the calibrated one are flagged.
@@ -336,6 +362,17 @@ def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration) -> Mea
         g, g_sigma = rolloff_on_image(calibration.rolloff_coefficients, theta, calibration.rolloff_covariance)
     out = m.scaled(1.0 / g, m.units)
     out = dataclasses.replace(out, systematic_var={**out.systematic_var, "rolloff": (out.value * g_sigma / g) ** 2})
+    if "rolloff_azimuth" in effects and phi_deg is not None and calibration.rolloff_azimuth_amplitude != 0.0:
+        c = calibration
+        u = np.minimum(theta, 100.0) / c.rolloff_azimuth_theta_ref_deg
+        dphi = np.radians(np.asarray(phi_deg, dtype=float) - c.rolloff_azimuth_phi0_deg)
+        a = 1.0 + c.rolloff_azimuth_amplitude * u * np.cos(dphi)
+        out = out.scaled(1.0 / a, m.units)
+        rel_var = ((u * np.cos(dphi) * c.rolloff_azimuth_amplitude_sigma) ** 2
+                   + (c.rolloff_azimuth_amplitude * u * np.sin(dphi) * np.radians(c.rolloff_azimuth_phi0_deg_sigma)) ** 2
+                   ) / a**2
+        out = dataclasses.replace(out, systematic_var={**out.systematic_var,
+                                                       "rolloff_azimuth": out.value**2 * rel_var})
     out = out.flagged(~np.isfinite(theta), FLAG_OUTSIDE_IMAGE_CIRCLE)
     return out.flagged(theta > calibration.calibrated_field_angle_deg, FLAG_BEYOND_CALIBRATED_ANGLE)  # NaN: False
 
@@ -370,7 +407,8 @@ def to_radiance(m: Measured, calibration: BandCalibration) -> Measured:
 # --------------------------------------------------------------------------- the chain
 def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: ResponseModel,
                  calibration: BandCalibration, theta_deg, medium: str, effects, *, saturated=None,
-                 hot_mask=None, flat_field=None, prnu_sigma_rel: float = 0.0) -> Measured:
+                 hot_mask=None, flat_field=None, prnu_sigma_rel: float = 0.0, phi_deg=None,
+                 flat_field_sigma=None) -> Measured:
     """One band image of one lens from raw DN to spectral radiance: the whole inverse of Eq. (4)."""
     effects = tuple(effects)
     m = from_raw(image_dn, saturated)
@@ -380,7 +418,7 @@ def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: Resp
     m = flag_saturation(m, response)
     m = linearise(m, response, effects)
     m = normalise_exposure(m, response, frame, effects)
-    m = correct_flat_field(m, flat_field, effects, prnu_sigma_rel)
-    m = correct_rolloff(m, theta_deg, calibration)
+    m = correct_flat_field(m, flat_field, effects, prnu_sigma_rel, flat_field_sigma, dark.sites_per_pixel)
+    m = correct_rolloff(m, theta_deg, calibration, phi_deg, effects)
     m = correct_immersion(m, calibration, medium)
     return to_radiance(m, calibration)

@@ -9,6 +9,12 @@ left scatters by
     var = temporal variance / n_frames + offset-pattern error + prnu^2 S^2 / sites,
 
 with S the mean signal and ``sites`` the raw pixels averaged in a band pixel.
+The flat-field map is the average over the settings of each pixel's relative
+residual, weighted by the inverse of its noise variance (the long exposures
+carry most of the electrons), and ``flat_field_sigma`` its standard
+uncertainty from the same noise: the temporal noise of each setting's mean
+(independent between settings) and the error of the dark stage's offset map,
+common to every setting (n_dark frames of read noise).
 The observation is the spatial variance in excess of the known noise terms,
 one row per setting and band (level ``flat``); its expected spread is that of a
 sample variance, var sqrt(2 / N), with var the larger of the measured and the
@@ -35,7 +41,10 @@ def _smooth_design(y: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 
 def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float) -> tuple[pd.DataFrame, dict]:
-    """Observation table (level ``flat``) and flat-field maps (band, y, x) per lens."""
+    """Observation table (level ``flat``) and flat-field maps (band, y, x) per lens.
+
+    The maps are (flat field, its standard uncertainty) per lens, both (band, y, x).
+    """
     rows, maps = [], {}
     fr = reduced["frames"]
     sat = fr[fr["saturated"]]
@@ -44,6 +53,7 @@ def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float) -> tuple[p
         d = dark[lens]
         shape = per_band["G"][0].shape
         fmap = np.full((len(BANDS),) + shape, np.nan, dtype=np.float32)
+        fsig = np.full((len(BANDS),) + shape, np.nan, dtype=np.float32)
         for bi, band in enumerate(BANDS):
             region = per_band[band][0] & (d["hot_pixel_mask"].sel(band=band).values == 0)
             yy, xx = np.nonzero(per_band[band][0])
@@ -54,6 +64,8 @@ def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float) -> tuple[p
             read = float(d["read_noise_dn"].sel(band=band).sel(iso=iso, method="nearest"))
             n_dark = int(d["obs_setting__n_frames"].values.min()) if "obs_setting__n_frames" in d else 1
             sites = SITES_PER_BAND_PIXEL[band]
+            # error of the dark stage's offset map in one band pixel (DN^2): read noise over its dark frames
+            offset_var = read**2 / sites / max(n_dark, 1)
             ratios = []
             for (l2, b2, sweep, key), mom in reduced["moments"].items():
                 if l2 != lens or b2 != band or sweep != "exposure" or key[0] != iso:
@@ -73,11 +85,19 @@ def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float) -> tuple[p
                 rows.append({"lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
                              "n_pixels": n, "spatial_var_dn2": measured, "noise_var_dn2": noise_var,
                              "signal_dn": level, "signal_sq_per_site_dn2": float(np.mean(signal**2)) / sites})
-                ratios.append((resid / np.maximum(signal, 1e-9), mom.n))
+                s_pos = np.maximum(signal, 1e-9)
+                # per pixel: variance of the relative residual from this setting's temporal noise alone (the
+                # setting's mean temporal variance: a pixel's own, from a few frames, is too noisy to weight by)
+                ratios.append((resid / s_pos, float(var_t.mean()) / mom.n / s_pos**2, 1.0 / s_pos))
             if ratios:
-                w = np.array([n for _, n in ratios], dtype=float)
-                fmap[bi][y, x] = 1.0 + np.average(np.stack([r for r, _ in ratios]), axis=0, weights=w)
-        maps[lens] = fmap
+                r, v, inv_s = (np.stack([q[k] for q in ratios]) for k in range(3))
+                w = 1.0 / np.maximum(v + offset_var * inv_s**2, 1e-30)
+                wsum = np.sum(w, axis=0)
+                fmap[bi][y, x] = 1.0 + np.sum(w * r, axis=0) / wsum
+                # independent temporal parts, plus the offset map's error common to the settings
+                common = np.sum(w * inv_s, axis=0) / wsum
+                fsig[bi][y, x] = np.sqrt(np.sum(w**2 * v, axis=0) / wsum**2 + offset_var * common**2)
+        maps[lens] = (fmap, fsig)
     table = pd.DataFrame(rows)
     if len(table):
         table["value_dn"] = table["spatial_var_dn2"] - table["noise_var_dn2"]

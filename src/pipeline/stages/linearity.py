@@ -313,7 +313,8 @@ def saturation_levels(st: pd.DataFrame, reduced: dict) -> dict:
     return out
 
 
-def photon_transfer(st_l: pd.DataFrame, dark_ds: xr.Dataset) -> dict:
+def photon_transfer(st_l: pd.DataFrame, dark_ds: xr.Dataset, beta: float = 0.0,
+                    full_scale_dn: float = float("nan")) -> dict:
     """Conversion gain and read noise from temporal variance against mean signal (Janesick 2007).
 
     For one raw pixel: var = K * signal + read_var, with K in DN per electron.
@@ -321,12 +322,24 @@ def photon_transfer(st_l: pd.DataFrame, dark_ds: xr.Dataset) -> dict:
     read_var comes from the dark stage (temporal noise at the shortest exposure,
     the curve's zero-signal point); K is the weighted slope of the exposure
     sweep, and for the gain sweep K at each ISO is (var - read_var(ISO)) / signal.
+
+    With a fitted nonlinearity m = s (1 - beta s / F) the points are taken back
+    to the linear signal first: the sensor bends the noisy signal, so a reading
+    m has signal variance N'(s)^2 K s with N'(s) = 1 - 2 beta s / F =
+    sqrt(1 - 4 beta m / F); the curve is that variance over N'^2 against s
+    (left bent, K comes out low by about 3 beta s / F).
     """
     out = {}
     rows = st_l[st_l["used"]].copy()
     rows["site_var"] = rows["ptc_var_dn2"] * rows["band"].map(SITES_PER_BAND_PIXEL)
     # mean dark-corrected signal over the photon-transfer region
     rows["ptc_signal_dn"] = rows["ptc_mean_dn"] - rows["dark_mask_dn"]
+    if beta and np.isfinite(full_scale_dn) and full_scale_dn > 0:
+        slope = np.sqrt(np.clip(1.0 - 4.0 * beta * rows["ptc_signal_dn"].to_numpy() / full_scale_dn, 1e-6, None))
+        read = np.array([float(dark_ds["read_noise_dn"].sel(iso=i, method="nearest").mean()) ** 2 for i in rows["iso"]])
+        # only the signal's part of the variance is bent; the read noise is added after the response
+        rows["site_var"] = read + (rows["site_var"].to_numpy() - read) / slope**2
+        rows["ptc_signal_dn"] = 2.0 * rows["ptc_signal_dn"].to_numpy() / (1.0 + slope)
     ex = rows[rows["sweep"] == "exposure"]
     if len(ex) >= 2:
         iso = float(ex["iso"].iloc[0])
@@ -385,7 +398,8 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
                 rate[si, bi] = fit.coef[k], np.sqrt(fit.cov[k, k])
     if "ols_pred_dn" in st_l:
         st_l["nonlinearity_pct"] = 100.0 * (st_l["value_dn"] - st_l["ols_pred_dn"]) / st_l["ols_pred_dn"]
-    ptc = photon_transfer(st_l, dark_ds)
+    beta = float(effect_params["nonlinearity"][0][0]) if "nonlinearity" in effect_params else 0.0
+    ptc = photon_transfer(st_l, dark_ds, beta, float(st_l["full_scale_dn"].iloc[0]) if len(st_l) else np.nan)
     for key, what, unit in (("conversion_gain_dn_per_e", "conversion gain", "DN/electron"),
                             ("read_noise_e", "read noise", "electron")):
         value = ptc.get(key, (float("nan"),))[0]
@@ -455,9 +469,13 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
     if len(flat):
         ds = ds.merge(table_to_dataset(flat[flat["lens"] == lens].reset_index(drop=True), "obs_flat"))
     if lens in flat_maps:
-        ds["flat_field"] = (("band", "y", "x"), flat_maps[lens],
+        flat_map, flat_sigma = flat_maps[lens]
+        ds["flat_field"] = (("band", "y", "x"), flat_map,
                             {"long_name": "relative pixel sensitivity in the photon-transfer region (1 = mean)",
                              "units": "1"})
+        ds["flat_field_sigma"] = (("band", "y", "x"), flat_sigma,
+                                  {"long_name": "standard uncertainty of flat_field (noise of the sweep frames and "
+                                                "of the dark offset map)", "units": "1"})
     return ds
 
 
