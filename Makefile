@@ -31,7 +31,7 @@ lint: $(VENV)/.installed
 	$(BIN)/snakefmt --check Snakefile workflow/rules
 
 test: lint
-	$(BIN)/python -m pytest -n $(CORES) -q
+	$(BIN)/python -m pytest -n $(CORES) --dist loadgroup -q
 
 bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/bench_stages.py

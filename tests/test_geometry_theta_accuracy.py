@@ -46,33 +46,39 @@ LENSES = ("far", "close")
 THETA_MAX_DEG = {"G": 0.1, "R": 0.2, "B": 0.2}
 
 
-@pytest.mark.slow
-def test_theta_map_within_a_tenth_of_a_degree(tmp_path):
-    root = tmp_path / "ds"
+@pytest.fixture(scope="module")
+def medium_dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("theta") / "ds"
     simulate_dataset(root, scale="medium", seed=3, experiments=("geometry",), progress=False)
+    return root
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("lens", LENSES)     # one test per lens: the two lens jobs run side by side
+def test_theta_map_within_a_tenth_of_a_degree(medium_dataset, lens, tmp_path):
+    root = medium_dataset
     truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())["experiments_truth"]["geometry"]
     cfg = load_config(overrides={"dataset": str(root)})
-    outputs = {lens: tmp_path / f"{lens}.nc" for lens in LENSES}
+    outputs = {lens: tmp_path / f"{lens}.nc"}
     run_stage("geometry", root, cfg, outputs)
     problems, table = [], []
-    for lens in LENSES:
-        art = xr.open_dataset(outputs[lens]).load()
-        for medium in ("air", "water"):
-            for band in ("R", "G", "B"):
-                t = FisheyeModel.from_dict(truth["models"][lens][medium][band]["band"])
-                m = model_from_dataset(art, medium, band)
-                th_true, _ = theta_phi_maps(t)
-                th_fit = art["theta_deg"].sel(medium=medium, band=band).values
-                inside = th_true <= t.half_fov_deg
-                err = np.abs(th_fit - th_true)[inside]
-                assert np.isfinite(err).all(), f"{lens}/{medium}/{band}: theta map not finite inside the circle"
-                line = (f"{lens}/{medium}/{band}: theta max {err.max():.3f} deg, p90 {np.percentile(err, 90):.3f}, "
-                        f"centre {m.xc - t.xc:+.2f},{m.yc - t.yc:+.2f} px, "
-                        f"half FOV {m.half_fov_deg - t.half_fov_deg:+.2f} deg")
-                table.append(line)
-                if not err.max() < THETA_MAX_DEG[band]:
-                    problems.append(f"{line} (limit {THETA_MAX_DEG[band]})")
-                if not (abs(m.xc - t.xc) < 1 and abs(m.yc - t.yc) < 1 and abs(m.half_fov_deg - t.half_fov_deg) < 0.5):
-                    problems.append(f"{line} (centre 1 px / half FOV 0.5 deg)")
+    art = xr.open_dataset(outputs[lens]).load()
+    for medium in ("air", "water"):
+        for band in ("R", "G", "B"):
+            t = FisheyeModel.from_dict(truth["models"][lens][medium][band]["band"])
+            m = model_from_dataset(art, medium, band)
+            th_true, _ = theta_phi_maps(t)
+            th_fit = art["theta_deg"].sel(medium=medium, band=band).values
+            inside = th_true <= t.half_fov_deg
+            err = np.abs(th_fit - th_true)[inside]
+            assert np.isfinite(err).all(), f"{lens}/{medium}/{band}: theta map not finite inside the circle"
+            line = (f"{lens}/{medium}/{band}: theta max {err.max():.3f} deg, p90 {np.percentile(err, 90):.3f}, "
+                    f"centre {m.xc - t.xc:+.2f},{m.yc - t.yc:+.2f} px, "
+                    f"half FOV {m.half_fov_deg - t.half_fov_deg:+.2f} deg")
+            table.append(line)
+            if not err.max() < THETA_MAX_DEG[band]:
+                problems.append(f"{line} (limit {THETA_MAX_DEG[band]})")
+            if not (abs(m.xc - t.xc) < 1 and abs(m.yc - t.yc) < 1 and abs(m.half_fov_deg - t.half_fov_deg) < 0.5):
+                problems.append(f"{line} (centre 1 px / half FOV 0.5 deg)")
     print("\n".join(table))
     assert not problems, "\n".join(problems)

@@ -58,6 +58,7 @@ def run(make_dataset, tmp_path_factory):
     return workdir, dataset
 
 
+@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_artefacts_and_report(run):
     workdir, _ = run
     for stage, version in (("dark", 1), ("linearity", 2)):
@@ -80,11 +81,13 @@ def test_artefacts_and_report(run):
     assert set(history["experiment"]) == {"dark", "linearity"}
 
 
+@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_nothing_to_do_when_nothing_changed(run):
     workdir, dataset = run
     assert planned_rules(workdir, dataset) == set()
 
 
+@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_each_lens_is_its_own_job_and_the_run_ends_with_a_summary(run, tmp_path):
     workdir, dataset = run
     jobs = planned_jobs(workdir, dataset, "--forcerun", "dark")
@@ -102,6 +105,7 @@ def test_each_lens_is_its_own_job_and_the_run_ends_with_a_summary(run, tmp_path)
     assert not any(Path(k).is_absolute() for k in hashed)
 
 
+@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_a_mistyped_dataset_path_stops_even_with_earlier_results(run):
     workdir, dataset = run
     mistyped = dataset.parent / "datset"
@@ -124,6 +128,7 @@ def test_a_missing_dataset_is_never_simulated_unless_asked(tmp_path):
     assert not missing.exists()
 
 
+@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_editing_the_chessboard_reruns_nothing_without_geometry(run):
     workdir, dataset = run
     meta_path = dataset / "dataset.yaml"
@@ -139,6 +144,7 @@ def test_editing_the_chessboard_reruns_nothing_without_geometry(run):
         meta_path.write_text(original)
 
 
+@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_adding_the_missing_effect_lowers_the_error(run):
     workdir, dataset = run
     snakemake(workdir, dataset, "--config", f"dataset={dataset}",
@@ -150,6 +156,7 @@ def test_adding_the_missing_effect_lowers_the_error(run):
     assert lin["rms_z"].iloc[-1] < 1.5
 
 
+@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_new_dark_frames_rerun_only_what_depends_on_them(run):
     workdir, dataset = run
     # replace one dark frame by a copy of another (same settings): dark and later stages rerun
@@ -219,6 +226,7 @@ def radiometric_run(tmp_path_factory):
     return workdir, dataset
 
 
+@pytest.mark.xdist_group("radiometric_run")     # one worker builds the module fixture once
 def test_radiometric_chain_runs_and_reruns_only_what_changed(radiometric_run):
     workdir, dataset = radiometric_run
     for stage in ("geometry", "rolloff", "spectral", "absolute", "immersion"):
@@ -247,6 +255,7 @@ def test_radiometric_chain_runs_and_reruns_only_what_changed(radiometric_run):
                                                "report", "all"}
 
 
+@pytest.mark.xdist_group("radiometric_run")     # one worker builds the module fixture once
 def test_editing_the_chessboard_reruns_geometry_and_what_depends_on_it(radiometric_run):
     workdir, dataset = radiometric_run
     meta_path = dataset / "dataset.yaml"
@@ -262,6 +271,7 @@ def test_editing_the_chessboard_reruns_geometry_and_what_depends_on_it(radiometr
         meta_path.write_text(original)
 
 
+@pytest.mark.xdist_group("radiometric_run")     # one worker builds the module fixture once
 def test_downstream_stages_on_the_fitted_geometry_recover_the_truth(radiometric_run):
     """The radiometric chain run by the workflow uses the geometry the geometry stage fitted
     (not the simulator's true maps); the results still match the truth. Tolerances: those of
@@ -317,3 +327,17 @@ def test_the_default_tiny_simulation_runs_through_the_whole_workflow(tmp_path):
                 assert ds.attrs["artefact"] == stage
     assert (tmp_path / "results/report/index.html").exists()
     assert "Calibration report:" in run.stdout + run.stderr
+    # the field hour: one job for the lens at the zenith, its section in the report, its row in the error history
+    assert (tmp_path / "results/field/close.nc").exists() and not (tmp_path / "results/field/far.nc").exists()
+    html = (tmp_path / "results/report/index.html").read_text()
+    assert 'id="field-close"' in html and "MUPD" in html
+    history = pd.read_csv(tmp_path / "results/diagnostics/error_history.csv")
+    assert "field" in set(history["experiment"])
+    # new field data only: the field job, the diagnostics and the report rerun, no lab stage
+    from pipeline.dataset import write_md5sums
+
+    reference = dataset / "field/reference_radiometer.csv"
+    lines = reference.read_text().splitlines()
+    reference.write_text("\n".join(lines[:-1]) + "\n")       # the last reading dropped
+    write_md5sums(dataset)
+    assert planned_rules(tmp_path, dataset) == {"field", "diagnostics", "report", "all"}
