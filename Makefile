@@ -30,8 +30,10 @@ lint: $(VENV)/.installed
 	$(BIN)/ruff check $(LINT_PATHS)
 	$(BIN)/snakefmt --check Snakefile workflow/rules
 
+# --dist loadfile: the tests of one file run on one worker, so a module's fixture (a simulated and
+# calibrated dataset) is built once
 test: lint
-	$(BIN)/python -m pytest -n $(CORES) --dist loadgroup -q
+	$(BIN)/python -m pytest -n $(CORES) --dist loadfile -q
 
 bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/bench_stages.py

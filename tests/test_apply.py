@@ -23,9 +23,6 @@ from pipeline.frames import lens_images
 from pipeline.radiometry import measurement as mm
 from pipeline.rawio import read_raw, write_dng
 
-#: the tests that apply the session's calibrated camera run on one worker, which builds it once
-pytestmark = pytest.mark.xdist_group("calibrated_camera")
-
 LENSES = ("far", "close")
 #: the absolute stage's averaging mask (config absolute.mask_half_angle_deg)
 CENTRAL_MASK_DEG = 5.0

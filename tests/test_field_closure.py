@@ -29,9 +29,6 @@ from pipeline.rawio import read_raw, write_dng
 from pipeline.simulate.dataset import simulate_dataset
 from pipeline.workflow import run_stage
 
-#: the tests that apply the session's calibrated camera run on one worker, which builds it once
-pytestmark = pytest.mark.xdist_group("calibrated_camera")
-
 LENSES = ("far", "close")
 #: the camera of the session fixture ``calibrated`` (conftest.py): seed 5, no lab effect switched on
 SEED = 5

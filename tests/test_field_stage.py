@@ -39,9 +39,6 @@ from pipeline.simulate.render import Renderer
 from pipeline.simulate.spectral import default_spectral_response
 from pipeline.workflow import run_stage
 
-#: the tests that apply the session's calibrated camera run on one worker, which builds it once
-pytestmark = pytest.mark.xdist_group("calibrated_camera")
-
 BANDS = ("R", "G", "B")
 CHANNELS_NM = (380, 395, 412, 443, 465, 490, 510, 532, 555, 560, 589, 625, 665, 683, 694, 710, 765, 780, 875)
 T0_UTC = datetime(2021, 3, 18, 20, 0, 0)

@@ -58,7 +58,6 @@ def run(make_dataset, tmp_path_factory):
     return workdir, dataset
 
 
-@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_artefacts_and_report(run):
     workdir, _ = run
     for stage, version in (("dark", 1), ("linearity", 2)):
@@ -81,13 +80,11 @@ def test_artefacts_and_report(run):
     assert set(history["experiment"]) == {"dark", "linearity"}
 
 
-@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_nothing_to_do_when_nothing_changed(run):
     workdir, dataset = run
     assert planned_rules(workdir, dataset) == set()
 
 
-@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_each_lens_is_its_own_job_and_the_run_ends_with_a_summary(run, tmp_path):
     workdir, dataset = run
     jobs = planned_jobs(workdir, dataset, "--forcerun", "dark")
@@ -105,7 +102,6 @@ def test_each_lens_is_its_own_job_and_the_run_ends_with_a_summary(run, tmp_path)
     assert not any(Path(k).is_absolute() for k in hashed)
 
 
-@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_a_mistyped_dataset_path_stops_even_with_earlier_results(run):
     workdir, dataset = run
     mistyped = dataset.parent / "datset"
@@ -128,7 +124,6 @@ def test_a_missing_dataset_is_never_simulated_unless_asked(tmp_path):
     assert not missing.exists()
 
 
-@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_editing_the_chessboard_reruns_nothing_without_geometry(run):
     workdir, dataset = run
     meta_path = dataset / "dataset.yaml"
@@ -144,7 +139,6 @@ def test_editing_the_chessboard_reruns_nothing_without_geometry(run):
         meta_path.write_text(original)
 
 
-@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_adding_the_missing_effect_lowers_the_error(run):
     workdir, dataset = run
     snakemake(workdir, dataset, "--config", f"dataset={dataset}",
@@ -156,7 +150,6 @@ def test_adding_the_missing_effect_lowers_the_error(run):
     assert lin["rms_z"].iloc[-1] < 1.5
 
 
-@pytest.mark.xdist_group("workflow_run")     # one worker builds the module fixture once
 def test_new_dark_frames_rerun_only_what_depends_on_them(run):
     workdir, dataset = run
     # replace one dark frame by a copy of another (same settings): dark and later stages rerun
@@ -226,7 +219,6 @@ def radiometric_run(tmp_path_factory):
     return workdir, dataset
 
 
-@pytest.mark.xdist_group("radiometric_run")     # one worker builds the module fixture once
 def test_radiometric_chain_runs_and_reruns_only_what_changed(radiometric_run):
     workdir, dataset = radiometric_run
     for stage in ("geometry", "rolloff", "spectral", "absolute", "immersion"):
@@ -255,7 +247,6 @@ def test_radiometric_chain_runs_and_reruns_only_what_changed(radiometric_run):
                                                "report", "all"}
 
 
-@pytest.mark.xdist_group("radiometric_run")     # one worker builds the module fixture once
 def test_editing_the_chessboard_reruns_geometry_and_what_depends_on_it(radiometric_run):
     workdir, dataset = radiometric_run
     meta_path = dataset / "dataset.yaml"
@@ -271,7 +262,6 @@ def test_editing_the_chessboard_reruns_geometry_and_what_depends_on_it(radiometr
         meta_path.write_text(original)
 
 
-@pytest.mark.xdist_group("radiometric_run")     # one worker builds the module fixture once
 def test_downstream_stages_on_the_fitted_geometry_recover_the_truth(radiometric_run):
     """The radiometric chain run by the workflow uses the geometry the geometry stage fitted
     (not the simulator's true maps); the results still match the truth. Tolerances: those of
