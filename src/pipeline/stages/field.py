@@ -49,7 +49,7 @@ bootstrap intervals; OLS and errors-in-both lines) on the match-ups; the
 ODR weights are the camera's random standard error and the reference's
 window uncertainty (noise of the mean and variation within the window).
 
-Observation table (``obs_frame``, FIELD_SPEC.md): one row per match-up and
+Observation table (``obs_frame``, the diagnostics read it like any stage's): one row per match-up and
 band; base model camera = k_b x reference (one scale per band, fitted with
 :func:`pipeline.observations.fit_with_effects`); ``sigma_dn`` adds the
 camera's random standard error, k_b times the reference's window
