@@ -30,7 +30,7 @@ import xarray as xr  # noqa: E402
 from pipeline.artefact import read_artefact  # noqa: E402
 from pipeline.observations import dataset_to_table  # noqa: E402
 from pipeline.radiometry.exposure import gain_from_iso  # noqa: E402
-from pipeline.report_field import field_section  # noqa: E402
+from pipeline.report_field import field_section, field_summary  # noqa: E402
 
 try:  # G band pixels average two photosites (see pipeline.stages.linearity.photon_transfer)
     from pipeline.frames import SITES_PER_BAND_PIXEL
@@ -1236,6 +1236,8 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                  "mean the model leaves structure the noise cannot explain):</p>")
         s.append(_table(["experiment", "rms z", "χ²", "dof", "observations"], rows))
     s.append(_calibration_summary(later["absolute"], later["immersion"]))
+    for lens, ds in later["field"].items():
+        s.append(field_summary(lens, ds))
     top = _top_effect(missing)
     if top is not None and _as_bool(top.get("significant")):
         s.append(f'<div class="callout">The residuals point to a missing effect: <b>{_e(top["effect"])}</b> '
