@@ -23,7 +23,8 @@ def _amplitude(row) -> str:
     except (KeyError, TypeError, ValueError):
         return ""
     units = row.get("units", "")
-    units = "" if pd.isna(units) else f" {units}"
+    # "1" is the unit of a dimensionless amplitude: nothing to print
+    units = "" if pd.isna(units) or str(units) == "1" else f" {units}"
     return f" {value:.3g}{units} (95 % interval {low:.3g} to {high:.3g})"
 
 
