@@ -7,10 +7,10 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline.calibration import BUNDLE_STAGES, build_bundle
+from helpers import calibrate
+from pipeline.calibration import BUNDLE_STAGES
 from pipeline.config import load_config
 from pipeline.simulate import simulate_dataset, truth_dir_for
-from pipeline.workflow import STAGES, run_stage
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 
@@ -47,14 +47,5 @@ def calibrated(make_dataset, config, tmp_path_factory):
     tests that apply the bundle: (root, truth, results folder, artefacts, bundle path, dataset.yaml)."""
     root, truth = make_dataset(seed=5, experiments=tuple(BUNDLE_STAGES))
     out = tmp_path_factory.mktemp("results")
-    artefacts = {}
-    lenses = tuple(yaml.safe_load((root / "dataset.yaml").read_text())["lenses"])
-    for stage in BUNDLE_STAGES:
-        spec = STAGES[stage]
-        upstream = {name: artefacts[name] for name in spec.upstream + spec.optional_upstream if name in artefacts}
-        artefacts[stage] = {lens: out / stage / f"{lens}.nc" for lens in lenses}
-        run_stage(stage, root, config, artefacts[stage], upstream)
-    meta = yaml.safe_load((root / "dataset.yaml").read_text())
-    bundle_path = out / "calibration" / f"{meta['camera']['serial']}.nc"
-    build_bundle(artefacts, bundle_path, meta["camera"], meta["lenses"], config)
+    artefacts, bundle_path, meta = calibrate(root, config, out)
     return root, truth, out, artefacts, bundle_path, meta

@@ -1,9 +1,10 @@
-"""Geometry artefacts of the simulator's true optics, for tests of later stages.
+"""Geometry artefacts of the simulator's true optics, and a dataset calibrated by the pipeline, for tests.
 
 Tests that hand a stage the true geometry (instead of the geometry stage's
 fit) build it here: the truth comes from :mod:`pipeline.simulate`, the layout
 from :func:`pipeline.stages.geometry_maps.maps_dataset`, so that no stage
-imports the simulator.
+imports the simulator. :func:`calibrate` runs the pipeline's own lab stages
+and gathers their bundle.
 """
 
 from __future__ import annotations
@@ -11,8 +12,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import xarray as xr
+import yaml
 
 from pipeline.artefact import write_artefact
+from pipeline.calibration import BUNDLE_STAGES, build_bundle
+from pipeline.workflow import STAGES, run_stage
 from pipeline.bands import BANDS
 from pipeline.simulate.lens import default_model
 from pipeline.simulate.rolloff import true_band_models
@@ -37,3 +41,20 @@ def true_geometry_dataset(lens: str, band_px: int) -> xr.Dataset:
     (:func:`pipeline.simulate.rolloff.true_band_models`): what a per-band geometry
     calibration finds."""
     return maps_dataset(true_band_models(lens, band_px), (band_px, band_px))
+
+
+def calibrate(root: Path, config: dict, out: Path) -> tuple[dict, Path, dict]:
+    """Every lab stage of the bundle on ``root``, per lens, into ``out``; then the bundle.
+
+    Returns (artefacts {stage: {lens: path}}, bundle path, dataset.yaml).
+    """
+    meta = yaml.safe_load((root / "dataset.yaml").read_text())
+    artefacts = {}
+    for stage in BUNDLE_STAGES:
+        spec = STAGES[stage]
+        upstream = {name: artefacts[name] for name in spec.upstream + spec.optional_upstream if name in artefacts}
+        artefacts[stage] = {lens: out / stage / f"{lens}.nc" for lens in meta["lenses"]}
+        run_stage(stage, root, config, artefacts[stage], upstream)
+    bundle_path = out / "calibration" / f"{meta['camera']['serial']}.nc"
+    build_bundle(artefacts, bundle_path, meta["camera"], meta["lenses"], config)
+    return artefacts, bundle_path, meta

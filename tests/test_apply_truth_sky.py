@@ -43,12 +43,12 @@ from datetime import datetime
 import numpy as np
 import pytest
 import xarray as xr
-import yaml
 from scipy import stats
 
+from helpers import calibrate
 from pipeline.apply import apply_calibration
 from pipeline.bands import BANDS, split_bands
-from pipeline.calibration import BUNDLE_STAGES, build_bundle, read_bundle
+from pipeline.calibration import BUNDLE_STAGES, read_bundle
 from pipeline.config import load_config
 from pipeline.effects import get as get_effect
 from pipeline.rawio import write_dng
@@ -57,7 +57,6 @@ from pipeline.simulate.dataset import SCALES
 from pipeline.simulate.immersion import true_immersion_factors
 from pipeline.simulate.plan import FrameSpec
 from pipeline.simulate.render import Renderer
-from pipeline.workflow import STAGES, run_stage
 
 LENSES = ("far", "close")
 MEDIA = ("air", "water")
@@ -128,16 +127,7 @@ def calibrated(make_dataset, tmp_path_factory):
     root, truth = make_dataset(effects=tuple((name, {}) for name in LAB_EFFECTS), seed=SEED,
                                experiments=tuple(BUNDLE_STAGES))
     config = load_config(overrides={"model": {"effects": list(LAB_EFFECTS), "plugins": []}})
-    out = tmp_path_factory.mktemp("results_sky")
-    artefacts = {}
-    for stage in BUNDLE_STAGES:
-        spec = STAGES[stage]
-        upstream = {name: artefacts[name] for name in spec.upstream + spec.optional_upstream if name in artefacts}
-        artefacts[stage] = {lens: out / stage / f"{lens}.nc" for lens in LENSES}
-        run_stage(stage, root, config, artefacts[stage], upstream)
-    meta = yaml.safe_load((root / "dataset.yaml").read_text())
-    bundle_path = out / "calibration" / f"{meta['camera']['serial']}.nc"
-    build_bundle(artefacts, bundle_path, meta["camera"], meta["lenses"], config)
+    _, bundle_path, meta = calibrate(root, config, tmp_path_factory.mktemp("results_sky"))
     return root, truth, bundle_path, meta, config
 
 

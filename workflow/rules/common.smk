@@ -143,10 +143,6 @@ def report_inputs(wildcards):
     return out
 
 
-def report_lenses(wildcards):
-    return sorted(_ready().lenses())
-
-
 def skipped_stages(wildcards):
     return _ready().skipped()
 

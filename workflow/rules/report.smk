@@ -16,7 +16,6 @@ rule report:
     resources:
         mem_mb=1500,
     params:
-        lenses=report_lenses,
         skipped=skipped_stages,
     script:
         "../scripts/report.py"

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 from pipeline.effects.base import Effect, register
 
@@ -39,12 +38,6 @@ def band_scale(table: pd.DataFrame) -> np.ndarray:
 
 def _field_frame(experiment: str, level: str, table: pd.DataFrame, needed: tuple[str, ...]) -> bool:
     return experiment == "field" and level == "frame" and all(c in table for c in needed)
-
-
-def _normal_interval(coef, cov) -> tuple[float, float, float]:
-    se = float(np.sqrt(max(cov[0, 0], 0.0)))
-    q = float(stats.norm.ppf(0.975))
-    return float(coef[0]), float(coef[0] - q * se), float(coef[0] + q * se)
 
 
 @register
@@ -69,9 +62,6 @@ class ClockOffset(Effect):
             return None
         return (-table["dref_dt"].to_numpy(float) * band_scale(table))[:, None]
 
-    def amplitude(self, experiment, level, table, coef, cov):
-        """The camera clock offset (s) and its 95 % interval (normal)."""
-        return _normal_interval(coef, cov)
 
 
 @register
@@ -93,9 +83,6 @@ class SpectralMismatch(Effect):
         diff = table["ref_convolved"].to_numpy(float) - table["ref_nearest"].to_numpy(float)
         return (diff * band_scale(table))[:, None]
 
-    def amplitude(self, experiment, level, table, coef, cov):
-        """The factor on the band-convolved minus nearest-channel difference (about 1 when missing)."""
-        return _normal_interval(coef, cov)
 
     def sky_spectral_exponent(self, hours_since_start: float) -> float:
         return float(self.params["exponent_change_per_h"]) * float(hours_since_start)
