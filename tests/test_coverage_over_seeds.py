@@ -27,7 +27,7 @@ the spectral response (its shape error, including the unmeasured tail below
 400 nm that puts about +0.9 % on B), the dark, linearity and roll-off
 calibrations (near the axis the roll-off is 1 within its tiny error), and the
 photodiode error (zero in the upstream's perfect lab; drawn it moves R^-1 by
-about 0.1 %). The varying terms are about 2.5-3 % of the stated 2.6-3.9 %,
+about 0.1 %). The varying terms make up nearly all of the stated 2.5-2.7 %,
 the common ones under 1 %, so the spread of z over seeds measures whether the
 stated uncertainty is the one that propagates: the paper's counting of the
 lamp (about 8 %, ``absolute.lamp_model: profile``) states three times too
