@@ -72,7 +72,7 @@ def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
     shutil.copy(bundle_path, old)
     with netCDF4.Dataset(old, "a") as nc:
         nc.artefact_version = 2
-    with pytest.raises(ArtefactError, match="calibration artefact version 2 is not the supported version 3"):
+    with pytest.raises(ArtefactError, match="calibration artefact version 2 is not the supported version 4"):
         apply_calibration(old, [_signal_frame(calibrated[0], "far")], "air", tmp_path / "out.nc")
 
 
@@ -94,8 +94,9 @@ def test_absolute_frame_recovers_the_port_radiance(calibrated, applied):
             sigma = float(np.hypot(np.sqrt(np.sum(random.astype(float) ** 2)) / mask.sum(), systematic.mean()))
             expected = bands[band]["effective_band_radiance_W_sr_m2_nm"]
             assert abs(mean - expected) < 3 * sigma, (lens, band, mean, expected, sigma)
-            # the stated systematic part is the R^-1 budget (8-11 %), not more than twice it
-            assert 0.05 < systematic.mean() / mean < 0.25
+            # the stated systematic part is the R^-1 budget (2.5-4 %: the reference reading's 2.5 %, the
+            # region's spread and the lamp's shape part), not more than twice it
+            assert 0.02 < systematic.mean() / mean < 0.08
 
 
 def test_band_radiance_on_a_crop_is_the_whole_image_result_there(calibrated, applied):

@@ -26,10 +26,9 @@ chain splits its uncertainty:
   uncorrected across the field (an azimuthal roll-off, stray light at the rim) shows.
 
 The systematic check is one-sided in effect: it bounds the deviations from above. Whether the stated
-systematic sigma is also not too large (band-mean z of order 1) cannot be told from one dataset: the
-simulator does not yet draw the lab's systematic errors (lamp, reference radiometer) per dataset, so the
-realised band-mean deviations are 0.3 % to 3 % against a stated 8.5 % to 9.5 % (|z| 0.03 to 0.33); that is
-the coverage test over seeds of issue 8, item 3.
+systematic sigma is also not too large (band-mean z of order 1) cannot be told from one dataset (a perfect
+lab: the lab's systematic errors are not drawn here, and the stated R^-1 sigma of about 3 % is mostly the
+reference radiometer's 2.5 %); that is the coverage test over seeds, tests/test_coverage_over_seeds.py.
 
 Run time: about 40 to 60 s, nearly all of it the module fixture (simulating and calibrating the tiny
 dataset with every effect on).

@@ -19,7 +19,7 @@ absolute experiment takes its frames at ISO 100 and 0.1 s
   pixel), 0.3 % for G. Dividing by the linearity stage's flat field removes it.
 
 Tolerances: with the effects in the model, R^-1 is within its stated
-uncertainty (about 9 %, the lamp calibration dominating) and within 1 % of the
+uncertainty (about 3 %, the reference reading dominating) and within 1 % of the
 truth; what is left is the measured 10 nm response's tail below 400 nm (about
 +0.7 % on B's effective radiance, ``tests/test_absolute.py``) and the flat
 field's own noise. Without them the bias is the predicted -dt / (t + dt),

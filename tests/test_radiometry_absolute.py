@@ -8,6 +8,7 @@ from pipeline.radiometry.absolute import (
     dn_per_second,
     inverse_responsivity,
     lamp_calibration_relative_sigma,
+    lamp_colour_temperature_shape_nm,
 )
 from pipeline.radiometry.source import planck_radiance
 from pipeline.simulate.spectral import default_spectral_response
@@ -56,9 +57,10 @@ def _budget(band, y, ys, **kw):
 
 def test_budget_simulated_camera_recovers_table1():
     # The simulator's physics (2796 K Planck, default response) with the
-    # Table 1 DN gives R^-1 within 5 % of the published values.
+    # Table 1 DN gives R^-1 within 5 % of the published values; the paper's
+    # counting of the lamp (lamp_model "profile", rho = 0) gives its budget.
     for i, band in enumerate("RGB"):
-        out = _budget(band, DN_S[i], DN_S_SIGMA[i])
+        out = _budget(band, DN_S[i], DN_S_SIGMA[i], lamp_model="profile")
         assert out["inverse_responsivity"] == pytest.approx(R_INV[i], rel=0.05), band
         assert out["effective_radiance"] == pytest.approx(L_EFF[i], rel=0.06), band
         # the calibration lamp dominates, as the paper says
@@ -69,7 +71,8 @@ def test_budget_simulated_camera_recovers_table1():
         # stated terms alone: 8.6-9.3 %, short of the published 10.4-11 %
         assert 0.085 < out["relative_sigma"] < 0.095
         # with a further 6 % source term the published totals come back within 0.5 pp
-        out6 = _budget(band, DN_S[i], DN_S_SIGMA[i], extra_components={"unexplained_source": 0.06})
+        out6 = _budget(band, DN_S[i], DN_S_SIGMA[i], extra_components={"unexplained_source": 0.06},
+                       lamp_model="profile")
         assert out6["relative_sigma"] == pytest.approx(R_INV_REL_SIGMA[i], abs=0.005), band
         assert out6["inverse_responsivity_sigma"] == pytest.approx(out6["relative_sigma"] * out6["inverse_responsivity"])
 
@@ -77,10 +80,38 @@ def test_budget_simulated_camera_recovers_table1():
 def test_budget_lamp_scale_error_cancels_with_full_correlation():
     # A constant relative lamp error is a pure scale factor: rescaling at
     # 589 nm removes it entirely when rho = 1.
-    out = _budget("G", 65e3, 1e3, lamp_relative_sigma=0.08, lamp_reference_correlation=1.0)
+    out = _budget("G", 65e3, 1e3, lamp_relative_sigma=0.08, lamp_reference_correlation=1.0, lamp_model="profile")
     assert out["contributions"]["lamp_calibration"] == pytest.approx(0.0, abs=1e-12)
-    out0 = _budget("G", 65e3, 1e3, lamp_relative_sigma=0.08)
+    out0 = _budget("G", 65e3, 1e3, lamp_relative_sigma=0.08, lamp_model="profile")
     assert out0["contributions"]["lamp_calibration"] == pytest.approx(0.08)
+    # the colour-temperature split of a flat 8 %: all of it is scale, nothing propagates
+    flat = _budget("G", 65e3, 1e3, lamp_relative_sigma=(0.08, 0.08))
+    assert flat["contributions"]["lamp_calibration"] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_lamp_colour_temperature_split():
+    # u(400)^2 = s^2 + (c/400)^2 = 0.091^2 and u(800)^2 = s^2 + (c/800)^2 = 0.069^2:
+    # c^2 = (0.091^2 - 0.069^2) / (400^-2 - 800^-2) = 0.003520 / 4.6875e-6 = 751.0 -> c = 27.40 nm
+    c = lamp_colour_temperature_shape_nm(0.091, 0.069)
+    assert c == pytest.approx(27.40, abs=0.01)
+    assert np.sqrt(0.069**2 - (c / 800) ** 2) == pytest.approx(0.0599, abs=1e-4)
+    with pytest.raises(ValueError, match="cannot be split"):
+        lamp_colour_temperature_shape_nm(0.05, 0.07)
+
+
+def test_budget_colour_temperature_lamp_term():
+    # The propagated lamp error is c (<1/lambda>_LS - 1/589 nm): by hand on the 10 nm grid with trapezoid
+    # weights; B (short of 589 nm) gets the largest term, R (straddling it) the smallest.
+    L = planck_radiance(GRID_NM, 2796.0)
+    terms = {}
+    for band in "RGB":
+        r = default_spectral_response(GRID_NM)[band]
+        w = np.full(GRID_NM.size, 10.0)
+        w[[0, -1]] = 5.0
+        inv = np.sum(w * L * r / GRID_NM) / np.sum(w * L * r)
+        terms[band] = _budget(band, 65e3, 1e3)["contributions"]["lamp_calibration"]
+        assert terms[band] == pytest.approx(27.403 * abs(inv - 1 / 589.0), rel=1e-3), band
+    assert terms["R"] < 0.002 and terms["R"] < terms["G"] < terms["B"] < 0.012
 
 
 def test_budget_spectrometer_noise_term():

@@ -77,3 +77,55 @@ def test_a_scale_object_sets_the_frame_counts(tmp_path):
                                                   progress=False)).frames("dark"))
     assert len(open_dataset(root).frames("dark")) * SCALES["tiny"].dark_frames == n_default * 2
     assert yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())["scale"]["dark_frames"] == 2
+
+
+def test_lab_error_sizes_over_seeds():
+    """The drawn lab errors have the stated sizes: over 4000 seeds the spread of the lamp error is the
+    manufacturer's 9.1 % at 400 nm and 6.9 % at 800 nm, the reference's 2.5 %, and the photodiode's
+    shape (about its mean) stays within 2 % in 96 % of labs (binomial spread 0.3 %: 0.93 to 0.98). The sample standard deviation of n normal draws has
+    a relative spread 1 / sqrt(2 n) = 1.1 %: within 4 of it (4.5 %)."""
+    import numpy as np
+
+    from pipeline.simulate.lab_errors import draw_lab_errors, lamp_factor, no_lab_errors, photodiode_factor
+
+    n = 4000
+    draws = [draw_lab_errors(seed) for seed in range(n)]
+    lamp = np.array([lamp_factor([400.0, 800.0], e) - 1 for e in draws])
+    tol = 4 / np.sqrt(2 * n)
+    assert np.std(lamp[:, 0], ddof=1) == pytest.approx(0.091, rel=tol)
+    assert np.std(lamp[:, 1], ddof=1) == pytest.approx(0.069, rel=tol)
+    ref = np.array([e["reference_relative_error"] for e in draws])
+    assert np.std(ref, ddof=1) == pytest.approx(0.025, rel=tol)
+    wl = np.arange(400.0, 701.0, 10.0)
+    shape = np.array([photodiode_factor(wl, e) / (1 + e["photodiode_coefficients"][0]) - 1 for e in draws])
+    within = np.mean(np.max(np.abs(shape), axis=1) < 0.02)
+    assert 0.93 < within < 0.98, within
+    # a perfect lab changes nothing, bit for bit
+    assert np.all(lamp_factor(wl, no_lab_errors()) == 1.0) and np.all(photodiode_factor(wl, no_lab_errors()) == 1.0)
+
+
+def test_lab_errors_reach_the_sidecars(tmp_path):
+    """With lab_errors the C-OPS reading carries the drawn scale error and the spectrum the lamp's; the truth's
+    lab R^-1 is the camera's times that factor (the B band, short of 589 nm, moves most by the lamp's shape)."""
+    import numpy as np
+    import pandas as pd
+
+    from pipeline.simulate.lab_errors import lamp_factor
+
+    root = simulate_dataset(tmp_path / "d", scale="tiny", seed=3, experiments=("absolute",), progress=False,
+                            lab_errors=True)
+    plain = simulate_dataset(tmp_path / "e", scale="tiny", seed=3, experiments=("absolute",), progress=False)
+    truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())
+    errors = truth["lab_errors"]
+    ref = pd.read_csv(root / "absolute" / "source_reference.csv")
+    assert float(ref["radiance_W_sr_m2_nm"].iloc[0]) == pytest.approx(6.8e-4 * (1 + errors["reference_relative_error"]),
+                                                                     rel=1e-7)
+    assert float(ref["uncertainty_rel"].iloc[0]) == 0.025
+    spec, spec0 = (pd.read_csv(p / "absolute" / "source_spectrum.csv") for p in (root, plain))
+    # same noise draw, so the ratio is the lamp factor to the file's 8 significant digits
+    np.testing.assert_allclose(spec["radiance"] / spec0["radiance"], lamp_factor(spec["wavelength_nm"], errors),
+                               rtol=1e-6)
+    assert yaml.safe_load((truth_dir_for(plain) / "truth.yaml").read_text())["lab_errors"]["reference_relative_error"] == 0
+    bands = truth["experiments_truth"]["absolute"]["bands"]
+    for band in "RGB":
+        assert bands[band]["inverse_responsivity_lab"] != bands[band]["inverse_responsivity"]

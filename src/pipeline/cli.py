@@ -140,6 +140,9 @@ def build_parser() -> argparse.ArgumentParser:
                      help="comma-separated experiments to simulate (default: all the simulator writes)")
     sim.add_argument("--full-well-e", type=float, default=None, metavar="ELECTRONS",
                      help="full-well capacity of the simulated sensor (default: none; the ADC clips first)")
+    sim.add_argument("--lab-errors", action="store_true",
+                     help="draw the lab's systematic errors from the seed (calibration lamp, reference radiometer, "
+                          "photodiode; written to the truth); default: a perfect lab")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
     from pipeline.apply import add_apply_parser
 
@@ -176,7 +179,8 @@ def _simulate(args) -> int:
     experiments = tuple(e for e in args.experiments.split(",") if e) if args.experiments else EXPERIMENTS
     sensor = {"full_well_e": args.full_well_e} if args.full_well_e is not None else None
     out = simulate_dataset(args.out, scale=args.scale, seed=args.seed, effects=effects,
-                           experiments=experiments, progress=not args.no_progress, sensor=sensor)
+                           experiments=experiments, progress=not args.no_progress, sensor=sensor,
+                           lab_errors=args.lab_errors)
     print(f"dataset: {out}\ntruth:   {truth_dir_for(out)}")
     return EXIT_OK
 

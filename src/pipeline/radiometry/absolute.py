@@ -18,20 +18,38 @@ Which terms dominate (Section 3.5 and Table 1)
     the variance.  Inside it the paper names the spectrometer's calibration
     lamp (manufacturer: 9.1 % at 400 nm, 6.9 % at 800 nm, about 8 % inside
     the bands) as the largest part, then the C-OPS reference (2.5 % quoted,
-    2/68 = 2.9 % from the reading) and spectrometer noise.  With only those
-    stated numbers the budget below gives 8.6, 8.9, 9.3 % (R, G, B, default response,
-    2796 K Planck source, Table 1 DN); the published
+    2/68 = 2.9 % from the reading) and spectrometer noise.  Counting them as
+    the paper does (``lamp_model="profile"``, rho = 0) the budget below gives
+    8.6, 8.9, 9.3 % (R, G, B, default response, 2796 K Planck source, Table 1
+    DN, reference 2/68); the published
     10.4-11 % implies about 6 % more in the source radiance that the text
     does not break down (spectrometer noise/stray light, sphere drift);
     one further component of 0.06 gives 10.5, 10.7, 11.1 %. So
     ``spectrometer_noise`` or a named ``extra_components`` entry must carry
-    it to reproduce the paper; by default there is none.
+    it to reproduce the paper; by default there is none.  By default
+    (``lamp_model="colour_temperature"``, below) the same inputs give 3.4,
+    3.3, 3.8 %: most of the lamp's error cancels in the rescaling.
 
-    Note: a calibration-lamp error that is a pure scale factor cancels when
-    the spectrum is rescaled at 589 nm; the paper nevertheless counts it in
-    full.  ``lamp_reference_correlation`` (rho) sets how much cancels:
-    the lamp term is |u_lamp,band - rho u_lamp(589 nm)|; rho = 0 (default)
-    follows the paper.
+What of the lamp error propagates (``lamp_model``)
+    The spectrometer's spectrum is only relative: it is rescaled so that its
+    value at 589 nm equals the reference reading.  A lamp error e(lambda)
+    therefore enters the band radiance as <e>_LS - e(589 nm), with <.>_LS the
+    band average weighted by source radiance times response: a scale part
+    (the same at every wavelength) cancels exactly, a shape part does not.
+    The manufacturer gives only the size at two wavelengths, 9.1 % at 400 nm
+    and 6.9 % at 800 nm; ``"colour_temperature"`` (default) reads them as a
+    constant part and a colour-temperature part of the tungsten-halogen lamp,
+    u(lambda)^2 = sigma_s^2 + (c / lambda)^2 (Wien: d ln B / dT = c2 /
+    (lambda T^2), a shape ~ 1/lambda), which gives sigma_s = 6.0 % (cancels)
+    and c = 27.4 nm; the stated lamp term is c |<1/lambda>_LS - 1/589 nm|,
+    about 0.1, 0.3 and 0.9 % for R, G and B (Table 1 DN, 2796 K source).  So R^-1's stated uncertainty is
+    about 2.5-3 % (reference and image), not the paper's 10.4-11 %, and a
+    coverage test over simulated labs (``tests/test_coverage_over_seeds.py``)
+    checks that this is what propagates.  ``"profile"`` is the paper's own
+    counting: the interpolated profile u(lambda) taken as fully correlated,
+    the lamp term |u_band - rho u(589 nm)| with ``lamp_reference_correlation``
+    rho; rho = 0 counts the lamp in full as the paper does (8 % of the
+    8.6-9.3 % above), rho = 1 cancels its scale but keeps its linear tilt.
 """
 
 from __future__ import annotations
@@ -51,6 +69,7 @@ __all__ = [
     "dn_per_second",
     "inverse_responsivity",
     "lamp_calibration_relative_sigma",
+    "lamp_colour_temperature_shape_nm",
     "absolute_calibration_budget",
 ]
 
@@ -88,6 +107,22 @@ def lamp_calibration_relative_sigma(wavelength_nm, at_400_nm=0.091, at_800_nm=0.
     return np.interp(wl, [400.0, 800.0], [at_400_nm, at_800_nm])
 
 
+def lamp_colour_temperature_shape_nm(at_400_nm=0.091, at_800_nm=0.069):
+    """c (nm) of the lamp error's colour-temperature part c / lambda, from its stated sigma at 400 and 800 nm.
+
+    u(lambda)^2 = sigma_s^2 + (c / lambda)^2 at 400 and 800 nm (see the
+    module docstring): c^2 = (u400^2 - u800^2) / (400^-2 - 800^-2). The
+    manufacturer's 9.1 and 6.9 % give c = 27.4 nm and sigma_s = 6.0 %.
+    Raises ValueError when the two numbers allow no such split (u400 <
+    u800, or a negative constant part).
+    """
+    c2 = (at_400_nm**2 - at_800_nm**2) / (1 / 400.0**2 - 1 / 800.0**2)
+    if c2 < 0 or at_800_nm**2 < c2 / 800.0**2:
+        raise ValueError(f"lamp uncertainty {at_400_nm:g} at 400 nm and {at_800_nm:g} at 800 nm cannot be split "
+                         "into a constant and a colour-temperature (1/lambda) part; use lamp_model 'profile'")
+    return float(np.sqrt(c2))
+
+
 def absolute_calibration_budget(
     wavelength_nm,
     source_spectrum,
@@ -101,6 +136,7 @@ def absolute_calibration_budget(
     lamp_relative_sigma="manufacturer",
     lamp_reference_correlation=0.0,
     extra_components=None,
+    lamp_model="colour_temperature",
     response_relative_sigma=0.0,
 ):
     """R^-1 of one band from the source spectrum, the reference reading and the image DN.
@@ -122,8 +158,13 @@ def absolute_calibration_budget(
     reference_* : reading used for scaling, W sr-1 m-2 nm-1 (default C-OPS
         0.68 +/- 0.02 mW sr-1 m-2 nm-1 at 589 nm)
     lamp_relative_sigma : "manufacturer" (9.1 % at 400 nm to 6.9 % at
-        800 nm), a scalar, an (n,) array, or None to leave it out
-    lamp_reference_correlation : rho in [0, 1], see the module docstring
+        800 nm) or None to leave it out; with ``lamp_model="colour_temperature"``
+        also a pair (sigma at 400 nm, sigma at 800 nm); with ``"profile"`` also
+        a scalar or an (n,) array
+    lamp_reference_correlation : rho in [0, 1], ``"profile"`` only; see the module docstring
+    lamp_model : ``"colour_temperature"`` (default: the scale part cancels
+        in the rescaling, the 1/lambda part propagates) or ``"profile"`` (the
+        paper's counting); see the module docstring
     extra_components : mapping name -> relative standard uncertainty of the
         source radiance that the user supplies (e.g. sphere drift measured
         in the lab); independent of each other and of the other terms; each
@@ -151,7 +192,18 @@ def absolute_calibration_budget(
 
     if lamp_relative_sigma is None:
         contrib["lamp_calibration"] = 0.0
-    else:
+    elif lamp_model == "colour_temperature":
+        if isinstance(lamp_relative_sigma, str):
+            if lamp_relative_sigma != "manufacturer":
+                raise ValueError("lamp_relative_sigma must be 'manufacturer', a pair (400 nm, 800 nm) or None")
+            at_400, at_800 = 0.091, 0.069
+        else:
+            at_400, at_800 = (float(v) for v in lamp_relative_sigma)
+        c_nm = lamp_colour_temperature_shape_nm(at_400, at_800)
+        weight = radiance * s
+        inv_band = float(np.trapezoid(weight / wl, wl) / np.trapezoid(weight, wl))
+        contrib["lamp_calibration"] = float(c_nm * abs(inv_band - 1.0 / reference_wavelength_nm))
+    elif lamp_model == "profile":
         if isinstance(lamp_relative_sigma, str):
             if lamp_relative_sigma != "manufacturer":
                 raise ValueError("lamp_relative_sigma must be 'manufacturer', a number, an array or None")
@@ -162,6 +214,8 @@ def absolute_calibration_budget(
         u_band = band_abs / l_eff
         u_ref_lamp = float(np.interp(reference_wavelength_nm, wl, u_lamp))
         contrib["lamp_calibration"] = float(abs(u_band - lamp_reference_correlation * u_ref_lamp))
+    else:
+        raise ValueError(f"lamp_model must be 'colour_temperature' or 'profile', got {lamp_model!r}")
 
     if spectrum_noise_sigma is None:
         contrib["spectrometer_noise"] = 0.0

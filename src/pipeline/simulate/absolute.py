@@ -10,7 +10,18 @@ Sidecars written as a lab would:
   spectrometer, 380-780 nm in 1 nm steps, arbitrary units, with noise;
   ``radiance_std`` is the standard uncertainty of each value.
 * ``source_reference.csv``: the C-OPS reading at 589 nm, 6.8e-4
-  W sr-1 m-2 nm-1 with relative uncertainty 0.02/0.68 (Section 3.5).
+  W sr-1 m-2 nm-1 with its stated relative uncertainty, the "conservative
+  2.5 %" of Section 3.5.
+
+The lab's systematic errors (:mod:`pipeline.simulate.lab_errors`, drawn per
+dataset when the simulation asks for them, zero otherwise): the spectrometer's
+calibrated spectrum carries the calibration lamp's error (a scale part and a
+colour-temperature shape, 9.1 % at 400 nm to 6.9 % at 800 nm in all), and the
+C-OPS reading its scale error (2.5 %). The truth gives, besides the camera's
+R^-1, ``inverse_responsivity_lab``: what an exact analysis of these sidecars
+(noise-free spectrum, true response) gives, R^-1 (1 + r)
+<1 + e>_LS / (1 + e(589 nm)), with <.>_LS the band average weighted by
+source radiance times response.
 
 The camera sees, in band b, the effective band radiance of the TRUE source
 spectrum through the TRUE spectral response on a 0.1 nm grid (Eq. 3), so a
@@ -24,9 +35,10 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.bands import BANDS
-from pipeline.radiometry.source import (QTH_TEMPERATURE_K, REFERENCE_RADIANCE_SIGMA_W_SR_M2_NM,
-                                        REFERENCE_RADIANCE_W_SR_M2_NM, REFERENCE_WAVELENGTH_NM, planck_radiance)
+from pipeline.radiometry.source import (QTH_TEMPERATURE_K, REFERENCE_RADIANCE_W_SR_M2_NM, REFERENCE_WAVELENGTH_NM,
+                                        planck_radiance)
 from pipeline.radiometry.spectral import effective_band_radiance
+from pipeline.simulate.lab_errors import REFERENCE_RELATIVE_SIGMA, lamp_factor
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 from pipeline.simulate.spectral import default_spectral_response
 
@@ -64,6 +76,16 @@ def true_effective_band_radiance() -> dict[str, float]:
     return {b: float(effective_band_radiance(_FINE_NM, radiance, s[b])) for b in BANDS}
 
 
+def lab_factors(errors: dict) -> dict[str, float]:
+    """Per band, the factor the lab's errors put on R^-1: (1 + r) <1 + e>_LS / (1 + e(589 nm))."""
+    s = default_spectral_response(_FINE_NM)
+    radiance = default_source_radiance(_FINE_NM)
+    f = lamp_factor(_FINE_NM, errors)
+    f_ref = float(lamp_factor(REFERENCE_WAVELENGTH_NM, errors))
+    return {b: float((1.0 + errors["reference_relative_error"]) * np.trapezoid(radiance * s[b] * f, _FINE_NM)
+                     / np.trapezoid(radiance * s[b], _FINE_NM) / f_ref) for b in BANDS}
+
+
 @planner("absolute")
 def plan_absolute(ctx: SimContext) -> ExperimentPlan:
     camera = ctx.camera
@@ -81,19 +103,23 @@ def plan_absolute(ctx: SimContext) -> ExperimentPlan:
     wl = SPECTROMETER_NM
     true = default_source_radiance(wl)
     counts = true * (SPECTROMETER_COUNTS_AT_REFERENCE / REFERENCE_RADIANCE_W_SR_M2_NM)
-    measured = counts * (1.0 + SPECTROMETER_RELATIVE_NOISE * ctx.rng.standard_normal(wl.size))
+    errors = ctx.lab_errors
+    measured = counts * lamp_factor(wl, errors) * (1.0 + SPECTROMETER_RELATIVE_NOISE * ctx.rng.standard_normal(wl.size))
     spectrum = ["wavelength_nm,radiance,radiance_std"]
     spectrum += [f"{w:.1f},{m:.8g},{SPECTROMETER_RELATIVE_NOISE * m:.6g}" for w, m in zip(wl, measured)]
-    u_ref = REFERENCE_RADIANCE_SIGMA_W_SR_M2_NM / REFERENCE_RADIANCE_W_SR_M2_NM
+    reading = REFERENCE_RADIANCE_W_SR_M2_NM * (1.0 + errors["reference_relative_error"])
     reference = ["wavelength_nm,radiance_W_sr_m2_nm,uncertainty_rel",
-                 f"{REFERENCE_WAVELENGTH_NM:.1f},{REFERENCE_RADIANCE_W_SR_M2_NM:.8g},{u_ref:.6g}"]
+                 f"{REFERENCE_WAVELENGTH_NM:.1f},{reading:.8g},{REFERENCE_RELATIVE_SIGMA:.6g}"]
+    lab = lab_factors(errors)
 
     resp = camera.radiometry.responsivity_dn_s_per_radiance
     truth = {
         "iso": ISO, "exposure_s": EXPOSURE_S, "port_half_angle_deg": PORT_HALF_ANGLE_DEG,
         "bands": {b: {"inverse_responsivity": 1.0 / resp[b],
+                      "inverse_responsivity_lab": lab[b] / resp[b],
                       "effective_band_radiance_W_sr_m2_nm": lbar[b],
                       "dn_per_s_iso100": resp[b] * lbar[b]} for b in BANDS},
+        "lab_errors": {k: v for k, v in errors.items() if k != "photodiode_coefficients"},
         "units": {"inverse_responsivity": "W sr-1 m-2 nm-1 per DN s-1 at ISO 100"},
     }
     return ExperimentPlan(frames, sidecars={"source_spectrum.csv": "\n".join(spectrum) + "\n",

@@ -22,6 +22,7 @@ from pipeline.simulate import absolute, spectral  # noqa: F401  (registers the s
 from pipeline.simulate import geometry  # noqa: F401  (registers the geometry planner)
 from pipeline.simulate import field  # noqa: F401  (registers the field planner)
 from pipeline.simulate.camera import Camera, SensorParams
+from pipeline.simulate.lab_errors import draw_lab_errors, no_lab_errors
 from pipeline.simulate.plan import PLANNERS, SimContext
 from pipeline.simulate.render import Renderer
 
@@ -63,7 +64,7 @@ def truth_dir_for(dataset: str | Path) -> Path:
 
 def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 0,
                      effects: list[tuple[str, dict]] = (), experiments=EXPERIMENTS,
-                     progress: bool = True, sensor: dict | None = None) -> Path:
+                     progress: bool = True, sensor: dict | None = None, lab_errors: bool = False) -> Path:
     """Simulate the calibration experiments into ``out`` (which must not exist yet).
 
     The dataset is written to a temporary sibling folder and renamed at the
@@ -71,7 +72,10 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
     :func:`truth_dir_for` ``(out)``. ``scale`` is a name of :data:`SCALES` or
     a :class:`Scale` (e.g. the full lens region with fewer frames per setting,
     for a benchmark); the scale's ``name`` chooses the chessboard and the
-    geometry frame count.
+    geometry frame count. With ``lab_errors`` the lab's systematic errors
+    (calibration lamp, reference radiometer, photodiode;
+    :mod:`pipeline.simulate.lab_errors`) are drawn once from the seed and
+    written to the truth (``lab_errors``); without, the lab is perfect.
     """
     out = Path(out)
     truth = truth_dir_for(out)
@@ -92,7 +96,7 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
     effect_objs = [get_effect(name, **params) for name, params in effects]
     renderer = Renderer(camera, sc.lens_px, seed, effect_objs)
     ctx = SimContext(camera=camera, scale=sc, seed=seed, rng=np.random.default_rng([seed, 104729]),
-                     effects=effect_objs)
+                     effects=effect_objs, lab_errors=draw_lab_errors(seed) if lab_errors else no_lab_errors())
 
     tmp = out.parent / f".{out.name}.partial"
     tmp_truth = out.parent / f".{truth.name}.partial"
@@ -148,7 +152,7 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
         (tmp / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
         write_md5sums(tmp)
         _write_truth(tmp_truth, camera, sc, seed, effect_objs, experiments,
-                     {exp: p.truth for exp, p in plans.items() if p.truth})
+                     {exp: p.truth for exp, p in plans.items() if p.truth}, ctx.lab_errors)
     finally:
         if bar is not None:
             bar.close()
@@ -158,7 +162,7 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
 
 
 def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects, experiments,
-                 experiment_truth: dict) -> None:
+                 experiment_truth: dict, lab_errors: dict) -> None:
     s = camera.sensor
     k100 = s.conversion_gain_dn_per_e_iso100
     truth = {
@@ -168,6 +172,7 @@ def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects,
         "experiments": list(experiments),
         "camera": camera.to_dict(),
         "effects": {e.name: e.truth() for e in effects},
+        "lab_errors": lab_errors,
         "experiments_truth": _plain(experiment_truth),
         "derived": {
             "bias_dn": s.bias_dn,

@@ -14,6 +14,7 @@ from datetime import datetime
 import numpy as np
 
 from pipeline.simulate.camera import Camera
+from pipeline.simulate.lab_errors import no_lab_errors
 
 
 @dataclass
@@ -61,6 +62,8 @@ class SimContext:
     seed: int
     rng: np.random.Generator  # static draws of the planners (deterministic per seed)
     effects: list = field(default_factory=list)   # the true effects switched on (pipeline.effects objects)
+    #: the lab's systematic errors of this dataset (:mod:`pipeline.simulate.lab_errors`); all zero: a perfect lab
+    lab_errors: dict = field(default_factory=no_lab_errors)
 
 
 PLANNERS: dict[str, Callable[[SimContext], ExperimentPlan]] = {}

@@ -16,6 +16,10 @@ E follows the lamp and the grating: a 2796 K Planck spectrum times a blazed
 grating efficiency (peak near 500 nm), so that the photodiode correction
 matters.  The photodiode reading is proportional to E with its own relative
 noise; ``signal_std`` is the standard uncertainty of each reported reading.
+With the lab's systematic errors on (:mod:`pipeline.simulate.lab_errors`),
+the reading also carries the photodiode's smooth spectral difference from
+the beam that reaches the camera (under 2 %, Section 2.5), one draw per
+dataset; the truth's response is the camera's, without it.
 """
 
 from __future__ import annotations
@@ -25,6 +29,7 @@ import numpy as np
 from pipeline.bands import BANDS
 from pipeline.radiometry.source import QTH_TEMPERATURE_K, planck_radiance
 from pipeline.radiometry.spectral import band_statistics
+from pipeline.simulate.lab_errors import photodiode_factor
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
 #: monochromator grid of Section 2.5 (nm)
@@ -140,7 +145,9 @@ def plan_spectral(ctx: SimContext) -> ExperimentPlan:
             frames += [FrameSpec(lens, "signal", ISO, EXPOSURE_S, {"wavelength_nm": float(w)}, scene)
                        for _ in range(FRAMES_PER_WAVELENGTH)]
 
-    reading = PHOTODIODE_SCALE * beam * (1.0 + PHOTODIODE_RELATIVE_NOISE * ctx.rng.standard_normal(wl.size))
+    # the photodiode reads the beam through its own (uncalibrated) spectral difference from the camera's beam
+    reading = PHOTODIODE_SCALE * beam * photodiode_factor(wl, ctx.lab_errors) \
+        * (1.0 + PHOTODIODE_RELATIVE_NOISE * ctx.rng.standard_normal(wl.size))
     lines = ["wavelength_nm,signal,signal_std"]
     lines += [f"{w:.1f},{r:.8g},{PHOTODIODE_RELATIVE_NOISE * r:.6g}" for w, r in zip(wl, reading)]
 

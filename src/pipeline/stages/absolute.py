@@ -22,10 +22,14 @@ Per lens and band:
 * R^-1 = L / y_DN, Eq. (9), and its uncertainty budget
   (:func:`pipeline.radiometry.absolute.absolute_calibration_budget`):
   spectrometer calibration lamp (manufacturer 9.1 % at 400 nm to 6.9 % at
-  800 nm), reference reading (its ``uncertainty_rel``), spectrometer noise
-  (``radiance_std``), optional extra source term, and image statistics (the
-  spread of the averaging region by default, as Section 3.5 says).  The lamp
-  term dominates (about 8 % of 8.6-9.3 %).  The spectral response's own
+  800 nm; by default, ``absolute.lamp_model: colour_temperature``, only its
+  shape part that survives the rescaling at 589 nm, about 0.1-0.9 %; the
+  paper's full counting, about 8 %, with ``lamp_model: profile``), reference
+  reading (its ``uncertainty_rel``, 2.5 %), spectrometer noise
+  (``radiance_std``), the user's named extra source terms
+  (``absolute.extra_uncertainty``, none by default), and image statistics (the
+  spread of the averaging region by default, as Section 3.5 says).  The
+  reference reading dominates by default.  The spectral response's own
   uncertainty is left out, as in the paper (R^-1 x y_DN gives Eq. 3 back).
 
 Dark level: the experiment's dark frames at the same setting, or the dark
@@ -52,7 +56,8 @@ import xarray as xr
 from pipeline.bands import BANDS
 from pipeline.dataset import read_source_reference, read_source_spectrum
 from pipeline.errors import InputError
-from pipeline.radiometry.absolute import absolute_calibration_budget, lamp_calibration_relative_sigma
+from pipeline.radiometry.absolute import (absolute_calibration_budget, lamp_calibration_relative_sigma,
+                                          lamp_colour_temperature_shape_nm)
 from pipeline.observations import table_to_dataset
 from pipeline.radiometry.measurement import FrameSettings
 from pipeline.radiometry.response import flat_field_at, response_corrected, response_effects
@@ -117,7 +122,14 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
     spec = spectrum["radiance"].to_numpy(float)
     spec_std = spectrum["radiance_std"].to_numpy(float)
     ref_value, ref_rel = reference
-    lamp = lamp_calibration_relative_sigma(wl, cfg["lamp_relative_sigma_400nm"], cfg["lamp_relative_sigma_800nm"])
+    if cfg["lamp_model"] == "profile":
+        lamp = lamp_calibration_relative_sigma(wl, cfg["lamp_relative_sigma_400nm"], cfg["lamp_relative_sigma_800nm"])
+    else:
+        lamp = (cfg["lamp_relative_sigma_400nm"], cfg["lamp_relative_sigma_800nm"])
+        try:
+            lamp_colour_temperature_shape_nm(*lamp)
+        except ValueError as exc:
+            raise InputError(None, f"config absolute: {exc}") from None
     out = {}
     for lens in sorted({k[0] for k in moments}):
         if lens not in spectral:
@@ -162,7 +174,7 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
                 wl, spec, s, y, y_sigma, spectrum_noise_sigma=spec_std,
                 reference_wavelength_nm=cfg["reference_wavelength_nm"], reference_value=ref_value,
                 reference_sigma=ref_value * ref_rel, lamp_relative_sigma=lamp,
-                lamp_reference_correlation=cfg["lamp_reference_correlation"],
+                lamp_reference_correlation=cfg["lamp_reference_correlation"], lamp_model=cfg["lamp_model"],
                 extra_components=extra_components(cfg), response_relative_sigma=y_resp / y)
             rows.append({"band": band, "y": y, "y_sigma": y_sigma, "y_std": y_std, "y_se": y_se, "y_resp": y_resp,
                          "n_mask": n_mask, "n_frames": n_tot, "budget": budget,
