@@ -28,9 +28,10 @@ from pipeline.errors import ArtefactError
 #: the same for its air and water frames; calibration 2: the per-pixel maps stored uncompressed and
 #: contiguous (a band image of one lens and medium reads as one block), see pipeline.calibration;
 #: calibration 3: the azimuthal roll-off term (amplitude, phase, their sigmas) and the flat field's per-pixel
-#: uncertainty, which the chain applies.
+#: uncertainty, which the chain applies; field 2: the stray_light covariate (sun seen, clear-sky direct beam,
+#: sun_glare_proxy) in the match-up table and, with the effect in the model, the fitted sun glare.
 ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 1, "rolloff": 1, "spectral": 2,
-                     "absolute": 2, "immersion": 2, "calibration": 3, "field": 1}
+                     "absolute": 2, "immersion": 2, "calibration": 3, "field": 2}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
