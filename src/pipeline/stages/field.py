@@ -450,7 +450,8 @@ def compute(ctx) -> xr.Dataset:
     day = int((utc - pd.to_timedelta(shift, unit="s"))[0].day_of_year)
     sun_direct = np.stack([band_direct_irradiance(resp_nm, bundle["response"].sel(lens=ctx.lens, band=b).values,
                                                   90.0 - sun_elevation, day, float(cfg["clear_sky_aod700"]),
-                                                  float(cfg["clear_sky_angstrom_exponent"])) for b in BANDS], axis=1)
+                                                  float(cfg["clear_sky_angstrom_exponent"]),
+                                                  float(cfg["clear_sky_ozone_atm_cm"])) for b in BANDS], axis=1)
     glare_cov = sun_glare_covariate(sun_direct, sun_seen[:, None], sun_zenith[:, None],
                                     float(cfg["stray_light_angle_exponent"]),
                                     float(cfg["stray_light_reference_angle_deg"]))          # (frame, band)
