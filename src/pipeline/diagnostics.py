@@ -137,6 +137,7 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
                                    best["coef"], best["cov"] * max(best["fit1"].chi2 / max(best["fit1"].dof, 1), 1.0))
     se = float(np.sqrt(max(best["cov"][0, 0], 0.0)))
     evidence = d_chi2 / s2 - k * np.log(max(n, 2))
+    amplitude_name, units = effect.amplitude_label(best["obs"].experiment)
     return {
         "effect": name,
         "experiment": "+".join(sorted({p["obs"].experiment for p in parts})),
@@ -147,8 +148,8 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         "significant": bool(p_value < cfg["significance_level"] / max(n_candidates, 1) and evidence > 0),
         "explained_fraction": float(np.clip(d_chi2 / excess, 0.0, 1.0)) if excess > 0 else 0.0,
         "amplitude": amp, "amplitude_low": lo, "amplitude_high": hi,
-        "units": effect.amplitude_units,
-        "amplitude_name": effect.amplitude_name,
+        "units": units,
+        "amplitude_name": amplitude_name,
         "detectable_amplitude": se * stats.norm.isf(cfg["significance_level"] / max(n_candidates, 1) / 2),
     }
 

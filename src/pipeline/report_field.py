@@ -166,6 +166,16 @@ def field_section(lens: str, ds: xr.Dataset, figs) -> str:
              ["camera clock minus UTC applied", f"{_num(ds['clock_offset_s'], 4)} s"
               + (" (fitted: clock_offset in the model)" if "clock_offset" in str(ds.attrs.get("model_effects", ""))
                  else " (not fitted: clock_offset not in the model)")]]
+    if "sun_seen" in ds:
+        notes.append(["frames with the sun seen (stray_light's switch)",
+                      f"{int(ds['sun_seen'].sum())} of {ds.sizes['frame']}"])
+    if "stray_light_glare_sr" in ds:
+        glare = ds["stray_light_mask_glare"].values
+        share = np.nanmean(glare / ds["camera_radiance"].values, axis=0)
+        notes.append(["sun glare (stray_light), spread at the reference angle",
+                      f"{_num(ds['stray_light_glare_sr'], 3)} +- {_num(ds['stray_light_glare_sr_sigma'], 2)} sr-1; "
+                      "mean share of the mask radiance " + ", ".join(f"{b} {100 * v:.2g} %" for b, v in
+                                                                   zip(ds["band"].values, share))])
     out.append(_table(["quantity", "value"], notes))
     out.append(_figure_series(ds, figs, lens))
     out.append(_figure_sky(ds, figs, lens))

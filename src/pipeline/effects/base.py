@@ -141,6 +141,10 @@ class Effect:
         """Exponent a of a factor (lambda / 550 nm)^(-a) on the simulated sky spectrum at that time."""
         return 0.0
 
+    def sun_glare_wings(self) -> dict | None:
+        """Parameters of the simulator's sun glare in the field frames (fraction, core_deg, index), or None."""
+        return None
+
     def truth(self) -> dict:
         """What the simulator writes to the truth folder for this effect."""
         return {k: _plain(v) for k, v in self.params.items()}
@@ -149,6 +153,10 @@ class Effect:
     def columns(self, experiment: str, level: str, table: pd.DataFrame) -> np.ndarray | None:
         """Linearised model columns (n_rows, k) in DN, or None when silent here."""
         return None
+
+    def amplitude_label(self, experiment: str) -> tuple[str, str]:
+        """Name and units of the amplitude that :meth:`amplitude` returns for that experiment."""
+        return self.amplitude_name, self.amplitude_units
 
     def amplitude(self, experiment: str, level: str, table: pd.DataFrame,
                   coef: np.ndarray, cov: np.ndarray) -> tuple[float, float, float]:

@@ -26,6 +26,15 @@
   threshold in any band) convolved with the model kernel, ``halo_column_dn``;
   coefficient f / (1 - f), about f: the measured port pixels have already
   lost the spread fraction.
+  Field (level ``frame`` of the match-up table): the far wings of the same
+  spread carry the sun's direct beam into the zenith mask. The simulator
+  draws them as image-plane power-law wings (``sun_wing_fraction``,
+  ``sun_wing_core_deg``, ``sun_wing_index``; :mod:`pipeline.simulate.glare`);
+  the pipeline's term is the field stage's covariate, the band's clear-sky
+  direct irradiance times whether the sun is seen times an inverse power of
+  the solar zenith angle (:mod:`pipeline.radiometry.sun_glare`), one
+  coefficient common to the bands: the spread in sr-1 at the reference angle
+  (``stray_light_glare_sr``).
 """
 
 from __future__ import annotations
@@ -113,11 +122,20 @@ class ImmersionAngle(Effect):
 @register
 class StrayLight(Effect):
     name = "stray_light"
-    experiments = ("rolloff",)
-    #: fraction spread; Gaussian PSF width as a fraction of the image-circle radius
-    truth_defaults = {"fraction": 0.02, "psf_sigma_fraction": 0.1}
+    experiments = ("rolloff", "field")
+    #: lab: fraction spread; Gaussian PSF width as a fraction of the image-circle radius.
+    #: field (the simulator's sun glare, simulate/glare.py): fraction of the sun's flux in power-law
+    #: wings, their core (deg) and index p (K ~ d^-p far from the sun); 0 fraction: no glare
+    truth_defaults = {"fraction": 0.02, "psf_sigma_fraction": 0.1,
+                      "sun_wing_fraction": 0.06, "sun_wing_core_deg": 0.5, "sun_wing_index": 2.5}
     amplitude_name = "stray_light_fraction"
     amplitude_units = "1"
+
+    def sun_glare_wings(self):
+        if not self.params.get("sun_wing_fraction"):
+            return None
+        return {"fraction": float(self.params["sun_wing_fraction"]), "core_deg": float(self.params["sun_wing_core_deg"]),
+                "index": float(self.params["sun_wing_index"])}
 
     def prepare(self, rng, context):
         # the simulator's context gives the image-circle radius of its optics in band pixels
@@ -138,6 +156,19 @@ class StrayLight(Effect):
         return out
 
     def columns(self, experiment, level, table):
+        """Lab: the halo column (coefficient about f). Field (level ``frame``): the field stage's
+        ``sun_glare_covariate`` (the band's clear-sky direct irradiance, the sun seen or not, an
+        inverse-square law in the angle from the sun: radiometry/sun_glare.py); one coefficient common to
+        the bands, the spread in sr-1 at the reference angle."""
+        if experiment == "field":
+            if level != "frame" or "sun_glare_covariate" not in table:
+                return None
+            return table["sun_glare_covariate"].to_numpy(float)[:, None]
         if experiment != "rolloff" or level != "setting" or "halo_column_dn" not in table:
             return None
         return table["halo_column_dn"].to_numpy(float)[:, None]
+
+    def amplitude_label(self, experiment):
+        if experiment == "field":
+            return "stray_light_glare_sr", "sr-1"
+        return super().amplitude_label(experiment)

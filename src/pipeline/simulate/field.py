@@ -39,6 +39,14 @@ Times. Frames carry the camera clock in local time (``FrameSpec.time``),
 shifted by the ``clock_offset`` effect's ``camera_clock_offset_s()`` when that
 effect is on; the ``spectral_mismatch`` effect's ``sky_spectral_exponent``
 tilts the sky spectrum over the hour.
+
+Sun glare. With an effect whose ``sun_glare_wings()`` gives parameters
+(``stray_light``), the zenith lens's scene gains the glare of
+:mod:`pipeline.simulate.glare`: the band average of SPECTRL2's direct-normal
+spectrum, through the cloud in front of the sun, times the image-plane wing
+kernel at each pixel; the truth records its mask mean per frame and band
+(``mask_sun_glare_W_sr_m2_nm``, also inside ``mask_band_radiance``). Without
+it the frames are byte for byte those of a dataset without the effect.
 """
 
 from __future__ import annotations
@@ -52,6 +60,7 @@ import yaml
 from pipeline.bands import BANDS
 from pipeline.radiometry.rolloff import evaluate_rolloff
 from pipeline.simulate import sky as skymod
+from pipeline.simulate.glare import SunGlare
 from pipeline.simulate.camera import DarkPlan
 from pipeline.simulate.lens import HALF_FOV_DEG, default_model, default_rolloff
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
@@ -118,11 +127,22 @@ def sky_direction(theta_deg, phi_deg, heading_deg: float = CAMERA_HEADING_DEG):
 class FieldScene:
     """scene(lens, LensGeometry, band_index): band radiance of every raw pixel at one frame time."""
 
-    def __init__(self, sky: skymod.Sky, band_spectra: dict, index: int, heading_deg: float):
+    def __init__(self, sky: skymod.Sky, band_spectra: dict, index: int, heading_deg: float,
+                 glare: SunGlare | None = None, sun_band_irradiance=None):
         self.sky = sky
         self.spectra = band_spectra
         self.index = index
         self.heading_deg = heading_deg
+        #: the stray_light effect's sun glare and the band direct-normal irradiance (3, n_frames), W m-2 nm-1
+        self.glare = glare
+        self.sun_band_irradiance = sun_band_irradiance
+
+    def glare_radiance(self, geometry, band_index):
+        """The sun glare's excess (radiance units) at every raw pixel of the zenith lens (0 without it)."""
+        if self.glare is None:
+            return np.zeros(geometry.theta_deg.shape)
+        pattern = self.glare.pattern(geometry.theta_deg, geometry.phi_deg, self.index)
+        return self.sun_band_irradiance[:, self.index][band_index] * pattern
 
     def __call__(self, lens, geometry, band_index):
         i = self.index
@@ -134,6 +154,8 @@ class FieldScene:
         out = np.zeros(geometry.theta_deg.shape)
         for k, pattern in patterns.items():
             out += self.spectra[k][:, i][band_index] * pattern
+        if lens == ZENITH_LENS:
+            out += self.glare_radiance(geometry, band_index)
         return out
 
 
@@ -260,12 +282,24 @@ def plan_field(ctx: SimContext) -> ExperimentPlan:
     peak_rate = brightest_sky_rate_dn_per_s(sky, band_spectra, camera, exclusion)
     exposure_s, rule_met = choose_exposure_s(peak_rate, saturation)
 
+    # the stray_light effect's glare from the sun (simulate/glare.py): the direct beam through the clouds
+    tau_sun = np.array([float(clouds.tau_towards(z, a, t)) for z, a, t in
+                        zip(sky.sun["zenith_deg"], sky.sun["azimuth_deg"], frame_t_s)])
+    wings = [w for w in (e.sun_glare_wings() for e in ctx.effects) if w is not None]
+    glare, sun_band = None, None
+    if wings:
+        transmission = np.exp(-tau_sun / np.cos(np.radians(sky.sun["zenith_deg"].to_numpy())))
+        glare = SunGlare(wings[0], sky.sun["zenith_deg"].to_numpy(),
+                         np.mod(sky.sun["azimuth_deg"].to_numpy() - CAMERA_HEADING_DEG, 360.0), transmission)
+        sun_band = band_w @ sky.spectra.direct_normal                                      # (3, n_frames)
+
     lit = tuple(camera.lens_names)
     frames = []
     for i in range(N_FRAMES):
         clock = START_LOCAL + timedelta(seconds=float(frame_t_s[i]) + clock_offset_s)
         frames.append(FrameSpec(ZENITH_LENS, "signal", ISO, exposure_s, {},
-                                FieldScene(sky, band_spectra, i, CAMERA_HEADING_DEG), time=clock, lit=lit))
+                                FieldScene(sky, band_spectra, i, CAMERA_HEADING_DEG, glare, sun_band),
+                                time=clock, lit=lit))
 
     # truth at the frames: pixel mean of the band radiance in the 9-degree mask, and the cone mean
     geo = lens_geometry(ZENITH_LENS, "air", lens_px)
@@ -277,14 +311,15 @@ def plan_field(ctx: SimContext) -> ExperimentPlan:
     ref_spectra = sky.band_spectra(ref_w)
     ref_at_frames = sum(ref_spectra[k] * cone[k][None, :] for k in skymod.COMPONENTS)    # (19, n_frames)
     mask_band = np.empty((len(BANDS), N_FRAMES))
+    mask_glare = np.zeros((len(BANDS), N_FRAMES))
     for i, spec in enumerate(frames):
         radiance = spec.radiance(ZENITH_LENS, geo, band_index)
+        excess = spec.radiance.glare_radiance(geo, band_index)
         for b in range(len(BANDS)):
             mask_band[b, i] = radiance[mask & (band_index == b)].mean()
+            mask_glare[b, i] = excess[mask & (band_index == b)].mean()
     tau_zenith = clouds.tau_towards(np.broadcast_to(cz, (N_FRAMES, cz.size)), sky_direction(cz, ca)[1],
                                     frame_t_s[:, None]).mean(axis=1)
-    tau_sun = np.array([float(clouds.tau_towards(z, a, t)) for z, a, t in
-                        zip(sky.sun["zenith_deg"], sky.sun["azimuth_deg"], frame_t_s)])
 
     # the reference series: 6 Hz in UTC, on exact milliseconds
     n_ref = int(round((frame_t_s[-1] + 2 * REFERENCE_MARGIN_S) * REFERENCE_RATE_HZ)) + 1
@@ -322,9 +357,15 @@ def plan_field(ctx: SimContext) -> ExperimentPlan:
             "zenith_cloud_optical_depth": tau_zenith,
             "sun_cloud_optical_depth": tau_sun,
             "mask_band_radiance_W_sr_m2_nm": {b: mask_band[j] for j, b in enumerate(BANDS)},
+            "mask_sun_glare_W_sr_m2_nm": {b: mask_glare[j] for j, b in enumerate(BANDS)},
+            "sun_direct_band_irradiance_W_m2_nm": ({b: sun_band[j] for j, b in enumerate(BANDS)}
+                                                   if sun_band is not None else None),
             "cone_band_radiance_W_sr_m2_nm": {b: cone_band[j] for j, b in enumerate(BANDS)},
             "reference_true_W_sr_m2_nm": {f"L_{c}": ref_at_frames[j] for j, c in enumerate(REFERENCE_CHANNELS_NM)},
         },
+        "sun_glare": ({**wings[0], "form": "image-plane Moffat wings f (p-2)/(2 pi d0^2) (1 + (d/d0)^2)^(-p/2), "
+                       "d in the equidistant image plane, times the band direct-normal irradiance through the "
+                       "clouds (simulate/glare.py); included in mask_band_radiance"} if wings else None),
         "mask": {"half_angle_deg": REFERENCE_HALF_FOV_DEG,
                  "pixels_per_band": [int(np.sum(mask & (band_index == b))) for b in range(len(BANDS))],
                  "mask_band_radiance": "mean over the raw pixels of each band within the half angle (true optics)",

@@ -66,6 +66,17 @@ minimisation within one grid step; the standard error is sqrt(2 / chi2'')
 from the curvature of a parabola fitted to the total chi-square at five
 points one grid step apart around the minimum, times sqrt(reduced chi2) when
 that exceeds 1. The reference is then taken at t - c.
+
+Stray light from the sun (``stray_light``): every frame counts the band
+pixels of the lens near full scale (``field.sun_seen_fraction_of_full_scale``;
+the sun is seen with ``field.sun_seen_min_pixels`` or more) and the match-up
+table carries the covariate of :mod:`pipeline.radiometry.sun_glare` (band
+clear-sky direct irradiance x seen x (Z_ref / Z)^q, the mask at the zenith
+being Z from the sun). With the effect in the model its one coefficient is
+fitted with the band scales, reported (``stray_light_glare_sr``, sr-1, and
+the fitted glare in the mask per frame and band) and taken out of the band
+scales; a coefficient ``field.stray_light_negative_sigma`` standard errors
+below zero stops the stage (stray light only adds light).
 """
 
 from __future__ import annotations
@@ -87,6 +98,7 @@ from pipeline.matchup import BOOTSTRAPPED, STATISTIC_UNITS, matchup_statistics
 from pipeline.observations import fit_with_effects, table_to_dataset
 from pipeline.radiometry import measurement as mm
 from pipeline.radiometry.spectral import band_weights
+from pipeline.radiometry.sun_glare import band_direct_irradiance, sun_glare_covariate
 
 log = logging.getLogger("pipeline.stages.field")
 
@@ -292,11 +304,12 @@ def fit_clock_offset(y, sy, series, times_s, width, min_samples, search_s, step_
 
 
 # --------------------------------------------------------------------------- the stage
-def _sun_zenith_deg(times_utc: pd.DatetimeIndex, site: dict) -> np.ndarray:
+def _sun_position(times_utc: pd.DatetimeIndex, site: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Solar zenith angle and apparent elevation (deg) by pvlib's SPA."""
     from pvlib.solarposition import get_solarposition
 
     pos = get_solarposition(times_utc, site["latitude_deg"], site["longitude_deg"], altitude=site.get("altitude_m"))
-    return pos["zenith"].to_numpy(float)
+    return pos["zenith"].to_numpy(float), pos["apparent_elevation"].to_numpy(float)
 
 
 def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma):
@@ -317,7 +330,9 @@ def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma):
         temp = float(row["temperature_c"]) if "temperature_c" in row and pd.notna(row.get("temperature_c")) else None
         frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso), temperature_c=temp)
         images = dec.lenses[lens]
-        out = {"file": row["file"], "local_time": raw.time, "exposure_s": frame.exposure_s, "iso": frame.iso}
+        out = {"file": row["file"], "local_time": raw.time, "exposure_s": frame.exposure_s, "iso": frame.iso,
+               # the sun disc is the one thing near full scale in a sky frame: it is seen when these are many
+               "lens_n_bright": _n_bright(images, raw, float(ctx.params["sun_seen_fraction_of_full_scale"]))}
         for band in BANDS:
             m = band_radiance(images, bundle, lens, band, MEDIUM, ctx.effects, frame, window=window,
                               negative_sigma=negative_sigma, source=row["path"])
@@ -337,6 +352,13 @@ def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma):
     if not rows:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no frames of lens '{lens}'")
     return pd.DataFrame(rows), inputs, sky
+
+
+def _n_bright(images, raw, fraction: float) -> int:
+    """Band pixels of the lens (all bands) at or above ``fraction`` of the full scale above the black level."""
+    black = float(raw.black_level)
+    level = black + fraction * (float(raw.white_level) - black)
+    return int(sum(int(np.count_nonzero(images.bands[b] >= level)) for b in BANDS))
 
 
 def _sky_map(images, bundle, lens, frame, effects, grid_deg, name, source):
@@ -421,7 +443,18 @@ def compute(ctx) -> xr.Dataset:
     st = {key: w.stats(centres, width) for key, w in ws.items()}
     channel_st = [WindowedSeries(ref_t, ref_values[:, c]).stats(centres, width) for c in range(channels.size)]
     channel_mean = np.stack([c["mean"] for c in channel_st], axis=1)       # (frame, channel)
-    sun_zenith = _sun_zenith_deg(utc - pd.to_timedelta(shift, unit="s"), site)
+    sun_zenith, sun_elevation = _sun_position(utc - pd.to_timedelta(shift, unit="s"), site)
+    # the stray_light effect's covariate: the sun's clear-sky direct beam in each band, seen or not, at the
+    # mask's angle from the sun (radiometry/sun_glare.py)
+    sun_seen = (frames["lens_n_bright"].to_numpy() >= int(cfg["sun_seen_min_pixels"])).astype(float)
+    day = int((utc - pd.to_timedelta(shift, unit="s"))[0].day_of_year)
+    sun_direct = np.stack([band_direct_irradiance(resp_nm, bundle["response"].sel(lens=ctx.lens, band=b).values,
+                                                  90.0 - sun_elevation, day, float(cfg["clear_sky_aod700"]),
+                                                  float(cfg["clear_sky_angstrom_exponent"]),
+                                                  float(cfg["clear_sky_ozone_atm_cm"])) for b in BANDS], axis=1)
+    glare_cov = sun_glare_covariate(sun_direct, sun_seen[:, None], sun_zenith[:, None],
+                                    float(cfg["stray_light_angle_exponent"]),
+                                    float(cfg["stray_light_reference_angle_deg"]))          # (frame, band)
 
     # match-ups: enough reference samples for both comparisons and a camera value
     valid = {b: (st[("nearest", b)]["count"] >= min_n) & (st[("convolved", b)]["count"] >= min_n) & np.isfinite(y[b])
@@ -474,22 +507,57 @@ def compute(ctx) -> xr.Dataset:
                 "dref_dt": float(pred_series["slope"][f]),
                 "spectral_slope": spectral_slope(channels, channel_mean[f], lam_eff[j]),
                 "sun_zenith_deg": float(sun_zenith[f]),
+                "sun_seen": float(sun_seen[f]),
+                "sun_glare_covariate": float(glare_cov[f, j]),
             })
     table = pd.DataFrame(rows, columns=["group", "band", "frame", "time_s", "value_dn", "sigma_dn", "x_scale",
-                                        "ref_nearest", "ref_convolved", "dref_dt", "spectral_slope", "sun_zenith_deg"])
+                                        "ref_nearest", "ref_convolved", "dref_dt", "spectral_slope", "sun_zenith_deg",
+                                        "sun_seen", "sun_glare_covariate"])
     few = [b for b in BANDS if valid[b].sum() < 3]
     if few:
         # three points are the fewest a line with an interval (N - 2 degrees of freedom) needs
         raise InputError(ref_path, f"only {min(int(valid[b].sum()) for b in few)} of {len(frames)} frames have "
                                    f"{min_n} or more reference samples within {width:g} s (band {few[0]}): "
                                    "a match-up needs at least 3")
-    fit, _ = fit_with_effects(table, "frame", ctx.effects, STAGE)
+    fit, coefs = fit_with_effects(table, "frame", ctx.effects, STAGE)
     table["pred_dn"] = fit.pred
     table["z"] = fit.z
-    scales = np.array([float(np.nanmean((table["pred_dn"] / table["x_scale"])[table["band"] == b])) for b in BANDS])
-    return _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_reference, stat, n_matchups,
-                    table, fit, scales, nearest_idx, channels, lam_eff, conv_w, outside, sky, predict, sun_zenith,
-                    masks, window)
+    glare = None
+    base_pred = table["pred_dn"].to_numpy(float)
+    if "stray_light" in coefs:
+        coef, se = coefs["stray_light"]
+        glare = {"coef": float(coef[0]), "se": float(se[0])}
+        base_pred = base_pred - glare["coef"] * table["sun_glare_covariate"].to_numpy(float)
+        if glare["coef"] < -float(cfg["stray_light_negative_sigma"]) * glare["se"]:
+            raise ImpossibleResult(root / STAGE, f"the fitted sun glare is negative ({glare['coef']:.3g} +- "
+                                                 f"{glare['se']:.2g} sr-1): stray light only adds light; something "
+                                                 "else in the field residuals follows the sun")
+        log.info("field %s: sun glare %.3g +- %.2g sr-1 at %g degree from the sun", ctx.lens, glare["coef"],
+                 glare["se"], float(cfg["stray_light_reference_angle_deg"]))
+    scales = np.array([float(np.nanmean((base_pred / table["x_scale"])[table["band"] == b])) for b in BANDS])
+    out = _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_reference, stat, n_matchups,
+                   table, fit, scales, nearest_idx, channels, lam_eff, conv_w, outside, sky, predict, sun_zenith,
+                   masks, window)
+    out["sun_seen"] = ("frame", sun_seen.astype(np.int8),
+                       _attrs(f"1: the sun disc is seen (at least {cfg['sun_seen_min_pixels']} band pixels in the "
+                              f"lens at {cfg['sun_seen_fraction_of_full_scale']:g} of the full scale or above)", "1"))
+    out["lens_n_bright"] = ("frame", frames["lens_n_bright"].to_numpy(int), _attrs(
+        f"band pixels in the lens, all bands, at {cfg['sun_seen_fraction_of_full_scale']:g} of the full scale or above",
+        "1"))
+    out["sun_direct_band_irradiance"] = (("frame", "band"), sun_direct, _attrs(
+        "clear-sky direct-normal irradiance in the band (G173 top of atmosphere, Rayleigh and aerosol, Eq. 3)",
+        "W m-2 nm-1"))
+    out["sun_glare_covariate"] = (("frame", "band"), glare_cov, _attrs(
+        "stray_light covariate: band direct irradiance x sun seen x (Z_ref / Z)^q", "W m-2 nm-1"))
+    if glare is not None:
+        z_ref = float(cfg["stray_light_reference_angle_deg"])
+        out["stray_light_glare_sr"] = ((), glare["coef"], _attrs(
+            f"fitted spread of the sun's direct irradiance into the mask at {z_ref:g} degree from the sun "
+            "(glare radiance per unit irradiance)", "sr-1"))
+        out["stray_light_glare_sr_sigma"] = ((), glare["se"], _attrs("standard error of stray_light_glare_sr", "sr-1"))
+        out["stray_light_mask_glare"] = (("frame", "band"), glare["coef"] * glare_cov,
+                                         _attrs("fitted sun glare in the mask's mean radiance", RAD))
+    return out
 
 
 def _attrs(long_name, units, **extra):
@@ -601,7 +669,7 @@ def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_referen
     obs = table_to_dataset(table, "obs_frame")
     units = {"value_dn": RAD, "sigma_dn": RAD, "x_scale": RAD, "pred_dn": RAD, "ref_nearest": RAD, "ref_convolved": RAD,
              "dref_dt": "W sr-1 m-2 nm-1 s-1", "spectral_slope": "1", "sun_zenith_deg": "degree", "time_s": "s",
-             "z": "1", "frame": "1"}
+             "z": "1", "frame": "1", "sun_seen": "1", "sun_glare_covariate": "W m-2 nm-1"}
     for col, u in units.items():
         obs[f"obs_frame__{col}"].attrs.update(units=u, long_name=f"match-up table: {col}")
     for col in ("group", "band"):
