@@ -200,10 +200,25 @@ def brightest_sky_rate_dn_per_s(sky: skymod.Sky, band_spectra: dict, camera, exc
     return best
 
 
-def choose_exposure_s(peak_rate_dn_per_s: float, saturation_dn: float) -> tuple[float, bool]:
-    """The longest dark-plan exposure with the peak below 70 % of saturation (else the shortest, False)."""
-    ok = [t for t in sorted(DarkPlan().exposures_s) if peak_rate_dn_per_s * t * ISO / 100.0
-          <= EXPOSURE_PEAK_FRACTION * saturation_dn]
+def recorded_dn(rate_dn_per_s: float, exposure_s: float, effects=()) -> float:
+    """DN above dark that a rate (DN/s at ISO 100, nominal exposure) gives in the frame the camera records:
+    the true exposure and gain (shutter offset, per-ISO gain factor when ``effects`` have them)."""
+    t_true, factor = exposure_s, 1.0
+    for e in effects:
+        t_true = e.true_exposure_s(t_true)
+        factor *= e.gain_factor(ISO)
+    return rate_dn_per_s * t_true * ISO / 100.0 * factor
+
+
+def choose_exposure_s(peak_rate_dn_per_s: float, saturation_dn: float, effects=()) -> tuple[float, bool]:
+    """The longest dark-plan exposure with the peak below 70 % of saturation (else the shortest, False).
+
+    The user judges the exposure on what the camera records, so the peak is
+    taken with the camera's true exposure and gain (:func:`recorded_dn`), not
+    the nominal ones.
+    """
+    ok = [t for t in sorted(DarkPlan().exposures_s)
+          if recorded_dn(peak_rate_dn_per_s, t, effects) <= EXPOSURE_PEAK_FRACTION * saturation_dn]
     if ok:
         return float(ok[-1]), True
     return float(min(DarkPlan().exposures_s)), False
@@ -280,7 +295,7 @@ def plan_field(ctx: SimContext) -> ExperimentPlan:
     saturation = _saturation_dn(camera)
     exclusion = sun_radius + deg_per_px
     peak_rate = brightest_sky_rate_dn_per_s(sky, band_spectra, camera, exclusion)
-    exposure_s, rule_met = choose_exposure_s(peak_rate, saturation)
+    exposure_s, rule_met = choose_exposure_s(peak_rate, saturation, ctx.effects)
 
     # the stray_light effect's glare from the sun (simulate/glare.py): the direct beam through the clouds
     tau_sun = np.array([float(clouds.tau_towards(z, a, t)) for z, a, t in
@@ -342,7 +357,8 @@ def plan_field(ctx: SimContext) -> ExperimentPlan:
         "iso": ISO,
         "exposure_s": exposure_s,
         "exposure_rule": {"peak_fraction_of_saturation": EXPOSURE_PEAK_FRACTION, "met": rule_met,
-                          "brightest_sky_fraction_of_saturation": peak_rate * exposure_s * ISO / 100 / saturation,
+                          "brightest_sky_fraction_of_saturation":
+                              recorded_dn(peak_rate, exposure_s, ctx.effects) / saturation,
                           "sun_exclusion_deg": exclusion},
         "clock_offset_s": clock_offset_s,
         "camera_heading_deg": CAMERA_HEADING_DEG,
