@@ -74,7 +74,7 @@ munge -n </dev/null | unmunge >/dev/null || die "munged does not answer (see /va
 
 # --- slurm.conf: this host as controller and its one node, with its real CPUs and memory -------
 HOST=$(hostname -s)
-NODE_LINE=$(slurmd -C | head -n 1)   # NodeName=HOST CPUs=... RealMemory=... as slurmd sees them
+NODE_LINE=$(slurmd -C | sed -n 1p)   # NodeName=HOST CPUs=... RealMemory=... as slurmd sees them
 [[ "$NODE_LINE" == NodeName=* ]] || die "slurmd -C did not describe this node: '$NODE_LINE'"
 install -d -m 0755 "$CONF_DIR" "$STATE" "$SPOOL" "$LOGS" "$RUN"
 NEW_CONF=$(cat <<EOF
@@ -110,7 +110,6 @@ $NODE_LINE NodeAddr=127.0.0.1 State=UNKNOWN
 PartitionName=main Nodes=$HOST Default=YES MaxTime=INFINITE State=UP
 EOF
 )
-NEW_CONF=$(grep -v '^UpTime=' <<<"$NEW_CONF")
 if [[ ! -f "$CONF" ]] || [[ "$(cat "$CONF")" != "$NEW_CONF" ]]; then
     printf '%s\n' "$NEW_CONF" >"$CONF"
     # a changed configuration: restart the daemons this script started
