@@ -53,8 +53,17 @@ if ! command -v slurmctld >/dev/null || ! command -v slurmd >/dev/null || ! comm
     || ! command -v munged >/dev/null; then
     echo "slurm_single_node: installing slurmctld, slurmd, slurm-client and munge"
     export DEBIAN_FRONTEND=noninteractive
+    # the packages' scripts must not start the daemons (no slurm.conf yet): this script starts them
+    policy=""
+    if [[ ! -e /usr/sbin/policy-rc.d ]]; then
+        policy=/usr/sbin/policy-rc.d
+        printf '#!/bin/sh\nexit 101\n' >"$policy"
+        chmod +x "$policy"
+        trap 'rm -f "$policy"' EXIT
+    fi
     apt-get update -q
     apt-get install -y -q slurmctld slurmd slurm-client munge
+    [[ -z "$policy" ]] || { rm -f "$policy"; trap - EXIT; }
 fi
 
 # --- munge: the credentials slurmctld and slurmd exchange ------------------------------------
