@@ -8,15 +8,19 @@ the repository's Snakefile.
 from __future__ import annotations
 
 import json
+import re
 import shutil
+import subprocess
 from pathlib import Path
+
+import numpy as np
 
 import pandas as pd
 import pytest
 import xarray as xr
 import yaml
 
-from workflow_runs import LENSES, planned_jobs, planned_rules, snakemake
+from workflow_runs import LENSES, REPO, planned_jobs, planned_rules, snakemake
 
 
 @pytest.fixture(scope="module")
@@ -54,6 +58,67 @@ def test_artefacts_and_report(run):
 def test_nothing_to_do_when_nothing_changed(run):
     workdir, dataset = run
     assert planned_rules(workdir, dataset) == set()
+
+
+def slurm_unavailable() -> str | None:
+    """Why the workflow cannot be sent to SLURM here, or None when a node is up."""
+    if shutil.which("sinfo") is None:
+        return "no SLURM client (sinfo); start the single-node cluster with scripts/slurm_single_node.sh"
+    proc = subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True, timeout=30)
+    states = proc.stdout.split()
+    if proc.returncode != 0 or not {"idle", "mixed", "allocated"} & set(states):
+        reason = (proc.stderr.strip().splitlines() or [f"node states {states}"])[-1]
+        return f"no SLURM node up ({reason}); start one with scripts/slurm_single_node.sh"
+    return None
+
+
+def _sbatch_requests(out: str) -> dict[str, tuple[str, int, int]]:
+    """From the run's log: SLURM job id -> (rule, threads, mem_mb) that Snakemake printed for the job."""
+    declared = {}
+    for block in re.split(r"\n(?=(?:local)?rule \w+:\n)", out):
+        head = re.match(r"(?:local)?rule (\w+):", block)
+        jobid = re.search(r"^\s+jobid: (\d+)$", block, re.M)
+        if head and jobid:
+            threads = re.search(r"^\s+threads: (\d+)$", block, re.M)   # printed only when more than 1
+            mem = re.search(r"^\s+resources: .*\bmem_mb=(\d+)", block, re.M)
+            declared[jobid.group(1)] = (head.group(1), int(threads.group(1)) if threads else 1,
+                                        int(mem.group(1)))
+    return {slurm: declared[job] for job, slurm in
+            re.findall(r"Job (\d+) has been submitted with SLURM jobid (\d+)", out)}
+
+
+@pytest.mark.slurm
+def test_slurm_profile_writes_the_local_artefacts(run, tmp_path):
+    """The dark and linearity jobs of both lenses sent to SLURM through profiles/slurm (the executor
+    plugin, its squeue status query): each SLURM job asks for its rule's threads and memory, and the
+    artefacts' variables are bit-identical to the local run's (the stages are deterministic: same frames,
+    same configuration). Only the creation time and the upstream artefact's hash (which includes that
+    time) differ among the attributes."""
+    reason = slurm_unavailable()
+    if reason:
+        pytest.skip(reason)
+    local, dataset = run
+    targets = tuple(f"results/{stage}/{lens}.nc" for stage in ("dark", "linearity") for lens in LENSES)
+    # the first status query 1 s after submission (the profile's default suits a shared cluster)
+    proc = snakemake(tmp_path, dataset, "--profile", str(REPO / "profiles/slurm"),
+                     "--slurm-init-seconds-before-status-checks", "1", targets=targets)
+    out = proc.stdout + proc.stderr
+    requests = _sbatch_requests(out)
+    assert sorted(rule for rule, _, _ in requests.values()) == ["dark", "dark", "linearity", "linearity"], out[-3000:]
+    for slurm_id, (rule, threads, mem_mb) in requests.items():
+        # squeue keeps a finished job for MinJobAge (300 s): what SLURM granted it
+        got = subprocess.run(["squeue", "-h", "--states=all", "-j", slurm_id, "-o", "%C|%m|%T"],
+                             capture_output=True, text=True, timeout=30).stdout.split("|")
+        assert got == [str(threads), f"{mem_mb}M", "COMPLETED\n"], (rule, slurm_id, got)
+    ignored = {"created", "input_sha256"}
+    for target in targets:
+        with xr.open_dataset(local / target) as a, xr.open_dataset(tmp_path / target) as b:
+            kept_a, kept_b = ({k: v for k, v in ds.attrs.items() if k not in ignored} for ds in (a, b))
+            assert kept_a == kept_b, target
+            a.attrs, b.attrs = {}, {}
+            xr.testing.assert_identical(a, b)     # names, dimensions, coordinates, values, variables' attributes
+            for name in a.variables:              # and bit for bit
+                assert np.asarray(a[name].values).tobytes() == np.asarray(b[name].values).tobytes(), (target, name)
 
 
 def test_each_lens_is_its_own_job_and_the_run_ends_with_a_summary(run, tmp_path):

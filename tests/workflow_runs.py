@@ -15,8 +15,11 @@ SNAKEMAKE = Path(sys.executable).with_name("snakemake")
 LENSES = ("far", "close")
 
 
-def snakemake(workdir: Path, dataset: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
-    cmd = [str(SNAKEMAKE), "-s", str(REPO / "Snakefile"), "--cores", "2", "--config", f"dataset={dataset}",
+def snakemake(workdir: Path, dataset: Path, *args: str, check: bool = True,
+              targets: tuple[str, ...] = ()) -> subprocess.CompletedProcess:
+    """Run the workflow in ``workdir`` on ``dataset``; ``targets`` (output files) before the options, which
+    --config would otherwise swallow."""
+    cmd = [str(SNAKEMAKE), "-s", str(REPO / "Snakefile"), *targets, "--cores", "2", "--config", f"dataset={dataset}",
            *args]
     proc = subprocess.run(cmd, cwd=workdir, capture_output=True, text=True, timeout=600)
     if check and proc.returncode != 0:

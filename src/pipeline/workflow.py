@@ -244,8 +244,21 @@ def _module_path(name: str) -> Path | None:
     return None
 
 
-def _package_imports(path: Path) -> set[str]:
+#: (path, mtime_ns, size) -> the file's pipeline imports: every rule's code param walks the same modules,
+#: so each file is parsed once per workflow process (an edited file has a new key)
+_IMPORTS_CACHE: dict[tuple[str, int, int], frozenset[str]] = {}
+
+
+def _package_imports(path: Path) -> frozenset[str]:
     """The ``pipeline.*`` modules a source file imports (at any depth of the file)."""
+    stat = path.stat()
+    key = (str(path), stat.st_mtime_ns, stat.st_size)
+    if key not in _IMPORTS_CACHE:
+        _IMPORTS_CACHE[key] = frozenset(_parse_package_imports(path))
+    return _IMPORTS_CACHE[key]
+
+
+def _parse_package_imports(path: Path) -> set[str]:
     import ast
 
     out = set()

@@ -11,8 +11,11 @@ from pipeline.workflow import (
     stage_code_sha256,
     stage_params,
 )
-from pipeline.calibration import BUNDLE_STAGES as CALIBRATION_STAGES
-from pipeline.calibration import REQUIRED_STAGES as CALIBRATION_REQUIRED
+
+# from the artefact module, not pipeline.calibration: the Snakefile (parsed again by every cluster job)
+# then does not import the radiometry and scipy.stats
+from pipeline.artefact import BUNDLE_STAGES as CALIBRATION_STAGES
+from pipeline.artefact import BUNDLE_REQUIRED_STAGES as CALIBRATION_REQUIRED
 
 DATASET = Path(config["dataset"])
 try:
