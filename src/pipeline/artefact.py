@@ -28,9 +28,10 @@ from pipeline.errors import ArtefactError
 #: the same for its air and water frames; calibration 2: the per-pixel maps stored uncompressed and
 #: contiguous (a band image of one lens and medium reads as one block), see pipeline.calibration;
 #: calibration 3: the azimuthal roll-off term (amplitude, phase, their sigmas) and the flat field's per-pixel
-#: uncertainty, which the chain applies.
-ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 1, "rolloff": 1, "spectral": 2,
-                     "absolute": 2, "immersion": 2, "calibration": 3, "field": 1}
+#: uncertainty, which the chain applies; geometry 2: the covariance of the fitted model and the theta
+#: uncertainty it gives (theta_deg_sigma per band pixel, a 1-D summary); calibration 4: theta_deg_sigma.
+ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 2, "rolloff": 1, "spectral": 2,
+                     "absolute": 2, "immersion": 2, "calibration": 4, "field": 1}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

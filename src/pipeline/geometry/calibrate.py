@@ -15,6 +15,10 @@ Steps, as in Scaramuzza et al. (2006) and the OCamCalib toolbox:
    centre, the stretch and the polynomial, minimising reprojection error in
    pixels. Frames with too few corners, a failed initialisation or wild
    errors are dropped and reported.
+4. Covariance of the model parameters (:func:`intrinsic_covariance`): the
+   Gauss-Newton covariance of all parameters at the solution, scaled by the
+   reduced chi-square of the corner residuals; its block of the centre,
+   stretch and polynomial is that of the poses profiled out.
 
 Internally the polynomial is written in rho / r_norm (r_norm = half the
 image's short side) so that all coefficients are of similar size.
@@ -34,6 +38,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .scaramuzza import FisheyeModel
+from .theta_uncertainty import parameter_names
 
 #: Penalty (pixels) for a point the model cannot project (outside its domain).
 _UNPROJECTABLE_PX = 1.0e3
@@ -56,6 +61,13 @@ class CalibrationResult:
     n_points_dropped: int = 0                    # single outlier corners removed
     success: bool = True
     message: str = ""
+    #: names of the model parameters the covariance is over (pipeline.geometry.theta_uncertainty.parameter_names)
+    parameter_names: tuple = ()
+    #: their covariance (units of the parameters: pixel, 1, pixel^(1-k)), board poses profiled out
+    parameter_covariance: np.ndarray | None = None
+    #: sum of squared corner residuals over the degrees of freedom (px^2): the corner noise the covariance assumes
+    reduced_chi2_px2: float = float("nan")
+    n_dof: int = 0
 
     def residuals_vs_radius(self, n_bins: int = 10):
         """Mean residual norm in radial bins: (bin centres px, mean px, counts)."""
@@ -306,7 +318,45 @@ def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev):
     model, pose, _ = _unpack(sol.x, n_f, degree, r_norm, shape, stretch)
     res = sol.fun.reshape(-1, 2)
     poses = [(_rodrigues(p[:3])[0], p[3:].copy()) for p in pose]
-    return model, poses, res, frame_of_pt, sol
+    return model, poses, res, frame_of_pt, sol, jacobian(sol.x), n_intr
+
+
+def intrinsic_covariance(J: np.ndarray, residuals: np.ndarray, n_intrinsic: int) -> tuple[np.ndarray, float, int]:
+    """Covariance of the first ``n_intrinsic`` parameters of a least-squares fit, the rest profiled out.
+
+    C = s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - p) the reduced chi-square of
+    the residuals (each corner coordinate taken as one measurement of equal,
+    unknown variance, estimated from the fit). The top-left block of the full
+    inverse is the inverse of the Schur complement of the nuisance block:
+    the covariance with the nuisance parameters (the board poses) re-fitted
+    at every value of the others, to first order the same as marginalising
+    them. Columns are scaled to unit norm before the inversion (centre in
+    pixels, coefficients and poses in normalised units differ by orders of
+    magnitude). Returns (covariance, s^2, n - p); ValueError when J^T J is
+    singular (a parameter the data do not constrain).
+    """
+    n, p = J.shape
+    dof = n - p
+    if dof <= 0:
+        raise ValueError(f"{n} residuals for {p} parameters: no degrees of freedom for a covariance")
+    s2 = float(residuals @ residuals) / dof
+    norm = np.linalg.norm(J, axis=0)
+    if not np.all(norm > 0):
+        raise ValueError("a model parameter does not change the reprojection (zero Jacobian column)")
+    Js = J / norm
+    eig = np.linalg.eigvalsh(Js.T @ Js)
+    if eig[0] <= 1e-12 * eig[-1]:
+        raise ValueError(f"the normal matrix is singular (condition {eig[-1] / max(eig[0], 1e-300):.1e}): "
+                         "a parameter combination is not constrained by the corners")
+    cov = np.linalg.inv(Js.T @ Js) / np.outer(norm, norm)
+    return s2 * cov[:n_intrinsic, :n_intrinsic], s2, dof
+
+
+def _to_model_units(cov_x: np.ndarray, n_head: int, degree: int, r_norm: float) -> np.ndarray:
+    """Covariance of (centre, stretch, b0, b2..bN) converted to the coefficients a_k = b_k r_norm^(1-k)."""
+    powers = [0] + list(range(2, degree + 1))
+    scale = np.concatenate([np.ones(n_head), [r_norm ** (1 - k) for k in powers]])
+    return cov_x * np.outer(scale, scale)
 
 
 def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
@@ -384,7 +434,7 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
 
     n_points_dropped = 0
     while True:
-        model, poses, res, frame_of_pt, ls = _refine(frames, L, model, poses, degree,
+        model, poses, res, frame_of_pt, ls, jac, n_intr = _refine(frames, L, model, poses, degree,
                                                      r_norm, stretch, max_nfev)
         err = np.linalg.norm(res, axis=1)
         rms = np.array([np.sqrt(np.mean(err[frame_of_pt == k] ** 2)) for k in range(len(frames))])
@@ -420,6 +470,9 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         R, t = poses[k]
         out_poses[i] = (_rotvec(R), t * L)
         frame_rms[i] = rms[k]
+    names = parameter_names(stretch, degree)
+    cov_x, s2, dof = intrinsic_covariance(jac, ls.fun, n_intr)
+    cov = _to_model_units(cov_x, n_intr - degree, degree, r_norm)
     uv_used = np.concatenate([uv for uv, _ in frames])
     x, y = model._sensor_xy(uv_used[:, 0], uv_used[:, 1])
     return CalibrationResult(
@@ -428,4 +481,5 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         residuals_px=res, residual_rho_px=np.hypot(x, y), used_frames=list(idx),
         dropped=dropped, linear_centre=tuple(centre), n_points_dropped=n_points_dropped,
         success=bool(ls.success),
-        message=str(ls.message))
+        message=str(ls.message), parameter_names=names, parameter_covariance=cov, reduced_chi2_px2=s2,
+        n_dof=int(dof))
