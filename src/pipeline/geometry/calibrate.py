@@ -15,8 +15,9 @@ Steps, as in Scaramuzza et al. (2006) and the OCamCalib toolbox:
    centre, the stretch and the polynomial, minimising reprojection error in
    pixels. Frames with too few corners, a failed initialisation or wild
    errors are dropped and reported.
-4. Covariance of the model parameters (:func:`intrinsic_covariance`): the
-   Gauss-Newton covariance of all parameters at the solution, scaled by the
+4. Covariance of the model parameters (:func:`intrinsic_covariance`) from
+   the Jacobian at the solution: by default cluster-robust over the boards
+   (the corners of one board share detection errors), or scaled by the
    reduced chi-square of the corner residuals; its block of the centre,
    stretch and polynomial is that of the poses profiled out.
 
@@ -64,6 +65,7 @@ class CalibrationResult:
     #: names of the model parameters the covariance is over (pipeline.geometry.theta_uncertainty.parameter_names)
     parameter_names: tuple = ()
     #: their covariance (units of the parameters: pixel, 1, pixel^(1-k)), board poses profiled out
+    #: (estimated as calibrate's ``covariance`` says)
     parameter_covariance: np.ndarray | None = None
     #: sum of squared corner residuals over the degrees of freedom (px^2): the corner noise the covariance assumes
     reduced_chi2_px2: float = float("nan")
@@ -321,19 +323,29 @@ def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev):
     return model, poses, res, frame_of_pt, sol, jacobian(sol.x), n_intr
 
 
-def intrinsic_covariance(J: np.ndarray, residuals: np.ndarray, n_intrinsic: int) -> tuple[np.ndarray, float, int]:
+def intrinsic_covariance(J: np.ndarray, residuals: np.ndarray, n_intrinsic: int,
+                         groups: np.ndarray | None = None) -> tuple[np.ndarray, float, int]:
     """Covariance of the first ``n_intrinsic`` parameters of a least-squares fit, the rest profiled out.
 
-    C = s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - p) the reduced chi-square of
-    the residuals (each corner coordinate taken as one measurement of equal,
-    unknown variance, estimated from the fit). The top-left block of the full
-    inverse is the inverse of the Schur complement of the nuisance block:
-    the covariance with the nuisance parameters (the board poses) re-fitted
-    at every value of the others, to first order the same as marginalising
-    them. Columns are scaled to unit norm before the inversion (centre in
-    pixels, coefficients and poses in normalised units differ by orders of
-    magnitude). Returns (covariance, s^2, n - p); ValueError when J^T J is
-    singular (a parameter the data do not constrain).
+    Without ``groups``: C = s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - p) the
+    reduced chi-square of the residuals (every corner coordinate one
+    independent measurement of equal variance, estimated from the fit).
+
+    With ``groups`` (one label per residual, e.g. the board frame): the
+    cluster-robust (sandwich) covariance C = B^-1 M B^-1, B = J^T J,
+    M = G / (G - 1) sum_g J_g^T r_g r_g^T J_g over the G groups: errors may be
+    correlated within a group (a board's corners share its detection errors)
+    but not between groups. At the solution J_g^T r_g vanishes for the
+    group's own pose columns, so M is carried by the shared parameters.
+
+    Either way the top-left block of the full inverse is the inverse of the
+    Schur complement of the nuisance block: the covariance with the nuisance
+    parameters (the board poses) re-fitted at every value of the others, to
+    first order the same as marginalising them. Columns are scaled to unit
+    norm before the inversion (centre in pixels, coefficients and poses in
+    normalised units differ by orders of magnitude). Returns (covariance,
+    s^2, n - p); ValueError when J^T J is singular (a parameter the data do
+    not constrain) or there are too few residuals or groups.
     """
     n, p = J.shape
     dof = n - p
@@ -348,8 +360,18 @@ def intrinsic_covariance(J: np.ndarray, residuals: np.ndarray, n_intrinsic: int)
     if eig[0] <= 1e-12 * eig[-1]:
         raise ValueError(f"the normal matrix is singular (condition {eig[-1] / max(eig[0], 1e-300):.1e}): "
                          "a parameter combination is not constrained by the corners")
-    cov = np.linalg.inv(Js.T @ Js) / np.outer(norm, norm)
-    return s2 * cov[:n_intrinsic, :n_intrinsic], s2, dof
+    bread = np.linalg.inv(Js.T @ Js)
+    if groups is None:
+        cov = s2 * bread
+    else:
+        labels = np.unique(groups)
+        if labels.size < 2:
+            raise ValueError("a cluster-robust covariance needs at least two groups")
+        score = np.stack([Js[groups == g].T @ residuals[groups == g] for g in labels])
+        meat = score.T @ score * labels.size / (labels.size - 1)
+        cov = bread @ meat @ bread
+    cov = cov / np.outer(norm, norm)
+    return cov[:n_intrinsic, :n_intrinsic], s2, dof
 
 
 def _to_model_units(cov_x: np.ndarray, n_head: int, degree: int, r_norm: float) -> np.ndarray:
@@ -365,7 +387,8 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
               point_outlier_factor: float = 5.0,
               centre_half_width_frac: float = 0.1, max_nfev: int = 200,
               half_fov_deg: float | None = None,
-              centre_guess: tuple[float, float] | None = None) -> CalibrationResult:
+              centre_guess: tuple[float, float] | None = None,
+              covariance: str = "board_clustered") -> CalibrationResult:
     """Calibrate a Scaramuzza model from chessboard corners seen in many frames.
 
     Parameters
@@ -391,7 +414,13 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         (e.g. another band's fit): the centre grid search is skipped and the
         linear initialisation is made at this centre (the nonlinear
         refinement still frees it).
+    covariance : how the parameter covariance is estimated
+        (:func:`intrinsic_covariance`): ``"board_clustered"`` (the corners of
+        one board may share errors, boards are independent) or
+        ``"reduced_chi2"`` (every corner coordinate independent).
     """
+    if covariance not in ("board_clustered", "reduced_chi2"):
+        raise ValueError(f"covariance must be 'board_clustered' or 'reduced_chi2', got {covariance!r}")
     if stretch not in ("symmetric", "full", "none"):
         raise ValueError(f"stretch must be 'symmetric', 'full' or 'none', got {stretch!r}")
     n_in = len(image_points)
@@ -471,7 +500,8 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         out_poses[i] = (_rotvec(R), t * L)
         frame_rms[i] = rms[k]
     names = parameter_names(stretch, degree)
-    cov_x, s2, dof = intrinsic_covariance(jac, ls.fun, n_intr)
+    groups = np.repeat(frame_of_pt, 2) if covariance == "board_clustered" else None
+    cov_x, s2, dof = intrinsic_covariance(jac, ls.fun, n_intr, groups)
     cov = _to_model_units(cov_x, n_intr - degree, degree, r_norm)
     uv_used = np.concatenate([uv for uv, _ in frames])
     x, y = model._sensor_xy(uv_used[:, 0], uv_used[:, 1])

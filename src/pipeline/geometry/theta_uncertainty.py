@@ -104,8 +104,9 @@ def theta_sigma_map(model: FisheyeModel, names, covariance, shape=None) -> np.nd
     for r0 in range(0, rows, _ROWS_PER_BLOCK):
         r1 = min(rows, r0 + _ROWS_PER_BLOCK)
         v, u = np.meshgrid(np.arange(r0, r1, dtype=float), u_row, indexing="ij")
-        g = theta_gradient(model, names, u, v)
-        out[r0:r1] = np.sqrt(np.maximum(np.einsum("i...,ij,j...->...", g, cov, g), 0.0))
+        g = theta_gradient(model, names, u, v).reshape(len(names), -1)
+        var = np.sum(g * (cov @ g), axis=0).reshape(r1 - r0, cols)
+        out[r0:r1] = np.sqrt(np.maximum(var, 0.0))
     return out
 
 

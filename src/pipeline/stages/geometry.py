@@ -21,7 +21,11 @@ B initialised at G's centre), half field of view through the fitted model on
 the fitted image circle (Section 3.2), maps (:func:`maps_dataset`), projection
 curves against the equidistant, stereographic and orthographic references
 (Fig. 4a-b), band differences against G (Fig. 4c-d), reprojection errors
-(mean, per frame, against radius, Fig. S1) and the dropped frames with reasons.
+(mean, per frame, against radius, Fig. S1) and the dropped frames with reasons;
+the covariance of the fitted model (``geometry.covariance``) and the theta
+uncertainty it gives (``theta_deg_sigma`` per band pixel,
+``theta_deg_sigma_at_field_angle`` at ``geometry.theta_sigma_summary_deg``;
+:mod:`pipeline.geometry.theta_uncertainty`).
 
 Artefact ``results/geometry/<lens>.nc``: the layout of
 :mod:`pipeline.stages.geometry_maps` plus the variables listed in
@@ -217,7 +221,8 @@ def analyse_geometry(reduced: dict, config: dict, dataset_root: Path) -> dict[st
                     res = calibrate(pts, board.corners_mm(), reduced["maxima"][(lens, medium, band)].shape,
                                     degree=cfg["polynomial_degree"], stretch=cfg["stretch"],
                                     min_frames=cfg["min_frames"], outlier_factor=cfg["frame_outlier_factor"],
-                                    point_outlier_factor=cfg["corner_outlier_factor"], centre_guess=centre)
+                                    point_outlier_factor=cfg["corner_outlier_factor"], centre_guess=centre,
+                                    covariance=cfg["covariance"])
                 except ValueError as exc:
                     raise InputError(folder, f"lens {lens}, {medium}, band {band}: calibration failed ({exc})") from None
                 if res.mean_error_px > cfg["max_mean_error_px"]:
@@ -392,8 +397,10 @@ def _theta_uncertainty(models, results, media, band_shape, cfg) -> xr.Dataset:
         cov[i, j], chi2[i, j] = res.parameter_covariance, res.reduced_chi2_px2
         sigma[i, j] = theta_sigma_map(model, names, res.parameter_covariance, band_shape)
         summary[i, j] = theta_sigma_at_field_angles(model, names, res.parameter_covariance, summary_deg)
+    how = {"board_clustered": "cluster-robust over the boards", "reduced_chi2": "scaled by the reduced chi-square "
+           "of the corner residuals"}[cfg["covariance"]]
     how = ("first-order propagation of the fitted model's parameter covariance (centre, stretch, f(rho) "
-           "coefficients; board poses profiled out; scaled by the reduced chi-square of the corner residuals)")
+           f"coefficients; board poses profiled out; {how})")
     return xr.Dataset(
         {"theta_deg_sigma": (("medium", "band", "y", "x"), sigma, {
              "long_name": f"standard uncertainty of theta_deg at the band pixel centre: {how}", "units": "degree"}),
@@ -402,6 +409,7 @@ def _theta_uncertainty(models, results, media, band_shape, cfg) -> xr.Dataset:
                           "(NaN beyond the half field of view)", "units": "degree"}),
          "geometry_parameter_covariance": (("medium", "band", "geometry_parameter", "geometry_parameter_b"), cov, {
              "long_name": "covariance of the fitted model parameters, board poses profiled out",
+             "estimate": cfg["covariance"],
              "units": "geometry_parameter_units x geometry_parameter_units (per element)"}),
          "corner_residual_reduced_chi2_px2": (("medium", "band"), chi2, {
              "long_name": "squared corner reprojection residual per degree of freedom (the corner noise variance "
