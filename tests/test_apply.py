@@ -53,7 +53,8 @@ def test_bundle_contents_and_provenance(calibrated):
     hashes = json.loads(bundle.attrs["input_sha256"])
     assert set(hashes) == {f"{stage}/{lens}.nc" for stage in BUNDLE_STAGES for lens in LENSES}
     for name in ("theta_deg", "phi_deg", "solid_angle_sr", "rolloff_covariance", "inverse_responsivity",
-                 "immersion_factor", "hot_pixel_mask", "effective_wavelength_nm", "noise_equivalent_radiance"):
+                 "immersion_factor", "hot_pixel_mask", "effective_wavelength_nm", "noise_equivalent_radiance",
+                 "theta_deg_sigma"):
         assert name in bundle, name
         assert "units" in bundle[name].attrs or bundle[name].dtype.kind in "iub", name
 
@@ -68,11 +69,11 @@ def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
     _, _, _, _, bundle_path, _ = calibrated
     with xr.open_dataset(bundle_path) as ds:
         assert ds["theta_deg"].encoding.get("contiguous") and not ds["theta_deg"].encoding.get("zlib")
-    old = tmp_path / "v2.nc"
+    old = tmp_path / "v3.nc"
     shutil.copy(bundle_path, old)
     with netCDF4.Dataset(old, "a") as nc:
-        nc.artefact_version = 2
-    with pytest.raises(ArtefactError, match="calibration artefact version 2 is not the supported version 4"):
+        nc.artefact_version = 4
+    with pytest.raises(ArtefactError, match="calibration artefact version 4 is not the supported version 5"):
         apply_calibration(old, [_signal_frame(calibrated[0], "far")], "air", tmp_path / "out.nc")
 
 

@@ -101,3 +101,43 @@ def test_too_few_frames_raise():
     m, b, pts = _synthetic_points(4, seed=5)
     with pytest.raises(ValueError, match="min_frames"):
         calibrate(pts, b.corners_mm(), m.shape, min_frames=5)
+
+
+def test_board_clustered_covariance_matches_the_scatter_of_the_estimates():
+    """intrinsic_covariance on a linear fit with board-like error structure, against Monte Carlo.
+
+    y = a + b x + c_g z per group g (c_g a nuisance, like a board's pose) plus
+    noise with a part shared within a group (w_g x, w_g ~ N(0, 0.5^2): a
+    board's common detection error) and a white part (N(0, 1)). Over 400
+    draws the mean stated variance of a and b must match the scatter of
+    their estimates: the sampling error of a variance from 400 draws is
+    sqrt(2/400) = 7 %, and the cluster-robust estimate from 30 groups is low
+    by a few per cent (G / (G - 1) corrects most of it), hence 25 %. The
+    reduced chi-square estimate, which takes every point as independent,
+    must be off by more than 1.5x on the shared-error parameter here (else
+    the test could not tell the two apart).
+    """
+    from pipeline.geometry.calibrate import intrinsic_covariance
+
+    rng = np.random.default_rng(7)
+    n_groups, n_per = 30, 20
+    groups = np.repeat(np.arange(n_groups), n_per)
+    x = rng.uniform(-1, 1, groups.size)
+    z = rng.uniform(0, 1, groups.size)
+    J = np.zeros((groups.size, 2 + n_groups))
+    J[:, 0], J[:, 1] = 1.0, x
+    J[np.arange(groups.size), 2 + groups] = z
+    solve = np.linalg.pinv(J)
+    est, var_cl, var_chi2 = [], [], []
+    for _ in range(400):
+        y = 0.5 * rng.normal(size=n_groups)[groups] * x + rng.normal(size=groups.size)
+        beta = solve @ y
+        r = J @ beta - y
+        est.append(beta[:2])
+        var_cl.append(np.diag(intrinsic_covariance(J, r, 2, groups)[0]))
+        var_chi2.append(np.diag(intrinsic_covariance(J, r, 2)[0]))
+    scatter = np.var(np.array(est), axis=0, ddof=1)
+    ratio_cl = np.mean(var_cl, axis=0) / scatter
+    ratio_chi2 = np.mean(var_chi2, axis=0) / scatter
+    assert np.all(np.abs(ratio_cl - 1) < 0.25), ratio_cl
+    assert ratio_chi2[1] < 1 / 1.5, ratio_chi2

@@ -5,13 +5,15 @@ One NetCDF file per camera (``results/calibration/<serial>.nc``) with a
 and hot-pixel mask (Section 2.8), the linearity stage's conversion gain,
 shutter offset, per-ISO gain factors, nonlinearity, saturation level and flat
 field (Section 2.2), the geometry maps theta, phi and solid angle per medium
-and band with the fitted model (Section 2.3), the roll-off with its
+and band with the fitted model (Section 2.3) and the standard uncertainty of
+theta per band pixel (``theta_deg_sigma``, from the fit's covariance), the roll-off with its
 covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``, version 2: the per-pixel
-maps stored uncompressed and contiguous; version 1 files are refused with a
+versioned artefact (``artefact = calibration``, version 4; 2: the per-pixel
+maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
+flat field's uncertainty; 4: theta_deg_sigma; older files are refused with a
 line asking to rebuild) carrying the sha256 of every artefact it came from,
 the model's effects and the camera's make, model and serial number.
 
@@ -101,7 +103,10 @@ def _linearity_part(ds: xr.Dataset) -> xr.Dataset:
 
 
 def _geometry_part(ds: xr.Dataset) -> xr.Dataset:
-    return ds[["theta_deg", "phi_deg", "solid_angle_sr", "poly", *GEOMETRY_SCALARS]]
+    # theta_deg_sigma: the fit's theta uncertainty (geometry artefact 2); a geometry written from known optics
+    # (tests) has none
+    sigma = ["theta_deg_sigma"] if "theta_deg_sigma" in ds else []
+    return ds[["theta_deg", "phi_deg", "solid_angle_sr", "poly", *GEOMETRY_SCALARS, *sigma]]
 
 
 def _rolloff_part(ds: xr.Dataset) -> xr.Dataset:

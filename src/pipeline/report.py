@@ -753,6 +753,7 @@ def _geometry_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
             ("rms reproj. error", "rms_error_px"), ("image circle radius", "circle_radius_px"),
             ("max |θ − θ_G|", "theta_map_max_difference_vs_green_deg")]
     cols = [(t, v) for t, v in cols if v in ds]
+    sigma_theta = "theta_deg_sigma_at_field_angle" in ds    # the fit's theta uncertainty, azimuthal RMS
     rows = []
     for m in media:
         for b in bands:
@@ -760,9 +761,15 @@ def _geometry_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
             if "n_frames_used" in ds and "n_frames" in ds:
                 r.append(f"{fmt_value(float(ds['n_frames_used'].sel(medium=m, band=b)))} / "
                          f"{fmt_value(float(ds['n_frames'].sel(medium=m, band=b)))}")
+            if sigma_theta:
+                values = ds["theta_deg_sigma_at_field_angle"].sel(medium=m, band=b).values
+                r.append(", ".join("–" if not np.isfinite(x) else f"{x:.3f}" for x in values))
             rows.append(r)
     if rows:
         hdr = ["medium", "band"] + [t for t, _ in cols] + (["frames used"] if "n_frames_used" in ds and "n_frames" in ds else [])
+        if sigma_theta:
+            at = ", ".join(f"{x:g}" for x in ds["theta_summary_deg"].values)
+            hdr.append(f"σ(θ) [°] at θ = {at}°")
         out.append("<p>Fitted camera model per medium and band:</p>")
         out.append(_table(hdr, rows, left=2))
     if "obs_frame__reason" in ds:

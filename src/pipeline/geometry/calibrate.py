@@ -15,6 +15,11 @@ Steps, as in Scaramuzza et al. (2006) and the OCamCalib toolbox:
    centre, the stretch and the polynomial, minimising reprojection error in
    pixels. Frames with too few corners, a failed initialisation or wild
    errors are dropped and reported.
+4. Covariance of the model parameters (:func:`intrinsic_covariance`) from
+   the Jacobian at the solution: by default cluster-robust over the boards
+   (the corners of one board share detection errors), or scaled by the
+   reduced chi-square of the corner residuals; its block of the centre,
+   stretch and polynomial is that of the poses profiled out.
 
 Internally the polynomial is written in rho / r_norm (r_norm = half the
 image's short side) so that all coefficients are of similar size.
@@ -34,6 +39,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .scaramuzza import FisheyeModel
+from .theta_uncertainty import parameter_names
 
 #: Penalty (pixels) for a point the model cannot project (outside its domain).
 _UNPROJECTABLE_PX = 1.0e3
@@ -56,6 +62,14 @@ class CalibrationResult:
     n_points_dropped: int = 0                    # single outlier corners removed
     success: bool = True
     message: str = ""
+    #: names of the model parameters the covariance is over (pipeline.geometry.theta_uncertainty.parameter_names)
+    parameter_names: tuple = ()
+    #: their covariance (units of the parameters: pixel, 1, pixel^(1-k)), board poses profiled out
+    #: (estimated as calibrate's ``covariance`` says)
+    parameter_covariance: np.ndarray | None = None
+    #: sum of squared corner residuals over the degrees of freedom (px^2): the corner noise the covariance assumes
+    reduced_chi2_px2: float = float("nan")
+    n_dof: int = 0
 
     def residuals_vs_radius(self, n_bins: int = 10):
         """Mean residual norm in radial bins: (bin centres px, mean px, counts)."""
@@ -306,7 +320,65 @@ def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev):
     model, pose, _ = _unpack(sol.x, n_f, degree, r_norm, shape, stretch)
     res = sol.fun.reshape(-1, 2)
     poses = [(_rodrigues(p[:3])[0], p[3:].copy()) for p in pose]
-    return model, poses, res, frame_of_pt, sol
+    return model, poses, res, frame_of_pt, sol, jacobian(sol.x), n_intr
+
+
+def intrinsic_covariance(J: np.ndarray, residuals: np.ndarray, n_intrinsic: int,
+                         groups: np.ndarray | None = None) -> tuple[np.ndarray, float, int]:
+    """Covariance of the first ``n_intrinsic`` parameters of a least-squares fit, the rest profiled out.
+
+    Without ``groups``: C = s^2 (J^T J)^-1 with s^2 = |r|^2 / (n - p) the
+    reduced chi-square of the residuals (every corner coordinate one
+    independent measurement of equal variance, estimated from the fit).
+
+    With ``groups`` (one label per residual, e.g. the board frame): the
+    cluster-robust (sandwich) covariance C = B^-1 M B^-1, B = J^T J,
+    M = G / (G - 1) sum_g J_g^T r_g r_g^T J_g over the G groups: errors may be
+    correlated within a group (a board's corners share its detection errors)
+    but not between groups. At the solution J_g^T r_g vanishes for the
+    group's own pose columns, so M is carried by the shared parameters.
+
+    Either way the top-left block of the full inverse is the inverse of the
+    Schur complement of the nuisance block: the covariance with the nuisance
+    parameters (the board poses) re-fitted at every value of the others, to
+    first order the same as marginalising them. Columns are scaled to unit
+    norm before the inversion (centre in pixels, coefficients and poses in
+    normalised units differ by orders of magnitude). Returns (covariance,
+    s^2, n - p); ValueError when J^T J is singular (a parameter the data do
+    not constrain) or there are too few residuals or groups.
+    """
+    n, p = J.shape
+    dof = n - p
+    if dof <= 0:
+        raise ValueError(f"{n} residuals for {p} parameters: no degrees of freedom for a covariance")
+    s2 = float(residuals @ residuals) / dof
+    norm = np.linalg.norm(J, axis=0)
+    if not np.all(norm > 0):
+        raise ValueError("a model parameter does not change the reprojection (zero Jacobian column)")
+    Js = J / norm
+    eig = np.linalg.eigvalsh(Js.T @ Js)
+    if eig[0] <= 1e-12 * eig[-1]:
+        raise ValueError(f"the normal matrix is singular (condition {eig[-1] / max(eig[0], 1e-300):.1e}): "
+                         "a parameter combination is not constrained by the corners")
+    bread = np.linalg.inv(Js.T @ Js)
+    if groups is None:
+        cov = s2 * bread
+    else:
+        labels = np.unique(groups)
+        if labels.size < 2:
+            raise ValueError("a cluster-robust covariance needs at least two groups")
+        score = np.stack([Js[groups == g].T @ residuals[groups == g] for g in labels])
+        meat = score.T @ score * labels.size / (labels.size - 1)
+        cov = bread @ meat @ bread
+    cov = cov / np.outer(norm, norm)
+    return cov[:n_intrinsic, :n_intrinsic], s2, dof
+
+
+def _to_model_units(cov_x: np.ndarray, n_head: int, degree: int, r_norm: float) -> np.ndarray:
+    """Covariance of (centre, stretch, b0, b2..bN) converted to the coefficients a_k = b_k r_norm^(1-k)."""
+    powers = [0] + list(range(2, degree + 1))
+    scale = np.concatenate([np.ones(n_head), [r_norm ** (1 - k) for k in powers]])
+    return cov_x * np.outer(scale, scale)
 
 
 def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
@@ -315,7 +387,8 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
               point_outlier_factor: float = 5.0,
               centre_half_width_frac: float = 0.1, max_nfev: int = 200,
               half_fov_deg: float | None = None,
-              centre_guess: tuple[float, float] | None = None) -> CalibrationResult:
+              centre_guess: tuple[float, float] | None = None,
+              covariance: str = "board_clustered") -> CalibrationResult:
     """Calibrate a Scaramuzza model from chessboard corners seen in many frames.
 
     Parameters
@@ -341,7 +414,13 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         (e.g. another band's fit): the centre grid search is skipped and the
         linear initialisation is made at this centre (the nonlinear
         refinement still frees it).
+    covariance : how the parameter covariance is estimated
+        (:func:`intrinsic_covariance`): ``"board_clustered"`` (the corners of
+        one board may share errors, boards are independent) or
+        ``"reduced_chi2"`` (every corner coordinate independent).
     """
+    if covariance not in ("board_clustered", "reduced_chi2"):
+        raise ValueError(f"covariance must be 'board_clustered' or 'reduced_chi2', got {covariance!r}")
     if stretch not in ("symmetric", "full", "none"):
         raise ValueError(f"stretch must be 'symmetric', 'full' or 'none', got {stretch!r}")
     n_in = len(image_points)
@@ -384,7 +463,7 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
 
     n_points_dropped = 0
     while True:
-        model, poses, res, frame_of_pt, ls = _refine(frames, L, model, poses, degree,
+        model, poses, res, frame_of_pt, ls, jac, n_intr = _refine(frames, L, model, poses, degree,
                                                      r_norm, stretch, max_nfev)
         err = np.linalg.norm(res, axis=1)
         rms = np.array([np.sqrt(np.mean(err[frame_of_pt == k] ** 2)) for k in range(len(frames))])
@@ -420,6 +499,10 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         R, t = poses[k]
         out_poses[i] = (_rotvec(R), t * L)
         frame_rms[i] = rms[k]
+    names = parameter_names(stretch, degree)
+    groups = np.repeat(frame_of_pt, 2) if covariance == "board_clustered" else None
+    cov_x, s2, dof = intrinsic_covariance(jac, ls.fun, n_intr, groups)
+    cov = _to_model_units(cov_x, n_intr - degree, degree, r_norm)
     uv_used = np.concatenate([uv for uv, _ in frames])
     x, y = model._sensor_xy(uv_used[:, 0], uv_used[:, 1])
     return CalibrationResult(
@@ -428,4 +511,5 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         residuals_px=res, residual_rho_px=np.hypot(x, y), used_frames=list(idx),
         dropped=dropped, linear_centre=tuple(centre), n_points_dropped=n_points_dropped,
         success=bool(ls.success),
-        message=str(ls.message))
+        message=str(ls.message), parameter_names=names, parameter_covariance=cov, reduced_chi2_px2=s2,
+        n_dof=int(dof))

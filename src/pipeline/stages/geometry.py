@@ -21,7 +21,11 @@ B initialised at G's centre), half field of view through the fitted model on
 the fitted image circle (Section 3.2), maps (:func:`maps_dataset`), projection
 curves against the equidistant, stereographic and orthographic references
 (Fig. 4a-b), band differences against G (Fig. 4c-d), reprojection errors
-(mean, per frame, against radius, Fig. S1) and the dropped frames with reasons.
+(mean, per frame, against radius, Fig. S1) and the dropped frames with reasons;
+the covariance of the fitted model (``geometry.covariance``) and the theta
+uncertainty it gives (``theta_deg_sigma`` per band pixel,
+``theta_deg_sigma_at_field_angle`` at ``geometry.theta_sigma_summary_deg``;
+:mod:`pipeline.geometry.theta_uncertainty`).
 
 Artefact ``results/geometry/<lens>.nc``: the layout of
 :mod:`pipeline.stages.geometry_maps` plus the variables listed in
@@ -48,6 +52,7 @@ from pipeline.geometry.chessboard import Board
 from pipeline.geometry.corners import _upsample_factor, detect_corners
 from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle
 from pipeline.geometry.scaramuzza import field_angle_rad
+from pipeline.geometry.theta_uncertainty import theta_sigma_at_field_angles, theta_sigma_map
 from pipeline.observations import table_to_dataset
 from pipeline.stages.geometry_maps import MEDIA, maps_dataset
 
@@ -216,7 +221,8 @@ def analyse_geometry(reduced: dict, config: dict, dataset_root: Path) -> dict[st
                     res = calibrate(pts, board.corners_mm(), reduced["maxima"][(lens, medium, band)].shape,
                                     degree=cfg["polynomial_degree"], stretch=cfg["stretch"],
                                     min_frames=cfg["min_frames"], outlier_factor=cfg["frame_outlier_factor"],
-                                    point_outlier_factor=cfg["corner_outlier_factor"], centre_guess=centre)
+                                    point_outlier_factor=cfg["corner_outlier_factor"], centre_guess=centre,
+                                    covariance=cfg["covariance"])
                 except ValueError as exc:
                     raise InputError(folder, f"lens {lens}, {medium}, band {band}: calibration failed ({exc})") from None
                 if res.mean_error_px > cfg["max_mean_error_px"]:
@@ -337,6 +343,7 @@ def lens_dataset(models, results, circles, frame_rows, points_rows, band_shape, 
     for k, v in refs.items():
         ds[f"reference_{k}_theta_deg"] = (dims3, v, {"long_name": f"{k} projection with focal length a0", "units": "degree"})
     ds["theta_difference_vs_green_deg"] = (dims3, diff_curve, {"long_name": "theta(rho) of the band minus G (Fig. 4c-d)", "units": "degree"})
+    ds = ds.merge(_theta_uncertainty(models, results, media, band_shape, cfg))
     ds["theta_map_max_difference_vs_green_deg"] = (dims2, diff_map_max,
                                                    {"long_name": "largest |theta - theta_G| over the field of view", "units": "degree"})
     ds["error_vs_radius_px"] = (("medium", "band", "radius_bin"), err_bins,
@@ -373,6 +380,53 @@ def lens_dataset(models, results, circles, frame_rows, points_rows, band_shape, 
                         {"long_name": "detected inner corners (u, v), OpenCV order", "units": "pixel"})
     ds.attrs["lens"] = lens
     return ds
+
+
+def _theta_uncertainty(models, results, media, band_shape, cfg) -> xr.Dataset:
+    """Covariance of the fitted model parameters and the theta uncertainty it gives (map and 1-D summary)."""
+    names = next(iter(results.values())).parameter_names
+    n_p, nb, nm = len(names), len(BANDS), len(media)
+    summary_deg = np.asarray(cfg["theta_sigma_summary_deg"], float)
+    cov = np.full((nm, nb, n_p, n_p), np.nan)
+    chi2 = np.full((nm, nb), np.nan)
+    sigma = np.full((nm, nb) + tuple(band_shape), np.nan, dtype=np.float32)
+    summary = np.full((nm, nb, summary_deg.size), np.nan)
+    for (medium, band), model in models.items():
+        i, j = media.index(medium), BANDS.index(band)
+        res = results[(medium, band)]
+        cov[i, j], chi2[i, j] = res.parameter_covariance, res.reduced_chi2_px2
+        sigma[i, j] = theta_sigma_map(model, names, res.parameter_covariance, band_shape)
+        summary[i, j] = theta_sigma_at_field_angles(model, names, res.parameter_covariance, summary_deg)
+    how = {"board_clustered": "cluster-robust over the boards", "reduced_chi2": "scaled by the reduced chi-square "
+           "of the corner residuals"}[cfg["covariance"]]
+    how = ("first-order propagation of the fitted model's parameter covariance (centre, stretch, f(rho) "
+           f"coefficients; board poses profiled out; {how})")
+    return xr.Dataset(
+        {"theta_deg_sigma": (("medium", "band", "y", "x"), sigma, {
+             "long_name": f"standard uncertainty of theta_deg at the band pixel centre: {how}", "units": "degree"}),
+         "theta_deg_sigma_at_field_angle": (("medium", "band", "theta_summary"), summary, {
+             "long_name": "standard uncertainty of theta, RMS over azimuth, at the field angles theta_summary_deg "
+                          "(NaN beyond the half field of view)", "units": "degree"}),
+         "geometry_parameter_covariance": (("medium", "band", "geometry_parameter", "geometry_parameter_b"), cov, {
+             "long_name": "covariance of the fitted model parameters, board poses profiled out",
+             "estimate": cfg["covariance"],
+             "units": "geometry_parameter_units x geometry_parameter_units (per element)"}),
+         "corner_residual_reduced_chi2_px2": (("medium", "band"), chi2, {
+             "long_name": "squared corner reprojection residual per degree of freedom (the corner noise variance "
+                          "the covariance assumes)", "units": "pixel^2"})},
+        coords={"theta_summary_deg": ("theta_summary", summary_deg, {"long_name": "field angle of the summary",
+                                                                      "units": "degree"}),
+                "geometry_parameter": ("geometry_parameter", list(names)),
+                "geometry_parameter_b": ("geometry_parameter_b", list(names)),
+                "geometry_parameter_units": ("geometry_parameter", [_parameter_units(n) for n in names])})
+
+
+def _parameter_units(name: str) -> str:
+    if name.endswith("_px"):
+        return "pixel"
+    if name.startswith("stretch"):
+        return "1"
+    return f"pixel^{1 - int(name[1:])}"
 
 
 def compute(ctx) -> xr.Dataset:
