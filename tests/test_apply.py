@@ -68,11 +68,11 @@ def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
     _, _, _, _, bundle_path, _ = calibrated
     with xr.open_dataset(bundle_path) as ds:
         assert ds["theta_deg"].encoding.get("contiguous") and not ds["theta_deg"].encoding.get("zlib")
-    old = tmp_path / "v2.nc"
+    old = tmp_path / "v3.nc"
     shutil.copy(bundle_path, old)
     with netCDF4.Dataset(old, "a") as nc:
-        nc.artefact_version = 2
-    with pytest.raises(ArtefactError, match="calibration artefact version 2 is not the supported version 3"):
+        nc.artefact_version = 3
+    with pytest.raises(ArtefactError, match="calibration artefact version 3 is not the supported version 4"):
         apply_calibration(old, [_signal_frame(calibrated[0], "far")], "air", tmp_path / "out.nc")
 
 

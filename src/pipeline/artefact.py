@@ -28,9 +28,11 @@ from pipeline.errors import ArtefactError
 #: the same for its air and water frames; calibration 2: the per-pixel maps stored uncompressed and
 #: contiguous (a band image of one lens and medium reads as one block), see pipeline.calibration;
 #: calibration 3: the azimuthal roll-off term (amplitude, phase, their sigmas) and the flat field's per-pixel
-#: uncertainty, which the chain applies.
+#: uncertainty, which the chain applies; calibration 4: per band pixel, the roll-off step's map (1 / g(theta, phi),
+#: its relative variances, the geometry flags) and the cell on the default sphere grid, so apply does not
+#: evaluate them per frame.
 ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 1, "rolloff": 1, "spectral": 2,
-                     "absolute": 2, "immersion": 2, "calibration": 3, "field": 1}
+                     "absolute": 2, "immersion": 2, "calibration": 4, "field": 1}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
