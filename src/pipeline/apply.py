@@ -187,41 +187,53 @@ def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=np.float
     return [f.result() for f in [pool.submit(_lens_radiance, raw, bundle, lens, *args) for lens in lenses]]
 
 
-def _bin_cells(cells, values, n_cells: int, extra=(), excluded=None):
+def _bin_cells(cells, values, n_cells: int, extra=(), excluded=None, squared=()):
     """Mean, spread and count per cell of ``values`` (a list of arrays, e.g. one per lens, with their ``cells``).
 
     A value enters where its cell is >= 0, it is finite and (with
     ``excluded``, a list of boolean arrays like ``values``) not excluded;
     ``extra`` (a list of such lists) are averaged over the same pixels of
-    each cell. Every pixel is counted with ``np.bincount``; those that do not
-    enter go to one more cell, dropped at the end (no copy of the pixels
-    that enter).
+    each cell, squared first where ``squared[k]``. Every pixel is counted
+    with ``np.bincount``; those that do not enter go to one more cell, dropped
+    at the end (no copy of the pixels that enter). The sums are taken in
+    float64 through one scratch array; the spread in one pass, from the sum
+    of squares less n mean^2 (a float32 value squares exactly in float64; the
+    cancellation leaves about 1e-8 of the mean in the spread of a cell of
+    equal values).
     """
-    per_lens = []
+    squared = tuple(squared) + (False,) * (len(extra) - len(squared))
+    count = np.zeros(n_cells + 1)
+    sums = np.zeros((2 + len(extra), n_cells + 1))
+    scratch = None
     for i, (cell, v) in enumerate(zip(cells, values)):
         v = np.asarray(v).ravel()
+        cell = np.asarray(cell).ravel()
         out = ~np.isfinite(v)
-        out |= np.asarray(cell).ravel() < 0
+        out |= cell < 0
         if excluded is not None:
             out |= np.asarray(excluded[i]).ravel()
-        index = np.asarray(cell).ravel().astype(np.intp)
+        index = cell.astype(np.intp)
         np.copyto(index, n_cells, where=out)
-        per_lens.append((index, v, [np.asarray(x[i]).ravel() for x in extra]))
-
-    def total(weights_of):
-        return sum(np.bincount(index, weights=weights_of(v, x), minlength=n_cells + 1)[:n_cells]
-                   for index, v, x in per_lens)
-
-    count = sum(np.bincount(index, minlength=n_cells + 1)[:n_cells] for index, _, _ in per_lens).astype(float)
+        count += np.bincount(index, minlength=n_cells + 1)
+        if scratch is None or scratch.shape != v.shape:
+            scratch = np.empty(v.shape, float)
+        np.copyto(scratch, v)  # a NaN goes to the spill cell only
+        sums[0] += np.bincount(index, weights=scratch, minlength=n_cells + 1)
+        np.square(scratch, out=scratch)
+        sums[1] += np.bincount(index, weights=scratch, minlength=n_cells + 1)
+        for k, x in enumerate(extra):
+            np.copyto(scratch, np.asarray(x[i]).ravel())
+            if squared[k]:
+                np.square(scratch, out=scratch)
+            sums[2 + k] += np.bincount(index, weights=scratch, minlength=n_cells + 1)
+    count, sums = count[:n_cells], sums[:, :n_cells]
     has = count > 0
     per = np.where(has, count, 1)
-    mean = np.where(has, total(lambda v, x: v) / per, np.nan)
-    # one pass: the sum of squares in float64 (a float32 value squares exactly), less n mean^2; the
-    # cancellation leaves about 1e-8 of the mean in the spread of a cell of equal values
-    var = total(lambda v, x: np.square(v, dtype=float)) - count * np.square(np.where(has, mean, 0.0))
+    mean = np.where(has, sums[0] / per, np.nan)
+    var = sums[1] - count * np.square(np.where(has, mean, 0.0))
     np.clip(var, 0.0, None, out=var)
     spread = np.where(count > 1, np.sqrt(var / np.where(count > 1, count - 1, 1)), np.nan)
-    means = [np.where(has, total(lambda v, x, k=k: x[k]) / per, np.nan) for k in range(len(extra))]
+    means = [np.where(has, sums[2 + k] / per, np.nan) for k in range(len(extra))]
     return mean, spread, count.astype(np.int32), means
 
 
@@ -315,9 +327,9 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
 
             def bin_band(j, per_lens=per_lens):
                 return _bin_cells([c[j] for c in cells], [r["radiance"][j] for r in per_lens], n_z * n_a,
-                                  extra=([np.square(r["random"][j], dtype=float) for r in per_lens],
-                                         [r["systematic"][j] for r in per_lens]),
-                                  excluded=[(r["flags"][j] & EXCLUDED_FROM_GRID) != 0 for r in per_lens])
+                                  extra=([r["random"][j] for r in per_lens], [r["systematic"][j] for r in per_lens]),
+                                  excluded=[(r["flags"][j] & EXCLUDED_FROM_GRID) != 0 for r in per_lens],
+                                  squared=(True, False))
 
             # the bands side by side (np.bincount and the array operations release the GIL)
             for j, (mean, spread, n, (rnd, sy)) in enumerate(pool.map(bin_band, range(len(BANDS)))):

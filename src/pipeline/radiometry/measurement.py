@@ -183,6 +183,8 @@ class Measured:
             total += a
         elif np.ndim(a) == 0:
             total = np.full(shape, a, dtype)
+        elif isinstance(a, np.ndarray) and a.shape == shape and a.dtype == dtype:
+            total = a  # a new array (_sum_terms adds into one)
         else:
             total = np.array(np.broadcast_to(a, shape), dtype=dtype)
         np.sqrt(total, out=total)
@@ -245,7 +247,7 @@ def _sum_terms(terms):
             maps.append(t)
     if not maps:
         return const
-    total = maps[0] + const
+    total = maps[0] + const  # always a new array: the caller may work in it
     for t in maps[1:]:
         if np.shape(total) == np.broadcast_shapes(np.shape(total), np.shape(t)):
             total += t
