@@ -157,34 +157,43 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
     return m
 
 
-def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dtype):
-    """Radiance, random and systematic sigma (``dtype``) and flags of one lens of a decoded frame, per band."""
+def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dtype, maps=None):
+    """Radiance, random and systematic sigma (``dtype``) and flags of one lens of a decoded frame, per band.
+
+    With ``maps`` ({name: (band, y, x) array}) the results are copied into them (and returned as views).
+    """
     span = bundle["lens_region_px"].sel(lens=lens).values
     images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
     out = {"radiance": [], "random": [], "systematic": [], "flags": []}
-    for band in BANDS:
+    for j, band in enumerate(BANDS):
         m = band_radiance(images, bundle, lens, band, medium, effects, frame,
                           negative_sigma=negative_sigma, source=raw.path)
-        out["radiance"].append(m.value.astype(dtype, copy=False))
-        out["random"].append(m.random_sigma.astype(dtype, copy=False))
-        out["systematic"].append(m.systematic_sigma.astype(dtype, copy=False))
-        out["flags"].append(m.flags)
+        for name, a in (("radiance", m.value), ("random", m.random_sigma), ("systematic", m.systematic_sigma),
+                        ("flags", m.flags)):
+            a = a if name == "flags" else a.astype(dtype, copy=False)
+            if maps is not None:
+                np.copyto(maps[name][j], a)
+                a = maps[name][j]
+            out[name].append(a)
         del m
     return out
 
 
-def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=np.float32, pool=None):
+def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=np.float32, pool=None, maps=None):
     """Radiance, random and systematic sigma, flags of one decoded frame: per lens, lists over the bands.
 
     With a thread ``pool`` the lenses run side by side (numpy releases the
-    GIL in its array operations); ``bundle`` must then be in memory.
+    GIL in its array operations); ``bundle`` must then be in memory. With
+    ``maps`` ({name: (lens, band, y, x) array}) the results are written there.
     """
     lenses = list(bundle["lens"].values)
     frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
     args = (medium, effects, frame, negative_sigma, dtype)
+    per = [None if maps is None else {k: v[i] for k, v in maps.items()} for i in range(len(lenses))]
     if pool is None:
-        return [_lens_radiance(raw, bundle, lens, *args) for lens in lenses]
-    return [f.result() for f in [pool.submit(_lens_radiance, raw, bundle, lens, *args) for lens in lenses]]
+        return [_lens_radiance(raw, bundle, lens, *args, per[i]) for i, lens in enumerate(lenses)]
+    return [f.result() for f in [pool.submit(_lens_radiance, raw, bundle, lens, *args, per[i])
+                                 for i, lens in enumerate(lenses)]]
 
 
 def _bin_cells(cells, values, n_cells: int, extra=(), excluded=None, squared=()):
@@ -321,7 +330,8 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
             raw = read_raw(path)
             check_frame(raw, bundle, effects)
             # float32 as the chain runs on the band images (the grid's sums are taken in float64)
-            per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool)
+            per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool,
+                                       maps={k: v[f] for k, v in maps.items()} if pixels else None)
             meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
             del raw
 
@@ -337,11 +347,6 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
                 count[f, j] = n.reshape(n_z, n_a)
                 grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
                 grid["systematic"][f, j] = sy.reshape(n_z, n_a)
-            if pixels:
-                for i, r in enumerate(per_lens):
-                    for k, arrays in r.items():
-                        for j, a in enumerate(arrays):
-                            maps[k][f, i, j] = a
             del per_lens
     rad_units = "W sr-1 m-2 nm-1"
     convention = SPHERE_CONVENTION.format(zenith=zenith_lens)
@@ -361,11 +366,11 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
             "quality_flag": (pixel_dims, maps["flags"],
                              {"long_name": "quality flag bits", "units": "1", "flag_masks": flag_values,
                               "flag_meanings": " ".join(mm.FLAG_MEANINGS)}),
-            "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values.astype(np.float32),
+            "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values.astype(np.float32, copy=False),
                           _attrs("angle of the viewing direction from the lens's optical axis", "degree")),
-            "phi_deg": (("lens", "band", "y", "x"), geo["phi_deg"].values.astype(np.float32),
+            "phi_deg": (("lens", "band", "y", "x"), geo["phi_deg"].values.astype(np.float32, copy=False),
                         _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
-            "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values.astype(np.float32),
+            "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values.astype(np.float32, copy=False),
                                _attrs("solid angle seen by the band pixel", "sr")),
             "zenith_deg": (("lens", "band", "y", "x"), np.stack(zen).reshape(geo["theta_deg"].shape),
                            _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
