@@ -30,6 +30,11 @@ at 2 to 6 s each (over an hour on 2 cores). So:
 * roll-off and spectral (per-band coefficients only, no pixel maps) are
   simulated and fitted at the small scale with their full frame counts.
 
+When the bundle's layout changes (a new calibration artefact version), delete
+only ``results/calibration/bundle.nc`` in ``--work``: the script then gathers
+it again from the stage artefacts kept in ``results/`` (the simulated datasets
+and the fitted stages are reused).
+
 ``apply`` reads only the bundle's values, so its cost is that of a bundle made
 from the whole dataset; its radiances are not a truth test (tests/test_apply.py
 is). The frame timed is the first signal frame of the full-scale absolute

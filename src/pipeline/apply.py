@@ -38,10 +38,11 @@ import xarray as xr
 
 from pipeline.artefact import model_effects
 from pipeline.bands import BANDS
-from pipeline.calibration import band_parameters, calibrated_isos, read_bundle
+from pipeline.calibration import band_parameters, calibrated_isos, outside_image_circle, read_bundle
 from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
 from pipeline.frames import lens_images
+from pipeline.geometry.sphere import ZENITH_LENS, grid_shape, sphere_cells, sphere_coordinates
 from pipeline.radiometry import measurement as mm
 from pipeline.rawio import read_raw
 
@@ -51,7 +52,6 @@ __all__ = ["apply_calibration", "band_radiance", "check_frame", "sphere_coordina
 #: flags that keep a pixel out of the sphere grid
 EXCLUDED_FROM_GRID = (mm.FLAG_SATURATED | mm.FLAG_HOT | mm.FLAG_OUTSIDE_IMAGE_CIRCLE
                       | mm.FLAG_BEYOND_CALIBRATED_ANGLE)
-ZENITH_LENS = "close"
 SPHERE_CONVENTION = ("the {zenith} lens's optical axis is the zenith (zenith angle = theta, azimuth = phi); "
                      "the other lens looks at the nadir (zenith angle = 180 - theta, azimuth = -phi mod 360, mirrored); "
                      "theta, phi from the bundle's geometry maps (phi from the band image's +x towards +y)")
@@ -79,25 +79,6 @@ def _media(bundle: xr.Dataset) -> list[str]:
     return [m for m in bundle.attrs.get("media", "air").split(",") if m]
 
 
-def sphere_coordinates(theta_deg, phi_deg, looks_up: bool):
-    """Zenith angle and azimuth (deg) of a lens pixel's direction, by the sphere convention of this module."""
-    theta, phi = np.asarray(theta_deg), np.asarray(phi_deg)
-    # float32 maps stay float32 (as the bundle's are); anything else becomes float64
-    theta = theta if theta.dtype.kind == "f" else theta.astype(float)
-    phi = phi if phi.dtype.kind == "f" else phi.astype(float)
-    if looks_up:
-        return theta, np.mod(phi, 360.0)
-    return 180.0 - theta, np.mod(-phi, 360.0)
-
-
-def _outside_circle(g: xr.Dataset, theta: np.ndarray, rows: slice, cols: slice, shape) -> np.ndarray:
-    """Pixels of the crop ``rows, cols`` of a band image (full ``shape``) outside the image circle or the half FOV."""
-    y = np.arange(shape[0])[rows]
-    x = np.arange(shape[1])[cols]
-    r = np.hypot(x[None, :] - float(g["circle_xc_px"]), y[:, None] - float(g["circle_yc_px"]))
-    return (r > float(g["circle_radius_px"])) | ~np.isfinite(theta) | (theta > float(g["half_fov_deg"]))
-
-
 @lru_cache(maxsize=1)
 def _default_negative_sigma() -> float:
     return float(defaults()["apply"]["negative_mean_sigma"])
@@ -105,6 +86,18 @@ def _default_negative_sigma() -> float:
 
 def _crop(b: xr.Dataset, name: str, rows: slice, cols: slice):
     return b[name].isel(y=rows, x=cols).values if name in b else None
+
+
+def _stored_rolloff(g: xr.Dataset, rows: slice, cols: slice, effects) -> mm.RolloffMap | None:
+    """The bundle's roll-off map of the crop (:func:`pipeline.calibration.build_bundle`), when made for ``effects``."""
+    if "rolloff_inverse" not in g or bool(g["rolloff_inverse"].attrs.get("rolloff_azimuth", 0)) != (
+            "rolloff_azimuth" in effects):
+        return None
+    rel = {"rolloff": _crop(g, "rolloff_relative_variance", rows, cols)}
+    if "rolloff_azimuth_relative_variance" in g:
+        rel["rolloff_azimuth"] = _crop(g, "rolloff_azimuth_relative_variance", rows, cols)
+    return mm.RolloffMap(inverse=_crop(g, "rolloff_inverse", rows, cols), relative_var=rel,
+                         flags=_crop(g, "geometry_flag", rows, cols))
 
 
 def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str, effects,
@@ -127,14 +120,18 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
     effects = tuple(effects)
     image = images.bands[band]
     g = bundle.sel(lens=lens, medium=medium, band=band)
-    shape = g["theta_deg"].shape
+    shape = g["theta_deg" if "theta_deg" in g else "rolloff_inverse"].shape
     if image.shape != tuple(shape):
         raise InputError(source, f"lens '{lens}' band image is {image.shape}, the calibration's {tuple(shape)}")
     rows, cols = (slice(None), slice(None)) if window is None else window
     rows = slice(*rows.indices(shape[0]))
     cols = slice(*cols.indices(shape[1]))
-    theta = np.asarray(_crop(g, "theta_deg", rows, cols), dtype=float)
-    theta = np.where(_outside_circle(g, theta, rows, cols, shape), np.nan, theta)
+    rolloff = _stored_rolloff(g, rows, cols, effects)
+    theta = phi = None
+    if rolloff is None:
+        theta = np.asarray(_crop(g, "theta_deg", rows, cols), dtype=float)
+        theta = np.where(outside_image_circle(g, theta, rows, cols, shape), np.nan, theta)
+        phi = _crop(g, "phi_deg", rows, cols)
     dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
     b = bundle.sel(lens=lens, band=band)
     m = mm.measure_band(image[rows, cols], frame, dark, response, cal, theta, medium, effects,
@@ -143,14 +140,16 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
                         flat_field=_crop(b, "flat_field", rows, cols),
                         flat_field_sigma=_crop(b, "flat_field_sigma", rows, cols),
                         prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
-                        phi_deg=_crop(g, "phi_deg", rows, cols))
+                        phi_deg=phi, rolloff=rolloff)
     if negative_sigma is None:
         negative_sigma = _default_negative_sigma()
     good = (m.flags & (mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT)) == 0
     good &= np.isfinite(m.value)
-    if good.any():
-        mean = float(np.mean(m.value[good]))
-        se = float(np.sqrt(np.sum(m.random_sigma[good] ** 2))) / good.sum()
+    n_good = int(np.count_nonzero(good))
+    if n_good:
+        # sums over the good pixels in float64 (the chain may run in float32)
+        mean = float(np.sum(m.value, where=good, dtype=float)) / n_good
+        se = float(np.sqrt(np.sum(np.square(m.random_sigma), where=good, dtype=float))) / n_good
         if mean < -negative_sigma * se:
             raise ImpossibleResult(source, f"lens {lens}, band {band}: mean radiance {mean:.3g} W sr-1 m-2 nm-1 "
                                            f"over the image circle is {-mean / se:.1f} standard errors below "
@@ -158,73 +157,92 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
     return m
 
 
-def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dtype):
-    """Radiance, random and systematic sigma (``dtype``) and flags of one lens of a decoded frame, per band."""
+def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dtype, maps=None):
+    """Radiance, random and systematic sigma (``dtype``) and flags of one lens of a decoded frame, per band.
+
+    With ``maps`` ({name: (band, y, x) array}) the results are copied into them (and returned as views).
+    """
     span = bundle["lens_region_px"].sel(lens=lens).values
     images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
     out = {"radiance": [], "random": [], "systematic": [], "flags": []}
-    for band in BANDS:
+    for j, band in enumerate(BANDS):
         m = band_radiance(images, bundle, lens, band, medium, effects, frame,
                           negative_sigma=negative_sigma, source=raw.path)
-        out["radiance"].append(m.value.astype(dtype, copy=False))
-        out["random"].append(m.random_sigma.astype(dtype, copy=False))
-        out["systematic"].append(m.systematic_sigma.astype(dtype, copy=False))
-        out["flags"].append(m.flags)
+        for name, a in (("radiance", m.value), ("random", m.random_sigma), ("systematic", m.systematic_sigma),
+                        ("flags", m.flags)):
+            a = a if name == "flags" else a.astype(dtype, copy=False)
+            if maps is not None:
+                np.copyto(maps[name][j], a)
+                a = maps[name][j]
+            out[name].append(a)
         del m
     return out
 
 
-def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=float, pool=None):
+def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=np.float32, pool=None, maps=None):
     """Radiance, random and systematic sigma, flags of one decoded frame: per lens, lists over the bands.
 
     With a thread ``pool`` the lenses run side by side (numpy releases the
-    GIL in its array operations); ``bundle`` must then be in memory.
+    GIL in its array operations); ``bundle`` must then be in memory. With
+    ``maps`` ({name: (lens, band, y, x) array}) the results are written there.
     """
     lenses = list(bundle["lens"].values)
     frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
     args = (medium, effects, frame, negative_sigma, dtype)
+    per = [None if maps is None else {k: v[i] for k, v in maps.items()} for i in range(len(lenses))]
     if pool is None:
-        return [_lens_radiance(raw, bundle, lens, *args) for lens in lenses]
-    return [f.result() for f in [pool.submit(_lens_radiance, raw, bundle, lens, *args) for lens in lenses]]
+        return [_lens_radiance(raw, bundle, lens, *args, per[i]) for i, lens in enumerate(lenses)]
+    return [f.result() for f in [pool.submit(_lens_radiance, raw, bundle, lens, *args, per[i])
+                                 for i, lens in enumerate(lenses)]]
 
 
-def _sphere_cells(zenith_deg, azimuth_deg, grid_deg: float) -> np.ndarray:
-    """Index of the zenith/azimuth cell of every direction (row-major on the grid); -1 where undefined."""
-    n_z, n_a = int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
-    z, a = np.asarray(zenith_deg).ravel(), np.asarray(azimuth_deg).ravel()
-    z = z if z.dtype.kind == "f" else z.astype(float)
-    a = a if a.dtype.kind == "f" else a.astype(float)
-    bad = ~(np.isfinite(z) & np.isfinite(a))
-    iz = np.where(bad, 0, z / grid_deg).astype(np.int32)
-    np.clip(iz, 0, n_z - 1, out=iz)
-    ia = np.where(bad, 0, a / grid_deg).astype(np.int32)
-    np.clip(ia, 0, n_a - 1, out=ia)
-    iz *= n_a
-    iz += ia
-    iz[bad] = -1
-    return iz.reshape(np.shape(zenith_deg))
-
-
-def _bin_cells(cells, values, n_cells: int, extra=()):
+def _bin_cells(cells, values, n_cells: int, extra=(), excluded=None, squared=()):
     """Mean, spread and count per cell of ``values`` (a list of arrays, e.g. one per lens, with their ``cells``).
 
-    A value enters where its cell is >= 0 and it is finite; ``extra`` (a list
-    of such lists) are averaged over the same pixels of each cell.
+    A value enters where its cell is >= 0, it is finite and (with
+    ``excluded``, a list of boolean arrays like ``values``) not excluded;
+    ``extra`` (a list of such lists) are averaged over the same pixels of
+    each cell, squared first where ``squared[k]``. Every pixel is counted
+    with ``np.bincount``; those that do not enter go to one more cell, dropped
+    at the end (no copy of the pixels that enter). The sums are taken in
+    float64 through one scratch array; the spread in one pass, from the sum
+    of squares less n mean^2 (a float32 value squares exactly in float64; the
+    cancellation leaves about 1e-8 of the mean in the spread of a cell of
+    equal values).
     """
-    picked = []
+    squared = tuple(squared) + (False,) * (len(extra) - len(squared))
+    count = np.zeros(n_cells + 1)
+    sums = np.zeros((2 + len(extra), n_cells + 1))
+    scratch = None
     for i, (cell, v) in enumerate(zip(cells, values)):
         v = np.asarray(v).ravel()
         cell = np.asarray(cell).ravel()
-        ok = (cell >= 0) & np.isfinite(v)
-        picked.append((cell[ok], v[ok].astype(float), [np.asarray(x[i]).ravel()[ok].astype(float) for x in extra]))
-    count = sum(np.bincount(c, minlength=n_cells) for c, _, _ in picked).astype(float)
+        out = ~np.isfinite(v)
+        out |= cell < 0
+        if excluded is not None:
+            out |= np.asarray(excluded[i]).ravel()
+        index = cell.astype(np.intp)
+        np.copyto(index, n_cells, where=out)
+        count += np.bincount(index, minlength=n_cells + 1)
+        if scratch is None or scratch.shape != v.shape:
+            scratch = np.empty(v.shape, float)
+        np.copyto(scratch, v)  # a NaN goes to the spill cell only
+        sums[0] += np.bincount(index, weights=scratch, minlength=n_cells + 1)
+        np.square(scratch, out=scratch)
+        sums[1] += np.bincount(index, weights=scratch, minlength=n_cells + 1)
+        for k, x in enumerate(extra):
+            np.copyto(scratch, np.asarray(x[i]).ravel())
+            if squared[k]:
+                np.square(scratch, out=scratch)
+            sums[2 + k] += np.bincount(index, weights=scratch, minlength=n_cells + 1)
+    count, sums = count[:n_cells], sums[:, :n_cells]
     has = count > 0
     per = np.where(has, count, 1)
-    mean = np.where(has, sum(np.bincount(c, weights=v, minlength=n_cells) for c, v, _ in picked) / per, np.nan)
-    var = sum(np.bincount(c, weights=np.square(v - mean[c]), minlength=n_cells) for c, v, _ in picked)
+    mean = np.where(has, sums[0] / per, np.nan)
+    var = sums[1] - count * np.square(np.where(has, mean, 0.0))
+    np.clip(var, 0.0, None, out=var)
     spread = np.where(count > 1, np.sqrt(var / np.where(count > 1, count - 1, 1)), np.nan)
-    means = [np.where(has, sum(np.bincount(c, weights=x[k], minlength=n_cells) for c, _, x in picked) / per, np.nan)
-             for k in range(len(extra))]
+    means = [np.where(has, sums[2 + k] / per, np.nan) for k in range(len(extra))]
     return mean, spread, count.astype(np.int32), means
 
 
@@ -235,7 +253,7 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     arrays returned have shape (180 / grid, 360 / grid).
     """
     shape = (int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg)))
-    cell = _sphere_cells(zenith_deg, azimuth_deg, grid_deg)
+    cell = sphere_cells(zenith_deg, azimuth_deg, grid_deg)
     mean, spread, count, _ = _bin_cells([cell], [values], shape[0] * shape[1])
     return mean.reshape(shape), spread.reshape(shape), count.reshape(shape)
 
@@ -268,27 +286,38 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
             raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(_media(on_disk))})")
         # only this medium, the solid angles only when the pixel maps are written, the flat field and the
         # hot-pixel mask only when the model has their effect (the chain's steps skip them otherwise)
+        lenses = list(on_disk["lens"].values)
+        if zenith_lens not in lenses:
+            zenith_lens = lenses[0]
+        # the bundle's sphere cells when made for this grid and zenith lens; theta and phi then only for the pixel maps
+        cell_attrs = on_disk["sphere_cell"].attrs if "sphere_cell" in on_disk else {}
+        stored_cells = (np.isclose(float(cell_attrs.get("grid_deg", np.nan)), grid_deg)
+                        and cell_attrs.get("zenith_lens") == zenith_lens)
+        stored_rolloff = "rolloff_inverse" in on_disk and bool(on_disk["rolloff_inverse"].attrs.get(
+            "rolloff_azimuth", 0)) == ("rolloff_azimuth" in effects)
         skip = ([] if pixels else ["solid_angle_sr"]) + ([] if "prnu" in effects else ["flat_field", "flat_field_sigma"]) \
-            + ([] if "hot_pixels" in effects else ["hot_pixel_mask"])
+            + ([] if "hot_pixels" in effects else ["hot_pixel_mask"]) + ([] if stored_cells else ["sphere_cell"]) \
+            + ([] if pixels or not (stored_cells and stored_rolloff) else ["theta_deg", "phi_deg"])
         bundle = on_disk.drop_vars(skip, errors="ignore").sel(medium=[medium]).load()
     raw_paths = [Path(p) for p in raw_paths]
     if not raw_paths:
         raise InputError(None, "no raw frames to apply the calibration to")
-    lenses = list(bundle["lens"].values)
-    if zenith_lens not in lenses:
-        zenith_lens = lenses[0]
-    geo = bundle[["theta_deg", "phi_deg"] + (["solid_angle_sr"] if pixels else [])].sel(medium=medium)
-    n_z, n_a = int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
+    n_z, n_a = grid_shape(grid_deg)
     # the cell of every band pixel, once per lens and band (not per frame): [lens][band] (y, x)
     cells, zen, azi = [], [], []
+    at_medium = bundle.sel(medium=medium)
     for i, lens in enumerate(lenses):
         cells.append([])
         for j in range(len(BANDS)):
-            z, a = sphere_coordinates(geo["theta_deg"].values[i, j], geo["phi_deg"].values[i, j], lens == zenith_lens)
-            cells[i].append(_sphere_cells(z, a, grid_deg))
+            if pixels or not stored_cells:
+                z, a = sphere_coordinates(at_medium["theta_deg"].values[i, j], at_medium["phi_deg"].values[i, j],
+                                          lens == zenith_lens)
+            cells[i].append(at_medium["sphere_cell"].values[i, j] if stored_cells else sphere_cells(z, a, grid_deg))
             if pixels:
                 zen.append(z.astype(np.float32, copy=False))
                 azi.append(a.astype(np.float32, copy=False))
+    if pixels:
+        geo = at_medium[["theta_deg", "phi_deg", "solid_angle_sr"]]
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
     meta = []
@@ -300,26 +329,24 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
         for f, path in enumerate(raw_paths):
             raw = read_raw(path)
             check_frame(raw, bundle, effects)
-            # float64 into the grid; the pixel maps are stored float32
-            per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool)
+            # float32 as the chain runs on the band images (the grid's sums are taken in float64)
+            per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool,
+                                       maps={k: v[f] for k, v in maps.items()} if pixels else None)
             meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
             del raw
-            for j in range(len(BANDS)):
-                use = [np.where((r["flags"][j] & EXCLUDED_FROM_GRID) == 0, cells[i][j], -1)
-                       for i, r in enumerate(per_lens)]
-                mean, spread, n, (rnd, sy) = _bin_cells(
-                    use, [r["radiance"][j] for r in per_lens], n_z * n_a,
-                    extra=([np.square(r["random"][j], dtype=float) for r in per_lens],
-                           [r["systematic"][j] for r in per_lens]))
+
+            def bin_band(j, per_lens=per_lens):
+                return _bin_cells([c[j] for c in cells], [r["radiance"][j] for r in per_lens], n_z * n_a,
+                                  extra=([r["random"][j] for r in per_lens], [r["systematic"][j] for r in per_lens]),
+                                  excluded=[(r["flags"][j] & EXCLUDED_FROM_GRID) != 0 for r in per_lens],
+                                  squared=(True, False))
+
+            # the bands side by side (np.bincount and the array operations release the GIL)
+            for j, (mean, spread, n, (rnd, sy)) in enumerate(pool.map(bin_band, range(len(BANDS)))):
                 grid["mean"][f, j], grid["spread"][f, j] = mean.reshape(n_z, n_a), spread.reshape(n_z, n_a)
                 count[f, j] = n.reshape(n_z, n_a)
                 grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
                 grid["systematic"][f, j] = sy.reshape(n_z, n_a)
-            if pixels:
-                for i, r in enumerate(per_lens):
-                    for k, arrays in r.items():
-                        for j, a in enumerate(arrays):
-                            maps[k][f, i, j] = a
             del per_lens
     rad_units = "W sr-1 m-2 nm-1"
     convention = SPHERE_CONVENTION.format(zenith=zenith_lens)
@@ -339,11 +366,11 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
             "quality_flag": (pixel_dims, maps["flags"],
                              {"long_name": "quality flag bits", "units": "1", "flag_masks": flag_values,
                               "flag_meanings": " ".join(mm.FLAG_MEANINGS)}),
-            "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values.astype(np.float32),
+            "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values.astype(np.float32, copy=False),
                           _attrs("angle of the viewing direction from the lens's optical axis", "degree")),
-            "phi_deg": (("lens", "band", "y", "x"), geo["phi_deg"].values.astype(np.float32),
+            "phi_deg": (("lens", "band", "y", "x"), geo["phi_deg"].values.astype(np.float32, copy=False),
                         _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
-            "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values.astype(np.float32),
+            "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values.astype(np.float32, copy=False),
                                _attrs("solid angle seen by the band pixel", "sr")),
             "zenith_deg": (("lens", "band", "y", "x"), np.stack(zen).reshape(geo["theta_deg"].shape),
                            _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),

@@ -11,10 +11,13 @@ covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``, version 4; 2: the per-pixel
+versioned artefact (``artefact = calibration``, version 5; 2: the per-pixel
 maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
-flat field's uncertainty; 4: theta_deg_sigma; older files are refused with a
-line asking to rebuild) carrying the sha256 of every artefact it came from,
+flat field's uncertainty; 5: theta_deg_sigma, the absolute budget's new lamp
+term, and what depends only on lens, medium and band precomputed per pixel:
+the roll-off step's factor 1 / g(theta, phi), its relative variances, the
+geometry flags and the cell on the default sphere grid; older files are
+refused with a line asking to rebuild) carrying the sha256 of every artefact it came from,
 the model's effects and the camera's make, model and serial number.
 
 :func:`band_parameters` turns the bundle back into the small parameter
@@ -37,10 +40,11 @@ from pipeline.effects.optics import AZIMUTH_THETA_REF_DEG
 from pipeline.entry import exit_on_input_error, setup_log
 from pipeline.errors import InputError
 from pipeline.frames import SITES_PER_BAND_PIXEL
+from pipeline.geometry.sphere import ZENITH_LENS, sphere_cells, sphere_coordinates
 from pipeline.radiometry import measurement as mm
 
 __all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "build_bundle", "read_bundle", "band_parameters",
-           "calibrated_isos", "noise_equivalent_radiance", "build_bundle_script"]
+           "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script"]
 
 #: stages a bundle is gathered from (in the order of the calibration chain) and those it cannot lack
 BUNDLE_STAGES, REQUIRED_STAGES = BUNDLE_STAGES, BUNDLE_REQUIRED_STAGES
@@ -204,6 +208,71 @@ def band_parameters(bundle: xr.Dataset, lens: str, band: str, medium: str, frame
     return dark, response, calibration
 
 
+def outside_image_circle(g: xr.Dataset, theta: np.ndarray, rows: slice, cols: slice, shape) -> np.ndarray:
+    """Pixels of the crop ``rows, cols`` of a band image (full ``shape``) outside the image circle or the half FOV.
+
+    ``g`` is the bundle at one lens, medium and band (circle centre and radius, half field of view).
+    """
+    y = np.arange(shape[0])[rows]
+    x = np.arange(shape[1])[cols]
+    r = np.hypot(x[None, :] - float(g["circle_xc_px"]), y[:, None] - float(g["circle_yc_px"]))
+    return (r > float(g["circle_radius_px"])) | ~np.isfinite(theta) | (theta > float(g["half_fov_deg"]))
+
+
+def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
+    """What depends only on lens, medium and band, per band pixel: the roll-off map and the sphere cell.
+
+    The roll-off step's :func:`~pipeline.radiometry.measurement.rolloff_map`
+    (1 / g(theta, phi), its relative variances and the geometry flags) of
+    every pixel, computed by the chain's own function on the pixels inside
+    the image circle, in float32 (the chain's type for band images); and the
+    cell of every pixel on the default sphere grid (``apply.grid_deg``, the
+    :mod:`pipeline.geometry.sphere` convention). ``apply`` reads these instead
+    of evaluating them on every frame.
+    """
+    lenses, media = list(bundle["lens"].values), list(bundle["medium"].values)
+    shape = bundle["theta_deg"].shape
+    inverse = np.empty(shape, np.float32)
+    rel = np.empty(shape, np.float32)
+    azimuth = "rolloff_azimuth" in effects and "rolloff_azimuth_amplitude" in bundle
+    rel_az = np.zeros(shape, np.float32) if azimuth else None
+    flags = np.empty(shape, np.uint8)
+    cells = np.empty(shape, np.int32)
+    frame = mm.FrameSettings(exposure_s=1.0, iso=float(bundle["dark_iso"].values.min()))
+    for i, lens in enumerate(lenses):
+        for k, medium in enumerate(media):
+            for j, band in enumerate(BANDS):
+                g = bundle.sel(lens=lens, medium=medium, band=band)
+                theta = g["theta_deg"].values.astype(float)
+                phi = g["phi_deg"].values
+                theta = np.where(outside_image_circle(g, theta, slice(None), slice(None), theta.shape), np.nan, theta)
+                cal = band_parameters(bundle, lens, band, medium, frame, effects)[2]
+                r = mm.rolloff_map(theta, cal, phi, effects, np.float32)
+                inverse[i, k, j], rel[i, k, j], flags[i, k, j] = r.inverse, r.relative_var["rolloff"], r.flags
+                if azimuth and "rolloff_azimuth" in r.relative_var:
+                    rel_az[i, k, j] = r.relative_var["rolloff_azimuth"]
+                zen, azi = sphere_coordinates(g["theta_deg"].values, phi, lens == ZENITH_LENS)
+                cells[i, k, j] = sphere_cells(zen, azi, grid_deg)
+    dims = bundle["theta_deg"].dims
+    out = xr.Dataset({
+        "rolloff_inverse": (dims, inverse, {"long_name": "1 / g(theta, phi): the roll-off step's factor (Eq. 13), "
+                                                         "NaN outside the image circle", "units": "1",
+                                            "rolloff_azimuth": int("rolloff_azimuth" in effects)}),
+        "rolloff_relative_variance": (dims, rel, {"long_name": "relative variance of g(theta) from the roll-off "
+                                                               "covariance (systematic term rolloff)", "units": "1"}),
+        "geometry_flag": (dims, flags, {"long_name": "quality flag bits of the pixel's direction (outside the image "
+                                                     "circle, beyond the calibrated field angle)", "units": "1"}),
+        "sphere_cell": (dims, cells, {"long_name": "cell of the pixel's direction on the sphere grid, row-major "
+                                                   "(zenith, azimuth); -1: no direction", "units": "1",
+                                      "grid_deg": float(grid_deg), "zenith_lens": ZENITH_LENS}),
+    })
+    if azimuth:
+        out["rolloff_azimuth_relative_variance"] = (dims, rel_az, {
+            "long_name": "relative variance of the roll-off's azimuthal factor (systematic term rolloff_azimuth)",
+            "units": "1"})
+    return out
+
+
 def noise_equivalent_radiance(dark: mm.DarkModel, response: mm.ResponseModel, calibration: mm.BandCalibration,
                               frame: mm.FrameSettings, effects, snr: float = 1.0) -> float:
     """Radiance on the optical axis whose signal is ``snr`` times its random noise (Section 3.8).
@@ -305,6 +374,8 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
     bundle["lens_region_px"] = (("lens", "axis", "bound"), span,
                                 {"long_name": "lens region of the raw mosaic: rows then columns, [start, stop)",
                                  "units": "pixel"})
+    grid_deg = float((config.get("apply") or defaults()["apply"])["grid_deg"])
+    bundle = bundle.merge(_pixel_factors(bundle, effects, grid_deg))
     bundle.attrs.update({
         "title": "calibration bundle of a RAW camera as a radiometer (Larouche et al. 2024)",
         "camera_make": str(camera.get("make", "")), "camera_model": str(camera.get("model", "")),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+from functools import lru_cache
 from pathlib import Path
 
 import yaml
@@ -28,7 +30,8 @@ def _with_defaults(cls):
 
 
 def _copy(value):
-    return yaml.safe_load(yaml.safe_dump(value))
+    # the schema's defaults are plain YAML data (dicts, lists, numbers, strings)
+    return copy.deepcopy(value)
 
 
 def validate_config(config: dict, schema_path: str | Path = SCHEMA_PATH) -> dict:
@@ -57,7 +60,13 @@ def load_config(path: str | Path = CONFIG_PATH, overrides: dict | None = None) -
 
 
 def defaults() -> dict:
-    """The schema's defaults alone (what a stage uses when a config omits a key)."""
+    """The schema's defaults alone (what a stage uses when a config omits a key); a fresh copy each call."""
+    return copy.deepcopy(_defaults(SCHEMA_PATH.stat().st_mtime_ns))
+
+
+@lru_cache(maxsize=1)
+def _defaults(schema_mtime_ns: int) -> dict:
+    """The validated defaults, once per version of the schema file (its modification time)."""
     return validate_config({"dataset": "unused"})
 
 
@@ -71,7 +80,8 @@ STAGE_SECTIONS = {
     "absolute": ("model", "bias", "absolute"),
     "immersion": ("model", "immersion"),
     "diagnostics": ("model", "diagnostics"),
-    "calibration": ("model", "calibration"),
+    # apply: the bundle stores every pixel's cell on the default sphere grid (apply.grid_deg)
+    "calibration": ("model", "calibration", "apply"),
     "field": ("model", "apply", "field"),
 }
 

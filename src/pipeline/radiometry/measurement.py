@@ -43,8 +43,7 @@ parameter object, so each is tested on hand values without files.
 
 from __future__ import annotations
 
-import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
@@ -57,6 +56,7 @@ from pipeline.radiometry.rolloff import rolloff_on_image
 __all__ = [
     "FLAG_SATURATED", "FLAG_HOT", "FLAG_OUTSIDE_IMAGE_CIRCLE", "FLAG_BEYOND_CALIBRATED_ANGLE", "FLAG_MEANINGS",
     "Measured", "FrameSettings", "DarkModel", "ResponseModel", "BandCalibration",
+    "RolloffMap", "rolloff_map",
     "from_raw", "subtract_dark", "add_shot_noise", "flag_hot_pixels", "flag_saturation", "linearise", "normalise_exposure",
     "correct_flat_field", "correct_rolloff", "correct_immersion", "to_radiance", "measure_band",
     "check_inverse_responsivity",
@@ -72,53 +72,188 @@ FLAG_MEANINGS = {"saturated": FLAG_SATURATED, "hot_pixel": FLAG_HOT,
                  "beyond_calibrated_field_angle": FLAG_BEYOND_CALIBRATED_ANGLE}
 
 
-@dataclass(frozen=True)
 class Measured:
     """A band image on its way through the chain: value, named variances, quality flags.
 
     ``random_var`` and ``systematic_var`` map a term name to its variance in
-    the units of ``value`` (arrays broadcastable to it).
+    the units of ``value`` (arrays broadcastable to it). Inside, a step that
+    scales the value (Eq. 2's exposure and gain, the flat field, the roll-off,
+    the immersion factor, R^-1) neither multiplies the image nor touches the
+    terms: the value is kept as ``base`` times the product of the factors
+    applied since (a scalar ``factor`` and the maps ``factor_maps``), taken
+    once when the value is read; each term is kept either as an absolute
+    variance in the units of ``base`` (times the factors squared in those of
+    the value: read, dark and shot noise, the dark model) or as a relative
+    variance (times the value squared: the calibration terms, whose relative
+    uncertainty a scaling does not change). The standard uncertainties are
+    then |factors| sqrt(absolute + base^2 relative), in one array each.
     """
 
-    value: np.ndarray
-    units: str
-    random_var: dict[str, np.ndarray] = field(default_factory=dict)
-    systematic_var: dict[str, np.ndarray] = field(default_factory=dict)
-    flags: np.ndarray | None = None
+    def __init__(self, value, units: str, random_var=None, systematic_var=None, flags=None):
+        self.base = value
+        self.factor = 1.0
+        self.factor_maps = ()
+        self.units = units
+        self.flags = flags
+        #: absolute variances, in the units of ``base``
+        self.random_abs = dict(random_var or {})
+        self.systematic_abs = dict(systematic_var or {})
+        #: relative variances
+        self.random_rel = {}
+        self.systematic_rel = {}
+
+    def _replace(self, **changes) -> "Measured":
+        new = object.__new__(Measured)
+        for name in ("base", "factor", "factor_maps", "units", "flags", "random_abs", "systematic_abs",
+                     "random_rel", "systematic_rel"):
+            setattr(new, name, changes.pop(name, getattr(self, name)))
+        if changes:
+            raise TypeError(f"unknown fields {sorted(changes)}")
+        return new
+
+    @property
+    def unscaled(self) -> bool:
+        """True when the value is its base (no factor applied since the last change of the value itself)."""
+        return not self.factor_maps and self.factor == 1.0
+
+    def _scale_of(self, x, squared: bool = False):
+        """``x`` times the factors (or their squares): in a new array unless there is no factor."""
+        if self.unscaled:
+            return x
+        power = 2 if squared else 1
+        out = np.multiply(x, self.factor**power)
+        for f in self.factor_maps:
+            f = np.square(f) if squared else f
+            # in place when the product keeps the array's shape and type (it is new: the first product made it)
+            in_place = isinstance(out, np.ndarray) and out.shape == np.broadcast_shapes(out.shape, np.shape(f)) \
+                and out.dtype == np.result_type(out, f)
+            out = np.multiply(out, f, out=out if in_place else None)
+        return out
+
+    def in_base_units(self, variance):
+        """A variance in the units of the value, in those of ``base`` (over the factors squared)."""
+        if self.unscaled:
+            return variance
+        return variance / self._scale_of(np.ones(np.shape(self.base), np.result_type(np.float32, self.base)),
+                                         squared=True)
+
+    @cached_property
+    def value(self) -> np.ndarray:
+        """The value in ``units``: base times the factors (computed once)."""
+        return self._scale_of(self.base)
+
+    def _terms(self, absolute: dict, relative: dict) -> dict:
+        out = {k: self._scale_of(np.asarray(v), squared=True) for k, v in absolute.items()}
+        if relative:
+            v2 = np.square(self.value)
+            out.update({k: v2 * r for k, r in relative.items()})
+        return out
+
+    @cached_property
+    def random_var(self) -> dict:
+        """Random variances by name, in the units of ``value``."""
+        return self._terms(self.random_abs, self.random_rel)
+
+    @cached_property
+    def systematic_var(self) -> dict:
+        """Systematic variances by name, in the units of ``value``."""
+        return self._terms(self.systematic_abs, self.systematic_rel)
 
     @cached_property
     def random_sigma(self) -> np.ndarray:
         """sqrt of the sum of the random variances (computed once per value)."""
-        return _root_sum(self.random_var.values(), self.value)
+        return self._sigma(self.random_abs, self.random_rel)
 
     @cached_property
     def systematic_sigma(self) -> np.ndarray:
         """sqrt of the sum of the systematic variances (computed once per value)."""
-        return _root_sum(self.systematic_var.values(), self.value)
+        return self._sigma(self.systematic_abs, self.systematic_rel)
 
-    def scaled(self, factor, units: str, **extra_systematic) -> "Measured":
-        """value * factor, every variance times factor^2, plus new systematic terms (already in the new units)."""
-        f2 = np.square(factor)
-        sys_var = {k: v * f2 for k, v in self.systematic_var.items()}
-        sys_var.update(extra_systematic)
-        return dataclasses.replace(self, value=self.value * factor, units=units,
-                                   random_var={k: v * f2 for k, v in self.random_var.items()},
-                                   systematic_var=sys_var)
+    def _sigma(self, absolute: dict, relative: dict) -> np.ndarray:
+        """|factors| sqrt(sum(absolute) + base^2 sum(relative)), in one new array of the value's shape."""
+        # the value's float type (a float32 image stays float32), at least float32
+        dtype = np.result_type(np.float32, self.base)
+        shape = np.broadcast_shapes(np.shape(self.base), *(np.shape(f) for f in self.factor_maps))
+        a = _sum_terms(absolute.values())
+        if relative:
+            total = np.square(self.base, dtype=dtype)
+            if not isinstance(total, np.ndarray) or total.shape != shape:  # a 0-d square is a NumPy scalar
+                total = np.array(np.broadcast_to(total, shape))
+            total *= _sum_terms(relative.values())
+            total += a
+        elif np.ndim(a) == 0:
+            total = np.full(shape, a, dtype)
+        elif isinstance(a, np.ndarray) and a.shape == shape and a.dtype == dtype:
+            total = a  # a new array (_sum_terms adds into one)
+        else:
+            total = np.array(np.broadcast_to(a, shape), dtype=dtype)
+        np.sqrt(total, out=total)
+        if not self.unscaled:
+            total *= abs(self.factor)
+            for f in self.factor_maps:
+                total *= f
+            if any(np.any(f < 0) for f in self.factor_maps):
+                np.abs(total, out=total)
+        return total
+
+    def scaled(self, factor, units: str, relative_systematic=None, **extra_systematic) -> "Measured":
+        """value * factor (every variance then times factor^2), plus new systematic terms.
+
+        ``relative_systematic`` terms are relative variances (the factor's
+        relative uncertainty squared); ``extra_systematic`` are variances
+        already in the new units.
+        """
+        if np.ndim(factor) == 0:
+            out = self._replace(factor=self.factor * float(factor), units=units)
+        else:
+            out = self._replace(factor_maps=self.factor_maps + (np.asarray(factor),), units=units)
+        out.systematic_abs = dict(self.systematic_abs)
+        out.systematic_abs.update({k: out.in_base_units(v) for k, v in extra_systematic.items()})
+        out.systematic_rel = {**self.systematic_rel, **(relative_systematic or {})}
+        return out
+
+    def transformed(self, value, slope) -> "Measured":
+        """The value mapped by a nonlinear function with derivative ``slope``: every variance times slope^2.
+
+        ``value`` becomes the new base (no factor); the terms go with it, all as absolute variances
+        (the relative ones were relative to the old value).
+        """
+        out = {}
+        for name in ("random", "systematic"):
+            terms = getattr(self, f"{name}_var")
+            out[f"{name}_abs"] = {k: v * np.square(slope) for k, v in terms.items()}
+            out[f"{name}_rel"] = {}
+        return self._replace(base=value, factor=1.0, factor_maps=(), **out)
 
     def flagged(self, where, bit: int) -> "Measured":
-        flags = np.zeros(np.shape(self.value), np.uint8) if self.flags is None else self.flags.copy()
-        flags[np.broadcast_to(np.asarray(where, bool), flags.shape)] |= np.uint8(bit)
-        return dataclasses.replace(self, flags=flags)
+        flags = np.zeros(np.shape(self.base), np.uint8) if self.flags is None else self.flags.copy()
+        np.bitwise_or(flags, np.uint8(bit), out=flags, where=np.asarray(where, bool))
+        return self._replace(flags=flags)
+
+    def flagged_by(self, bits) -> "Measured":
+        """Flags ORed with a map of flag bits (uint8, broadcastable to the value)."""
+        flags = np.zeros(np.shape(self.base), np.uint8) if self.flags is None else self.flags.copy()
+        flags |= np.asarray(bits, np.uint8)
+        return self._replace(flags=flags)
 
 
-def _root_sum(variances, like) -> np.ndarray:
-    """sqrt of the sum of variances (arrays broadcastable to ``like``), accumulated in one array."""
-    variances = list(variances)
-    # the dtype the sum would have had (float64 terms promote a float32 value), at least float32
-    total = np.zeros(np.shape(like), dtype=np.result_type(np.float32, like, *(np.asarray(v).dtype for v in variances)))
-    for v in variances:
-        total += v
-    return np.sqrt(total, out=total)
+def _sum_terms(terms):
+    """Sum of variance terms: the scalars first (as a Python float), then the maps; 0.0 when there is none."""
+    const, maps = 0.0, []
+    for t in terms:
+        if np.ndim(t) == 0:
+            const += float(t)
+        else:
+            maps.append(t)
+    if not maps:
+        return const
+    total = maps[0] + const  # always a new array: the caller may work in it
+    for t in maps[1:]:
+        if np.shape(total) == np.broadcast_shapes(np.shape(total), np.shape(t)):
+            total += t
+        else:
+            total = total + t
+    return total
 
 
 @dataclass(frozen=True)
@@ -205,9 +340,16 @@ class BandCalibration:
 
 # --------------------------------------------------------------------------- the steps
 def from_raw(image_dn, saturated=None) -> Measured:
-    """A raw band image (DN) entering the chain; ``saturated`` marks band pixels with a site at the white level."""
-    m = Measured(value=np.asarray(image_dn, dtype=float), units="DN")
-    return m.flagged(np.zeros(m.value.shape, bool) if saturated is None else saturated, FLAG_SATURATED)
+    """A raw band image (DN) entering the chain; ``saturated`` marks band pixels with a site at the white level.
+
+    A float32 image (the band split's) stays float32 through the chain, anything else becomes float64.
+    """
+    image = np.asarray(image_dn)
+    value = image if image.dtype == np.float32 else image.astype(float)
+    flags = np.zeros(value.shape, np.uint8)
+    if saturated is not None:
+        np.bitwise_or(flags, np.uint8(FLAG_SATURATED), out=flags, where=np.asarray(saturated, bool))
+    return Measured(value=value, units="DN", flags=flags)
 
 
 def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects) -> Measured:
@@ -227,15 +369,19 @@ def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects) -
         level += temperature_model_shift_dn(dark.temperature_bias_dn_per_c, dark.temperature_dark_dn_per_s_per_c,
                                             dark.temperature_reference_c, gain, frame.exposure_s, frame.temperature_c)
     sites = dark.sites_per_pixel
-    # the same for every pixel: 0-d arrays (broadcast), maps only once a per-pixel factor scales them
-    rand = dict(m.random_var)
-    rand["read"] = np.asarray(dark.read_noise_dn**2 / sites, dtype=float)
-    rand["dark"] = np.asarray(dark.offset_pattern_dn**2, dtype=float)
-    sys_var = dict(m.systematic_var)
-    sys_var["dark_model"] = np.asarray(dark.bias_dn_sigma**2 + ((gain - 1.0) * dark.bias_per_gain_dn_sigma) ** 2
-                                       + ((gain * frame.exposure_s * dark.dark_current_dn_per_s_sigma) ** 2
-                                          if "dark_current" in effects else 0.0), dtype=float)
-    return dataclasses.replace(m, value=m.value - level, random_var=rand, systematic_var=sys_var)
+    if not m.unscaled:
+        # a shift, not a scaling: the factors go into the value first
+        m = m.transformed(m.value, 1.0)
+    # the same for every pixel: scalars (broadcast), in DN^2 of the raw reading
+    rand = dict(m.random_abs)
+    rand["read"] = float(dark.read_noise_dn**2 / sites)
+    rand["dark"] = float(dark.offset_pattern_dn**2)
+    sys_abs = dict(m.systematic_abs)
+    sys_abs["dark_model"] = float(dark.bias_dn_sigma**2 + ((gain - 1.0) * dark.bias_per_gain_dn_sigma) ** 2
+                                  + ((gain * frame.exposure_s * dark.dark_current_dn_per_s_sigma) ** 2
+                                     if "dark_current" in effects else 0.0))
+    # a Python float keeps a float32 image float32 (NumPy 2 promotion)
+    return m._replace(base=m.base - float(level), random_abs=rand, systematic_abs=sys_abs)
 
 
 def add_shot_noise(m: Measured, dark: DarkModel, response: ResponseModel, frame: FrameSettings, effects) -> Measured:
@@ -247,12 +393,14 @@ def add_shot_noise(m: Measured, dark: DarkModel, response: ResponseModel, frame:
     k_iso = response.conversion_gain_dn_per_e * gain_from_iso(frame.iso) * (
         response.iso_gain_factor if "iso_gain" in effects else 1.0)
     sites = dark.sites_per_pixel
-    rand = dict(m.random_var)
-    rand["shot"] = k_iso * np.clip(m.value, 0.0, None) / sites
+    rand = dict(m.random_abs)
+    shot = np.clip(m.value, 0.0, None)
+    shot *= float(k_iso / sites)
+    rand["shot"] = m.in_base_units(shot)
     if "dark_current" in effects:
         dark_dn = dark.dark_current_dn_per_s * gain_from_iso(frame.iso) * frame.exposure_s
-        rand["dark"] = rand.get("dark", 0.0) + k_iso * max(dark_dn, 0.0) / sites
-    return dataclasses.replace(m, random_var=rand)
+        rand["dark"] = rand.get("dark", 0.0) + m.in_base_units(float(k_iso * max(dark_dn, 0.0) / sites))
+    return m._replace(random_abs=rand)
 
 
 def flag_hot_pixels(m: Measured, hot_mask, effects) -> Measured:
@@ -266,7 +414,7 @@ def flag_saturation(m: Measured, response: ResponseModel) -> Measured:
     """Flag dark-corrected signals at or above the saturation level found by the linearity stage."""
     if not np.isfinite(response.saturation_dn):
         return m
-    return m.flagged(m.value >= response.saturation_dn, FLAG_SATURATED)
+    return m.flagged(m.value >= float(response.saturation_dn), FLAG_SATURATED)
 
 
 def linearise(m: Measured, response: ResponseModel, effects) -> Measured:
@@ -280,22 +428,20 @@ def linearise(m: Measured, response: ResponseModel, effects) -> Measured:
         return m
     if not np.isfinite(full) or full <= 0:
         raise ImpossibleResult(None, f"nonlinearity full scale {full} DN is not positive: rerun the linearity stage")
+    beta, full = float(beta), float(full)
     disc = 1.0 - 4.0 * beta * m.value / full
     beyond = disc <= 0
     root = np.sqrt(np.where(beyond, np.nan, disc))
     s = 2.0 * m.value / (1.0 + root)
-    slope = 1.0 / root
-    out = m.scaled(slope, m.units)
-    if "shot" in m.random_var:
+    out = m.transformed(s, 1.0 / root)
+    if "shot" in m.random_abs:
         # the electrons' Poisson noise is k s in the linear signal s (the sensor bends the noisy signal):
         # the shot term k m of the bent reading m becomes k s, not k m slope^2
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = np.where(m.value > 0, s / np.where(m.value > 0, m.value, 1.0), 1.0)
-        out = dataclasses.replace(out, random_var={**out.random_var, "shot": m.random_var["shot"] * ratio})
-    ds_dbeta = s**2 / full / root
-    sys_var = dict(out.systematic_var)
-    sys_var["nonlinearity"] = (ds_dbeta * response.nonlinearity_beta_sigma) ** 2
-    out = dataclasses.replace(out, value=s, systematic_var=sys_var)
+        out.random_abs["shot"] = m.random_var["shot"] * ratio
+    # ds/dbeta = s^2 / (F root): relative to s, s / (F root)
+    out.systematic_rel["nonlinearity"] = np.square(s / (full * root) * float(response.nonlinearity_beta_sigma))
     return out.flagged(beyond, FLAG_SATURATED)
 
 
@@ -311,13 +457,12 @@ def normalise_exposure(m: Measured, response: ResponseModel, frame: FrameSetting
     if exposure <= 0:
         raise ImpossibleResult(None, f"true exposure {exposure:g} s (nominal {frame.exposure_s:g} s + shutter offset "
                                      f"{offset:g} s) is not positive")
-    out = m.scaled(1.0 / (exposure * gain_from_iso(frame.iso) * factor), "DN s-1")
-    extra = {}
+    rel = {}
     if "shutter_offset" in effects:
-        extra["shutter_offset"] = (out.value / exposure * response.shutter_offset_s_sigma) ** 2
+        rel["shutter_offset"] = float(response.shutter_offset_s_sigma / exposure) ** 2
     if "iso_gain" in effects:
-        extra["iso_gain"] = (out.value / factor * response.iso_gain_factor_sigma) ** 2
-    return dataclasses.replace(out, systematic_var={**out.systematic_var, **extra})
+        rel["iso_gain"] = float(response.iso_gain_factor_sigma / factor) ** 2
+    return m.scaled(float(1.0 / (exposure * gain_from_iso(frame.iso) * factor)), "DN s-1", relative_systematic=rel)
 
 
 def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float = 0.0,
@@ -335,17 +480,60 @@ def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float =
     """
     if "prnu" not in effects or flat_field is None:
         return m
-    flat = np.asarray(flat_field, dtype=float)
+    dtype = np.result_type(np.float32, m.base)
+    flat = np.asarray(flat_field, dtype=dtype)
     measured = np.isfinite(flat) & (flat > 0)
-    out = m.scaled(1.0 / np.where(measured, flat, 1.0), m.units)
-    rand = dict(out.random_var)
-    flat_rel = 0.0 if flat_field_sigma is None else np.nan_to_num(np.asarray(flat_field_sigma, float)) / np.where(
-        measured, flat, 1.0)
-    rand["prnu"] = np.where(measured, (out.value * flat_rel) ** 2, (out.value * prnu_sigma_rel) ** 2 / sites)
-    return dataclasses.replace(out, random_var=rand)
+    flat = np.where(measured, flat, 1.0).astype(dtype, copy=False)
+    out = m.scaled(1.0 / flat, m.units)
+    flat_rel = 0.0 if flat_field_sigma is None else np.nan_to_num(np.asarray(flat_field_sigma, dtype)) / flat
+    rel = np.where(measured, np.square(flat_rel), float(prnu_sigma_rel) ** 2 / sites).astype(dtype, copy=False)
+    return out._replace(random_rel={**out.random_rel, "prnu": rel})
 
 
-def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration, phi_deg=None, effects=()) -> Measured:
+@dataclass(frozen=True)
+class RolloffMap:
+    """What the roll-off step divides a band image by, for each pixel: 1 / g(theta, phi), its terms, its flags.
+
+    ``inverse`` 1 / (g(theta) [1 + A (theta / theta_ref) cos(phi - phi0)]);
+    ``relative_var`` the systematic terms as relative variances (``rolloff``
+    and, with the azimuthal term, ``rolloff_azimuth``); ``flags`` the bits
+    :data:`FLAG_OUTSIDE_IMAGE_CIRCLE` (theta NaN) and
+    :data:`FLAG_BEYOND_CALIBRATED_ANGLE`. It depends only on the lens, band
+    and medium, so the calibration bundle stores it (:func:`rolloff_map`).
+    """
+
+    inverse: np.ndarray
+    relative_var: dict
+    flags: np.ndarray
+
+
+def rolloff_map(theta_deg, calibration: BandCalibration, phi_deg=None, effects=(), dtype=float) -> RolloffMap:
+    """Eq. (13) and its azimuthal term on a band image's angles, with the relative variances from the covariance.
+
+    Evaluated in float64 (the variance polynomial cancels), returned in ``dtype``.
+    """
+    theta = np.asarray(theta_deg, dtype=float)
+    if calibration.rolloff_covariance is None:
+        g, g_sigma = rolloff_on_image(calibration.rolloff_coefficients, theta), np.zeros(theta.shape)
+    else:
+        g, g_sigma = rolloff_on_image(calibration.rolloff_coefficients, theta, calibration.rolloff_covariance)
+    rel = {"rolloff": np.square(g_sigma / g).astype(dtype, copy=False)}
+    if "rolloff_azimuth" in effects and phi_deg is not None and calibration.rolloff_azimuth_amplitude != 0.0:
+        c = calibration
+        u = np.minimum(theta, 100.0) / c.rolloff_azimuth_theta_ref_deg
+        dphi = np.radians(np.asarray(phi_deg, dtype=float) - c.rolloff_azimuth_phi0_deg)
+        a = 1.0 + c.rolloff_azimuth_amplitude * u * np.cos(dphi)
+        rel["rolloff_azimuth"] = (((u * np.cos(dphi) * c.rolloff_azimuth_amplitude_sigma) ** 2
+                                   + (c.rolloff_azimuth_amplitude * u * np.sin(dphi)
+                                      * np.radians(c.rolloff_azimuth_phi0_deg_sigma)) ** 2) / a**2).astype(dtype, copy=False)
+        g = g * a
+    flags = np.where(np.isfinite(theta), 0, FLAG_OUTSIDE_IMAGE_CIRCLE).astype(np.uint8)
+    flags[theta > calibration.calibrated_field_angle_deg] |= np.uint8(FLAG_BEYOND_CALIBRATED_ANGLE)  # NaN: False
+    return RolloffMap(inverse=(1.0 / g).astype(dtype, copy=False), relative_var=rel, flags=flags)
+
+
+def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration, phi_deg=None, effects=(),
+                    rolloff: RolloffMap | None = None) -> Measured:
     """Divide by the roll-off g(theta), Eq. (13) (Section 2.4); systematic term ``rolloff`` from its covariance.
 
     With ``rolloff_azimuth`` (and the pixel azimuths ``phi_deg``) also by its
@@ -354,27 +542,13 @@ def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration, phi_de
 
     Pixels without a viewing direction (theta NaN) are flagged outside the
     image circle; field angles beyond the calibrated one are flagged.
+    ``rolloff``: the :func:`rolloff_map` of these pixels, when already at hand
+    (``theta_deg`` and ``phi_deg`` are then not used).
     """
-    theta = np.asarray(theta_deg, dtype=float)
-    if calibration.rolloff_covariance is None:
-        g, g_sigma = rolloff_on_image(calibration.rolloff_coefficients, theta), np.zeros(theta.shape)
-    else:
-        g, g_sigma = rolloff_on_image(calibration.rolloff_coefficients, theta, calibration.rolloff_covariance)
-    out = m.scaled(1.0 / g, m.units)
-    out = dataclasses.replace(out, systematic_var={**out.systematic_var, "rolloff": (out.value * g_sigma / g) ** 2})
-    if "rolloff_azimuth" in effects and phi_deg is not None and calibration.rolloff_azimuth_amplitude != 0.0:
-        c = calibration
-        u = np.minimum(theta, 100.0) / c.rolloff_azimuth_theta_ref_deg
-        dphi = np.radians(np.asarray(phi_deg, dtype=float) - c.rolloff_azimuth_phi0_deg)
-        a = 1.0 + c.rolloff_azimuth_amplitude * u * np.cos(dphi)
-        out = out.scaled(1.0 / a, m.units)
-        rel_var = ((u * np.cos(dphi) * c.rolloff_azimuth_amplitude_sigma) ** 2
-                   + (c.rolloff_azimuth_amplitude * u * np.sin(dphi) * np.radians(c.rolloff_azimuth_phi0_deg_sigma)) ** 2
-                   ) / a**2
-        out = dataclasses.replace(out, systematic_var={**out.systematic_var,
-                                                       "rolloff_azimuth": out.value**2 * rel_var})
-    out = out.flagged(~np.isfinite(theta), FLAG_OUTSIDE_IMAGE_CIRCLE)
-    return out.flagged(theta > calibration.calibrated_field_angle_deg, FLAG_BEYOND_CALIBRATED_ANGLE)  # NaN: False
+    if rolloff is None:
+        rolloff = rolloff_map(theta_deg, calibration, phi_deg, effects, np.result_type(np.float32, m.base))
+    out = m.scaled(rolloff.inverse, m.units, relative_systematic=rolloff.relative_var)
+    return out.flagged_by(rolloff.flags)
 
 
 def correct_immersion(m: Measured, calibration: BandCalibration, medium: str) -> Measured:
@@ -384,9 +558,8 @@ def correct_immersion(m: Measured, calibration: BandCalibration, medium: str) ->
     i = calibration.immersion_factor
     if not np.isfinite(i) or i <= 0:
         raise ImpossibleResult(None, f"immersion factor {i} is not positive: rerun the immersion stage")
-    out = m.scaled(i, m.units)
-    rel = calibration.immersion_factor_sigma / i
-    return dataclasses.replace(out, systematic_var={**out.systematic_var, "immersion_factor": (out.value * rel) ** 2})
+    rel = float(calibration.immersion_factor_sigma / i) ** 2
+    return m.scaled(float(i), m.units, relative_systematic={"immersion_factor": rel})
 
 
 def check_inverse_responsivity(value: float, where: str = "") -> None:
@@ -399,17 +572,20 @@ def check_inverse_responsivity(value: float, where: str = "") -> None:
 def to_radiance(m: Measured, calibration: BandCalibration) -> Measured:
     """Eq. (9) turned round: L = R^-1 y, in W sr-1 m-2 nm-1; term ``inverse_responsivity`` (its budget)."""
     check_inverse_responsivity(calibration.inverse_responsivity)
-    out = m.scaled(calibration.inverse_responsivity, "W sr-1 m-2 nm-1")
-    rel = calibration.inverse_responsivity_relative_sigma
-    return dataclasses.replace(out, systematic_var={**out.systematic_var, "inverse_responsivity": (out.value * rel) ** 2})
+    rel = float(calibration.inverse_responsivity_relative_sigma) ** 2
+    return m.scaled(float(calibration.inverse_responsivity), "W sr-1 m-2 nm-1",
+                    relative_systematic={"inverse_responsivity": rel})
 
 
 # --------------------------------------------------------------------------- the chain
 def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: ResponseModel,
                  calibration: BandCalibration, theta_deg, medium: str, effects, *, saturated=None,
                  hot_mask=None, flat_field=None, prnu_sigma_rel: float = 0.0, phi_deg=None,
-                 flat_field_sigma=None) -> Measured:
-    """One band image of one lens from raw DN to spectral radiance: the whole inverse of Eq. (4)."""
+                 flat_field_sigma=None, rolloff: RolloffMap | None = None) -> Measured:
+    """One band image of one lens from raw DN to spectral radiance: the whole inverse of Eq. (4).
+
+    ``rolloff``: the :func:`rolloff_map` of the image's pixels when already at hand (the bundle stores it).
+    """
     effects = tuple(effects)
     m = from_raw(image_dn, saturated)
     m = subtract_dark(m, dark, frame, effects)
@@ -419,6 +595,6 @@ def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: Resp
     m = linearise(m, response, effects)
     m = normalise_exposure(m, response, frame, effects)
     m = correct_flat_field(m, flat_field, effects, prnu_sigma_rel, flat_field_sigma, dark.sites_per_pixel)
-    m = correct_rolloff(m, theta_deg, calibration, phi_deg, effects)
+    m = correct_rolloff(m, theta_deg, calibration, phi_deg, effects, rolloff)
     m = correct_immersion(m, calibration, medium)
     return to_radiance(m, calibration)
