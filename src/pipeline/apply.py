@@ -96,6 +96,8 @@ def _stored_rolloff(g: xr.Dataset, rows: slice, cols: slice, effects) -> mm.Roll
     rel = {"rolloff": _crop(g, "rolloff_relative_variance", rows, cols)}
     if "rolloff_azimuth_relative_variance" in g:
         rel["rolloff_azimuth"] = _crop(g, "rolloff_azimuth_relative_variance", rows, cols)
+    if "field_angle_relative_variance" in g:
+        rel["field_angle"] = _crop(g, "field_angle_relative_variance", rows, cols)
     return mm.RolloffMap(inverse=_crop(g, "rolloff_inverse", rows, cols), relative_var=rel,
                          flags=_crop(g, "geometry_flag", rows, cols))
 
@@ -133,6 +135,9 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
         theta = np.where(outside_image_circle(g, theta, rows, cols, shape), np.nan, theta)
         phi = _crop(g, "phi_deg", rows, cols)
     dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
+    if rolloff is None:
+        rolloff = mm.rolloff_map(theta, cal, phi, effects, np.result_type(np.float32, image.dtype),
+                                 theta_deg_sigma=_crop(g, "theta_deg_sigma", rows, cols))
     b = bundle.sel(lens=lens, band=band)
     m = mm.measure_band(image[rows, cols], frame, dark, response, cal, theta, medium, effects,
                         saturated=images.saturated[band][rows, cols],

@@ -236,6 +236,7 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
     rel = np.empty(shape, np.float32)
     azimuth = "rolloff_azimuth" in effects and "rolloff_azimuth_amplitude" in bundle
     rel_az = np.zeros(shape, np.float32) if azimuth else None
+    rel_angle = np.zeros(shape, np.float32) if "theta_deg_sigma" in bundle else None
     flags = np.empty(shape, np.uint8)
     cells = np.empty(shape, np.int32)
     frame = mm.FrameSettings(exposure_s=1.0, iso=float(bundle["dark_iso"].values.min()))
@@ -247,8 +248,11 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
                 phi = g["phi_deg"].values
                 theta = np.where(outside_image_circle(g, theta, slice(None), slice(None), theta.shape), np.nan, theta)
                 cal = band_parameters(bundle, lens, band, medium, frame, effects)[2]
-                r = mm.rolloff_map(theta, cal, phi, effects, np.float32)
+                sigma = g["theta_deg_sigma"].values if rel_angle is not None else None
+                r = mm.rolloff_map(theta, cal, phi, effects, np.float32, theta_deg_sigma=sigma)
                 inverse[i, k, j], rel[i, k, j], flags[i, k, j] = r.inverse, r.relative_var["rolloff"], r.flags
+                if rel_angle is not None:
+                    rel_angle[i, k, j] = r.relative_var["field_angle"]
                 if azimuth and "rolloff_azimuth" in r.relative_var:
                     rel_az[i, k, j] = r.relative_var["rolloff_azimuth"]
                 zen, azi = sphere_coordinates(g["theta_deg"].values, phi, lens == ZENITH_LENS)
@@ -266,6 +270,10 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
                                                    "(zenith, azimuth); -1: no direction", "units": "1",
                                       "grid_deg": float(grid_deg), "zenith_lens": ZENITH_LENS}),
     })
+    if rel_angle is not None:
+        out["field_angle_relative_variance"] = (dims, rel_angle, {
+            "long_name": "relative variance of g(theta) from the field angle's uncertainty theta_deg_sigma, "
+                         "(g'(theta) / g sigma_theta)^2 (systematic term field_angle)", "units": "1"})
     if azimuth:
         out["rolloff_azimuth_relative_variance"] = (dims, rel_az, {
             "long_name": "relative variance of the roll-off's azimuthal factor (systematic term rolloff_azimuth)",

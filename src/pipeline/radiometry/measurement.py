@@ -51,7 +51,7 @@ import numpy as np
 from pipeline.errors import ImpossibleResult
 from pipeline.radiometry.dark import dark_model_level_dn, temperature_model_shift_dn
 from pipeline.radiometry.exposure import gain_from_iso
-from pipeline.radiometry.rolloff import rolloff_on_image
+from pipeline.radiometry.rolloff import rolloff_on_image, rolloff_slope_on_image
 
 __all__ = [
     "FLAG_SATURATED", "FLAG_HOT", "FLAG_OUTSIDE_IMAGE_CIRCLE", "FLAG_BEYOND_CALIBRATED_ANGLE", "FLAG_MEANINGS",
@@ -507,9 +507,16 @@ class RolloffMap:
     flags: np.ndarray
 
 
-def rolloff_map(theta_deg, calibration: BandCalibration, phi_deg=None, effects=(), dtype=float) -> RolloffMap:
+def rolloff_map(theta_deg, calibration: BandCalibration, phi_deg=None, effects=(), dtype=float,
+                theta_deg_sigma=None) -> RolloffMap:
     """Eq. (13) and its azimuthal term on a band image's angles, with the relative variances from the covariance.
 
+    With ``theta_deg_sigma`` (the geometric fit's uncertainty of each pixel's
+    field angle, common to all frames) also the systematic term
+    ``field_angle``: (g'(theta) / g * sigma_theta)^2, the roll-off read at a
+    field angle that is itself uncertain (the azimuthal factor's own
+    dependence on theta is left out: A theta / theta_ref changes by A
+    sigma_theta / theta_ref, below 1e-5 for the fitted A and sigma_theta).
     Evaluated in float64 (the variance polynomial cancels), returned in ``dtype``.
     """
     theta = np.asarray(theta_deg, dtype=float)
@@ -518,6 +525,10 @@ def rolloff_map(theta_deg, calibration: BandCalibration, phi_deg=None, effects=(
     else:
         g, g_sigma = rolloff_on_image(calibration.rolloff_coefficients, theta, calibration.rolloff_covariance)
     rel = {"rolloff": np.square(g_sigma / g).astype(dtype, copy=False)}
+    if theta_deg_sigma is not None:
+        slope = rolloff_slope_on_image(calibration.rolloff_coefficients, theta)
+        rel["field_angle"] = np.square(slope / g * np.nan_to_num(np.asarray(theta_deg_sigma, float))).astype(
+            dtype, copy=False)
     if "rolloff_azimuth" in effects and phi_deg is not None and calibration.rolloff_azimuth_amplitude != 0.0:
         c = calibration
         u = np.minimum(theta, 100.0) / c.rolloff_azimuth_theta_ref_deg

@@ -186,6 +186,21 @@ def rolloff_slope(coefficients, theta_deg):
     return t * np.sum(rolloff_design_matrix(t)[..., :-1] * dc, axis=-1)
 
 
+def rolloff_slope_on_image(coefficients, theta_deg):
+    """:func:`rolloff_slope` of one set of coefficients on a large array of angles, by Horner's rule in theta^2.
+
+    g'(theta) = theta * sum_k 2k a_2k u^(k - 1) with u = theta^2 (deg^-1), without the design matrix.
+    """
+    c = np.asarray(coefficients, dtype=float)
+    if c.ndim != 1:
+        raise ValueError("rolloff_slope_on_image takes one set of coefficients (a0, a2, a4, a6, a8)")
+    t = np.asarray(theta_deg, dtype=float)
+    dc = np.asarray(ROLLOFF_POWERS[1:], dtype=float) * c[1:]
+    out = _horner(dc, np.square(t))
+    out *= t
+    return out[()]
+
+
 def normalise_rolloff(coefficients, covariance=None):
     """Divide by a0 so that g(0) = 1; propagate the covariance (first order).
 
