@@ -8,7 +8,11 @@ the repository's Snakefile.
 from __future__ import annotations
 
 import json
+import os
 import shutil
+import signal
+import subprocess
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -16,7 +20,8 @@ import pytest
 import xarray as xr
 import yaml
 
-from workflow_runs import LENSES, planned_jobs, planned_rules, snakemake
+from pipeline.artefact import read_artefact
+from workflow_runs import LENSES, REPO, SNAKEMAKE, planned_jobs, planned_rules, snakemake
 
 
 @pytest.fixture(scope="module")
@@ -174,3 +179,41 @@ def test_absent_experiment_is_skipped_and_reported(make_dataset, tmp_path):
     assert not (tmp_path / "results/linearity").exists()
     html = (tmp_path / "results/report/index.html").read_text()
     assert "the dataset has no linearity/ folder" in html
+
+
+def test_a_run_killed_mid_stage_restarts_to_completion_without_a_corrupt_artefact(make_dataset, tmp_path):
+    """SIGKILL of snakemake's whole process group (no clean-up: as a lost node or a power cut) while the
+    linearity jobs run; the restart needs ``--unlock`` (the lock stays behind), not ``--rerun-incomplete``:
+    the artefacts are renamed into place only when complete, so the killed jobs left no output to distrust."""
+    src, _ = make_dataset([("dark_current", {}), ("shutter_offset", {})], seed=31)
+    dataset = tmp_path / "dataset"
+    shutil.copytree(src, dataset)
+    targets = [f"results/{stage}/{lens}.nc" for stage in ("dark", "linearity") for lens in LENSES]
+    cmd = [str(SNAKEMAKE), *targets, "-s", str(REPO / "Snakefile"), "--cores", "2", "--config", f"dataset={dataset}"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    started = tmp_path / "results/logs/linearity"
+    try:
+        while proc.poll() is None and not (started.is_dir() and any(started.iterdir())):
+            time.sleep(0.05)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL, "snakemake ended before the linearity jobs started"
+    assert not list((tmp_path / "results/linearity").glob("*.nc")), "the linearity jobs ended before the kill"
+    dark_written = {lens: (tmp_path / f"results/dark/{lens}.nc").stat().st_mtime_ns for lens in LENSES}
+    # the same command again: refused while the killed run's lock is there
+    again = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert again.returncode != 0 and "Directory cannot be locked" in again.stderr
+    subprocess.run([*cmd, "--unlock"], cwd=tmp_path, check=True, capture_output=True, timeout=600)
+    restart = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert restart.returncode == 0, restart.stderr[-3000:]
+    assert "incomplete" not in restart.stderr.lower()
+    # only the interrupted jobs ran again; every artefact whole, no temporary file left behind
+    assert {lens: (tmp_path / f"results/dark/{lens}.nc").stat().st_mtime_ns for lens in LENSES} == dark_written
+    for stage, version in (("dark", 1), ("linearity", 2)):
+        for lens in LENSES:
+            ds = read_artefact(tmp_path / f"results/{stage}/{lens}.nc", stage)
+            assert int(ds.attrs["artefact_version"]) == version and len(ds.data_vars) > 10
+    assert not [p for p in (tmp_path / "results").rglob("*") if p.name.endswith(".tmp")]
+    assert not list((tmp_path / ".snakemake/incomplete").glob("*"))

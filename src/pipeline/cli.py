@@ -253,7 +253,7 @@ def _verify_store(args) -> int:
         print(f"error: {line}", file=sys.stderr)
     if problems:
         return EXIT_BAD_INPUT
-    print(f"ok: {len(read_index(args.store))} calibrations in {args.store}, every file as published")
+    print(f"ok: {len(read_index(args.store))} calibration(s) in {args.store}, every file as published")
     return EXIT_OK
 
 
