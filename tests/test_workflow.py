@@ -183,12 +183,14 @@ def test_absent_experiment_is_skipped_and_reported(make_dataset, tmp_path):
 
 def test_a_run_killed_mid_stage_restarts_to_completion_without_a_corrupt_artefact(make_dataset, tmp_path):
     """SIGKILL of snakemake's whole process group (no clean-up: as a lost node or a power cut) while the
-    linearity jobs run; the restart needs ``--unlock`` (the lock stays behind), not ``--rerun-incomplete``:
-    the artefacts are renamed into place only when complete, so the killed jobs left no output to distrust."""
+    linearity job runs; the restart needs ``--unlock`` (the lock stays behind), not ``--rerun-incomplete``:
+    the artefacts are renamed into place only when complete, so the killed job left no output to distrust.
+    One lens (dark, then linearity) keeps it cheap: each snakemake start costs about 4.5 s of CPU."""
     src, _ = make_dataset([("dark_current", {}), ("shutter_offset", {})], seed=31)
     dataset = tmp_path / "dataset"
     shutil.copytree(src, dataset)
-    targets = [f"results/{stage}/{lens}.nc" for stage in ("dark", "linearity") for lens in LENSES]
+    lens = "far"
+    targets = [f"results/{stage}/{lens}.nc" for stage in ("dark", "linearity")]
     cmd = [str(SNAKEMAKE), *targets, "-s", str(REPO / "Snakefile"), "--cores", "2", "--config", f"dataset={dataset}"]
     proc = subprocess.Popen(cmd, cwd=tmp_path, start_new_session=True, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
@@ -199,21 +201,20 @@ def test_a_run_killed_mid_stage_restarts_to_completion_without_a_corrupt_artefac
     finally:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
-    assert proc.returncode == -signal.SIGKILL, "snakemake ended before the linearity jobs started"
-    assert not list((tmp_path / "results/linearity").glob("*.nc")), "the linearity jobs ended before the kill"
-    dark_written = {lens: (tmp_path / f"results/dark/{lens}.nc").stat().st_mtime_ns for lens in LENSES}
-    # the same command again: refused while the killed run's lock is there
-    again = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
-    assert again.returncode != 0 and "Directory cannot be locked" in again.stderr
+    assert proc.returncode == -signal.SIGKILL, "snakemake ended before the linearity job started"
+    assert not list((tmp_path / "results/linearity").glob("*.nc")), "the linearity job ended before the kill"
+    dark_written = (tmp_path / f"results/dark/{lens}.nc").stat().st_mtime_ns
+    # the killed run's lock is still there (the same command would stop: 'Directory cannot be locked')
+    # and its job's output is marked incomplete
+    assert list((tmp_path / ".snakemake/locks").glob("*")) and list((tmp_path / ".snakemake/incomplete").glob("*"))
     subprocess.run([*cmd, "--unlock"], cwd=tmp_path, check=True, capture_output=True, timeout=600)
     restart = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
     assert restart.returncode == 0, restart.stderr[-3000:]
     assert "incomplete" not in restart.stderr.lower()
-    # only the interrupted jobs ran again; every artefact whole, no temporary file left behind
-    assert {lens: (tmp_path / f"results/dark/{lens}.nc").stat().st_mtime_ns for lens in LENSES} == dark_written
+    # only the interrupted job ran again; every artefact whole, no temporary file left behind
+    assert (tmp_path / f"results/dark/{lens}.nc").stat().st_mtime_ns == dark_written
     for stage, version in (("dark", 1), ("linearity", 2)):
-        for lens in LENSES:
-            ds = read_artefact(tmp_path / f"results/{stage}/{lens}.nc", stage)
-            assert int(ds.attrs["artefact_version"]) == version and len(ds.data_vars) > 10
+        ds = read_artefact(tmp_path / f"results/{stage}/{lens}.nc", stage)
+        assert int(ds.attrs["artefact_version"]) == version and len(ds.data_vars) > 10
     assert not [p for p in (tmp_path / "results").rglob("*") if p.name.endswith(".tmp")]
     assert not list((tmp_path / ".snakemake/incomplete").glob("*"))
