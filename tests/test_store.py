@@ -112,6 +112,12 @@ def test_same_date_other_content_gets_its_own_entry_and_tampering_is_detected(ca
     assert main(["apply", "--store", str(store), "--no-pixels", "--overwrite", str(frame), "-o", str(out)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {victim}: changed after it was published")
+    # a file put into the store by hand, beside the index, is named too
+    stray = victim.with_name("20210301T000000_0000000000000000.nc")
+    shutil.copyfile(bundle, stray)
+    assert main(["verify-store", str(store)]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert f"error: {stray}: is not in the store's index (added by hand?)" in err and len(err) == 2
 
 
 def test_apply_selects_the_calibration_valid_at_each_frame(calibrated, tmp_path, capsys):

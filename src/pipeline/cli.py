@@ -23,8 +23,9 @@ HELP_COLUMN = 28
 DESCRIPTION = """\
 Calibrate a RAW camera as a radiometer. These commands lay out a lab's raw
 files as a calibration dataset (../shared/DATASET.md), check it, simulate one,
-or turn raw frames into radiance with a calibration bundle; the calibration
-itself runs with snakemake."""
+turn raw frames into radiance with a calibration bundle, or publish bundles
+into an append-only calibration store; the calibration itself runs with
+snakemake."""
 
 EXAMPLES = f"""\
 examples:
@@ -159,7 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
     from pipeline.apply import add_apply_parser
 
     add_apply_parser(sub)
-    pub = sub.add_parser("publish", help="file a calibration bundle into the append-only calibration store",
+    pub = sub.add_parser("publish", help="file a calibration bundle into the append-only store",
                          description="Copy a calibration bundle into the store, dated and content-hashed, and "
                                      "append it to the store's index; nothing is ever overwritten.",
                          epilog=PUBLISH_EXAMPLES, formatter_class=fmt)

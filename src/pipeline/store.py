@@ -177,6 +177,7 @@ def publish(bundle_path: str | Path, store: str | Path, *, valid_from: datetime 
                                      "restore its index.csv from a backup")
         target.parent.mkdir(parents=True, exist_ok=True)
         tmp = target.with_name(f".{target.name}.tmp")
+        tmp.unlink(missing_ok=True)     # left by a publication that was killed (never in the index)
         shutil.copyfile(bundle_path, tmp)
         with open(tmp, "rb") as fh:
             os.fsync(fh.fileno())
@@ -184,8 +185,15 @@ def publish(bundle_path: str | Path, store: str | Path, *, valid_from: datetime 
             tmp.unlink()
             raise InputError(bundle_path, "changed while it was being published; publish it again")
         os.chmod(tmp, 0o444)
-        os.link(tmp, target)            # fails rather than replace an existing file
-        tmp.unlink()
+        try:
+            os.link(tmp, target)        # fails rather than replace an existing file
+        except FileExistsError:
+            raise InputError(target, "appeared while it was being published; publish again") from None
+        except OSError as exc:
+            raise InputError(store, f"cannot link files on this filesystem ({exc.strerror}); the store needs one "
+                                    "with hard links (never-overwrite rename)") from None
+        finally:
+            tmp.unlink(missing_ok=True)
         row = {"serial": serial, "valid_from": valid_from.strftime(TIME_FORMAT), "sha256": digest, "file": name,
                "published_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                "valid_from_source": source, "source": str(bundle_path.resolve())}
