@@ -24,29 +24,52 @@ REGRESSION = Path(__file__).with_name("regression") / "tiny.json"
 TIME_ATTRS = ("created",)
 
 
-def test_a_fresh_calibration_reproduces_the_committed_key_results(calibrated):
-    committed = json.loads(REGRESSION.read_text())
-    dataset = committed["dataset"]
-    assert (dataset["scale"], dataset["seed"], dataset["effects"], tuple(dataset["experiments"])) == (
-        "tiny", 5, [], tuple(BUNDLE_STAGES)), "tiny.json was made from another dataset than the fixture's"
+def _moved(committed: dict, fresh: dict[str, dict]) -> list[str]:
+    """Key results of ``fresh`` outside the committed values' tolerance: 1e-6 of the value, or a hundredth of
+    its stated uncertainty where smaller, so that a change of method is caught even inside its error bar; the
+    stated uncertainty itself (a change of the budget is a change of method) within 1e-6 of it."""
     rtol, sigma_fraction = float(committed["tolerance"]["relative"]), float(committed["tolerance"]["sigma_fraction"])
-    fresh = key_results(calibrated[4])
-    assert set(fresh) == set(committed["values"]), "the set of key results changed: refresh tiny.json on purpose"
     moved = []
     for name, old in committed["values"].items():
         new = fresh[name]
+        if (old["sigma"] is None) != (new["sigma"] is None) or (
+                old["sigma"] is not None and abs(new["sigma"] - old["sigma"]) > rtol * old["sigma"]):
+            moved.append(f"{name} sigma: {old['sigma']!r} -> {new['sigma']!r}")
         if old["value"] is None or new["value"] is None:
             if old["value"] != new["value"]:
                 moved.append(f"{name}: {old['value']} -> {new['value']}")
             continue
-        # 1e-6 of the value, or a hundredth of its stated uncertainty where smaller: a change of method
-        # is caught even when it stays inside the value's own error bar
         tolerance = rtol * abs(old["value"])
         if old["sigma"]:
             tolerance = min(tolerance, sigma_fraction * old["sigma"])
         if abs(new["value"] - old["value"]) > tolerance:
             moved.append(f"{name}: {old['value']!r} -> {new['value']!r}")
+    return moved
+
+
+def test_a_fresh_calibration_reproduces_the_committed_key_results(calibrated):
+    committed = json.loads(REGRESSION.read_text())
+    dataset = committed["dataset"]
+    assert (dataset["scale"], dataset["seed"], dataset["effects"], tuple(dataset["experiments"])) == (
+        "tiny", 5, [], tuple(BUNDLE_STAGES)), "tiny.json was made from another dataset than the fixture's"
+    fresh = key_results(calibrated[4])
+    assert set(fresh) == set(committed["values"]), "the set of key results changed: refresh tiny.json on purpose"
+    moved = _moved(committed, fresh)
     assert not moved, "key results moved (refresh tiny.json on purpose if the change is meant):\n" + "\n".join(moved)
+
+
+def test_the_comparison_catches_a_shift_far_inside_the_stated_uncertainty():
+    """R^-1 moved by 2 % of its sigma (a change no interval would notice) is flagged, float rounding is not;
+    its stated sigma changed by 1 % is flagged."""
+    committed = json.loads(REGRESSION.read_text())
+    name = "absolute.inverse_responsivity.close.G"
+    old = committed["values"][name]
+    for shift, caught in ((0.02 * old["sigma"], True), (4 * np.spacing(old["value"]), False)):
+        fresh = {**committed["values"], name: {**old, "value": old["value"] + shift}}
+        assert bool(_moved(committed, fresh)) == caught, shift
+    # a budget that states another uncertainty for the same value
+    fresh = {**committed["values"], name: {**old, "sigma": old["sigma"] * 0.99}}
+    assert _moved(committed, fresh) == [f"{name} sigma: {old['sigma']!r} -> {old['sigma'] * 0.99!r}"]
 
 
 def test_the_same_inputs_and_config_give_bit_identical_data_variables(make_dataset, config, tmp_path):

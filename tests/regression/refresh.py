@@ -26,7 +26,8 @@ from pipeline.simulate import simulate_dataset  # noqa: E402
 
 #: the dataset of the ``calibrated`` fixture (tests/conftest.py)
 DATASET = {"scale": "tiny", "seed": 5, "effects": [], "experiments": list(BUNDLE_STAGES)}
-#: |fresh - committed| <= min(RELATIVE_TOLERANCE * |committed|, SIGMA_FRACTION * committed sigma)
+#: |fresh - committed| <= min(RELATIVE_TOLERANCE * |committed|, SIGMA_FRACTION * committed sigma);
+#: a stated sigma within RELATIVE_TOLERANCE of itself
 RELATIVE_TOLERANCE = 1e-6
 SIGMA_FRACTION = 0.01
 TOLERANCE_NOTE = (
@@ -34,7 +35,8 @@ TOLERANCE_NOTE = (
     "bytes) and the same fits, so a fresh calibration reproduces each value to float rounding (amplified by the "
     "iterative fits, still far below 1e-9 relative). The tolerance of a value is 1e-6 of it, or a hundredth of "
     "its stated sigma where that is smaller: room for another BLAS or platform, while any change of method that "
-    "moves a value, even well inside its own uncertainty, is caught. Refresh on purpose with: "
+    "moves a value, even well inside its own uncertainty, is caught. A stated sigma is compared within 1e-6 of "
+    "itself (a change of the uncertainty budget is a change of method). Refresh on purpose with: "
     "PYTHONPATH=src .venv/bin/python tests/regression/refresh.py")
 OUT = Path(__file__).with_name("tiny.json")
 
