@@ -4,18 +4,21 @@ Tests that hand a stage the true geometry (instead of the geometry stage's
 fit) build it here: the truth comes from :mod:`pipeline.simulate`, the layout
 from :func:`pipeline.stages.geometry_maps.maps_dataset`, so that no stage
 imports the simulator. :func:`calibrate` runs the pipeline's own lab stages
-and gathers their bundle.
+and gathers their bundle; :func:`key_results` reads its key numbers for the regression
+(``tests/regression/``).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import xarray as xr
 import yaml
 
 from pipeline.artefact import write_artefact
-from pipeline.calibration import BUNDLE_STAGES, build_bundle
+from pipeline.calibration import BUNDLE_STAGES, build_bundle, read_bundle
+from pipeline.radiometry.rolloff import evaluate_rolloff
 from pipeline.workflow import STAGES, run_stage
 from pipeline.bands import BANDS
 from pipeline.simulate.lens import default_model
@@ -58,3 +61,55 @@ def calibrate(root: Path, config: dict, out: Path) -> tuple[dict, Path, dict]:
     bundle_path = out / "calibration" / f"{meta['camera']['serial']}.nc"
     build_bundle(artefacts, bundle_path, meta["camera"], meta["lenses"], config)
     return artefacts, bundle_path, meta
+
+
+#: field angles at which the regression records the roll-off, per medium (inside the tiny camera's
+#: calibrated field angle: about 82 degrees in air, 70 in water)
+REGRESSION_ROLLOFF_DEG = {"air": (60.0, 80.0), "water": (60.0,)}
+
+
+def key_results(bundle_path: Path) -> dict[str, dict]:
+    """The calibration's key numbers per stage, lens and band, from its bundle: {name: {value, sigma}}.
+
+    ``sigma`` is the pipeline's own stated standard uncertainty of the value, or None where the
+    bundle states none. Names are ``stage.quantity.lens[.band][.setting]``. NaN is written as None.
+    """
+    b = read_bundle(bundle_path)
+    out: dict[str, dict] = {}
+
+    def put(name, value, sigma=None):
+        value = float(value)
+        sigma = None if sigma is None else float(sigma)
+        out[name] = {"value": None if np.isnan(value) else value,
+                     "sigma": None if sigma is None or np.isnan(sigma) else sigma}
+
+    def with_sigma(stage, var, lens, band=None):
+        sel = {"lens": lens} if band is None else {"lens": lens, "band": band}
+        sigma = b[f"{var}_sigma"].sel(sel) if f"{var}_sigma" in b else None
+        put(".".join([stage, var, lens] + ([band] if band else [])), b[var].sel(sel), sigma)
+
+    for lens in b["lens"].values.astype(str):
+        put(f"linearity.conversion_gain_dn_per_e.{lens}", b["conversion_gain_dn_per_e"].sel(lens=lens),
+            b["conversion_gain_dn_per_e_sigma"].sel(lens=lens))
+        put(f"linearity.saturation_dn.{lens}", b["saturation_dn"].sel(lens=lens))
+        with_sigma("dark", "dark_current_dn_per_s", lens)
+        for band in BANDS:
+            with_sigma("dark", "bias_dn", lens, band)
+            for iso in (100.0, 3200.0):
+                put(f"dark.read_noise_dn.{lens}.{band}.iso{iso:g}", b["read_noise_dn"].sel(lens=lens, band=band, dark_iso=iso))
+            put(f"dark.offset_pattern_dn.{lens}.{band}", b["offset_pattern_dn"].sel(lens=lens, band=band))
+            for var in ("xc_px", "yc_px", "half_fov_deg"):
+                put(f"geometry.{var}.{lens}.{band}.air", b[var].sel(lens=lens, band=band, medium="air"))
+            for medium, angles in REGRESSION_ROLLOFF_DEG.items():
+                sel = dict(lens=lens, band=band, medium=medium)
+                g, sigma = evaluate_rolloff(b["rolloff_coefficients"].sel(sel).values,
+                                            np.array(angles), b["rolloff_covariance"].sel(sel).values)
+                for angle, gi, si in zip(angles, g, sigma):
+                    put(f"rolloff.g.{lens}.{band}.{medium}.{angle:g}deg", gi, si)
+            with_sigma("spectral", "effective_wavelength_nm", lens, band)
+            put(f"spectral.half_bandwidth_nm.{lens}.{band}", b["half_bandwidth_nm"].sel(lens=lens, band=band))
+            with_sigma("absolute", "inverse_responsivity", lens, band)
+            with_sigma("immersion", "immersion_factor", lens, band)
+            put(f"calibration.noise_equivalent_radiance.{lens}.{band}",
+                b["noise_equivalent_radiance"].sel(lens=lens, band=band))
+    return out

@@ -1,15 +1,21 @@
 """What `python -m pipeline simulate --scale tiny` writes by default calibrates end to end through the
-workflow, field hour included, and new field data reruns the field job only."""
+workflow, field hour included, and new field data reruns the field job only; a run killed mid-stage
+restarts to completion."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import signal
 import subprocess
 import sys
+import time
 
 import pandas as pd
 import xarray as xr
 
-from workflow_runs import LENSES, planned_rules, snakemake
+from pipeline.artefact import ARTEFACT_VERSIONS, read_artefact
+from workflow_runs import LENSES, REPO, SNAKEMAKE, planned_rules, snakemake
 
 
 def test_the_default_tiny_simulation_runs_through_the_whole_workflow(tmp_path):
@@ -40,3 +46,42 @@ def test_the_default_tiny_simulation_runs_through_the_whole_workflow(tmp_path):
     reference.write_text("\n".join(lines[:-1]) + "\n")       # the last reading dropped
     write_md5sums(dataset)
     assert planned_rules(tmp_path, dataset) == {"field", "diagnostics", "report", "all"}
+
+
+def test_a_run_killed_mid_stage_restarts_to_completion_without_a_corrupt_artefact(make_dataset, tmp_path):
+    """SIGKILL of snakemake's whole process group (no clean-up: as a lost node or a power cut) while the
+    linearity job runs; the restart needs ``--unlock`` (the lock stays behind), not ``--rerun-incomplete``:
+    the artefacts are renamed into place only when complete, so the killed job left no output to distrust.
+    One lens (dark, then linearity) keeps it cheap: each snakemake start costs about 4.5 s of CPU."""
+    src, _ = make_dataset([("dark_current", {}), ("shutter_offset", {})], seed=31)
+    dataset = tmp_path / "dataset"
+    shutil.copytree(src, dataset)
+    lens = "far"
+    targets = [f"results/{stage}/{lens}.nc" for stage in ("dark", "linearity")]
+    cmd = [str(SNAKEMAKE), *targets, "-s", str(REPO / "Snakefile"), "--cores", "2", "--config", f"dataset={dataset}"]
+    proc = subprocess.Popen(cmd, cwd=tmp_path, start_new_session=True, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    started = tmp_path / "results/logs/linearity"
+    try:
+        while proc.poll() is None and not (started.is_dir() and any(started.iterdir())):
+            time.sleep(0.05)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    assert proc.returncode == -signal.SIGKILL, "snakemake ended before the linearity job started"
+    assert not list((tmp_path / "results/linearity").glob("*.nc")), "the linearity job ended before the kill"
+    dark_written = (tmp_path / f"results/dark/{lens}.nc").stat().st_mtime_ns
+    # the killed run's lock is still there (the same command would stop: 'Directory cannot be locked')
+    # and its job's output is marked incomplete
+    assert list((tmp_path / ".snakemake/locks").glob("*")) and list((tmp_path / ".snakemake/incomplete").glob("*"))
+    subprocess.run([*cmd, "--unlock"], cwd=tmp_path, check=True, capture_output=True, timeout=600)
+    restart = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert restart.returncode == 0, restart.stderr[-3000:]
+    assert "incomplete" not in restart.stderr.lower()
+    # only the interrupted job ran again; every artefact whole, no temporary file left behind
+    assert (tmp_path / f"results/dark/{lens}.nc").stat().st_mtime_ns == dark_written
+    for stage in ("dark", "linearity"):
+        ds = read_artefact(tmp_path / f"results/{stage}/{lens}.nc", stage)
+        assert int(ds.attrs["artefact_version"]) == ARTEFACT_VERSIONS[stage] and len(ds.data_vars) > 10
+    assert not [p for p in (tmp_path / "results").rglob("*") if p.name.endswith(".tmp")]
+    assert not list((tmp_path / ".snakemake/incomplete").glob("*"))

@@ -430,9 +430,12 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
 
 # --------------------------------------------------------------------------- command line
 def add_apply_parser(subparsers) -> argparse.ArgumentParser:
-    """``apply --calibration BUNDLE [--medium air|water] RAW.dng... -o OUT.nc``."""
+    """``apply --calibration BUNDLE | --store DIR [--medium air|water] RAW.dng... -o OUT.nc``."""
     p = subparsers.add_parser("apply", help="raw frames to radiance maps with a calibration bundle")
-    p.add_argument("--calibration", required=True, help="calibration bundle (results/calibration/<serial>.nc)")
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--calibration", help="calibration bundle (results/calibration/<serial>.nc)")
+    which.add_argument("--store", metavar="DIR", help="calibration store (python -m pipeline publish): each frame "
+                                                      "takes the calibration valid at its DateTimeOriginal")
     p.add_argument("--medium", choices=("air", "water"), default="air")
     p.add_argument("raw", nargs="+", help="raw DNG frames of the calibrated camera")
     p.add_argument("-o", "--out", required=True, help="NetCDF file to write")

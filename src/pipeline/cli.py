@@ -1,4 +1,4 @@
-"""Command line: ``python -m pipeline COMMAND`` (init-dataset, validate, simulate, apply).
+"""Command line: ``python -m pipeline COMMAND`` (init-dataset, validate, simulate, apply, publish, verify-store).
 
 It only parses arguments and calls the package; the workflow itself runs with
 ``snakemake``.
@@ -23,8 +23,9 @@ HELP_COLUMN = 28
 DESCRIPTION = """\
 Calibrate a RAW camera as a radiometer. These commands lay out a lab's raw
 files as a calibration dataset (../shared/DATASET.md), check it, simulate one,
-or turn raw frames into radiance with a calibration bundle; the calibration
-itself runs with snakemake."""
+turn raw frames into radiance with a calibration bundle, or publish bundles
+into an append-only calibration store; the calibration itself runs with
+snakemake."""
 
 EXAMPLES = f"""\
 examples:
@@ -32,6 +33,8 @@ examples:
   python -m pipeline validate /data/calib2024
   snakemake --cores 2 --config dataset=/data/calib2024
   python -m pipeline apply --calibration results/calibration/SIM-0001.nc sky.dng -o sky.nc
+  python -m pipeline publish results/calibration/SIM-0001.nc --dataset /data/calib2024 --store /archive/calibrations
+  python -m pipeline apply --store /archive/calibrations sky.dng -o sky.nc
   python -m pipeline simulate --out data/sim-tiny --scale tiny --seed 1
 
 exit codes:
@@ -69,6 +72,19 @@ SIMULATE_EXAMPLES = """\
 examples:
   python -m pipeline simulate --out data/sim-tiny --scale tiny --seed 1
   python -m pipeline simulate --out data/sim --effect shutter_offset:offset_s=0.0004 --experiments dark,linearity"""
+
+PUBLISH_EXAMPLES = """\
+The store is append-only: STORE/<serial>/<valid_from>_<sha256[:16]>.nc, read-only
+copies listed in STORE/index.csv. A bundle is valid from the latest DateTimeOriginal
+of the lab frames it was made from (--dataset, the dataset the calibration ran on)
+or from --valid-from; 'apply --store' gives each frame the calibration with the
+newest validity start not after the frame's DateTimeOriginal. Publishing the same
+file again writes nothing.
+
+examples:
+  python -m pipeline publish results/calibration/SIM-0001.nc --dataset /data/calib2024
+  python -m pipeline publish results/calibration/SIM-0001.nc --valid-from 2024-05-01 --store /archive/calibrations
+  python -m pipeline verify-store /archive/calibrations"""
 
 
 def simulate_from_config(out, simulation: dict) -> None:
@@ -147,6 +163,21 @@ def build_parser() -> argparse.ArgumentParser:
     from pipeline.apply import add_apply_parser
 
     add_apply_parser(sub)
+    pub = sub.add_parser("publish", help="file a calibration bundle into the append-only store",
+                         description="Copy a calibration bundle into the store, dated and content-hashed, and "
+                                     "append it to the store's index; nothing is ever overwritten.",
+                         epilog=PUBLISH_EXAMPLES, formatter_class=fmt)
+    pub.add_argument("bundle", metavar="BUNDLE", help="calibration bundle (results/calibration/<serial>.nc)")
+    pub.add_argument("--store", metavar="DIR", default=None,
+                     help="store folder (default: store.path of config/config.yaml, calibration-store)")
+    start = pub.add_mutually_exclusive_group(required=True)
+    start.add_argument("--dataset", metavar="DATASET",
+                       help="the dataset the bundle was made from: valid from its latest lab frame's DateTimeOriginal")
+    start.add_argument("--valid-from", metavar="DATE", help="validity start on the camera clock (2024-05-01 or 2024-05-01T08:30:00)")
+    ver = sub.add_parser("verify-store", help="check every file of a calibration store against its index",
+                         description="List every published file that is missing or changed (sha256) and every "
+                                     "file the index does not list; exit 1 if any.", formatter_class=fmt)
+    ver.add_argument("store", metavar="STORE", help="store folder")
     return parser
 
 
@@ -188,10 +219,51 @@ def _simulate(args) -> int:
 def _apply(args) -> int:
     from pipeline.apply import apply_command
 
-    return apply_command(args)
+    if args.store is None:
+        return apply_command(args)
+    from pipeline.store import calibrations_for_frames, output_for
+
+    groups = calibrations_for_frames(args.store, args.raw)
+    for bundle, row, frames in groups:
+        print(f"calibration: {bundle} (valid from {row['valid_from']}) for {len(frames)} frame(s)")
+        one = argparse.Namespace(**{**vars(args), "calibration": str(bundle), "raw": frames,
+                                    "out": str(output_for(args.out, row, len(groups)))})
+        code = apply_command(one)
+        if code != EXIT_OK:
+            return code
+    return EXIT_OK
 
 
-COMMANDS = {"init-dataset": _init_dataset, "validate": _validate, "simulate": _simulate, "apply": _apply}
+def _publish(args) -> int:
+    from pipeline.config import load_config
+    from pipeline.store import parse_valid_from, publish
+
+    store = args.store if args.store is not None else load_config()["store"]["path"]
+    valid_from = parse_valid_from(args.valid_from) if args.valid_from is not None else None
+    row, written = publish(args.bundle, store, valid_from=valid_from, dataset=args.dataset)
+    if written:
+        print(f"published: {store}/{row['file']} (camera {row['serial']}, valid from {row['valid_from']}, "
+              f"{row['valid_from_source']})")
+    else:
+        print(f"already published: {store}/{row['file']} (camera {row['serial']}, valid from {row['valid_from']}, "
+              f"published {row['published_utc']}); nothing written")
+    return EXIT_OK
+
+
+def _verify_store(args) -> int:
+    from pipeline.store import read_index, verify_store
+
+    problems = verify_store(args.store)
+    for line in problems:
+        print(f"error: {line}", file=sys.stderr)
+    if problems:
+        return EXIT_BAD_INPUT
+    print(f"ok: {len(read_index(args.store))} calibration(s) in {args.store}, every file as published")
+    return EXIT_OK
+
+
+COMMANDS = {"init-dataset": _init_dataset, "validate": _validate, "simulate": _simulate, "apply": _apply,
+            "publish": _publish, "verify-store": _verify_store}
 
 
 def main(argv: list[str] | None = None) -> int:
