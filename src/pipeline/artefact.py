@@ -28,8 +28,10 @@ from pipeline.errors import ArtefactError
 #: the same for its air and water frames; calibration 2: the per-pixel maps stored uncompressed and
 #: contiguous (a band image of one lens and medium reads as one block), see pipeline.calibration;
 #: calibration 3: the azimuthal roll-off term (amplitude, phase, their sigmas) and the flat field's per-pixel
-#: uncertainty, which the chain applies.
-ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 1, "rolloff": 1, "spectral": 2,
+#: uncertainty, which the chain applies; linearity 3: the flat field (map, its sigma, the ``flat`` rows) taken
+#: on the linearised signal, the photon-transfer gain fitted with one zero-signal intercept per band, weights of
+#: the model and (with ``bias_drift``) the frames' common offsets removed (``offset_var_dn2`` in ``obs_setting``).
+ARTEFACT_VERSIONS = {"dark": 1, "linearity": 3, "geometry": 1, "rolloff": 1, "spectral": 2,
                      "absolute": 2, "immersion": 2, "calibration": 3, "field": 1}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
