@@ -129,3 +129,29 @@ def test_lab_errors_reach_the_sidecars(tmp_path):
     bands = truth["experiments_truth"]["absolute"]["bands"]
     for band in "RGB":
         assert bands[band]["inverse_responsivity_lab"] != bands[band]["inverse_responsivity"]
+
+
+def test_pixel_sensitivity_multiplies_the_stray_light_too():
+    """The flat field (PRNU) is the pixel's own sensitivity: it multiplies all the light that lands on the pixel,
+    the part the optics spread (stray light) as well, so a uniform scene's electron rate with PRNU over the rate
+    without it is the sensitivity map exactly (to float32 rounding, 1e-6), even with 30 % of the light spread.
+    Applied before the spreading, the ratio would be (1 - f) p + f times a smoothed p: its relative spread
+    (1 - f) = 0.7 of the map's."""
+    import numpy as np
+
+    from pipeline.effects import get as get_effect
+    from pipeline.simulate.camera import Camera
+    from pipeline.simulate.plan import FrameSpec
+    from pipeline.simulate.render import Renderer
+
+    def rates(names):
+        effects = [get_effect(n, **({"fraction": 0.3} if n == "stray_light" else {})) for n in names]
+        renderer = Renderer(Camera(), 64, 3, effects)
+        spec = FrameSpec("both", "signal", 100.0, 0.1, radiance={"R": 1e-3, "G": 1e-3, "B": 1e-3})
+        return renderer, renderer.photo_rate("far", spec)
+
+    renderer, with_prnu = rates(["prnu", "stray_light"])
+    _, without = rates(["stray_light"])
+    lit = renderer.geometry("far", "air").lit & (without > 0)
+    sensitivity = renderer.effects[0].maps["far"]
+    np.testing.assert_allclose((with_prnu / np.where(lit, without, 1.0))[lit], sensitivity[lit], rtol=1e-6)

@@ -28,13 +28,16 @@ from pipeline.errors import ArtefactError
 #: the same for its air and water frames; calibration 2: the per-pixel maps stored uncompressed and
 #: contiguous (a band image of one lens and medium reads as one block), see pipeline.calibration;
 #: calibration 3: the azimuthal roll-off term (amplitude, phase, their sigmas) and the flat field's per-pixel
-#: uncertainty, which the chain applies; absolute 3: the lamp term of R^-1's budget counts only the part
+#: uncertainty, which the chain applies; linearity 3: the flat field (map, its sigma, the ``flat`` rows) taken
+#: on the linearised signal, the photon-transfer gain fitted with one zero-signal intercept per band, weights of
+#: the model and (with ``bias_drift``) the frames' common offsets removed (``offset_var_dn2`` in ``obs_setting``);
+#: absolute 3: the lamp term of R^-1's budget counts only the part
 #: of the calibration lamp's error that survives the rescaling at 589 nm (absolute.lamp_model); field 2:
 #: the stray_light covariate (sun seen, clear-sky direct beam, sun_glare_proxy) in the match-up table and,
 #: with the effect in the model, the fitted sun glare; geometry 2: the covariance of the fitted model and
 #: the theta uncertainty it gives (theta_deg_sigma per band pixel, a 1-D summary); calibration 5: the
-#: absolute budget of version 3, theta_deg_sigma, and apply's precomputed maps (see pipeline.calibration).
-ARTEFACT_VERSIONS = {"dark": 1, "linearity": 2, "geometry": 2, "rolloff": 1, "spectral": 2,
+#: linearity of version 3, the absolute budget of version 3, theta_deg_sigma, and apply's precomputed maps (see pipeline.calibration).
+ARTEFACT_VERSIONS = {"dark": 1, "linearity": 3, "geometry": 2, "rolloff": 1, "spectral": 2,
                      "absolute": 3, "immersion": 2, "calibration": 5, "field": 2}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain

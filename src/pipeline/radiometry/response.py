@@ -28,13 +28,29 @@ from pipeline.radiometry.exposure import UNIT_GAIN_ISO
 from pipeline.radiometry.measurement import (FrameSettings, Measured, ResponseModel, correct_flat_field, linearise,
                                              normalise_exposure)
 
-__all__ = ["RESPONSE_EFFECTS", "response_effects", "response_model", "flat_field_at", "response_corrected"]
+__all__ = ["RESPONSE_EFFECTS", "response_effects", "response_model", "flat_field_at", "response_corrected",
+           "linear_signal"]
 
 #: effects of the catalogue that the chain's linearise, normalise_exposure and correct_flat_field steps own
 RESPONSE_EFFECTS = ("shutter_offset", "iso_gain", "nonlinearity", "prnu")
 #: the linearity artefact's variable holding each effect's fitted parameter(s)
 _FITTED_VARIABLE = {"shutter_offset": "effect_shutter_offset", "iso_gain": "effect_iso_gain",
                     "nonlinearity": "effect_nonlinearity", "prnu": "flat_field"}
+
+
+def linear_signal(reading_dn, beta: float, full_scale_dn: float) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of the fitted nonlinearity m = s (1 - beta s / F) on arrays of readings (DN above dark).
+
+    Returns (s, ds/dm): s = 2 m / (1 + sqrt(1 - 4 beta m / F)), ds/dm = 1 / sqrt(1 - 4 beta m / F), the
+    same inverse as the chain's ``linearise`` step (a reading beyond the curve's top, 4 beta m >= F, is
+    held at its top). With beta = 0 (or no finite full scale) the reading itself and a unit slope.
+    E.g. beta = 0.05, F = 15600 DN: m = 10000 DN is s = 10343 DN, ds/dm = 1.071.
+    """
+    m = np.asarray(reading_dn, dtype=float)
+    if not beta or not np.isfinite(full_scale_dn) or full_scale_dn <= 0:
+        return m, np.ones_like(m)
+    root = np.sqrt(np.clip(1.0 - 4.0 * beta * m / full_scale_dn, 1e-6, None))
+    return 2.0 * m / (1.0 + root), 1.0 / root
 
 
 def response_effects(linearity: xr.Dataset | None) -> tuple[str, ...]:

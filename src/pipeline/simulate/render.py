@@ -2,9 +2,10 @@
 
 Light: per raw pixel, photo-electrons per second =
     responsivity(band) / K100 * L_band(pixel) * g_band(theta) [* effects' optics factors]
-    * light factor (e.g. 1/I in water) * sensitivity (flat field),
-then any stray-light spreading, then :func:`pipeline.simulate.sensor.expose`
-(Larouche et al. 2024, Eqs. 1 and 4).
+    * light factor (e.g. 1/I in water),
+then any stray-light spreading (in the optics, before the light reaches the sensor), then the
+pixel's sensitivity (flat field: it multiplies all the light that lands on the pixel, the spread
+part too), then :func:`pipeline.simulate.sensor.expose` (Larouche et al. 2024, Eqs. 1 and 4).
 """
 
 from __future__ import annotations
@@ -67,7 +68,8 @@ class Renderer:
         return self._geometry[key]
 
     def unit_rate(self, lens: str, medium: str) -> np.ndarray:
-        """Photo-electrons per second per unit band radiance, roll-off and optics effects included."""
+        """Photo-electrons per second per unit band radiance, roll-off and optics effects included
+        (the pixels' sensitivity is not: :meth:`photo_rate` applies it after any stray-light spreading)."""
         key = (lens, medium)
         if key not in self._unit_rate:
             geo = self.geometry(lens, medium)
@@ -78,7 +80,6 @@ class Renderer:
                 rate[sel] = self.resp_e[b] * evaluate_rolloff(default_rolloff(band, medium), theta[sel])
             for effect in self.effects:
                 rate = rate * effect.optics_factor(lens, medium, geo.theta_deg, geo.phi_deg, self.band_index)
-                rate = rate * effect.sensitivity_map(lens, self.shape)
             self._unit_rate[key] = rate * geo.lit
         return self._unit_rate[key]
 
@@ -94,6 +95,8 @@ class Renderer:
         rate = self.unit_rate(lens, spec.medium) * lbar * factor
         for effect in self.effects:
             rate = effect.spread_light(rate, lens)
+        for effect in self.effects:
+            rate = rate * effect.sensitivity_map(lens, self.shape)
         return rate
 
     def render(self, index: int, experiment_id: int, spec: FrameSpec) -> np.ndarray:

@@ -42,6 +42,7 @@ from pipeline.moments import RunningMoments, RunningPearson, corner_mask, radius
 from pipeline.observations import effect_coefficients, fit_with_effects, table_to_dataset
 from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
 from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso
+from pipeline.radiometry.response import linear_signal
 from pipeline.radiometry.saturation import saturated_settings
 from pipeline.stages.flatfield import flatfield
 
@@ -222,6 +223,15 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         iso=r["iso"], method="nearest")), axis=1)
     fr["sigma_corner_dn"] = read_dn / np.sqrt(fr["band"].map(SITES_PER_BAND_PIXEL) * fr["lens"].map(n_corner))
     drift = drift_sigma(fr) if use_drift else (0.0, 0.0, 0.0)
+    # photon transfer: the black level of every frame moves (bias drift, temperature), so a pixel's temporal
+    # variance over a setting's frames holds the sample variance of those common offsets; the unlit corners
+    # measure each frame's offset (corner_dev_dn, with their own noise sigma_corner_dn)
+    fr["offset_var_dn2"] = 0.0
+    if use_drift:
+        per_setting = fr.groupby(["lens", "band", "sweep", "setting"])["corner_dev_dn"]
+        n_frames = per_setting.transform("count").clip(lower=2)
+        fr["offset_var_dn2"] = (per_setting.transform(lambda d: float(np.sum(np.square(d)))) / (n_frames - 1)
+                                - fr["sigma_corner_dn"] ** 2)
     fr["sigma_dn"] = np.sqrt(np.maximum(fr["pixel_var_dn2"] - drift[0] ** 2, 1e-12) / fr["n_mask"])
     if use_drift:
         fr["sigma_dn"] = np.hypot(fr["sigma_dn"], fr["sigma_corner_dn"])
@@ -255,7 +265,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     st = fr.groupby(["lens", "band", "sweep", "setting", "iso", "exposure_s"]).agg(
         value_dn=("value_dn", "mean"), frame_sigma=("sigma_dn", "mean"), n_frames=("n_frames", "first"),
         pixel_var_dn2=("pixel_var_dn2", "first"), ptc_var_dn2=("ptc_var_dn2", "first"),
-        ptc_mean_dn=("ptc_mean_dn", "first"), saturated=("saturated", "any"),
+        ptc_mean_dn=("ptc_mean_dn", "first"), offset_var_dn2=("offset_var_dn2", "first"), saturated=("saturated", "any"),
         clipped_at_white_level=("clipped_at_white_level", "any"),
         dark_mask_dn=("dark_mask_dn", "mean"), temperature_c=("temperature_c", "mean")).reset_index()
     st["gain"] = gain_from_iso(st["iso"])
@@ -278,7 +288,10 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
 
     # ----- flat field (level "flat"): spatial variance beyond the known noise
     exposure_isos = st.loc[st["sweep"] == "exposure", "iso"]
-    flat, flat_maps = flatfield(reduced, dark, float(exposure_isos.min())) if len(exposure_isos) else (pd.DataFrame(), {})
+    beta = float(effect_params["nonlinearity"][0][0]) if "nonlinearity" in effect_params else 0.0
+    full_scale = float(st["full_scale_dn"].iloc[0]) if len(st) else float("nan")
+    flat, flat_maps = flatfield(reduced, dark, float(exposure_isos.min()), beta, full_scale) \
+        if len(exposure_isos) else (pd.DataFrame(), {})
     flat_fit = None
     if len(flat):
         flat_fit, flat_params = fit_with_effects(flat, "flat", effects, STAGE)
@@ -314,14 +327,25 @@ def saturation_levels(st: pd.DataFrame, reduced: dict) -> dict:
 
 
 def photon_transfer(st_l: pd.DataFrame, dark_ds: xr.Dataset, beta: float = 0.0,
-                    full_scale_dn: float = float("nan")) -> dict:
+                    full_scale_dn: float = float("nan"), offsets_removed: bool = False) -> dict:
     """Conversion gain and read noise from temporal variance against mean signal (Janesick 2007).
 
-    For one raw pixel: var = K * signal + read_var, with K in DN per electron.
-    The G band pixel averages two sites, so its variance is doubled first.
-    read_var comes from the dark stage (temporal noise at the shortest exposure,
-    the curve's zero-signal point); K is the weighted slope of the exposure
-    sweep, and for the gain sweep K at each ISO is (var - read_var(ISO)) / signal.
+    For one raw pixel: var = K * signal + c, with K in DN per electron and c the
+    zero-signal variance (read noise and rounding). The G band pixel averages two
+    sites, so its variance is doubled first. K is the slope of the exposure sweep,
+    fitted with one intercept c per band (a band's sites have their own read noise,
+    and the dark stage's temporal noise at its shortest exposure holds the black-level
+    offsets of other frames), weighted by the model, 1 / (K signal + c)^2 (a sample
+    variance scatters in proportion to itself), iterated from the unweighted fit:
+    weights from the noisy variances themselves would favour the points that came out
+    low. The read noise in electrons is the dark stage's (``read_noise_dn`` at the
+    sweep's ISO, mean over bands) over K; for the gain sweep K at each ISO is
+    (var - read_var(ISO)) / signal.
+
+    With ``offsets_removed`` (``bias_drift`` in the model) each exposure-sweep setting's
+    variance loses the sample variance of its frames' common black-level offsets
+    (``offset_var_dn2``, from the unlit corners): with a few frames per setting it
+    scatters the curve's low points by several per cent, and it is no electron noise.
 
     With a fitted nonlinearity m = s (1 - beta s / F) the points are taken back
     to the linear signal first: the sensor bends the noisy signal, so a reading
@@ -331,38 +355,54 @@ def photon_transfer(st_l: pd.DataFrame, dark_ds: xr.Dataset, beta: float = 0.0,
     """
     out = {}
     rows = st_l[st_l["used"]].copy()
-    rows["site_var"] = rows["ptc_var_dn2"] * rows["band"].map(SITES_PER_BAND_PIXEL)
+    sites = rows["band"].map(SITES_PER_BAND_PIXEL)
+    rows["site_var"] = rows["ptc_var_dn2"] * sites
+    if offsets_removed and "offset_var_dn2" in rows:
+        exposure = rows["sweep"] == "exposure"
+        rows.loc[exposure, "site_var"] -= rows.loc[exposure, "offset_var_dn2"] * sites[exposure]
+    # the dark stage's read noise of each band at the nearest ISO, squared (one look-up per row, plain arrays)
+    read_noise = dark_ds["read_noise_dn"].transpose("band", "iso")
+    band_index = {str(b): i for i, b in enumerate(read_noise["band"].values)}
+    iso_index = np.abs(rows["iso"].to_numpy(float)[:, None] - read_noise["iso"].values[None, :]).argmin(axis=1)
+    rows["read_var"] = read_noise.values[rows["band"].map(band_index).to_numpy(int), iso_index] ** 2
     # mean dark-corrected signal over the photon-transfer region
     rows["ptc_signal_dn"] = rows["ptc_mean_dn"] - rows["dark_mask_dn"]
     if beta and np.isfinite(full_scale_dn) and full_scale_dn > 0:
-        slope = np.sqrt(np.clip(1.0 - 4.0 * beta * rows["ptc_signal_dn"].to_numpy() / full_scale_dn, 1e-6, None))
-        read = np.array([float(dark_ds["read_noise_dn"].sel(iso=i, method="nearest").mean()) ** 2 for i in rows["iso"]])
-        # only the signal's part of the variance is bent; the read noise is added after the response
-        rows["site_var"] = read + (rows["site_var"].to_numpy() - read) / slope**2
-        rows["ptc_signal_dn"] = 2.0 * rows["ptc_signal_dn"].to_numpy() / (1.0 + slope)
+        signal, slope = linear_signal(rows["ptc_signal_dn"].to_numpy(), beta, full_scale_dn)
+        # only the signal's part of the variance is bent; the zero-signal variance is added after the response
+        # (the dark stage's read variance stands for it here: the bend is a few per cent of a small term)
+        read = rows["read_var"].to_numpy()
+        rows["site_var"] = read + (rows["site_var"].to_numpy() - read) * slope**2
+        rows["ptc_signal_dn"] = signal
     ex = rows[rows["sweep"] == "exposure"]
-    if len(ex) >= 2:
+    bands = [b for b, n in ex["band"].value_counts().items() if n >= 2]
+    ex = ex[ex["band"].isin(bands)]
+    if len(ex) > len(bands):
         iso = float(ex["iso"].iloc[0])
-        # zero-signal point of the curve: the dark stage's temporal noise at this ISO
-        read_dn = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").mean())
-        read_dn_se = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").std())
         y = ex["ptc_signal_dn"].to_numpy()
-        v = ex["site_var"].to_numpy() - read_dn**2
-        # weighted fit through the origin; the spread of a variance estimate grows with it
-        w = 1.0 / np.maximum(ex["site_var"].to_numpy(), 1e-9) ** 2
-        k = float(np.sum(w * y * v) / np.sum(w * y * y))
-        resid = v - k * y
-        dof = max(len(y) - 1, 1)
-        k_se = float(np.sqrt(np.sum(w * resid**2) / dof / np.sum(w * y * y)))
+        v = ex["site_var"].to_numpy()
+        design = np.column_stack([y] + [(ex["band"] == b).to_numpy(float) for b in sorted(bands)])
+        coef = np.linalg.lstsq(design, v, rcond=None)[0]
+        for _ in range(5):
+            w = 1.0 / np.maximum(design @ coef, 1e-9)
+            coef = np.linalg.lstsq(design * w[:, None], v * w, rcond=None)[0]
+        aw = design * w[:, None]
+        resid = (v - design @ coef) * w
+        dof = max(len(y) - design.shape[1], 1)
+        cov = np.linalg.pinv(aw.T @ aw) * float(np.sum(resid**2) / dof)
+        k, k_se = float(coef[0]), float(np.sqrt(max(cov[0, 0], 0.0)))
         out["conversion_gain_dn_per_e"] = (k, k_se)
         out["gain_e_per_dn"] = (1.0 / k, k_se / k**2)
+        # zero-signal point: the dark stage's temporal noise at this ISO
+        read_dn = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").mean())
+        read_dn_se = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").std())
         read_e = read_dn / k
         out["read_noise_e"] = (read_e, read_e * np.hypot(read_dn_se / read_dn, k_se / k))
         out["ptc_iso"] = iso
     gs = rows[rows["sweep"] == "gain"]
     per_iso = []
     for iso, grp in gs.groupby("iso"):
-        rv = float(dark_ds["read_noise_dn"].sel(iso=iso, method="nearest").mean()) ** 2 if iso in dark_ds["iso"] else 0.0
+        rv = grp["read_var"] if iso in dark_ds["iso"] else 0.0
         per_iso.append((iso, float(((grp["site_var"] - rv) / grp["ptc_signal_dn"]).mean())))
     out["gain_sweep"] = per_iso
     return out
@@ -399,7 +439,8 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
     if "ols_pred_dn" in st_l:
         st_l["nonlinearity_pct"] = 100.0 * (st_l["value_dn"] - st_l["ols_pred_dn"]) / st_l["ols_pred_dn"]
     beta = float(effect_params["nonlinearity"][0][0]) if "nonlinearity" in effect_params else 0.0
-    ptc = photon_transfer(st_l, dark_ds, beta, float(st_l["full_scale_dn"].iloc[0]) if len(st_l) else np.nan)
+    ptc = photon_transfer(st_l, dark_ds, beta, float(st_l["full_scale_dn"].iloc[0]) if len(st_l) else np.nan,
+                          offsets_removed="bias_drift" in effects)
     for key, what, unit in (("conversion_gain_dn_per_e", "conversion gain", "DN/electron"),
                             ("read_noise_e", "read noise", "electron")):
         value = ptc.get(key, (float("nan"),))[0]
