@@ -1,6 +1,5 @@
 """Chessboard rendering and corner detection, including far off-axis boards."""
 
-import time
 
 import numpy as np
 import pytest
@@ -12,16 +11,13 @@ from pipeline.simulate.chessboard import poses_covering_fov, render_chessboard
 from pipeline.simulate.lens import default_model
 
 
-def test_render_fast_and_truth_inside():
+def test_render_truth_inside():
+    """The rendered board image is a valid image and every true corner position is finite (the renderer's
+    speed is measured by the benchmarks, not here)."""
     m = default_model("close", "air", 288)
     b = Board()
     poses = poses_covering_fov(6, m.half_fov_deg, 5, model=m)
-    render_chessboard(m, b, *poses[0])  # warm-up
-    t0 = time.perf_counter()
     img, corners = render_chessboard(m, b, *poses[-1], supersample=4)
-    # brief: "well under a second" for 288 px at 4x4 (measured ~0.15 s);
-    # 1 s leaves room for a loaded test machine.
-    assert time.perf_counter() - t0 < 1.0
     assert img.shape == (288, 288) and corners.shape == (b.nx * b.ny, 2)
     assert np.all(np.isfinite(corners))
     assert img.min() >= 0 and img.max() <= 1

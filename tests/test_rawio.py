@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import hashlib
-import time as _time
 from datetime import datetime
 from pathlib import Path
 
@@ -105,16 +104,13 @@ def test_write_rejects_bad_arguments(tmp_path):
         _write(tmp_path / "a.dng", cfa=np.full((4, 4), 70000, np.int64))
 
 
-def test_large_frame_is_fast(tmp_path):
-    cfa = _mosaic(6912, 3456, seed=1)  # both lenses stacked, as in dataset.yaml
-    start = _time.perf_counter()
+def test_full_size_frame_round_trip(tmp_path):
+    """A frame of the real camera's size (both lenses stacked, 6912 x 3456) reads back exactly (the write and
+    decode times are measured by the benchmarks, not here)."""
+    cfa = _mosaic(6912, 3456, seed=1)
     _write(tmp_path / "big.dng", cfa)
-    written = _time.perf_counter()
     frame = read_raw(tmp_path / "big.dng")
-    done = _time.perf_counter()
     np.testing.assert_array_equal(frame.cfa, cfa)
-    assert written - start < 2.0, f"write took {written - start:.2f} s"
-    assert done - written < 4.0, f"read took {done - written:.2f} s"
 
 
 def test_missing_file(tmp_path):
