@@ -55,6 +55,31 @@ def test_subtract_dark_temperature():
     np.testing.assert_allclose(m.value, [95.0])
 
 
+def test_bias_drift_takes_the_frames_own_black_level_from_the_unlit_pixels():
+    """A frame whose black level sits 7 DN above the dark model (bias drift): with ``bias_drift`` and the
+    unlit corners the level is theirs (the model's 804.1 + 7, read-noise scatter of 2 DN drawn here about
+    it, so the mean of 4000 is within 4 x 2 / sqrt(4000) = 0.13 DN of it), the term bias_drift is their
+    sample variance over their number (4 / 4000 = 1e-3 DN^2, within the chi-square spread of a variance
+    from 4000 draws, 4 sqrt(2 / 3999) = 9 %) and replaces dark_model; without the effect the offset stays."""
+    rng = np.random.default_rng(7)
+    frame = mm.FrameSettings(exposure_s=1.0, iso=400.0)
+    unlit = 804.1 + 7.0 + 2.0 * rng.standard_normal(4000)
+    raw = np.array([904.1 + 7.0])
+    m = mm.subtract_dark(mm.from_raw(raw), _dark(), frame, ("dark_current", "bias_drift"), unlit_dn=unlit)
+    assert abs(m.value[0] - 100.0) < 4 * 2.0 / np.sqrt(4000)
+    assert "dark_model" not in m.systematic_var
+    np.testing.assert_allclose(m.systematic_var["bias_drift"], [4.0 / 4000], rtol=4 * np.sqrt(2 / 3999))
+    stale = mm.subtract_dark(mm.from_raw(raw), _dark(), frame, ("dark_current",), unlit_dn=unlit)
+    np.testing.assert_allclose(stale.value, [107.0])
+    # through the whole chain: the same pixel with and without the frame's offset gives the same radiance
+    cal, resp = _calibration(), _response()
+    effects = ("dark_current", "bias_drift")
+    shifted = mm.measure_band(raw, frame, _dark(), resp, cal, np.array([10.0]), "air", effects, unlit_dn=unlit)
+    plain = mm.measure_band(raw - 7.0, frame, _dark(), resp, cal, np.array([10.0]), "air", effects,
+                            unlit_dn=unlit - 7.0)
+    np.testing.assert_allclose(shifted.value, plain.value, rtol=1e-9)
+
+
 def test_shot_noise_per_site():
     frame = mm.FrameSettings(exposure_s=1.0, iso=200.0)
     m = mm.Measured(value=np.array([1000.0, -5.0]), units="DN")

@@ -43,6 +43,7 @@ from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
 from pipeline.frames import lens_images
 from pipeline.geometry.sphere import ZENITH_LENS, grid_shape, sphere_cells, sphere_coordinates
+from pipeline.moments import corner_mask
 from pipeline.radiometry import measurement as mm
 from pipeline.rawio import read_raw
 
@@ -82,6 +83,17 @@ def _media(bundle: xr.Dataset) -> list[str]:
 @lru_cache(maxsize=1)
 def _default_negative_sigma() -> float:
     return float(defaults()["apply"]["negative_mean_sigma"])
+
+
+@lru_cache(maxsize=1)
+def _default_corner_fraction() -> float:
+    return float(defaults()["bias"]["corner_min_radius_fraction"])
+
+
+@lru_cache(maxsize=8)
+def _unlit_corners(shape: tuple[int, int], fraction: float) -> np.ndarray:
+    """The unlit corner pixels of a lens region's band image (the dark and linearity stages' corners)."""
+    return corner_mask(shape, fraction)
 
 
 def _crop(b: xr.Dataset, name: str, rows: slice, cols: slice):
@@ -139,7 +151,15 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
         rolloff = mm.rolloff_map(theta, cal, phi, effects, np.result_type(np.float32, image.dtype),
                                  theta_deg_sigma=_crop(g, "theta_deg_sigma", rows, cols))
     b = bundle.sel(lens=lens, band=band)
-    m = mm.measure_band(image[rows, cols], frame, dark, response, cal, theta, medium, effects,
+    unlit = None
+    if "bias_drift" in effects:
+        # the frame's own black level from the unlit corners of the whole band image (not only the crop)
+        corners = _unlit_corners(tuple(shape), _default_corner_fraction())
+        hot = _crop(b, "hot_pixel_mask", slice(None), slice(None))
+        if hot is not None and "hot_pixels" in effects:
+            corners = corners & ~(np.asarray(hot) > 0)
+        unlit = image[corners]
+    m = mm.measure_band(image[rows, cols], frame, dark, response, cal, theta, medium, effects, unlit_dn=unlit,
                         saturated=images.saturated[band][rows, cols],
                         hot_mask=_crop(b, "hot_pixel_mask", rows, cols),
                         flat_field=_crop(b, "flat_field", rows, cols),

@@ -352,7 +352,7 @@ def from_raw(image_dn, saturated=None) -> Measured:
     return Measured(value=value, units="DN", flags=flags)
 
 
-def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects) -> Measured:
+def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects, unlit_dn=None) -> Measured:
     """Raw DN -> DN above the dark level of the dark model at the frame's ISO, exposure and temperature.
 
     Adds the random variances of the raw reading (per band pixel: read noise
@@ -360,6 +360,15 @@ def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects) -
     dark model's parameter uncertainty as the systematic ``dark_model`` term.
     The signal's shot noise needs the signal, so the next step adds it
     (:func:`add_shot_noise`).
+
+    With ``bias_drift`` in the model and ``unlit_dn`` (the raw values of this
+    band image's unlit pixels, outside the image circle; Section 3.7) the
+    frame's own black level replaces the model's: the level is the unlit
+    pixels' mean (which moves with the frame's offset), and the standard
+    error of that mean, their sample variance over their number, is the
+    systematic term ``bias_drift`` (common to every pixel of this frame's
+    band image, independent between frames). The dark model's parameter
+    term then no longer applies to the level and is dropped.
     """
     gain = gain_from_iso(frame.iso)
     current = dark.dark_current_dn_per_s if "dark_current" in effects else 0.0
@@ -377,9 +386,14 @@ def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects) -
     rand["read"] = float(dark.read_noise_dn**2 / sites)
     rand["dark"] = float(dark.offset_pattern_dn**2)
     sys_abs = dict(m.systematic_abs)
-    sys_abs["dark_model"] = float(dark.bias_dn_sigma**2 + ((gain - 1.0) * dark.bias_per_gain_dn_sigma) ** 2
-                                  + ((gain * frame.exposure_s * dark.dark_current_dn_per_s_sigma) ** 2
-                                     if "dark_current" in effects else 0.0))
+    unlit = None if unlit_dn is None else np.asarray(unlit_dn, dtype=float).ravel()
+    if "bias_drift" in effects and unlit is not None and unlit.size > 1:
+        level = float(unlit.mean())
+        sys_abs["bias_drift"] = float(unlit.var(ddof=1) / unlit.size)
+    else:
+        sys_abs["dark_model"] = float(dark.bias_dn_sigma**2 + ((gain - 1.0) * dark.bias_per_gain_dn_sigma) ** 2
+                                      + ((gain * frame.exposure_s * dark.dark_current_dn_per_s_sigma) ** 2
+                                         if "dark_current" in effects else 0.0))
     # a Python float keeps a float32 image float32 (NumPy 2 promotion)
     return m._replace(base=m.base - float(level), random_abs=rand, systematic_abs=sys_abs)
 
@@ -592,14 +606,14 @@ def to_radiance(m: Measured, calibration: BandCalibration) -> Measured:
 def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: ResponseModel,
                  calibration: BandCalibration, theta_deg, medium: str, effects, *, saturated=None,
                  hot_mask=None, flat_field=None, prnu_sigma_rel: float = 0.0, phi_deg=None,
-                 flat_field_sigma=None, rolloff: RolloffMap | None = None) -> Measured:
+                 flat_field_sigma=None, rolloff: RolloffMap | None = None, unlit_dn=None) -> Measured:
     """One band image of one lens from raw DN to spectral radiance: the whole inverse of Eq. (4).
 
     ``rolloff``: the :func:`rolloff_map` of the image's pixels when already at hand (the bundle stores it).
     """
     effects = tuple(effects)
     m = from_raw(image_dn, saturated)
-    m = subtract_dark(m, dark, frame, effects)
+    m = subtract_dark(m, dark, frame, effects, unlit_dn)
     m = add_shot_noise(m, dark, response, frame, effects)
     m = flag_hot_pixels(m, hot_mask, effects)
     m = flag_saturation(m, response)
