@@ -5,7 +5,8 @@
 
 Simulates the dataset once (kept in benchmarks/out/), then runs every stage,
 one lens at a time (one workflow job), in a fresh Python process, --repeat times, and prints the minimum, median and
-maximum wall time and the peak resident memory of the stage's process.
+maximum wall time, the median CPU time and the peak resident memory of the stage's process. Each
+job gets one BLAS/OpenMP thread, as Snakemake gives a rule of ``threads: 1``.
 Results go to benchmarks/out/<scale>.csv as well.
 """
 
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -32,7 +34,7 @@ def child(stage: str, dataset: str, results: str, lens: str) -> None:
 
     cfg = load_config(overrides={"dataset": dataset})
     res = Path(results)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if stage == "diagnostics":
         from pipeline.diagnostics import diagnose_artefacts
 
@@ -46,9 +48,9 @@ def child(stage: str, dataset: str, results: str, lens: str) -> None:
         run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream)
     else:
         sys.exit(f"unknown stage {stage}")
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(json.dumps({"wall_s": wall, "peak_rss_mib": peak_mib}))
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_mib}))
 
 
 def main() -> None:
@@ -80,23 +82,27 @@ def main() -> None:
     rows = []
     print(f"scale {args.scale}: {size_mb:.0f} MB of raw data; {args.repeat} runs per stage")
     print("one job per stage and lens, as the workflow runs them (the two lenses run side by side on 2 cores)")
-    print(f"{'stage':<12} {'lens':<6} {'min s':>8} {'median s':>9} {'max s':>8} {'peak MiB':>9}")
+    print(f"{'stage':<12} {'lens':<6} {'min s':>8} {'median s':>9} {'max s':>8} {'CPU s':>8} {'peak MiB':>9}")
+    # a workflow job of one thread: Snakemake sets these to the rule's threads
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     for stage in args.stages.split(","):
         for lens in (LENSES if stage != "diagnostics" else ("all",)):
-            walls, peaks = [], []
+            walls, cpus, peaks = [], [], []
             for _ in range(args.repeat):
                 proc = subprocess.run([sys.executable, __file__, "--child", stage, str(dataset), str(results), lens],
-                                      capture_output=True, text=True)
+                                      capture_output=True, text=True, env=env)
                 if proc.returncode != 0:
                     sys.exit(f"{stage} {lens} failed:\n{proc.stderr[-2000:]}")
                 m = json.loads(proc.stdout.strip().splitlines()[-1])
                 walls.append(m["wall_s"])
+                cpus.append(m["cpu_s"])
                 peaks.append(m["peak_rss_mib"])
             row = {"scale": args.scale, "stage": stage, "lens": lens, "min_s": min(walls),
-                   "median_s": statistics.median(walls), "max_s": max(walls), "peak_rss_mib": max(peaks)}
+                   "median_s": statistics.median(walls), "max_s": max(walls), "median_cpu_s": statistics.median(cpus),
+                   "peak_rss_mib": max(peaks)}
             rows.append(row)
             print(f"{stage:<12} {lens:<6} {row['min_s']:8.2f} {row['median_s']:9.2f} {row['max_s']:8.2f} "
-                  f"{row['peak_rss_mib']:9.0f}")
+                  f"{row['median_cpu_s']:8.2f} {row['peak_rss_mib']:9.0f}")
     import csv
 
     with open(OUT / f"{args.scale}.csv", "w", newline="") as fh:

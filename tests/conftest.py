@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import single_thread_blas  # noqa: F401  (first: sets the thread count before numpy loads)
 from pathlib import Path
 
 import pytest

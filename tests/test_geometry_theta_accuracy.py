@@ -5,7 +5,7 @@ at the rim; tests/test_geometry_stage.py asserts 0.5 degree there) and the ``ful
 scale costs ~9 s per simulated frame. This test uses the ``medium`` scale (1152-px
 lens regions, 576-px band images, where 0.1 degree is ~0.3 band px at the rim) with
 20 boards per lens and medium (``FRAMES_PER_MEDIUM["medium"]``), the geometry
-experiment only: ~16 s to simulate 80 frames, ~70 s for the stage, on one core.
+experiment only: ~14 s to simulate 80 frames, ~16 s for the stage per lens, on one core.
 
 The stage runs once per lens (module fixture ``fitted``); the theta-map accuracy and the
 honesty of its stated uncertainty (``theta_deg_sigma``, the fit's covariance) are checked on

@@ -27,6 +27,9 @@ from scipy.ndimage import map_coordinates
 MIN_DETECT_SIZE_PX = 800
 #: Largest upsampling factor.
 MAX_UPSAMPLE = 4
+#: Band pixels added to every side of a crop beyond its margin in squares, so
+#: that a board of tiny squares keeps a few pixels of context.
+CROP_PAD_PX = 4
 
 
 @dataclass
@@ -82,6 +85,18 @@ def _candidates(img8, nx, ny):
         crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
         pts = cv2.cornerSubPix(img8, pts, (win, win), (-1, -1), crit)
         yield pts.reshape(-1, 2).astype(float), "findChessboardCorners+cornerSubPix"
+
+
+def _rough_candidates(img8, nx, ny):
+    """Yield corners in img8 pixels without sub-pixel refinement (to locate a board only)."""
+    ok, pts = cv2.findChessboardCornersSB(img8, (nx, ny),
+                                          flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    if ok and pts is not None and len(pts) == nx * ny:
+        yield pts.reshape(-1, 2).astype(float)
+    ok, pts = cv2.findChessboardCorners(img8, (nx, ny),
+                                        flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    if ok and pts is not None and len(pts) == nx * ny:
+        yield pts.reshape(-1, 2).astype(float)
 
 
 #: Largest ratio of neighbouring corner spacings along a grid line; fisheye
@@ -184,3 +199,75 @@ def detect_corners(image, nx: int, ny: int, *, upsample: int | None = None) -> C
         return CornerResult(pts, method, ambiguous=ambiguous)
     msg = f"no {nx}x{ny} chessboard found" + (f" ({'; '.join(reasons)})" if reasons else "")
     return CornerResult(None, "none", message=msg)
+
+
+def detect_in_crop(image, seed, nx: int, ny: int, *, upsample: int, margin_px: float) -> CornerResult:
+    """Detect the board in the crop of ``image`` around ``seed`` corners (band px) plus ``margin_px``.
+
+    The crop is searched exactly as :func:`detect_corners` searches a whole
+    image, at the upsampling ``upsample`` the whole image would get, and the
+    corners come back in the whole image's band pixel coordinates.
+    """
+    img = np.asarray(image)
+    seed = np.asarray(seed, float)
+    h, w = img.shape
+    c0 = max(0, int(np.floor(seed[:, 0].min() - margin_px)))
+    c1 = min(w, int(np.ceil(seed[:, 0].max() + margin_px)) + 1)
+    r0 = max(0, int(np.floor(seed[:, 1].min() - margin_px)))
+    r1 = min(h, int(np.ceil(seed[:, 1].max() + margin_px)) + 1)
+    res = detect_corners(img[r0:r1, c0:c1], nx, ny, upsample=upsample)
+    if res.found:
+        res.corners = res.corners + np.array([c0, r0], float)
+    return res
+
+
+def corner_spacing_px(corners, nx: int, ny: int) -> float:
+    """Median distance between neighbouring corners along the rows (band px): about one square."""
+    g = np.asarray(corners, float).reshape(ny, nx, 2)
+    return float(np.median(np.linalg.norm(np.diff(g, axis=1), axis=-1)))
+
+
+def locate_board(image, nx: int, ny: int, coarse_size_px: int) -> np.ndarray | None:
+    """Approximate corners (band px) from a search on the image resampled to ``coarse_size_px`` (short side).
+
+    Area averaging when the image shrinks, cubic when it grows; the
+    detectors run without their sub-pixel refinement, which the crop search
+    does. Returns None when no plausible grid is found there.
+    """
+    img = np.asarray(image, dtype=float)
+    s = float(coarse_size_px) / min(img.shape)
+    img8 = to_uint8(img)
+    size = (max(1, round(img.shape[1] * s)), max(1, round(img.shape[0] * s)))
+    small = cv2.resize(img8, size, interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_CUBIC)
+    sx, sy = size[0] / img.shape[1], size[1] / img.shape[0]
+    for pts in _rough_candidates(small, nx, ny):
+        pts = (pts + 0.5) / np.array([sx, sy]) - 0.5
+        if not validate_grid(pts, img, nx, ny):
+            return pts
+    return None
+
+
+def detect_corners_coarse_to_fine(image, nx: int, ny: int, *, coarse_size_px: int,
+                                  margin_squares: float) -> CornerResult:
+    """:func:`detect_corners`, first locating the board on a resampled image, then searching its crop.
+
+    The board is located by :func:`locate_board` on the image resampled to
+    ``coarse_size_px`` (short side); the corners are then found by
+    :func:`detect_in_crop` at the full search's upsampling in the crop that
+    holds them plus ``margin_squares`` squares. The crop holds a fraction
+    of the image, so the search costs that fraction of a whole-image one.
+    When the coarse search finds nothing, or the crop search fails, or the
+    whole-image search would run at no more pixels than the coarse one, the
+    whole image is searched (:func:`detect_corners`).
+    """
+    img = np.asarray(image, dtype=float)
+    k = _upsample_factor(img.shape)
+    if coarse_size_px >= k * min(img.shape):
+        return detect_corners(img, nx, ny, upsample=k)
+    seed = locate_board(img, nx, ny, coarse_size_px)
+    if seed is not None:
+        margin = margin_squares * corner_spacing_px(seed, nx, ny) + CROP_PAD_PX
+        res = detect_in_crop(img, seed, nx, ny, upsample=k, margin_px=margin)
+        if res.found:
+            return res
+    return detect_corners(img, nx, ny, upsample=k)

@@ -44,7 +44,7 @@ def _block_mean(img, k):
 
 def _coarse_circle(img):
     from skimage.feature import canny
-    from skimage.transform import hough_circle, hough_circle_peaks
+    from skimage.transform import hough_circle
 
     k = max(1, int(min(img.shape) // COARSE_SIZE_PX))
     small = _block_mean(img, k)
@@ -57,9 +57,12 @@ def _coarse_circle(img):
     rmax = int(0.75 * max(small.shape))
     radii = np.arange(rmin, rmax + 1)
     acc = hough_circle(edges, radii)
-    _, cx, cy, r = hough_circle_peaks(acc, radii, total_num_peaks=1)
+    # The strongest circle is the largest vote over all radii and centres
+    # (one argmax; a per-radius peak search would only rank the same maximum
+    # among lower local peaks).
+    ir, cy, cx = np.unravel_index(int(np.argmax(acc)), acc.shape)
     # Coarse pixel centres: fine coordinate = k * coarse + (k - 1) / 2.
-    return k * cx[0] + (k - 1) / 2.0, k * cy[0] + (k - 1) / 2.0, k * float(r[0]), k
+    return k * cx + (k - 1) / 2.0, k * cy + (k - 1) / 2.0, k * float(radii[ir]), k
 
 
 def _fit_circle(x, y):

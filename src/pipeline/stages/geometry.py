@@ -3,10 +3,13 @@
 Streams the ``geometry/`` frames once. Per frame, for the lens in its
 ``lens`` column and each band (R, G, B) of that lens:
 
-* corners: :func:`pipeline.geometry.corners.detect_corners` on the G band
-  image; R and B are detected in a crop around G's corners (same upsampling),
-  which is several times faster than searching the whole image; when G fails
-  the whole R/B image is searched. Only the corner lists are kept.
+* corners: :func:`pipeline.geometry.corners.detect_corners_coarse_to_fine`
+  on the G band image (the board located on the image resampled to
+  ``geometry.coarse_search_size_px``, its corners found at full resolution
+  in a crop ``geometry.crop_margin_squares`` squares around it); R and B are
+  detected in a crop around G's corners (same upsampling), which is several
+  times faster than searching the whole image; when G fails the R/B image is
+  searched coarse to fine. Only the corner lists are kept.
 * image circle: a running maximum of every band image per lens and medium (the
   lit wall around the board makes each frame bright inside the circle and
   dark outside); after the stream :func:`find_image_circle` fits it.
@@ -49,7 +52,8 @@ from pipeline.errors import InputError
 from pipeline.frames import iter_frames
 from pipeline.geometry.calibrate import calibrate
 from pipeline.geometry.chessboard import Board
-from pipeline.geometry.corners import _upsample_factor, detect_corners
+from pipeline.geometry.corners import (CROP_PAD_PX, _upsample_factor, corner_spacing_px, detect_corners_coarse_to_fine,
+                                       detect_in_crop)
 from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle
 from pipeline.geometry.scaramuzza import field_angle_rad
 from pipeline.geometry.theta_uncertainty import theta_sigma_at_field_angles, theta_sigma_map
@@ -81,19 +85,6 @@ def _thumb(img: np.ndarray) -> tuple[np.ndarray, int]:
     return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3)).astype(np.float32), k
 
 
-def _detect_in_crop(img, seed, nx, ny, k, margin):
-    """Detect the board in a crop around seed corners (same upsampling k as the full image)."""
-    h, w = img.shape
-    c0 = max(0, int(np.floor(seed[:, 0].min() - margin)))
-    c1 = min(w, int(np.ceil(seed[:, 0].max() + margin)) + 1)
-    r0 = max(0, int(np.floor(seed[:, 1].min() - margin)))
-    r1 = min(h, int(np.ceil(seed[:, 1].max() + margin)) + 1)
-    res = detect_corners(img[r0:r1, c0:c1], nx, ny, upsample=k)
-    if res.found:
-        res.corners = res.corners + np.array([c0, r0], float)
-    return res
-
-
 def _match_order(corners, reference):
     """Reorder corners (a symmetric board may come out rotated by 180 degrees) to follow reference."""
     if corners is None or reference is None:
@@ -109,6 +100,8 @@ def reduce_geometry(dataset: Dataset, config: dict, progress: bool = False) -> d
     frames = dataset.frames(STAGE)
     rows, maxima, thumbs, inputs = [], {}, {}, {}
     boards = {m: board_of(dataset, m) for m in sorted(set(frames["medium"]))}
+    cfg = config[STAGE]
+    search = {"coarse_size_px": int(cfg["coarse_search_size_px"]), "margin_squares": float(cfg["crop_margin_squares"])}
     for i, dec in enumerate(iter_frames(dataset, STAGE, frames, progress=progress)):
         inputs[dec.row["file"]] = dec.raw.sha256
         lens, medium = dec.row["lens"], dec.row["medium"]
@@ -124,14 +117,14 @@ def reduce_geometry(dataset: Dataset, config: dict, progress: bool = False) -> d
                     maxima[key] = img.copy()
                 else:
                     np.maximum(maxima[key], img, out=maxima[key])
-                k = _upsample_factor(img.shape)
                 if band == "G" or g is None:
-                    res = detect_corners(img, board.nx, board.ny)
+                    res = detect_corners_coarse_to_fine(img, board.nx, board.ny, **search)
                 else:
-                    spacing = np.median(np.linalg.norm(np.diff(g.reshape(board.ny, board.nx, 2), axis=1), axis=-1))
-                    res = _detect_in_crop(img, g, board.nx, board.ny, k, 2.5 * spacing + 4)
+                    margin = search["margin_squares"] * corner_spacing_px(g, board.nx, board.ny) + CROP_PAD_PX
+                    res = detect_in_crop(img, g, board.nx, board.ny, upsample=_upsample_factor(img.shape),
+                                         margin_px=margin)
                     if not res.found:
-                        res = detect_corners(img, board.nx, board.ny)
+                        res = detect_corners_coarse_to_fine(img, board.nx, board.ny, **search)
                     res.corners = _match_order(res.corners, g)
                 if band == "G" and res.found:
                     g = res.corners
