@@ -76,3 +76,25 @@ def ols_line(x: np.ndarray, y: np.ndarray, level: float = 0.95) -> dict:
         "intercept": res.intercept, "intercept_ci": tq * res.intercept_stderr,
         "r": res.rvalue, "n": n,
     }
+
+
+def cluster_robust_cov(fit: Fit, X: np.ndarray, sigma: np.ndarray, blocks: np.ndarray) -> tuple[np.ndarray, int]:
+    """Cluster-robust (sandwich) covariance of a weighted fit's coefficients, rows of one block correlated.
+
+    Rows that share a block (one raw frame, one setting) share that block's fluctuations (source flicker,
+    black-level jitter), so their residuals are not independent. With A = X / sigma, the whitened residuals
+    z and the per-block score sums u_g = sum over the block's rows of A_i z_i,
+    V = (A'A)^+ (sum_g u_g u_g') (A'A)^+ * G/(G - 1) * (n - 1)/(n - p)
+    (the CR1 small-sample factor, G blocks, n rows, p the design's rank). Returns (V, G); with ``blocks``
+    all different this is the heteroskedasticity-robust covariance.
+    """
+    w = 1.0 / np.asarray(sigma, dtype=float)
+    A = X * w[:, None]
+    codes = pd.factorize(pd.Series(blocks).astype(str))[0]
+    n_blocks = int(codes.max()) + 1 if len(codes) else 0
+    scores = np.zeros((n_blocks, A.shape[1]))
+    np.add.at(scores, codes, A * fit.z[:, None])
+    meat = scores.T @ scores
+    n, p = len(fit.z), len(fit.z) - fit.dof
+    factor = n_blocks / max(n_blocks - 1, 1) * (n - 1) / max(n - p, 1)
+    return fit.cov @ meat @ fit.cov * factor, n_blocks
