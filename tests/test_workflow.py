@@ -35,7 +35,9 @@ def run(make_dataset, tmp_path_factory):
 
 def test_artefacts_and_report(run):
     workdir, _ = run
-    for stage, version in (("dark", 1), ("linearity", 2)):
+    from pipeline.artefact import ARTEFACT_VERSIONS
+
+    for stage, version in (("dark", ARTEFACT_VERSIONS["dark"]), ("linearity", ARTEFACT_VERSIONS["linearity"])):
         for lens in LENSES:
             ds = xr.open_dataset(workdir / f"results/{stage}/{lens}.nc")
             assert ds.attrs["artefact"] == stage
