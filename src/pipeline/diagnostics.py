@@ -30,7 +30,9 @@ The rows of a table are therefore grouped into blocks (the first of
 and each candidate's coefficients get a cluster-robust (sandwich)
 covariance: the scores summed per block, so that any correlation inside a
 block, of any size, is allowed for (:func:`pipeline.fitting.cluster_robust_cov`,
-CR1 small-sample factor). The Wald statistic b' V^-1 b / k is referred to an
+CR3: each block's residuals corrected by its leverage, (I - H_gg)^-1, the
+jackknife-like form that keeps the test near its nominal level with a few
+tens of blocks). The Wald statistic b' V^-1 b / k is referred to an
 F(k, G - 1) distribution for G blocks (the smallest G over the tables the
 candidate touches), the usual correction for few clusters. A table with too
 few blocks for its candidate's k parameters (G - 1 <= k) cannot be tested
