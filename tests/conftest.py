@@ -29,12 +29,13 @@ def make_dataset(tmp_path_factory):
     """
     cache = {}
 
-    def make(effects=(), seed=11, scale="tiny", experiments=("dark", "linearity")):
-        key = (tuple((n, tuple(sorted(p.items()))) for n, p in effects), seed, scale, tuple(experiments))
+    def make(effects=(), seed=11, scale="tiny", experiments=("dark", "linearity"), lab_noise=False):
+        key = (tuple((n, tuple(sorted(p.items()))) for n, p in effects), seed, scale, tuple(experiments),
+               lab_noise)
         if key not in cache:
             root = tmp_path_factory.mktemp("sim") / "dataset"
             simulate_dataset(root, scale=scale, seed=seed, effects=list(effects), experiments=experiments,
-                             progress=False)
+                             progress=False, lab_noise=lab_noise)
             truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())
             cache[key] = (root, truth)
         return cache[key]

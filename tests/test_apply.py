@@ -64,6 +64,7 @@ def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
 
     import netCDF4
 
+    from pipeline.artefact import ARTEFACT_VERSIONS
     from pipeline.errors import ArtefactError
 
     _, _, _, _, bundle_path, _ = calibrated
@@ -72,8 +73,9 @@ def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
     old = tmp_path / "v3.nc"
     shutil.copy(bundle_path, old)
     with netCDF4.Dataset(old, "a") as nc:
-        nc.artefact_version = 4
-    with pytest.raises(ArtefactError, match="calibration artefact version 4 is not the supported version 5"):
+        nc.artefact_version = ARTEFACT_VERSIONS["calibration"] - 1
+    with pytest.raises(ArtefactError, match=f"calibration artefact version {ARTEFACT_VERSIONS['calibration'] - 1} "
+                                            f"is not the supported version {ARTEFACT_VERSIONS['calibration']}"):
         apply_calibration(old, [_signal_frame(calibrated[0], "far")], "air", tmp_path / "out.nc")
 
 

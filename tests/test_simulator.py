@@ -155,3 +155,22 @@ def test_pixel_sensitivity_multiplies_the_stray_light_too():
     lit = renderer.geometry("far", "air").lit & (without > 0)
     sensitivity = renderer.effects[0].maps["far"]
     np.testing.assert_allclose((with_prnu / np.where(lit, without, 1.0))[lit], sensitivity[lit], rtol=1e-6)
+
+
+def test_lab_noise_draws_have_their_stated_sizes():
+    """Jitter sigma and white flicker (from first differences, the drift being smooth) within 4 standard
+    errors of a sample spread, sqrt(1 / (2 n)) relative; without lab noise every factor is exactly 1 and
+    every offset 0 (the dataset's bytes do not change)."""
+    import numpy as np
+
+    from pipeline.simulate.lab_noise import LabNoise, draw_frame_noise, no_lab_noise
+
+    n, noise = 4000, LabNoise()
+    draw = draw_frame_noise(noise, 3, 1, n)
+    tol = 4 * np.sqrt(1 / (2 * n))
+    assert abs(np.std(draw.bias_offset_dn) / noise.bias_jitter_dn - 1) < tol
+    flicker = np.std(np.diff(draw.light_factor)) / np.sqrt(2)
+    assert abs(flicker / noise.flicker_rel_sigma - 1) < tol + 0.01     # the drift's own steps: under 1 %
+    assert np.ptp(draw.light_factor) < 2 * noise.drift_rel_amplitude + 10 * noise.flicker_rel_sigma
+    quiet = draw_frame_noise(no_lab_noise(), 3, 1, 50)
+    assert np.all(quiet.light_factor == 1.0) and np.all(quiet.bias_offset_dn == 0.0)

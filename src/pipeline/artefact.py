@@ -36,9 +36,13 @@ from pipeline.errors import ArtefactError
 #: the stray_light covariate (sun seen, clear-sky direct beam, sun_glare_proxy) in the match-up table and,
 #: with the effect in the model, the fitted sun glare; geometry 2: the covariance of the fitted model and
 #: the theta uncertainty it gives (theta_deg_sigma per band pixel, a 1-D summary); calibration 5: the
-#: linearity of version 3, the absolute budget of version 3, theta_deg_sigma, and apply's precomputed maps (see pipeline.calibration).
-ARTEFACT_VERSIONS = {"dark": 1, "linearity": 3, "geometry": 2, "rolloff": 1, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 5, "field": 2}
+#: linearity of version 3, the absolute budget of version 3, theta_deg_sigma, and apply's precomputed maps (see pipeline.calibration);
+#: dark 2 and linearity 4: the bias drift's spread (bias_drift_dn and its interval, and the frame noise
+#: it is removed from) weighted by the corners' own noise, its interval from the number of raw frames, not of
+#: lens x band rows (the rows of one frame share its offset), see effects.catalogue.drift_sigma; calibration 6:
+#: the dark and linearity of these versions.
+ARTEFACT_VERSIONS = {"dark": 2, "linearity": 4, "geometry": 2, "rolloff": 1, "spectral": 2,
+                     "absolute": 3, "immersion": 2, "calibration": 6, "field": 2}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -93,7 +93,8 @@ def simulate_from_config(out, simulation: dict) -> None:
     from pipeline.simulate import simulate_dataset
 
     effects = [parse_effect_spec(s) for s in simulation["effects"]]
-    simulate_dataset(out, scale=simulation["scale"], seed=simulation["seed"], effects=effects)
+    simulate_dataset(out, scale=simulation["scale"], seed=simulation["seed"], effects=effects,
+                     lab_noise=bool(simulation.get("lab_noise", False)))
 
 
 class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
@@ -159,6 +160,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--lab-errors", action="store_true",
                      help="draw the lab's systematic errors from the seed (calibration lamp, reference radiometer, "
                           "photodiode; written to the truth); default: a perfect lab")
+    sim.add_argument("--lab-noise", action="store_true",
+                     help="add the lab's frame-to-frame noise (source flicker and drift, bias jitter, "
+                          "room-temperature drift; sizes written to the truth); default: none")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
     from pipeline.apply import add_apply_parser
 
@@ -211,7 +215,7 @@ def _simulate(args) -> int:
     sensor = {"full_well_e": args.full_well_e} if args.full_well_e is not None else None
     out = simulate_dataset(args.out, scale=args.scale, seed=args.seed, effects=effects,
                            experiments=experiments, progress=not args.no_progress, sensor=sensor,
-                           lab_errors=args.lab_errors)
+                           lab_errors=args.lab_errors, lab_noise=args.lab_noise)
     print(f"dataset: {out}\ntruth:   {truth_dir_for(out)}")
     return EXIT_OK
 

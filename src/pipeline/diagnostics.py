@@ -8,8 +8,9 @@ the model's design and the fit is redone on the same observations; the drop
 in chi-square measures how well the signature explains the residuals.
 
 * significance: F test of the drop against the residual variance of the
-  larger model (robust to a mis-scaled noise), Bonferroni-corrected for the
-  number of candidates tried;
+  larger model (robust to a mis-scaled noise), and a cluster-robust Wald test
+  by block (below); the larger of the two p-values is Bonferroni-corrected
+  for the number of candidates tried;
 * evidence: drop in chi-square, divided by the larger model's reduced
   chi-square when it exceeds 1, minus the BIC penalty k ln(n) for the k
   parameters the effect adds; candidates are ranked by it;
@@ -17,6 +18,30 @@ in chi-square measures how well the signature explains the residuals.
   expectation) that the effect removes;
 * amplitude: the fitted physical parameter with its 95 % interval, and the
   smallest amplitude each experiment could have detected.
+
+Rows are not independent measurements when they share a raw frame or a
+setting: every pixel of a frame sees the same source flicker and the same
+black-level jitter, so the three bands (and both lenses) of one frame, or of
+one setting's mean over its frames, move together. Treating them as
+independent makes any signature that varies between frames look significant.
+The rows of a table are therefore grouped into blocks (the first of
+``diagnostics.block_keys`` present in the table: the raw frame's
+``file_index``, the ``frame``, the ``sweep`` and ``setting``, the ``setting``),
+and each candidate's coefficients get a cluster-robust (sandwich)
+covariance: the scores summed per block, so that any correlation inside a
+block, of any size, is allowed for (:func:`pipeline.fitting.cluster_robust_cov`,
+CR3: each block's residuals corrected by its leverage, (I - H_gg)^-1, the
+jackknife-like form that keeps the test near its nominal level with a few
+tens of blocks). The Wald statistic b' V^-1 b / k is referred to an
+F(k, G - 1) distribution for G blocks (the smallest G over the tables the
+candidate touches), the usual correction for few clusters. A table with too
+few blocks for its candidate's k parameters (G - 1 <= k) cannot be tested
+this way; the candidate then keeps the F test alone (``p_value_block`` NaN,
+``n_blocks`` 0). The robust p-value is used only when it is the larger (a noise model that
+holds is never made less exacting by the sandwich's own scatter), and the
+amplitude interval uses the robust covariance, with the t(G - 1) quantile,
+when it is the wider. Forward selection, evidence and explained fraction
+still use the drop in chi-square, for ranking only.
 
 Nothing here reads a simulator's truth: only the stage artefacts.
 """
@@ -33,7 +58,7 @@ from scipy import stats
 
 from pipeline.effects import available, load_plugins
 from pipeline.effects import get as get_effect
-from pipeline.fitting import base_design, wls
+from pipeline.fitting import base_design, cluster_robust_cov, wls
 from pipeline.observations import dataset_to_table
 
 #: covariates scanned to say where unexplained structure sits
@@ -83,6 +108,27 @@ def model_design(obs: Observations, model_effects: list[str]) -> np.ndarray:
     return np.hstack(cols)
 
 
+def blocks_of(table: pd.DataFrame, keys) -> tuple[np.ndarray, str]:
+    """Block label of every row (rows sharing a raw frame or setting) and the key used; one block per row
+    when the table has none of ``keys`` (``a+b`` combines columns)."""
+    for key in keys:
+        cols = key.split("+")
+        if all(c in table for c in cols):
+            return table[cols].astype(str).agg("/".join, axis=1).to_numpy(), key
+    return np.arange(len(table)).astype(str), "row"
+
+
+def block_wald(fit, X: np.ndarray, sigma: np.ndarray, blocks: np.ndarray, first: int, k: int):
+    """Cluster-robust Wald statistic b' V^-1 b of the coefficients from column ``first`` on, the number of
+    blocks G and their robust covariance; None when G - 1 <= k (too few blocks to test k parameters)."""
+    V, n_blocks = cluster_robust_cov(fit, X, sigma, blocks)
+    if n_blocks - 1 <= k:
+        return None
+    Vs = V[first:, first:]
+    b = fit.coef[first:]
+    return float(b @ np.linalg.pinv(Vs, hermitian=True) @ b), n_blocks, Vs
+
+
 def _fit(obs: Observations, X: np.ndarray):
     return wls(obs.table["value_dn"].to_numpy(float), obs.table["sigma_dn"].to_numpy(float), X)
 
@@ -119,7 +165,9 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         fit1 = _fit(obs, Xf)
         coef = fit1.coef[X.shape[1]:]
         cov = fit1.cov[X.shape[1]:, X.shape[1]:]
-        parts.append({"obs": obs, "fit0": fit0, "fit1": fit1, "k": k, "coef": coef, "cov": cov})
+        blocks, _ = blocks_of(obs.table, cfg["block_keys"])
+        robust = block_wald(fit1, Xf, obs.table["sigma_dn"].to_numpy(float), blocks, X.shape[1], k)
+        parts.append({"obs": obs, "fit0": fit0, "fit1": fit1, "k": k, "coef": coef, "cov": cov, "robust": robust})
     if not parts:
         return None
     d_chi2 = sum(p["fit0"].chi2 - p["fit1"].chi2 for p in parts)
@@ -130,12 +178,26 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
     n = sum(len(p["obs"].table) for p in parts)
     s2 = max(chi2_1 / max(dof_1, 1), 1.0)
     f_stat = (d_chi2 / k) / s2
-    p_value = float(stats.f.sf(f_stat, k, max(dof_1, 1)))
+    p_model = float(stats.f.sf(f_stat, k, max(dof_1, 1)))
+    # the same drop tested at the level of blocks (cluster-robust Wald, F(k, G - 1))
+    p_value, p_block, n_blocks = p_model, float("nan"), 0
+    if all(p["robust"] is not None for p in parts):
+        n_blocks = min(p["robust"][1] for p in parts)
+        p_block = float(stats.f.sf(sum(p["robust"][0] for p in parts) / k, k, n_blocks - 1))
+        p_value = max(p_model, p_block)
     best = max(parts, key=lambda p: p["fit0"].chi2 - p["fit1"].chi2)
-    # scale the coefficient covariance by the residual variance when the noise is underestimated
+    # scale the coefficient covariance by the residual variance when the noise is underestimated;
+    # the block-robust covariance (interval from t(G - 1), not the normal 1.96) when it is wider
+    cov_amp = best["cov"] * max(best["fit1"].chi2 / max(best["fit1"].dof, 1), 1.0)
+    if best["robust"] is not None:
+        t_ratio = stats.t.isf(0.025, best["robust"][1] - 1) / stats.norm.isf(0.025)
+        cov_robust = best["robust"][2] * t_ratio**2
+        d_model, d_robust = np.diag(cov_amp), np.diag(cov_robust)
+        if np.mean(d_robust[d_model > 0] / d_model[d_model > 0]) > 1.0:
+            cov_amp = cov_robust
     amp, lo, hi = effect.amplitude(best["obs"].experiment, best["obs"].level, best["obs"].table,
-                                   best["coef"], best["cov"] * max(best["fit1"].chi2 / max(best["fit1"].dof, 1), 1.0))
-    se = float(np.sqrt(max(best["cov"][0, 0], 0.0)))
+                                   best["coef"], cov_amp)
+    se = float(np.sqrt(max(cov_amp[0, 0], 0.0)))
     evidence = d_chi2 / s2 - k * np.log(max(n, 2))
     amplitude_name, units = effect.amplitude_label(best["obs"].experiment)
     return {
@@ -145,6 +207,9 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         "delta_chi2": d_chi2,
         "n_params": k,
         "p_value": p_value,
+        "p_value_model": p_model,
+        "p_value_block": p_block,
+        "n_blocks": n_blocks,
         "significant": bool(p_value < cfg["significance_level"] / max(n_candidates, 1) and evidence > 0),
         "explained_fraction": float(np.clip(d_chi2 / excess, 0.0, 1.0)) if excess > 0 else 0.0,
         "amplitude": amp, "amplitude_low": lo, "amplitude_high": hi,
@@ -152,6 +217,14 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         "amplitude_name": amplitude_name,
         "detectable_amplitude": se * stats.norm.isf(cfg["significance_level"] / max(n_candidates, 1) / 2),
     }
+
+
+def candidate_significance(name: str, observations: list[Observations], model_effects: list[str], config: dict,
+                           n_candidates: int = 1) -> dict | None:
+    """Drop in chi-square, significance (model and block tests), evidence and amplitude of one candidate
+    effect added to the model, as :func:`rank_missing_effects` computes them for every candidate."""
+    designs = _designs(observations, model_effects, [])
+    return _candidate_stats(name, observations, designs, config["diagnostics"], n_candidates)
 
 
 def _designs(observations: list[Observations], model_effects: list[str], selected: list[str]) -> dict:

@@ -218,21 +218,43 @@ class BiasDrift(Effect):
 def drift_sigma(table: pd.DataFrame) -> tuple[float, float, float]:
     """Frame-to-frame spread of the black level from the unlit pixels, with 95 % interval.
 
-    The corners' own noise (``sigma_corner_dn``) is removed in quadrature; the
-    interval is the chi-square one for a variance from n - n_settings degrees of freedom.
+    Each row's corner deviation from its setting mean has variance (tau^2 + s_i^2) f, with
+    s_i = ``sigma_corner_dn`` (the corners' own noise, large at high ISO) and f = dof / n the share
+    the setting means leave; tau^2 is the weighted moment estimate, weights 1 / (tau^2 + s_i^2)^2
+    (iterated), so that the noisy high-ISO corners do not swamp a small drift. The interval is the
+    chi-square one for the weighted total tau^2 + s_w^2, its degrees of freedom counted in raw frames
+    when the table says which frame a row came from (``file_index``: the rows of one frame, both
+    lenses and three bands, share its offset, so they are one draw, and each distinct set of frames
+    averaged into a setting mean takes one), times the weights' efficiency (sum w)^2 / (n sum w^2).
     """
     from scipy import stats
 
     keys = [c for c in ("lens", "band", "sweep", "setting") if c in table]
-    dev = table["corner_dev_dn"].to_numpy()
+    dev2 = table["corner_dev_dn"].to_numpy(float) ** 2
+    s2 = table["sigma_corner_dn"].to_numpy(float) ** 2
+    n = len(dev2)
     n_groups = table.groupby(keys).ngroups if keys else 1
-    dof = max(len(dev) - n_groups, 1)
-    first = table
-    var = float(np.sum(dev**2) / dof - np.mean(first["sigma_corner_dn"].to_numpy() ** 2))
-    lo_var = var * dof / stats.chi2.ppf(0.975, dof)
-    hi_var = var * dof / stats.chi2.ppf(0.025, dof)
+    dof = max(n - n_groups, 1)
+    share = dof / max(n, 1)
+    tau2 = max(float(np.mean(dev2) / share - np.mean(s2)), 0.0)
+    for _ in range(20):
+        w = 1.0 / (s2 + tau2) ** 2
+        new = max(float(np.sum(w * (dev2 / share - s2)) / np.sum(w)), 0.0)
+        converged = abs(new - tau2) <= 1e-9 * max(new, 1e-12)
+        tau2 = new
+        if converged:
+            break
+    w = 1.0 / (s2 + tau2) ** 2
+    if "file_index" in table and keys:
+        frame_sets = table.groupby(keys)["file_index"].agg(lambda f: tuple(sorted(set(f))))
+        dof = max(table["file_index"].nunique() - frame_sets.nunique(), 1)
+    dof_w = max(dof * float(np.sum(w)) ** 2 / (n * float(np.sum(w**2))), 1.0)
+    s2w = float(np.sum(w * s2) / np.sum(w))
+    total = tau2 + s2w
+    lo_var = total * dof_w / stats.chi2.ppf(0.975, dof_w) - s2w
+    hi_var = total * dof_w / stats.chi2.ppf(0.025, dof_w) - s2w
     root = lambda v: float(np.sqrt(max(v, 0.0)))  # noqa: E731
-    return root(var), root(lo_var), root(hi_var)
+    return root(tau2), root(lo_var), root(hi_var)
 
 
 @register

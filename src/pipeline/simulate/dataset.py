@@ -23,6 +23,7 @@ from pipeline.simulate import geometry  # noqa: F401  (registers the geometry pl
 from pipeline.simulate import field  # noqa: F401  (registers the field planner)
 from pipeline.simulate.camera import Camera, SensorParams
 from pipeline.simulate.lab_errors import draw_lab_errors, no_lab_errors
+from pipeline.simulate.lab_noise import LabNoise, draw_frame_noise, no_lab_noise, room_temperature_offset_c
 from pipeline.simulate.plan import PLANNERS, SimContext
 from pipeline.simulate.render import Renderer
 
@@ -64,7 +65,8 @@ def truth_dir_for(dataset: str | Path) -> Path:
 
 def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 0,
                      effects: list[tuple[str, dict]] = (), experiments=EXPERIMENTS,
-                     progress: bool = True, sensor: dict | None = None, lab_errors: bool = False) -> Path:
+                     progress: bool = True, sensor: dict | None = None, lab_errors: bool = False,
+                     lab_noise: bool | LabNoise = False) -> Path:
     """Simulate the calibration experiments into ``out`` (which must not exist yet).
 
     The dataset is written to a temporary sibling folder and renamed at the
@@ -76,6 +78,10 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
     (calibration lamp, reference radiometer, photodiode;
     :mod:`pipeline.simulate.lab_errors`) are drawn once from the seed and
     written to the truth (``lab_errors``); without, the lab is perfect.
+    With ``lab_noise`` (True for the default sizes, or a
+    :class:`~pipeline.simulate.lab_noise.LabNoise`) the lab's frame-to-frame
+    noise is added: source flicker and drift, bias jitter, room-temperature
+    drift (:mod:`pipeline.simulate.lab_noise`; sizes in the truth, ``lab_noise``).
     """
     out = Path(out)
     truth = truth_dir_for(out)
@@ -107,6 +113,7 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
     tmp_truth.mkdir(parents=True)
 
     plans = {exp: PLANNERS[exp](ctx) for exp in experiments}
+    noise = (lab_noise if isinstance(lab_noise, LabNoise) else LabNoise()) if lab_noise else no_lab_noise()
     total = sum(len(p.frames) for p in plans.values())
     bar = None
     if progress:
@@ -119,12 +126,20 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
         for exp_id, exp in enumerate(experiments):
             (tmp / exp / "raw").mkdir(parents=True)
             rows = []
+            frame_noise = draw_frame_noise(noise, seed, exp_id + 1, len(plans[exp].frames))
             for i, spec in enumerate(plans[exp].frames):
                 # frames that carry their own camera-clock time (the field hour) keep it; the lab
                 # experiments follow the running clock
                 stamp = spec.time if spec.time is not None else clock
                 spec.file = f"raw/IMG_{stamp:%Y%m%d_%H%M%S}_{i:05d}.dng"
-                frame = renderer.render(i, exp_id + 1, spec)
+                # the lab's sources flicker and drift; the field's sky is not the lab's
+                light_scale = float(frame_noise.light_factor[i]) if spec.time is None else 1.0
+                bias_offset = float(frame_noise.bias_offset_dn[i])
+                if spec.temperature_c is not None and noise.room_drift_c:
+                    room_c = room_temperature_offset_c(noise, seed, (clock - START_TIME).total_seconds())
+                    spec.temperature_c = round(spec.temperature_c + room_c, 2)
+                    bias_offset += noise.bias_dn_per_room_c * room_c
+                frame = renderer.render(i, exp_id + 1, spec, light_scale=light_scale, bias_offset_dn=bias_offset)
                 write_dng(tmp / exp / spec.file, frame, exposure_s=spec.exposure_s, iso=spec.iso,
                           time=stamp, black_level=round(camera.sensor.bias_dn),
                           white_level=camera.sensor.adc_max_dn, cfa_pattern="RGGB",
@@ -152,7 +167,7 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
         (tmp / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
         write_md5sums(tmp)
         _write_truth(tmp_truth, camera, sc, seed, effect_objs, experiments,
-                     {exp: p.truth for exp, p in plans.items() if p.truth}, ctx.lab_errors)
+                     {exp: p.truth for exp, p in plans.items() if p.truth}, ctx.lab_errors, noise)
     finally:
         if bar is not None:
             bar.close()
@@ -162,7 +177,7 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
 
 
 def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects, experiments,
-                 experiment_truth: dict, lab_errors: dict) -> None:
+                 experiment_truth: dict, lab_errors: dict, lab_noise: LabNoise) -> None:
     s = camera.sensor
     k100 = s.conversion_gain_dn_per_e_iso100
     truth = {
@@ -173,6 +188,7 @@ def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects,
         "camera": camera.to_dict(),
         "effects": {e.name: e.truth() for e in effects},
         "lab_errors": lab_errors,
+        "lab_noise": lab_noise.truth(),
         "experiments_truth": _plain(experiment_truth),
         "derived": {
             "bias_dn": s.bias_dn,

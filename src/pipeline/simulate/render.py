@@ -83,7 +83,7 @@ class Renderer:
             self._unit_rate[key] = rate * geo.lit
         return self._unit_rate[key]
 
-    def photo_rate(self, lens: str, spec: FrameSpec):
+    def photo_rate(self, lens: str, spec: FrameSpec, light_scale: float = 1.0):
         lit = spec.lit if spec.lit is not None else (self.camera.lens_names if spec.lens == "both" else (spec.lens,))
         if spec.radiance is None or lens not in lit:
             return 0.0
@@ -93,19 +93,24 @@ class Renderer:
             lbar = np.array([spec.radiance[b] for b in BANDS])[self.band_index]
         factor = spec.light_factor(self.band_index) if callable(spec.light_factor) else spec.light_factor
         rate = self.unit_rate(lens, spec.medium) * lbar * factor
+        if light_scale != 1.0:
+            rate = rate * light_scale
         for effect in self.effects:
             rate = effect.spread_light(rate, lens)
         for effect in self.effects:
             rate = rate * effect.sensitivity_map(lens, self.shape)
         return rate
 
-    def render(self, index: int, experiment_id: int, spec: FrameSpec) -> np.ndarray:
+    def render(self, index: int, experiment_id: int, spec: FrameSpec, light_scale: float = 1.0,
+               bias_offset_dn: float = 0.0) -> np.ndarray:
+        """One raw frame; ``light_scale`` multiplies the source's light and ``bias_offset_dn`` shifts the
+        black level of the whole frame (the lab's frame-to-frame noise, :mod:`pipeline.simulate.lab_noise`)."""
         rng = np.random.default_rng([self.seed, experiment_id, index])
-        offset = sum(e.frame_offset_dn(rng) for e in self.effects)
+        offset = sum(e.frame_offset_dn(rng) for e in self.effects) + bias_offset_dn
         frame = np.empty((2 * self.n, self.n), dtype=np.uint16)
         for row, lens in enumerate(self.camera.lens_names):
             frame[row * self.n:(row + 1) * self.n] = expose(
-                rng, lens=lens, photo_rate_e_per_s=self.photo_rate(lens, spec), exposure_s=spec.exposure_s,
+                rng, lens=lens, photo_rate_e_per_s=self.photo_rate(lens, spec, light_scale), exposure_s=spec.exposure_s,
                 iso=spec.iso, sensor=self.camera.sensor, pattern=self.patterns[lens], effects=self.effects,
                 frame_offset_dn=offset, shape=self.shape, temperature_c=spec.temperature_c)
         return frame
