@@ -132,6 +132,9 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
                 "theta_air": (geometry[lens].sel(medium="air")["theta_deg"].values
                               if medium == "water" and "air" in geometry[lens]["medium"].values else None),
             }
+            if static[(lens, medium)]["theta_air"] is not None:
+                static[(lens, medium)]["deg_per_px_air"] = _deg_per_px(
+                    geometry[lens].sel(medium="air")["theta_deg"].sel(band="G").values.astype(float))
             if static[(lens, medium)]["n_dark"] < 2:
                 from pipeline.errors import InputError
                 raise InputError(dataset.root / STAGE / "frames.csv", f"needs at least two dark frames in {medium}")
@@ -202,7 +205,7 @@ def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
             "n_frames": m, "n_pix": int(circle.size), "n_annulus": int(annulus.size),
             "signal_dn": float(stack.mean()),
             "diff_var_dn2": float(np.mean(stack.var(axis=0, ddof=1))) if m > 1 else np.nan,
-            "theta_deg": float(np.mean(theta)), "theta_air_deg": theta_air,
+            "theta_deg": float(np.mean(theta)), "theta_air_deg": theta_air, "deg_per_px_air": st.get("deg_per_px_air", np.nan),
             "phi_deg": float(np.degrees(np.arctan2(np.mean(np.sin(phi)), np.mean(np.cos(phi))))),
             "spot_theta_deg": spot_theta, "spot_x_px": cx, "spot_y_px": cy,
             "annulus_dn": float(np.mean([f["annulus_mean"] for f in frames])),
@@ -277,7 +280,8 @@ def water_indices(reduced: dict, config: dict) -> tuple[dict[str, float], float]
     return n_w, float(cfg["front_surface_index"])
 
 
-def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max_air_deg: float) -> pd.DataFrame:
+def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max_air_deg: float,
+                   field_angle_sigma_px: float) -> pd.DataFrame:
     """The in-water roll-off predicted from the in-air fit and the immersion physics, per lens/band.
 
     Each water point (its own normalisation, the water fit's a0) is predicted as
@@ -285,7 +289,8 @@ def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max
     the geometry artefact's air model, the factor the outer surface's Fresnel transmissions
     (radiometry.immersion_rolloff). No shape parameter is fitted: the base column ``x_scale`` is the
     prediction itself, one free scale per group for the normalisation. The prediction's uncertainty
-    (the air fit's covariance at theta_a) is added to the point's in quadrature; points whose theta_a
+    (the air fit's covariance at theta_a, and the air model's field-angle uncertainty through the air
+    curve's slope) is added to the point's in quadrature; points whose theta_a
     lies beyond the air measurements are not used (no extrapolation of the air fit).
     """
     out = []
@@ -296,6 +301,8 @@ def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max
         ta = np.where(ok, theta_a, 0.0)
         factor = water_rolloff_factor(ta, g["theta_deg"].to_numpy(float), n_w[band], n_g)
         g_air, sig_air = evaluate_rolloff(coef_air, ta, cov_air)
+        sig_air = np.hypot(sig_air, np.abs(rolloff_slope(coef_air, ta)) * field_angle_sigma_px
+                           * g["deg_per_px_air"].to_numpy(float))
         pred = g_air * factor
         t = g.assign(x_scale=pred, pred_dn=pred, water_factor=factor, air_prediction_sigma=sig_air * factor)
         t["sigma_dn"] = np.hypot(t["sigma_dn"], sig_air * factor)
@@ -368,7 +375,7 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
     if len(wat) and air_fits:
         wat = wat[[(l_, b_) in air_fits for l_, b_ in zip(wat["lens"], wat["band"])]]
         n_w, n_g = water_indices(reduced, config)
-        water_tab = _water_closure(wat, air_fits, n_w, n_g, max_air)
+        water_tab = _water_closure(wat, air_fits, n_w, n_g, max_air, config[STAGE]["field_angle_sigma_px"])
         used = water_tab["used"].to_numpy(bool)
         Xw, wnames = base_design(water_tab)
         wcols = [(e, get_effect(e).columns(STAGE, "water", water_tab)) for e in effects if e in WATER_EFFECTS]
