@@ -31,7 +31,8 @@ Streams the roll-off frames once (dark frames first, then the port images):
   F(theta_a, theta_w): theta_a the same pixels' field angle in the geometry
   artefact's air model, F the Fresnel transmissions of the outer surface,
   radiometry/immersion_rolloff.py; no shape parameter fitted, only the
-  scale c; the prediction's uncertainty from the air fit's covariance).
+  scale c; the prediction's uncertainty from the air fit's covariance and
+  the air model's field-angle uncertainty).
 """
 
 from __future__ import annotations
@@ -132,11 +133,13 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
                 "theta_air": (geometry[lens].sel(medium="air")["theta_deg"].values
                               if medium == "water" and "air" in geometry[lens]["medium"].values else None),
             }
+            if medium == "water" and static[(lens, medium)]["theta_air"] is None:
+                raise InputError(dataset.root / STAGE / "frames.csv", f"in-water roll-off frames of lens {lens}, but "
+                                 "its geometry artefact has no air model: the in-water closure needs both media")
             if static[(lens, medium)]["theta_air"] is not None:
                 static[(lens, medium)]["deg_per_px_air"] = _deg_per_px(
                     geometry[lens].sel(medium="air")["theta_deg"].sel(band="G").values.astype(float))
             if static[(lens, medium)]["n_dark"] < 2:
-                from pipeline.errors import InputError
                 raise InputError(dataset.root / STAGE / "frames.csv", f"needs at least two dark frames in {medium}")
         st = static[(lens, medium)]
         key = (lens, medium, float(row["azimuth_deg"]), float(row["angle_deg"]))
@@ -365,7 +368,7 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
         c, cv = normalise_rolloff(f.coefficients, f.covariance)
         curves[(lens, band, medium)] = (c, cv, f)
 
-    # closure: in-water roll-off from the compressed in-air roll-off
+    # closure: each in-water point against its prediction from the air fit and the immersion physics
     max_air = float(sp.loc[sp["medium"] == "air", "theta_deg"].max()) if (sp["medium"] == "air").any() else 0.0
     wat = obs[(obs["kind"] == "spot") & (obs["medium"] == "water")].drop(
         columns=[c for c in obs.columns if c.startswith("x_")] + ["halo_column_dn"])
