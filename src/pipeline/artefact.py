@@ -38,7 +38,8 @@ from pipeline.errors import ArtefactError
 #: the theta uncertainty it gives (theta_deg_sigma per band pixel, a 1-D summary); calibration 5: the
 #: linearity of version 3, the absolute budget of version 3, theta_deg_sigma, and apply's precomputed maps (see pipeline.calibration);
 #: rolloff 2: the in-water closure predicts each water point from the air fit and the immersion physics
-#: (``obs_water`` gains ``theta_air_deg``, ``water_factor``, ``air_prediction_sigma``; ``water_compression``
+#: (``obs_water`` gains ``theta_air_deg``, ``theta_air_sigma_deg``, ``deg_per_px_air``, ``water_factor``,
+#: ``air_prediction_sigma``; ``water_compression``
 #: gives way to ``water_closure_scale`` and its sigma).
 ARTEFACT_VERSIONS = {"dark": 1, "linearity": 3, "geometry": 2, "rolloff": 2, "spectral": 2,
                      "absolute": 3, "immersion": 2, "calibration": 5, "field": 2}

@@ -136,6 +136,10 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
             if medium == "water" and static[(lens, medium)]["theta_air"] is None:
                 raise InputError(dataset.root / STAGE / "frames.csv", f"in-water roll-off frames of lens {lens}, but "
                                  "its geometry artefact has no air model: the in-water closure needs both media")
+            air_geo = geometry[lens].sel(medium="air") if medium == "water" else None
+            # the air model's stated field-angle uncertainty per pixel (geometry artefact version 2), if any
+            static[(lens, medium)]["theta_air_sigma"] = (air_geo["theta_deg_sigma"].values
+                                                         if air_geo is not None and "theta_deg_sigma" in air_geo else None)
             if static[(lens, medium)]["theta_air"] is not None:
                 static[(lens, medium)]["deg_per_px_air"] = _deg_per_px(
                     geometry[lens].sel(medium="air")["theta_deg"].sel(band="G").values.astype(float))
@@ -202,6 +206,8 @@ def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
         m = len(frames)
         theta_air = (float(np.mean(st["theta_air"][bi].ravel()[circle])) if st.get("theta_air") is not None
                      else np.nan)
+        theta_air_sigma = (float(np.sqrt(np.nanmean(st["theta_air_sigma"][bi].ravel()[circle] ** 2)))
+                           if st.get("theta_air_sigma") is not None else np.nan)
         spot_theta = float(ndimage.map_coordinates(np.nan_to_num(st["theta"][bi]), [[cy], [cx]], order=1)[0])
         rows.append({
             "lens": lens, "band": band, "medium": medium, "azimuth_deg": az, "angle_deg": angle,
@@ -209,6 +215,7 @@ def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
             "signal_dn": float(stack.mean()),
             "diff_var_dn2": float(np.mean(stack.var(axis=0, ddof=1))) if m > 1 else np.nan,
             "theta_deg": float(np.mean(theta)), "theta_air_deg": theta_air, "deg_per_px_air": st.get("deg_per_px_air", np.nan),
+            "theta_air_sigma_deg": theta_air_sigma,
             "phi_deg": float(np.degrees(np.arctan2(np.mean(np.sin(phi)), np.mean(np.cos(phi))))),
             "spot_theta_deg": spot_theta, "spot_x_px": cx, "spot_y_px": cy,
             "annulus_dn": float(np.mean([f["annulus_mean"] for f in frames])),
@@ -293,8 +300,8 @@ def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max
     (radiometry.immersion_rolloff). No shape parameter is fitted: the base column ``x_scale`` is the
     prediction itself, one free scale per group for the normalisation. The prediction's uncertainty
     (the air fit's covariance at theta_a, and the air model's field-angle uncertainty through the air
-    curve's slope) is added to the point's in quadrature; points whose theta_a
-    lies beyond the air measurements are not used (no extrapolation of the air fit).
+    curve's slope: the geometry artefact's theta_deg_sigma, else ``rolloff.field_angle_sigma_px``) is
+    added to the point's in quadrature; points whose theta_a lies beyond the air measurements are not used (no extrapolation of the air fit).
     """
     out = []
     for (lens, band), g in wat.groupby(["lens", "band"]):
@@ -304,8 +311,11 @@ def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max
         ta = np.where(ok, theta_a, 0.0)
         factor = water_rolloff_factor(ta, g["theta_deg"].to_numpy(float), n_w[band], n_g)
         g_air, sig_air = evaluate_rolloff(coef_air, ta, cov_air)
-        sig_air = np.hypot(sig_air, np.abs(rolloff_slope(coef_air, ta)) * field_angle_sigma_px
-                           * g["deg_per_px_air"].to_numpy(float))
+        # field-angle uncertainty of theta_a: the geometry artefact's stated theta_deg_sigma at those pixels
+        # where it has one, else rolloff.field_angle_sigma_px in air band pixels
+        sig_theta = g["theta_air_sigma_deg"].to_numpy(float)
+        sig_theta = np.where(np.isfinite(sig_theta), sig_theta, field_angle_sigma_px * g["deg_per_px_air"].to_numpy(float))
+        sig_air = np.hypot(sig_air, np.abs(rolloff_slope(coef_air, ta)) * sig_theta)
         pred = g_air * factor
         t = g.assign(x_scale=pred, pred_dn=pred, water_factor=factor, air_prediction_sigma=sig_air * factor)
         t["sigma_dn"] = np.hypot(t["sigma_dn"], sig_air * factor)
