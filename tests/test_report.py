@@ -218,7 +218,8 @@ def test_later_numbers_come_from_the_artefacts(later):
     lam = fmt_uncertain(float(sp["effective_wavelength_nm"]), float(sp["effective_wavelength_nm_sigma"]))
     assert f"{lam} nm" in _section(html, "spectral")
     ro = read_artefact(p["rolloff"]["far"], "rolloff")
-    assert fmt_value(float(ro["water_compression"].sel(band="G"))) in _section(html, "rolloff")
+    c = fmt_uncertain(float(ro["water_closure_scale"].sel(band="G")), float(ro["water_closure_scale_sigma"].sel(band="G")))
+    assert c in _section(html, "rolloff")
 
 
 def test_geometry_section_with_and_without_curves(later):

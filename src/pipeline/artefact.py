@@ -40,8 +40,11 @@ from pipeline.errors import ArtefactError
 #: dark 2 and linearity 4: the bias drift's spread (bias_drift_dn and its interval, and the frame noise
 #: it is removed from) weighted by the corners' own noise, its interval from the number of raw frames, not of
 #: lens x band rows (the rows of one frame share its offset), see effects.catalogue.drift_sigma; calibration 6:
-#: the dark and linearity of these versions.
-ARTEFACT_VERSIONS = {"dark": 2, "linearity": 4, "geometry": 2, "rolloff": 1, "spectral": 2,
+#: the dark and linearity of these versions; rolloff 2: the in-water closure predicts each water point from
+#: the air fit and the immersion physics (``obs_water`` gains ``theta_air_deg``, ``theta_air_sigma_deg``,
+#: ``deg_per_px_air``, ``water_factor``, ``air_prediction_sigma``; ``water_compression`` gives way to
+#: ``water_closure_scale`` and its sigma).
+ARTEFACT_VERSIONS = {"dark": 2, "linearity": 4, "geometry": 2, "rolloff": 2, "spectral": 2,
                      "absolute": 3, "immersion": 2, "calibration": 6, "field": 2}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain

@@ -856,8 +856,10 @@ def _rolloff_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
                    "± standard error) and g at the largest measured angle:</p>")
         out.append(_table(["medium", "band"] + [f"a{p}" for p in powers] + ["g(θ_max)", "reduced χ²"], rows, left=2))
     scal = []
-    if "water_compression" in ds:
-        scal += [[f"water compression s ({b}), g_water(θ) = c g_air(sθ)", _num(ds, "water_compression", band=b)]
+    if "water_closure_scale" in ds:
+        scal += [[f"in-water closure scale c ({b}), g_water(θ_w) = c g_air(θ_a) F(θ_a, θ_w)",
+                  fmt_uncertain(float(ds["water_closure_scale"].sel(band=b)),
+                                float(ds["water_closure_scale_sigma"].sel(band=b)))]
                  for b in bands]
     if "rms_z" in ds:
         scal.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])

@@ -11,13 +11,16 @@
   ``I(theta) = I(0) / (1 - kappa (theta / 60 deg)^4)`` (Wei et al. 2012,
   Section 3.5 and Fig. 5(d): the immersion factor measured against viewing
   direction). Closure that shows it (level ``water`` of the roll-off stage):
-  the in-water roll-off predicted from the in-air roll-off compressed toward
-  small angles, ``g_w(theta) = c g_air(s theta)`` with one fitted
-  compression s per lens and band (Larouche et al. 2024, Section 3.3: "almost
-  the same shape ... compressed toward smaller angles"). A free even
-  polynomial fitted to the in-water points alone absorbs any smooth even
-  factor, so that fit cannot show it; the compressed in-air curve cannot, and
-  the residuals grow with theta. Term: ``-pred * (theta/60)^4``, coefficient kappa.
+  each in-water point against its prediction from the in-air fit and the
+  immersion physics, ``g_w(theta_w) = c g_air(theta_a) F(theta_a, theta_w)``
+  (the same pixels' field angle in air from the geometry artefact, F the
+  outer surface's Fresnel transmissions, radiometry/immersion_rolloff.py),
+  with only the scale c fitted. A free even polynomial fitted to the
+  in-water points alone absorbs any smooth even factor, so that fit cannot
+  show it; the prediction from air has no shape to adjust, and the residuals
+  grow with theta. Term: ``-pred * (theta/60)^4``, coefficient kappa. The
+  simulator's ``optics_factor`` is the same form; the hidden-effect test
+  injects another (tests/test_effects_optics.py).
 * ``stray_light``: a fraction ``f`` of the flux is spread by a wide Gaussian
   point-spread function (width a fraction of the image-circle radius; Wei et
   al. 2012, Section 3.4). Roll-off stage term (rows of level ``setting`` with

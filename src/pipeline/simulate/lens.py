@@ -9,7 +9,10 @@ Larouche et al. (2024):
   published centres are taken as 0-based pixel-centre coordinates of that
   image (conventions of :mod:`pipeline.geometry.scaramuzza`);
 * roll-off (Section 3.3, Eq. 13): the published close-lens red coefficients
-  in air and the published values at 70 and 80 degrees per band and medium.
+  in air and the published values at 70 and 80 degrees per band in air; in
+  water the in-air curve through the in-water geometry and the Fresnel
+  transmissions of the front surface (not the published in-water values,
+  see :func:`default_rolloff`).
 """
 
 from __future__ import annotations
@@ -18,9 +21,9 @@ from dataclasses import replace
 from functools import lru_cache
 
 import numpy as np
-from scipy import optimize
 
 from pipeline.geometry.scaramuzza import FisheyeModel, fit_poly_to_theta
+from pipeline.radiometry.immersion_rolloff import water_rolloff_factor
 from pipeline.radiometry.rolloff import N_COEFFICIENTS, evaluate_rolloff
 
 #: Raw lens image size (pixels) on which the published fits were made.
@@ -93,7 +96,13 @@ def default_model(lens: str = "close", medium: str = "air",
 #: Close lens, air, red band (supplement Table S2 of Larouche et al. 2024, via DESIGN.md).
 PUBLISHED_RED_AIR_CLOSE_LENS = np.array([0.99726, -7.806e-5, 4.074e-9, -4.884e-13, 2.406e-17])
 
+#: largest departure of the stored in-water polynomial from the physics it is fitted to (0 to 76 deg)
+WATER_FIT_MAX_ERROR = 1e-4
+
 #: Published roll-off values (Section 3.3): (medium, band) -> {theta_deg: g}.
+#: The in-water values are not used: the physics of water_rolloff_from_air gives 0.548, 0.612, 0.618
+#: (R, G, B) at 70 deg against the published 0.491, 0.562, 0.570 (12, 9 and 8 % higher), see
+#: default_rolloff.
 PUBLISHED_ROLLOFF_POINTS = {
     ("air", "B"): {70.0: 0.728, 80.0: 0.645},
     ("air", "G"): {70.0: 0.719, 80.0: 0.637},
@@ -119,17 +128,39 @@ def _default_table():
         a[1] += c2
         a[2] += c4
         air[band] = a
-    # Water: the air curve compressed toward small angles, g_w(theta) =
-    # g_air(k theta) (Section 3.3: "almost the same shape ... compressed"),
-    # k chosen so that g_w(70) equals the published value; k ~ 1.26-1.27,
-    # close to the ratio of half fields of view 91 / 76 = 1.20.
-    water = {}
-    for band, a in air.items():
-        target = PUBLISHED_ROLLOFF_POINTS[("water", band)][70.0]
-        theta_air = optimize.brentq(lambda t: evaluate_rolloff(a, t) - target, 60.0, 95.0, xtol=1e-12)
-        k = theta_air / 70.0
-        water[band] = a * k ** (2.0 * np.arange(N_COEFFICIENTS))
+    # Water: from the in-water geometry and the outer surface's Fresnel transmissions
+    # (radiometry.immersion_rolloff): the pixel that sees theta_w in water sees theta_a = theta_w 91 / 76
+    # in air (water_model), and g_w(theta_w) = g_air(theta_a) T_wg(i_w) T_ag(0) / (T_wg(0) T_ag(i_a)),
+    # with the tank's water and the front surface's index of the immersion experiment. Stored as the
+    # even 8th-degree polynomial of Eq. (13) with g(0) = 1, fitted on 0 to 76 deg (largest departure
+    # from the physics under 1e-4, WATER_FIT_MAX_ERROR).
+    water = {band: water_rolloff_from_air(a, band) for band, a in air.items()}
     return {"air": air, "water": water}
+
+
+def water_rolloff_from_air(coef_air, band: str) -> np.ndarray:
+    """In-water roll-off coefficients (a0..a8, g(0) = 1) of one band from its in-air coefficients.
+
+    The physics of :func:`pipeline.radiometry.immersion_rolloff.water_rolloff_factor` on the
+    default camera's geometry (theta_a = theta_w * 91 / 76, :func:`water_model`), the water of the
+    immersion experiment (n_w from Quan and Fry at the band's wavelength, 25 C, 0 PSU) and the front
+    surface's index of that experiment (n_g = 1.60, 1.63, 1.58), fitted by the even polynomial.
+    """
+    from pipeline.simulate.immersion import true_immersion_factors  # noqa: PLC0415 (immersion imports the plan)
+
+    true = true_immersion_factors()
+    theta_w = np.linspace(0.0, HALF_FOV_DEG["water"], 400)
+    theta_a = theta_w * HALF_FOV_DEG["air"] / HALF_FOV_DEG["water"]
+    g = evaluate_rolloff(coef_air, theta_a) * water_rolloff_factor(theta_a, theta_w, true["n_w"][band],
+                                                                   true["n_g"][band])
+    powers = 2 * np.arange(1, N_COEFFICIENTS)
+    u = theta_w / 90.0
+    c = np.linalg.lstsq(u[:, None] ** powers, g - 1.0, rcond=None)[0]
+    coef = np.concatenate([[1.0], c / 90.0**powers])
+    err = float(np.max(np.abs(evaluate_rolloff(coef, theta_w) - g)))
+    if err > WATER_FIT_MAX_ERROR:
+        raise RuntimeError(f"in-water roll-off polynomial departs {err:.2e} from its physics ({band})")
+    return coef
 
 
 def default_rolloff(band, medium="air"):
@@ -141,7 +172,14 @@ def default_rolloff(band, medium="air"):
       a0 = 0.99726 (g(70) = 0.6708, g(80) = 0.5785; published 0.669, 0.577).
     * air, B and G: the red shape plus a2 and a4 corrections that pass
       through the published 70 and 80 deg values exactly.
-    * water: g_air(k theta) with k set by the published 70 deg value.
+    * water: from the in-air curve through the in-water geometry and the Fresnel
+      transmissions of the front surface (:func:`water_rolloff_from_air`). The
+      published in-water values at 70 deg (0.491, 0.562, 0.570) are lower by 12,
+      9 and 8 % than this physics gives (0.548, 0.612, 0.618): the published
+      curve is more compressed (g_air(k theta) with k = 1.26-1.27) than the
+      published half fields of view allow (91 / 76 = 1.20). We keep the physics,
+      so that the simulated camera obeys the model the pipeline tests; a camera
+      like the published one would show the difference as an in-water effect.
 
     Monotone decreasing from 0 to 91 deg (air) and 0 to 76 deg (water).
     Returns a new (5,) array.

@@ -25,9 +25,14 @@ Streams the roll-off frames once (dark frames first, then the port images):
   ``stray_light``, ``immersion_angle``);
 * observation tables: ``obs_setting`` (one row per setting: the port spot,
   ``kind=spot``, base columns the even polynomial terms; and its halo,
-  ``kind=halo``, base prediction 0) and ``obs_water`` (closure: in-water
-  roll-off predicted from the in-air roll-off compressed toward small
-  angles, g_w(theta) = c g_air(s theta), Section 3.3).
+  ``kind=halo``, base prediction 0) and ``obs_water`` (closure: each
+  in-water point, normalised by the water fit, against its prediction from
+  the in-air fit and the immersion physics, g_w(theta_w) = c g_air(theta_a)
+  F(theta_a, theta_w): theta_a the same pixels' field angle in the geometry
+  artefact's air model, F the Fresnel transmissions of the outer surface,
+  radiometry/immersion_rolloff.py; no shape parameter fitted, only the
+  scale c; the prediction's uncertainty from the air fit's covariance and
+  the air model's field-angle uncertainty).
 """
 
 from __future__ import annotations
@@ -38,10 +43,10 @@ from collections import defaultdict
 import numpy as np
 import pandas as pd
 import xarray as xr
-from scipy import ndimage, optimize
+from scipy import ndimage
 
 from pipeline.bands import BANDS
-from pipeline.dataset import Dataset
+from pipeline.dataset import Dataset, read_water
 from pipeline.effects import get as get_effect
 from pipeline.effects.optics import azimuth_from_coefficients
 from pipeline.fitting import base_design, wls
@@ -49,8 +54,11 @@ from pipeline.errors import InputError
 from pipeline.frames import iter_frames
 from pipeline.moments import RunningMoments
 from pipeline.observations import table_to_dataset
+from pipeline.radiometry.immersion_rolloff import water_rolloff_factor
 from pipeline.radiometry.rolloff import (ROLLOFF_POWERS, evaluate_rolloff, fit_rolloff, normalise_rolloff,
                                          rolloff_design_matrix, rolloff_slope)
+from pipeline.radiometry.water import refractive_index_water
+from pipeline.stages.immersion import NOMINAL_WAVELENGTH_NM
 
 STAGE = "rolloff"
 MEDIA = ("air", "water")
@@ -121,9 +129,21 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
                 "dark_var": {b: float(np.mean(dark[(lens, medium, b)].variance())) for b in BANDS},
                 "n_dark": dark[(lens, medium, "G")].n,
                 "deg_per_px": deg_per_px,
+                # the same pixels' field angles in air: the closure maps each water point to its air angle
+                "theta_air": (geometry[lens].sel(medium="air")["theta_deg"].values
+                              if medium == "water" and "air" in geometry[lens]["medium"].values else None),
             }
+            if medium == "water" and static[(lens, medium)]["theta_air"] is None:
+                raise InputError(dataset.root / STAGE / "frames.csv", f"in-water roll-off frames of lens {lens}, but "
+                                 "its geometry artefact has no air model: the in-water closure needs both media")
+            air_geo = geometry[lens].sel(medium="air") if medium == "water" else None
+            # the air model's stated field-angle uncertainty per pixel (geometry artefact version 2), if any
+            static[(lens, medium)]["theta_air_sigma"] = (air_geo["theta_deg_sigma"].values
+                                                         if air_geo is not None and "theta_deg_sigma" in air_geo else None)
+            if static[(lens, medium)]["theta_air"] is not None:
+                static[(lens, medium)]["deg_per_px_air"] = _deg_per_px(
+                    geometry[lens].sel(medium="air")["theta_deg"].sel(band="G").values.astype(float))
             if static[(lens, medium)]["n_dark"] < 2:
-                from pipeline.errors import InputError
                 raise InputError(dataset.root / STAGE / "frames.csv", f"needs at least two dark frames in {medium}")
         st = static[(lens, medium)]
         key = (lens, medium, float(row["azimuth_deg"]), float(row["angle_deg"]))
@@ -155,7 +175,9 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
                 "halo": float(weights @ img[spot]) if annulus.size else 0.0,
                 "saturated": bool(images.saturated[band].ravel()[circle].any()),
             })
-    return {"acc": acc, "masks": setting_masks, "static": static, "inputs": inputs}
+    water_file = dataset.root / "immersion" / "water.yaml"
+    water = read_water(dataset) if water_file.exists() else None
+    return {"acc": acc, "masks": setting_masks, "static": static, "inputs": inputs, "water": water}
 
 
 def _halo_weights(spot: np.ndarray, annulus: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -182,13 +204,18 @@ def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
         phi = np.radians(st["phi"][bi].ravel()[circle])
         stack = np.array([f["circle"] for f in frames])
         m = len(frames)
+        theta_air = (float(np.mean(st["theta_air"][bi].ravel()[circle])) if st.get("theta_air") is not None
+                     else np.nan)
+        theta_air_sigma = (float(np.sqrt(np.nanmean(st["theta_air_sigma"][bi].ravel()[circle] ** 2)))
+                           if st.get("theta_air_sigma") is not None else np.nan)
         spot_theta = float(ndimage.map_coordinates(np.nan_to_num(st["theta"][bi]), [[cy], [cx]], order=1)[0])
         rows.append({
             "lens": lens, "band": band, "medium": medium, "azimuth_deg": az, "angle_deg": angle,
             "n_frames": m, "n_pix": int(circle.size), "n_annulus": int(annulus.size),
             "signal_dn": float(stack.mean()),
             "diff_var_dn2": float(np.mean(stack.var(axis=0, ddof=1))) if m > 1 else np.nan,
-            "theta_deg": float(np.mean(theta)),
+            "theta_deg": float(np.mean(theta)), "theta_air_deg": theta_air, "deg_per_px_air": st.get("deg_per_px_air", np.nan),
+            "theta_air_sigma_deg": theta_air_sigma,
             "phi_deg": float(np.degrees(np.arctan2(np.mean(np.sin(phi)), np.mean(np.cos(phi))))),
             "spot_theta_deg": spot_theta, "spot_x_px": cx, "spot_y_px": cy,
             "annulus_dn": float(np.mean([f["annulus_mean"] for f in frames])),
@@ -252,43 +279,50 @@ def _fit_setting(obs: pd.DataFrame, effects: list[str]):
     return fit, names, extra, pred, X
 
 
-def _compressed(coef_air, scale, theta):
-    """g_air(s theta) and its derivative with respect to s, theta g_air'(s theta)."""
-    return evaluate_rolloff(coef_air, scale * theta), theta * rolloff_slope(coef_air, scale * theta)
+def water_indices(reduced: dict, config: dict) -> tuple[dict[str, float], float]:
+    """n_w per band (Quan and Fry at the band's nominal wavelength; the tank's water from
+    immersion/water.yaml, else ``rolloff.water_temperature_c`` and ``water_salinity_psu``) and n_g."""
+    cfg = config[STAGE]
+    water = reduced.get("water") or {"temperature_c": cfg["water_temperature_c"],
+                                     "salinity_psu": cfg["water_salinity_psu"]}
+    n_w = {b: float(refractive_index_water(NOMINAL_WAVELENGTH_NM[b], water["temperature_c"], water["salinity_psu"]))
+           for b in BANDS}
+    return n_w, float(cfg["front_surface_index"])
 
 
-def _water_closure(wat: pd.DataFrame, air_fits: dict, effects: list[str], max_air_deg: float):
-    """Fit g_w = c g_air(s theta) [+ effects] per lens/band; returns the table and the compressions."""
-    out, comp = [], {}
+def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max_air_deg: float,
+                   field_angle_sigma_px: float) -> pd.DataFrame:
+    """The in-water roll-off predicted from the in-air fit and the immersion physics, per lens/band.
+
+    Each water point (its own normalisation, the water fit's a0) is predicted as
+    g_air(theta_a) * water_rolloff_factor(theta_a, theta_w): theta_a the same pixels' field angle in
+    the geometry artefact's air model, the factor the outer surface's Fresnel transmissions
+    (radiometry.immersion_rolloff). No shape parameter is fitted: the base column ``x_scale`` is the
+    prediction itself, one free scale per group for the normalisation. The prediction's uncertainty
+    (the air fit's covariance at theta_a, and the air model's field-angle uncertainty through the air
+    curve's slope: the geometry artefact's theta_deg_sigma, else ``rolloff.field_angle_sigma_px``) is
+    added to the point's in quadrature; points whose theta_a lies beyond the air measurements are not used (no extrapolation of the air fit).
+    """
+    out = []
     for (lens, band), g in wat.groupby(["lens", "band"]):
         coef_air, cov_air = air_fits[(lens, band)]
-        g = g.copy()
-        theta = g["theta_deg"].to_numpy(float)
-
-        def build(s_):
-            gg, dgg = _compressed(coef_air, s_, theta)
-            t = g.assign(x_scale=gg, x_compress=dgg, pred_dn=gg)
-            return t
-
-        def chi2(s_):
-            t = build(s_)
-            ok = (s_ * theta <= max_air_deg) & t["used"].to_numpy(bool)
-            X = t[["x_scale"]].to_numpy()
-            cols = [X] + [c for c in (get_effect(e).columns(STAGE, "water", t) for e in effects
-                                      if e in WATER_EFFECTS) if c is not None]
-            Xf = np.hstack(cols)
-            return wls(t["value_dn"].to_numpy()[ok], t["sigma_dn"].to_numpy()[ok], Xf[ok]).chi2 / max(ok.sum(), 1)
-
-        res = optimize.minimize_scalar(chi2, bounds=(0.9, 1.6), method="bounded", options={"xatol": 1e-5})
-        s_best = float(res.x)
-        t = build(s_best)
-        _, sig_air = evaluate_rolloff(coef_air, s_best * theta, cov_air)
-        t["sigma_dn"] = np.hypot(t["sigma_dn"], sig_air * t["value_dn"].abs())
-        t["used"] = (t["used"].to_numpy(bool) & (s_best * theta <= max_air_deg)).astype(int)
+        theta_a = g["theta_air_deg"].to_numpy(float)
+        ok = np.isfinite(theta_a) & (theta_a <= max_air_deg)
+        ta = np.where(ok, theta_a, 0.0)
+        factor = water_rolloff_factor(ta, g["theta_deg"].to_numpy(float), n_w[band], n_g)
+        g_air, sig_air = evaluate_rolloff(coef_air, ta, cov_air)
+        # field-angle uncertainty of theta_a: the geometry artefact's stated theta_deg_sigma at those pixels
+        # where it has one, else rolloff.field_angle_sigma_px in air band pixels
+        sig_theta = g["theta_air_sigma_deg"].to_numpy(float)
+        sig_theta = np.where(np.isfinite(sig_theta), sig_theta, field_angle_sigma_px * g["deg_per_px_air"].to_numpy(float))
+        sig_air = np.hypot(sig_air, np.abs(rolloff_slope(coef_air, ta)) * sig_theta)
+        pred = g_air * factor
+        t = g.assign(x_scale=pred, pred_dn=pred, water_factor=factor, air_prediction_sigma=sig_air * factor)
+        t["sigma_dn"] = np.hypot(t["sigma_dn"], sig_air * factor)
+        t["used"] = (t["used"].to_numpy(bool) & ok).astype(int)
         t["group"] = lens + "/" + band + "/water_from_air"
-        comp[(lens, band)] = s_best
         out.append(t)
-    return pd.concat(out, ignore_index=True) if out else pd.DataFrame(), comp
+    return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
 
 
 def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str, xr.Dataset]:
@@ -344,18 +378,19 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
         c, cv = normalise_rolloff(f.coefficients, f.covariance)
         curves[(lens, band, medium)] = (c, cv, f)
 
-    # closure: in-water roll-off from the compressed in-air roll-off
+    # closure: each in-water point against its prediction from the air fit and the immersion physics
     max_air = float(sp.loc[sp["medium"] == "air", "theta_deg"].max()) if (sp["medium"] == "air").any() else 0.0
     wat = obs[(obs["kind"] == "spot") & (obs["medium"] == "water")].drop(
         columns=[c for c in obs.columns if c.startswith("x_")] + ["halo_column_dn"])
-    water_tab, compression, water_params = pd.DataFrame(), {}, {}
+    water_tab, scale, water_params = pd.DataFrame(), {}, {}
     air_fits = {(l_, b_): (curves[(l_, b_, "air")][0], curves[(l_, b_, "air")][1])
                 for (l_, b_, m_) in curves if m_ == "air"}
     if len(wat) and air_fits:
         wat = wat[[(l_, b_) in air_fits for l_, b_ in zip(wat["lens"], wat["band"])]]
-        water_tab, compression = _water_closure(wat, air_fits, effects, max_air)
+        n_w, n_g = water_indices(reduced, config)
+        water_tab = _water_closure(wat, air_fits, n_w, n_g, max_air, config[STAGE]["field_angle_sigma_px"])
         used = water_tab["used"].to_numpy(bool)
-        Xw, _ = base_design(water_tab)
+        Xw, wnames = base_design(water_tab)
         wcols = [(e, get_effect(e).columns(STAGE, "water", water_tab)) for e in effects if e in WATER_EFFECTS]
         wcols = [(e, c) for e, c in wcols if c is not None]
         Xf = np.hstack([Xw] + [c for _, c in wcols])
@@ -363,6 +398,9 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
         water_tab["pred_dn"] = Xf @ wfit.coef
         water_tab["z"] = (water_tab["value_dn"] - water_tab["pred_dn"]) / water_tab["sigma_dn"]
         water_tab.loc[~used, "z"] = np.nan
+        for k, name in enumerate(wnames):
+            lens_, band_ = name.split("/")[:2]
+            scale[(lens_, band_)] = (float(wfit.coef[k]), float(np.sqrt(max(wfit.cov[k, k], 0.0))))
         col = Xw.shape[1]
         for name, cols in wcols:
             kk = cols.shape[1]
@@ -373,11 +411,11 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
             effect_params[name] = val
 
     lenses = sorted({key[0] for key in reduced["static"]})
-    return {lens: _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit, noise, config)
+    return {lens: _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise, config)
             for lens in lenses}
 
 
-def _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit, noise, config) -> xr.Dataset:
+def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise, config) -> xr.Dataset:
     n_coef = len(ROLLOFF_POWERS)
     coef = np.full((len(MEDIA), len(BANDS), n_coef), np.nan)
     cov = np.full((len(MEDIA), len(BANDS), n_coef, n_coef), np.nan)
@@ -387,7 +425,7 @@ def _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit,
             if (lens, b, m) in curves:
                 c, cv, f = curves[(lens, b, m)]
                 coef[i, j], cov[i, j], red[i, j] = c, cv, f.reduced_chi2
-    comp = np.array([compression.get((lens, b), np.nan) for b in BANDS])
+    comp = np.array([scale.get((lens, b), (np.nan, np.nan)) for b in BANDS])
     o = obs[obs["lens"] == lens].reset_index(drop=True)
     z = o["z"].to_numpy(float)
     data = {
@@ -396,8 +434,11 @@ def _lens_dataset(lens, obs, water_tab, curves, compression, effect_params, fit,
         "rolloff_covariance": (("medium", "band", "power", "power_b"), cov,
                                {"long_name": "covariance of rolloff_coefficients", "units": "degree^-(k+l)"}),
         "rolloff_reduced_chi2": (("medium", "band"), red, {"long_name": "reduced chi-square of the roll-off fit", "units": "1"}),
-        "water_compression": (("band",), comp,
-                              {"long_name": "s in g_water(theta) = c g_air(s theta) (closure, Section 3.3)", "units": "1"}),
+        "water_closure_scale": (("band",), comp[:, 0],
+                                {"long_name": "c in g_water(theta_w) = c g_air(theta_a) F(theta_a, theta_w): the in-water "
+                                              "roll-off against its prediction from air and the immersion physics", "units": "1"}),
+        "water_closure_scale_sigma": (("band",), comp[:, 1], {"long_name": "standard error of water_closure_scale",
+                                                              "units": "1"}),
         "noise_slope_dn": (("band",), np.array([noise[b][0] for b in BANDS]),
                            {"long_name": "pixel variance per DN of signal (pooled)", "units": "DN"}),
         "noise_read_dn2": (("band",), np.array([noise[b][1] for b in BANDS]),
