@@ -178,3 +178,17 @@ def test_checksums_option(dataset):
     assert [p.path for p in problems] == [victim] and "checksum mismatch" in problems[0].message
     proc = _cli("validate", str(dataset), "--checksums")
     assert proc.returncode == 1 and "checksum mismatch" in proc.stdout
+
+
+def test_unlisted_file_is_a_warning(dataset, capsys):
+    """A frame the lab copied but did not list: validate still passes (exit 0) and names the file once."""
+    extra = dataset / "dark" / "spare_0001.dng"
+    shutil.copy(dataset / "dark" / pd.read_csv(dataset / "dark" / "frames.csv")["file"].iloc[0], extra)
+    (dataset / "dark" / ".DS_Store").write_bytes(b"\0")           # hidden files are not the lab's frames
+    proc = _cli("validate", str(dataset))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[0] == f"warning: {extra}: not listed in dark/frames.csv: the stages ignore it"
+    assert len(lines) == 2 and lines[1].startswith("ok: ")
+    DatasetIndex(dataset).load()                                   # the workflow's start-up check: on stderr
+    assert capsys.readouterr().err.splitlines() == [lines[0]]

@@ -165,3 +165,19 @@ def print_run_summary():
         config["diagnostics"]["structured_rms_z"],
     )
     print("\n".join(lines))
+
+
+def report_failed_run():
+    """After a run with failed jobs (with --keep-going, after every job that could run): the
+    diagnostics and the report on the artefacts written, naming each stage that did not finish.
+    """
+    from pipeline.run_summary import report_after_failure
+
+    index = _ready()
+    stage_lenses = {
+        stage: sorted(index.stage_lenses(stage))
+        for stage in STAGES
+        if index.stage_runnable(stage)
+    }
+    lines = report_after_failure("results", stage_lenses, config, index.skipped())
+    print("\n".join(lines), file=sys.stderr)
