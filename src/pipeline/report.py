@@ -544,6 +544,9 @@ def _linearity_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
             extra = ""
             if name == "saturation_dn" and "reached" in ds[name].attrs:
                 extra = " (reached)" if int(ds[name].attrs["reached"]) else " (not reached: lower bound)"
+                if "n_saturated_settings" in ds and int(ds["n_saturated_settings"]):
+                    n = int(ds["n_saturated_settings"])
+                    extra = extra[:-1] + f"; {n} saturated setting{'s' if n > 1 else ''} left out of the fits)"
             rows.append([label, _q(ds, name) + extra])
     if "rms_z" in ds:
         rows.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
