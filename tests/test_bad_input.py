@@ -172,3 +172,32 @@ def test_unknown_effect_stops_the_workflow_before_any_job(clean, tmp_path):
     errors = [line for line in (proc.stdout + proc.stderr).splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "config/config.yaml: model.effects: unknown effect 'hot_pixel'" in errors[0], errors
     assert "Traceback" not in proc.stderr and not (tmp_path / "results").exists()
+
+
+def test_unlit_signal_frame_stops_the_linearity_stage(clean, tmp_path, config):
+    """A linearity signal frame taken with the source off (bias plus 2 DN read noise, tags intact,
+    MD5SUMS rewritten so that only the stage can tell): its mask sits within a few standard errors of
+    its unlit corners, far below linearity.signal_frame_min_snr = 5 (the tiny dataset's dimmest lit
+    frame is hundreds of standard errors up: 264 DN over 0.63 DN with seed 3), so the stage stops naming it
+    and writes no artefact."""
+    from pipeline.dataset import write_md5sums
+    from pipeline.rawio import read_raw
+    from pipeline.workflow import run_stage
+
+    root = tmp_path / "dataset"
+    shutil.copytree(clean, root)
+    frames = pd.read_csv(root / "linearity" / "frames.csv")
+    victim = root / "linearity" / frames.loc[(frames["kind"] == "signal") & (frames["lens"] == "far"), "file"].iloc[3]
+    raw = read_raw(victim)
+    unlit = raw.black_level + np.random.default_rng(0).normal(0.0, 2.0, raw.cfa.shape)
+    write_dng(victim, unlit.round().astype(np.uint16), exposure_s=raw.exposure_s, iso=raw.iso, time=raw.time,
+              black_level=raw.black_level, white_level=raw.white_level)
+    write_md5sums(root)
+    out = tmp_path / "results"
+    dark = {"far": out / "dark" / "far.nc"}
+    run_stage("dark", root, config, dark)
+    with pytest.raises(InputError) as err:
+        run_stage("linearity", root, config, {"far": out / "linearity" / "far.nc"}, {"dark": dark})
+    message = str(err.value)
+    assert message.startswith(f"{victim}: signal frame is dark: its far-lens mask is ") and "\n" not in message
+    assert not (out / "linearity").exists() or not list((out / "linearity").iterdir())
