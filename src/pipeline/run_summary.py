@@ -76,23 +76,26 @@ _LOG_ERROR = " ERROR "
 FAILED_RUN_DIR = "failed_run"
 
 
-def job_error_line(log_path: str | Path) -> str | None:
+def job_error_line(log_path: str | Path, since: float | None = None) -> str | None:
     """The error of a failed job from its log: the message of its last ERROR record (bad input,
-    an impossible result, or ``unexpected <Exception>: ...``), or None when the log holds none."""
+    an impossible result, or ``unexpected <Exception>: ...``), or None when the log holds none
+    (or was last written before ``since``, a time stamp: a job of an earlier run)."""
     path = Path(log_path)
-    if not path.is_file():
+    if not path.is_file() or (since is not None and path.stat().st_mtime < since):
         return None
     errors = [line.split(_LOG_ERROR, 1)[1].strip() for line in path.read_text(errors="replace").splitlines()
               if _LOG_ERROR in line]
     return errors[-1] if errors else None
 
 
-def stages_not_finished(results: str | Path, stage_lenses: dict[str, list[str]]) -> dict[str, str]:
+def stages_not_finished(results: str | Path, stage_lenses: dict[str, list[str]],
+                        since: float | None = None) -> dict[str, str]:
     """Stage -> why it has no artefact for some lens after a failed run (from the jobs' logs).
 
     ``stage_lenses`` maps every stage the run was to run to its lenses. A job that ran and failed
     gives its error line (``failed for lens far: <file>: <problem> (log: ...)``); a stage that did
-    not run says which failed stage it needed, or that the run stopped before it.
+    not run says which failed stage it needed, or that the run stopped before it. ``since``: the
+    run's start (logs older than it belong to earlier runs).
     """
     from pipeline.workflow import STAGES
 
@@ -104,7 +107,7 @@ def stages_not_finished(results: str | Path, stage_lenses: dict[str, list[str]])
             if (results / stage / f"{lens}.nc").exists():
                 continue
             log = results / "logs" / stage / f"{lens}.log"
-            error = job_error_line(log)
+            error = job_error_line(log, since)
             if error is not None and stage not in failed:
                 failed[stage] = f"failed for lens {lens}: {error} (log: {log})"
             elif error is None:
@@ -122,13 +125,15 @@ def stages_not_finished(results: str | Path, stage_lenses: dict[str, list[str]])
 
 
 def report_after_failure(results: str | Path, stage_lenses: dict[str, list[str]], config: dict,
-                         skipped: dict[str, str] | None = None) -> list[str]:
+                         skipped: dict[str, str] | None = None, since: float | None = None) -> list[str]:
     """After a run in which jobs failed: the diagnostics and the report on the artefacts that were
     written, the report naming each stage that did not finish and why; returns the lines to print.
 
     Writes the diagnostics' tables and the report into ``results/failed_run/`` (one more entry in
     the diagnostics' ledger), never over the outputs of the diagnostics and report rules: Snakemake
-    would take those for up to date and not rerun the failed jobs below them.
+    would take those for up to date and not rerun the failed jobs below them. ``since``: the run's
+    start, so that the log of a job that failed in an earlier run and did not run in this one is
+    not taken for this run's error.
     """
     from pipeline.artefact import BUNDLE_STAGES
     from pipeline.config import stage_params
@@ -137,9 +142,15 @@ def report_after_failure(results: str | Path, stage_lenses: dict[str, list[str]]
     from pipeline.workflow import STAGES, artefacts_by_lens
 
     results = Path(results)
-    not_finished = stages_not_finished(results, stage_lenses)
+    not_finished = stages_not_finished(results, stage_lenses, since)
     lines = ["Jobs failed; stages that did not finish:"]
     lines += [f"  {stage}: {why}" for stage, why in not_finished.items()]
+    # the jobs after the stages (bundle, diagnostics, report) write one log each
+    for log in [*sorted((results / "logs" / "calibration").glob("*.log")), results / "logs" / "diagnostics.log",
+                results / "logs" / "report.log"]:
+        error = job_error_line(log, since)
+        if error is not None:
+            lines.append(f"  {log.stem if log.parent.name == 'logs' else 'calibration'}: failed: {error} (log: {log})")
     written = {stage: [str(results / stage / f"{lens}.nc") for lens in lenses
                        if (results / stage / f"{lens}.nc").exists()]
                for stage, lenses in stage_lenses.items() if stage in STAGES}

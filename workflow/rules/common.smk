@@ -1,6 +1,7 @@
 # Shared input functions and helpers. Logic lives in the `pipeline` package.
 
 import sys
+import time
 from pathlib import Path
 
 from pipeline.errors import InputError
@@ -17,6 +18,8 @@ from pipeline.workflow import (
 from pipeline.artefact import BUNDLE_STAGES as CALIBRATION_STAGES
 from pipeline.artefact import BUNDLE_REQUIRED_STAGES as CALIBRATION_REQUIRED
 
+# the run's start: a failed run's report reads only the job logs written after it
+RUN_START = time.time()
 DATASET = Path(config["dataset"])
 try:
     # simulate only the configured default dataset (or with --config simulate=true), never a path a user gave
@@ -179,5 +182,7 @@ def report_failed_run():
         for stage in STAGES
         if index.stage_runnable(stage)
     }
-    lines = report_after_failure("results", stage_lenses, config, index.skipped())
+    lines = report_after_failure(
+        "results", stage_lenses, config, index.skipped(), since=RUN_START
+    )
     print("\n".join(lines), file=sys.stderr)
