@@ -96,12 +96,14 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
     pearson = defaultdict(RunningPearson)     # (lens, band, sweep) -> per-pixel r
     first_of_setting = set()
     frame_rows, inputs, circles, angle_source = [], {}, {}, {}
+    paths = []                                # file_index -> the frame's path, for messages only
     max_raw = 0.0
     white = None
     for i, dec in enumerate(iter_frames(dataset, STAGE, frames,
                                         saturation_margin_dn=cfg["saturation_margin_dn"], progress=progress)):
         row = dec.row
         inputs[row["file"]] = dec.raw.sha256
+        paths.append(str(row["path"]))
         white = dec.raw.white_level
         lenses = list(dataset.lenses) if row["lens"] == "both" else [row["lens"]]
         key = (float(dec.raw.iso), round(float(dec.raw.exposure_s), 9))
@@ -136,13 +138,14 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     pearson[(lens, band, sweep)].add(x, img, ~images.saturated[band])
                 frame_rows.append({
                     "lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
-                    "file_index": i, "path": str(row["path"]), "mask_mean_dn": float(img[m].mean()),
+                    "file_index": i, "mask_mean_dn": float(img[m].mean()),
                     "corner_dn": float(img[corners[lens]].mean()),
                     "saturated": bool(images.saturated[band][m].any()),
                     "temperature_c": float(row.get("temperature_c", np.nan)),
                 })
     return {"moments": moments, "pearson": pearson, "frames": pd.DataFrame(frame_rows), "masks": masks,
-            "corners": corners, "geometry": circles, "angle_source": angle_source, "ptc": ptc, "inputs": inputs, "max_raw_dn": max_raw,
+            "corners": corners, "geometry": circles, "angle_source": angle_source, "ptc": ptc, "inputs": inputs,
+            "paths": paths, "max_raw_dn": max_raw,
             "white_level_dn": white}
 
 
@@ -189,10 +192,11 @@ def _stop_on_unlit_frames(fr: pd.DataFrame, reduced: dict, dark: dict[str, xr.Da
             noise = float(read.sel(iso=row["iso"], method="nearest")) * np.sqrt(1 / n_mask + 1 / n_corner)
             lift = (row["mask_mean_dn"] - row["dark_mask_dn"]) - (row["corner_dn"] - row["dark_corner_dn"])
             if lift < min_snr * noise:
-                raise InputError(row["path"], f"signal frame is dark: its {lens}-lens mask is {lift:.3g} DN above "
-                                              f"its unlit corners ({lift / noise:.2g} standard errors, fewer than "
-                                              f"linearity.signal_frame_min_snr = {min_snr:g}); was the source off "
-                                              "or the lens capped? Retake it, or list it as kind dark")
+                path = reduced["paths"][int(row["file_index"])]
+                raise InputError(path, f"signal frame is dark: its {lens}-lens mask is {lift:.3g} DN above "
+                                       f"its unlit corners ({lift / noise:.2g} standard errors, fewer than "
+                                       f"linearity.signal_frame_min_snr = {min_snr:g}); was the source off "
+                                       "or the lens capped? Retake it, or list it as kind dark")
 
 
 def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
