@@ -3,9 +3,13 @@
 # artefact per lens; diagnostics and the report come last.
 
 import os
+import sys
 from pathlib import Path
 
-from snakemake.utils import min_version, validate
+from snakemake.utils import min_version
+
+from pipeline.errors import InputError
+from pipeline.workflow import check_config
 
 min_version("8.0")
 
@@ -13,7 +17,11 @@ min_version("8.0")
 configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
-validate(config, os.path.join(workflow.basedir, "config", "schema.yaml"))
+# config/schema.yaml (filling its defaults), model.plugins and model.effects: one line and no job on a mistake
+try:
+    check_config(config, os.path.join(workflow.basedir, "config", "config.yaml"))
+except InputError as exc:
+    sys.exit(f"error: {exc}")
 
 # The rules' scripts import this checkout's package, also inside a rule's own software env.
 # (The workflow sets this variable for its jobs and never requires it, so it is no `envvars:` entry.)
@@ -45,3 +53,7 @@ rule all:
 
 onsuccess:
     print_run_summary()
+
+
+onerror:
+    report_failed_run()

@@ -37,3 +37,30 @@ def test_summary_names_the_report_the_missing_effect_and_the_skipped_stages(tmp_
 
 def test_summary_without_a_report(tmp_path):
     assert summarise_run(tmp_path, [], {}) == ["No report was written."]
+
+
+def test_stages_not_finished_reads_this_runs_job_logs(tmp_path):
+    """A failed job's error line from its log; a stage that needed it is 'not run'; a log older than the
+    run's start (a job of an earlier run) is not this run's error."""
+    import os
+
+    from pipeline.run_summary import stages_not_finished
+
+    results = tmp_path / "results"
+    (results / "dark").mkdir(parents=True)
+    (results / "dark" / "far.nc").write_bytes(b"")
+    (results / "dark" / "close.nc").write_bytes(b"")
+    (results / "logs" / "linearity").mkdir(parents=True)
+    (results / "logs" / "geometry").mkdir(parents=True)
+    line = "/data/linearity/raw/a.dng: checksum mismatch (MD5SUMS says 1, file is 2)"
+    (results / "logs" / "linearity" / "far.log").write_text(
+        f"2026-12-01 10:00:00,000 INFO linearity far: reading\n2026-12-01 10:00:01,000 ERROR {line}\n")
+    old = results / "logs" / "geometry" / "far.log"
+    old.write_text("2026-11-30 10:00:00,000 ERROR /data/geometry/frames.csv: an error of yesterday\n")
+    os.utime(old, (1000.0, 1000.0))
+    lenses = {"dark": ["far", "close"], "linearity": ["far", "close"], "geometry": ["far"], "rolloff": ["far"]}
+    out = stages_not_finished(results, lenses, since=2000.0)
+    assert out["linearity"] == f"failed for lens far: {line} (log: {results / 'logs/linearity/far.log'})"
+    assert out["geometry"].startswith("not run: the run stopped at a failed job before it")
+    assert out["rolloff"] == "not run: it needs geometry, which did not finish"
+    assert "dark" not in out

@@ -11,6 +11,7 @@ import pytest
 import xarray as xr
 import yaml
 
+from pipeline.report import _Figures, _linearity_section
 from pipeline.workflow import run_stage
 
 LENSES = ("far", "close")
@@ -143,3 +144,8 @@ def test_full_well_before_the_adc_is_found_and_left_out(full_well_artefacts):
         k = float(ds["conversion_gain_dn_per_e"])
         assert abs(k - k_true) < max(4 * float(ds["conversion_gain_dn_per_e_sigma"]), 0.05 * k_true), k
         assert float(ds["read_noise_e"]) > 0
+    # counted in the artefact and said in the report's linearity section (one lens: the figures cost)
+    ds = lin[LENSES[0]]
+    n = int(ds["n_saturated_settings"])
+    html = _linearity_section(LENSES[0], ds, _Figures(None))
+    assert f"(reached; {n} saturated setting{'s' if n > 1 else ''} left out of the fits)" in html

@@ -17,8 +17,23 @@ from pipeline.validation import format_problems, inspect_dataset, validate_datas
 from pipeline.workflow import DatasetIndex
 
 
-def _cli(*args):
+def _cli_process(*args):
     return subprocess.run([sys.executable, "-m", "pipeline", *args], capture_output=True, text=True, timeout=300)
+
+
+@pytest.fixture
+def cli(capsys):
+    """``python -m pipeline ARGS`` in this process (``pipeline.cli.main``, what ``__main__`` calls), which
+    spares each test a Python start-up and the imports: the exit status and what it printed."""
+    from pipeline.cli import main
+
+    def run(*args):
+        capsys.readouterr()
+        code = main(list(args))
+        out = capsys.readouterr()
+        return subprocess.CompletedProcess(args, code, out.out, out.err)
+
+    return run
 
 
 def _edit_csv(path, edit):
@@ -79,10 +94,10 @@ def _find(problems, path, line, column, phrase):
     return [p for p in problems if p.path == path and p.line == line and p.column == column and phrase in p.message]
 
 
-def test_clean_dataset_has_no_problems(dataset):
+def test_clean_dataset_has_no_problems(dataset, cli):
     ds, problems = inspect_dataset(dataset)
     assert problems == [] and ds.experiments() == ["dark", "linearity"]
-    proc = _cli("validate", str(dataset))
+    proc = cli("validate", str(dataset))
     assert proc.returncode == 0, proc.stdout + proc.stderr
     n = len(ds.frames("dark")) + len(ds.frames("linearity"))
     assert proc.stdout.strip() == f"ok: {n} frames in 2 experiments (dark, linearity)"
@@ -98,8 +113,9 @@ def test_every_planted_problem_in_one_run(planted):
 
 
 def test_command_line_lists_them_grouped_and_fails(planted):
+    """The one run of the real ``python -m pipeline validate`` process here (the others call main in-process)."""
     root, expected = planted
-    proc = _cli("validate", str(root))
+    proc = _cli_process("validate", str(root))
     assert proc.returncode == 1
     out = proc.stdout
     assert out.startswith(f"{len(expected)} problems in 4 files of {root}:")
@@ -125,8 +141,8 @@ def test_one_mistake_on_many_rows_is_one_entry(dataset):
     assert text.count("fix: ") == 1
 
 
-def test_missing_dataset(tmp_path):
-    proc = _cli("validate", str(tmp_path / "not-mounted"))
+def test_missing_dataset(tmp_path, cli):
+    proc = cli("validate", str(tmp_path / "not-mounted"))
     assert proc.returncode == 1 and "dataset folder not found" in proc.stdout
 
 
@@ -167,7 +183,7 @@ def test_misspelt_folder_and_missing_sidecar(dataset):
     assert md5 and all("linearity/" in p.message and "listed but the file is absent" in p.message for p in md5)
 
 
-def test_checksums_option(dataset):
+def test_checksums_option(dataset, cli):
     frames = pd.read_csv(dataset / "dark" / "frames.csv")
     victim = dataset / "dark" / frames["file"].iloc[1]
     data = bytearray(victim.read_bytes())
@@ -176,5 +192,19 @@ def test_checksums_option(dataset):
     assert validate_dataset(dataset) == []          # tags still read: only the checksum knows
     problems = validate_dataset(dataset, checksums=True)
     assert [p.path for p in problems] == [victim] and "checksum mismatch" in problems[0].message
-    proc = _cli("validate", str(dataset), "--checksums")
+    proc = cli("validate", str(dataset), "--checksums")
     assert proc.returncode == 1 and "checksum mismatch" in proc.stdout
+
+
+def test_unlisted_file_is_a_warning(dataset, cli, capsys):
+    """A frame the lab copied but did not list: validate still passes (exit 0) and names the file once."""
+    extra = dataset / "dark" / "spare_0001.dng"
+    shutil.copy(dataset / "dark" / pd.read_csv(dataset / "dark" / "frames.csv")["file"].iloc[0], extra)
+    (dataset / "dark" / ".DS_Store").write_bytes(b"\0")           # hidden files are not the lab's frames
+    proc = cli("validate", str(dataset))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[0] == f"warning: {extra}: not listed in dark/frames.csv: the stages ignore it"
+    assert len(lines) == 2 and lines[1].startswith("ok: ")
+    DatasetIndex(dataset).load()                                   # the workflow's start-up check: on stderr
+    assert capsys.readouterr().err.splitlines() == [lines[0]]

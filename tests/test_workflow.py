@@ -88,6 +88,41 @@ def _sbatch_requests(out: str) -> dict[str, tuple[str, int, int]]:
             re.findall(r"Job (\d+) has been submitted with SLURM jobid (\d+)", out)}
 
 
+def test_keep_going_finishes_the_independent_jobs_and_reports_the_failure(run, make_dataset, tmp_path):
+    """One lens job fails on bad input that only the stage sees (a far-lens linearity frame whose bytes
+    no longer match MD5SUMS, found while it decodes them): with --keep-going the close lens's job still
+    finishes, the run exits non-zero, the failed job leaves no artefact, and the diagnostics and the
+    report on what finished (results/failed_run/) name the failed stage and its error line. The
+    rules' own report is not written, so the next run plans the failed job and what follows it.
+    The dark artefacts of the module's run (same dataset) are copied in: only linearity runs."""
+    workdir, _ = run
+    src, _ = make_dataset([("dark_current", {}), ("shutter_offset", {})], seed=31)
+    dataset = tmp_path / "dataset"
+    shutil.copytree(src, dataset)
+    frames = pd.read_csv(dataset / "linearity/frames.csv")
+    victim = dataset / "linearity" / frames.loc[frames["lens"] == "far", "file"].iloc[0]
+    data = bytearray(victim.read_bytes())
+    data[-5000] ^= 0xFF
+    victim.write_bytes(bytes(data))
+    work = tmp_path / "work"
+    (work / "results/dark").mkdir(parents=True)
+    for lens in LENSES:
+        shutil.copy2(workdir / f"results/dark/{lens}.nc", work / f"results/dark/{lens}.nc")
+    proc = snakemake(work, dataset, "--keep-going", check=False)
+    assert proc.returncode != 0
+    assert f"error: {victim}: checksum mismatch" in proc.stderr and "Traceback" not in proc.stderr
+    results = work / "results"
+    assert (results / "linearity/close.nc").exists() and not (results / "linearity/far.nc").exists()
+    assert not [p.name for p in (results / "linearity").iterdir() if p.name != "close.nc"]   # no partial file
+    assert not (results / "report/index.html").exists() and not (results / "diagnostics/run_errors.csv").exists()
+    assert f"  linearity: failed for lens far: {victim}: checksum mismatch" in proc.stderr
+    failed = results / "failed_run"
+    assert set(pd.read_csv(failed / "run_errors.csv")["experiment"]) == {"dark", "linearity"}
+    html = (failed / "index.html").read_text()
+    assert "This run failed: <b>linearity</b> failed for lens far: " in html and f"{victim}: checksum mismatch" in html
+    assert planned_rules(work, dataset) == {"linearity", "diagnostics", "report", "all"}
+
+
 @pytest.mark.slurm
 def test_slurm_profile_writes_the_local_artefacts(run, tmp_path):
     """The dark and linearity jobs of both lenses sent to SLURM through profiles/slurm (the executor

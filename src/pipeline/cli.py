@@ -194,13 +194,15 @@ def _init_dataset(args) -> int:
 
 
 def _validate(args) -> int:
-    from pipeline.validation import format_problems, inspect_dataset, ok_line
+    from pipeline.validation import format_problems, inspect_dataset, ok_line, unlisted_files, warning_lines
 
     dataset, problems = inspect_dataset(args.dataset, checksums=args.checksums)
     if problems:
         print(format_problems(problems, args.dataset))
         print(f"\nfix them and run: python -m pipeline validate {args.dataset}")
         return EXIT_BAD_INPUT
+    for line in warning_lines(unlisted_files(dataset)):
+        print(line)
     print(ok_line(dataset))
     return EXIT_OK
 

@@ -28,3 +28,8 @@ def exit_on_input_error(function, *args, **kwargs):
         logging.getLogger("pipeline").error("%s", exc)
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(1)
+    except Exception as exc:
+        # one line into the job's log too (the traceback follows on stderr), where the report of a
+        # failed run reads each job's error
+        logging.getLogger("pipeline").error("unexpected %s: %s", type(exc).__name__, exc)
+        raise

@@ -544,6 +544,9 @@ def _linearity_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
             extra = ""
             if name == "saturation_dn" and "reached" in ds[name].attrs:
                 extra = " (reached)" if int(ds[name].attrs["reached"]) else " (not reached: lower bound)"
+                if "n_saturated_settings" in ds and int(ds["n_saturated_settings"]):
+                    n = int(ds["n_saturated_settings"])
+                    extra = extra[:-1] + f"; {n} saturated setting{'s' if n > 1 else ''} left out of the fits)"
             rows.append([label, _q(ds, name) + extra])
     if "rms_z" in ds:
         rows.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
@@ -1183,7 +1186,7 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                  geometry: dict[str, Path] | None = None, rolloff: dict[str, Path] | None = None,
                  spectral: dict[str, Path] | None = None, absolute: dict[str, Path] | None = None,
                  immersion: dict[str, Path] | None = None, calibration: Path | None = None,
-                 field: dict[str, Path] | None = None) -> Path:
+                 field: dict[str, Path] | None = None, failed: dict[str, str] | None = None) -> Path:
     """Write the calibration report as one self-contained HTML file and return its path.
 
     ``dark`` and ``linearity`` map lens name to artefact path; the four CSVs
@@ -1193,10 +1196,13 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
     artefact; a stage given as None or empty gets a section saying it was not
     run. ``calibration`` (optional) is the calibration bundle: its noise-equivalent
     radiance and limit of detection go into the absolute section. PNG copies of the figures go to ``figures_dir`` when given. The file
-    is written to a temporary sibling and renamed.
+    is written to a temporary sibling and renamed. ``failed`` (after a run with failed jobs) maps
+    a stage that did not finish to its error line: the summary names them first and the stages
+    not run list them with the others.
     """
     out_html = Path(out_html)
-    skipped = dict(skipped or {})
+    failed = dict(failed or {})
+    skipped = {**dict(skipped or {}), **failed}
     figs = _Figures(figures_dir)
     dark_ds = {lens: read_artefact(p, "dark") for lens, p in dark.items()}
     lin_ds = {lens: read_artefact(p, "linearity") for lens, p in linearity.items()}
@@ -1258,6 +1264,10 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                  f"<b>{_e(top['effect'])}</b>, is not significant (p = {fmt_value(top.get('p_value'), 3)}).</div>")
     else:
         s.append('<div class="ok">The missing-effect search returned no candidates.</div>')
+    if failed:
+        s.insert(1, '<div class="callout">This run failed: ' + "; ".join(
+            f"<b>{_e(stage)}</b> {_e(why)}" for stage, why in failed.items()) +
+            ". This report covers the stages that finished.</div>")
     if skipped:
         s.append(f"<p>Stages not run: {_e(', '.join(skipped))} (see section {num['skipped']}).</p>")
     body.append("\n".join(s))

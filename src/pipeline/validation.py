@@ -16,11 +16,12 @@ from collections import Counter
 from datetime import datetime
 from pathlib import Path
 
-from pipeline.dataset import Dataset, LayoutCheck, check_checksums, check_sidecars, inspect_layout
+from pipeline.dataset import SIDECARS, Dataset, LayoutCheck, check_checksums, check_sidecars, inspect_layout
 from pipeline.errors import InputError, Problem
 from pipeline.rawio import TAG_NAMES, read_tags
 
-__all__ = ["REQUIRED_TAGS", "validate_dataset", "inspect_dataset", "check_tags", "format_problems", "ok_line"]
+__all__ = ["REQUIRED_TAGS", "validate_dataset", "inspect_dataset", "check_tags", "format_problems", "ok_line",
+           "unlisted_files", "warning_lines"]
 
 #: tags every calibration frame needs (RawFrame field -> tag name); frames.csv never replaces them
 REQUIRED_TAGS = {key: TAG_NAMES[key] for key in ("exposure_s", "iso", "time")}
@@ -159,6 +160,33 @@ def inspect_dataset(root, *, checksums: bool = False) -> tuple[Dataset | None, l
 def validate_dataset(root, *, checksums: bool = False) -> list[Problem]:
     """Every problem of the dataset at ``root``; empty when it is fine."""
     return inspect_dataset(root, checksums=checksums)[1]
+
+
+def unlisted_files(dataset: Dataset) -> list[Problem]:
+    """Files inside an experiment folder that its frames.csv does not list (nor a sidecar): warnings.
+
+    The stages read only the frames frames.csv lists, so such a file is ignored; it is
+    a warning, not a problem, because a lab may keep notes or spare frames beside them.
+    Hidden files (``.name``) are left out.
+    """
+    found = []
+    for experiment in dataset.experiments():
+        folder = dataset.root / experiment
+        known = {"frames.csv", *SIDECARS.get(experiment, ())}
+        listed = set(dataset.frames(experiment)["file"].astype(str))
+        for path in sorted(folder.rglob("*")):
+            rel = path.relative_to(folder).as_posix()
+            if not path.is_file() or rel in known or rel in listed or any(
+                    part.startswith(".") for part in path.relative_to(folder).parts):
+                continue
+            found.append(Problem(path, message=f"not listed in {experiment}/frames.csv: the stages ignore it",
+                                 fix=f"add a row for it to {experiment}/frames.csv, or move it out of the dataset"))
+    return found
+
+
+def warning_lines(warnings: list[Problem]) -> list[str]:
+    """``warning: <file>: <problem>`` per warning."""
+    return [f"warning: {w}" for w in warnings]
 
 
 def ok_line(dataset: Dataset) -> str:

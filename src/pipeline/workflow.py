@@ -35,12 +35,12 @@ import pandas as pd
 import xarray as xr
 
 from pipeline.artefact import BUNDLE_REQUIRED_STAGES, read_artefact, sha256_file, write_artefact
-from pipeline.config import stage_params
+from pipeline.config import stage_params, validate_config
 from pipeline.dataset import Dataset, open_dataset
-from pipeline.effects import load_plugins
+from pipeline.effects import available, load_plugins
 from pipeline.entry import exit_on_input_error, setup_log
 from pipeline.errors import InputError
-from pipeline.validation import format_problems, inspect_dataset
+from pipeline.validation import format_problems, inspect_dataset, unlisted_files, warning_lines
 
 log = logging.getLogger("pipeline.workflow")
 
@@ -116,6 +116,23 @@ def load_model(config: dict) -> list[str]:
     """The effects of ``model.effects``, after importing the plugin modules that define user effects."""
     load_plugins(config["model"].get("plugins", []))
     return list(config["model"]["effects"])
+
+
+def check_config(config: dict, config_file: str | Path) -> dict:
+    """The workflow's start-up check of its configuration, before any job: the schema (filling its
+    defaults, as ``pipeline.config.validate_config``), the plugin modules of ``model.plugins`` and
+    the effect names of ``model.effects``.  One InputError naming ``config_file`` (the config file
+    the run read; the --config options extend it) and the first problem."""
+    try:
+        validate_config(config)
+        load_model(config)
+    except InputError as exc:
+        raise InputError(config_file, exc.problem) from None
+    unknown = [name for name in config["model"]["effects"] if name not in available()]
+    if unknown:
+        raise InputError(config_file, f"model.effects: unknown effect '{unknown[0]}'; implemented: "
+                                      f"{', '.join(available())} (a user effect needs its module in model.plugins)")
+    return config
 
 
 # --------------------------------------------------------------------------- one lens
@@ -313,6 +330,8 @@ class DatasetIndex:
             if problems:
                 print(format_problems(problems, self.root), file=sys.stderr)
                 raise InputError.from_problems(problems, "listed above")
+            for line in warning_lines(unlisted_files(dataset)):
+                print(line, file=sys.stderr)
             self.dataset = dataset
         return self
 

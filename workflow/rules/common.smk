@@ -1,6 +1,7 @@
 # Shared input functions and helpers. Logic lives in the `pipeline` package.
 
 import sys
+import time
 from pathlib import Path
 
 from pipeline.errors import InputError
@@ -17,6 +18,8 @@ from pipeline.workflow import (
 from pipeline.artefact import BUNDLE_STAGES as CALIBRATION_STAGES
 from pipeline.artefact import BUNDLE_REQUIRED_STAGES as CALIBRATION_REQUIRED
 
+# the run's start: a failed run's report reads only the job logs written after it
+RUN_START = time.time()
 DATASET = Path(config["dataset"])
 try:
     # simulate only the configured default dataset (or with --config simulate=true), never a path a user gave
@@ -165,3 +168,21 @@ def print_run_summary():
         config["diagnostics"]["structured_rms_z"],
     )
     print("\n".join(lines))
+
+
+def report_failed_run():
+    """After a run with failed jobs (with --keep-going, after every job that could run): the
+    diagnostics and the report on the artefacts written, naming each stage that did not finish.
+    """
+    from pipeline.run_summary import report_after_failure
+
+    index = _ready()
+    stage_lenses = {
+        stage: sorted(index.stage_lenses(stage))
+        for stage in STAGES
+        if index.stage_runnable(stage)
+    }
+    lines = report_after_failure(
+        "results", stage_lenses, config, index.skipped(), since=RUN_START
+    )
+    print("\n".join(lines), file=sys.stderr)

@@ -200,8 +200,9 @@ def load_plugins(modules: list[str]) -> None:
     for module in modules or []:
         try:
             importlib.import_module(module)
-        except ImportError as exc:
-            raise InputError(None, f"model.plugins: cannot import '{module}' ({exc})") from None
+        except Exception as exc:  # noqa: BLE001 (a module that fails in any way at import is bad input)
+            raise InputError(None, f"model.plugins: cannot import '{module}' "
+                                   f"({type(exc).__name__}: {exc})") from None
 
 
 def parse_effect_spec(spec: str) -> tuple[str, dict]:

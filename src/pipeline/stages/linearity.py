@@ -96,12 +96,14 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
     pearson = defaultdict(RunningPearson)     # (lens, band, sweep) -> per-pixel r
     first_of_setting = set()
     frame_rows, inputs, circles, angle_source = [], {}, {}, {}
+    paths = []                                # file_index -> the frame's path, for messages only
     max_raw = 0.0
     white = None
     for i, dec in enumerate(iter_frames(dataset, STAGE, frames,
                                         saturation_margin_dn=cfg["saturation_margin_dn"], progress=progress)):
         row = dec.row
         inputs[row["file"]] = dec.raw.sha256
+        paths.append(str(row["path"]))
         white = dec.raw.white_level
         lenses = list(dataset.lenses) if row["lens"] == "both" else [row["lens"]]
         key = (float(dec.raw.iso), round(float(dec.raw.exposure_s), 9))
@@ -142,7 +144,8 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     "temperature_c": float(row.get("temperature_c", np.nan)),
                 })
     return {"moments": moments, "pearson": pearson, "frames": pd.DataFrame(frame_rows), "masks": masks,
-            "corners": corners, "geometry": circles, "angle_source": angle_source, "ptc": ptc, "inputs": inputs, "max_raw_dn": max_raw,
+            "corners": corners, "geometry": circles, "angle_source": angle_source, "ptc": ptc, "inputs": inputs,
+            "paths": paths, "max_raw_dn": max_raw,
             "white_level_dn": white}
 
 
@@ -170,6 +173,30 @@ def _fit_model(st: pd.DataFrame, effects: list[str]):
     Xfull = np.hstack([X] + [c for _, c in extra]) if extra else X
     pred = Xfull @ fit.coef
     return fit, names, extra, pred
+
+
+def _stop_on_unlit_frames(fr: pd.DataFrame, reduced: dict, dark: dict[str, xr.Dataset], min_snr: float) -> None:
+    """A signal frame whose mask is no brighter than its own unlit corners (source off, lens capped)
+    stops the stage with one line naming it, before it bends the fit.
+
+    The statistic is the frame's dark-corrected mask mean less its dark-corrected corner mean, in the
+    green band (a bias offset of the frame moves both alike), over its standard error for a dark frame:
+    the dark stage's read noise at the frame's ISO times sqrt(1/n_mask + 1/n_corner).
+    """
+    g = fr[fr["band"] == "G"]
+    for lens, rows in g.groupby("lens"):
+        n_mask = int(reduced["masks"][lens]["G"].sum())
+        n_corner = int(reduced["corners"][lens].sum())
+        read = dark[lens]["read_noise_dn"].sel(band="G")
+        for _, row in rows.iterrows():
+            noise = float(read.sel(iso=row["iso"], method="nearest")) * np.sqrt(1 / n_mask + 1 / n_corner)
+            lift = (row["mask_mean_dn"] - row["dark_mask_dn"]) - (row["corner_dn"] - row["dark_corner_dn"])
+            if lift < min_snr * noise:
+                path = reduced["paths"][int(row["file_index"])]
+                raise InputError(path, f"signal frame is dark: its {lens}-lens mask is {lift:.3g} DN above "
+                                       f"its unlit corners ({lift / noise:.2g} standard errors, fewer than "
+                                       f"linearity.signal_frame_min_snr = {min_snr:g}); was the source off "
+                                       "or the lens capped? Retake it, or list it as kind dark")
 
 
 def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
@@ -203,6 +230,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     fr["setting"] = fr.groupby(["sweep", "iso", "exposure_s"], sort=True).ngroup()
     fr["corner_dev_dn"] = fr["corner_dn"] - fr.groupby(["lens", "band", "sweep", "setting"])["corner_dn"].transform("mean")
     fr["value_dn"] = fr["mask_mean_dn"] - fr["dark_mask_dn"]
+    _stop_on_unlit_frames(fr, reduced, dark, config["linearity"]["signal_frame_min_snr"])
     if use_drift:
         # the unlit corners measure each frame's black level (Section 3.7)
         fr["value_dn"] -= fr["corner_dn"] - fr["dark_corner_dn"]
