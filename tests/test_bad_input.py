@@ -148,6 +148,8 @@ def test_bad_dataset_is_named_in_one_line(case, clean, tmp_path, capsys):
     ({"dark": {"hot_pixel_threshold_sigma": "six"}},
      "config dark.hot_pixel_threshold_sigma: 'six' is not of type 'number'"),
     ({"model": {"effects": ["dark_current", "hot_pixel"]}}, "model.effects: unknown effect 'hot_pixel'"),
+    # a misspelt key would leave its default in force without a word
+    ({"rolloff": {"spot_radius_degs": 2.0}}, "config rolloff.spot_radius_degs: unknown key; known there: "),
     ({"model": {"effects": ["dark_current"], "plugins": ["lab_effects_not_installed"]}},
      "model.plugins: cannot import 'lab_effects_not_installed' (ModuleNotFoundError"),
     ({"model": {"effects": ["dark_current"], "plugins": ["broken_lab_plugin"]}},

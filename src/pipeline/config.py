@@ -34,9 +34,38 @@ def _copy(value):
     return copy.deepcopy(value)
 
 
+def unknown_keys(config, schema: dict, where: str = "") -> list[tuple[str, list[str]]]:
+    """Keys of ``config`` that the schema does not know, as (dotted path, the known keys there).
+
+    Only where the schema lists an object's ``properties`` (and does not allow others with
+    ``additionalProperties`` or ``patternProperties``); lists are followed through ``items``. A
+    misspelt key would otherwise be ignored and its default used without a word.
+    """
+    found = []
+    if isinstance(config, dict) and isinstance(schema.get("properties"), dict):
+        props = schema["properties"]
+        open_ended = schema.get("additionalProperties", False) not in (False, None) or "patternProperties" in schema
+        for key, value in config.items():
+            path = f"{where}.{key}" if where else str(key)
+            if key in props:
+                found += unknown_keys(value, props[key], path)
+            elif not open_ended:
+                found.append((path, sorted(props)))
+    elif isinstance(config, list) and isinstance(schema.get("items"), dict):
+        for i, value in enumerate(config):
+            found += unknown_keys(value, schema["items"], f"{where}[{i}]")
+    return found
+
+
 def validate_config(config: dict, schema_path: str | Path = SCHEMA_PATH) -> dict:
-    """Validate ``config`` in place, filling defaults; InputError with the first problem."""
+    """Validate ``config`` in place, filling defaults; InputError with the first problem (a key the
+    schema does not know included: see :func:`unknown_keys`)."""
     schema = yaml.safe_load(Path(schema_path).read_text())
+    unknown = unknown_keys(config, schema)
+    if unknown:
+        path, known = unknown[0]
+        more = f" ({len(unknown) - 1} more unknown)" if len(unknown) > 1 else ""
+        raise InputError(schema_path, f"config {path}: unknown key; known there: {', '.join(known)}{more}")
     validator = _with_defaults(Draft202012Validator)(schema)
     # two passes: defaults of nested objects created by the first pass get filled by the second
     for _ in range(2):
