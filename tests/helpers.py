@@ -113,3 +113,15 @@ def key_results(bundle_path: Path) -> dict[str, dict]:
             put(f"calibration.noise_equivalent_radiance.{lens}.{band}",
                 b["noise_equivalent_radiance"].sel(lens=lens, band=band))
     return out
+
+
+def true_and_fitted_theta(truth: dict, art: xr.Dataset, lens: str, medium: str, band: str):
+    """The simulator's true band model and theta map beside the fitted ones of a geometry artefact:
+    (true model, fitted model, true theta map, fitted theta map)."""
+    from pipeline.geometry.maps import theta_phi_maps
+    from pipeline.geometry.scaramuzza import FisheyeModel
+    from pipeline.stages.geometry_maps import model_from_dataset
+
+    t = FisheyeModel.from_dict(truth["models"][lens][medium][band]["band"])
+    th_true, _ = theta_phi_maps(t)
+    return t, model_from_dataset(art, medium, band), th_true, art["theta_deg"].sel(medium=medium, band=band).values

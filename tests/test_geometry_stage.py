@@ -36,7 +36,7 @@ from pipeline.simulate import geometry as simgeo
 from pipeline.simulate.chessboard import look_rotation
 from pipeline.simulate.dataset import simulate_dataset, truth_dir_for
 from pipeline.simulate.plan import PLANNERS, FrameSpec
-from pipeline.stages.geometry_maps import model_from_dataset
+from helpers import true_and_fitted_theta
 
 LENSES = ("far", "close")
 N_FRAMES = 12
@@ -112,10 +112,7 @@ def test_geometry_stage_recovers_truth(simulated, tmp_path, caplog):
         assert art.attrs["artefact"] == "geometry" and "input_sha256" in art.attrs
         for medium in ("air", "water"):
             for band in ("R", "G", "B"):
-                t = FisheyeModel.from_dict(truth["models"][lens][medium][band]["band"])
-                m = model_from_dataset(art, medium, band)
-                th_true, _ = theta_phi_maps(t)
-                th_fit = art["theta_deg"].sel(medium=medium, band=band).values
+                t, m, th_true, th_fit = true_and_fitted_theta(truth, art, lens, medium, band)
                 err = np.abs(th_fit - th_true)[th_true <= t.half_fov_deg]
                 mean_err = float(art["mean_error_px"].sel(medium=medium, band=band))
                 corner_rms = _true_corner_rms(art, truth, lens, medium, band)

@@ -46,6 +46,7 @@ from pipeline.geometry.scaramuzza import FisheyeModel
 from pipeline.geometry.theta_uncertainty import theta_covariance
 from pipeline.simulate.dataset import simulate_dataset, truth_dir_for
 from pipeline.stages.geometry_maps import model_from_dataset
+from helpers import true_and_fitted_theta
 
 LENSES = ("far", "close")
 #: max |theta error| (degree) allowed per band over the image circle
@@ -86,10 +87,7 @@ def test_theta_map_within_a_tenth_of_a_degree(medium_dataset, fitted, lens):
     art = fitted(lens)
     for medium in ("air", "water"):
         for band in ("R", "G", "B"):
-            t = FisheyeModel.from_dict(truth["models"][lens][medium][band]["band"])
-            m = model_from_dataset(art, medium, band)
-            th_true, _ = theta_phi_maps(t)
-            th_fit = art["theta_deg"].sel(medium=medium, band=band).values
+            t, m, th_true, th_fit = true_and_fitted_theta(truth, art, lens, medium, band)
             inside = th_true <= t.half_fov_deg
             err = np.abs(th_fit - th_true)[inside]
             assert np.isfinite(err).all(), f"{lens}/{medium}/{band}: theta map not finite inside the circle"

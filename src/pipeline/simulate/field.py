@@ -65,6 +65,7 @@ from pipeline.simulate.camera import DarkPlan
 from pipeline.simulate.lens import HALF_FOV_DEG, default_model, default_rolloff
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 from pipeline.simulate.render import band_index_map, lens_geometry
+from pipeline.simulate.sensor import true_exposure_and_gain
 from pipeline.simulate.spectral import default_spectral_response
 
 #: the lens that points at the zenith (frames.csv ``lens``)
@@ -203,10 +204,7 @@ def brightest_sky_rate_dn_per_s(sky: skymod.Sky, band_spectra: dict, camera, exc
 def recorded_dn(rate_dn_per_s: float, exposure_s: float, effects=()) -> float:
     """DN above dark that a rate (DN/s at ISO 100, nominal exposure) gives in the frame the camera records:
     the true exposure and gain (shutter offset, per-ISO gain factor when ``effects`` have them)."""
-    t_true, factor = exposure_s, 1.0
-    for e in effects:
-        t_true = e.true_exposure_s(t_true)
-        factor *= e.gain_factor(ISO)
+    t_true, factor = true_exposure_and_gain(effects, exposure_s, ISO)
     return rate_dn_per_s * t_true * ISO / 100.0 * factor
 
 

@@ -33,6 +33,16 @@ def draw_static_pattern(rng: np.random.Generator, shape, sensor: SensorParams) -
     )
 
 
+def true_exposure_and_gain(effects, exposure_s: float, iso: float) -> tuple[float, float]:
+    """The time the shutter is really open and the factor on the nominal gain at ``iso`` (shutter
+    offset, per-ISO gain factor), as the camera with ``effects`` records a frame."""
+    t_true, gain_factor = exposure_s, 1.0
+    for effect in effects:
+        t_true = effect.true_exposure_s(t_true)
+        gain_factor *= effect.gain_factor(iso)
+    return t_true, gain_factor
+
+
 def expose(rng: np.random.Generator, *, lens: str, photo_rate_e_per_s, exposure_s: float,
            iso: float, sensor: SensorParams, pattern: StaticPattern, effects: list[Effect],
            frame_offset_dn: float, shape, temperature_c: float | None = None) -> np.ndarray:
@@ -42,13 +52,10 @@ def expose(rng: np.random.Generator, *, lens: str, photo_rate_e_per_s, exposure_
     ``frame_offset_dn`` is the black-level shift of the whole frame (bias drift),
     drawn once per frame by the caller so that both lenses share it.
     """
-    t_true = exposure_s
-    gain_factor = 1.0
+    t_true, gain_factor = true_exposure_and_gain(effects, exposure_s, iso)
     dark_rate = 0.0
     dark_factor = 1.0
     for effect in effects:
-        t_true = effect.true_exposure_s(t_true)
-        gain_factor *= effect.gain_factor(iso)
         dark_rate = dark_rate + effect.dark_rate_e_per_s(lens, shape)
         dark_factor *= effect.dark_rate_factor(temperature_c)
         frame_offset_dn += effect.bias_offset_dn(temperature_c)
