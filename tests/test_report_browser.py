@@ -11,6 +11,7 @@ images by `<img>`, so the checks do not depend on how the report is written.
 from __future__ import annotations
 
 import io
+import os
 import re
 import shutil
 import uuid
@@ -104,7 +105,9 @@ def page(request, tmp_path_factory):
     """What the browser saw of the report, gathered in one visit (the browser closed after it)."""
     executable = find_chromium()
     if executable is None:
-        pytest.skip("no Chromium found (set CHROMIUM, or run scripts/install_browser.sh as .ci/run does)")
+        where = (f"CHROMIUM={os.environ['CHROMIUM']} is not an executable" if os.environ.get("CHROMIUM")
+                 else "no Chromium on the PATH")
+        pytest.skip(f"{where}: run scripts/install_browser.sh (as .ci/run does) or set CHROMIUM to one")
     html = request.getfixturevalue("report_html")
     out = tmp_path_factory.mktemp("browser")
     browser = Chromium(executable, out / f"profile-{uuid.uuid4().hex}", WIDTH_PX, HEIGHT_PX, timeout_s=120.0)
