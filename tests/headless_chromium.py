@@ -233,6 +233,8 @@ class Chromium:
     def errors(self) -> list[str]:
         """Console errors, uncaught exceptions and failed requests of the page, one line each."""
         out = []
+        urls = {e["params"].get("requestId"): e["params"].get("request", {}).get("url", "")
+                for e in self.events if e["method"] == "Network.requestWillBeSent"}
         for event in self.events:
             method, params = event["method"], event["params"]
             if method == "Runtime.consoleAPICalled" and params.get("type") in ("error", "assert"):
@@ -245,5 +247,6 @@ class Chromium:
                 entry = params["entry"]
                 out.append(f"log ({entry.get('source')}): {entry.get('text')} {entry.get('url', '')}".rstrip())
             elif method == "Network.loadingFailed" and not params.get("canceled"):
-                out.append(f"request failed: {params.get('errorText')} ({params.get('type')})")
+                url = urls.get(params.get("requestId"), "?")
+                out.append(f"request failed: {params.get('errorText')} ({params.get('type')}) {url[:120]}")
         return out

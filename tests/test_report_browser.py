@@ -100,9 +100,62 @@ def report_html(make_dataset, tmp_path_factory):
     return workdir / "results/report/index.html"
 
 
+# A page with one fault of each kind the checks look for, visited by the same browser after the report: each
+# check must find its fault there, so that a check which cannot fail (a protocol event no longer sent, a
+# script that finds nothing) does not pass unnoticed.
+BROKEN_PAGE = """<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>faults</title>
+<script>console.error("deliberate console error");</script></head>
+<body style="margin:0">
+<h2>1. Full</h2><p>This section has text enough to count as content, and two broken images.</p>
+<img alt="truncated" src="data:image/png;base64,iVBORw0KGgoAAAANSUhEUgAAAAEAAAAB">
+<img alt="absent" src="no-such-figure.png">
+<div style="width:2000px">a block wider than the viewport</div>
+<h2>2. Empty</h2>
+</body></html>
+"""
+
+
+def _visit(browser: Chromium, html) -> dict:
+    """What the browser sees of one page: sections, decoded images, widths, errors, <img> tags in the file."""
+    browser.open(html)
+    return {"sections": browser.evaluate(SECTIONS_JS), "images": browser.evaluate(IMAGES_JS),
+            "width": browser.evaluate(WIDTH_JS), "errors": browser.errors(),
+            "n_img_tags": len(re.findall(r"<img\b", html.read_text(encoding="utf-8"), re.I))}
+
+
+def _image_problems(seen: dict) -> list[str]:
+    images = seen["images"]
+    problems = [] if len(images) == seen["n_img_tags"] else [
+        f"{len(images)} images in the page, {seen['n_img_tags']} <img> tags in the file"]
+    problems += [f"image {im['index']} ({im['src']}...): {im['error'] or 'empty'}, natural "
+                 f"{im['natural_width']} x {im['natural_height']} px, shown {im['shown_width']:.0f} x "
+                 f"{im['shown_height']:.0f} px" for im in images
+                 if im["error"] or min(im["natural_width"], im["natural_height"], im["shown_width"],
+                                       im["shown_height"]) <= 0]
+    return problems
+
+
+def _section_problems(seen: dict, expected: tuple[str, ...]) -> list[str]:
+    found = {_title(s["title"]): s for s in seen["sections"]}
+    problems = [f"section '{t}' missing (the page has {list(found)})" for t in expected if t not in found]
+    problems += [f"section '{t}' not rendered or without content ({found[t]['text_chars']} characters, "
+                 f"{found[t]['images']} images)" for t in expected if t in found
+                 and (not found[t]["rendered"]
+                      or (found[t]["text_chars"] < MIN_SECTION_TEXT_CHARS and found[t]["images"] == 0))]
+    return problems
+
+
+def _overflow(seen: dict) -> str | None:
+    width = seen["width"]
+    if width["scroll_width"] <= width["client_width"]:
+        return None
+    return f"page {width['scroll_width']} px wide in a {width['client_width']} px viewport: {width['widest']}"
+
+
 @pytest.fixture(scope="module")
 def page(request, tmp_path_factory):
-    """What the browser saw of the report, gathered in one visit (the browser closed after it)."""
+    """What the browser saw of the report and of the page of faults, in one browser (closed after)."""
     executable = find_chromium()
     if executable is None:
         where = (f"CHROMIUM={os.environ['CHROMIUM']} is not an executable" if os.environ.get("CHROMIUM")
@@ -110,15 +163,15 @@ def page(request, tmp_path_factory):
         pytest.skip(f"{where}: run scripts/install_browser.sh (as .ci/run does) or set CHROMIUM to one")
     html = request.getfixturevalue("report_html")
     out = tmp_path_factory.mktemp("browser")
+    broken = out / "faults.html"
+    broken.write_text(BROKEN_PAGE, encoding="utf-8")
     browser = Chromium(executable, out / f"profile-{uuid.uuid4().hex}", WIDTH_PX, HEIGHT_PX, timeout_s=120.0)
     with browser:
-        browser.open(html)
-        seen = {"sections": browser.evaluate(SECTIONS_JS), "images": browser.evaluate(IMAGES_JS),
-                "width": browser.evaluate(WIDTH_JS), "errors": browser.errors(),
-                "n_img_tags": len(re.findall(r"<img\b", html.read_text(encoding="utf-8"), re.I))}
+        seen = _visit(browser, html)
         shot = out / "report-1280px.png"
         shot.write_bytes(browser.screenshot_png())
         seen["screenshot"] = shot
+        seen["faults"] = _visit(browser, broken)
     seen["leftover_pids"] = browser.leftover_pids_after_close
     return seen
 
@@ -138,12 +191,9 @@ def test_screenshot_is_a_non_blank_png(page):
 
 
 def test_every_image_is_decoded_and_non_empty(page):
-    images = page["images"]
-    assert len(images) == page["n_img_tags"] and len(images) > 0, (
-        f"{len(images)} images in the page, {page['n_img_tags']} <img> tags in the file")
-    bad = [im for im in images if im["error"] or im["natural_width"] <= 0 or im["natural_height"] <= 0
-           or im["shown_width"] <= 0 or im["shown_height"] <= 0]
-    assert not bad, f"{len(bad)} of {len(images)} images not decoded or empty: {bad[:3]}"
+    assert page["n_img_tags"] > 0, "the report has no <img>"
+    problems = _image_problems(page)
+    assert not problems, "\n".join(problems)
 
 
 def test_no_console_errors_or_failed_requests(page):
@@ -151,23 +201,31 @@ def test_no_console_errors_or_failed_requests(page):
 
 
 def test_every_expected_section_is_present_with_content(page):
-    found = {_title(s["title"]): s for s in page["sections"]}
-    missing = [t for t in EXPECTED_SECTIONS if t not in found]
-    assert not missing, f"sections missing: {missing}; the page has {list(found)}"
-    empty = [t for t in EXPECTED_SECTIONS
-             if not found[t]["rendered"] or (found[t]["text_chars"] < MIN_SECTION_TEXT_CHARS
-                                             and found[t]["images"] == 0)]
-    assert not empty, f"sections without content (or not rendered): {empty}"
+    problems = _section_problems(page, EXPECTED_SECTIONS)
+    assert not problems, "\n".join(problems)
 
 
 @pytest.mark.xfail(strict=True, reason="today's report overflows 1280 px: the Provenance section's table of "
                    "artefacts (a full 64-character config sha256 in each row, which cannot wrap) is 1292 px wide, "
                    "the page 1382 px (dark and linearity run)")
 def test_no_horizontal_overflow_at_1280_px(page):
-    width = page["width"]
-    assert width["inner_width"] == WIDTH_PX
-    assert width["scroll_width"] <= width["client_width"], (
-        f"page {width['scroll_width']} px wide in a {width['client_width']} px viewport: {width['widest']}")
+    assert page["width"]["inner_width"] == WIDTH_PX
+    overflow = _overflow(page)
+    assert overflow is None, overflow
+
+
+def test_each_check_finds_its_fault_on_a_page_made_to_fail(page):
+    """The page of faults: both images (a truncated PNG, a missing file) fail, the console error and the
+    failed request are reported, the empty section is found empty and the 2000 px block overflows."""
+    faults = page["faults"]
+    assert len(_image_problems(faults)) == 2, _image_problems(faults)
+    errors = "\n".join(faults["errors"])
+    assert "console.error: deliberate console error" in errors, errors
+    assert any(e.startswith("request failed:") and e.endswith("no-such-figure.png") for e in faults["errors"]), errors
+    assert _section_problems(faults, ("Full", "Empty", "Absent")) == [
+        "section 'Absent' missing (the page has ['Full', 'Empty'])",
+        "section 'Empty' not rendered or without content (0 characters, 0 images)"]
+    assert _overflow(faults) is not None and "2000 px wide" in _overflow(faults)
 
 
 def test_the_browser_leaves_no_process_behind(page):
