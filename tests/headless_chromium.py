@@ -150,21 +150,26 @@ class Chromium:
     def leftover_pids(self) -> list[int]:
         """Live (not zombie) processes of this browser: in its process group, or started with its profile
         folder on their command line (a helper that moved to a session of its own)."""
-        if self._pgid is None:
+        if self._pgid is None or not Path("/proc").is_dir():      # without /proc only the group kill is left
             return []
         pids = []
         for entry in Path("/proc").iterdir():
             if not entry.name.isdigit():
                 continue
+            if int(entry.name) == os.getpid():
+                continue
             try:
                 stat = (entry / "stat").read_text()
-                cmdline = (entry / "cmdline").read_bytes().decode(errors="replace")
+                argv = (entry / "cmdline").read_bytes().decode(errors="replace").split("\0")
             except OSError:        # gone meanwhile, or not ours to read
                 continue
             fields = stat[stat.rindex(")") + 2:].split()       # after "pid (comm) ": state, ppid, pgrp, ...
             if fields[0] == "Z":
                 continue
-            if int(fields[2]) == self._pgid or str(self.profile_dir) in cmdline:
+            # an option naming the profile folder (--user-data-dir=..., the crash handler's --database=...),
+            # not any mention of it (a shell or a script that names the folder in its text)
+            in_profile = any(a.startswith("--") and str(self.profile_dir) in a for a in argv)
+            if int(fields[2]) == self._pgid or in_profile:
                 pids.append(int(entry.name))
         return pids
 
