@@ -43,13 +43,13 @@ WIDTH_PX, HEIGHT_PX = 1280, 800
 # a section has content when its text beyond the title has at least this many characters, or it holds an image
 MIN_SECTION_TEXT_CHARS = 20
 
-# every <h2>: its title, the text and images of its section (the enclosing <section>, else the siblings up
-# to the next <h2>), and whether it is rendered at all
+# every <h2>: its title, the text and images of its section (the enclosing <section> when this is its only
+# <h2>, else the siblings up to the next <h2>), and whether it is rendered at all
 SECTIONS_JS = r"""
 [...document.querySelectorAll('h2')].map(h => {
   const section = h.closest('section');
   let parts = [];
-  if (section) {
+  if (section && section.querySelectorAll('h2').length === 1) {
     parts = [section];
   } else {
     for (let n = h.nextElementSibling; n && n.tagName !== 'H2' && !n.querySelector('h2'); n = n.nextElementSibling)
@@ -107,11 +107,13 @@ BROKEN_PAGE = """<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>faults</title>
 <script>console.error("deliberate console error");</script></head>
 <body style="margin:0">
-<h2>1. Full</h2><p>This section has text enough to count as content, and two broken images.</p>
+<section><h2>1. Full</h2><p>This section has text enough to count as content, and two broken images.</p>
 <img alt="truncated" src="data:image/png;base64,iVBORw0KGgoAAAANSUhEUgAAAAEAAAAB">
 <img alt="absent" src="no-such-figure.png">
-<div style="width:2000px">a block wider than the viewport</div>
+<div style="width:2000px">a block wider than the viewport</div></section>
 <h2>2. Empty</h2>
+<section><h2>3. Empty section</h2></section>
+<h2>4. Bare</h2><p>A title without a section element, followed by text enough to count.</p>
 </body></html>
 """
 
@@ -216,15 +218,17 @@ def test_no_horizontal_overflow_at_1280_px(page):
 
 def test_each_check_finds_its_fault_on_a_page_made_to_fail(page):
     """The page of faults: both images (a truncated PNG, a missing file) fail, the console error and the
-    failed request are reported, the empty section is found empty and the 2000 px block overflows."""
+    failed request are reported, the two empty sections (a bare <h2>, a <section>) are found empty, the two
+    full ones (likewise) full, and the 2000 px block overflows."""
     faults = page["faults"]
     assert len(_image_problems(faults)) == 2, _image_problems(faults)
     errors = "\n".join(faults["errors"])
     assert "console.error: deliberate console error" in errors, errors
     assert any(e.startswith("request failed:") and e.endswith("no-such-figure.png") for e in faults["errors"]), errors
-    assert _section_problems(faults, ("Full", "Empty", "Absent")) == [
-        "section 'Absent' missing (the page has ['Full', 'Empty'])",
-        "section 'Empty' not rendered or without content (0 characters, 0 images)"]
+    assert _section_problems(faults, ("Full", "Empty", "Empty section", "Bare", "Absent")) == [
+        "section 'Absent' missing (the page has ['Full', 'Empty', 'Empty section', 'Bare'])",
+        "section 'Empty' not rendered or without content (0 characters, 0 images)",
+        "section 'Empty section' not rendered or without content (0 characters, 0 images)"]
     assert _overflow(faults) is not None and "2000 px wide" in _overflow(faults)
 
 
