@@ -4,8 +4,9 @@ error or failed request, every section present with content, no horizontal overf
 
 Chromium comes from Debian's packages (`scripts/install_browser.sh`, which `.ci/run` calls); the tests
 are skipped, with one line saying so, only when no Chromium is found. Sections are found by their
-`<h2>` titles (the enclosing `<section>` when there is one, else the elements up to the next `<h2>`),
-images by `<img>`, so the checks do not depend on how the report is written.
+`<h2>` titles (the enclosing `<section>` when it holds that title only, else the elements up to the
+next `<h2>`), images by `<img>`, so the checks do not depend on how the report is written. The list of
+titles is EXPECTED_SECTIONS below.
 """
 
 from __future__ import annotations
