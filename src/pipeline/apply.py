@@ -292,6 +292,22 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     return mean.reshape(shape), spread.reshape(shape), count.reshape(shape)
 
 
+def _pixel_directions(at_medium, lenses, zenith_lens, grid_deg, stored_cells, pixels):
+    """The sphere cell of every band pixel ([lens][band] (y, x)) and, with ``pixels``, the zenith and azimuth maps."""
+    cells, zen, azi = [], None, None
+    if pixels:
+        # written straight into the output maps
+        zen, azi = (np.empty(at_medium["theta_deg"].shape, np.float32) for _ in range(2))
+    for i, lens in enumerate(lenses):
+        cells.append([])
+        for j in range(len(BANDS)):
+            if pixels or not stored_cells:
+                z, a = sphere_coordinates(at_medium["theta_deg"].values[i, j], at_medium["phi_deg"].values[i, j],
+                                          lens == zenith_lens, out=(zen[i, j], azi[i, j]) if pixels else None)
+            cells[i].append(at_medium["sphere_cell"].values[i, j] if stored_cells else sphere_cells(z, a, grid_deg))
+    return cells, zen, azi
+
+
 def _attrs(long_name, units, **extra):
     return {"long_name": long_name, "units": units, **extra}
 
@@ -313,7 +329,20 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     out_path = Path(out_path)
     if out_path.exists() and not overwrite:
         raise InputError(out_path, "exists; add --overwrite to replace it")
+    raw_paths = [Path(p) for p in raw_paths]
+    if not raw_paths:
+        raise InputError(None, "no raw frames to apply the calibration to")
     bundle_path = Path(bundle_path)
+    # three threads: the two lenses' chains (the bands' binning) side by side, and beside them the decode of
+    # the next frame (of the first while the bundle is read) and the pixels' directions (numpy, rawpy and
+    # the NetCDF reads release the GIL)
+    with ThreadPoolExecutor(max_workers=3) as pool:
+        return _apply_frames(pool, pool.submit(read_raw, raw_paths[0]), bundle_path, raw_paths, medium, out_path,
+                             grid_deg, cfg, zenith_lens, pixels)
+
+
+def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid_deg, cfg, zenith_lens, pixels):
+    """:func:`apply_calibration` once the arguments are checked; ``decoding`` the future of the first frame."""
     with read_bundle(bundle_path, load=False) as on_disk:
         effects = model_effects(on_disk)
         if medium not in _media(on_disk):
@@ -333,24 +362,11 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
             + ([] if "hot_pixels" in effects else ["hot_pixel_mask"]) + ([] if stored_cells else ["sphere_cell"]) \
             + ([] if pixels or not (stored_cells and stored_rolloff) else ["theta_deg", "phi_deg"])
         bundle = on_disk.drop_vars(skip, errors="ignore").sel(medium=[medium]).load()
-    raw_paths = [Path(p) for p in raw_paths]
-    if not raw_paths:
-        raise InputError(None, "no raw frames to apply the calibration to")
     n_z, n_a = grid_shape(grid_deg)
-    # the cell of every band pixel, once per lens and band (not per frame): [lens][band] (y, x)
-    cells = []
     at_medium = bundle.sel(medium=medium)
-    if pixels:
-        geo = at_medium[["theta_deg", "phi_deg", "solid_angle_sr"]]
-        # the pixels' sphere directions, written straight into the output maps
-        zen, azi = (np.empty(geo["theta_deg"].shape, np.float32) for _ in range(2))
-    for i, lens in enumerate(lenses):
-        cells.append([])
-        for j in range(len(BANDS)):
-            if pixels or not stored_cells:
-                z, a = sphere_coordinates(at_medium["theta_deg"].values[i, j], at_medium["phi_deg"].values[i, j],
-                                          lens == zenith_lens, out=(zen[i, j], azi[i, j]) if pixels else None)
-            cells[i].append(at_medium["sphere_cell"].values[i, j] if stored_cells else sphere_cells(z, a, grid_deg))
+    geo = at_medium[["theta_deg", "phi_deg", "solid_angle_sr"]] if pixels else None
+    # the cell of every band pixel, once per lens and band (not per frame), beside the first frame's chain
+    directions = pool.submit(_pixel_directions, at_medium, lenses, zenith_lens, grid_deg, stored_cells, pixels)
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
     meta = []
@@ -360,29 +376,30 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     maps = None if shape is None else {
         "radiance": np.empty(shape, np.float32), "random": np.empty(shape, np.float32),
         "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
-    with ThreadPoolExecutor(max_workers=min(2, len(lenses))) as pool:
-        for f, path in enumerate(raw_paths):
-            raw = read_raw(path)
-            check_frame(raw, bundle, effects)
-            # float32 as the chain runs on the band images (the grid's sums are taken in float64)
-            per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool,
-                                       maps=None if maps is None else {k: v[f if pixels else 0] for k, v in maps.items()})
-            meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
-            del raw
+    for f, path in enumerate(raw_paths):
+        raw = decoding.result()
+        decoding = pool.submit(read_raw, raw_paths[f + 1]) if f + 1 < len(raw_paths) else None
+        check_frame(raw, bundle, effects)
+        # float32 as the chain runs on the band images (the grid's sums are taken in float64)
+        per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool,
+                                   maps=None if maps is None else {k: v[f if pixels else 0] for k, v in maps.items()})
+        meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
+        del raw
+        cells, zen, azi = directions.result()
 
-            def bin_band(j, per_lens=per_lens):
-                return _bin_cells([c[j] for c in cells], [r["radiance"][j] for r in per_lens], n_z * n_a,
-                                  extra=([r["random"][j] for r in per_lens], [r["systematic"][j] for r in per_lens]),
-                                  excluded=[(r["flags"][j] & EXCLUDED_FROM_GRID) != 0 for r in per_lens],
-                                  squared=(True, False))
+        def bin_band(j, per_lens=per_lens):
+            return _bin_cells([c[j] for c in cells], [r["radiance"][j] for r in per_lens], n_z * n_a,
+                              extra=([r["random"][j] for r in per_lens], [r["systematic"][j] for r in per_lens]),
+                              excluded=[(r["flags"][j] & EXCLUDED_FROM_GRID) != 0 for r in per_lens],
+                              squared=(True, False))
 
-            # the bands side by side (np.bincount and the array operations release the GIL)
-            for j, (mean, spread, n, (rnd, sy)) in enumerate(pool.map(bin_band, range(len(BANDS)))):
-                grid["mean"][f, j], grid["spread"][f, j] = mean.reshape(n_z, n_a), spread.reshape(n_z, n_a)
-                count[f, j] = n.reshape(n_z, n_a)
-                grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
-                grid["systematic"][f, j] = sy.reshape(n_z, n_a)
-            del per_lens
+        # the bands side by side (np.bincount and the array operations release the GIL)
+        for j, (mean, spread, n, (rnd, sy)) in enumerate(pool.map(bin_band, range(len(BANDS)))):
+            grid["mean"][f, j], grid["spread"][f, j] = mean.reshape(n_z, n_a), spread.reshape(n_z, n_a)
+            count[f, j] = n.reshape(n_z, n_a)
+            grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
+            grid["systematic"][f, j] = sy.reshape(n_z, n_a)
+        del per_lens
     rad_units = "W sr-1 m-2 nm-1"
     convention = SPHERE_CONVENTION.format(zenith=zenith_lens)
     flag_values = np.array(list(mm.FLAG_MEANINGS.values()), np.uint8)
