@@ -337,7 +337,7 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     # the next frame (of the first while the bundle is read) and the pixels' directions (numpy, rawpy and
     # the NetCDF reads release the GIL)
     with ThreadPoolExecutor(max_workers=3) as pool:
-        return _apply_frames(pool, pool.submit(read_raw, raw_paths[0]), bundle_path, raw_paths, medium, out_path,
+        return _apply_frames(pool, pool.submit(read_raw, raw_paths[0], checksums=False), bundle_path, raw_paths, medium, out_path,
                              grid_deg, cfg, zenith_lens, pixels)
 
 
@@ -378,7 +378,7 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
     for f, path in enumerate(raw_paths):
         raw = decoding.result()
-        decoding = pool.submit(read_raw, raw_paths[f + 1]) if f + 1 < len(raw_paths) else None
+        decoding = pool.submit(read_raw, raw_paths[f + 1], checksums=False) if f + 1 < len(raw_paths) else None
         check_frame(raw, bundle, effects)
         # float32 as the chain runs on the band images (the grid's sums are taken in float64)
         per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool,
