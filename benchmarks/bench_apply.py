@@ -34,7 +34,10 @@ at 2 to 6 s each (over an hour on 2 cores). So:
 When the bundle's layout changes (a new calibration artefact version), delete
 only ``results/calibration/bundle.nc`` in ``--work``: the script then gathers
 it again from the stage artefacts kept in ``results/`` (the simulated datasets
-and the fitted stages are reused).
+and the fitted stages are reused). After a change of a stage's artefact version
+delete that stage's folder in ``results/`` as well (``dark-full``, ...): the
+stage then runs again on the kept datasets (dark, linearity and absolute at
+the full resolution with the geometry: 470 s here, the machine shared).
 
 ``apply`` reads only the bundle's values, so its cost is that of a bundle made
 from the whole dataset; its radiances are not a truth test (tests/test_apply.py

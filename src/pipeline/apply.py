@@ -333,10 +333,11 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     if not raw_paths:
         raise InputError(None, "no raw frames to apply the calibration to")
     bundle_path = Path(bundle_path)
-    # three threads: the two lenses' chains (the bands' binning) side by side, and beside them the decode of
-    # the next frame (of the first while the bundle is read) and the pixels' directions (numpy, rawpy and
-    # the NetCDF reads release the GIL)
-    with ThreadPoolExecutor(max_workers=3) as pool:
+    # two threads for two cores (a third would bin the three bands at once: more memory at the peak, no
+    # core to run it on): the lenses' chains side by side (then the bands' binning), the decode of the next
+    # frame (of the first while this thread reads the bundle) and the pixels' directions queued with them
+    # (numpy, rawpy and the NetCDF reads release the GIL)
+    with ThreadPoolExecutor(max_workers=2) as pool:
         return _apply_frames(pool, pool.submit(read_raw, raw_paths[0], checksums=False), bundle_path, raw_paths, medium, out_path,
                              grid_deg, cfg, zenith_lens, pixels)
 
