@@ -9,8 +9,9 @@ lens region. ``apply`` is ``pipeline.apply.apply_calibration(bundle, [frame],
 lenses, the sphere grid and the NetCDF write; ``apply-grid`` the same with
 ``pixels=False`` (``--no-pixels``: the sphere grid only, no per-pixel maps
 written). Each is run ``--repeat`` times, each run in a fresh Python process,
-alternating; the script prints the minimum and median wall time, the peak
-resident memory of each process (``ru_maxrss``) and the ratios apply / decode
+alternating; the script prints the minimum and median wall time, the median CPU time (all
+threads, user and system), the peak
+resident memory of each process (``VmHWM``) and the ratios apply / decode
 of the medians.
 
 The calibration bundle (made once, kept in ``--work``; several GB, keep it
@@ -33,7 +34,10 @@ at 2 to 6 s each (over an hour on 2 cores). So:
 When the bundle's layout changes (a new calibration artefact version), delete
 only ``results/calibration/bundle.nc`` in ``--work``: the script then gathers
 it again from the stage artefacts kept in ``results/`` (the simulated datasets
-and the fitted stages are reused).
+and the fitted stages are reused). After a change of a stage's artefact version
+delete that stage's folder in ``results/`` as well (``dark-full``, ...): the
+stage then runs again on the kept datasets (dark, linearity and absolute at
+the full resolution with the geometry: 470 s here, the machine shared).
 
 ``apply`` reads only the bundle's values, so its cost is that of a bundle made
 from the whole dataset; its radiances are not a truth test (tests/test_apply.py
@@ -45,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -148,7 +153,7 @@ def child(what: str, frame: str, bundle: str, out: str) -> None:
     from pipeline.rawio import read_raw
 
     meta = yaml.safe_load((Path(frame).parents[2] / "dataset.yaml").read_text())
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     if what == "decode":
         raw = read_raw(frame)
         for lens in LENSES:
@@ -156,8 +161,20 @@ def child(what: str, frame: str, bundle: str, out: str) -> None:
             split_bands(cut_region(raw.cfa, region["rows"], region["cols"]), raw.cfa_pattern)
     else:
         apply_calibration(bundle, [frame], "air", out, overwrite=True, pixels=what == "apply")
-    wall = time.perf_counter() - t0
-    print(json.dumps({"wall_s": wall, "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": _peak_rss_mib()}))
+
+
+def _peak_rss_mib() -> float:
+    """Peak resident memory of this process since its exec (VmHWM; ``ru_maxrss`` would also count the
+    parent's resident size at the fork: the builder's gigabytes in the run that made the bundle)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def main() -> None:
@@ -175,6 +192,7 @@ def main() -> None:
     out = work / "apply-out.nc"
     print(f"frame {frame} ({frame.stat().st_size / 1e6:.0f} MB), bundle {bundle} ({bundle.stat().st_size / 1e6:.0f} MB)")
     runs = {"decode": [], "apply": [], "apply-grid": []}
+    load_before = os.getloadavg()[0]
     for _ in range(args.repeat):
         for what in runs:
             proc = subprocess.run([sys.executable, __file__, "--child", what, str(frame), str(bundle), str(out)],
@@ -182,15 +200,19 @@ def main() -> None:
             if proc.returncode != 0:
                 sys.exit(f"{what} failed:\n{proc.stderr[-2000:]}")
             runs[what].append(json.loads(proc.stdout.strip().splitlines()[-1]))
-    print(f"{args.repeat} runs each, each in a fresh process")
-    print(f"{'':<10} {'min ms':>8} {'median ms':>10} {'peak MiB':>9}")
-    med = {}
+    print(f"{args.repeat} runs each, each in a fresh process; load average (1 min) {load_before:.1f} before, "
+          f"{os.getloadavg()[0]:.1f} after")
+    print(f"{'':<10} {'min ms':>8} {'median ms':>10} {'CPU median ms':>14} {'peak MiB':>9}")
+    med, cpu = {}, {}
     for what, rs in runs.items():
         walls = [r["wall_s"] * 1e3 for r in rs]
         med[what] = statistics.median(walls)
-        print(f"{what:<10} {min(walls):8.0f} {med[what]:10.0f} {max(r['peak_rss_mib'] for r in rs):9.0f}")
-    print(f"apply / decode (medians): {med['apply'] / med['decode']:.2f} with the pixel maps, "
+        cpu[what] = statistics.median(r["cpu_s"] * 1e3 for r in rs)
+        print(f"{what:<10} {min(walls):8.0f} {med[what]:10.0f} {cpu[what]:14.0f} {max(r['peak_rss_mib'] for r in rs):9.0f}")
+    print(f"apply / decode (wall medians): {med['apply'] / med['decode']:.2f} with the pixel maps, "
           f"{med['apply-grid'] / med['decode']:.2f} the sphere grid only (--no-pixels)")
+    print(f"apply / decode (CPU medians, all threads): {cpu['apply'] / cpu['decode']:.2f} with the pixel maps, "
+          f"{cpu['apply-grid'] / cpu['decode']:.2f} the sphere grid only")
 
 
 if __name__ == "__main__":

@@ -234,6 +234,25 @@ def test_bin_on_sphere_and_convention():
     assert z[0] == 150.0 and a[0] == 90.0
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_wrap_degrees_is_numpys_remainder_bit_for_bit(dtype):
+    """The azimuth wrap without a division is np.mod(x, 360): the same bits (signed zeros, the
+    rounding of x + 360 just below zero, NaN), and angles beyond one turn go through np.mod."""
+    from pipeline.geometry.sphere import wrap_degrees
+
+    rng = np.random.default_rng(3)
+    tiny = np.nextafter(dtype(0), dtype(-1)) * np.arange(1, 200, dtype=dtype)
+    x = np.concatenate([rng.uniform(-359.9999, 359.9999, 20000).astype(dtype), tiny, -1e-5 * rng.random(200).astype(dtype),
+                        np.array([0.0, -0.0, np.nan, -180.0, 180.0, -359.99997, 359.99997], dtype)])
+    for angles in (x, np.concatenate([x, np.array([720.5, -400.25], dtype)])):
+        want, got = np.mod(angles, 360.0), wrap_degrees(angles)
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(np.signbit(got), np.signbit(want))
+        np.testing.assert_array_equal(got, want)
+    buffer = np.empty_like(x)
+    assert wrap_degrees(x, out=buffer) is buffer
+
+
 def test_command_line(calibrated, tmp_path, capsys):
     from pipeline.cli import main
 

@@ -79,3 +79,22 @@ def test_cut_region():
 def test_cut_region_rejects(rows, cols):
     with pytest.raises(ValueError):
         cut_region(np.zeros((12, 16)), rows, cols)
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "GRBG", "GBRG"])
+def test_saturated_sites_mark_a_band_pixel_when_any_of_its_sites_reaches_the_threshold(pattern):
+    """Hand cells: one site at the threshold marks its band pixel only (both greens count for G)."""
+    from pipeline.frames import saturated_sites
+
+    cfa = np.full((4, 6), 100, np.uint16)
+    letters = {(dy, dx): pattern[2 * dy + dx] for dy in range(2) for dx in range(2)}
+    cells = {(0, 0): (0, 0), (0, 1): (0, 1), (1, 0): (1, 0), (1, 2): (1, 1)}   # cell (row, col) -> site (dy, dx)
+    for (r, c), (dy, dx) in cells.items():
+        cfa[2 * r + dy, 2 * c + dx] = 1000
+    cfa[0, 4] = 999   # below the threshold: nothing
+    sat = saturated_sites(cfa, pattern, 1000.0)
+    want = {b: np.zeros((2, 3), bool) for b in BANDS}
+    for (r, c), site in cells.items():
+        want[letters[site]][r, c] = True
+    for band in BANDS:
+        np.testing.assert_array_equal(sat[band], want[band], err_msg=band)

@@ -244,3 +244,39 @@ def test_flat_field_noise_and_unmeasured_prnu_per_band_pixel():
     out = mm.correct_flat_field(m, np.array([1.0, np.nan]), ("prnu",), prnu_sigma_rel=0.01,
                                 flat_field_sigma=np.array([0.003, np.nan]), sites=2)
     np.testing.assert_allclose(out.random_var["prnu"], [(100 * 0.003) ** 2, (100 * 0.01) ** 2 / 2])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_evaluating_into_buffers_gives_the_chains_values(dtype):
+    """Two evaluations of one chain: into output buffers (apply's path) and by the properties.
+
+    Every effect, a flat field with unmeasured pixels and a stored roll-off
+    map with two relative terms; the values must be the same numbers (the
+    same operations in the same order), and a float64 chain taken into
+    float32 buffers the property's value cast to float32.
+    """
+    rng = np.random.default_rng(7)
+    shape = (17, 23)
+    raw = (rng.uniform(900.0, 9000.0, shape)).astype(dtype)
+    flat = 1 + 0.01 * rng.standard_normal(shape)
+    flat[0, :5] = np.nan
+    theta = rng.uniform(0.0, 85.0, shape)
+    theta[3, 3] = np.nan
+    cal = _calibration()
+    rolloff = mm.rolloff_map(theta, cal, None, ALL, np.result_type(np.float32, raw.dtype),
+                             theta_deg_sigma=np.full(shape, 0.05))
+    args = (raw, mm.FrameSettings(exposure_s=0.05, iso=200.0), _dark(sites_per_pixel=2), _response(), cal, None,
+            "water", ALL)
+    kw = dict(flat_field=flat, flat_field_sigma=np.full(shape, 0.002), prnu_sigma_rel=0.01, rolloff=rolloff,
+              hot_mask=rng.uniform(size=shape) > 0.95)
+    want = mm.measure_band(*args, **kw)
+    for buffer_type in (dtype, np.float32):
+        got = mm.measure_band(*args, **kw)
+        out = [np.full(shape, -1.0, buffer_type) for _ in range(3)]
+        got.evaluate_into(*out, scratch=np.empty(shape, buffer_type))
+        for name, buffer in zip(("value", "random_sigma", "systematic_sigma"), out):
+            expected = getattr(want, name).astype(buffer_type)
+            np.testing.assert_array_equal(buffer, expected, err_msg=name)
+            np.testing.assert_array_equal(getattr(got, name), expected if buffer_type == dtype else getattr(want, name))
+    with pytest.raises(ValueError, match="shape"):
+        mm.measure_band(*args, **kw).evaluate_into(np.empty((2, 2), dtype))

@@ -62,6 +62,17 @@ def test_round_trip_pixels_pattern_and_tags(tmp_path, pattern):
     assert tags["serial"] == "SIM-0001" and tags["shape"] == cfa.shape
 
 
+def test_without_checksums_the_same_frame_and_no_hashes(tmp_path):
+    """apply's read: the same mosaic and tags, md5 and sha256 left empty (the hashes are not taken)."""
+    path = _write(tmp_path / "a.dng")
+    full, bare = read_raw(path), read_raw(path, checksums=False)
+    np.testing.assert_array_equal(bare.cfa, full.cfa)
+    assert (bare.exposure_s, bare.iso, bare.time, bare.cfa_pattern, bare.serial) == (
+        full.exposure_s, full.iso, full.time, full.cfa_pattern, full.serial)
+    assert (bare.md5, bare.sha256) == ("", "")
+    assert full.sha256 == hashlib.sha256(path.read_bytes()).hexdigest()
+
+
 def test_dng_structure(tmp_path):
     path = _write(tmp_path / "a.dng", serial="SN-42")
     with tifffile.TiffFile(path) as tif:

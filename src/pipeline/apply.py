@@ -116,7 +116,7 @@ def _stored_rolloff(g: xr.Dataset, rows: slice, cols: slice, effects) -> mm.Roll
 
 def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str, effects,
                   frame: mm.FrameSettings, window=None, *, negative_sigma: float | None = None,
-                  source=None) -> mm.Measured:
+                  source=None, out=None, scratch=None) -> mm.Measured:
     """The measurement chain on one band image of one lens: raw DN to radiance with its uncertainty.
 
     ``images`` is what :func:`pipeline.frames.lens_images` returns for
@@ -129,7 +129,11 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
     A mean radiance over the unflagged pixels inside the circle more than
     ``negative_sigma`` (default ``apply.negative_mean_sigma``) standard
     errors below zero raises :class:`~pipeline.errors.ImpossibleResult`;
-    ``source`` names the frame in the messages.
+    ``source`` names the frame in the messages. With ``out`` (three arrays
+    of the crop's shape, e.g. slots of the output maps) the radiance and its
+    random and systematic sigma are evaluated there
+    (:meth:`~pipeline.radiometry.measurement.Measured.evaluate_into`, with
+    ``scratch``, one more such array, for the sums on the way).
     """
     effects = tuple(effects)
     image = images.bands[band]
@@ -166,6 +170,8 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
                         flat_field_sigma=_crop(b, "flat_field_sigma", rows, cols),
                         prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
                         phi_deg=phi, rolloff=rolloff)
+    if out is not None:
+        m.evaluate_into(*out, scratch=scratch)
     if negative_sigma is None:
         negative_sigma = _default_negative_sigma()
     good = (m.flags & (mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT)) == 0
@@ -174,7 +180,9 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
     if n_good:
         # sums over the good pixels in float64 (the chain may run in float32)
         mean = float(np.sum(m.value, where=good, dtype=float)) / n_good
-        se = float(np.sqrt(np.sum(np.square(m.random_sigma), where=good, dtype=float))) / n_good
+        sigma = m.random_sigma
+        fits = scratch is not None and scratch.shape == sigma.shape and scratch.dtype == sigma.dtype
+        se = float(np.sqrt(np.sum(np.square(sigma, out=scratch if fits else None), where=good, dtype=float))) / n_good
         if mean < -negative_sigma * se:
             raise ImpossibleResult(source, f"lens {lens}, band {band}: mean radiance {mean:.3g} W sr-1 m-2 nm-1 "
                                            f"over the image circle is {-mean / se:.1f} standard errors below "
@@ -185,23 +193,24 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
 def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dtype, maps=None):
     """Radiance, random and systematic sigma (``dtype``) and flags of one lens of a decoded frame, per band.
 
-    With ``maps`` ({name: (band, y, x) array}) the results are copied into them (and returned as views).
+    The chain evaluates each band straight into ``maps`` ({name: (band, y, x)
+    array}: ``radiance``, ``random``, ``systematic`` of ``dtype``, ``flags``
+    uint8; new arrays when not given); returned as lists of views of them.
     """
     span = bundle["lens_region_px"].sel(lens=lens).values
     images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
-    out = {"radiance": [], "random": [], "systematic": [], "flags": []}
+    shape = images.bands[BANDS[0]].shape
+    if maps is None:
+        maps = {name: np.empty((len(BANDS),) + shape, dtype) for name in ("radiance", "random", "systematic")}
+        maps["flags"] = np.empty((len(BANDS),) + shape, np.uint8)
+    scratch = np.empty(shape, dtype)  # one per lens (the lenses may run in two threads), reused by its bands
     for j, band in enumerate(BANDS):
-        m = band_radiance(images, bundle, lens, band, medium, effects, frame,
-                          negative_sigma=negative_sigma, source=raw.path)
-        for name, a in (("radiance", m.value), ("random", m.random_sigma), ("systematic", m.systematic_sigma),
-                        ("flags", m.flags)):
-            a = a if name == "flags" else a.astype(dtype, copy=False)
-            if maps is not None:
-                np.copyto(maps[name][j], a)
-                a = maps[name][j]
-            out[name].append(a)
+        m = band_radiance(images, bundle, lens, band, medium, effects, frame, negative_sigma=negative_sigma,
+                          source=raw.path, out=(maps["radiance"][j], maps["random"][j], maps["systematic"][j]),
+                          scratch=scratch)
+        np.copyto(maps["flags"][j], m.flags)
         del m
-    return out
+    return {name: list(maps[name]) for name in ("radiance", "random", "systematic", "flags")}
 
 
 def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=np.float32, pool=None, maps=None):
@@ -283,6 +292,22 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     return mean.reshape(shape), spread.reshape(shape), count.reshape(shape)
 
 
+def _pixel_directions(at_medium, lenses, zenith_lens, grid_deg, stored_cells, pixels):
+    """The sphere cell of every band pixel ([lens][band] (y, x)) and, with ``pixels``, the zenith and azimuth maps."""
+    cells, zen, azi = [], None, None
+    if pixels:
+        # written straight into the output maps
+        zen, azi = (np.empty(at_medium["theta_deg"].shape, np.float32) for _ in range(2))
+    for i, lens in enumerate(lenses):
+        cells.append([])
+        for j in range(len(BANDS)):
+            if pixels or not stored_cells:
+                z, a = sphere_coordinates(at_medium["theta_deg"].values[i, j], at_medium["phi_deg"].values[i, j],
+                                          lens == zenith_lens, out=(zen[i, j], azi[i, j]) if pixels else None)
+            cells[i].append(at_medium["sphere_cell"].values[i, j] if stored_cells else sphere_cells(z, a, grid_deg))
+    return cells, zen, azi
+
+
 def _attrs(long_name, units, **extra):
     return {"long_name": long_name, "units": units, **extra}
 
@@ -304,7 +329,21 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     out_path = Path(out_path)
     if out_path.exists() and not overwrite:
         raise InputError(out_path, "exists; add --overwrite to replace it")
+    raw_paths = [Path(p) for p in raw_paths]
+    if not raw_paths:
+        raise InputError(None, "no raw frames to apply the calibration to")
     bundle_path = Path(bundle_path)
+    # two threads for two cores (a third would bin the three bands at once: more memory at the peak, no
+    # core to run it on): the lenses' chains side by side (then the bands' binning), the decode of the next
+    # frame (of the first while this thread reads the bundle) and the pixels' directions queued with them
+    # (numpy, rawpy and the NetCDF reads release the GIL)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        return _apply_frames(pool, pool.submit(read_raw, raw_paths[0], checksums=False), bundle_path, raw_paths, medium, out_path,
+                             grid_deg, cfg, zenith_lens, pixels)
+
+
+def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid_deg, cfg, zenith_lens, pixels):
+    """:func:`apply_calibration` once the arguments are checked; ``decoding`` the future of the first frame."""
     with read_bundle(bundle_path, load=False) as on_disk:
         effects = model_effects(on_disk)
         if medium not in _media(on_disk):
@@ -324,55 +363,44 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
             + ([] if "hot_pixels" in effects else ["hot_pixel_mask"]) + ([] if stored_cells else ["sphere_cell"]) \
             + ([] if pixels or not (stored_cells and stored_rolloff) else ["theta_deg", "phi_deg"])
         bundle = on_disk.drop_vars(skip, errors="ignore").sel(medium=[medium]).load()
-    raw_paths = [Path(p) for p in raw_paths]
-    if not raw_paths:
-        raise InputError(None, "no raw frames to apply the calibration to")
     n_z, n_a = grid_shape(grid_deg)
-    # the cell of every band pixel, once per lens and band (not per frame): [lens][band] (y, x)
-    cells, zen, azi = [], [], []
     at_medium = bundle.sel(medium=medium)
-    for i, lens in enumerate(lenses):
-        cells.append([])
-        for j in range(len(BANDS)):
-            if pixels or not stored_cells:
-                z, a = sphere_coordinates(at_medium["theta_deg"].values[i, j], at_medium["phi_deg"].values[i, j],
-                                          lens == zenith_lens)
-            cells[i].append(at_medium["sphere_cell"].values[i, j] if stored_cells else sphere_cells(z, a, grid_deg))
-            if pixels:
-                zen.append(z.astype(np.float32, copy=False))
-                azi.append(a.astype(np.float32, copy=False))
-    if pixels:
-        geo = at_medium[["theta_deg", "phi_deg", "solid_angle_sr"]]
+    geo = at_medium[["theta_deg", "phi_deg", "solid_angle_sr"]] if pixels else None
+    # the cell of every band pixel, once per lens and band (not per frame), beside the first frame's chain
+    directions = pool.submit(_pixel_directions, at_medium, lenses, zenith_lens, grid_deg, stored_cells, pixels)
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
     meta = []
-    if pixels:
-        shape = (len(raw_paths),) + geo["theta_deg"].shape
-        maps = {"radiance": np.empty(shape, np.float32), "random": np.empty(shape, np.float32),
-                "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
-    with ThreadPoolExecutor(max_workers=min(2, len(lenses))) as pool:
-        for f, path in enumerate(raw_paths):
-            raw = read_raw(path)
-            check_frame(raw, bundle, effects)
-            # float32 as the chain runs on the band images (the grid's sums are taken in float64)
-            per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool,
-                                       maps={k: v[f] for k, v in maps.items()} if pixels else None)
-            meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
-            del raw
+    # the chain's results, per frame with the pixel maps; else one frame's, reused by every frame
+    shape = (len(raw_paths) if pixels else 1, len(lenses), len(BANDS)) + bundle["rolloff_inverse"].shape[-2:] \
+        if "rolloff_inverse" in bundle else None
+    maps = None if shape is None else {
+        "radiance": np.empty(shape, np.float32), "random": np.empty(shape, np.float32),
+        "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
+    for f, path in enumerate(raw_paths):
+        raw = decoding.result()
+        decoding = pool.submit(read_raw, raw_paths[f + 1], checksums=False) if f + 1 < len(raw_paths) else None
+        check_frame(raw, bundle, effects)
+        # float32 as the chain runs on the band images (the grid's sums are taken in float64)
+        per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool,
+                                   maps=None if maps is None else {k: v[f if pixels else 0] for k, v in maps.items()})
+        meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
+        del raw
+        cells, zen, azi = directions.result()
 
-            def bin_band(j, per_lens=per_lens):
-                return _bin_cells([c[j] for c in cells], [r["radiance"][j] for r in per_lens], n_z * n_a,
-                                  extra=([r["random"][j] for r in per_lens], [r["systematic"][j] for r in per_lens]),
-                                  excluded=[(r["flags"][j] & EXCLUDED_FROM_GRID) != 0 for r in per_lens],
-                                  squared=(True, False))
+        def bin_band(j, per_lens=per_lens):
+            return _bin_cells([c[j] for c in cells], [r["radiance"][j] for r in per_lens], n_z * n_a,
+                              extra=([r["random"][j] for r in per_lens], [r["systematic"][j] for r in per_lens]),
+                              excluded=[(r["flags"][j] & EXCLUDED_FROM_GRID) != 0 for r in per_lens],
+                              squared=(True, False))
 
-            # the bands side by side (np.bincount and the array operations release the GIL)
-            for j, (mean, spread, n, (rnd, sy)) in enumerate(pool.map(bin_band, range(len(BANDS)))):
-                grid["mean"][f, j], grid["spread"][f, j] = mean.reshape(n_z, n_a), spread.reshape(n_z, n_a)
-                count[f, j] = n.reshape(n_z, n_a)
-                grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
-                grid["systematic"][f, j] = sy.reshape(n_z, n_a)
-            del per_lens
+        # the bands side by side (np.bincount and the array operations release the GIL)
+        for j, (mean, spread, n, (rnd, sy)) in enumerate(pool.map(bin_band, range(len(BANDS)))):
+            grid["mean"][f, j], grid["spread"][f, j] = mean.reshape(n_z, n_a), spread.reshape(n_z, n_a)
+            count[f, j] = n.reshape(n_z, n_a)
+            grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
+            grid["systematic"][f, j] = sy.reshape(n_z, n_a)
+        del per_lens
     rad_units = "W sr-1 m-2 nm-1"
     convention = SPHERE_CONVENTION.format(zenith=zenith_lens)
     flag_values = np.array(list(mm.FLAG_MEANINGS.values()), np.uint8)
@@ -397,9 +425,9 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
                         _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
             "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values.astype(np.float32, copy=False),
                                _attrs("solid angle seen by the band pixel", "sr")),
-            "zenith_deg": (("lens", "band", "y", "x"), np.stack(zen).reshape(geo["theta_deg"].shape),
+            "zenith_deg": (("lens", "band", "y", "x"), zen,
                            _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
-            "azimuth_deg": (("lens", "band", "y", "x"), np.stack(azi).reshape(geo["theta_deg"].shape),
+            "azimuth_deg": (("lens", "band", "y", "x"), azi,
                             _attrs("azimuth of the pixel's direction on the sphere", "degree", convention=convention)),
         }
         del maps

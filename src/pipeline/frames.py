@@ -62,8 +62,25 @@ def lens_images(raw: RawFrame, region_span, lens: str, saturation_margin_dn: flo
         region = cut_region(raw.cfa, rows_span, cols_span)
     except ValueError as exc:
         raise InputError(raw.path, f"lens '{lens}' region does not fit the frame ({exc})") from None
-    sat = region >= (raw.white_level - saturation_margin_dn)
-    return LensImages(
-        bands=split_bands(region, raw.cfa_pattern),
-        saturated={b: v > 0 for b, v in split_bands(sat.astype(np.uint16), raw.cfa_pattern).items()},
-    )
+    return LensImages(bands=split_bands(region, raw.cfa_pattern),
+                      saturated=saturated_sites(region, raw.cfa_pattern, raw.white_level - saturation_margin_dn))
+
+
+def saturated_sites(cfa, pattern: str, threshold_dn: float) -> dict[str, np.ndarray]:
+    """{"R", "G", "B"}: True where any CFA site of the band pixel reads ``threshold_dn`` or more.
+
+    Compared site by site on the mosaic's strided views (the band split's
+    layout, :func:`pipeline.bands.split_bands`): one boolean plane per band,
+    the two greens ORed, without a full-mosaic mask or a float copy.
+    """
+    cfa = np.asarray(cfa)
+    h, w = cfa.shape[0] // 2 * 2, cfa.shape[1] // 2 * 2
+    out: dict[str, np.ndarray] = {}
+    for index, letter in enumerate(str(pattern).upper()):
+        dy, dx = divmod(index, 2)
+        site = cfa[dy:h:2, dx:w:2] >= threshold_dn
+        if letter in out:
+            out[letter] |= site
+        else:
+            out[letter] = site
+    return out

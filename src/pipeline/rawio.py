@@ -343,17 +343,20 @@ def read_tags(path) -> dict:
         raise InputError(path, f"not a readable DNG/TIFF file ({_short_reason(exc)})") from None
 
 
-def read_raw(path, require=("exposure_s", "iso", "time")) -> RawFrame:
+def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = True) -> RawFrame:
     """Read one raw file: visible CFA mosaic (rawpy) and tags (tifffile).
 
     The file is read once into memory; the MD5 is computed from those bytes and
     both rawpy and tifffile decode the same bytes.  ``require`` lists RawFrame
-    fields that must be present and non-zero (see ``TAG_NAMES``).
+    fields that must be present and non-zero (see ``TAG_NAMES``). With
+    ``checksums=False`` (a reader that neither checks MD5SUMS nor records the
+    frame's sha256, as ``apply``) ``md5`` and ``sha256`` are empty: the two
+    hashes of a 48 MB frame cost about as much CPU as its decode.
     """
     path = Path(path)
     data = _read_bytes(path)
-    md5 = hashlib.md5(data).hexdigest()
-    sha256 = hashlib.sha256(data).hexdigest()
+    md5 = hashlib.md5(data).hexdigest() if checksums else ""
+    sha256 = hashlib.sha256(data).hexdigest() if checksums else ""
 
     try:
         with tifffile.TiffFile(io.BytesIO(data)) as tif:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ZENITH_LENS", "sphere_coordinates", "sphere_cells", "grid_shape"]
+__all__ = ["ZENITH_LENS", "sphere_coordinates", "sphere_cells", "grid_shape", "wrap_degrees"]
 
 ZENITH_LENS = "close"
 
@@ -22,15 +22,46 @@ def grid_shape(grid_deg: float) -> tuple[int, int]:
     return int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
 
 
-def sphere_coordinates(theta_deg, phi_deg, looks_up: bool):
-    """Zenith angle and azimuth (deg) of a lens pixel's direction, by the sphere convention of this module."""
+def sphere_coordinates(theta_deg, phi_deg, looks_up: bool, out=None):
+    """Zenith angle and azimuth (deg) of a lens pixel's direction, by the sphere convention of this module.
+
+    With ``out = (zenith, azimuth)`` (arrays of the maps' shape and float type) they are computed there.
+    """
     theta, phi = np.asarray(theta_deg), np.asarray(phi_deg)
     # float32 maps stay float32 (as the bundle's are); anything else becomes float64
     theta = theta if theta.dtype.kind == "f" else theta.astype(float)
     phi = phi if phi.dtype.kind == "f" else phi.astype(float)
+    zen, azi = (None, None) if out is None else out
     if looks_up:
-        return theta, np.mod(phi, 360.0)
-    return 180.0 - theta, np.mod(-phi, 360.0)
+        if zen is None:
+            zen = theta
+        else:
+            np.copyto(zen, theta)
+        return zen, wrap_degrees(phi, out=azi)
+    zen = np.subtract(180.0, theta, out=zen)
+    azi = np.negative(phi, out=azi)
+    return zen, wrap_degrees(azi, out=azi)
+
+
+def wrap_degrees(angle_deg, out=None):
+    """``np.mod(angle_deg, 360)``, the same numbers, without its division where every angle is within one turn.
+
+    For |x| < 360 the floating-point remainder is x itself for x > 0, x + 360
+    (rounded as NumPy's remainder rounds it) for x < 0 and +0 for x = +-0:
+    that is x + 360 [x < 0] (x + 0 turns -0 into +0), three vectorised passes
+    instead of a remainder per element. Other angles go through ``np.mod``.
+    NaN stays NaN. ``out`` may be ``angle_deg`` itself.
+    """
+    x = np.asarray(angle_deg)
+    if x.size == 0 or x.dtype.kind != "f":
+        return np.mod(x, 360.0, out=out)
+    flat = x.reshape(-1)
+    lo, hi = np.fmin.reduce(flat), np.fmax.reduce(flat)   # NaN ignored (both NaN: all NaN)
+    if not (np.isnan(lo) or (-360.0 < lo and hi < 360.0)):
+        return np.mod(x, 360.0, out=out)
+    turn = np.less(x, 0.0).astype(x.dtype)
+    turn *= x.dtype.type(360.0)
+    return np.add(x, turn, out=out)
 
 
 def sphere_cells(zenith_deg, azimuth_deg, grid_deg: float) -> np.ndarray:

@@ -116,12 +116,18 @@ class Measured:
         """True when the value is its base (no factor applied since the last change of the value itself)."""
         return not self.factor_maps and self.factor == 1.0
 
-    def _scale_of(self, x, squared: bool = False):
-        """``x`` times the factors (or their squares): in a new array unless there is no factor."""
+    def _scale_of(self, x, squared: bool = False, out=None):
+        """``x`` times the factors (or their squares): in a new array unless there is no factor.
+
+        With ``out`` (the product's shape and type: see :meth:`evaluate_into`) the product is taken there.
+        """
+        if out is not None and self.unscaled:
+            np.copyto(out, x)
+            return out
         if self.unscaled:
             return x
         power = 2 if squared else 1
-        out = np.multiply(x, self.factor**power)
+        out = np.multiply(x, self.factor**power, out=out)
         for f in self.factor_maps:
             f = np.square(f) if squared else f
             # in place when the product keeps the array's shape and type (it is new: the first product made it)
@@ -169,32 +175,66 @@ class Measured:
         """sqrt of the sum of the systematic variances (computed once per value)."""
         return self._sigma(self.systematic_abs, self.systematic_rel)
 
-    def _sigma(self, absolute: dict, relative: dict) -> np.ndarray:
-        """|factors| sqrt(sum(absolute) + base^2 sum(relative)), in one new array of the value's shape."""
+    def _sigma(self, absolute: dict, relative: dict, out=None, scratch=None) -> np.ndarray:
+        """|factors| sqrt(sum(absolute) + base^2 sum(relative)), in one array of the value's shape.
+
+        Into ``out`` when given (the value's shape and float type; else a new
+        array); ``scratch``, an array like ``out``, holds a sum of variance
+        maps on the way (else a new one). The same operations in the same
+        order either way, so the result does not depend on the buffers.
+        """
         # the value's float type (a float32 image stays float32), at least float32
         dtype = np.result_type(np.float32, self.base)
         shape = np.broadcast_shapes(np.shape(self.base), *(np.shape(f) for f in self.factor_maps))
-        a = _sum_terms(absolute.values())
+        total = np.empty(shape, dtype) if out is None else _check_buffer(out, shape, dtype)
         if relative:
-            total = np.square(self.base, dtype=dtype)
-            if not isinstance(total, np.ndarray) or total.shape != shape:  # a 0-d square is a NumPy scalar
-                total = np.array(np.broadcast_to(total, shape))
-            total *= _sum_terms(relative.values())
+            np.square(np.broadcast_to(self.base, shape), out=total, dtype=dtype)
+            total *= _sum_terms(relative.values(), _buffer_for(relative.values(), scratch, shape, dtype))
+            a = _sum_terms(absolute.values(), _buffer_for(absolute.values(), scratch, shape, dtype))
             total += a
-        elif np.ndim(a) == 0:
-            total = np.full(shape, a, dtype)
-        elif isinstance(a, np.ndarray) and a.shape == shape and a.dtype == dtype:
-            total = a  # a new array (_sum_terms adds into one)
         else:
-            total = np.array(np.broadcast_to(a, shape), dtype=dtype)
+            a = _sum_terms(absolute.values(), _buffer_for(absolute.values(), total, shape, dtype))
+            if a is not total:
+                np.copyto(total, np.broadcast_to(a, shape), casting="unsafe")
         np.sqrt(total, out=total)
         if not self.unscaled:
             total *= abs(self.factor)
             for f in self.factor_maps:
                 total *= f
-            if any(np.any(f < 0) for f in self.factor_maps):
-                np.abs(total, out=total)
+            np.abs(total, out=total)  # a negative factor map (|f| * sigma); nothing changes where all are positive
         return total
+
+    def evaluate_into(self, value=None, random_sigma=None, systematic_sigma=None, scratch=None) -> "Measured":
+        """Take ``value``, ``random_sigma`` and ``systematic_sigma`` into the arrays given (returns ``self``).
+
+        Each given array (the value's shape, e.g. a slot of an output map)
+        receives what the property of that name returns. Where the array has
+        the property's float type it is computed there, without a temporary
+        image (``scratch``, an array like them, holds a sum of variance maps),
+        and the property then returns that array; otherwise the property is
+        computed as usual and copied in (cast to the array's type).
+        """
+        shape = np.broadcast_shapes(np.shape(self.base), *(np.shape(f) for f in self.factor_maps))
+        value_type = np.result_type(self.base) if self.unscaled else np.result_type(self.base, *self.factor_maps,
+                                                                                     self.factor)
+        sigma_type = np.result_type(np.float32, self.base)
+        if scratch is not None and (scratch.shape != shape or scratch.dtype != sigma_type):
+            scratch = None
+        for name, buffer, dtype in (("value", value, value_type), ("random_sigma", random_sigma, sigma_type),
+                                    ("systematic_sigma", systematic_sigma, sigma_type)):
+            if buffer is None:
+                continue
+            if buffer.shape != shape:
+                raise ValueError(f"output buffer of shape {buffer.shape} for a value of shape {shape}")
+            if buffer.dtype != dtype or name in self.__dict__:
+                np.copyto(buffer, getattr(self, name), casting="same_kind")
+            elif name == "value":
+                self.__dict__[name] = self._scale_of(self.base, out=buffer)
+            else:
+                terms = (self.random_abs, self.random_rel) if name == "random_sigma" else (self.systematic_abs,
+                                                                                           self.systematic_rel)
+                self.__dict__[name] = self._sigma(*terms, out=buffer, scratch=scratch)
+        return self
 
     def scaled(self, factor, units: str, relative_systematic=None, **extra_systematic) -> "Measured":
         """value * factor (every variance then times factor^2), plus new systematic terms.
@@ -237,8 +277,11 @@ class Measured:
         return self._replace(flags=flags)
 
 
-def _sum_terms(terms):
-    """Sum of variance terms: the scalars first (as a Python float), then the maps; 0.0 when there is none."""
+def _sum_terms(terms, out=None):
+    """Sum of variance terms: the scalars first (as a Python float), then the maps; 0.0 when there is none.
+
+    The maps' sum is a new array, or ``out`` when given (see :func:`_buffer_for`).
+    """
     const, maps = 0.0, []
     for t in terms:
         if np.ndim(t) == 0:
@@ -247,6 +290,11 @@ def _sum_terms(terms):
             maps.append(t)
     if not maps:
         return const
+    if out is not None:
+        np.add(np.broadcast_to(maps[0], out.shape), const, out=out)
+        for t in maps[1:]:
+            out += t
+        return out
     total = maps[0] + const  # always a new array: the caller may work in it
     for t in maps[1:]:
         if np.shape(total) == np.broadcast_shapes(np.shape(total), np.shape(t)):
@@ -254,6 +302,26 @@ def _sum_terms(terms):
         else:
             total = total + t
     return total
+
+
+def _buffer_for(terms, buffer, shape, dtype):
+    """``buffer`` when the sum of the maps among ``terms`` is of ``shape`` and ``dtype`` in it (else None: a new array).
+
+    The sum is then the same number in the buffer as in a new array: every map of the float type ``dtype``.
+    """
+    if buffer is None:
+        return None
+    maps = [t for t in terms if np.ndim(t) != 0]
+    if not maps or any(np.asarray(t).dtype != dtype for t in maps) or buffer.shape != shape or buffer.dtype != dtype \
+            or np.broadcast_shapes(*(np.shape(t) for t in maps)) != shape:
+        return None
+    return buffer
+
+
+def _check_buffer(out, shape, dtype):
+    if not isinstance(out, np.ndarray) or out.shape != tuple(shape) or out.dtype != dtype:
+        raise ValueError(f"output buffer {getattr(out, 'dtype', None)} {np.shape(out)} is not {np.dtype(dtype)} {shape}")
+    return out
 
 
 @dataclass(frozen=True)
