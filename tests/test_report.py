@@ -87,7 +87,7 @@ def test_report_shows_dark_current_from_artefact(run):
 
 def test_report_lists_skipped_stage_and_sections(run):
     html = run["html"]
-    section = html.split('id="skipped"', 1)[1].split("<h2", 1)[0]
+    section = _section(html, "skipped")
     assert "geometry" in section and "dataset has no geometry/ folder" in section
     for title in ("Summary", "Dark frames", "Linearity", "Diagnostics", "Stages not run", "Provenance"):
         assert title in html
@@ -176,7 +176,7 @@ def later(run, config):
 
 
 def _section(html: str, anchor: str) -> str:
-    return html.split(f'<h2 id="{anchor}">', 1)[1].split("<h2", 1)[0]
+    return html.split(f'<section id="{anchor}">', 1)[1].split("</section>", 1)[0]
 
 
 def _n_imgs(html: str) -> int:
@@ -240,3 +240,28 @@ def test_stage_passed_as_none_says_not_run(run):
     for anchor in ("rolloff", "spectral", "absolute", "immersion"):
         assert "not run" in _section(html, anchor)
     assert "Calibration per lens" not in _section(html, "summary")
+
+
+def test_missing_experiment_folder_is_said_at_the_top_and_the_rest_is_shown(run):
+    """The run fixture's dataset has no geometry/ folder: the summary opens with that (before any table),
+    and the dark and linearity sections still show their figures."""
+    summary = _section(run["html"], "summary")
+    top = summary.split("<h2>", 1)[1].split("</h2>", 1)[1]
+    first = top.lstrip().split("</div>", 1)[0]
+    assert first.startswith('<div class="callout">') and "dataset has no geometry/ folder" in first
+    assert summary.index("dataset has no geometry/ folder") < summary.index("<table>")
+    for anchor in ("dark", "linearity"):
+        assert _n_imgs(_section(run["html"], anchor)) >= len(LENSES)
+
+
+def test_every_section_has_a_heading_and_every_figure_alt_text(run):
+    """The page's structure the browser test relies on: sections with an <h2>, images with alt text,
+    wide tables in a scrolling box, images no wider than their column."""
+    html = run["html"]
+    ids = re.findall(r'<section id="([^"]+)">\s*<h2>', html)
+    assert {"summary", "dark", "linearity", "diagnostics", "skipped", "provenance"} <= set(ids)
+    assert len(ids) == html.count("<section ")
+    alts = re.findall(r'<img src="data:image/png;base64,[^"]+" alt="([^"]*)"', html)
+    assert len(alts) == _n_imgs(html) and all(a.strip() for a in alts)
+    assert html.count("<table>") == html.count('<div class="wide"><table>')
+    assert "max-width:100%" in html
