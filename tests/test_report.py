@@ -265,3 +265,22 @@ def test_every_section_has_a_heading_and_every_figure_alt_text(run):
     assert len(alts) == _n_imgs(html) and all(a.strip() for a in alts)
     assert html.count("<table>") == html.count('<div class="wide"><table>')
     assert "max-width:100%" in html
+
+
+def test_error_history_labels_each_run_by_the_effects_it_added_or_removed():
+    """Three runs of two experiments: the first labelled by its effects, the next by the change."""
+    from pipeline.report.sections.diagnostics import history_figure, run_labels
+
+    rows = []
+    for t, effects, rms in (("t1", "dark_current hot_pixels", (1.0, 4.0)),
+                            ("t2", "dark_current hot_pixels shutter_offset", (1.0, 1.1)),
+                            ("t3", "dark_current shutter_offset", (1.3, 1.1)),
+                            ("t4", "dark_current shutter_offset", (1.3, 1.1))):
+        rows += [{"run_time": t, "experiment": exp, "model_effects": effects, "rms_z": z}
+                 for exp, z in zip(("dark", "linearity"), rms)]
+    history = pd.DataFrame(rows)
+    assert run_labels(history) == ["run 1\ndark_current\nhot_pixels", "run 2\n+shutter_offset", "run 3\n−hot_pixels",
+                                   "run 4\n(same effects)"]
+    fig = history_figure(history)
+    assert fig.png[:8] == b"\x89PNG\r\n\x1a\n" and "added" in fig.caption
+    assert history_figure(pd.DataFrame()) is None

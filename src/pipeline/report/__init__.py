@@ -22,7 +22,7 @@ from pipeline.report.render import RenderedSection, number_figures, render_page,
 from pipeline.report.sections.noise_floor import snr_against_radiance
 
 __all__ = ["build_report", "build_sections", "fmt_value", "fmt_uncertain", "quantity", "units_text",
-           "read_csv_or_empty", "snr_against_radiance", "ReportInputs"]
+           "read_csv_or_empty", "snr_against_radiance", "ReportInputs", "report_settings"]
 
 #: the stages whose artefacts the report reads, in the order of the chain
 REPORT_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion", "field")
@@ -34,10 +34,16 @@ def build_sections(inputs: ReportInputs) -> list[RenderedSection]:
     return [RenderedSection(s.id, s.title, s.intro, s.build(inputs)) for s in registered_sections()]
 
 
+def report_settings(config: dict) -> dict:
+    """What the report reads of the configuration: the ``report`` section and the diagnostics'
+    ``structured_rms_z`` (the rms z above which an experiment's residuals are called structured)."""
+    return {**config["report"], "structured_rms_z": config["diagnostics"]["structured_rms_z"]}
+
+
 def _default_settings() -> dict:
     from pipeline.config import load_config
 
-    return load_config()["report"]
+    return report_settings(load_config())
 
 
 def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_effects: Path,
@@ -56,7 +62,7 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
     floor). ``failed`` (after a run with failed jobs) maps a stage that did not finish to its error
     line: the summary names them first. ``dataset`` (optional): ``path``, ``camera`` (make, model,
     serial) and ``experiments`` for the summary. ``settings``: the config's ``report`` section
-    (schema defaults when None). With ``figures_dir`` every figure is also written there as
+    (:func:`report_settings`; the schema defaults when None). With ``figures_dir`` every figure is also written there as
     ``NN_name.png`` with ``figures.json`` naming each one's section and caption. The HTML is written
     to a temporary sibling and renamed.
     """

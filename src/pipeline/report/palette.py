@@ -2,7 +2,7 @@
 
 Categories (bands, experiments, lenses) use the Okabe-Ito palette (Okabe and Ito 2008) without its
 yellow, which is too pale on white. Ordered series (exposure times, ISO steps, runs) take colours from
-viridis cut at 85 % of its range, before the pale yellow end. Signed maps use a diverging map whose
+viridis cut at 80 % of its range, before the pale yellow end. Signed maps use a diverging map whose
 middle is white on purpose (zero offset).
 """
 
@@ -20,8 +20,8 @@ __all__ = ["OKABE_ITO", "BAND_COLOURS", "category", "sequence", "SEQUENTIAL_MAP"
 #: Okabe-Ito without yellow (#F0E442): black, orange, sky blue, bluish green, blue, vermillion, reddish purple
 OKABE_ITO = ("#000000", "#E69F00", "#56B4E9", "#009E73", "#0072B2", "#D55E00", "#CC79A7")
 BAND_COLOURS = {"R": "#D55E00", "G": "#009E73", "B": "#0072B2"}
-#: fraction of viridis used for ordered series: its last 15 % is pale yellow
-SEQUENCE_END = 0.85
+#: fraction of viridis used for ordered series: its last 20 % runs into pale yellow-green and yellow
+SEQUENCE_END = 0.8
 SEQUENTIAL_MAP = "viridis"
 DIVERGING_MAP = "RdBu_r"
 
@@ -38,7 +38,7 @@ def sequence(n: int) -> list:
 
 
 def sequential_map():
-    """viridis cut before its yellow end, for images whose values are all positive (sky radiance)."""
+    """viridis cut at 80 %, before its yellow end, for images whose values are all positive (sky radiance)."""
     from matplotlib.colors import ListedColormap
 
     return ListedColormap(plt.get_cmap(SEQUENTIAL_MAP)(np.linspace(0.0, SEQUENCE_END, 256)), name="viridis_cut")

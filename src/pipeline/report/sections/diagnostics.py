@@ -95,12 +95,14 @@ def history_figure(history: pd.DataFrame):
     ax.set_xticklabels(labels, fontsize=7)
     ax.set_xlabel("run, labelled by the model effects it added (+) or removed (−)")
     ax.set_ylabel("rms z of the normalised residuals [1]")
-    ax.set_yscale("log")
+    if h["rms_z"].max() > 10 * max(h["rms_z"].min(), 1e-12):
+        ax.set_yscale("log")
     ax.set_xlim(-0.5, len(runs) - 0.5)
-    ax.legend(fontsize=7, ncol=2)
+    ax.legend(fontsize=7, ncol=2, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     fig.tight_layout()
     return draw(fig, "error_history",
-                "Error history: rms of the normalised residuals per experiment for each run (log scale), each run "
+                "Error history: rms of the normalised residuals per experiment for each run (log scale when they span "
+                "more than a decade), each run "
                 "labelled by the effects it added to or removed from the model (the first run by its whole list). "
                 "Adding a missing effect should bring rms z down to 1.",
                 alt="rms z per experiment against run, runs labelled by the effects added or removed")
@@ -171,7 +173,7 @@ def _residuals_figure(residuals: dict[str, np.ndarray]):
         clipped = np.clip(z, -5, 5)
         ax.hist(clipped, bins=np.linspace(-5, 5, 26), density=True, color=OKABE_ITO[2], edgecolor=OKABE_ITO[4], lw=0.5)
         ax.plot(grid, normal, "-", color=OKABE_ITO[0], lw=1)
-        ax.set_title(f"{name}: n = {len(z)}, rms z = {np.sqrt(np.mean(z**2)):.2f}", fontsize=8)
+        ax.set_title(f"{name}: n = {len(z)}, √mean z² = {np.sqrt(np.mean(z**2)):.2f}", fontsize=8)
         ax.set_xlabel("normalised residual z [1]")
         ax.set_ylabel("density [1]")
     for ax in axes.ravel()[len(names):]:

@@ -15,7 +15,7 @@ from pipeline.observations import dataset_to_table
 from pipeline.radiometry.rolloff import evaluate_rolloff
 from pipeline.report.content import Markup, Table, Text
 from pipeline.report.formatting import bands as band_list
-from pipeline.report.formatting import fmt_uncertain, fmt_value, pct, quantity, var_units
+from pipeline.report.formatting import finite, fmt_uncertain, fmt_value, pct, quantity, var_units
 from pipeline.report.formatting import media as media_list
 from pipeline.report.registry import section
 from pipeline.report.sections.diagnostics import amplitude_text, as_bool, top_effect
@@ -123,24 +123,41 @@ def calibration_rows(inputs, angles: list[float]) -> tuple[list[str], list[list[
     return header, rows
 
 
+def _significant_for(missing, experiment: str):
+    """The best-ranked significant candidate whose experiment names ``experiment`` (a candidate may be
+    tested on several experiments together), or None."""
+    if missing.empty or not {"experiment", "significant"} <= set(missing.columns):
+        return None
+    found = missing[missing["experiment"].astype(str).str.contains(experiment, regex=False)
+                    & missing["significant"].map(as_bool)]
+    if found.empty:
+        return None
+    return (found.sort_values("rank") if "rank" in found else found).iloc[0]
+
+
 def stage_verdicts(inputs) -> list[list[str]]:
-    """One row per experiment of this run: rms z and the verdict (noise floor, missing effect, unexplained)."""
+    """One row per experiment of this run: rms z and the verdict: the missing effect (significant
+    candidate), structure no candidate explains, at the noise floor (rms z at most the diagnostics'
+    ``structured_rms_z``), or above it with no significant candidate."""
     errors = inputs.run_errors
     if errors.empty or not {"experiment", "rms_z"} <= set(errors.columns):
         return []
     unexp = inputs.unexplained
+    limit = float(inputs.settings.get("structured_rms_z", 1.5))
     rows = []
     for _, r in errors.iterrows():
         exp = str(r["experiment"])
-        top = top_effect(inputs.missing_effects, exp)
+        top = _significant_for(inputs.missing_effects, exp)
         structure = unexp[unexp["experiment"].astype(str) == exp] if not unexp.empty and "experiment" in unexp else []
-        if top is not None and as_bool(top.get("significant")):
+        if top is not None:
             verdict = (f"missing effect: {top['effect']} ({amplitude_text(top)}); add it to model.effects "
                        "in config/config.yaml and rerun")
         elif len(structure):
             verdict = f"structure no candidate explains: {structure.iloc[0].get('message', '')}"
+        elif finite(r["rms_z"]) and float(r["rms_z"]) <= limit:
+            verdict = "at the noise floor"
         else:
-            verdict = "at the noise floor: no significant missing effect"
+            verdict = f"above the noise floor (rms z > {limit:g}) and no significant candidate effect"
         rows.append([exp, fmt_value(r["rms_z"], 3), verdict])
     return rows
 
@@ -171,7 +188,8 @@ def summary_section(inputs) -> list:
     if verdicts:
         out.append(Table(["experiment", "rms z", "verdict"], verdicts,
                          "Verdict per experiment (rms z = 1 at the noise floor; larger values mean the model leaves "
-                         "structure the noise cannot explain):", left=1))
+                         f"structure the noise cannot explain; the diagnostics call rms z above "
+                         f"{float(inputs.settings.get('structured_rms_z', 1.5)):g} structured):", left=1))
     top = top_effect(inputs.missing_effects)
     if top is not None and as_bool(top.get("significant")):
         out.append(Text(Markup("The residuals point to a missing effect: <b>{}</b> in the {} experiment ({}; it "
