@@ -58,3 +58,37 @@ def per_lens(inputs: ReportInputs, stage: str, title: str, build_lens, anchor: s
         return [not_run(stage, title, inputs.skipped)]
     anchor = anchor or stage
     return [Group(lens_title(lens), build_lens(lens, ds, inputs), id=f"{anchor}-{lens}") for lens, ds in arts.items()]
+
+
+def residual_figure(tab, x: str, xlabel: str, name: str, caption: str, group: str | None = None,
+                    group_label: str = "", logx: bool = False):
+    """Where a stage's model fails: the normalised residuals z of its observation table ``tab`` against
+    the covariate ``x``, one colour per band, one marker per value of ``group`` (e.g. azimuth plane or
+    medium), with the ±1 and ±3 guides. None when the table has no z or no ``x``."""
+    import matplotlib.pyplot as plt
+
+    from pipeline.report.content import draw
+    from pipeline.report.palette import BAND_COLOURS, category
+
+    if not len(tab) or "z" not in tab or x not in tab:
+        return None
+    if "used" in tab:
+        tab = tab[tab["used"].astype(bool)]
+    fig, ax = plt.subplots(figsize=(9.5, 3.6))
+    markers = "osD^v<>P"
+    groups = list(dict.fromkeys(tab[group])) if group and group in tab else [None]
+    for k, g in enumerate(groups):
+        sub = tab if g is None else tab[tab[group] == g]
+        for j, (band, sb) in enumerate(sub.groupby("band", sort=False) if "band" in sub else [("", sub)]):
+            label = f"{band}" + (f", {group_label} {g}" if g is not None else "")
+            ax.plot(sb[x], sb["z"], markers[k % len(markers)], ms=4, mfc="none",
+                    color=BAND_COLOURS.get(str(band), category(j)), label=label)
+    z_guides(ax)
+    if logx:
+        ax.set_xscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("residual z (data − model)/σ [1]")
+    n_entries = len(ax.get_legend_handles_labels()[1])
+    ax.legend(fontsize=6, ncol=1 if n_entries <= 9 else 2, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.tight_layout()
+    return draw(fig, name, caption, alt=f"normalised residuals against {xlabel}")

@@ -18,7 +18,8 @@ from pipeline.report.content import Group, Table, draw  # noqa: E402
 from pipeline.report.formatting import fmt_value  # noqa: E402
 from pipeline.report.palette import BAND_COLOURS, sequential_map  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
-from pipeline.report.sections._common import lens_title, not_run  # noqa: E402
+from pipeline.observations import dataset_to_table  # noqa: E402
+from pipeline.report.sections._common import lens_title, not_run, residual_figure  # noqa: E402
 
 __all__ = ["field_agreement_rows", "COMPARISON_LABELS"]
 
@@ -163,6 +164,13 @@ def _field_lens(lens: str, ds: xr.Dataset) -> list:
                                                                    zip(ds["band"].values, share))])
     out.append(Table(["quantity", "value"], notes))
     out.append(_figure_series(ds, lens))
+    if "obs_frame__z" in ds:
+        fig = residual_figure(dataset_to_table(ds, "obs_frame"), "time_s", "time of the frame [s]", f"field_{lens}_residuals",
+                              f"Lens {lens}: normalised residuals of the match-up (camera against k_b × reference) "
+                              "against the time of the frame, per band. Residuals that follow the sky's change "
+                              "(dL/dt) point to clock_offset, residuals that follow its colour to spectral_mismatch.")
+        if fig is not None:
+            out.append(fig)
     if "sky_radiance" in ds:
         out.append(_figure_sky(ds, lens))
     return out

@@ -18,7 +18,7 @@ from pipeline.report.formatting import bands as band_list  # noqa: E402
 from pipeline.report.formatting import fmt_value, quantity, var_units  # noqa: E402
 from pipeline.report.palette import BAND_COLOURS  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
-from pipeline.report.sections._common import per_lens  # noqa: E402
+from pipeline.report.sections._common import per_lens, residual_figure  # noqa: E402
 
 
 def _immersion_section(lens: str, ds: xr.Dataset, inputs) -> list:
@@ -81,6 +81,12 @@ def _immersion_section(lens: str, ds: xr.Dataset, inputs) -> list:
                                                    ("salinity", "water_salinity_psu")) if v in ds]
     if water:
         out.append(Text(f"Water: {', '.join(water)}."))
+    fig = residual_figure(tab, "water_height_cm", "water height z [cm]", f"immersion_{lens}_residuals",
+                          f"Lens {lens}: normalised residuals of the log-linear fit against water height, per band; "
+                          "a curve here means the in-water signal is not exponential in depth (bubbles, wavelets, "
+                          "an angle-dependent immersion factor).")
+    if fig is not None:
+        out.append(fig)
     return out
 
 

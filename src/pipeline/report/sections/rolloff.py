@@ -18,7 +18,7 @@ from pipeline.report.formatting import finite, fmt_uncertain, fmt_value, quantit
 from pipeline.report.formatting import media as media_list  # noqa: E402
 from pipeline.report.palette import BAND_COLOURS  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
-from pipeline.report.sections._common import effects_table, per_lens  # noqa: E402
+from pipeline.report.sections._common import effects_table, per_lens, residual_figure  # noqa: E402
 
 
 def _rolloff_section(lens: str, ds: xr.Dataset, inputs) -> list:
@@ -104,6 +104,16 @@ def _rolloff_section(lens: str, ds: xr.Dataset, inputs) -> list:
         scal.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
     if scal:
         out.append(Table(["quantity", "value"], scal))
+    if len(tab) and {"medium", "azimuth_deg"} <= set(tab.columns):
+        plane = tab["medium"].astype(str) + " φ=" + tab["azimuth_deg"].map(lambda a: f"{a:g}°")
+        fig = residual_figure(tab.assign(plane=plane), "theta_deg", "θ, angle from the optical axis [°]",
+                              f"rolloff_{lens}_residuals",
+                              f"Lens {lens}: normalised residuals of the roll-off fit against field angle, one marker "
+                              "per medium and azimuth plane. Residuals of opposite sign in the two planes, growing "
+                              "with θ, are the signature of rolloff_azimuth (decentred or tilted optics).",
+                              group="plane", group_label="")
+        if fig is not None:
+            out.append(fig)
     out.append(effects_table(ds))
     return out
 

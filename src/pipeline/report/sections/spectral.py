@@ -9,12 +9,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import xarray as xr  # noqa: E402
 
+from pipeline.observations import dataset_to_table  # noqa: E402
 from pipeline.report.content import Table, Text, draw  # noqa: E402
 from pipeline.report.formatting import bands as band_list  # noqa: E402
 from pipeline.report.formatting import finite, fmt_value, quantity  # noqa: E402
 from pipeline.report.palette import BAND_COLOURS  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
-from pipeline.report.sections._common import per_lens  # noqa: E402
+from pipeline.report.sections._common import per_lens, residual_figure  # noqa: E402
 
 
 def _spectral_section(lens: str, ds: xr.Dataset, inputs) -> list:
@@ -57,6 +58,13 @@ def _spectral_section(lens: str, ds: xr.Dataset, inputs) -> list:
                        "peak wavelength", "mask pixels", "dark level"], rows))
     if "rms_z" in ds:
         out.append(Text(f"rms of normalised frame residuals (1 = noise floor): {fmt_value(float(ds['rms_z']), 3)}"))
+    if "obs_frame__z" in ds:
+        fig = residual_figure(dataset_to_table(ds, "obs_frame"), "wavelength_nm", "wavelength [nm]",
+                              f"spectral_{lens}_residuals",
+                              f"Lens {lens}: normalised residuals of the spectral-response frames against the "
+                              "monochromator wavelength, per band.")
+        if fig is not None:
+            out.append(fig)
     return out
 
 
