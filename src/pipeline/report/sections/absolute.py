@@ -12,7 +12,7 @@ import xarray as xr  # noqa: E402
 from pipeline.report.content import Table, Text, draw  # noqa: E402
 from pipeline.report.formatting import bands as band_list  # noqa: E402
 from pipeline.report.formatting import fmt_value, pct, quantity, var_units  # noqa: E402
-from pipeline.report.palette import BAND_COLOURS  # noqa: E402
+from pipeline.report.palette import OKABE_ITO, BAND_COLOURS  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
 from pipeline.report.sections._common import per_lens  # noqa: E402
 
@@ -38,7 +38,7 @@ def _absolute_section(lens: str, ds: xr.Dataset, inputs) -> list:
         if "reference_radiance" in ds and "reference_wavelength_nm" in ds:
             ref = float(ds["reference_radiance"])
             rel = float(ds["reference_relative_sigma"]) if "reference_relative_sigma" in ds else 0.0
-            ax.errorbar([float(ds["reference_wavelength_nm"])], [ref], yerr=[ref * rel], fmt="^", color="purple",
+            ax.errorbar([float(ds["reference_wavelength_nm"])], [ref], yerr=[ref * rel], fmt="^", color=OKABE_ITO[6],
                         capsize=3, ms=7, label="reference reading")
         ax.set_xlabel("wavelength [nm]")
         ax.set_ylabel(f"radiance [{var_units(ds, 'source_radiance')}]")

@@ -52,7 +52,7 @@ def _dark_section(lens: str, ds: xr.Dataset, inputs) -> list:
                     ax.set_xlim(centres[max(nz[0] - 3, 0)], centres[min(nz[-1] + 3, len(centres) - 1)])
                 ax.set_yscale("log")
                 ax.set_xlabel("frame-averaged dark level [DN]")
-                ax.set_ylabel("pixels")
+                ax.set_ylabel("pixels [count]")
                 ttl = (f"{b} band, ISO {iso_min:.0f}, per exposure" if lab == "exposure"
                        else f"{b} band, {t_iso:.4g} s, per ISO")
                 ax.set_title(ttl, fontsize=9)
@@ -84,7 +84,7 @@ def _dark_section(lens: str, ds: xr.Dataset, inputs) -> list:
         ax.set_xlabel(f"exposure time [s] (ISO {iso_min:.0f})")
     for ax in axes[:, 1]:
         ax.set_xscale("log")
-        ax.set_xlabel(f"ISO (exposure {t_iso:.4g} s)")
+        ax.set_xlabel(f"ISO setting [1] (exposure {t_iso:.4g} s)")
     for ax in axes[0]:
         ax.set_ylabel("dark centre [DN]")
     for ax in axes[1]:
@@ -152,7 +152,7 @@ def _dark_section(lens: str, ds: xr.Dataset, inputs) -> list:
         z_guides(ax)
         ax.set_xscale("log")
         ax.set_xlabel("exposure time [s]")
-        ax.set_ylabel("residual z (data − model)/σ")
+        ax.set_ylabel("residual z (data − model)/σ [1]")
         ax.legend(fontsize=6, ncol=3, title="▲R ●G ■B", title_fontsize=7)
         fig.tight_layout()
         out.append(draw(fig, f"dark_{lens}_residuals",

@@ -16,7 +16,7 @@ from pipeline.observations import dataset_to_table  # noqa: E402
 from pipeline.report.content import Table, Text, draw  # noqa: E402
 from pipeline.report.formatting import bands as band_list  # noqa: E402
 from pipeline.report.formatting import fmt_value, quantity, var_units  # noqa: E402
-from pipeline.report.palette import BAND_COLOURS  # noqa: E402
+from pipeline.report.palette import OKABE_ITO, BAND_COLOURS  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
 from pipeline.report.sections._common import per_lens, residual_figure  # noqa: E402
 
@@ -50,7 +50,7 @@ def _immersion_section(lens: str, ds: xr.Dataset, inputs) -> list:
                 rel = (float(ds["dn_air_sigma"].sel(band=b)) / float(ds["dn_air"].sel(band=b))
                        if "dn_air_sigma" in ds else None)
                 ax.errorbar([0.0], [math.log(float(ds["dn_air"].sel(band=b)))], yerr=[rel] if rel else None,
-                            fmt="*", color="orange", ms=10, capsize=3, label="ln y_DN(0+) in air")
+                            fmt="*", color=OKABE_ITO[1], ms=10, capsize=3, label="ln y_DN(0+) in air")
             if "immersion_factor" in ds:
                 ax.text(0.35, 0.5, f"I = {quantity(ds, 'immersion_factor', band=b)}", transform=ax.transAxes, fontsize=8)
             ax.set_xlabel("water height z [cm]")

@@ -34,7 +34,7 @@ def _sweep_x(tab: pd.DataFrame, sweep: str) -> np.ndarray:
 
 
 SWEEP_MARKERS = {"exposure": "o", "gain": "s"}
-SWEEP_XLABEL = {"exposure": "exposure time [ms]", "gain": "ISO/100"}
+SWEEP_XLABEL = {"exposure": "exposure time [ms]", "gain": "gain ISO/100 [1]"}
 
 
 def _linearity_section(lens: str, ds: xr.Dataset, inputs) -> list:
@@ -62,8 +62,8 @@ def _linearity_section(lens: str, ds: xr.Dataset, inputs) -> list:
                                 label=f"{b}: mean r = {np.mean(r):.6f} (n = {len(r)})")
             ax.ticklabel_format(axis="x", useOffset=False)
             ax.tick_params(axis="x", labelrotation=30, labelsize=7)
-            ax.set_xlabel("Pearson r per pixel")
-            ax.set_ylabel("pixels")
+            ax.set_xlabel("Pearson r per pixel [1]")
+            ax.set_ylabel("pixels [count]")
             ax.set_title(f"{sw} sweep", fontsize=9)
             ax.legend(fontsize=7)
         fig.tight_layout()
@@ -160,7 +160,7 @@ def _linearity_section(lens: str, ds: xr.Dataset, inputs) -> list:
                 ax.plot(iso, ds["ptc_gain_sweep_conversion_gain_dn_per_e"].values, "o-")
                 ax.set_xscale("log")
                 ax.set_yscale("log")
-                ax.set_xlabel("ISO")
+                ax.set_xlabel("ISO setting [1]")
                 ax.set_ylabel("conversion gain [DN/electron]")
                 ax.set_title("conversion gain per ISO (gain sweep)", fontsize=9)
             fig.tight_layout()
@@ -185,7 +185,7 @@ def _linearity_section(lens: str, ds: xr.Dataset, inputs) -> list:
             z_guides(ax)
             ax.set_xscale("log")
             ax.set_xlabel("mean signal [DN]")
-            ax.set_ylabel("residual z (data − model)/σ")
+            ax.set_ylabel("residual z (data − model)/σ [1]")
             ax.legend(fontsize=6, ncol=2)
             fig.tight_layout()
             out.append(draw(fig, f"lin_{lens}_residuals",

@@ -59,7 +59,7 @@ def _rolloff_section(lens: str, ds: xr.Dataset, inputs) -> list:
                                 fmt=az_markers[k % len(az_markers)], ms=3.5, color=c, mfc="none", lw=0.8,
                                 label=f"azimuth plane φ = {az:g}°" if b == bands[0] else None)
             ax.set_xlabel("θ, angle from the optical axis [°]")
-            ax.set_ylabel("relative illumination g(θ)")
+            ax.set_ylabel("relative illumination g(θ) [1]")
             ax.set_title(f"{m}", fontsize=9)
             ax.legend(fontsize=6, ncol=2)
         fig.tight_layout()

@@ -41,7 +41,7 @@ def _spectral_section(lens: str, ds: xr.Dataset, inputs) -> list:
                 ax.text(le, ybar + 0.01, f"{le:.1f} nm", color=c, ha="center", va="bottom", fontsize=7)
         ax.set_ylim(-0.05, 1.05 + 0.05 * len(bands) + 0.05)
         ax.set_xlabel("wavelength [nm]")
-        ax.set_ylabel("peak-normalised response S_R")
+        ax.set_ylabel("peak-normalised response S_R [1]")
         ax.legend(fontsize=8)
         fig.tight_layout()
         out.append(draw(fig, f"spectral_{lens}",

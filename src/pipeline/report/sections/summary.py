@@ -88,19 +88,22 @@ def _budget(a, band: str) -> str:
     return text
 
 
-def calibration_rows(inputs, angles: list[float]) -> tuple[list[str], list[list[str]]]:
-    """Header and rows of the summary's calibration table: one row per lens and band."""
+def calibration_rows(inputs, angles: list[float]) -> tuple[tuple[list[str], list[list[str]]], tuple[list[str], list[list[str]]]]:
+    """The summary's two calibration tables, one row per lens and band: radiometry (the layout of
+    Table 1: effective wavelength, half bandwidth, R⁻¹ with its relative uncertainty and largest budget
+    term, NER, limit of detection) and optics (Table 2: immersion factor, half field of view, roll-off at
+    ``angles`` per medium). Each as (header, rows); no rows without absolute or immersion artefacts."""
     absolute, immersion = inputs.stage("absolute"), inputs.stage("immersion")
     spectral, geometry, rolloff = inputs.stage("spectral"), inputs.stage("geometry"), inputs.stage("rolloff")
     bundle = inputs.calibration
     lenses = list(dict.fromkeys(list(absolute) + list(immersion)))
     r_units = next((var_units(a, "inverse_responsivity") for a in absolute.values() if "inverse_responsivity" in a), "")
     rolloff_media = sorted({m for ds in rolloff.values() for m in media_list(ds)}) or ["air"]
-    header = (["lens", "band", "λ_eff [nm]", "Λ/2 [nm]", f"R⁻¹ [{r_units}]", "u(R⁻¹), largest term", "I (immersion)",
-               "half FOV air / water [°]"]
-              + [f"g({a:g}°) {m}" for a in angles for m in rolloff_media]
-              + [f"NER [{RADIANCE_UNITS}]", f"LoD [{RADIANCE_UNITS}]"])
-    rows = []
+    radiometry_header = ["lens", "band", "λ_eff [nm]", "Λ/2 [nm]", f"R⁻¹ [{r_units}]", "u(R⁻¹), largest term",
+                         f"NER [{RADIANCE_UNITS}]", f"LoD [{RADIANCE_UNITS}]"]
+    optics_header = (["lens", "band", "I (immersion factor)", "half FOV air [°]", "half FOV water [°]"]
+                     + [f"g({a:g}°) {m}" for a in angles for m in rolloff_media])
+    radiometry, optics = [], []
     for lens in lenses:
         a, im, sp = absolute.get(lens), immersion.get(lens), spectral.get(lens)
         geo, ro = geometry.get(lens), rolloff.get(lens)
@@ -111,16 +114,17 @@ def calibration_rows(inputs, angles: list[float]) -> tuple[list[str], list[list[
             hb = quantity(sp, "half_bandwidth_nm", units=False, band=b) if sp is not None else "n/a"
             r_inv = quantity(a, "inverse_responsivity", units=False, band=b) if a is not None else "n/a"
             budget = _budget(a, b) if a is not None else "n/a"
-            i_f = quantity(im, "immersion_factor", units=False, interval=False, band=b) if im is not None else "n/a"
-            fov = " / ".join(quantity(geo, "half_fov_deg", units=False, digits=3, medium=m, band=b)
-                             for m in ("air", "water")) if geo is not None and "half_fov_deg" in geo else "n/a"
-            g = [_rolloff_at(ro, m, b, ang) for ang in angles for m in rolloff_media]
             ner = lod = "n/a"
             if bundle is not None and "noise_equivalent_radiance" in bundle and lens in bundle["lens"].values:
                 ner = fmt_value(float(bundle["noise_equivalent_radiance"].sel(lens=lens, band=b)), 2)
                 lod = fmt_value(float(bundle["limit_of_detection"].sel(lens=lens, band=b)), 2)
-            rows.append([lens, b, wl, hb, r_inv, budget, i_f, fov, *g, ner, lod])
-    return header, rows
+            radiometry.append([lens, b, wl, hb, r_inv, budget, ner, lod])
+            i_f = quantity(im, "immersion_factor", units=False, interval=False, band=b) if im is not None else "n/a"
+            fov = [quantity(geo, "half_fov_deg", units=False, digits=3, medium=m, band=b)
+                   if geo is not None and "half_fov_deg" in geo else "n/a" for m in ("air", "water")]
+            g = [_rolloff_at(ro, m, b, ang) for ang in angles for m in rolloff_media]
+            optics.append([lens, b, i_f, *fov, *g])
+    return (radiometry_header, radiometry), (optics_header, optics)
 
 
 def _significant_for(missing, experiment: str):
@@ -169,15 +173,20 @@ def summary_section(inputs) -> list:
     if camera is not None:
         out.append(camera)
     angles = [float(a) for a in inputs.settings.get("rolloff_summary_angles_deg", [])]
-    header, rows = calibration_rows(inputs, angles)
-    if rows:
-        out.append(Table(header, rows,
-                         "Calibration per lens and band (± standard uncertainty; the layout of Larouche et al. 2024, "
-                         "Tables 1 and 2: R⁻¹ of Eq. 9 with its relative uncertainty and the largest term of its budget, "
-                         "the immersion factor of Eq. 11, the half field of view, the roll-off g(θ) of Eq. 13, the "
-                         "noise-equivalent radiance and the limit of detection of Section 3.8"
-                         + (f" at {operating_point(inputs.calibration)[1]}" if inputs.calibration is not None
-                            and "limit_of_detection" in inputs.calibration else "") + ").", left=2))
+    (r_header, r_rows), (o_header, o_rows) = calibration_rows(inputs, angles)
+    at = (f" at {operating_point(inputs.calibration)[1]}" if inputs.calibration is not None
+          and "limit_of_detection" in inputs.calibration else "")
+    if r_rows:
+        out.append(Table(r_header, r_rows,
+                         "Calibration per lens and band, radiometry (± standard uncertainty; the layout of Larouche et "
+                         "al. 2024, Table 1): effective wavelength and half bandwidth (Eq. 8), R⁻¹ (Eq. 9) with its "
+                         "relative uncertainty and the largest term of its budget, the noise-equivalent radiance and "
+                         f"the limit of detection (Section 3.8){at}.", left=2))
+        out.append(Table(o_header, o_rows,
+                         "Calibration per lens and band, immersion and field of view (the layout of Table 2): the "
+                         "immersion factor (Eq. 11), the half field of view in air and water, and the roll-off g(θ) "
+                         "of Eq. (13) at report.rolloff_summary_angles_deg per medium (not extrapolated beyond the "
+                         "largest measured angle).", left=2))
     field = [row for lens, ds in inputs.stage("field").items() for row in field_agreement_rows(lens, ds)]
     if field:
         out.append(Table(["lens", "band", "camera / reference", "MUPD % (nearest channel)", "MUPD % (band-convolved)",
@@ -189,7 +198,7 @@ def summary_section(inputs) -> list:
         out.append(Table(["experiment", "rms z", "verdict"], verdicts,
                          "Verdict per experiment (rms z = 1 at the noise floor; larger values mean the model leaves "
                          f"structure the noise cannot explain; the diagnostics call rms z above "
-                         f"{float(inputs.settings.get('structured_rms_z', 1.5)):g} structured):", left=1))
+                         f"{float(inputs.settings.get('structured_rms_z', 1.5)):g} structured):", left=3))
     top = top_effect(inputs.missing_effects)
     if top is not None and as_bool(top.get("significant")):
         out.append(Text(Markup("The residuals point to a missing effect: <b>{}</b> in the {} experiment ({}; it "
