@@ -284,3 +284,56 @@ def test_error_history_labels_each_run_by_the_effects_it_added_or_removed():
     fig = history_figure(history)
     assert fig.png[:8] == b"\x89PNG\r\n\x1a\n" and "added" in fig.caption
     assert history_figure(pd.DataFrame()) is None
+
+
+def _contrast_on_white(colour) -> float:
+    """WCAG contrast ratio of a colour against white (1 = invisible, 21 = black)."""
+    from matplotlib.colors import to_rgb
+
+    def linear(c):
+        return c / 12.92 if c <= 0.04045 else ((c + 0.055) / 1.055) ** 2.4
+
+    r, g, b = (linear(c) for c in to_rgb(colour))
+    return 1.05 / (0.2126 * r + 0.7152 * g + 0.0722 * b + 0.05)
+
+
+def test_palette_stays_legible_on_white():
+    """Every categorical and sequential colour of the report keeps a contrast of at least 1.7 against white;
+    the colours the palette leaves out, Okabe-Ito's yellow (#F0E442, 1.3) and viridis's yellow end (1.2),
+    would fail the same bound."""
+    from matplotlib import colormaps
+
+    from pipeline.report.palette import BAND_COLOURS, OKABE_ITO, category, sequence
+
+    colours = list(OKABE_ITO) + list(BAND_COLOURS.values()) + [category(i) for i in range(10)] + sequence(12)
+    assert min(_contrast_on_white(c) for c in colours) >= 1.7
+    assert _contrast_on_white("#F0E442") < 1.7 and _contrast_on_white(colormaps["viridis"](1.0)) < 1.7
+
+
+def test_a_section_module_registers_itself_in_page_order():
+    """A section registered with @section appears at its place on the page, without any other change;
+    the same id from a second module is refused."""
+    from pipeline.report import build_sections
+    from pipeline.report.content import Text
+    from pipeline.report.inputs import ReportInputs
+    from pipeline.report.registry import _REGISTRY, registered_sections, section
+
+    registered_sections()
+    try:
+        @section("closure-test", "A new stage", order=95)
+        def build(inputs):
+            return [Text(f"{len(inputs.stage('dark'))} dark artefacts")]
+
+        empty = pd.DataFrame()
+        # no artefacts: every section says what did not run, no figure is drawn (the test stays cheap)
+        inputs = ReportInputs(artefacts={}, paths={}, missing_effects=empty, unexplained=empty, run_errors=empty,
+                              error_history=empty, skipped={"dark": "the dataset has no dark/ folder"},
+                              settings={"rolloff_summary_angles_deg": [70.0]})
+        ids = [s.id for s in registered_sections()]
+        assert ids.index("field") < ids.index("closure-test") < ids.index("diagnostics")
+        new = [s for s in build_sections(inputs) if s.id == "closure-test"]
+        assert new and new[0].blocks[0].text == "0 dark artefacts"
+        with pytest.raises(ValueError, match="registered twice"):
+            section("dark", "Dark again", order=1)(lambda inputs: [])
+    finally:
+        _REGISTRY.pop("closure-test", None)
