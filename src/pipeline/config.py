@@ -112,7 +112,6 @@ STAGE_SECTIONS = {
     # apply: the bundle stores every pixel's cell on the default sphere grid (apply.grid_deg)
     "calibration": ("model", "calibration", "apply"),
     "field": ("model", "apply", "field"),
-    "report": ("report",),
 }
 
 
