@@ -17,6 +17,10 @@ min_version("8.0")
 configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 
 
+# the front page of `snakemake --report`; the figures carry their captions (workflow/rules/report.smk)
+report: "workflow/report/workflow.rst"
+
+
 # config/schema.yaml (filling its defaults), model.plugins and model.effects: one line and no job on a mistake
 try:
     check_config(config, os.path.join(workflow.basedir, "config", "config.yaml"))

@@ -87,7 +87,7 @@ def test_report_shows_dark_current_from_artefact(run):
 
 def test_report_lists_skipped_stage_and_sections(run):
     html = run["html"]
-    section = html.split('id="skipped"', 1)[1].split("<h2", 1)[0]
+    section = _section(html, "skipped")
     assert "geometry" in section and "dataset has no geometry/ folder" in section
     for title in ("Summary", "Dark frames", "Linearity", "Diagnostics", "Stages not run", "Provenance"):
         assert title in html
@@ -176,7 +176,7 @@ def later(run, config):
 
 
 def _section(html: str, anchor: str) -> str:
-    return html.split(f'<h2 id="{anchor}">', 1)[1].split("<h2", 1)[0]
+    return html.split(f'<section id="{anchor}">', 1)[1].split("</section>", 1)[0]
 
 
 def _n_imgs(html: str) -> int:
@@ -240,3 +240,100 @@ def test_stage_passed_as_none_says_not_run(run):
     for anchor in ("rolloff", "spectral", "absolute", "immersion"):
         assert "not run" in _section(html, anchor)
     assert "Calibration per lens" not in _section(html, "summary")
+
+
+def test_missing_experiment_folder_is_said_at_the_top_and_the_rest_is_shown(run):
+    """The run fixture's dataset has no geometry/ folder: the summary opens with that (before any table),
+    and the dark and linearity sections still show their figures."""
+    summary = _section(run["html"], "summary")
+    top = summary.split("<h2>", 1)[1].split("</h2>", 1)[1]
+    first = top.lstrip().split("</div>", 1)[0]
+    assert first.startswith('<div class="callout">') and "dataset has no geometry/ folder" in first
+    assert summary.index("dataset has no geometry/ folder") < summary.index("<table>")
+    for anchor in ("dark", "linearity"):
+        assert _n_imgs(_section(run["html"], anchor)) >= len(LENSES)
+
+
+def test_every_section_has_a_heading_and_every_figure_alt_text(run):
+    """The page's structure the browser test relies on: sections with an <h2>, images with alt text,
+    wide tables in a scrolling box, images no wider than their column."""
+    html = run["html"]
+    ids = re.findall(r'<section id="([^"]+)">\s*<h2>', html)
+    assert {"summary", "dark", "linearity", "diagnostics", "skipped", "provenance"} <= set(ids)
+    assert len(ids) == html.count("<section ")
+    alts = re.findall(r'<img src="data:image/png;base64,[^"]+" alt="([^"]*)"', html)
+    assert len(alts) == _n_imgs(html) and all(a.strip() for a in alts)
+    assert html.count("<table>") == html.count('<div class="wide"><table>')
+    assert "max-width:100%" in html
+
+
+def test_error_history_labels_each_run_by_the_effects_it_added_or_removed():
+    """Three runs of two experiments: the first labelled by its effects, the next by the change."""
+    from pipeline.report.sections.diagnostics import history_figure, run_labels
+
+    rows = []
+    for t, effects, rms in (("t1", "dark_current hot_pixels", (1.0, 4.0)),
+                            ("t2", "dark_current hot_pixels shutter_offset", (1.0, 1.1)),
+                            ("t3", "dark_current shutter_offset", (1.3, 1.1)),
+                            ("t4", "dark_current shutter_offset", (1.3, 1.1))):
+        rows += [{"run_time": t, "experiment": exp, "model_effects": effects, "rms_z": z}
+                 for exp, z in zip(("dark", "linearity"), rms)]
+    history = pd.DataFrame(rows)
+    assert run_labels(history) == ["run 1\ndark_current\nhot_pixels", "run 2\n+shutter_offset", "run 3\n−hot_pixels",
+                                   "run 4\n(same effects)"]
+    fig = history_figure(history)
+    assert fig.png[:8] == b"\x89PNG\r\n\x1a\n" and "added" in fig.caption
+    assert history_figure(pd.DataFrame()) is None
+
+
+def _contrast_on_white(colour) -> float:
+    """WCAG contrast ratio of a colour against white (1 = invisible, 21 = black)."""
+    from matplotlib.colors import to_rgb
+
+    def linear(c):
+        return c / 12.92 if c <= 0.04045 else ((c + 0.055) / 1.055) ** 2.4
+
+    r, g, b = (linear(c) for c in to_rgb(colour))
+    return 1.05 / (0.2126 * r + 0.7152 * g + 0.0722 * b + 0.05)
+
+
+def test_palette_stays_legible_on_white():
+    """Every categorical and sequential colour of the report keeps a contrast of at least 1.7 against white;
+    the colours the palette leaves out, Okabe-Ito's yellow (#F0E442, 1.3) and viridis's yellow end (1.2),
+    would fail the same bound."""
+    from matplotlib import colormaps
+
+    from pipeline.report.palette import BAND_COLOURS, OKABE_ITO, category, sequence
+
+    colours = list(OKABE_ITO) + list(BAND_COLOURS.values()) + [category(i) for i in range(10)] + sequence(12)
+    assert min(_contrast_on_white(c) for c in colours) >= 1.7
+    assert _contrast_on_white("#F0E442") < 1.7 and _contrast_on_white(colormaps["viridis"](1.0)) < 1.7
+
+
+def test_a_section_module_registers_itself_in_page_order():
+    """A section registered with @section appears at its place on the page, without any other change;
+    the same id from a second module is refused."""
+    from pipeline.report import build_sections
+    from pipeline.report.content import Text
+    from pipeline.report.inputs import ReportInputs
+    from pipeline.report.registry import _REGISTRY, registered_sections, section
+
+    registered_sections()
+    try:
+        @section("closure-test", "A new stage", order=95)
+        def build(inputs):
+            return [Text(f"{len(inputs.stage('dark'))} dark artefacts")]
+
+        empty = pd.DataFrame()
+        # no artefacts: every section says what did not run, no figure is drawn (the test stays cheap)
+        inputs = ReportInputs(artefacts={}, paths={}, missing_effects=empty, unexplained=empty, run_errors=empty,
+                              error_history=empty, skipped={"dark": "the dataset has no dark/ folder"},
+                              settings={"rolloff_summary_angles_deg": [70.0]})
+        ids = [s.id for s in registered_sections()]
+        assert ids.index("field") < ids.index("closure-test") < ids.index("diagnostics")
+        new = [s for s in build_sections(inputs) if s.id == "closure-test"]
+        assert new and new[0].blocks[0].text == "0 dark artefacts"
+        with pytest.raises(ValueError, match="registered twice"):
+            section("dark", "Dark again", order=1)(lambda inputs: [])
+    finally:
+        _REGISTRY.pop("closure-test", None)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from pipeline.report import _Figures, _noise_floor_section, snr_against_radiance
+from pipeline.report import snr_against_radiance
+from pipeline.report.render import render_fragment
+from pipeline.report.sections.noise_floor import noise_floor_blocks
 
 
 def test_snr_curve_passes_through_ner_and_the_limit_of_detection():
@@ -22,7 +24,7 @@ def test_noise_floor_section_lists_every_lens_and_band_and_draws_the_curve():
          "limit_of_detection": (("lens", "band"), [[4.6e-7, 1.8e-7, 4.6e-7], [4.7e-7, 1.9e-7, 4.4e-7]],
                                 {"snr": 3.0, "iso": 100.0, "exposure_s": 1.0})},
         coords={"lens": ["far", "close"], "band": ["R", "G", "B"]})
-    html = _noise_floor_section(bundle, _Figures(None))
+    html = render_fragment(noise_floor_blocks(bundle))
     assert html.count("<tr>") >= 7 and "4.5e-08" in html and "1.9e-07" in html
     assert "<img" in html and "ISO 100, 1 s" in html
-    assert _noise_floor_section(None, _Figures(None)) == ""
+    assert noise_floor_blocks(None) == []

@@ -11,7 +11,8 @@ import pytest
 import xarray as xr
 import yaml
 
-from pipeline.report import _Figures, _linearity_section
+from pipeline.report.render import render_fragment
+from pipeline.report.sections.linearity import _linearity_section
 from pipeline.workflow import run_stage
 
 LENSES = ("far", "close")
@@ -147,5 +148,5 @@ def test_full_well_before_the_adc_is_found_and_left_out(full_well_artefacts):
     # counted in the artefact and said in the report's linearity section (one lens: the figures cost)
     ds = lin[LENSES[0]]
     n = int(ds["n_saturated_settings"])
-    html = _linearity_section(LENSES[0], ds, _Figures(None))
+    html = render_fragment(_linearity_section(LENSES[0], ds, None))
     assert f"(reached; {n} saturated setting{'s' if n > 1 else ''} left out of the fits)" in html

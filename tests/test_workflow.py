@@ -61,6 +61,30 @@ def test_nothing_to_do_when_nothing_changed(run):
     assert planned_rules(workdir, dataset) == set()
 
 
+def test_snakemake_report_lists_the_figures_with_their_captions(run):
+    """`snakemake --report` on the finished run: the zip holds every PNG of results/report/figures,
+    and its HTML names each figure with the caption the calibration report gives it
+    (figures.json) and the caption text of workflow/report/figure.rst."""
+    import zipfile
+
+    workdir, dataset = run
+    figures = workdir / "results/report/figures"
+    index = json.loads((figures / "figures.json").read_text(encoding="utf-8"))
+    pngs = sorted(p.name for p in figures.glob("*.png"))
+    assert pngs and sorted(f"{stem}.png" for stem in index) == pngs
+    snakemake(workdir, dataset, "--report", "results/snakemake-report.zip")
+    with zipfile.ZipFile(workdir / "results/snakemake-report.zip") as zf:
+        names = zf.namelist()
+        pages = "".join(zf.read(n).decode("utf-8", "replace") for n in names if n.endswith((".html", ".js")))
+    for png in pngs:
+        assert any(n.endswith("/" + png) for n in names), png
+    assert "of the calibration report" in pages                 # workflow/report/figure.rst
+    for entry in index.values():
+        # the caption label, JSON-escaped in the report's data as json.dumps escapes it; the category its section
+        assert json.dumps(entry["caption"])[1:-1] in pages, entry["caption"][:60]
+        assert entry["category"] in pages
+
+
 def slurm_unavailable() -> str | None:
     """Why the workflow cannot be sent to SLURM here, or None when a node is up."""
     if shutil.which("sinfo") is None:

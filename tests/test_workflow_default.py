@@ -5,6 +5,7 @@ restarts to completion."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -36,6 +37,12 @@ def test_the_default_tiny_simulation_runs_through_the_whole_workflow(tmp_path):
     assert (tmp_path / "results/field/close.nc").exists() and not (tmp_path / "results/field/far.nc").exists()
     html = (tmp_path / "results/report/index.html").read_text()
     assert 'id="field-close"' in html and "MUPD" in html
+    # the report has an analogue of each of the paper's Figs. 2-10 (the captions say which), and every
+    # figure is also a PNG for snakemake --report
+    captions = re.findall(r"<figcaption>(.*?)</figcaption>", html, re.S)
+    for n in range(2, 11):
+        assert any(re.search(rf"Fig\. {n}(?!\d)", c) for c in captions), f"no analogue of Fig. {n}"
+    assert len(list((tmp_path / "results/report/figures").glob("*.png"))) == len(captions)
     history = pd.read_csv(tmp_path / "results/diagnostics/error_history.csv")
     assert "field" in set(history["experiment"])
     # new field data only: the field job, the diagnostics and the report rerun, no lab stage

@@ -138,7 +138,7 @@ def report_after_failure(results: str | Path, stage_lenses: dict[str, list[str]]
     from pipeline.artefact import BUNDLE_STAGES
     from pipeline.config import stage_params
     from pipeline.diagnostics import diagnose_artefacts
-    from pipeline.report import build_report
+    from pipeline.report import build_report, report_settings
     from pipeline.workflow import STAGES, artefacts_by_lens
 
     results = Path(results)
@@ -168,7 +168,7 @@ def report_after_failure(results: str | Path, stage_lenses: dict[str, list[str]]
                      missing_effects=diag / "missing_effects.csv", unexplained=diag / "unexplained.csv",
                      run_errors=diag / "run_errors.csv", error_history=diag / "error_history.csv",
                      out_html=diag / "index.html", skipped=skipped, failed=not_finished,
-                     calibration=calibration[0] if calibration else None)
+                     calibration=calibration[0] if calibration else None, settings=report_settings(config))
     except InputError as exc:
         return lines + [f"The diagnostics and report on the stages that finished failed too: {exc}"]
     found = summarise_run(results, config["model"]["effects"], skipped, config["diagnostics"]["structured_rms_z"],

@@ -153,6 +153,38 @@ def skipped_stages(wildcards):
     return _ready().skipped()
 
 
+def report_dataset(wildcards):
+    """The report's summary: dataset folder, camera and the experiments it holds."""
+    dataset = _ready().load().dataset
+    return {
+        "path": str(dataset.root),
+        "camera": dataset.meta.get("camera"),
+        "experiments": dataset.experiments(),
+    }
+
+
+def report_settings(wildcards):
+    """The config the report reads: its own section and the diagnostics' structured_rms_z."""
+    from pipeline.report import report_settings as settings
+
+    return settings(config)
+
+
+def report_figure_category(wildcards, output):
+    """Snakemake report: a figure's category is its section of the HTML report."""
+    from pipeline.report.render import read_figure_index
+
+    return read_figure_index(output.figures)[wildcards.figure]["category"]
+
+
+def report_figure_labels(wildcards, output):
+    """Snakemake report: a figure's number and caption, as the HTML report gives them."""
+    from pipeline.report.render import read_figure_index
+
+    entry = read_figure_index(output.figures)[wildcards.figure]
+    return {"figure": f"Figure {entry['number']}", "caption": entry["caption"]}
+
+
 def print_run_summary():
     """After a run: where the report is and, per experiment, what the diagnostics found."""
     from pipeline.run_summary import summarise_run

@@ -9,4 +9,5 @@ artefacts = {stage: artefacts_by_lens(smk.input[stage]) if stage in smk.input.ke
 exit_on_input_error(build_report, **artefacts, missing_effects=smk.input.missing_effects,
                     unexplained=smk.input.unexplained, run_errors=smk.input.run_errors,
                     error_history=smk.input.error_history, out_html=smk.output.html, skipped=smk.params.skipped,
-                    calibration=smk.input.calibration if "calibration" in smk.input.keys() else None)
+                    calibration=smk.input.calibration if "calibration" in smk.input.keys() else None,
+                    figures_dir=smk.output.figures, dataset=smk.params.dataset, settings=smk.params.settings)

@@ -1,0 +1,99 @@
+"""The calibration report: one self-contained HTML page, and each figure as a PNG file.
+
+:func:`build_report` reads the stage artefacts (NetCDF), the calibration bundle and the diagnostics
+tables (CSV); every section module of :mod:`pipeline.report.sections` turns them into figures and
+tables with captions (:mod:`pipeline.report.content`); the Jinja2 templates of the package make the
+page: figures embedded as base64 PNG, the style sheet inline, nothing loaded from the network.
+Every number in the report is read from those inputs; the package holds no calibration values.
+"""
+
+from __future__ import annotations
+
+import os
+from datetime import datetime, timezone
+from pathlib import Path
+
+from pipeline.artefact import read_artefact
+from pipeline.report.formatting import fmt_uncertain, fmt_value, quantity, units_text
+from pipeline.report.inputs import ReportInputs, read_csv_or_empty
+from pipeline.report.palette import apply_style
+from pipeline.report.registry import registered_sections
+from pipeline.report.render import RenderedSection, number_figures, render_page, write_figures
+from pipeline.report.sections.noise_floor import snr_against_radiance
+
+__all__ = ["build_report", "build_sections", "fmt_value", "fmt_uncertain", "quantity", "units_text",
+           "read_csv_or_empty", "snr_against_radiance", "ReportInputs", "report_settings"]
+
+#: the stages whose artefacts the report reads, in the order of the chain
+REPORT_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion", "field")
+
+
+def build_sections(inputs: ReportInputs) -> list[RenderedSection]:
+    """Every registered section's blocks, in page order."""
+    apply_style()
+    return [RenderedSection(s.id, s.title, s.intro, s.build(inputs)) for s in registered_sections()]
+
+
+def report_settings(config: dict) -> dict:
+    """What the report reads of the configuration: the ``report`` section and the diagnostics'
+    ``structured_rms_z`` (the rms z above which an experiment's residuals are called structured)."""
+    return {**config["report"], "structured_rms_z": config["diagnostics"]["structured_rms_z"]}
+
+
+def _default_settings() -> dict:
+    from pipeline.config import load_config
+
+    return report_settings(load_config())
+
+
+def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_effects: Path,
+                 unexplained: Path, run_errors: Path, error_history: Path, out_html: Path,
+                 skipped: dict[str, str] | None = None, figures_dir: Path | None = None,
+                 geometry: dict[str, Path] | None = None, rolloff: dict[str, Path] | None = None,
+                 spectral: dict[str, Path] | None = None, absolute: dict[str, Path] | None = None,
+                 immersion: dict[str, Path] | None = None, calibration: Path | None = None,
+                 field: dict[str, Path] | None = None, failed: dict[str, str] | None = None,
+                 dataset: dict | None = None, settings: dict | None = None) -> Path:
+    """Write the calibration report as one self-contained HTML file and return its path.
+
+    Each stage argument maps lens name to that stage's artefact; a stage given as None or empty gets a
+    section saying it was not run, with its reason from ``skipped`` (stage -> reason). The four CSVs
+    come from the diagnostics stage. ``calibration`` (optional) is the calibration bundle (noise
+    floor). ``failed`` (after a run with failed jobs) maps a stage that did not finish to its error
+    line: the summary names them first. ``dataset`` (optional): ``path``, ``camera`` (make, model,
+    serial) and ``experiments`` for the summary. ``settings``: the config's ``report`` section
+    (:func:`report_settings`; the schema defaults when None). With ``figures_dir`` every figure is also written there as
+    ``NN_name.png`` with ``figures.json`` naming each one's section and caption. The HTML is written
+    to a temporary sibling and renamed.
+    """
+    out_html = Path(out_html)
+    failed = dict(failed or {})
+    given = {"dark": dark, "linearity": linearity, "geometry": geometry, "rolloff": rolloff, "spectral": spectral,
+             "absolute": absolute, "immersion": immersion, "field": field}
+    paths = {st: {lens: Path(p) for lens, p in dict(given[st] or {}).items()} for st in REPORT_STAGES}
+    inputs = ReportInputs(
+        artefacts={st: {lens: read_artefact(p, st) for lens, p in by_lens.items()} for st, by_lens in paths.items()},
+        paths=paths,
+        missing_effects=read_csv_or_empty(Path(missing_effects)),
+        unexplained=read_csv_or_empty(Path(unexplained)),
+        run_errors=read_csv_or_empty(Path(run_errors)),
+        error_history=read_csv_or_empty(Path(error_history)),
+        skipped={**dict(skipped or {}), **failed}, failed=failed,
+        calibration=read_artefact(calibration, "calibration") if calibration is not None else None,
+        dataset=dict(dataset or {}),
+        settings=dict(settings) if settings is not None else _default_settings())
+    rendered = build_sections(inputs)
+    figures = number_figures(rendered)
+    if figures_dir is not None:
+        write_figures(figures, Path(figures_dir))
+    doc = render_page("Camera calibration report", rendered,
+                      datetime.now(timezone.utc).isoformat(timespec="seconds"), len(figures))
+    out_html.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_html.with_name(f".{out_html.name}.tmp")
+    try:
+        tmp.write_text(doc, encoding="utf-8")
+        os.replace(tmp, out_html)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return out_html

@@ -1,0 +1,55 @@
+"""Everything a report section may read, loaded once: artefacts per stage and lens, diagnostics tables."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pandas as pd
+import xarray as xr
+
+__all__ = ["ReportInputs", "read_csv_or_empty", "input_count"]
+
+
+def read_csv_or_empty(path: Path) -> pd.DataFrame:
+    """A CSV table, or an empty one when the file is absent or empty (a stage that did not run)."""
+    try:
+        return pd.read_csv(path)
+    except (FileNotFoundError, pd.errors.EmptyDataError):
+        return pd.DataFrame()
+
+
+def input_count(ds: xr.Dataset) -> str:
+    """How many input files an artefact was made from (its ``input_sha256`` attribute)."""
+    try:
+        return str(len(json.loads(ds.attrs.get("input_sha256", "{}"))))
+    except (TypeError, ValueError):
+        return "n/a"
+
+
+@dataclass
+class ReportInputs:
+    """The artefacts (``artefacts[stage][lens]``, their ``paths``), diagnostics tables and run facts."""
+
+    artefacts: dict[str, dict[str, xr.Dataset]]
+    paths: dict[str, dict[str, Path]]
+    missing_effects: pd.DataFrame
+    unexplained: pd.DataFrame
+    run_errors: pd.DataFrame
+    error_history: pd.DataFrame
+    skipped: dict[str, str] = field(default_factory=dict)
+    failed: dict[str, str] = field(default_factory=dict)
+    calibration: xr.Dataset | None = None
+    dataset: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
+
+    def stage(self, name: str) -> dict[str, xr.Dataset]:
+        """The artefacts of one stage by lens (empty when the stage did not run)."""
+        return self.artefacts.get(name, {})
+
+    def all_artefacts(self):
+        """(stage, lens, path, dataset) of every artefact, in the order of the chain."""
+        for stage, by_lens in self.artefacts.items():
+            for lens, ds in by_lens.items():
+                yield stage, lens, self.paths[stage][lens], ds

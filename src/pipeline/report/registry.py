@@ -1,0 +1,53 @@
+"""The report's sections, registered by the module that builds each one.
+
+A section module decorates its builder with :func:`section`; :func:`registered_sections` imports every module of
+:mod:`pipeline.report.sections` and returns the sections in page order. A new stage adds its section
+by adding one module there: no list, no dispatch to edit elsewhere.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+from dataclasses import dataclass
+from typing import Callable
+
+__all__ = ["SectionSpec", "section", "registered_sections"]
+
+
+@dataclass(frozen=True)
+class SectionSpec:
+    """One section: its anchor ``id``, its ``title``, its place on the page and its builder.
+
+    ``build(inputs)`` takes the :class:`pipeline.report.inputs.ReportInputs` and returns the
+    section's blocks (:mod:`pipeline.report.content`).
+    """
+
+    id: str
+    title: str
+    order: int
+    build: Callable
+    intro: str = ""
+
+
+_REGISTRY: dict[str, SectionSpec] = {}
+
+
+def section(id: str, title: str, order: int, intro: str = ""):
+    """Register the decorated function as the builder of section ``id``."""
+    def register(build: Callable) -> Callable:
+        if id in _REGISTRY and _REGISTRY[id].build.__module__ != build.__module__:
+            raise ValueError(f"report section {id!r} is registered twice ({_REGISTRY[id].build.__module__}, "
+                             f"{build.__module__})")
+        _REGISTRY[id] = SectionSpec(id, title, order, build, intro)
+        return build
+    return register
+
+
+def registered_sections() -> list[SectionSpec]:
+    """Every registered section, in page order."""
+    from pipeline.report import sections as package
+
+    for info in pkgutil.iter_modules(package.__path__):
+        importlib.import_module(f"{package.__name__}.{info.name}")
+    return sorted(_REGISTRY.values(), key=lambda s: s.order)

@@ -1,0 +1,1 @@
+"""One module per report section; each registers its builder with :func:`pipeline.report.registry.section`."""
