@@ -16,17 +16,37 @@ import pandas as pd
 import xarray as xr
 
 from pipeline.artefact import ARTEFACT_VERSIONS, read_artefact
+import pytest
+
+from report_browser import browse
+from report_browser import (  # noqa: F401  (the browser's tests, collected here on the default run's report)
+    test_each_check_finds_its_fault_on_a_page_made_to_fail, test_every_expected_section_is_present_with_content,
+    test_every_image_is_decoded_and_non_empty, test_no_console_errors_or_failed_requests,
+    test_no_horizontal_overflow_at_1280_px, test_screenshot_is_a_non_blank_png, test_the_browser_leaves_no_process_behind)
 from workflow_runs import LENSES, REPO, SNAKEMAKE, planned_rules, snakemake
 
 
-def test_the_default_tiny_simulation_runs_through_the_whole_workflow(tmp_path):
-    """What `python -m pipeline simulate --scale tiny` writes by default (every experiment,
-    the command line's default seed) calibrates end to end."""
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory):
+    """What `python -m pipeline simulate --scale tiny` writes by default (every experiment, the command line's
+    default seed), run through the workflow once: (work folder, dataset, the run's output)."""
+    tmp_path = tmp_path_factory.mktemp("default-run")
     dataset = tmp_path / "tiny"
     proc = subprocess.run([sys.executable, "-m", "pipeline", "simulate", "--out", str(dataset), "--scale", "tiny",
                            "--no-progress"], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
-    run = snakemake(tmp_path, dataset)
+    return tmp_path, dataset, snakemake(tmp_path, dataset)
+
+
+@pytest.fixture(scope="module")
+def page(default_run, tmp_path_factory):
+    """What headless Chromium saw of the default run's report (tests/report_browser.py)."""
+    return browse(default_run[0] / "results/report/index.html", tmp_path_factory.mktemp("browser"))
+
+
+def test_the_default_tiny_simulation_runs_through_the_whole_workflow(default_run):
+    """What `python -m pipeline simulate --scale tiny` writes by default calibrates end to end."""
+    tmp_path, dataset, run = default_run
     for stage in ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion"):
         for lens in LENSES:
             with xr.open_dataset(tmp_path / f"results/{stage}/{lens}.nc") as ds:

@@ -1,5 +1,5 @@
-"""The HTML report of a tiny workflow run opened in a real browser (headless Chromium over the DevTools
-Protocol, `headless_chromium.py`) at 1280 px width: a screenshot, every image decoded, no console
+"""The HTML report opened in a real browser (headless Chromium over the DevTools Protocol,
+`headless_chromium.py`) at 1280 px width: a screenshot, every image decoded, no console
 error or failed request, every section present with content, no horizontal overflow.
 
 Chromium comes from Debian's packages (`scripts/install_browser.sh`, which `.ci/run` calls); the tests
@@ -7,6 +7,9 @@ are skipped, with one line saying so, only when no Chromium is found. Sections a
 `<h2>` titles (the enclosing `<section>` when it holds that title only, else the elements up to the
 next `<h2>`), images by `<img>`, so the checks do not depend on how the report is written. The list of
 titles is EXPECTED_SECTIONS below.
+
+The tests are collected in test_workflow_default.py, on the report of its default tiny run (every stage
+and the field hour), so that no workflow runs for them alone.
 """
 
 from __future__ import annotations
@@ -14,7 +17,6 @@ from __future__ import annotations
 import io
 import os
 import re
-import shutil
 import uuid
 
 import numpy as np
@@ -22,10 +24,9 @@ import pytest
 from matplotlib import image as mpimg
 
 from headless_chromium import Chromium, find_chromium
-from workflow_runs import snakemake
 
 # The report's section titles, as its <h2> elements say them (a leading "N." numbering is ignored).
-# The dark and linearity run below shows every one: a stage that did not run keeps its section, which says so.
+# The default tiny run (every experiment) shows every one.
 EXPECTED_SECTIONS = (
     "Summary",
     "Dark frames",
@@ -35,9 +36,9 @@ EXPECTED_SECTIONS = (
     "Relative spectral response",
     "Absolute spectral radiance",
     "Immersion factor",
+    "Noise floor and limit of detection",
     "Field match-up",
-    "Diagnostics",
-    "Stages not run",
+    "Diagnostics: where the model fails",
     "Provenance",
 )
 WIDTH_PX, HEIGHT_PX = 1280, 800
@@ -87,18 +88,6 @@ WIDTH_JS = r"""
 
 def _title(text: str) -> str:
     return re.sub(r"^\d+(\.\d+)*\.?\s+", "", text).strip()
-
-
-@pytest.fixture(scope="module")
-def report_html(make_dataset, tmp_path_factory):
-    """`results/report/index.html` of the cheapest real workflow run: the tiny dark and linearity
-    experiments (the session's dataset of `test_workflow.py`, reused when on the same worker)."""
-    src, _ = make_dataset([("dark_current", {}), ("shutter_offset", {})], seed=31)
-    dataset = tmp_path_factory.mktemp("browser-data") / "dataset"
-    shutil.copytree(src, dataset)
-    workdir = tmp_path_factory.mktemp("browser-work")
-    snakemake(workdir, dataset)
-    return workdir / "results/report/index.html"
 
 
 # A page with one fault of each kind the checks look for, visited by the same browser after the report: each
@@ -156,16 +145,14 @@ def _overflow(seen: dict) -> str | None:
     return f"page {width['scroll_width']} px wide in a {width['client_width']} px viewport: {width['widest']}"
 
 
-@pytest.fixture(scope="module")
-def page(request, tmp_path_factory):
-    """What the browser saw of the report and of the page of faults, in one browser (closed after)."""
+def browse(html, out) -> dict:
+    """What the browser saw of the report ``html`` and of the page of faults, in one browser (closed after);
+    the test is skipped, with one line saying why, when no Chromium is found."""
     executable = find_chromium()
     if executable is None:
         where = (f"CHROMIUM={os.environ['CHROMIUM']} is not an executable" if os.environ.get("CHROMIUM")
                  else "no Chromium on the PATH")
         pytest.skip(f"{where}: run scripts/install_browser.sh (as .ci/run does) or set CHROMIUM to one")
-    html = request.getfixturevalue("report_html")
-    out = tmp_path_factory.mktemp("browser")
     broken = out / "faults.html"
     broken.write_text(BROKEN_PAGE, encoding="utf-8")
     browser = Chromium(executable, out / f"profile-{uuid.uuid4().hex}", WIDTH_PX, HEIGHT_PX, timeout_s=120.0)
@@ -208,9 +195,6 @@ def test_every_expected_section_is_present_with_content(page):
     assert not problems, "\n".join(problems)
 
 
-@pytest.mark.xfail(strict=True, reason="today's report overflows 1280 px: the Provenance section's table of "
-                   "artefacts (a full 64-character config sha256 in each row, which cannot wrap) is 1292 px wide, "
-                   "the page 1382 px (dark and linearity run)")
 def test_no_horizontal_overflow_at_1280_px(page):
     assert page["width"]["inner_width"] == WIDTH_PX
     overflow = _overflow(page)
