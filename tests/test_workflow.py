@@ -11,6 +11,7 @@ import json
 import re
 import shutil
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -209,6 +210,49 @@ def test_editing_the_chessboard_reruns_nothing_without_geometry(run):
         assert planned_rules(workdir, dataset) == set()
     finally:
         meta_path.write_text(original)
+
+
+def test_closure_table_and_diagnose(run, make_dataset):
+    """results/closure/residuals.nc holds every measurement with its prediction, residual, noise and
+    covariates (CF units), and `diagnose` reads the files the run wrote and names the hidden shutter offset.
+
+    Against the simulator: every dark frame is there (65 frames x 2 lenses x 3 bands, counted from the
+    dataset's frames.csv); the dark model is complete (dark_current and hot_pixels are in it), so each dark
+    table's chi2 lies within 4 standard deviations sqrt(2 dof) of its dof; the linearity setting residuals
+    lean as a shutter offset of the truth's sign does (the shortest exposures of each exposure sweep
+    above the longest, by over 3 standard errors of the difference of means); and the interval `diagnose`
+    prints for the offset holds the truth. CPU about 3 s (reads files, one command)."""
+    workdir, dataset = run
+    _, truth = make_dataset([("dark_current", {}), ("shutter_offset", {})], seed=31)
+    with xr.open_dataset(workdir / "results/closure/residuals.nc") as ds:
+        assert ds.attrs["artefact"] == "closure" and int(ds.attrs["artefact_version"]) == ARTEFACT_VERSIONS["closure"]
+        for name, var in ds.data_vars.items():
+            assert var.attrs.get("long_name"), name
+            if var.dtype.kind == "f" and name not in ("value", "prediction", "residual", "sigma"):
+                assert var.attrs.get("units"), name
+        table = ds.to_dataframe()
+    n_dark_frames = len(pd.read_csv(dataset / "dark/frames.csv"))
+    dark_frames = table[(table["experiment"] == "dark") & (table["level"] == "frame")]
+    assert len(dark_frames) == n_dark_frames * len(LENSES) * 3
+    tests = pd.read_csv(workdir / "results/diagnostics/residual_tests.csv")
+    for _, t in tests[tests["experiment"] == "dark"].iterrows():
+        chi2 = float((table.loc[(table["experiment"] == "dark") & (table["level"] == t["level"]), "z"] ** 2).sum())
+        assert abs(chi2 - t["dof"]) < 4 * np.sqrt(2 * t["dof"]), (t["level"], chi2, t["dof"])
+    lin = table[(table["experiment"] == "linearity") & (table["level"] == "setting") & (table["sweep"] == "exposure")]
+    short = lin[lin["exposure_s"] == lin["exposure_s"].min()]["z"]
+    long = lin[lin["exposure_s"] == lin["exposure_s"].max()]["z"]
+    offset = truth["effects"]["shutter_offset"]["offset_s"]
+    lean = short.mean() - long.mean()
+    assert np.sign(lean) == np.sign(offset) and abs(lean) > 3 * np.sqrt(1 / len(short) + 1 / len(long)), lean
+
+    proc = subprocess.run([sys.executable, "-m", "pipeline", "diagnose", "--results", str(workdir / "results"),
+                           "--explain", "shutter_offset"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    finding = [line for line in proc.stdout.splitlines() if "as a shutter_offset of" in line]
+    assert len(finding) == 1 and "add `shutter_offset` to model.effects" in finding[0], proc.stdout
+    low, high = (float(v) for v in re.search(r"95 % interval (\S+) s to (\S+) s", finding[0]).groups())
+    assert low <= offset <= high, (low, offset, high)
+    assert "shutter_offset: true exposure = nominal + constant" in proc.stdout
 
 
 def test_adding_the_missing_effect_lowers_the_error(run):

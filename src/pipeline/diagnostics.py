@@ -54,6 +54,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import xarray as xr
 from scipy import stats
 
 from pipeline.effects import available, load_plugins
@@ -61,6 +62,7 @@ from pipeline.effects import get as get_effect
 from pipeline.fitting import base_design, cluster_robust_cov, wls
 from pipeline.observations import dataset_to_table
 from pipeline.residual_structure import (
+    covariates_of,
     describe_image_plane,
     image_plane_pattern,
     residual_chi2_test,
@@ -72,6 +74,8 @@ class Observations:
     experiment: str
     level: str
     table: pd.DataFrame
+    #: units of ``value_dn`` (and its prediction and sigma) as the artefact states them, or None
+    value_units: str | None = None
 
 
 def observations_from_artefacts(artefacts: dict[str, list]) -> list[Observations]:
@@ -90,7 +94,10 @@ def observations_from_artefacts(artefacts: dict[str, list]) -> list[Observations
                 continue        # a descriptive table (e.g. the geometry frame list), not residuals
             if "used" in table:
                 table = table[table["used"].astype(int) == 1].reset_index(drop=True)
-            out.append(Observations(experiment, level, table))
+            units = {ds[f"obs_{level}__value_dn"].attrs.get("units") for ds in datasets
+                     if f"obs_{level}__value_dn" in ds}
+            units.discard(None)
+            out.append(Observations(experiment, level, table, units.pop() if len(units) == 1 else None))
     return out
 
 
@@ -424,11 +431,99 @@ def _write_csv_atomic(table: pd.DataFrame, path: Path) -> None:
     tmp.replace(path)
 
 
+#: units of a table's value where the stage's observation is not a signal in DN and its artefact does not
+#: state them: the flat field's spatial variance, the roll-off normalised by its on-axis fit, the immersion
+#: stage's mean ln DN
+VALUE_UNITS = {("linearity", "flat"): "DN2", ("rolloff", "setting"): "1", ("rolloff", "water"): "1",
+               ("immersion", "height"): "1"}
+#: covariates of the closure table and their units (NaN, or '' for text, where a table lacks one)
+CLOSURE_COVARIATES = {"exposure_s": "s", "iso": "1", "gain": "1", "temperature_c": "degree_Celsius",
+                      "file_index": "1", "setting": "1", "frame": "1", "frame_in_setting": "1", "time_s": "s",
+                      "theta_deg": "degree", "phi_deg": "degree", "azimuth_deg": "degree", "angle_deg": "degree",
+                      "spot_x_px": "pixel", "spot_y_px": "pixel", "water_height_cm": "cm",
+                      "wavelength_nm": "nm"}
+CLOSURE_TEXT = ("lens", "band", "sweep", "medium", "kind")
+
+
+def closure_table(observations: list[Observations], model_effects: list[str], config: dict) -> xr.Dataset:
+    """Every measurement of every experiment with the model's prediction, residual, expected noise and
+    covariates: one row per row of each observation table (the rows its fits use), along ``measurement``.
+
+    The prediction is the fit of the model (base columns plus the model's effect columns) that
+    ``run_errors.csv`` and ``residual_tests.csv`` are computed from, so that sum(z^2) over one
+    experiment and level is that table's chi2; ``block`` names the rows that share a frame or setting.
+    """
+    cfg = config["diagnostics"]
+    parts = []
+    for obs in observations:
+        t = obs.table
+        fit = _fit(obs, model_design(obs, model_effects))
+        blocks, block_key = blocks_of(t, cfg["block_keys"])
+        covs = covariates_of(t)
+        part = pd.DataFrame({
+            "experiment": obs.experiment, "level": obs.level,
+            "value_units": obs.value_units or VALUE_UNITS.get((obs.experiment, obs.level), "DN"),
+            "group": t["group"].astype(str).to_numpy(),
+            "block": [f"{block_key}={b}" for b in blocks],
+            "value": t["value_dn"].to_numpy(float), "prediction": fit.pred,
+            "residual": t["value_dn"].to_numpy(float) - fit.pred, "sigma": t["sigma_dn"].to_numpy(float),
+            "z": fit.z})
+        for name in CLOSURE_TEXT:
+            part[name] = t[name].astype(str).to_numpy() if name in t else ""
+        for name in CLOSURE_COVARIATES:
+            source = covs[name] if name in covs else (t[name] if name in t else None)
+            part[name] = pd.to_numeric(source, errors="coerce").to_numpy(float) if source is not None else np.nan
+        parts.append(part)
+    columns = ["experiment", "level", "value_units", "group", "block", "value", "prediction", "residual", "sigma",
+               "z", *CLOSURE_TEXT, *CLOSURE_COVARIATES]
+    table = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=columns)
+    table = table[columns]
+    described = {
+        "experiment": ("experiment (stage) of the measurement", None),
+        "level": ("level of the measurement: frame, setting, flat, water, height...", None),
+        "value_units": ("units of value, prediction, residual and sigma on this row", None),
+        "group": ("block of the stage's base model (lens, band, sweep, setting...)", None),
+        "block": ("rows sharing a raw frame or setting (diagnostics.block_keys)", None),
+        "value": ("measured value (units in value_units)", None),
+        "prediction": ("the model's prediction of value (model.effects)", None),
+        "residual": ("value minus prediction (units in value_units)", None),
+        "sigma": ("expected noise of value (shot, read, quantisation, reference...; units in value_units)", None),
+        "z": ("noise-normalised residual of the weighted fit", "1"),
+    }
+    data = {}
+    for name in columns:
+        values = table[name].to_numpy()
+        if name in described or name in CLOSURE_TEXT:
+            long_name, units = described.get(name, (f"covariate: {name}", None))
+        else:
+            long_name, units = f"covariate: {name} (NaN where the experiment has none)", CLOSURE_COVARIATES[name]
+        attrs = {"long_name": long_name}
+        if units:
+            attrs["units"] = units
+        if values.dtype == object:
+            values = values.astype(str)
+        data[name] = ("measurement", values, attrs)
+    return xr.Dataset(data, attrs={
+        "title": "closure table: every measurement of every experiment with the model's prediction",
+        "model_effects": " ".join(model_effects)})
+
+
+def write_closure_table(observations: list[Observations], model_effects: list[str], config: dict, path,
+                        inputs: dict[str, str]) -> Path:
+    """:func:`closure_table` written as the versioned ``closure`` artefact (``results/closure/residuals.nc``)."""
+    from pipeline.artefact import write_artefact
+
+    return write_artefact(closure_table(observations, model_effects, config), path, stage="closure",
+                          inputs=inputs, config_subset={k: config[k] for k in ("model", "diagnostics")},
+                          effects=model_effects)
+
+
 def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, missing_csv, unexplained_csv,
-                       errors_csv, ledger_dir, history_csv, residual_tests_csv=None) -> pd.DataFrame:
+                       errors_csv, ledger_dir, history_csv, residual_tests_csv=None, closure_nc=None) -> pd.DataFrame:
     """Rank missing effects over the stages' artefacts, test every table's residuals, write this run's figures
-    and the error history; ``residual_tests_csv`` defaults to ``residual_tests.csv`` beside ``unexplained_csv``."""
-    from pipeline.artefact import read_artefact
+    and the error history; ``residual_tests_csv`` defaults to ``residual_tests.csv`` beside ``unexplained_csv``;
+    the closure table is written to ``closure_nc`` when given."""
+    from pipeline.artefact import read_artefact, sha256_file
 
     load_plugins(config["model"].get("plugins", []))
     effects = list(config["model"]["effects"])
@@ -440,4 +535,7 @@ def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, mis
     for path, table in ((missing_csv, ranked), (unexplained_csv, unexplained), (errors_csv, figures),
                         (residual_tests_csv, tests)):
         _write_csv_atomic(table, Path(path))
+    if closure_nc is not None:
+        inputs = {f"{exp}/{Path(p).name}": sha256_file(p) for exp, paths in artefacts.items() for p in paths}
+        write_closure_table(obs, effects, config, closure_nc, inputs)
     return record_error_history(ledger_dir, figures, effects, history_csv)

@@ -12,6 +12,8 @@ rule diagnostics:
         residual_tests="results/diagnostics/residual_tests.csv",
         # rebuilt at every run from the append-only ledger folder (one file per run, never rewritten)
         error_history="results/diagnostics/error_history.csv",
+        # every measurement of every experiment: prediction, residual, expected noise, covariates
+        closure="results/closure/residuals.nc",
     log:
         "results/logs/diagnostics.log",
     benchmark:
