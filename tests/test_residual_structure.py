@@ -104,7 +104,7 @@ def plugin_module(tmp_path, monkeypatch):
 
 def test_an_effect_outside_the_catalogue_is_located_then_added_through_a_plugin(make_dataset, config, tmp_path,
                                                                                 plugin_module):
-    """CPU about 10 s (one tiny dark + linearity dataset, reduced once, diagnosed twice)."""
+    """CPU about 6 s with the tiny dark + linearity simulation (reduced once, diagnosed twice)."""
     src, _ = make_dataset([], seed=201)
     root = tmp_path / "dataset"
     shutil.copytree(src, root)

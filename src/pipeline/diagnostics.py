@@ -43,6 +43,12 @@ amplitude interval uses the robust covariance, with the t(G - 1) quantile,
 when it is the wider. Forward selection, evidence and explained fraction
 still use the drop in chi-square, for ranking only.
 
+Then every table (experiment and level) has its residual chi-square tested against its degrees of
+freedom, after the accepted candidates (:func:`residual_tests`, :mod:`pipeline.residual_structure`):
+structure left there is reported where it sits, beside the candidate that explains part of it if any.
+:func:`closure_table` gathers every measurement with its prediction, residual, noise and covariates
+(``results/closure/residuals.nc``).
+
 Nothing here reads a simulator's truth: only the stage artefacts.
 """
 
@@ -68,6 +74,7 @@ from pipeline.residual_structure import (
     residual_chi2_test,
     where_structure_sits,
 )
+
 
 @dataclass
 class Observations:
