@@ -203,3 +203,12 @@ def test_unlit_signal_frame_stops_the_linearity_stage(clean, tmp_path, config):
     message = str(err.value)
     assert message.startswith(f"{victim}: signal frame is dark: its far-lens mask is ") and "\n" not in message
     assert not (out / "linearity").exists() or not list((out / "linearity").iterdir())
+
+
+def test_diagnose_without_a_run_names_the_missing_file(tmp_path, capsys):
+    """`diagnose` on a folder the workflow never wrote: exit 1 and one line naming the first missing file."""
+    assert main(["diagnose", "--results", str(tmp_path)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"error: {tmp_path / 'diagnostics/missing_effects.csv'}: not found: run the workflow first "
+                   "(snakemake --cores 2), whose diagnostics rule writes it, or give the results folder with "
+                   "--results DIR"], err

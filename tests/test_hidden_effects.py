@@ -41,6 +41,7 @@ def analyse(root, config, model):
     lin = analyse_linearity(reduce_linearity(ds, dark, config, model), dark, config, model)
     obs = observations_from_artefacts({"dark": list(dark.values()), "linearity": list(lin.values())})
     ranked, unexplained = rank_missing_effects(obs, model, config)
+    analyse.unexplained = unexplained
     return dark, lin, ranked, error_figures(obs, model)
 
 
@@ -61,6 +62,8 @@ def test_hidden_effect_found_and_fixed(effect, make_dataset, config):
     dark, lin, ranked_after, figures_after = analyse(root, config, [effect])
     assert (figures_after["rms_z"].to_numpy() < noise_floor(figures_after)).all(), figures_after
     assert not ranked_after["significant"].any(), ranked_after.head(3).to_string()
+    # nor any table's residual chi-square beyond its dof (per experiment and level)
+    assert not len(analyse.unexplained), analyse.unexplained["message"].tolist()
 
     check_parameter(effect, truth, dark, lin)
 
@@ -110,3 +113,5 @@ def test_clean_data_comes_out_clean(seed, make_dataset, config):
     _, _, ranked, figures = analyse(root, config, [])
     assert not ranked["significant"].any(), ranked.head(3).to_string()
     assert (figures["rms_z"].to_numpy() < noise_floor(figures)).all()
+    # the residual chi-square of every table within its dof (family-wise level diagnostics.structure_level)
+    assert not len(analyse.unexplained), analyse.unexplained["message"].tolist()

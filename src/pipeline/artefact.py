@@ -43,9 +43,10 @@ from pipeline.errors import ArtefactError
 #: the dark and linearity of these versions; rolloff 2: the in-water closure predicts each water point from
 #: the air fit and the immersion physics (``obs_water`` gains ``theta_air_deg``, ``theta_air_sigma_deg``,
 #: ``deg_per_px_air``, ``water_factor``, ``air_prediction_sigma``; ``water_compression`` gives way to
-#: ``water_closure_scale`` and its sigma).
+#: ``water_closure_scale`` and its sigma); closure 1: the diagnostics' closure table
+#: (``results/closure/residuals.nc``, one row per measurement of every experiment, pipeline.diagnostics).
 ARTEFACT_VERSIONS = {"dark": 2, "linearity": 4, "geometry": 2, "rolloff": 2, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 6, "field": 2}
+                     "absolute": 3, "immersion": 2, "calibration": 6, "field": 2, "closure": 1}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -1,4 +1,5 @@
-"""Command line: ``python -m pipeline COMMAND`` (init-dataset, validate, simulate, apply, publish, verify-store).
+"""Command line: ``python -m pipeline COMMAND`` (init-dataset, validate, simulate, apply, publish, verify-store,
+diagnose).
 
 It only parses arguments and calls the package; the workflow itself runs with
 ``snakemake``.
@@ -23,9 +24,9 @@ HELP_COLUMN = 28
 DESCRIPTION = """\
 Calibrate a RAW camera as a radiometer. These commands lay out a lab's raw
 files as a calibration dataset (../shared/DATASET.md), check it, simulate one,
-turn raw frames into radiance with a calibration bundle, or publish bundles
-into an append-only calibration store; the calibration itself runs with
-snakemake."""
+turn raw frames into radiance with a calibration bundle, publish bundles
+into an append-only calibration store, or say what a run's diagnostics found;
+the calibration itself runs with snakemake."""
 
 EXAMPLES = f"""\
 examples:
@@ -36,6 +37,7 @@ examples:
   python -m pipeline publish results/calibration/SIM-0001.nc --dataset /data/calib2024 --store /archive/calibrations
   python -m pipeline apply --store /archive/calibrations sky.dng -o sky.nc
   python -m pipeline simulate --out data/sim-tiny --scale tiny --seed 1
+  python -m pipeline diagnose --results results --explain shutter_offset
 
 exit codes:
   {EXIT_OK}    ok
@@ -85,6 +87,15 @@ examples:
   python -m pipeline publish results/calibration/SIM-0001.nc --dataset /data/calib2024
   python -m pipeline publish results/calibration/SIM-0001.nc --valid-from 2024-05-01 --store /archive/calibrations
   python -m pipeline verify-store /archive/calibrations"""
+
+
+DIAGNOSE_EXAMPLES = """\
+Reads what the workflow's diagnostics rule wrote (RESULTS/diagnostics/*.csv and the closure
+table RESULTS/closure/residuals.nc) and recomputes nothing: run the workflow first.
+
+examples:
+  python -m pipeline diagnose
+  python -m pipeline diagnose --results /scratch/run1/results --explain dark_current"""
 
 
 def simulate_from_config(out, simulation: dict) -> None:
@@ -178,6 +189,15 @@ def build_parser() -> argparse.ArgumentParser:
     start.add_argument("--dataset", metavar="DATASET",
                        help="the dataset the bundle was made from: valid from its latest lab frame's DateTimeOriginal")
     start.add_argument("--valid-from", metavar="DATE", help="validity start on the camera clock (2024-05-01 or 2024-05-01T08:30:00)")
+    diag = sub.add_parser("diagnose", help="what the diagnostics found, a plain sentence per finding",
+                          description="Print the error per experiment and level and, per finding, the missing "
+                                      "effect (its signature, amplitude and the config line that adds it) or the "
+                                      "structure no candidate explains (where it sits).",
+                          epilog=DIAGNOSE_EXAMPLES, formatter_class=fmt)
+    diag.add_argument("--results", metavar="DIR", default="results",
+                      help="the workflow's results folder (default: results)")
+    diag.add_argument("--explain", metavar="EFFECT", default=None,
+                      help="also explain one effect: physics, signature, how it fared in this run")
     ver = sub.add_parser("verify-store", help="check every file of a calibration store against its index",
                          description="List every published file that is missing or changed (sha256) and every "
                                      "file the index does not list; exit 1 if any.", formatter_class=fmt)
@@ -268,7 +288,18 @@ def _verify_store(args) -> int:
     return EXIT_OK
 
 
-COMMANDS = {"init-dataset": _init_dataset, "validate": _validate, "simulate": _simulate, "apply": _apply,
+def _diagnose(args) -> int:
+    from pipeline.diagnosis import diagnosis_lines, explain_lines, read_diagnostics
+
+    found = read_diagnostics(args.results)
+    lines = diagnosis_lines(found, args.results)
+    if args.explain:
+        lines += ["", *explain_lines(found, args.explain)]
+    print("\n".join(lines))
+    return EXIT_OK
+
+
+COMMANDS = {"diagnose": _diagnose, "init-dataset": _init_dataset, "validate": _validate, "simulate": _simulate, "apply": _apply,
             "publish": _publish, "verify-store": _verify_store}
 
 

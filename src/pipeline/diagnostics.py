@@ -43,6 +43,12 @@ amplitude interval uses the robust covariance, with the t(G - 1) quantile,
 when it is the wider. Forward selection, evidence and explained fraction
 still use the drop in chi-square, for ranking only.
 
+Then every table (experiment and level) has its residual chi-square tested against its degrees of
+freedom, after the accepted candidates (:func:`residual_tests`, :mod:`pipeline.residual_structure`):
+structure left there is reported where it sits, beside the candidate that explains part of it if any.
+:func:`closure_table` gathers every measurement with its prediction, residual, noise and covariates
+(``results/closure/residuals.nc``).
+
 Nothing here reads a simulator's truth: only the stage artefacts.
 """
 
@@ -54,18 +60,20 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import xarray as xr
 from scipy import stats
 
 from pipeline.effects import available, load_plugins
 from pipeline.effects import get as get_effect
 from pipeline.fitting import base_design, cluster_robust_cov, wls
 from pipeline.observations import dataset_to_table
-
-#: covariates scanned to say where unexplained structure sits
-COVARIATES = ("exposure_s", "gain", "lens", "band", "sweep", "temperature_c", "frame", "time_s")
-#: a numeric covariate with more distinct values is also scanned in this many quantile bins (a step or a bend
-#: that a straight line misses)
-COVARIATE_BINS = 6
+from pipeline.residual_structure import (
+    covariates_of,
+    describe_image_plane,
+    image_plane_pattern,
+    residual_chi2_test,
+    where_structure_sits,
+)
 
 
 @dataclass
@@ -73,6 +81,8 @@ class Observations:
     experiment: str
     level: str
     table: pd.DataFrame
+    #: units of ``value_dn`` (and its prediction and sigma) as the artefact states them, or None
+    value_units: str | None = None
 
 
 def observations_from_artefacts(artefacts: dict[str, list]) -> list[Observations]:
@@ -91,7 +101,10 @@ def observations_from_artefacts(artefacts: dict[str, list]) -> list[Observations
                 continue        # a descriptive table (e.g. the geometry frame list), not residuals
             if "used" in table:
                 table = table[table["used"].astype(int) == 1].reset_index(drop=True)
-            out.append(Observations(experiment, level, table))
+            units = {ds[f"obs_{level}__value_dn"].attrs.get("units") for ds in datasets
+                     if f"obs_{level}__value_dn" in ds}
+            units.discard(None)
+            out.append(Observations(experiment, level, table, units.pop() if len(units) == 1 else None))
     return out
 
 
@@ -241,14 +254,17 @@ def _designs(observations: list[Observations], model_effects: list[str], selecte
 
 
 def rank_missing_effects(observations: list[Observations], model_effects: list[str],
-                         config: dict) -> tuple[pd.DataFrame, pd.DataFrame]:
+                         config: dict, *, with_tests: bool = False) -> tuple[pd.DataFrame, ...]:
     """Rank the effects missing from the model; also report unexplained structure.
 
     Forward selection: the candidate with the most evidence is ranked first; if
     it is significant, it is added to the model and the remaining candidates
     are tested again given it, so that one missing effect does not make its
     look-alikes significant too. ``conditional_on`` lists the effects already
-    accepted when a row was tested. Returns (missing_effects, unexplained).
+    accepted when a row was tested. Then every table's residuals are tested against their degrees of
+    freedom, after the accepted candidates (:func:`residual_tests`); a candidate that leaves significant
+    structure gets a note saying so. Returns (missing_effects, unexplained), and the residual tests third
+    when ``with_tests``.
     """
     cfg = config["diagnostics"]
     candidates = [name for name in available() if name not in model_effects]
@@ -286,78 +302,102 @@ def rank_missing_effects(observations: list[Observations], model_effects: list[s
                 names = f"{first_round[0]['effect']} and {first_round[1]['effect']}"
                 table.loc[table["effect"].isin([first_round[0]["effect"], first_round[1]["effect"]]), "note"] = (
                     f"{names} explain the residuals equally well; this dataset cannot tell them apart")
-    unexplained = _unexplained(observations, model_effects, table, cfg)
-    return table, unexplained
+    tests = residual_tests(observations, model_effects, table, cfg)
+    _note_remaining_structure(table, tests)
+    if with_tests:
+        return table, unexplained_structure(tests), tests
+    return table, unexplained_structure(tests)
 
 
-def _unexplained(observations, model_effects, ranked: pd.DataFrame, cfg) -> pd.DataFrame:
-    """Experiments whose residuals stay structured with no significant candidate explaining them."""
-    figures = error_figures(observations, model_effects)
+def accepted_effects(ranked: pd.DataFrame) -> list[str]:
+    """The candidates forward selection accepted, in order: the ranked rows up to the first not significant."""
+    out = []
+    for _, row in ranked.sort_values("rank").iterrows() if len(ranked) else ():
+        if not bool(row["significant"]):
+            break
+        out.append(str(row["effect"]))
+    return out
+
+
+def residual_tests(observations: list[Observations], model_effects: list[str], ranked: pd.DataFrame,
+                   cfg: dict) -> pd.DataFrame:
+    """Per experiment and level, the residual chi-square against its dof (:mod:`pipeline.residual_structure`),
+    for the model and for the model plus the candidates the ranking accepted; where structure remains,
+    the covariate and image-plane cell it follows. One row per table (columns: :data:`RESIDUAL_TEST_COLUMNS`)."""
+    accepted = accepted_effects(ranked)
+    before = _designs(observations, model_effects, [])
+    after = _designs(observations, model_effects, accepted)
+    n_tables = max(len(observations), 1)
+    level = cfg["structure_level"] / n_tables
     rows = []
-    for _, row in figures.iterrows():
-        if row["rms_z"] <= cfg["structured_rms_z"]:
-            continue
-        exp = row["experiment"]
-        if len(ranked):
-            here = ranked[ranked["experiment"].str.contains(exp) & ranked["significant"]]
-            if len(here) and here["explained_fraction"].max() >= cfg["min_explained_fraction"]:
-                continue
-        where, strength = _where(observations, exp, model_effects)
-        rows.append({"experiment": exp, "rms_z": row["rms_z"], "covariate": where,
-                     "association": strength,
-                     "message": f"{exp}: residuals are structured (rms_z {row['rms_z']:.2f}) and no candidate "
-                                f"effect explains them; they follow {where} most closely"})
-    return pd.DataFrame(rows, columns=["experiment", "rms_z", "covariate", "association", "message"])
-
-
-def _grouping_test(z: np.ndarray, groups: np.ndarray) -> tuple[float, float]:
-    """F-test p-value of group means of the residuals, and the share of their variance they explain.
-
-    The share is adjusted for the number of groups, 1 - (1 - eta^2)(n - 1)/(n - k), so that noise scores
-    0 on average (eta^2 = SS_between / SS_total would credit k groups with (k - 1)/(n - 1) of noise).
-    """
-    n, k = len(z), len(np.unique(groups))
-    if n - k < 1 or k < 2:
-        return 1.0, 0.0
-    total = float(np.sum((z - z.mean()) ** 2)) or 1.0
-    means = pd.Series(z).groupby(groups).transform("mean").to_numpy()
-    between = float(np.sum((means - z.mean()) ** 2))
-    within = max(total - between, 1e-300)
-    p = float(stats.f.sf((between / (k - 1)) / (within / (n - k)), k - 1, n - k))
-    return p, max(0.0, 1.0 - (1.0 - between / total) * (n - 1) / (n - k))
-
-
-def _where(observations, experiment, model_effects) -> tuple[str, float]:
-    """The covariate whose grouping of the residuals is most significant (F test), with the variance share it explains.
-
-    A numeric covariate with many values is tested as a straight line and in quantile bins (a step or a
-    bend), a categorical one by its levels; the most significant wins, so that many small groups (one per
-    frame) do not outscore a physical covariate with few bins that explains the same structure.
-    """
-    best, best_p, best_val = "no single covariate", 1.0, 0.0
     for obs in observations:
-        if obs.experiment != experiment:
+        key = (obs.experiment, obs.level)
+        sigma = obs.table["sigma_dn"].to_numpy(float)
+        blocks, block_key = blocks_of(obs.table, cfg["block_keys"])
+        X0, fit0 = before[key]
+        X1, fit1 = after[key]
+        t0 = residual_chi2_test(fit0.z, X0, sigma, blocks, fit0.dof)
+        t1 = residual_chi2_test(fit1.z, X1, sigma, blocks, fit1.dof)
+        here = [e for e in accepted if get_effect(e).columns(obs.experiment, obs.level, obs.table) is not None]
+        covariate, p_cov, share, n_cov = where_structure_sits(obs.table, fit1.z, cfg["covariate_bins"])
+        significant = bool(t1.p_value < level)
+        if here:        # beside a candidate: the excess must also follow a covariate (residual_structure)
+            significant = significant and p_cov < level / max(n_cov, 1)
+        pattern = image_plane_pattern(obs.table, fit1.z, cfg["image_plane_cells"])
+        rows.append({
+            "experiment": obs.experiment, "level": obs.level, "n_obs": t1.n_obs,
+            "chi2": t1.chi2, "dof": t1.dof, "rms_z": t1.rms_z, "p_chi2": t1.p_chi2, "p_block": t1.p_block,
+            "n_blocks": t1.n_blocks, "block_key": block_key, "p_value": t1.p_value,
+            "significant": significant, "accounted_by": " ".join(here),
+            "chi2_model": t0.chi2, "p_value_model": t0.p_value,
+            "covariate": covariate, "covariate_p_value": p_cov, "association": share,
+            "image_plane": describe_image_plane(pattern),
+            "image_plane_p_value": pattern["p_value"] if pattern else float("nan"),
+        })
+    return pd.DataFrame(rows, columns=list(RESIDUAL_TEST_COLUMNS))
+
+
+#: columns of ``residual_tests.csv``, one row per experiment and level (README, "Diagnostics")
+RESIDUAL_TEST_COLUMNS = ("experiment", "level", "n_obs", "chi2", "dof", "rms_z", "p_chi2", "p_block", "n_blocks",
+                         "block_key", "p_value", "significant", "accounted_by", "chi2_model", "p_value_model",
+                         "covariate", "covariate_p_value", "association", "image_plane", "image_plane_p_value")
+#: columns of ``unexplained.csv``: the tables whose residuals stay significantly structured
+UNEXPLAINED_COLUMNS = ("experiment", "level", "rms_z", "chi2", "dof", "p_value", "accounted_by", "covariate",
+                       "association", "image_plane", "message")
+
+
+def unexplained_structure(tests: pd.DataFrame) -> pd.DataFrame:
+    """The tables whose residuals stay significant after the accepted candidates, with a sentence each:
+    beside the candidate when one was accepted there (it explains part, not all), alone otherwise."""
+    rows = []
+    for _, t in tests[tests["significant"].astype(bool)].iterrows():
+        where = f"they follow {t['covariate']} most closely"
+        if t["image_plane"]:
+            where += f"; on the image plane they depart most at {t['image_plane']}"
+        stat = f"chi2 {t['chi2']:.1f} for {int(t['dof'])} dof, p {t['p_value']:.2g}"
+        if t["accounted_by"]:
+            message = (f"{t['experiment']} ({t['level']} level): significant structure remains beside "
+                       f"{t['accounted_by']} ({stat}); {t['accounted_by']} explains part of it, not all; {where}")
+        else:
+            message = (f"{t['experiment']} ({t['level']} level): the residuals are structured ({stat}) and no "
+                       f"candidate effect explains them; {where}")
+        rows.append({**{k: t[k] for k in UNEXPLAINED_COLUMNS if k in t}, "message": message})
+    return pd.DataFrame(rows, columns=list(UNEXPLAINED_COLUMNS))
+
+
+def _note_remaining_structure(ranked: pd.DataFrame, tests: pd.DataFrame) -> None:
+    """Beside each accepted candidate, the tables where significant structure remains after it."""
+    if not len(ranked):
+        return
+    for i, row in ranked.iterrows():
+        if not bool(row["significant"]):
             continue
-        z = _fit(obs, model_design(obs, model_effects)).z
-        for cov in COVARIATES:
-            if cov not in obs.table:
-                continue
-            values = obs.table[cov]
-            tests = []
-            if values.dtype.kind in "fi" and values.nunique() > COVARIATE_BINS:
-                x = values.to_numpy(float)
-                r = np.corrcoef(x, z)[0, 1]
-                n = len(z)
-                if np.isfinite(r) and n > 2:
-                    t = r * np.sqrt((n - 2) / max(1.0 - r**2, 1e-300))
-                    tests.append((float(2 * stats.t.sf(abs(t), n - 2)), max(0.0, 1.0 - (1.0 - r**2) * (n - 1) / (n - 2))))
-                tests.append(_grouping_test(z, np.asarray(pd.qcut(x, COVARIATE_BINS, labels=False, duplicates="drop"))))
-            else:
-                tests.append(_grouping_test(z, values.astype(str).to_numpy()))
-            p, val = min(tests)
-            if p < best_p:
-                best, best_p, best_val = f"{cov} ({obs.level} level)", p, val
-    return best, best_val
+        left = tests[tests["significant"].astype(bool)
+                     & tests["accounted_by"].str.split().apply(lambda names, e=row["effect"]: e in names)]
+        if len(left):
+            places = ", ".join(f"{t.experiment} ({t.level} level, p {t.p_value:.2g})" for t in left.itertuples())
+            note = f"leaves significant structure in {places}: it is not the whole story"
+            ranked.loc[i, "note"] = f"{ranked.loc[i, 'note']}; {note}" if ranked.loc[i, "note"] else note
 
 
 def record_error_history(ledger_dir: str | Path, figures: pd.DataFrame, model_effects: list[str],
@@ -398,17 +438,111 @@ def _write_csv_atomic(table: pd.DataFrame, path: Path) -> None:
     tmp.replace(path)
 
 
+#: units of a table's value where the stage's observation is not a signal in DN and its artefact does not
+#: state them: the flat field's spatial variance, the roll-off normalised by its on-axis fit, the immersion
+#: stage's mean ln DN
+VALUE_UNITS = {("linearity", "flat"): "DN2", ("rolloff", "setting"): "1", ("rolloff", "water"): "1",
+               ("immersion", "height"): "1"}
+#: covariates of the closure table and their units (NaN, or '' for text, where a table lacks one)
+CLOSURE_COVARIATES = {"exposure_s": "s", "iso": "1", "gain": "1", "temperature_c": "degree_Celsius",
+                      "file_index": "1", "setting": "1", "frame": "1", "frame_in_setting": "1", "time_s": "s",
+                      "theta_deg": "degree", "phi_deg": "degree", "azimuth_deg": "degree", "angle_deg": "degree",
+                      "spot_x_px": "pixel", "spot_y_px": "pixel", "water_height_cm": "cm",
+                      "wavelength_nm": "nm"}
+CLOSURE_TEXT = ("lens", "band", "sweep", "medium", "kind")
+
+
+def closure_table(observations: list[Observations], model_effects: list[str], config: dict) -> xr.Dataset:
+    """Every measurement of every experiment with the model's prediction, residual, expected noise and
+    covariates: one row per row of each observation table (the rows its fits use), along ``measurement``.
+
+    The prediction is the fit of the model (base columns plus the model's effect columns) that
+    ``run_errors.csv`` and ``residual_tests.csv`` are computed from, so that sum(z^2) over one
+    experiment and level is that table's chi2; ``block`` names the rows that share a frame or setting.
+    """
+    cfg = config["diagnostics"]
+    parts = []
+    for obs in observations:
+        t = obs.table
+        fit = _fit(obs, model_design(obs, model_effects))
+        blocks, block_key = blocks_of(t, cfg["block_keys"])
+        covs = covariates_of(t)
+        part = pd.DataFrame({
+            "experiment": obs.experiment, "level": obs.level,
+            "value_units": obs.value_units or VALUE_UNITS.get((obs.experiment, obs.level), "DN"),
+            "group": t["group"].astype(str).to_numpy(),
+            "block": [f"{block_key}={b}" for b in blocks],
+            "value": t["value_dn"].to_numpy(float), "prediction": fit.pred,
+            "residual": t["value_dn"].to_numpy(float) - fit.pred, "sigma": t["sigma_dn"].to_numpy(float),
+            "z": fit.z})
+        for name in CLOSURE_TEXT:
+            part[name] = t[name].astype(str).to_numpy() if name in t else ""
+        for name in CLOSURE_COVARIATES:
+            source = covs[name] if name in covs else (t[name] if name in t else None)
+            part[name] = pd.to_numeric(source, errors="coerce").to_numpy(float) if source is not None else np.nan
+        parts.append(part)
+    columns = ["experiment", "level", "value_units", "group", "block", "value", "prediction", "residual", "sigma",
+               "z", *CLOSURE_TEXT, *CLOSURE_COVARIATES]
+    table = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=columns)
+    table = table[columns]
+    described = {
+        "experiment": ("experiment (stage) of the measurement", None),
+        "level": ("level of the measurement: frame, setting, flat, water, height...", None),
+        "value_units": ("units of value, prediction, residual and sigma on this row", None),
+        "group": ("block of the stage's base model (lens, band, sweep, setting...)", None),
+        "block": ("rows sharing a raw frame or setting (diagnostics.block_keys)", None),
+        "value": ("measured value (units in value_units)", None),
+        "prediction": ("the model's prediction of value (model.effects)", None),
+        "residual": ("value minus prediction (units in value_units)", None),
+        "sigma": ("expected noise of value (shot, read, quantisation, reference...; units in value_units)", None),
+        "z": ("noise-normalised residual of the weighted fit", "1"),
+    }
+    data = {}
+    for name in columns:
+        values = table[name].to_numpy()
+        if name in described or name in CLOSURE_TEXT:
+            long_name, units = described.get(name, (f"covariate: {name}", None))
+        else:
+            long_name, units = f"covariate: {name} (NaN where the experiment has none)", CLOSURE_COVARIATES[name]
+        attrs = {"long_name": long_name}
+        if units:
+            attrs["units"] = units
+        if values.dtype == object:
+            values = values.astype(str)
+        data[name] = ("measurement", values, attrs)
+    return xr.Dataset(data, attrs={
+        "title": "closure table: every measurement of every experiment with the model's prediction",
+        "model_effects": " ".join(model_effects)})
+
+
+def write_closure_table(observations: list[Observations], model_effects: list[str], config: dict, path,
+                        inputs: dict[str, str]) -> Path:
+    """:func:`closure_table` written as the versioned ``closure`` artefact (``results/closure/residuals.nc``)."""
+    from pipeline.artefact import write_artefact
+
+    return write_artefact(closure_table(observations, model_effects, config), path, stage="closure",
+                          inputs=inputs, config_subset={k: config[k] for k in ("model", "diagnostics")},
+                          effects=model_effects)
+
+
 def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, missing_csv, unexplained_csv,
-                       errors_csv, ledger_dir, history_csv) -> pd.DataFrame:
-    """Rank missing effects over the stages' artefacts, write this run's figures and the error history."""
-    from pipeline.artefact import read_artefact
+                       errors_csv, ledger_dir, history_csv, residual_tests_csv=None, closure_nc=None) -> pd.DataFrame:
+    """Rank missing effects over the stages' artefacts, test every table's residuals, write this run's figures
+    and the error history; ``residual_tests_csv`` defaults to ``residual_tests.csv`` beside ``unexplained_csv``;
+    the closure table is written to ``closure_nc`` when given."""
+    from pipeline.artefact import read_artefact, sha256_file
 
     load_plugins(config["model"].get("plugins", []))
     effects = list(config["model"]["effects"])
     loaded = {exp: [read_artefact(p, exp) for p in paths] for exp, paths in artefacts.items() if paths}
     obs = observations_from_artefacts(loaded)
-    ranked, unexplained = rank_missing_effects(obs, effects, config)
+    ranked, unexplained, tests = rank_missing_effects(obs, effects, config, with_tests=True)
     figures = error_figures(obs, effects)
-    for path, table in ((missing_csv, ranked), (unexplained_csv, unexplained), (errors_csv, figures)):
+    residual_tests_csv = residual_tests_csv or Path(unexplained_csv).with_name("residual_tests.csv")
+    for path, table in ((missing_csv, ranked), (unexplained_csv, unexplained), (errors_csv, figures),
+                        (residual_tests_csv, tests)):
         _write_csv_atomic(table, Path(path))
+    if closure_nc is not None:
+        inputs = {f"{exp}/{Path(p).name}": sha256_file(p) for exp, paths in artefacts.items() for p in paths}
+        write_closure_table(obs, effects, config, closure_nc, inputs)
     return record_error_history(ledger_dir, figures, effects, history_csv)

@@ -8,8 +8,12 @@ rule diagnostics:
         missing_effects="results/diagnostics/missing_effects.csv",
         unexplained="results/diagnostics/unexplained.csv",
         run_errors="results/diagnostics/run_errors.csv",
+        # per experiment and level: residual chi-square against its dof, where structure sits
+        residual_tests="results/diagnostics/residual_tests.csv",
         # rebuilt at every run from the append-only ledger folder (one file per run, never rewritten)
         error_history="results/diagnostics/error_history.csv",
+        # every measurement of every experiment: prediction, residual, expected noise, covariates
+        closure="results/closure/residuals.nc",
     log:
         "results/logs/diagnostics.log",
     benchmark:

@@ -1,0 +1,194 @@
+"""Is anything left in the residuals? The chi-square of one table against its degrees of freedom.
+
+A model that holds leaves noise-normalised residuals z whose sum of squares is chi-square distributed
+with dof = n - rank(X) degrees of freedom (DESIGN.md, "Use known noise"). For every observation table
+(one experiment at one level: frames, settings, heights...) two tests of that sum are made:
+
+* the chi-square tail, P(chi2_dof > sum z^2), exact for independent rows with the stated noise;
+* its block-robust equivalent, for tables whose rows share a raw frame or a setting (the blocks of
+  :func:`pipeline.diagnostics.blocks_of`): per block g the excess D_g = sum_{i in g} z_i^2 - sum_{i in g}
+  (1 - h_ii), h the hat matrix of the weighted fit, so that E[D_g] = 0 when the model holds, whatever the
+  correlation inside a block; the mean of the D_g over G blocks against its own scatter, a one-sided t
+  test with G - 1 degrees of freedom. Rows of one block that move together (flicker, black-level jitter)
+  widen the spread of sum z^2 beyond 2 dof without changing its mean; the t test allows for that.
+
+The table's p-value is the larger of the two (the block test only counts when it is the less exacting,
+as for the candidate effects), and structure is called significant below the family-wise
+``diagnostics.structure_level`` divided by the number of tables tested (Bonferroni). After the
+candidates the ranking accepted, the excess chi-square alone is no evidence of more structure: a
+candidate's linearised columns leave its own measurement noise out of ``sigma_dn`` (``bias_drift``'s
+unlit-corner offsets are measured with the corners' noise, which the stage adds to sigma when the effect
+is in the model, the diagnostics' column cannot), so structure remaining beside a candidate must also
+follow a covariate (its F test below the level over the tables and the covariates scanned; the F test
+uses the residuals' own scatter and so ignores a mis-scaled noise). A per-experiment
+pooled rms_z would dilute a setting-level effect with the frame-level rows of the same experiment; one
+test per table does not.
+
+Where the residuals sit: the covariate whose grouping of z is most significant (F test of group means;
+numeric covariates also as a straight line and in quantile bins), and, where the table has the pixel
+position of each measurement, the cell of a coarse grid over the image plane whose mean z departs most.
+Nothing here reads a simulator's truth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+#: covariates scanned to say where structure sits (``frame_in_setting`` is derived, see :func:`covariates_of`)
+COVARIATES = ("exposure_s", "gain", "lens", "band", "sweep", "temperature_c", "frame", "frame_in_setting",
+              "file_index", "time_s", "theta_deg", "azimuth_deg", "water_height_cm", "wavelength_nm")
+#: pixel position columns (band pixels of the lens image) of tables that know where each measurement sits
+IMAGE_PLANE_COLUMNS = ("spot_x_px", "spot_y_px")
+
+
+@dataclass
+class TableTest:
+    """Residual chi-square of one table and its tails."""
+
+    chi2: float
+    dof: int
+    n_obs: int
+    p_chi2: float
+    p_block: float          # NaN when every row is its own block or there are too few blocks
+    n_blocks: int
+    p_value: float
+
+    @property
+    def rms_z(self) -> float:
+        return float(np.sqrt(self.chi2 / self.dof)) if self.dof > 0 else float("nan")
+
+
+def leverage(X: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """Diagonal h_ii of the hat matrix of the weighted fit (sum h_ii = rank of X)."""
+    if X.shape[1] == 0:
+        return np.zeros(len(sigma))
+    A = X / np.asarray(sigma, float)[:, None]
+    U, s, _ = np.linalg.svd(A, full_matrices=False)
+    keep = s > s.max() * max(A.shape) * np.finfo(float).eps if s.size else np.zeros(0, bool)
+    return np.sum(U[:, keep] ** 2, axis=1)
+
+
+def residual_chi2_test(z: np.ndarray, X: np.ndarray, sigma: np.ndarray, blocks: np.ndarray,
+                       dof: int) -> TableTest:
+    """Chi-square tail of sum z^2 with ``dof`` degrees of freedom and its block-robust t test."""
+    z = np.asarray(z, float)
+    chi2 = float(np.sum(z**2))
+    p_chi2 = float(stats.chi2.sf(chi2, max(dof, 1)))
+    codes = pd.factorize(pd.Series(blocks).astype(str))[0]
+    n_blocks = int(codes.max()) + 1 if len(codes) else 0
+    p_block = float("nan")
+    if 2 < n_blocks < len(z):
+        excess = z**2 - (1.0 - leverage(X, sigma))
+        d = np.bincount(codes, weights=excess, minlength=n_blocks)
+        spread = float(np.std(d, ddof=1))
+        if spread > 0:
+            t = float(np.mean(d)) / (spread / np.sqrt(n_blocks))
+            p_block = float(stats.t.sf(t, n_blocks - 1))
+    p_value = p_chi2 if not np.isfinite(p_block) else max(p_chi2, p_block)
+    return TableTest(chi2=chi2, dof=int(dof), n_obs=len(z), p_chi2=p_chi2, p_block=p_block,
+                     n_blocks=n_blocks if np.isfinite(p_block) else 0, p_value=p_value)
+
+
+def covariates_of(table: pd.DataFrame) -> pd.DataFrame:
+    """The table's covariates, plus ``frame_in_setting``: the order of a frame among the frames of its
+    setting (from ``file_index``), for frame-level tables that do not carry it (settling after each
+    change of setting, warm-up)."""
+    out = table[[c for c in COVARIATES if c in table]].copy()
+    if "frame" not in table and "file_index" in table and "setting" in table:
+        keys = [c for c in ("lens", "band", "sweep", "setting") if c in table]
+        out["frame_in_setting"] = table.groupby(keys)["file_index"].rank(method="dense").astype(int) - 1
+    return out
+
+
+def grouping_test(z: np.ndarray, groups: np.ndarray) -> tuple[float, float]:
+    """F-test p-value of group means of the residuals, and the share of their variance they explain.
+
+    The share is adjusted for the number of groups, 1 - (1 - eta^2)(n - 1)/(n - k), so that noise scores
+    0 on average (eta^2 = SS_between / SS_total would credit k groups with (k - 1)/(n - 1) of noise).
+    """
+    n, k = len(z), len(np.unique(groups))
+    if n - k < 1 or k < 2:
+        return 1.0, 0.0
+    total = float(np.sum((z - z.mean()) ** 2)) or 1.0
+    means = pd.Series(z).groupby(groups).transform("mean").to_numpy()
+    between = float(np.sum((means - z.mean()) ** 2))
+    within = max(total - between, 1e-300)
+    p = float(stats.f.sf((between / (k - 1)) / (within / (n - k)), k - 1, n - k))
+    return p, max(0.0, 1.0 - (1.0 - between / total) * (n - 1) / (n - k))
+
+
+def covariate_tests(z: np.ndarray, values: pd.Series, bins: int) -> tuple[float, float]:
+    """Most significant of: a straight line and ``bins`` quantile bins (a numeric covariate with more
+    distinct values than bins), or the levels (otherwise). Returns (p-value, variance share)."""
+    tests = []
+    if values.dtype.kind in "fi" and values.nunique() > bins:
+        x = values.to_numpy(float)
+        r = np.corrcoef(x, z)[0, 1]
+        n = len(z)
+        if np.isfinite(r) and n > 2:
+            t = r * np.sqrt((n - 2) / max(1.0 - r**2, 1e-300))
+            tests.append((float(2 * stats.t.sf(abs(t), n - 2)), max(0.0, 1.0 - (1.0 - r**2) * (n - 1) / (n - 2))))
+        tests.append(grouping_test(z, np.asarray(pd.qcut(x, bins, labels=False, duplicates="drop"))))
+    else:
+        tests.append(grouping_test(z, values.astype(str).to_numpy()))
+    return min(tests)
+
+
+def where_structure_sits(table: pd.DataFrame, z: np.ndarray, bins: int) -> tuple[str, float, float, int]:
+    """The covariate whose grouping of ``z`` is most significant: (name, p-value, variance share, number of
+    covariates scanned)."""
+    best, best_p, best_share, n = "no single covariate", 1.0, 0.0, 0
+    for name, values in covariates_of(table).items():
+        if values.nunique() < 2:
+            continue
+        n += 1
+        p, share = covariate_tests(z, values.reset_index(drop=True), bins)
+        if p < best_p:
+            best, best_p, best_share = name, p, share
+    return best, best_p, best_share, n
+
+
+def image_plane_pattern(table: pd.DataFrame, z: np.ndarray, cells: int) -> dict | None:
+    """Where on the image plane the residuals depart: a ``cells`` x ``cells`` grid over the span of the
+    measurements' pixel positions (per lens), the F test of the cell means, and the cell whose mean z is
+    farthest from zero, with its pixel bounds. None when the table has no pixel positions."""
+    if not all(c in table for c in IMAGE_PLANE_COLUMNS):
+        return None
+    x = table[IMAGE_PLANE_COLUMNS[0]].to_numpy(float)
+    y = table[IMAGE_PLANE_COLUMNS[1]].to_numpy(float)
+    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+    if ok.sum() < 2 * cells * cells:
+        return None
+    lens = table["lens"].astype(str).to_numpy() if "lens" in table else np.full(len(table), "")
+    x, y, z, lens = x[ok], y[ok], z[ok], lens[ok]
+    edges_x = np.linspace(x.min(), x.max(), cells + 1)
+    edges_y = np.linspace(y.min(), y.max(), cells + 1)
+    ix = np.clip(np.searchsorted(edges_x, x, side="right") - 1, 0, cells - 1)
+    iy = np.clip(np.searchsorted(edges_y, y, side="right") - 1, 0, cells - 1)
+    cell = np.char.add(np.char.add(lens, "/"), (iy * cells + ix).astype(str))
+    p, share = grouping_test(z, cell)
+    frame = pd.DataFrame({"cell": cell, "z": z, "ix": ix, "iy": iy, "lens": lens})
+    means = frame.groupby("cell").agg(z=("z", "mean"), n=("z", "size"), ix=("ix", "first"), iy=("iy", "first"),
+                                      lens=("lens", "first"))
+    # the cell that departs most, in standard errors of its mean (residual spread within the cells)
+    scatter = max(float(np.std(z - frame.groupby("cell")["z"].transform("mean").to_numpy(), ddof=1)), 1e-12)
+    score = means["z"].abs() / (scatter / np.sqrt(means["n"]))
+    top = means.loc[score.idxmax()]
+    ix, iy = int(top["ix"]), int(top["iy"])
+    return {"p_value": p, "share": share, "lens": str(top["lens"]), "mean_z": float(top["z"]), "n": int(top["n"]),
+            "x_px": (float(edges_x[ix]), float(edges_x[ix + 1])), "y_px": (float(edges_y[iy]), float(edges_y[iy + 1])),
+            "cells": cells}
+
+
+def describe_image_plane(pattern: dict | None) -> str:
+    """One phrase for a pattern of :func:`image_plane_pattern` ('' when there is none)."""
+    if not pattern:
+        return ""
+    lens = f"{pattern['lens']} lens, " if pattern["lens"] else ""
+    return (f"{lens}x {pattern['x_px'][0]:.0f} to {pattern['x_px'][1]:.0f} px, y {pattern['y_px'][0]:.0f} to "
+            f"{pattern['y_px'][1]:.0f} px (mean z {pattern['mean_z']:+.2f} over {pattern['n']} measurements; "
+            f"{pattern['cells']}x{pattern['cells']} grid F test p {pattern['p_value']:.2g})")

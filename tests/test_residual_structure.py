@@ -1,0 +1,160 @@
+"""Unknown effects found where they sit: each table's residual chi-square against its degrees of freedom.
+
+* An effect that is in no catalogue, defined here: the calibration lamp settles after each change of
+  setting, so that the second half of every setting's linearity frames gets LAMP_STEP more light (the
+  test rescales the raw files' signal above the black level; nothing in the package or the simulator
+  knows this form). The frame-level residuals of the linearity must be reported as structured, in that
+  experiment and level, following the order of the frames within their setting, with no catalogue
+  effect called the cause; the setting-level means, which average the step, must stay clean. The step
+  also inflates the temporal variance that the flat-field table subtracts; ``prnu``'s signature takes
+  most of that, and must then carry the note that it leaves significant structure. Then a
+  model term for it is added through the extension point (a plugin module written here, listed under
+  ``model.plugins``) and the frame-level error must fall to the noise floor, with the fitted step within
+  4 standard errors of the injected one.
+* Where a table has pixel positions (the roll-off's port spots), the image-plane cell where a pattern
+  sits is named: a synthetic table with a bump in one corner of one lens's image.
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline.dataset import open_dataset, write_md5sums
+from pipeline.diagnostics import _fit, model_design, observations_from_artefacts, rank_missing_effects
+from pipeline.effects import base as effects_base
+from pipeline.effects import load_plugins
+from pipeline.rawio import read_raw, write_dng
+from pipeline.residual_structure import image_plane_pattern
+from pipeline.stages.dark import analyse_dark, reduce_dark
+from pipeline.stages.linearity import analyse_linearity, reduce_linearity
+
+#: relative light step half-way through each setting's frames (frame-level z of about 10 per frame at the
+#: tiny scale's signal levels: far above noise, far below the per-setting rate the base model fits)
+LAMP_STEP = 0.03
+
+PLUGIN = '''
+"""A lamp that settles after each change of setting: the second half of a setting's frames see more light."""
+import numpy as np
+from pipeline.effects import Effect, register
+
+
+@register
+class LampSettling(Effect):
+    name = "lamp_settling"
+    experiments = ("linearity",)
+    amplitude_name = "lamp_step_fraction"
+    amplitude_units = "1"
+
+    def columns(self, experiment, level, table):
+        if experiment != "linearity" or level != "frame" or "file_index" not in table:
+            return None
+        keys = ["lens", "band", "sweep", "setting"]
+        order = table.groupby(keys)["file_index"].rank(method="dense")
+        count = table.groupby(keys)["file_index"].transform("nunique")
+        late = (order > count / 2).to_numpy(float)
+        level_dn = table["pred_dn"].to_numpy(float)
+        # the step relative to the setting's mean level (which averages both halves)
+        return (level_dn * (late - 0.5))[:, None]
+'''
+
+
+def _inject_lamp_step(root):
+    """Rescale the signal above black of the later half of every setting's frames by 1 + LAMP_STEP."""
+    frames = pd.read_csv(root / "linearity" / "frames.csv")
+    keyed = {}
+    for i, row in frames.iterrows():
+        raw = read_raw(root / "linearity" / row["file"])
+        keyed.setdefault((row["lens"], row["sweep"], raw.exposure_s, raw.iso), []).append((i, row["file"], raw))
+    n_changed = 0
+    for members in keyed.values():
+        for _, name, raw in sorted(members)[len(members) // 2:]:
+            black = float(raw.black_level)
+            dn = np.rint(black + (1.0 + LAMP_STEP) * (raw.cfa.astype(float) - black))
+            write_dng(root / "linearity" / name, dn.clip(0, raw.white_level).astype(np.uint16),
+                      exposure_s=raw.exposure_s, iso=raw.iso, time=raw.time, black_level=black,
+                      white_level=raw.white_level, cfa_pattern=raw.cfa_pattern, make=raw.make, model=raw.model,
+                      serial=raw.serial)
+            n_changed += 1
+    write_md5sums(root)
+    return n_changed
+
+
+def _analyse(root, config, model):
+    ds = open_dataset(root)
+    dark = analyse_dark(reduce_dark(ds, config), config, [])
+    lin = analyse_linearity(reduce_linearity(ds, dark, config, []), dark, config, [])
+    obs = observations_from_artefacts({"dark": list(dark.values()), "linearity": list(lin.values())})
+    return obs, rank_missing_effects(obs, model, config, with_tests=True)
+
+
+@pytest.fixture
+def plugin_module(tmp_path, monkeypatch):
+    """The plugin module on the import path; unregistered afterwards so that no other test ranks it."""
+    (tmp_path / "lamp_settling_plugin.py").write_text(PLUGIN)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield "lamp_settling_plugin"
+    effects_base._REGISTRY.pop("lamp_settling", None)
+    sys.modules.pop("lamp_settling_plugin", None)
+
+
+def test_an_effect_outside_the_catalogue_is_located_then_added_through_a_plugin(make_dataset, config, tmp_path,
+                                                                                plugin_module):
+    """CPU about 6 s with the tiny dark + linearity simulation (reduced once, diagnosed twice)."""
+    src, _ = make_dataset([], seed=201)
+    root = tmp_path / "dataset"
+    shutil.copytree(src, root)
+    assert _inject_lamp_step(root) > 0
+    obs, (ranked, unexplained, tests) = _analyse(root, config, [])
+
+    # reported in the right experiment and level, following the frames' order within their setting,
+    # with no catalogue effect claiming it
+    frame = tests[(tests["experiment"] == "linearity") & (tests["level"] == "frame")].iloc[0]
+    assert bool(frame["significant"]) and frame["accounted_by"] == "", tests.to_string()
+    assert frame["covariate"] == "frame_in_setting", frame
+    here = unexplained[(unexplained["experiment"] == "linearity") & (unexplained["level"] == "frame")]
+    assert len(here) == 1 and "no candidate effect explains them" in here.iloc[0]["message"], unexplained
+    # the setting means average the step: clean; the dark frames never saw the lamp: clean
+    clean = tests[~((tests["experiment"] == "linearity") & tests["level"].isin(["frame", "flat"]))]
+    assert not clean["significant"].any(), tests.to_string()
+    # the step also inflates the frames' temporal variance, which the flat-field table subtracts: prnu's
+    # S^2 signature takes most of that but not all; it is not declared the cause without saying so
+    for _, row in ranked[ranked["significant"].astype(bool)].iterrows():
+        assert "leaves significant structure" in row["note"], ranked.head(3).to_string()
+
+    # the model term through the extension point: the frame-level error falls to the noise floor
+    config_plugin = {**config, "model": {**config["model"], "plugins": [plugin_module]}}
+    load_plugins(config_plugin["model"]["plugins"])
+    _, unexplained_after, tests_after = rank_missing_effects(obs, ["lamp_settling"], config_plugin,
+                                                             with_tests=True)
+    after = tests_after[(tests_after["experiment"] == "linearity") & (tests_after["level"] == "frame")].iloc[0]
+    # rms_z^2 = chi2/dof spreads as sqrt(2/dof): the floor is 1 + 2 sqrt(2/dof) (4 of those, one-sided)
+    assert after["rms_z"] < 1.0 + 2.0 * np.sqrt(2.0 / after["dof"]) < frame["rms_z"], (after, frame)
+    assert not bool(after["significant"]), after
+    assert not ((unexplained_after["experiment"] == "linearity") & (unexplained_after["level"] == "frame")).any()
+    # the fitted step against the injected one: 4 standard errors (the plugin's column is the level times
+    # +-1/2, so its coefficient is the relative step)
+    obs_frame = [o for o in obs if (o.experiment, o.level) == ("linearity", "frame")][0]
+    fit = _fit(obs_frame, model_design(obs_frame, ["lamp_settling"]))
+    step, se = fit.coef[-1], np.sqrt(fit.cov[-1, -1])
+    assert abs(step - LAMP_STEP) < 4 * se, (step, se)
+
+
+def test_the_image_plane_cell_of_a_pattern_is_named():
+    """Port spots over two lenses' images, unit noise, and +1.5 sigma in the lower-right ninth of the close
+    lens's span only: that cell is named (30 spots there, so its mean departs by 8 standard errors)."""
+    rng = np.random.default_rng(7)
+    n = 1080
+    table = pd.DataFrame({"lens": np.repeat(["far", "close"], n // 2),
+                          "spot_x_px": rng.uniform(0, 900, n), "spot_y_px": rng.uniform(0, 900, n)})
+    z = rng.standard_normal(n)
+    bump = (table["lens"] == "close") & (table["spot_x_px"] > 600) & (table["spot_y_px"] > 600)
+    z[bump.to_numpy()] += 1.5
+    pattern = image_plane_pattern(table, z, cells=3)
+    assert pattern["lens"] == "close" and pattern["p_value"] < 1e-6, pattern
+    assert pattern["x_px"][0] > 590 and pattern["y_px"][0] > 590, pattern
+    assert abs(pattern["mean_z"] - 1.5) < 4.0 / np.sqrt(bump.sum()), pattern
