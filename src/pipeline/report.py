@@ -134,6 +134,13 @@ def _var_units(ds: xr.Dataset, name: str) -> str:
     return _unit(ds[name].attrs.get("units", "")) if name in ds else ""
 
 
+def _bias_drift_text(ds: xr.Dataset) -> str:
+    """The bias drift, or why it could not be tested (no unlit corners, no optically black pixels)."""
+    if not int(ds.attrs.get("bias_drift_testable", 1)):
+        return ds.attrs.get("bias_drift_note", "not testable")
+    return _q(ds, "bias_drift_dn")
+
+
 def _q(ds: xr.Dataset, name: str, **sel) -> str:
     """The artefact value ``name`` (selected by ``sel``) with its uncertainty and units."""
     if name not in ds:
@@ -300,7 +307,11 @@ def _dark_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
     out.append(_table(["band", "bias b0 (ISO 100)", "bias per ISO/100 b1", "hot pixels"], rows))
     scal = [["dark current D (ISO 100)", _q(ds, "dark_current_dn_per_s")]]
     if "bias_drift_dn" in ds:
-        scal.append(["frame-to-frame bias drift", _q(ds, "bias_drift_dn")])
+        scal.append(["frame-to-frame bias drift", _bias_drift_text(ds)])
+    if "projection" in ds.attrs:
+        scal.append(["lens projection (dataset.yaml)", str(ds.attrs["projection"])])
+    if "bias_reference" in ds.attrs:
+        scal.append(["each frame's black level from", str(ds.attrs["bias_reference"])])
     if "rms_z" in ds:
         scal.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
     out.append(_table(["quantity", "value"], scal))
@@ -535,7 +546,7 @@ def _linearity_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
                         ("conversion_gain_dn_per_e", "conversion gain K"),
                         ("gain_e_per_dn", "gain 1/K"),
                         ("read_noise_e", "read noise (photon transfer)"),
-                        ("image_circle_radius_px", "image circle radius"),
+                        ("image_circle_radius_px", "image circle radius (rectilinear: half diagonal)"),
                         ("mask_radius_px", "averaging mask radius"),
                         ("mask_centre_x_px", "mask centre x"),
                         ("mask_centre_y_px", "mask centre y"),
@@ -547,7 +558,10 @@ def _linearity_section(lens: str, ds: xr.Dataset, figs: _Figures) -> str:
                 if "n_saturated_settings" in ds and int(ds["n_saturated_settings"]):
                     n = int(ds["n_saturated_settings"])
                     extra = extra[:-1] + f"; {n} saturated setting{'s' if n > 1 else ''} left out of the fits)"
-            rows.append([label, _q(ds, name) + extra])
+            rows.append([label, (_bias_drift_text(ds) if name == "bias_drift_dn" else _q(ds, name)) + extra])
+    if "projection" in ds.attrs:
+        rows.append(["lens projection; mask field angles from",
+                     f"{ds.attrs['projection']}; {ds.attrs.get('field_angles_from', 'n/a')}"])
     if "rms_z" in ds:
         rows.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
     out.append("<p>Fitted linearity and noise parameters:</p>")
