@@ -31,26 +31,29 @@ MODEL = ["dark_current", "hot_pixels", "iso_gain", "prnu", "bias_drift"]
 
 @pytest.fixture(scope="module")
 def phone(config, tmp_path_factory):
+    """The tiny phone (seed 4) through the dark, linearity (without geometry) and geometry stages."""
     base = tmp_path_factory.mktemp("phone")
     root = simulate_smartphone_dataset(base / "dataset", scale="tiny", seed=4, effects=TRUE_EFFECTS)
     truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())
     cfg = {**config, "model": {**config["model"], "effects": MODEL}}
     dark = {LENS: base / "results/dark/main.nc"}
     lin = {LENS: base / "results/linearity/main.nc"}
+    geo = {LENS: base / "results/geometry/main.nc"}
     run_stage("dark", root, cfg, dark)
     run_stage("linearity", root, cfg, lin, {"dark": dark})
-    return root, truth, cfg, dark, xr.open_dataset(dark[LENS]).load(), xr.open_dataset(lin[LENS]).load()
+    run_stage("geometry", root, cfg, geo)
+    return root, truth, cfg, dark, xr.open_dataset(dark[LENS]).load(), xr.open_dataset(lin[LENS]).load(), geo
 
 
 def test_projection_and_bias_reference_are_recorded(phone):
-    _, _, _, _, dark, lin = phone
+    _, _, _, _, dark, lin, _ = phone
     assert dark.attrs["projection"] == lin.attrs["projection"] == "rectilinear"
     assert dark.attrs["bias_reference"] == "optically black pixels"
     assert "rectilinear" in lin.attrs["field_angles_from"]
 
 
 def test_bias_read_noise_and_dark_current(phone):
-    _, truth, _, _, dark, _ = phone
+    _, truth, _, _, dark, _, _ = phone
     s = truth["camera"]["sensor"]
     k = s["conversion_gain_dn_per_e_iso100"]
     # bias over the whole region (no corners left out): the sample mean of the offset pattern,
@@ -80,7 +83,7 @@ def test_bias_drift_from_optically_black_pixels(phone):
     """The frames' black level moves by N(0, 0.5 DN); the masked margins (8 rows x 208 + 128 rows x 16 =
     3712 raw pixels, read noise 0.73 DN: 0.012 DN per frame) see it: the stated 95 % interval contains
     0.5 DN, and the read noise (test above) is what is left once the frames' common offsets are out."""
-    _, _, _, _, dark, lin = phone
+    _, _, _, _, dark, lin, _ = phone
     assert int(dark.attrs["bias_drift_testable"]) == 1
     assert float(dark["bias_drift_dn_low"]) < DRIFT_DN < float(dark["bias_drift_dn_high"])
     assert float(dark["bias_drift_dn_low"]) > 0.2     # resolved: the masked pixels see 0.012 DN
@@ -90,7 +93,7 @@ def test_bias_drift_from_optically_black_pixels(phone):
 def test_gain_table_recovered(phone):
     """Photon transfer at ISO 100 and the per-ISO gain factors of the table (iso_gain) against truth,
     4 stated sigmas (plus 0.3 % on K: the PTC's intercept and the flat-field share)."""
-    _, truth, _, _, _, lin = phone
+    _, truth, _, _, _, lin, _ = phone
     k_true = truth["derived"]["conversion_gain_dn_per_e_iso100"]
     k, k_sigma = float(lin["conversion_gain_dn_per_e"]), float(lin["conversion_gain_dn_per_e_sigma"])
     assert abs(k - k_true) < 4 * k_sigma + 0.003 * k_true
@@ -109,7 +112,7 @@ def test_gain_table_recovered(phone):
 
 def test_flat_field_amplitude(phone):
     """PRNU of 1 % (truth) from the exposure sweep: prnu coefficient sigma_rel^2 within 4 stated sigmas."""
-    _, truth, _, _, _, lin = phone
+    _, truth, _, _, _, lin, _ = phone
     sigma_rel = truth["effects"]["prnu"]["sigma_rel"]
     coef, se = float(lin["effect_prnu"].values[0]), float(lin["effect_prnu_sigma"].values[0])
     assert abs(coef - sigma_rel**2) < 4 * se, (np.sqrt(coef), sigma_rel)
@@ -118,7 +121,7 @@ def test_flat_field_amplitude(phone):
 def test_same_phone_declared_fisheye_stops_naming_the_region(phone, tmp_path):
     """The issue's case: the ordinary camera's dataset without ``projection: rectilinear`` (a fisheye by
     default) must stop the linearity stage with one line naming the lens region, not fit a circle."""
-    root, _, cfg, dark_paths, _, _ = phone
+    root, _, cfg, dark_paths, _, _, _ = phone
     copy = tmp_path / "as_fisheye"
     shutil.copytree(root, copy)
     meta = yaml.safe_load((copy / "dataset.yaml").read_text())
@@ -147,3 +150,54 @@ def test_bias_drift_not_testable_without_optically_black_pixels(config, tmp_path
     assert "not testable" in _bias_drift_text(ds)
     # the bias still comes from the dark frames (no drift injected): offset-pattern mean, 5 sigma
     np.testing.assert_allclose(ds["bias_dn"].values, 256.0, atol=5 * 0.64 / np.sqrt(3000))
+
+
+def _true_theta_phi(truth: dict, band: str, shape) -> tuple[np.ndarray, np.ndarray]:
+    """The truth's field angles of a band image: its band intrinsics and the distortion, inverted here by
+    a fixed-point iteration (the simulator's forward model, not OpenCV's undistortion)."""
+    k = truth["derived"]["band_intrinsics_px"][band]
+    dist = truth["derived"]["distortion"]
+    v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    xd, yd = (u - k["cx"]) / k["fx"], (v - k["cy"]) / k["fy"]
+    x, y = xd.copy(), yd.copy()
+    for _ in range(40):
+        r2 = x * x + y * y
+        radial = 1 + dist["k1"] * r2 + dist["k2"] * r2 * r2
+        ex = x * radial + 2 * dist["p1"] * x * y + dist["p2"] * (r2 + 2 * x * x) - xd
+        ey = y * radial + dist["p1"] * (r2 + 2 * y * y) + 2 * dist["p2"] * x * y - yd
+        x, y = x - ex, y - ey
+    return np.degrees(np.arctan(np.hypot(x, y))), np.degrees(np.arctan2(y, x))
+
+
+def test_rectilinear_geometry_against_truth(phone):
+    """OpenCV's pinhole fit of the chessboard frames (12 poses, 5 x 4 inner corners, 64 x 96 band pixels):
+    theta within 4 stated sigmas (0.25 to 0.4 degrees: the principal point of so small an image is known to
+    about 1 band pixel) plus 0.01 degrees for the G band pixel averaging two sites; the focal length
+    within 4 sigmas; no image circle."""
+    _, truth, _, _, _, _, geo_paths = phone
+    geo = xr.open_dataset(geo_paths[LENS]).load()
+    assert geo.attrs["projection"] == "rectilinear" and np.isnan(float(geo["circle_radius_px"].sel(
+        medium="air", band="G")))
+    for band in ("G", "R", "B"):
+        g = geo.sel(medium="air", band=band)
+        theta, _ = _true_theta_phi(truth, band, g["theta_deg"].shape)
+        d = g["theta_deg"].values - theta
+        assert np.all(np.abs(d) < 4 * g["theta_deg_sigma"].values + 0.01), (band, float(np.max(np.abs(d))))
+        fx_true = truth["derived"]["band_intrinsics_px"][band]["fx"]
+        fx, var = float(g["pinhole_parameters"].values[0]), float(g["pinhole_parameter_covariance"].values[0, 0])
+        assert abs(fx - fx_true) < 4 * np.sqrt(var)
+    # the half diagonal of the region sees about 39 degrees (truth: the optics' corner angle)
+    assert 35.0 < float(geo["half_fov_deg"].sel(medium="air", band="G")) < 43.0
+
+
+def test_linearity_takes_field_angles_from_the_rectilinear_geometry(phone, tmp_path):
+    """With the phone's own geometry artefact the 5-degree mask is a cone of the fitted theta map (not the
+    nominal field of view), and the conversion gain stays within its tolerance of the truth."""
+    root, truth, cfg, dark_paths, _, _, geo_paths = phone
+    out = {LENS: tmp_path / "lin.nc"}
+    run_stage("linearity", root, cfg, out, {"dark": dark_paths, "geometry": geo_paths})
+    lin = xr.open_dataset(out[LENS]).load()
+    assert lin.attrs["field_angles_from"] == "geometry artefact"
+    k_true = truth["derived"]["conversion_gain_dn_per_e_iso100"]
+    k, k_sigma = float(lin["conversion_gain_dn_per_e"]), float(lin["conversion_gain_dn_per_e_sigma"])
+    assert abs(k - k_true) < 4 * k_sigma + 0.003 * k_true

@@ -46,8 +46,10 @@ from pipeline.errors import ArtefactError
 #: ``water_closure_scale`` and its sigma); dark 3 and linearity 5: the lens region's ``projection``, the
 #: frames' black-level reference (``bias_reference``: unlit corners, optically black pixels of the DNG, or
 #: none, when ``bias_drift`` is not testable and ``bias_drift_dn`` is NaN), the dark's
-#: ``optical_black_offset_dn`` and linearity's ``n_corner_sites`` in ``obs_frame``; calibration 7: those.
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 2, "rolloff": 2, "spectral": 2,
+#: ``optical_black_offset_dn`` and linearity's ``n_corner_sites`` in ``obs_frame``; calibration 7: those;
+#: geometry 3: the ``projection`` attribute, and for a rectilinear region the pinhole fit's variables
+#: (``pinhole_parameters`` and their covariance; no image circle), see stages.geometry_rectilinear.
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 2, "spectral": 2,
                      "absolute": 3, "immersion": 2, "calibration": 7, "field": 2}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
