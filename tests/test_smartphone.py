@@ -48,6 +48,8 @@ def phone(config, tmp_path_factory):
 def test_projection_and_bias_reference_are_recorded(phone):
     _, _, _, _, dark, lin, _ = phone
     assert dark.attrs["projection"] == lin.attrs["projection"] == "rectilinear"
+    # the dark histograms hold the phone's 256-DN frames (the default range is the 800-DN camera's)
+    assert float(dark["dark_histogram"].sum()) > 0
     assert dark.attrs["bias_reference"] == "optically black pixels"
     assert "rectilinear" in lin.attrs["field_angles_from"]
 

@@ -46,7 +46,9 @@ from pipeline.errors import ArtefactError
 #: ``water_closure_scale`` and its sigma); dark 3 and linearity 5: the lens region's ``projection``, the
 #: frames' black-level reference (``bias_reference``: unlit corners, optically black pixels of the DNG, or
 #: none, when ``bias_drift`` is not testable and ``bias_drift_dn`` is NaN), the dark's
-#: ``optical_black_offset_dn`` and linearity's ``n_corner_sites`` in ``obs_frame``; calibration 7: those;
+#: ``optical_black_offset_dn`` and linearity's ``n_corner_sites`` in ``obs_frame``, the dark histograms' range
+#: moved to a dark level outside the configured one, and with ``bias_drift`` the read and temporal noise
+#: without the frames' common offsets (linearity: the flat field's noise too); calibration 7: those;
 #: geometry 3: the ``projection`` attribute, and for a rectilinear region the pinhole fit's variables
 #: (``pinhole_parameters`` and their covariance; no image circle), see stages.geometry_rectilinear.
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 2, "spectral": 2,

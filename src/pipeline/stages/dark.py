@@ -264,7 +264,14 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
 def _lens_dataset(lens, st, fr, per_lens_band, params, dark_rate, drift, fit, ffit, config,
                   settings, ref_iso) -> xr.Dataset:
     cfg = config["dark"]
-    edges = np.arange(cfg["histogram_range_dn"][0], cfg["histogram_range_dn"][1] + 1e-9, cfg["histogram_bin_dn"])
+    lo, hi = (float(v) for v in cfg["histogram_range_dn"])
+    first = per_lens_band[(lens, BANDS[0])]
+    level = float(np.median(first["means"][settings[0]][first["used"]]))
+    if not lo <= level <= hi:
+        # another camera's black level (a 12-bit phone's 256 DN): the range keeps its width and moves
+        # to the data, the dark level at 30 % of it, instead of leaving the histograms empty
+        lo, hi = level - 0.3 * (hi - lo), level + 0.7 * (hi - lo)
+    edges = np.arange(lo, hi + 1e-9, cfg["histogram_bin_dn"])
     st_l = st[st["lens"] == lens].reset_index(drop=True)
     fr_l = fr[fr["lens"] == lens].reset_index(drop=True)
     n_set = len(settings)
