@@ -18,6 +18,7 @@ import yaml
 from pipeline.dataset import write_md5sums
 from pipeline.errors import InputError
 from pipeline.report import _bias_drift_text
+from pipeline.scaffold import _dataset_yaml, plan_dataset
 from pipeline.simulate import truth_dir_for
 from pipeline.simulate.smartphone import Smartphone, simulate_smartphone_dataset
 from pipeline.workflow import run_stage
@@ -203,3 +204,15 @@ def test_linearity_takes_field_angles_from_the_rectilinear_geometry(phone, tmp_p
     k_true = truth["derived"]["conversion_gain_dn_per_e_iso100"]
     k, k_sigma = float(lin["conversion_gain_dn_per_e"]), float(lin["conversion_gain_dn_per_e_sigma"])
     assert abs(k - k_true) < 4 * k_sigma + 0.003 * k_true
+
+
+def test_init_dataset_proposes_a_rectilinear_region(phone):
+    """init-dataset on the phone's raw files: the vignetted region is lit to its corners (cos^4 at 39
+    degrees leaves about a third of the centre there, far above the 256-DN black level), so no image
+    circle is claimed and dataset.yaml proposes projection: rectilinear."""
+    root = phone[0]
+    plan = plan_dataset(root)
+    (lens,) = plan.lenses
+    assert lens.name == LENS and lens.projection == "rectilinear" and lens.radius_px is None
+    meta = yaml.safe_load(_dataset_yaml(plan))
+    assert meta["lenses"][LENS]["projection"] == "rectilinear"
