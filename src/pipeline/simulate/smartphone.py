@@ -15,7 +15,10 @@ the dataset.
 
 Experiments: dark (ISO and exposure sweeps), linearity (uniform integrating
 sphere, exposure and gain sweeps), geometry (a lit chessboard in several
-poses, rendered by intersecting every raw pixel's true ray with the board). The sensor physics (Poisson electrons,
+poses, rendered by intersecting every raw pixel's true ray with the board),
+roll-off (vignetting: the sphere port, a disc of 2 degrees, at field angles
+every 5 degrees in the horizontal and vertical planes, as far as the frame
+reaches, two frames each, and dark frames). The sensor physics (Poisson electrons,
 read noise, offset pattern, the effects' dark current, hot pixels, PRNU and
 frame offsets) is :func:`pipeline.simulate.sensor.expose`.
 """
@@ -44,7 +47,7 @@ from pipeline.simulate.plan import FrameSpec
 from pipeline.simulate.sensor import draw_static_pattern, expose, true_exposure_and_gain
 
 #: experiments the smartphone simulator writes, in acquisition order
-PHONE_EXPERIMENTS = ("dark", "linearity", "geometry")
+PHONE_EXPERIMENTS = ("dark", "linearity", "geometry", "rolloff")
 LENS = "main"
 START_TIME = datetime(2022, 6, 1, 10, 0, 0)
 FRAME_INTERVAL_S = 0.5
@@ -332,6 +335,47 @@ def _geometry_plan(phone: Smartphone, scale: PhoneScale, rng: np.random.Generato
                                               "square_mm": scale.board_square_mm}}
 
 
+#: port angles of the roll-off experiment per azimuth plane: as far as the tiny frame's half width
+#: (about 32 degrees) and half height (about 23 degrees) reach with the port inside
+ROLLOFF_ANGLES_DEG = {0.0: np.arange(-30.0, 30.0 + 1e-9, 5.0), 90.0: np.arange(-20.0, 20.0 + 1e-9, 5.0)}
+ROLLOFF_PORT_RADIUS_DEG = 2.0
+ROLLOFF_EXPOSURE_S = 1 / 60
+ROLLOFF_FRAMES_PER_SETTING = 2
+ROLLOFF_DARK_FRAMES = 6
+
+
+class PortMask:
+    """The sphere port, a uniform disc of band radiance around a direction, per raw pixel."""
+
+    def __init__(self, renderer: PhoneRenderer, radiance: dict, theta_deg: float, phi_deg: float, radius_deg: float):
+        t, p = np.radians(renderer.theta_deg), np.radians(renderer.phi_deg)
+        t0, p0 = np.radians(theta_deg), np.radians(phi_deg)
+        cos_d = np.sin(t) * np.sin(t0) * np.cos(p - p0) + np.cos(t) * np.cos(t0)
+        self.inside = cos_d >= np.cos(np.radians(radius_deg))
+        self.radiance = np.array([radiance[b] for b in BANDS])
+
+    def __call__(self, band_index):
+        return np.where(self.inside, self.radiance[band_index], 0.0)
+
+
+def _rolloff_plan(phone: Smartphone, renderer: PhoneRenderer) -> tuple[list[FrameSpec], dict]:
+    """The camera turned in front of the port: angle_deg >= 0 puts it at phi = azimuth, < 0 at azimuth + 180."""
+    frames = [FrameSpec("both", "dark", 100.0, ROLLOFF_EXPOSURE_S, {"medium": "air", "azimuth_deg": "",
+                                                                     "angle_deg": ""}) for _ in range(ROLLOFF_DARK_FRAMES)]
+    for az, angles in ROLLOFF_ANGLES_DEG.items():
+        for angle in angles:
+            phi = az if angle >= 0 else az + 180.0
+            scene = PortMask(renderer, phone.sphere_band_radiance, abs(float(angle)), phi, ROLLOFF_PORT_RADIUS_DEG)
+            frames += [FrameSpec(LENS, "signal", 100.0, ROLLOFF_EXPOSURE_S,
+                                 {"medium": "air", "azimuth_deg": az, "angle_deg": float(angle)}, scene)
+                       for _ in range(ROLLOFF_FRAMES_PER_SETTING)]
+    truth = {"vignetting": "cos(theta)^4 * (1 - mechanical_at_corner[band] * (theta / corner_theta_deg)^4)",
+             "mechanical_at_corner": dict(phone.optics.mechanical_at_corner),
+             "corner_theta_deg": phone.optics.corner_theta_deg(renderer.shape),
+             "port_radius_deg": ROLLOFF_PORT_RADIUS_DEG}
+    return frames, truth
+
+
 def band_intrinsics(phone: Smartphone, shape: tuple[int, int]) -> dict:
     """True intrinsics of each band image (band pixel (i, j) of a site at raw (2i + a, 2j + b))."""
     fx, fy, cx, cy = phone.optics.intrinsics(shape)
@@ -380,6 +424,8 @@ def simulate_smartphone_dataset(out: str | Path, scale: str = "tiny", seed: int 
         plans["linearity"] = _linearity_plan(phone, sc.linearity_frames)
     if "geometry" in experiments:
         plans["geometry"] = _geometry_plan(phone, sc, np.random.default_rng([seed, 104729]))
+    if "rolloff" in experiments:
+        plans["rolloff"] = _rolloff_plan(phone, renderer)
     clock = START_TIME
     for exp_id, exp in enumerate(experiments):
         frames, _ = plans[exp]
