@@ -43,11 +43,11 @@ from pipeline.geometry.chessboard import Board
 from pipeline.rawio import write_dng
 from pipeline.simulate.camera import SensorParams
 from pipeline.simulate.chessboard import render_chessboard
-from pipeline.simulate.plan import FrameSpec
+from pipeline.simulate.plan import PLANNERS, FrameSpec, LensGeometry, SimContext
 from pipeline.simulate.sensor import draw_static_pattern, expose, true_exposure_and_gain
 
 #: experiments the smartphone simulator writes, in acquisition order
-PHONE_EXPERIMENTS = ("dark", "linearity", "geometry", "rolloff")
+PHONE_EXPERIMENTS = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute")
 LENS = "main"
 START_TIME = datetime(2022, 6, 1, 10, 0, 0)
 FRAME_INTERVAL_S = 0.5
@@ -245,12 +245,14 @@ class PhoneRenderer:
         for effect in effects:
             rate = rate * effect.optics_factor(LENS, "air", self.theta_deg, self.phi_deg, self.band_index)
         self.unit_rate = rate
+        # where every raw pixel looks, in the form the default camera's scenes read
+        self.geometry = LensGeometry(self.theta_deg, self.phi_deg, np.ones(self.shape, dtype=bool))
 
     def photo_rate(self, spec: FrameSpec):
         if spec.radiance is None:
             return 0.0
         if callable(spec.radiance):     # a scene: per raw pixel effective band radiance
-            lbar = spec.radiance(self.band_index)
+            lbar = spec.radiance(LENS, self.geometry, self.band_index)
         else:
             lbar = np.array([spec.radiance[b] for b in BANDS])[self.band_index]
         rate = self.unit_rate * lbar
@@ -306,7 +308,7 @@ class BoardScene:
         self.reflectance, _ = render_chessboard(rays, board, rvec, tvec, supersample=3, background=0.3)
         self.white = np.array([white_radiance[b] for b in BANDS])
 
-    def __call__(self, band_index):
+    def __call__(self, lens, geometry, band_index):
         return self.white[band_index] * self.reflectance
 
 
@@ -354,7 +356,7 @@ class PortMask:
         self.inside = cos_d >= np.cos(np.radians(radius_deg))
         self.radiance = np.array([radiance[b] for b in BANDS])
 
-    def __call__(self, band_index):
+    def __call__(self, lens, geometry, band_index):
         return np.where(self.inside, self.radiance[band_index], 0.0)
 
 
@@ -374,6 +376,30 @@ def _rolloff_plan(phone: Smartphone, renderer: PhoneRenderer) -> tuple[list[Fram
              "corner_theta_deg": phone.optics.corner_theta_deg(renderer.shape),
              "port_radius_deg": ROLLOFF_PORT_RADIUS_DEG}
     return frames, truth
+
+
+#: the phone's absolute-calibration exposure: the default camera's 0.1 s would clip the 12-bit range
+PHONE_ABSOLUTE_EXPOSURE_S = 1 / 60
+
+
+def _default_lab_plan(name: str, phone: Smartphone, seed: int, index: int):
+    """The default camera's planner of experiment ``name`` run for this camera (one lens, its radiometry)."""
+    from types import SimpleNamespace
+
+    from pipeline.simulate import absolute, spectral  # noqa: F401  (register the planners)
+    from pipeline.simulate.lab_errors import no_lab_errors
+
+    camera = SimpleNamespace(lens_names=(LENS,), sensor=phone.sensor, radiometry=SimpleNamespace(
+        responsivity_dn_s_per_radiance=dict(phone.responsivity_dn_s_per_radiance),
+        sphere_band_radiance=dict(phone.sphere_band_radiance)))
+    ctx = SimContext(camera=camera, scale=None, seed=seed, rng=np.random.default_rng([seed, 104729, index]),
+                     lab_errors=no_lab_errors())
+    plan = PLANNERS[name](ctx)
+    if name == "absolute":
+        for spec in plan.frames:
+            spec.exposure_s = PHONE_ABSOLUTE_EXPOSURE_S
+        plan.truth["exposure_s"] = PHONE_ABSOLUTE_EXPOSURE_S
+    return plan.frames, plan.truth, plan.sidecars
 
 
 def band_intrinsics(phone: Smartphone, shape: tuple[int, int]) -> dict:
@@ -426,9 +452,12 @@ def simulate_smartphone_dataset(out: str | Path, scale: str = "tiny", seed: int 
         plans["geometry"] = _geometry_plan(phone, sc, np.random.default_rng([seed, 104729]))
     if "rolloff" in experiments:
         plans["rolloff"] = _rolloff_plan(phone, renderer)
+    for k, name in enumerate(("spectral", "absolute")):
+        if name in experiments:
+            plans[name] = _default_lab_plan(name, phone, seed, k)
     clock = START_TIME
     for exp_id, exp in enumerate(experiments):
-        frames, _ = plans[exp]
+        frames = plans[exp][0]
         (tmp / exp / "raw").mkdir(parents=True)
         rows = []
         for i, spec in enumerate(frames):
@@ -441,6 +470,8 @@ def simulate_smartphone_dataset(out: str | Path, scale: str = "tiny", seed: int 
             rows.append({"file": spec.file, "lens": spec.lens, "kind": spec.kind, **spec.extra})
             clock += timedelta(seconds=spec.exposure_s + FRAME_INTERVAL_S)
         pd.DataFrame(rows).to_csv(tmp / exp / "frames.csv", index=False)
+        for rel, text in (plans[exp][2] if len(plans[exp]) > 2 else {}).items():
+            (tmp / exp / rel).write_text(text)
     h, w = sc.active_shape
     meta = {
         "layout": 1,
@@ -500,6 +531,8 @@ def _plain(value):
         return {str(k): _plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
     if isinstance(value, np.generic):
         return value.item()
     return value
