@@ -256,6 +256,7 @@ def test_check_frames_false_defers_validation(ds_root):
     (lambda m: m["lenses"]["far"].update(cols=[0]), "lenses.far.cols"),
     (lambda m: m["lenses"]["far"].update(cols=[32, 0]), "start < stop"),
     (lambda m: m["lenses"].update(both={"rows": [0, 2], "cols": [0, 2]}), "invalid lens name 'both'"),
+    (lambda m: m["lenses"]["far"].update(projection="pinhole"), "lenses.far.projection is 'pinhole'"),
     (lambda m: m["chessboard"].update(inner_corners=[8]), "chessboard.inner_corners"),
     (lambda m: m["chessboard"]["square_mm"].update(air=-1), "chessboard.square_mm.air must be positive"),
 ])
@@ -444,3 +445,14 @@ def test_rolloff_immersion_geometry_columns(ds_root):
         return f
     _rewrite_csv(ds_root / "geometry" / "frames.csv", edit_medium)
     _expect(ds_root, ds_root / "geometry" / "frames.csv", "line 2", "'medium'", "'oil' is not one of air, water")
+
+
+def test_projection_declared_per_lens(ds_root):
+    """DATASET.md: a lens region may declare ``projection: rectilinear``; without the key it is a fisheye."""
+    meta = yaml.safe_load((ds_root / "dataset.yaml").read_text())
+    meta["lenses"]["far"]["projection"] = "rectilinear"
+    (ds_root / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+    ds = open_dataset(ds_root)
+    others = [lens for lens in ds.lenses if lens != "far"]
+    assert ds.projection("far") == "rectilinear"
+    assert others and all(ds.projection(lens) == "fisheye" for lens in others)

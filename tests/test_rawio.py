@@ -58,8 +58,11 @@ def test_round_trip_pixels_pattern_and_tags(tmp_path, pattern):
     assert tags["cfa_pattern"] == pattern
     assert tags["exposure_s"] == 1 / 3 and tags["iso"] == 800.0 and tags["time"] == T0
     assert set(tags) == {"path", "exposure_s", "iso", "time", "black_level", "white_level",
-                         "cfa_pattern", "make", "model", "serial", "shape"}
+                         "cfa_pattern", "make", "model", "serial", "shape", "active_area", "masked_areas"}
     assert tags["serial"] == "SIM-0001" and tags["shape"] == cfa.shape
+    # no ActiveArea or MaskedAreas written: no optically black pixels
+    assert tags["active_area"] is None and tags["masked_areas"] == []
+    assert frame.optical_black_dn is None and frame.optical_black_count == 0
 
 
 def test_without_checksums_the_same_frame_and_no_hashes(tmp_path):
@@ -282,3 +285,20 @@ def test_real_blackmagic():
     with pytest.raises(InputError) as err:
         read_raw(BLACKMAGIC, require=("make",))
     assert str(err.value) == f"{BLACKMAGIC}: Make tag is missing or zero"
+
+
+@needs_real
+def test_canon_active_area_and_optically_black_pixels():
+    """The Canon 550D file declares ActiveArea (26, 152, 1182, 1886) and no MaskedAreas: the margins above
+    and left of it are its optically black pixels. Their mean must sit near the BlackLevel tag (2056 DN;
+    a masked pixel holds the black level plus read noise, and its mean over 2e5 pixels is read-noise
+    limited to well under 1 DN, so the 10 DN tolerance leaves room only for the tag being a nominal
+    value), far below the lit image (its mean is hundreds of DN above)."""
+    tags = read_tags(CANON)
+    assert tags["active_area"] == (26, 152, 1182, 1886)
+    assert tags["masked_areas"] == []
+    frame = read_raw(CANON, require=())
+    # top margin 26 x 1888 plus left margin (1182 - 26) x 152
+    assert frame.optical_black_count == 26 * 1888 + (1182 - 26) * 152
+    assert abs(frame.optical_black_dn - frame.black_level) < 10
+    assert frame.cfa.mean() > frame.optical_black_dn + 300

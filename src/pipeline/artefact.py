@@ -43,10 +43,18 @@ from pipeline.errors import ArtefactError
 #: the dark and linearity of these versions; rolloff 2: the in-water closure predicts each water point from
 #: the air fit and the immersion physics (``obs_water`` gains ``theta_air_deg``, ``theta_air_sigma_deg``,
 #: ``deg_per_px_air``, ``water_factor``, ``air_prediction_sigma``; ``water_compression`` gives way to
-#: ``water_closure_scale`` and its sigma); closure 1: the diagnostics' closure table
+#: ``water_closure_scale`` and its sigma); dark 3 and linearity 5: the lens region's ``projection``, the
+#: frames' black-level reference (``bias_reference``: unlit corners, optically black pixels of the DNG, or
+#: none, when ``bias_drift`` is not testable and ``bias_drift_dn`` is NaN), the dark's
+#: ``optical_black_offset_dn`` and linearity's ``n_corner_sites`` in ``obs_frame``, the dark histograms' range
+#: moved to a dark level outside the configured one, and with ``bias_drift`` the read and temporal noise
+#: without the frames' common offsets (linearity: the flat field's noise too); calibration 7: those;
+#: geometry 3: the ``projection`` attribute, and for a rectilinear region the pinhole fit's variables
+#: (``pinhole_parameters`` and their covariance; no image circle), see stages.geometry_rectilinear.
+#: closure 1: the diagnostics' closure table
 #: (``results/closure/residuals.nc``, one row per measurement of every experiment, pipeline.diagnostics).
-ARTEFACT_VERSIONS = {"dark": 2, "linearity": 4, "geometry": 2, "rolloff": 2, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 6, "field": 2, "closure": 1}
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 2, "spectral": 2,
+                     "absolute": 3, "immersion": 2, "calibration": 7, "field": 2, "closure": 1}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -11,13 +11,14 @@ covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``, version 6; 2: the per-pixel
+versioned artefact (``artefact = calibration``, version 7; 2: the per-pixel
 maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
 flat field's uncertainty; 5: theta_deg_sigma, the absolute budget's new lamp
 term, and what depends only on lens, medium and band precomputed per pixel:
 the roll-off step's factor 1 / g(theta, phi), its relative variances, the
 geometry flags and the cell on the default sphere grid; 6: the dark and
-linearity artefacts' bias-drift spread weighted by the corners' noise; older files are
+linearity artefacts' bias-drift spread weighted by the corners' noise; 7: the dark and linearity
+artefacts' projection and black-level reference; older files are
 refused with a line asking to rebuild) carrying the sha256 of every artefact it came from,
 the model's effects and the camera's make, model and serial number.
 

@@ -73,7 +73,8 @@ examples:
 SIMULATE_EXAMPLES = """\
 examples:
   python -m pipeline simulate --out data/sim-tiny --scale tiny --seed 1
-  python -m pipeline simulate --out data/sim --effect shutter_offset:offset_s=0.0004 --experiments dark,linearity"""
+  python -m pipeline simulate --out data/sim --effect shutter_offset:offset_s=0.0004 --experiments dark,linearity
+  python -m pipeline simulate --out data/phone --camera smartphone --scale tiny --effect dark_current"""
 
 PUBLISH_EXAMPLES = """\
 The store is append-only: STORE/<serial>/<valid_from>_<sha256[:16]>.nc, read-only
@@ -174,6 +175,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--lab-noise", action="store_true",
                      help="add the lab's frame-to-frame noise (source flicker and drift, bias jitter, "
                           "room-temperature drift; sizes written to the truth); default: none")
+    sim.add_argument("--camera", choices=("dual-fisheye", "smartphone"), default="dual-fisheye",
+                     help="the simulated camera: the default dual-fisheye 360 camera, or a rectilinear smartphone "
+                          "(one region, 12-bit, GRBG, optically black margins, a gain table not proportional to "
+                          "ISO; dark and linearity experiments; scales tiny, small, medium)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
     from pipeline.apply import add_apply_parser
 
@@ -233,6 +238,14 @@ def _simulate(args) -> int:
     from pipeline.simulate.dataset import EXPERIMENTS, truth_dir_for
 
     effects = [parse_effect_spec(s) for s in args.effect]
+    if args.camera == "smartphone":
+        from pipeline.simulate.smartphone import PHONE_EXPERIMENTS, simulate_smartphone_dataset
+
+        experiments = tuple(e for e in args.experiments.split(",") if e) if args.experiments else PHONE_EXPERIMENTS
+        out = simulate_smartphone_dataset(args.out, scale=args.scale, seed=args.seed, effects=effects,
+                                          experiments=experiments)
+        print(f"dataset: {out}\ntruth:   {truth_dir_for(out)}")
+        return EXIT_OK
     experiments = tuple(e for e in args.experiments.split(",") if e) if args.experiments else EXPERIMENTS
     sensor = {"full_well_e": args.full_well_e} if args.full_well_e is not None else None
     out = simulate_dataset(args.out, scale=args.scale, seed=args.seed, effects=effects,

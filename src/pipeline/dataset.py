@@ -30,7 +30,7 @@ from pipeline.errors import InputError, Problem
 
 __all__ = [
     "EXPERIMENTS", "COMMON_COLUMNS", "EXPERIMENT_COLUMNS", "OPTIONAL_COLUMNS", "TAG_COLUMNS", "SIDECARS",
-    "COLUMN_MEANINGS", "KINDS", "CHOICES", "LAYOUT_VERSION",
+    "COLUMN_MEANINGS", "KINDS", "CHOICES", "LAYOUT_VERSION", "PROJECTIONS",
     "Dataset", "LayoutCheck", "open_dataset", "inspect_layout", "check_sidecars", "check_checksums", "check_md5",
     "write_md5sums", "read_csv_table",
     "read_photodiode", "read_source_spectrum", "read_source_reference",
@@ -38,6 +38,10 @@ __all__ = [
 ]
 
 LAYOUT_VERSION = 1
+#: projections a lens region may declare (DATASET.md, dataset.yaml): the first is the default.
+#: fisheye: an image circle inside the region, unlit corners around it; rectilinear: an
+#: ordinary (pinhole-like) camera whose whole region is lit.
+PROJECTIONS = ("fisheye", "rectilinear")
 EXPERIMENTS = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion", "field")
 COMMON_COLUMNS = ("file", "lens", "kind")
 # Required columns per experiment beyond COMMON_COLUMNS (DATASET.md, frames.csv).
@@ -335,6 +339,11 @@ def _check_meta(path: Path, meta: Any, problems: list[Problem]
                 _note(problems, path, f"lenses.{name} needs rows and cols", _LENSES_FIX)
                 lenses = None
                 continue
+            projection = region.get("projection", PROJECTIONS[0])
+            if projection not in PROJECTIONS:
+                _note(problems, path, f"lenses.{name}.projection is {projection!r}; known: {', '.join(PROJECTIONS)}",
+                      "write projection: fisheye (an image circle with unlit corners) or rectilinear (an "
+                      "ordinary camera: the whole region is lit), or leave it out for fisheye")
             rows = _check(problems, path, _parse_span, f"lenses.{name}.rows", region["rows"])
             cols = _check(problems, path, _parse_span, f"lenses.{name}.cols", region["cols"])
             if rows is None or cols is None:
@@ -508,6 +517,12 @@ class Dataset:
     lenses: dict[str, tuple[tuple[int, int], tuple[int, int]]]
     md5sums: dict[str, str]
     _frames: dict[str, pd.DataFrame] = field(default_factory=dict, repr=False, compare=False)
+
+    def projection(self, lens: str) -> str:
+        """The projection lens region ``lens`` declares in dataset.yaml (PROJECTIONS; default fisheye)."""
+        region = (self.meta.get("lenses") or {}).get(lens) if isinstance(self.meta, dict) else None
+        value = region.get("projection", PROJECTIONS[0]) if isinstance(region, dict) else PROJECTIONS[0]
+        return str(value)
 
     def experiments(self) -> list[str]:
         """Experiment folders present, in the order of EXPERIMENTS."""

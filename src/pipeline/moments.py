@@ -90,3 +90,11 @@ def corner_mask(shape: tuple[int, int], min_radius_fraction: float) -> np.ndarra
     h, w = shape
     r = radius_map(shape, ((w - 1) / 2, (h - 1) / 2))
     return r > min_radius_fraction * min(h, w) / 2
+
+
+def unlit_mask(shape: tuple[int, int], projection: str, min_radius_fraction: float) -> np.ndarray:
+    """The band pixels of a lens region that are never lit: a fisheye's corners (:func:`corner_mask`),
+    none for a rectilinear region (an ordinary camera is lit to its edges)."""
+    if projection == "rectilinear":
+        return np.zeros(shape, dtype=bool)
+    return corner_mask(shape, min_radius_fraction)

@@ -8,7 +8,9 @@ experiment of each file, :func:`init_dataset` writes the layout of DATASET.md:
 - ``dataset.yaml``: make, model and serial from the tags; lens regions proposed
   from the frame size (a dual-fisheye frame of H x W with H = 2W holds two
   square regions stacked), each checked for a lit image circle with the
-  geometry package's circle fit on a frame, for the user to confirm;
+  geometry package's circle fit on a frame, for the user to confirm; a region
+  lit to its corners (an ordinary camera) is proposed as ``projection:
+  rectilinear``;
 - ``<experiment>/frames.csv``: one row per raw file in acquisition order, the
   copies of the tags filled (``exposure_s``, ``iso``, ``time``) and the columns
   only the lab knows (lens, kind, sweep, ...) filled from the lab log, or empty;
@@ -76,6 +78,13 @@ NOISE_FLOOR_DN = 1.0
 MIN_CIRCLE_RADIUS_FRACTION = 0.25
 #: edge points scattered more than this (band pixels RMS) about the fit are not one circle
 MAX_CIRCLE_FIT_RMS_PX = 2.0
+#: a fisheye's pixels outside its circle are never lit: a region lit outside the best circle by more
+#: than this fraction of the inside (above the BlackLevel tag) is an ordinary camera's, lit to its
+#: corners (the linearity stage's default image_circle_max_outside_fraction)
+MAX_OUTSIDE_LIT_FRACTION = 0.2
+
+#: what :func:`_circle_in` says of a region lit to its corners
+RECTILINEAR = "lit to its corners"
 
 _LOG_FIX = "give each raw file one row: file (path relative to RAW_DIR, or the file name), experiment, lab columns"
 
@@ -104,6 +113,8 @@ class LensProposal:
     radius_px: float | None = None
     frame: str | None = None              # dataset path of the frame the circle was fitted on
     note: str = ""
+    #: fisheye, or rectilinear when a lit frame shows the region lit to its corners
+    projection: str = "fisheye"
 
 
 @dataclass
@@ -250,16 +261,38 @@ def _lit_contrast_sigma(band: np.ndarray) -> float:
     return (float(np.median(centre)) - outside) / noise
 
 
-def _circle_in(band: np.ndarray):
-    """The lit image circle of a band image (geometry's circle fit), or None with the reason."""
-    from pipeline.geometry.image_circle import find_image_circle
+def _lit_to_corners(band: np.ndarray, black_level_dn: float) -> bool:
+    """The region's corners stand well above the black level: lit, as an ordinary camera's are."""
+    h, w = band.shape
+    k = max(1, int(min(h, w) * CORNER_SIZE_FRACTION))
+    corners = np.concatenate([band[:k, :k].ravel(), band[:k, -k:].ravel(),
+                              band[-k:, :k].ravel(), band[-k:, -k:].ravel()])
+    level = float(np.median(corners))
+    noise = max(MAD_TO_SIGMA * float(np.median(np.abs(corners - level))), NOISE_FLOOR_DN)
+    return (level - black_level_dn) / noise > MIN_LIT_CONTRAST_SIGMA
+
+
+def _circle_in(band: np.ndarray, black_level_dn: float | None = None):
+    """The lit image circle of a band image (geometry's circle fit), or None with the reason.
+
+    The reason is ``RECTILINEAR`` when the region is lit to its corners (the pixels outside the best
+    circle lit by more than MAX_OUTSIDE_LIT_FRACTION of the inside, or the corners far above the
+    black level): an ordinary camera's region, which has no image circle.
+    """
+    from pipeline.geometry.image_circle import find_image_circle, outside_lit_fraction
 
     if _lit_contrast_sigma(band) < MIN_LIT_CONTRAST_SIGMA:
+        if black_level_dn is not None and _lit_to_corners(band, black_level_dn):
+            return None, RECTILINEAR
         return None, "not lit (or lit up to its corners)"
     try:
         circle = find_image_circle(band)
     except ValueError as exc:
         return None, f"no circle found ({exc})"
+    if black_level_dn is not None:
+        lit = outside_lit_fraction(band, circle, black_level_dn)
+        if np.isfinite(lit) and lit > MAX_OUTSIDE_LIT_FRACTION:
+            return None, RECTILINEAR
     h, w = band.shape
     if not (0 <= circle.xc < w and 0 <= circle.yc < h):
         return None, "the fitted circle's centre lies outside the region"
@@ -286,10 +319,11 @@ def find_lens_circles(lenses: list[LensProposal], entries: dict[str, list[RawEnt
     reasons: dict[str, str] = {}
     decoded = 0
     for experiment, entry in _circle_candidates(entries):
-        if all(lens.radius_px is not None for lens in lenses) or decoded >= max_frames:
+        if all(lens.radius_px is not None or lens.projection == "rectilinear" for lens in lenses) \
+                or decoded >= max_frames:
             break
         # a frame the lab log assigns to one lens lights only that lens
-        todo = [lens for lens in lenses if lens.radius_px is None
+        todo = [lens for lens in lenses if lens.radius_px is None and lens.projection == "fisheye"
                 and entry.lab.get("lens", "") in ("", "both", lens.name)]
         if not todo:
             continue
@@ -305,7 +339,13 @@ def find_lens_circles(lenses: list[LensProposal], entries: dict[str, list[RawEnt
                 reasons[lens.name] = f"the region does not fit the frame ({exc})"
                 continue
             band = split_bands(region, raw.cfa_pattern)["G"]
-            circle, reason = _circle_in(band)
+            circle, reason = _circle_in(band, raw.black_level)
+            if reason == RECTILINEAR:
+                lens.projection = "rectilinear"
+                lens.frame = f"{experiment}/{entry.target}"
+                lens.note = (f"lit to its corners ({lens.frame}): no image circle, proposed as "
+                             "'projection: rectilinear' (an ordinary camera)")
+                continue
             if circle is None:
                 reasons.setdefault(lens.name, reason)
                 continue
@@ -316,7 +356,7 @@ def find_lens_circles(lenses: list[LensProposal], entries: dict[str, list[RawEnt
             lens.frame = f"{experiment}/{entry.target}"
             lens.note = ""
     for lens in lenses:
-        if lens.radius_px is None:
+        if lens.radius_px is None and lens.projection == "fisheye":
             why = reasons.get(lens.name, "no frame outside dark/ to look at")
             lens.note = (f"no lit image circle found in {decoded} frame{'s' if decoded != 1 else ''} "
                          f"({why}): check this region; a rectilinear lens (the whole region lit) "
@@ -454,7 +494,9 @@ def _frames_table(experiment: str, items: list[RawEntry], lab_columns: list[str]
 
 def _dataset_yaml(plan: ScaffoldPlan) -> str:
     meta = {"layout": LAYOUT_VERSION, "camera": plan.camera,
-            "lenses": {lens.name: {"rows": list(lens.rows), "cols": list(lens.cols)} for lens in plan.lenses},
+            "lenses": {lens.name: {"rows": list(lens.rows), "cols": list(lens.cols),
+                                   **({"projection": lens.projection} if lens.projection != "fisheye" else {})}
+                       for lens in plan.lenses},
             "description": ""}
     head = ("# Laid out by `python -m pipeline init-dataset` from the raw files' tags (DATASET.md).\n"
             "# Confirm the lens regions ([start, stop) raw pixel rows and columns) and write a description.\n")

@@ -119,6 +119,31 @@ def find_image_circle(image, *, n_profiles: int = N_PROFILES, window_frac: float
     return ImageCircle(xc, yc, r, rms, len(pts_x))
 
 
+def outside_lit_fraction(image, circle: ImageCircle, dark_level_dn: float, *, rim_margin: float = 0.05,
+                         min_snr: float = 5.0) -> float:
+    """How lit the region outside ``circle`` is, as a fraction of the inside, above the dark level.
+
+    Median of the band pixels farther than (1 + ``rim_margin``) radius from the centre,
+    less ``dark_level_dn``, over the median of those within (1 - ``rim_margin``) radius,
+    less the same. A fisheye's corners are never lit (DATASET.md): about 0. A frame
+    lit everywhere (an ordinary camera, or a circle fitted to noise) gives about 1;
+    NaN when the circle leaves no pixel outside it, or when the inside is lit by less
+    than ``min_snr`` times the pixel noise outside (robust: 1.4826 MAD), i.e. not at all.
+    """
+    img = np.asarray(image, dtype=float)
+    y, x = np.indices(img.shape, dtype=float)
+    r = np.hypot(x - circle.xc, y - circle.yc)
+    outside = img[r > (1 + rim_margin) * circle.radius]
+    inside = img[r < (1 - rim_margin) * circle.radius]
+    if outside.size == 0 or inside.size == 0:
+        return float("nan")
+    lit_inside = float(np.median(inside)) - dark_level_dn
+    noise = 1.4826 * float(np.median(np.abs(outside - np.median(outside))))
+    if lit_inside <= min_snr * noise or lit_inside <= 0:
+        return float("nan")
+    return (float(np.median(outside)) - dark_level_dn) / lit_inside
+
+
 def half_fov_from_circle(model: FisheyeModel, circle: ImageCircle, n_azimuths: int = 36) -> float:
     """Half field of view (degrees): model theta on the circle, averaged over azimuths."""
     az = np.linspace(0, 2 * np.pi, n_azimuths, endpoint=False)

@@ -135,3 +135,10 @@ def media(ds: xr.Dataset) -> list[str]:
 def var_units(ds: xr.Dataset, name: str) -> str:
     """The units of artefact variable ``name`` as :func:`units_text` writes them ("" when absent)."""
     return units_text(ds[name].attrs.get("units", "")) if name in ds else ""
+
+
+def bias_drift_text(ds: xr.Dataset) -> str:
+    """The bias drift, or why it could not be tested (no unlit corners, no optically black pixels)."""
+    if not int(ds.attrs.get("bias_drift_testable", 1)):
+        return ds.attrs.get("bias_drift_note", "not testable")
+    return quantity(ds, "bias_drift_dn")

@@ -39,20 +39,38 @@ from pipeline.radiometry.dark import dark_level_dn
 from pipeline.radiometry.response import linear_signal
 
 
-def _smooth_design(y: np.ndarray, x: np.ndarray) -> np.ndarray:
+def _smooth_design(y: np.ndarray, x: np.ndarray, polynomial_degree: int | None = None) -> np.ndarray:
+    """Columns of the smooth surface removed before the flat field is read.
+
+    Default (a fisheye's photon-transfer region, the inner 30 degrees): a quadratic in the pixel
+    offsets from the region centre plus r^4. With ``polynomial_degree`` (a rectilinear region, lit
+    to its corners, where vignetting, cos^4 of the field angle times the lens's own fall-off about
+    an optical centre off the region's, bends faster and less symmetrically): every monomial
+    dx^i dy^j with i + j <= degree.
+    """
     dy = (y - y.mean()) / max(np.ptp(y), 1)
     dx = (x - x.mean()) / max(np.ptp(x), 1)
+    if polynomial_degree is not None:
+        return np.column_stack([dx**i * dy**j for i in range(polynomial_degree + 1)
+                                for j in range(polynomial_degree + 1 - i)])
     r2 = dx * dx + dy * dy
     return np.column_stack([np.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy, r2 * r2])
 
 
 def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float, beta: float = 0.0,
-              full_scale_dn: float = float("nan")) -> tuple[pd.DataFrame, dict]:
+              full_scale_dn: float = float("nan"), offset_var_dn2: dict | None = None,
+              rectilinear_degree: int = 6) -> tuple[pd.DataFrame, dict]:
     """Observation table (level ``flat``) and flat-field maps (band, y, x) per lens.
 
     The maps are (flat field, its standard uncertainty) per lens, both (band, y, x).
     ``beta`` and ``full_scale_dn``: the linearity model's fitted nonlinearity (0: none).
+    ``offset_var_dn2`` ((lens, band, (iso, exposure_s)) -> DN^2, with ``bias_drift``): the sample
+    variance of the frames' common black-level offsets in a setting, which every pixel's temporal
+    variance holds but which adds no spatial variance to the setting's mean image: taken out of
+    the noise. A rectilinear lens region (``reduced["projection"]``) has its smooth surface as a
+    2-D polynomial of ``rectilinear_degree`` (:func:`_smooth_design`).
     """
+    offset_var_dn2 = offset_var_dn2 or {}
     rows, maps = [], {}
     fr = reduced["frames"]
     sat = fr[fr["saturated"]]
@@ -67,7 +85,9 @@ def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float, beta: floa
             yy, xx = np.nonzero(per_band[band][0])
             keep = region[per_band[band][0]]
             y, x = yy[keep], xx[keep]
-            X = _smooth_design(y.astype(float), x.astype(float))
+            projection = reduced.get("projection", {}).get(lens, "fisheye")
+            X = _smooth_design(y.astype(float), x.astype(float),
+                               rectilinear_degree if projection == "rectilinear" else None)
             fpn = d["fpn_map_dn"].sel(band=band).values[y, x]
             read = float(d["read_noise_dn"].sel(band=band).sel(iso=iso, method="nearest"))
             n_dark = int(d["obs_setting__n_frames"].values.min()) if "obs_setting__n_frames" in d else 1
@@ -83,7 +103,8 @@ def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float, beta: floa
                 # dark-corrected pixel means, back on the linear signal (and their temporal variance with them)
                 mean, slope = linear_signal(mom.mean()[keep] - fpn - dark_level_dn(d, band, key[0], key[1]),
                                             beta, full_scale_dn)
-                var_t = mom.variance()[keep] * slope**2
+                common = max(float(offset_var_dn2.get((lens, band, key), 0.0)), 0.0)
+                var_t = np.maximum(mom.variance()[keep] - common, 0.0) * slope**2
                 coef, *_ = np.linalg.lstsq(X, mean, rcond=None)
                 smooth = X @ coef
                 resid = mean - smooth

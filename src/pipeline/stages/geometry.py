@@ -30,6 +30,10 @@ uncertainty it gives (``theta_deg_sigma`` per band pixel,
 ``theta_deg_sigma_at_field_angle`` at ``geometry.theta_sigma_summary_deg``;
 :mod:`pipeline.geometry.theta_uncertainty`).
 
+A lens region declared ``projection: rectilinear`` (an ordinary camera) is fitted with OpenCV's
+pinhole model instead, without an image circle (:mod:`pipeline.stages.geometry_rectilinear`):
+the same maps, its own parameters.
+
 Artefact ``results/geometry/<lens>.nc``: the layout of
 :mod:`pipeline.stages.geometry_maps` plus the variables listed in
 :func:`lens_dataset`.
@@ -55,6 +59,7 @@ from pipeline.geometry.chessboard import Board
 from pipeline.geometry.corners import (CROP_PAD_PX, _upsample_factor, corner_spacing_px, detect_corners_coarse_to_fine,
                                        detect_in_crop)
 from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle
+from pipeline.stages.geometry_rectilinear import rectilinear_lens_dataset
 from pipeline.geometry.scaramuzza import field_angle_rad
 from pipeline.geometry.theta_uncertainty import theta_sigma_at_field_angles, theta_sigma_map
 from pipeline.observations import table_to_dataset
@@ -134,7 +139,7 @@ def reduce_geometry(dataset: Dataset, config: dict, progress: bool = False) -> d
                              "found": res.found, "corners": res.corners, "method": res.method,
                              "detector_message": res.message})
     return {"rows": rows, "maxima": maxima, "thumbs": thumbs, "inputs": inputs, "boards": boards,
-            "n_frames": len(frames)}
+            "n_frames": len(frames), "projections": {lens: dataset.projection(lens) for lens in dataset.lenses}}
 
 
 def classify_missing(thumb: np.ndarray, k: int, circle, contrast_threshold: float) -> str:
@@ -185,6 +190,18 @@ def analyse_geometry(reduced: dict, config: dict, dataset_root: Path) -> dict[st
     for lens in sorted(set(table["lens"])):
         tl = table[table["lens"] == lens]
         media = [m for m in MEDIA if m in set(tl["medium"])]
+        if reduced.get("projections", {}).get(lens) == "rectilinear":
+            # an ordinary camera: OpenCV's pinhole model, no image circle (stages.geometry_rectilinear)
+            for medium in media:
+                board = reduced["boards"][medium]
+                found_any = tl[tl["medium"] == medium].groupby("frame")["found"].any()
+                if found_any.mean() < cfg["min_found_fraction"]:
+                    raise InputError(folder, (f"lens {lens}, {medium}: a {board.nx}x{board.ny} board was found in "
+                                              f"only {int(found_any.sum())} of {len(found_any)} frames; "
+                                              f"{BOARD_SIZE_HINT}"))
+            shape = reduced["maxima"][(lens, media[0], "G")].shape
+            out[lens] = rectilinear_lens_dataset(tl, reduced["boards"], shape, cfg, folder, lens, BOARD_SIZE_HINT)
+            continue
         models, results, circles, frame_rows, points_rows = {}, {}, {}, [], []
         for medium in media:
             board = reduced["boards"][medium]
@@ -372,6 +389,7 @@ def lens_dataset(models, results, circles, frame_rows, points_rows, band_shape, 
     ds["corners_px"] = (("lens_frame", "band", "board_corner", "uv"), corners,
                         {"long_name": "detected inner corners (u, v), OpenCV order", "units": "pixel"})
     ds.attrs["lens"] = lens
+    ds.attrs["projection"] = "fisheye"
     return ds
 
 

@@ -18,8 +18,13 @@ Streams the exposure-time and gain sweeps once and reduces them to:
   ``nonlinearity``, ``iso_gain``; ``hot_pixels`` and ``bias_drift`` correct the
   data), with predictions and noise-normalised residuals.
 
-The mask is centred on the lit image circle, whose radius stands for the
-nominal half field of view (equidistant projection).
+Without a geometry artefact the mask's field angles come from the projection the
+lens region declares (dataset.yaml): a fisheye's lit image circle, whose radius
+stands for the nominal half field of view (equidistant projection), or a
+rectilinear region's centre and nominal half diagonal field of view (r = f tan
+theta); a fisheye region whose frames show no image circle stops the stage with
+one line naming it. The artefact's ``projection`` and ``field_angles_from``
+attributes say which was used.
 """
 
 from __future__ import annotations
@@ -37,8 +42,8 @@ from pipeline.effects.catalogue import drift_sigma
 from pipeline.errors import ImpossibleResult, InputError
 from pipeline.fitting import base_design, ols_line, wls
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
-from pipeline.geometry.image_circle import find_image_circle
-from pipeline.moments import RunningMoments, RunningPearson, corner_mask, radius_map
+from pipeline.geometry.image_circle import find_image_circle, outside_lit_fraction
+from pipeline.moments import RunningMoments, RunningPearson, radius_map, unlit_mask
 from pipeline.observations import effect_coefficients, fit_with_effects, table_to_dataset
 from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
 from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso
@@ -51,20 +56,67 @@ STAGE = "linearity"
 COLUMN_EFFECTS = ("shutter_offset", "nonlinearity", "iso_gain")
 
 
-def axis_masks(g_image: np.ndarray, geometry: xr.Dataset | None, config: dict) -> tuple[tuple, np.ndarray, np.ndarray, str]:
+def _no_circle(lens: str, why: str) -> InputError:
+    return InputError(None, f"lens region '{lens}' is declared fisheye but its linearity frames show no image "
+                            f"circle ({why}); an ordinary camera whose whole region is lit needs "
+                            f"'projection: rectilinear' for lens '{lens}' in dataset.yaml")
+
+
+def fisheye_circle(g_image: np.ndarray, dark_level_dn: float, config: dict, lens: str):
+    """The lit image circle of a fisheye region, or one InputError naming the region when there is none.
+
+    A region without one (lit to its corners, or dark) must not get a circle fitted to its noise:
+    the pixels outside the fitted circle must be lit by less than
+    ``linearity.image_circle_max_outside_fraction`` of the inside (both above the dark level),
+    and the inside by more than ``linearity.signal_frame_min_snr`` times the pixel noise outside.
+    """
+    try:
+        circle = find_image_circle(g_image)
+    except ValueError as exc:
+        raise _no_circle(lens, str(exc)) from None
+    limit = config[STAGE]["image_circle_max_outside_fraction"]
+    lit = outside_lit_fraction(g_image, circle, dark_level_dn, min_snr=config[STAGE]["signal_frame_min_snr"])
+    if not np.isfinite(lit) or lit > limit:
+        what = ("no unlit pixel outside it or nothing lit inside it" if not np.isfinite(lit)
+                else f"outside it the frame is lit at {lit:.2g} of the inside, more than "
+                     f"linearity.image_circle_max_outside_fraction = {limit:g}")
+        raise _no_circle(lens, f"the best circle, radius {circle.radius:.3g} band px, has {what}")
+    return circle
+
+
+def axis_masks(g_image: np.ndarray, geometry: xr.Dataset | None, config: dict, *, lens: str = "",
+               projection: str = "fisheye", dark_level_dn: float = 0.0
+               ) -> tuple[tuple, np.ndarray, np.ndarray, str]:
     """The averaging mask and the photon-transfer region of one lens, in band pixels.
 
     With the lens's geometry artefact, both are field-angle cones of the fitted
     in-air theta map (``mask_half_angle_deg``, ``ptc_half_angle_deg``). Without
-    it, the lit image circle is found in the frame and the angles become radii
-    through an equidistant projection with ``nominal_half_fov_deg`` at the
-    circle's edge. Returns the circle (cx, cy, radius, mask radius), the two
-    masks and the source of the field angles.
+    it, the field angles come from the projection the lens region declares: for
+    a fisheye the lit image circle is found in the frame (:func:`fisheye_circle`)
+    and the angles become radii through an equidistant projection with
+    ``nominal_half_fov_deg`` at the circle's edge; for a rectilinear region the
+    axis is the region's centre and the radii are f tan(theta), the focal length
+    f putting ``rectilinear_nominal_half_fov_deg`` at the region's half diagonal.
+    Returns (cx, cy, radius, mask radius), the radius being the circle's or
+    (rectilinear) the half diagonal, the two masks and the source of the field angles.
     """
     cfg = config[STAGE]
-    circle = find_image_circle(g_image)
-    cx, cy, radius = circle.xc, circle.yc, circle.radius
-    r_mask = radius * cfg["mask_half_angle_deg"] / cfg["nominal_half_fov_deg"]
+    if projection == "rectilinear":
+        h, w = g_image.shape
+        cx, cy, radius = (w - 1) / 2.0, (h - 1) / 2.0, float(np.hypot(w, h) / 2.0)
+        focal_px = radius / np.tan(np.radians(cfg["rectilinear_nominal_half_fov_deg"]))
+
+        def angle_radius(theta_deg):
+            return focal_px * np.tan(np.radians(theta_deg))
+        source = "region centre and rectilinear_nominal_half_fov_deg"
+    else:
+        circle = fisheye_circle(g_image, dark_level_dn, config, lens)
+        cx, cy, radius = circle.xc, circle.yc, circle.radius
+
+        def angle_radius(theta_deg):
+            return radius * theta_deg / cfg["nominal_half_fov_deg"]
+        source = "image circle and nominal_half_fov_deg"
+    r_mask = angle_radius(cfg["mask_half_angle_deg"])
     if geometry is not None:
         theta = geometry["theta_deg"].sel(medium="air", band="G").values.astype(float)
         if theta.shape != g_image.shape:
@@ -76,8 +128,8 @@ def axis_masks(g_image: np.ndarray, geometry: xr.Dataset | None, config: dict) -
             return (cx, cy, radius, float(np.sqrt(mask.sum() / np.pi))), mask, ptc_region, "geometry artefact"
     rmap = radius_map(g_image.shape, (cx, cy))
     mask = rmap <= r_mask
-    ptc_region = rmap <= radius * cfg["ptc_half_angle_deg"] / cfg["nominal_half_fov_deg"]
-    return (cx, cy, radius, r_mask), mask, ptc_region, "image circle and nominal_half_fov_deg"
+    ptc_region = rmap <= angle_radius(cfg["ptc_half_angle_deg"])
+    return (cx, cy, radius, r_mask), mask, ptc_region, source
 
 
 def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict, effects: list[str],
@@ -95,7 +147,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
     moments = defaultdict(RunningMoments)     # (lens, band, sweep, setting) -> moments of mask pixels
     pearson = defaultdict(RunningPearson)     # (lens, band, sweep) -> per-pixel r
     first_of_setting = set()
-    frame_rows, inputs, circles, angle_source = [], {}, {}, {}
+    frame_rows, inputs, circles, angle_source, projection = [], {}, {}, {}, {}
     paths = []                                # file_index -> the frame's path, for messages only
     max_raw = 0.0
     white = None
@@ -112,7 +164,11 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
             images = dec.lenses[lens]
             if lens not in masks:
                 g = images.bands["G"]
-                circles[lens], mask, ptc_region, angle_source[lens] = axis_masks(g, (geometry or {}).get(lens), config)
+                projection[lens] = dataset.projection(lens)
+                level = dark_level_dn(dark[lens], "G", key[0], key[1])
+                circles[lens], mask, ptc_region, angle_source[lens] = axis_masks(
+                    g, (geometry or {}).get(lens), config, lens=lens, projection=projection[lens],
+                    dark_level_dn=level)
                 masks[lens], ptc[lens] = {}, {}
                 for band in BANDS:
                     m = mask.copy()
@@ -124,7 +180,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     masks[lens][band] = m
                     # the mask's pixels within the photon-transfer region, to split its moments
                     ptc[lens][band] = (p, m[p])
-                corners[lens] = corner_mask(g.shape, corner_fraction)
+                corners[lens] = unlit_mask(g.shape, projection[lens], corner_fraction)
             max_raw = max(max_raw, float(dec.raw.cfa.max()))
             first = (lens, sweep, key) not in first_of_setting
             first_of_setting.add((lens, sweep, key))
@@ -136,15 +192,24 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                 if first:
                     x = key[1] if sweep == "exposure" else gain_from_iso(key[0])
                     pearson[(lens, band, sweep)].add(x, img, ~images.saturated[band])
+                # the frame's black-level reference: its unlit corners (fisheye), else the
+                # sensor's optically black pixels when the DNG declares them, else none (NaN)
+                if corners[lens].any():
+                    corner_dn, corner_sites = float(img[corners[lens]].mean()), \
+                        SITES_PER_BAND_PIXEL[band] * int(corners[lens].sum())
+                elif dec.raw.optical_black_dn is not None:
+                    corner_dn, corner_sites = dec.raw.optical_black_dn, dec.raw.optical_black_count
+                else:
+                    corner_dn, corner_sites = np.nan, 0
                 frame_rows.append({
                     "lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
                     "file_index": i, "mask_mean_dn": float(img[m].mean()),
-                    "corner_dn": float(img[corners[lens]].mean()),
+                    "corner_dn": corner_dn, "n_corner_sites": corner_sites,
                     "saturated": bool(images.saturated[band][m].any()),
                     "temperature_c": float(row.get("temperature_c", np.nan)),
                 })
     return {"moments": moments, "pearson": pearson, "frames": pd.DataFrame(frame_rows), "masks": masks,
-            "corners": corners, "geometry": circles, "angle_source": angle_source, "ptc": ptc, "inputs": inputs,
+            "corners": corners, "geometry": circles, "angle_source": angle_source, "projection": projection, "ptc": ptc, "inputs": inputs,
             "paths": paths, "max_raw_dn": max_raw,
             "white_level_dn": white}
 
@@ -181,20 +246,29 @@ def _stop_on_unlit_frames(fr: pd.DataFrame, reduced: dict, dark: dict[str, xr.Da
 
     The statistic is the frame's dark-corrected mask mean less its dark-corrected corner mean, in the
     green band (a bias offset of the frame moves both alike), over its standard error for a dark frame:
-    the dark stage's read noise at the frame's ISO times sqrt(1/n_mask + 1/n_corner).
+    the dark stage's read noise at the frame's ISO times sqrt(1/n_mask + 1/n_corner). Without unlit
+    pixels (a rectilinear region whose DNG declares no optically black ones) the lift is taken
+    against the dark model alone, noise read noise times sqrt(1/n_mask).
     """
     g = fr[fr["band"] == "G"]
     for lens, rows in g.groupby("lens"):
         n_mask = int(reduced["masks"][lens]["G"].sum())
-        n_corner = int(reduced["corners"][lens].sum())
         read = dark[lens]["read_noise_dn"].sel(band="G")
         for _, row in rows.iterrows():
-            noise = float(read.sel(iso=row["iso"], method="nearest")) * np.sqrt(1 / n_mask + 1 / n_corner)
-            lift = (row["mask_mean_dn"] - row["dark_mask_dn"]) - (row["corner_dn"] - row["dark_corner_dn"])
+            read_dn = float(read.sel(iso=row["iso"], method="nearest"))
+            if np.isfinite(row["corner_dn"]):
+                # n_corner_sites / 2 band pixels of corners (optically black pixels count as sites)
+                noise = read_dn * np.sqrt(1 / n_mask + SITES_PER_BAND_PIXEL["G"] / row["n_corner_sites"])
+                lift = (row["mask_mean_dn"] - row["dark_mask_dn"]) - (row["corner_dn"] - row["dark_corner_dn"])
+                against = "its unlit pixels"
+            else:  # no unlit pixels in the frame: against the dark model alone
+                noise = read_dn * np.sqrt(1 / n_mask)
+                lift = row["mask_mean_dn"] - row["dark_mask_dn"]
+                against = "the dark level"
             if lift < min_snr * noise:
                 path = reduced["paths"][int(row["file_index"])]
                 raise InputError(path, f"signal frame is dark: its {lens}-lens mask is {lift:.3g} DN above "
-                                       f"its unlit corners ({lift / noise:.2g} standard errors, fewer than "
+                                       f"{against} ({lift / noise:.2g} standard errors, fewer than "
                                        f"linearity.signal_frame_min_snr = {min_snr:g}); was the source off "
                                        "or the lens capped? Retake it, or list it as kind dark")
 
@@ -203,7 +277,9 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
                       effects: list[str]) -> dict[str, xr.Dataset]:
     moments = reduced["moments"]
     fr = reduced["frames"].copy()
-    use_drift = "bias_drift" in effects
+    # bias_drift needs each frame's own black level: unlit corners or optically black pixels
+    testable = bool(fr["corner_dn"].notna().all())
+    use_drift = "bias_drift" in effects and testable
 
     # ----- dark correction of every frame value (dark model of the dark stage)
     def dark_pred(row, what):
@@ -211,8 +287,12 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         level = dark_level_dn(d, row["band"], row["iso"], row["exposure_s"])
         if what == "mask":
             fpn = d["fpn_map_dn"].sel(band=row["band"]).values[reduced["masks"][row["lens"]][row["band"]]]
-        else:
+        elif reduced["corners"][row["lens"]].any():
             fpn = d["fpn_map_dn"].sel(band=row["band"]).values[reduced["corners"][row["lens"]]]
+        elif "optical_black_offset_dn" in d:   # the optically black pixels' level in the dark frames
+            return level + float(d["optical_black_offset_dn"].sel(band=row["band"]))
+        else:
+            return np.nan
         return level + float(fpn.mean())
 
     keys = fr[["lens", "band", "iso", "exposure_s"]].drop_duplicates()
@@ -228,7 +308,8 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
             fr.loc[sel, "dark_mask_dn"] += shift
             fr.loc[sel, "dark_corner_dn"] += shift
     fr["setting"] = fr.groupby(["sweep", "iso", "exposure_s"], sort=True).ngroup()
-    fr["corner_dev_dn"] = fr["corner_dn"] - fr.groupby(["lens", "band", "sweep", "setting"])["corner_dn"].transform("mean")
+    if testable:
+        fr["corner_dev_dn"] = fr["corner_dn"] - fr.groupby(["lens", "band", "sweep", "setting"])["corner_dn"].transform("mean")
     fr["value_dn"] = fr["mask_mean_dn"] - fr["dark_mask_dn"]
     _stop_on_unlit_frames(fr, reduced, dark, config["linearity"]["signal_frame_min_snr"])
     if use_drift:
@@ -245,12 +326,15 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
                          "ptc_var_dn2": float(v.mean()), "ptc_mean_dn": float(mom.mean().mean())})
     var = pd.DataFrame(var_rows)
     fr = fr.merge(var, on=["lens", "band", "sweep", "iso", "exposure_s"])
-    n_corner = {lens: int(c.sum()) for lens, c in reduced["corners"].items()}
-    # temporal noise of an unlit band pixel: the dark stage's read noise at that ISO
+    # temporal noise of an unlit raw pixel: the dark stage's read noise at that ISO, averaged over the
+    # reference's sites (a band pixel of the corners averages SITES_PER_BAND_PIXEL of them)
     read_dn = fr.apply(lambda r: float(dark[r["lens"]]["read_noise_dn"].sel(band=r["band"]).sel(
         iso=r["iso"], method="nearest")), axis=1)
-    fr["sigma_corner_dn"] = read_dn / np.sqrt(fr["band"].map(SITES_PER_BAND_PIXEL) * fr["lens"].map(n_corner))
-    drift = drift_sigma(fr) if use_drift else (0.0, 0.0, 0.0)
+    if testable:
+        fr["sigma_corner_dn"] = read_dn / np.sqrt(fr["n_corner_sites"])
+    else:
+        fr = fr.drop(columns=["corner_dn"])
+    drift = drift_sigma(fr) if use_drift else ((0.0, 0.0, 0.0) if testable else (np.nan, np.nan, np.nan))
     # photon transfer: the black level of every frame moves (bias drift, temperature), so a pixel's temporal
     # variance over a setting's frames holds the sample variance of those common offsets; the unlit corners
     # measure each frame's offset (corner_dev_dn, with their own noise sigma_corner_dn)
@@ -260,7 +344,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         n_frames = per_setting.transform("count").clip(lower=2)
         fr["offset_var_dn2"] = (per_setting.transform(lambda d: float(np.sum(np.square(d)))) / (n_frames - 1)
                                 - fr["sigma_corner_dn"] ** 2)
-    fr["sigma_dn"] = np.sqrt(np.maximum(fr["pixel_var_dn2"] - drift[0] ** 2, 1e-12) / fr["n_mask"])
+    fr["sigma_dn"] = np.sqrt(np.maximum(fr["pixel_var_dn2"] - np.nan_to_num(drift[0]) ** 2, 1e-12) / fr["n_mask"])
     if use_drift:
         fr["sigma_dn"] = np.hypot(fr["sigma_dn"], fr["sigma_corner_dn"])
     fr["gain"] = gain_from_iso(fr["iso"])
@@ -318,7 +402,12 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     exposure_isos = st.loc[st["sweep"] == "exposure", "iso"]
     beta = float(effect_params["nonlinearity"][0][0]) if "nonlinearity" in effect_params else 0.0
     full_scale = float(st["full_scale_dn"].iloc[0]) if len(st) else float("nan")
-    flat, flat_maps = flatfield(reduced, dark, float(exposure_isos.min()), beta, full_scale) \
+    offsets = {}
+    if use_drift:   # the frames' common offsets, measured by the unlit pixels, per setting
+        per = fr.groupby(["lens", "band", "iso", "exposure_s"])["offset_var_dn2"].first()
+        offsets = {(lens, band, (float(iso), round(float(t), 9))): float(v) for (lens, band, iso, t), v in per.items()}
+    flat, flat_maps = flatfield(reduced, dark, float(exposure_isos.min()), beta, full_scale, offsets,
+                                cfg["flat_field_rectilinear_degree"]) \
         if len(exposure_isos) else (pd.DataFrame(), {})
     flat_fit = None
     if len(flat):
@@ -513,10 +602,12 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
         "read_noise_e_sigma": ((), ptc.get("read_noise_e", nan2)[1], {"units": "electron"}),
         "mask_centre_x_px": ((), cx, {"long_name": "mask centre (band image column)", "units": "pixel"}),
         "mask_centre_y_px": ((), cy, {"long_name": "mask centre (band image row)", "units": "pixel"}),
-        "image_circle_radius_px": ((), radius, {"long_name": "radius of the lit image circle", "units": "pixel"}),
+        "image_circle_radius_px": ((), radius, {"long_name": "radius of the lit image circle (rectilinear region: its "
+                                                              "half diagonal)", "units": "pixel"}),
         "mask_radius_px": ((), r_mask, {"long_name": "radius of the averaging mask (equivalent circle)", "units": "pixel",
                                         "field_angles_from": reduced["angle_source"][lens]}),
-        "bias_drift_dn": ((), drift[0], {"long_name": "frame-to-frame black-level spread (0 when not in the model)", "units": "DN"}),
+        "bias_drift_dn": ((), drift[0], {"long_name": "frame-to-frame black-level spread (0 when not in the model, "
+                                                          "NaN when not testable)", "units": "DN"}),
         "rms_z": ((), np.sqrt((np.nansum(st["z"] ** 2) + ffit.chi2 + flat_chi2) / max(fit.dof + ffit.dof + flat_dof, 1)),
                   {"long_name": "RMS of the noise-normalised residuals of the linearity model (1 at the noise floor)", "units": "1"}),
     }
@@ -535,6 +626,12 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
                                                                            saturated=st_l["saturated"].astype(int))
     fr_store = fr_l.assign(saturated=fr_l["saturated"].astype(int), used=(~fr_l["saturated"]).astype(int))
     ds = ds.merge(table_to_dataset(st_store, "obs_setting")).merge(table_to_dataset(fr_store, "obs_frame"))
+    ds.attrs["projection"] = reduced.get("projection", {}).get(lens, "fisheye")
+    ds.attrs["field_angles_from"] = reduced["angle_source"][lens]
+    ds.attrs["bias_drift_testable"] = int("corner_dn" in fr_l)
+    if "corner_dn" not in fr_l:
+        ds.attrs["bias_drift_note"] = ("bias_drift not testable: the frames have neither unlit corners nor "
+                                       "optically black pixels declared in the DNG")
     if len(flat):
         ds = ds.merge(table_to_dataset(flat[flat["lens"] == lens].reset_index(drop=True), "obs_flat"))
     if lens in flat_maps:

@@ -14,7 +14,7 @@ from pipeline.observations import dataset_to_table  # noqa: E402
 from pipeline.radiometry.dark import dark_level_dn  # noqa: E402
 from pipeline.report.content import Table, Text, draw  # noqa: E402
 from pipeline.report.formatting import bands as band_list  # noqa: E402
-from pipeline.report.formatting import fmt_value, quantity, var_units  # noqa: E402
+from pipeline.report.formatting import bias_drift_text, fmt_value, quantity, var_units  # noqa: E402
 from pipeline.report.palette import BAND_COLOURS, DIVERGING_MAP, sequence  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
 from pipeline.report.sections._common import per_lens, z_guides  # noqa: E402
@@ -106,7 +106,11 @@ def _dark_section(lens: str, ds: xr.Dataset, inputs) -> list:
     out.append(Table(["band", "bias b0 (ISO 100)", "bias per ISO/100 b1", "hot pixels"], rows))
     scal = [["dark current D (ISO 100)", quantity(ds, "dark_current_dn_per_s")]]
     if "bias_drift_dn" in ds:
-        scal.append(["frame-to-frame bias drift", quantity(ds, "bias_drift_dn")])
+        scal.append(["frame-to-frame bias drift", bias_drift_text(ds)])
+    if "projection" in ds.attrs:
+        scal.append(["lens projection (dataset.yaml)", str(ds.attrs["projection"])])
+    if "bias_reference" in ds.attrs:
+        scal.append(["each frame's black level from", str(ds.attrs["bias_reference"])])
     if "rms_z" in ds:
         scal.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
     out.append(Table(["quantity", "value"], scal))

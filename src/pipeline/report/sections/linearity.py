@@ -16,7 +16,7 @@ from pipeline.radiometry.exposure import gain_from_iso  # noqa: E402
 from pipeline.frames import SITES_PER_BAND_PIXEL  # noqa: E402
 from pipeline.report.content import Table, Text, draw  # noqa: E402
 from pipeline.report.formatting import bands as band_list  # noqa: E402
-from pipeline.report.formatting import fmt_uncertain, fmt_value, quantity  # noqa: E402
+from pipeline.report.formatting import bias_drift_text, fmt_uncertain, fmt_value, quantity  # noqa: E402
 from pipeline.report.palette import BAND_COLOURS  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
 from pipeline.report.sections._common import effects_table, per_lens, z_guides  # noqa: E402
@@ -200,7 +200,7 @@ def _linearity_section(lens: str, ds: xr.Dataset, inputs) -> list:
                         ("conversion_gain_dn_per_e", "conversion gain K"),
                         ("gain_e_per_dn", "gain 1/K"),
                         ("read_noise_e", "read noise (photon transfer)"),
-                        ("image_circle_radius_px", "image circle radius"),
+                        ("image_circle_radius_px", "image circle radius (rectilinear: half diagonal)"),
                         ("mask_radius_px", "averaging mask radius"),
                         ("mask_centre_x_px", "mask centre x"),
                         ("mask_centre_y_px", "mask centre y"),
@@ -212,7 +212,10 @@ def _linearity_section(lens: str, ds: xr.Dataset, inputs) -> list:
                 if "n_saturated_settings" in ds and int(ds["n_saturated_settings"]):
                     n = int(ds["n_saturated_settings"])
                     extra = extra[:-1] + f"; {n} saturated setting{'s' if n > 1 else ''} left out of the fits)"
-            rows.append([label, quantity(ds, name) + extra])
+            rows.append([label, (bias_drift_text(ds) if name == "bias_drift_dn" else quantity(ds, name)) + extra])
+    if "projection" in ds.attrs:
+        rows.append(["lens projection; mask field angles from",
+                     f"{ds.attrs['projection']}; {ds.attrs.get('field_angles_from', 'n/a')}"])
     if "rms_z" in ds:
         rows.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
     out.append(Text("Fitted linearity and noise parameters:"))

@@ -1,0 +1,278 @@
+"""Any RAW camera: the simulated smartphone (one rectilinear region, 12-bit, GRBG, optically black
+margins, a gain table not proportional to ISO) calibrated by the same dark and linearity stages,
+against the simulator's truth.
+
+Tiny scale: 64 x 96 band pixels, 5 dark frames and 4 linearity frames per setting. Tolerances are
+derived from the injected noise in each test.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import xarray as xr
+import yaml
+
+from pipeline.dataset import write_md5sums
+from pipeline.errors import InputError
+from pipeline.report import _bias_drift_text
+from pipeline.scaffold import _dataset_yaml, plan_dataset
+from pipeline.simulate import truth_dir_for
+from pipeline.simulate.smartphone import Smartphone, simulate_smartphone_dataset
+from pipeline.workflow import run_stage
+
+LENS = "main"
+DRIFT_DN = 0.5              # injected frame-to-frame black-level spread
+N_OPTICAL_BLACK = 8 * 208 + 128 * 16   # masked raw pixels of a tiny frame (8 rows on top, 16 columns left)
+TRUE_EFFECTS = [("dark_current", {}), ("hot_pixels", {}), ("prnu", {}), ("bias_drift", {"sigma_dn": DRIFT_DN})]
+MODEL = ["dark_current", "hot_pixels", "iso_gain", "prnu", "bias_drift"]
+
+
+def _load(path) -> xr.Dataset:
+    """An artefact read into memory and its file closed (an open netCDF handle must not outlive the read)."""
+    with xr.open_dataset(path) as ds:
+        return ds.load()
+
+
+@pytest.fixture(scope="module")
+def phone(config, tmp_path_factory):
+    """The tiny phone (seed 4) through the dark, linearity (without geometry) and geometry stages."""
+    base = tmp_path_factory.mktemp("phone")
+    root = simulate_smartphone_dataset(base / "dataset", scale="tiny", seed=4, effects=TRUE_EFFECTS)
+    truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())
+    cfg = {**config, "model": {**config["model"], "effects": MODEL}}
+    dark = {LENS: base / "results/dark/main.nc"}
+    lin = {LENS: base / "results/linearity/main.nc"}
+    geo = {LENS: base / "results/geometry/main.nc"}
+    run_stage("dark", root, cfg, dark)
+    run_stage("linearity", root, cfg, lin, {"dark": dark})
+    run_stage("geometry", root, cfg, geo)
+    return root, truth, cfg, dark, _load(dark[LENS]), _load(lin[LENS]), geo
+
+
+def test_projection_and_bias_reference_are_recorded(phone):
+    _, _, _, _, dark, lin, _ = phone
+    assert dark.attrs["projection"] == lin.attrs["projection"] == "rectilinear"
+    # the dark histograms hold the phone's 256-DN frames (the default range is the 800-DN camera's)
+    assert float(dark["dark_histogram"].sum()) > 0
+    assert dark.attrs["bias_reference"] == "optically black pixels"
+    assert "rectilinear" in lin.attrs["field_angles_from"]
+
+
+def test_bias_read_noise_and_dark_current(phone):
+    _, truth, _, _, dark, _, _ = phone
+    s = truth["camera"]["sensor"]
+    k = s["conversion_gain_dn_per_e_iso100"]
+    # bias over the whole region (no corners left out): the sample mean of the offset pattern,
+    # sqrt(0.6^2 + (0.42 * 0.5)^2) = 0.64 DN over ~3000 band pixels -> 0.012 DN, and the injected bias
+    # drift (0.5 DN per frame) that the setting means keep: 0.5 / sqrt(45 frames) = 0.07 DN, which the stated
+    # standard error (from the settings' scatter) carries; 4 stated sigmas plus 5 x 0.012 DN
+    tol = 4 * dark["bias_dn_sigma"].values + 5 * np.hypot(s["offset_fpn_dn"], k * s["offset_fpn_e"]) / np.sqrt(3000)
+    assert np.all(np.abs(dark["bias_dn"].values - truth["derived"]["bias_dn"]) < tol)
+    assert np.all(dark["bias_dn_sigma"].values < 0.15)
+    # read noise: 5 frames x 6000 band pixels, relative error of a standard deviation ~0.6 % (3 %
+    # allowed, as for the fisheye camera), plus the removal of the frames' common offsets: their sample
+    # variance, measured on the masked pixels (noise sigma_c = 0.73 DN / sqrt(3712)), carries the cross
+    # term 2 sum(o_i e_i) / (n - 1), standard deviation 2 sqrt(n) / (n - 1) sigma_drift sigma_c per raw
+    # site, doubled in the G band pixel's two sites; 4 of those in the variance
+    read_true = truth["derived"]["read_noise_dn_iso100"]
+    n = 5
+    cross = 2 * np.sqrt(n) / (n - 1) * DRIFT_DN * read_true / np.sqrt(N_OPTICAL_BLACK)
+    sites = np.array([1, 2, 1])
+    got = dark["read_noise_dn"].sel(iso=100.0).values
+    assert np.all(np.abs(got**2 - read_true**2) < 0.06 * read_true**2 + 4 * cross * sites), got
+    # dark current: stated standard error, 4 sigma
+    d_true = truth["derived"]["dark_current_dn_per_s_iso100"]
+    assert abs(float(dark["dark_current_dn_per_s"]) - d_true) < 4 * float(dark["dark_current_dn_per_s_sigma"])
+
+
+def test_bias_drift_from_optically_black_pixels(phone):
+    """The frames' black level moves by N(0, 0.5 DN); the masked margins (8 rows x 208 + 128 rows x 16 =
+    3712 raw pixels, read noise 0.73 DN: 0.012 DN per frame) see it: the stated 95 % interval contains
+    0.5 DN, and the read noise (test above) is what is left once the frames' common offsets are out."""
+    _, _, _, _, dark, lin, _ = phone
+    assert int(dark.attrs["bias_drift_testable"]) == 1
+    assert float(dark["bias_drift_dn_low"]) < DRIFT_DN < float(dark["bias_drift_dn_high"])
+    assert float(dark["bias_drift_dn_low"]) > 0.2     # resolved: the masked pixels see 0.012 DN
+    assert "obs_frame__corner_dev_dn" in dark and "obs_frame__corner_dev_dn" in lin
+
+
+def test_gain_table_recovered(phone):
+    """Photon transfer at ISO 100 and the per-ISO gain factors of the table (iso_gain) against truth,
+    4 stated sigmas (plus 0.3 % on K: the PTC's intercept and the flat-field share)."""
+    _, truth, _, _, _, lin, _ = phone
+    k_true = truth["derived"]["conversion_gain_dn_per_e_iso100"]
+    k, k_sigma = float(lin["conversion_gain_dn_per_e"]), float(lin["conversion_gain_dn_per_e_sigma"])
+    assert abs(k - k_true) < 4 * k_sigma + 0.003 * k_true
+    factors = truth["derived"]["iso_gain_factors"]
+    got = lin["effect_iso_gain"].values
+    sig = lin["effect_iso_gain_sigma"].values
+    isos = lin["effect_iso_gain_iso"].values
+    expected = np.array([factors[str(int(iso))] - 1.0 for iso in isos])
+    assert np.all(np.abs(got - expected) < 4 * sig), (got, expected, sig)
+    # the table is far from proportional: ISO 1600 gives 35 % less than ISO/100 says
+    assert expected[-1] < -0.3
+    # read noise in electrons from the PTC against the truth (amplified plus rounding), 4 sigma + 0.05 e-
+    expected_e = truth["derived"]["read_noise_dn_iso100"] / k_true
+    assert abs(float(lin["read_noise_e"]) - expected_e) < 4 * float(lin["read_noise_e_sigma"]) + 0.05
+
+
+def test_flat_field_amplitude(phone):
+    """PRNU of 1 % (truth) from the exposure sweep: prnu coefficient sigma_rel^2 within 4 stated sigmas."""
+    _, truth, _, _, _, lin, _ = phone
+    sigma_rel = truth["effects"]["prnu"]["sigma_rel"]
+    coef, se = float(lin["effect_prnu"].values[0]), float(lin["effect_prnu_sigma"].values[0])
+    assert abs(coef - sigma_rel**2) < 4 * se, (np.sqrt(coef), sigma_rel)
+
+
+def test_same_phone_declared_fisheye_stops_naming_the_region(phone, tmp_path):
+    """The issue's case: the ordinary camera's dataset without ``projection: rectilinear`` (a fisheye by
+    default) must stop the linearity stage with one line naming the lens region, not fit a circle."""
+    root, _, cfg, dark_paths, _, _, _ = phone
+    copy = tmp_path / "as_fisheye"
+    shutil.copytree(root, copy)
+    meta = yaml.safe_load((copy / "dataset.yaml").read_text())
+    del meta["lenses"][LENS]["projection"]
+    (copy / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+    write_md5sums(copy)
+    with pytest.raises(InputError) as info:
+        run_stage("linearity", copy, cfg, {LENS: tmp_path / "lin.nc"}, {"dark": dark_paths})
+    message = str(info.value)
+    assert "\n" not in message and "lens region 'main' is declared fisheye" in message
+    assert not (tmp_path / "lin.nc").exists()
+
+
+def test_bias_drift_not_testable_without_optically_black_pixels(config, tmp_path):
+    """No masked margins in the DNG (ActiveArea the whole mosaic) and no unlit corners: the dark stage
+    takes the bias from the dark frames, and says that bias_drift cannot be tested (NaN, not 0)."""
+    root = simulate_smartphone_dataset(tmp_path / "dataset", scale="tiny", seed=6, experiments=("dark",),
+                                       phone=Smartphone(black_margin_px=(0, 0)))
+    cfg = {**config, "model": {**config["model"], "effects": ["dark_current", "bias_drift"]}}
+    out = {LENS: tmp_path / "dark.nc"}
+    run_stage("dark", root, cfg, out)
+    ds = _load(out[LENS])
+    assert ds.attrs["bias_reference"] == "none" and int(ds.attrs["bias_drift_testable"]) == 0
+    assert np.isnan(float(ds["bias_drift_dn"]))
+    assert "obs_frame__corner_dev_dn" not in ds
+    assert "not testable" in _bias_drift_text(ds)
+    # the bias still comes from the dark frames (no drift injected): offset-pattern mean, 5 sigma
+    np.testing.assert_allclose(ds["bias_dn"].values, 256.0, atol=5 * 0.64 / np.sqrt(3000))
+
+
+def _true_theta_phi(truth: dict, band: str, shape) -> tuple[np.ndarray, np.ndarray]:
+    """The truth's field angles of a band image: its band intrinsics and the distortion, inverted here by
+    a fixed-point iteration (the simulator's forward model, not OpenCV's undistortion)."""
+    k = truth["derived"]["band_intrinsics_px"][band]
+    dist = truth["derived"]["distortion"]
+    v, u = np.mgrid[0:shape[0], 0:shape[1]].astype(float)
+    xd, yd = (u - k["cx"]) / k["fx"], (v - k["cy"]) / k["fy"]
+    x, y = xd.copy(), yd.copy()
+    for _ in range(40):
+        r2 = x * x + y * y
+        radial = 1 + dist["k1"] * r2 + dist["k2"] * r2 * r2
+        ex = x * radial + 2 * dist["p1"] * x * y + dist["p2"] * (r2 + 2 * x * x) - xd
+        ey = y * radial + dist["p1"] * (r2 + 2 * y * y) + 2 * dist["p2"] * x * y - yd
+        x, y = x - ex, y - ey
+    return np.degrees(np.arctan(np.hypot(x, y))), np.degrees(np.arctan2(y, x))
+
+
+def test_rectilinear_geometry_against_truth(phone):
+    """OpenCV's pinhole fit of the chessboard frames (12 poses, 5 x 4 inner corners, 64 x 96 band pixels):
+    theta within 4 stated sigmas (0.25 to 0.4 degrees: the principal point of so small an image is known to
+    about 1 band pixel) plus 0.01 degrees for the G band pixel averaging two sites; the focal length
+    within 4 sigmas; no image circle."""
+    _, truth, _, _, _, _, geo_paths = phone
+    geo = _load(geo_paths[LENS])
+    assert geo.attrs["projection"] == "rectilinear" and np.isnan(float(geo["circle_radius_px"].sel(
+        medium="air", band="G")))
+    for band in ("G", "R", "B"):
+        g = geo.sel(medium="air", band=band)
+        theta, _ = _true_theta_phi(truth, band, g["theta_deg"].shape)
+        d = g["theta_deg"].values - theta
+        assert np.all(np.abs(d) < 4 * g["theta_deg_sigma"].values + 0.01), (band, float(np.max(np.abs(d))))
+        fx_true = truth["derived"]["band_intrinsics_px"][band]["fx"]
+        fx, var = float(g["pinhole_parameters"].values[0]), float(g["pinhole_parameter_covariance"].values[0, 0])
+        assert abs(fx - fx_true) < 4 * np.sqrt(var)
+    # the half diagonal of the region sees about 39 degrees (truth: the optics' corner angle)
+    assert 35.0 < float(geo["half_fov_deg"].sel(medium="air", band="G")) < 43.0
+
+
+def test_linearity_takes_field_angles_from_the_rectilinear_geometry(phone, tmp_path):
+    """With the phone's own geometry artefact the 5-degree mask is a cone of the fitted theta map (not the
+    nominal field of view), and the conversion gain stays within its tolerance of the truth."""
+    root, truth, cfg, dark_paths, _, _, geo_paths = phone
+    out = {LENS: tmp_path / "lin.nc"}
+    run_stage("linearity", root, cfg, out, {"dark": dark_paths, "geometry": geo_paths})
+    lin = _load(out[LENS])
+    assert lin.attrs["field_angles_from"] == "geometry artefact"
+    k_true = truth["derived"]["conversion_gain_dn_per_e_iso100"]
+    k, k_sigma = float(lin["conversion_gain_dn_per_e"]), float(lin["conversion_gain_dn_per_e_sigma"])
+    assert abs(k - k_true) < 4 * k_sigma + 0.003 * k_true
+
+
+def test_init_dataset_proposes_a_rectilinear_region(phone):
+    """init-dataset on the phone's raw files: the vignetted region is lit to its corners (cos^4 at 39
+    degrees leaves about a third of the centre there, far above the 256-DN black level), so no image
+    circle is claimed and dataset.yaml proposes projection: rectilinear."""
+    root = phone[0]
+    plan = plan_dataset(root)
+    (lens,) = plan.lenses
+    assert lens.name == LENS and lens.projection == "rectilinear" and lens.radius_px is None
+    meta = yaml.safe_load(_dataset_yaml(plan))
+    assert meta["lenses"][LENS]["projection"] == "rectilinear"
+
+
+def test_vignetting_against_truth(phone, tmp_path):
+    """The roll-off stage, unchanged, on the phone's port frames and its own rectilinear geometry: the
+    fitted g(theta) (Eq. 13) against the simulator's vignetting, cos^4 theta times the mechanical fall-off,
+    at 10 to 30 degrees, within 4 sigmas: the fit's own (its covariance) and the field angle's, the geometry
+    artefact's theta_deg_sigma at the port times dg/dtheta (0.3 to 0.4 degrees on 64 x 96 band pixels)."""
+    from pipeline.radiometry.rolloff import evaluate_rolloff, rolloff_design_matrix, rolloff_slope
+
+    root, truth, cfg, _, _, _, geo_paths = phone
+    out = {LENS: tmp_path / "rolloff.nc"}
+    run_stage("rolloff", root, cfg, out, {"geometry": geo_paths})
+    ro = _load(out[LENS])
+    geo = _load(geo_paths[LENS])
+    vig = truth["experiments_truth"]["rolloff"]
+    theta = np.array([10.0, 20.0, 25.0, 30.0])
+    for band in ("R", "G", "B"):
+        coef = ro["rolloff_coefficients"].sel(medium="air", band=band).values
+        cov = ro["rolloff_covariance"].sel(medium="air", band=band).values
+        X = rolloff_design_matrix(theta)
+        fit_sigma = np.sqrt(np.einsum("ij,jk,ik->i", X, cov, X))
+        sigma_theta = float(np.nanmax(geo["theta_deg_sigma"].sel(medium="air", band=band).values))
+        sigma = np.hypot(fit_sigma, rolloff_slope(coef, theta) * sigma_theta)
+        true_g = (np.cos(np.radians(theta)) ** 4
+                  * (1 - vig["mechanical_at_corner"][band] * (theta / vig["corner_theta_deg"]) ** 4))
+        got = evaluate_rolloff(coef, theta)
+        assert np.all(np.abs(got - true_g) < 4 * sigma), (band, got, true_g, sigma)
+    # the fall-off is real and strongest in red (lens colour shading): about half the axis at 30 degrees
+    assert evaluate_rolloff(ro["rolloff_coefficients"].sel(medium="air", band="R").values, 30.0) < 0.6
+
+
+def test_effective_wavelengths_and_inverse_responsivity_against_truth(phone, tmp_path):
+    """The spectral and absolute stages, unchanged, on the phone (its own dark, linearity and rectilinear
+    geometry): effective wavelengths within 4 stated sigmas plus 0.3 nm (the 10-nm monochromator grid
+    against the truth on the same grid), R^-1 within 4 stated sigmas (2.7 %, the reference reading's
+    2.5 % dominating; the perfect simulated lab draws no systematic error, and the 5-degree mask averages
+    a vignetting of about 1 %, inside that)."""
+    root, truth, cfg, dark_paths, _, _, geo_paths = phone
+    lin_paths = {LENS: tmp_path / "lin.nc"}
+    run_stage("linearity", root, cfg, lin_paths, {"dark": dark_paths})
+    spec = {LENS: tmp_path / "spectral.nc"}
+    absolute = {LENS: tmp_path / "absolute.nc"}
+    up = {"geometry": geo_paths, "dark": dark_paths, "linearity": lin_paths}
+    run_stage("spectral", root, cfg, spec, up)
+    run_stage("absolute", root, cfg, absolute, {**up, "spectral": spec})
+    s = _load(spec[LENS])
+    a = _load(absolute[LENS])
+    for band in ("R", "G", "B"):
+        want = truth["experiments_truth"]["spectral"]["bands"][band]["effective_wavelength_nm"]
+        got, se = float(s["effective_wavelength_nm"].sel(band=band)), float(s["effective_wavelength_nm_sigma"].sel(band=band))
+        assert abs(got - want) < 4 * se + 0.3, (band, got, want, se)
+        want = truth["experiments_truth"]["absolute"]["bands"][band]["inverse_responsivity"]
+        got, se = float(a["inverse_responsivity"].sel(band=band)), float(a["inverse_responsivity_sigma"].sel(band=band))
+        assert abs(got - want) < 4 * se, (band, got / want - 1, se / want)
