@@ -17,7 +17,7 @@ import yaml
 
 from pipeline.dataset import write_md5sums
 from pipeline.errors import InputError
-from pipeline.report import _bias_drift_text
+from pipeline.report.formatting import bias_drift_text
 from pipeline.scaffold import _dataset_yaml, plan_dataset
 from pipeline.simulate import truth_dir_for
 from pipeline.simulate.smartphone import Smartphone, simulate_smartphone_dataset
@@ -156,7 +156,7 @@ def test_bias_drift_not_testable_without_optically_black_pixels(config, tmp_path
     assert ds.attrs["bias_reference"] == "none" and int(ds.attrs["bias_drift_testable"]) == 0
     assert np.isnan(float(ds["bias_drift_dn"]))
     assert "obs_frame__corner_dev_dn" not in ds
-    assert "not testable" in _bias_drift_text(ds)
+    assert "not testable" in bias_drift_text(ds)
     # the bias still comes from the dark frames (no drift injected): offset-pattern mean, 5 sigma
     np.testing.assert_allclose(ds["bias_dn"].values, 256.0, atol=5 * 0.64 / np.sqrt(3000))
 

@@ -139,6 +139,17 @@ def _significant_for(missing, experiment: str):
     return (found.sort_values("rank") if "rank" in found else found).iloc[0]
 
 
+def evidence_text(top) -> str:
+    """How strongly the residuals ask for a candidate: the chi-square it removes for its parameters, with p,
+    and the share of the excess chi-square it explains when there is an excess (rms z above 1)."""
+    text = (f"it lowers χ² by {fmt_value(top.get('delta_chi2'), 3)} for {int(top.get('n_params', 0))} "
+            f"parameter{'s' if int(top.get('n_params', 0)) != 1 else ''}, p = {fmt_value(top.get('p_value'), 2)}")
+    share = top.get("explained_fraction")
+    if finite(share) and float(share) > 0:
+        text += f", {100 * float(share):.0f} % of the excess χ²"
+    return text
+
+
 def stage_verdicts(inputs) -> list[list[str]]:
     """One row per experiment of this run: rms z and the verdict: the missing effect (significant
     candidate), structure no candidate explains, at the noise floor (rms z at most the diagnostics'
@@ -196,16 +207,17 @@ def summary_section(inputs) -> list:
     verdicts = stage_verdicts(inputs)
     if verdicts:
         out.append(Table(["experiment", "rms z", "verdict"], verdicts,
-                         "Verdict per experiment (rms z = 1 at the noise floor; larger values mean the model leaves "
-                         f"structure the noise cannot explain; the diagnostics call rms z above "
-                         f"{float(inputs.settings.get('structured_rms_z', 1.5)):g} structured):", left=3))
+                         "Verdict per experiment (rms z = 1 at the noise floor): the missing effect the diagnostics "
+                         "find significant, else the residual structure no candidate explains (a chi-square test of "
+                         "each experiment's residuals against their degrees of freedom, by frame or setting), else "
+                         "the noise floor when rms z is at most "
+                         f"{float(inputs.settings.get('structured_rms_z', 1.5)):g}:", left=3))
     top = top_effect(inputs.missing_effects)
     if top is not None and as_bool(top.get("significant")):
-        out.append(Text(Markup("The residuals point to a missing effect: <b>{}</b> in the {} experiment ({}; it "
-                               "explains {} % of the excess χ²). Add it to <code>model.effects</code> in "
-                               "<code>config/config.yaml</code> and rerun.").format(
-            top["effect"], top["experiment"], amplitude_text(top), f"{100 * float(top['explained_fraction']):.0f}"),
-            "callout"))
+        out.append(Text(Markup("The residuals point to a missing effect: <b>{}</b> in the {} experiment ({}; "
+                               "{}). Add it to <code>model.effects</code> in <code>config/config.yaml</code> and "
+                               "rerun.").format(top["effect"], top["experiment"], amplitude_text(top),
+                                                evidence_text(top)), "callout"))
     elif top is not None:
         out.append(Text(Markup("No significant missing effect. The top-ranked candidate, <b>{}</b>, is not "
                                "significant (p = {}).").format(top["effect"], fmt_value(top.get("p_value"), 3)), "ok"))
