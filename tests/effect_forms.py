@@ -29,8 +29,10 @@ from scipy.optimize import brentq
 from pipeline.dataset import write_md5sums
 from pipeline.rawio import read_raw, write_dng
 
-#: experiments the forms rewrite (the foundation stages' data)
+#: experiments the forms rewrite by default (the foundation stages' data)
 EXPERIMENTS = ("dark", "linearity")
+#: experiments whose frames a form may rewrite
+REWRITABLE = ("dark", "linearity", "rolloff")
 
 
 @dataclass
@@ -63,7 +65,7 @@ def rewrite_frames(root, change: Callable[[np.ndarray, FrameInfo], np.ndarray], 
     """
     root = Path(root)
     lenses = _lens_slices(root)
-    tables = {exp: pd.read_csv(root / exp / "frames.csv") for exp in EXPERIMENTS if (root / exp).is_dir()}
+    tables = {exp: pd.read_csv(root / exp / "frames.csv") for exp in REWRITABLE if (root / exp).is_dir()}
     raws = {exp: [read_raw(root / exp / f) for f in t["file"]] for exp, t in tables.items()}
     times = [r.time for rs in raws.values() for r in rs]
     t0, t1 = min(times), max(times)
@@ -259,6 +261,50 @@ def temperature_bias_quadratic(root, amplitude, k100, seed):
     return rewrite_frames(root, change)
 
 
+#: the power-law PSF's core radius (band pixels) and index: K ~ (1 + (r / core)^2)^(-index / 2)
+PSF_CORE_BAND_PX, PSF_INDEX = 1.0, 3.0
+
+
+def power_law_psf(radius_band_px: int) -> np.ndarray:
+    """A normalised power-law point-spread kernel on the band grid, (2 radius + 1) pixels square."""
+    y, x = np.mgrid[-radius_band_px:radius_band_px + 1, -radius_band_px:radius_band_px + 1]
+    k = (1.0 + (x**2 + y**2) / PSF_CORE_BAND_PX**2) ** (-PSF_INDEX / 2.0)
+    return k / k.sum()
+
+
+def stray_light_power_law(root, amplitude, k100, seed):
+    """Stray light with power-law wings: a fraction ``amplitude`` of each pixel's light spread by
+    K(r) ~ (1 + r^2)^(-3/2) (r in band pixels, out to the lens region's width), the rest kept:
+    ``s -> (1 - f) s + f (K * s)``, each colour site convolved on its own grid (the light keeps its colour).
+
+    Scattering by surface roughness and dust gives wings falling as a power of the angle (Wei et al.
+    2012 measure the radiance camera's PSF over decades); the package's signature is a Gaussian halo.
+    The roll-off frames are rewritten; the spread light carries no shot noise of its own (it is under
+    a few per cent of the halo pixels' signal).
+    """
+    from scipy.signal import fftconvolve
+
+    kernels = {}
+
+    def change(s, info):
+        if info.row.get("kind") != "signal":
+            return s
+        for rows, cols in info.lenses.values():
+            region = s[rows, cols]
+            n = max(region.shape) // 2
+            if n not in kernels:
+                kernels[n] = power_law_psf(n)
+            for dy in (0, 1):
+                for dx in (0, 1):
+                    plane = region[dy::2, dx::2]
+                    spread = fftconvolve(plane, kernels[n], mode="same")
+                    region[dy::2, dx::2] = (1.0 - amplitude) * plane + amplitude * spread
+            s[rows, cols] = region
+        return s
+
+    return rewrite_frames(root, change, ("rolloff",))
+
+
 @dataclass(frozen=True)
 class Form:
     effect: str                  # the catalogue name the diagnostics should find
@@ -281,4 +327,6 @@ FORMS = {
     "iso_gain_power_law": Form("iso_gain", iso_gain_power_law, (0.01, 0.003), "exponent deficit",
                                ("linearity",)),
     "temperature_bias_quadratic": Form("temperature", temperature_bias_quadratic, (0.4, 0.1), "DN degree_C-1"),
+    "stray_light_power_law": Form("stray_light", stray_light_power_law, (0.02, 0.005), "fraction spread",
+                                  ("rolloff",)),
 }
