@@ -3,7 +3,8 @@
     python benchmarks/bench_detection.py [--effects dark_current,nonlinearity_tanh,...] [--magnitudes clear,limit]
                                          [--pairs dark_current+shutter_offset,...] [--clean N] [--work DIR]
 
-On the tiny simulated camera (dark and linearity experiments, the foundation stages), for:
+On the tiny simulated camera (the dark and linearity experiments, the foundation stages; the roll-off
+experiment, on the simulator's true geometry with exact field angles, for the roll-off's effects), for:
 
 * each catalogue effect of those stages, simulated in the simulator's own form at two magnitudes: a
   clear one (the hidden-effect tests' values) and one near the tiny dataset's detection limit;
@@ -47,6 +48,7 @@ from pipeline.diagnostics import error_figures, observations_from_artefacts, ran
 from pipeline.simulate import simulate_dataset, truth_dir_for  # noqa: E402
 from pipeline.stages.dark import analyse_dark, reduce_dark  # noqa: E402
 from pipeline.stages.linearity import analyse_linearity, reduce_linearity  # noqa: E402
+from pipeline.stages.rolloff import analyse_rolloff, reduce_rolloff  # noqa: E402
 
 #: the simulator's own forms: (clear, near the tiny dataset's detection limit). The clear values are the
 #: hidden-effect tests'; the near-limit ones sit at one to two times the detectable amplitude the
@@ -60,7 +62,11 @@ MAGNITUDES = {
     "prnu": ({"sigma_rel": 0.015}, {"sigma_rel": 0.004}),
     "temperature": ({"bias_dn_per_c": 0.4, "dark_doubling_c": 6.0}, {"bias_dn_per_c": 0.04, "dark_doubling_c": 6.0}),
     "bias_drift": ({"sigma_dn": 2.5}, {"sigma_dn": 0.3}),
+    "stray_light": ({"fraction": 0.01}, {"fraction": 0.001}),
+    "rolloff_azimuth": ({"amplitude": 0.02, "phi0_deg": 50.0}, {"amplitude": 0.003, "phi0_deg": 50.0}),
 }
+#: effects seen in the roll-off experiment (the others in dark and linearity)
+ROLLOFF_EFFECTS = ("stray_light", "rolloff_azimuth")
 DEFAULT_PAIRS = ("dark_current+shutter_offset", "nonlinearity+prnu", "hot_pixels+iso_gain",
                  "temperature+shutter_offset")
 LEVELS = {"clear": 0, "limit": 1}
@@ -76,12 +82,23 @@ def injected_amplitude(effect: str, params: dict, truth: dict) -> float:
         errors = [v - 1.0 for v in t["factors"].values()]
         return float(errors[int(np.argmax(np.abs(errors)))])
     key = {"hot_pixels": "fraction", "shutter_offset": "offset_s", "nonlinearity": "beta", "prnu": "sigma_rel",
-           "temperature": "bias_dn_per_c", "bias_drift": "sigma_dn"}[effect]
+           "temperature": "bias_dn_per_c", "bias_drift": "sigma_dn", "stray_light": "fraction",
+           "rolloff_azimuth": "amplitude"}[effect]
     return float(params[key])
 
 
-def analyse(root: Path, config: dict, model: list[str]):
+def analyse(root: Path, config: dict, model: list[str], experiments=("dark", "linearity")):
     ds = open_dataset(root)
+    if experiments == ("rolloff",):
+        from helpers import true_geometry_dataset
+
+        config = {**config, "rolloff": {**config["rolloff"], "field_angle_sigma_px": 0.0}}
+        band_px = int(np.diff(ds.meta["lenses"]["far"]["rows"])[0]) // 2
+        geo = {lens: true_geometry_dataset(lens, band_px) for lens in ("far", "close")}
+        arts = analyse_rolloff(reduce_rolloff(ds, geo, config), config, model)
+        obs = observations_from_artefacts({"rolloff": list(arts.values())})
+        ranked, unexplained = rank_missing_effects(obs, model, config)
+        return ranked, unexplained, error_figures(obs, model)
     dark = analyse_dark(reduce_dark(ds, config), config, model)
     lin = analyse_linearity(reduce_linearity(ds, dark, config, model), dark, config, model)
     obs = observations_from_artefacts({"dark": list(dark.values()), "linearity": list(lin.values())})
@@ -94,18 +111,18 @@ def floor_of(figures) -> np.ndarray:
 
 
 def run_case(work: Path, config: dict, seed: int, expected: list[str], sim_effects=(), form=None,
-             amplitude=None, lab_noise=False, base_model=()) -> dict:
+             amplitude=None, lab_noise=False, base_model=(), experiments=("dark", "linearity")) -> dict:
     """Simulate (and rewrite), diagnose with the base model, add the expected effects, diagnose again."""
     root = work / f"case{seed}" / "dataset"
     root.parent.mkdir(parents=True)
     try:
-        simulate_dataset(root, scale="tiny", seed=seed, effects=list(sim_effects), experiments=("dark", "linearity"),
+        simulate_dataset(root, scale="tiny", seed=seed, effects=list(sim_effects), experiments=experiments,
                          progress=False, lab_noise=lab_noise)
         truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())
         if form is not None:
             form.inject(root, amplitude, truth["derived"]["conversion_gain_dn_per_e_iso100"], seed)
         model = list(base_model)
-        ranked, unexplained, before = analyse(root, config, model)
+        ranked, unexplained, before = analyse(root, config, model, experiments)
         found = ranked[ranked["significant"]]["effect"].tolist() if len(ranked) else []
         row = {"top": ranked.iloc[0]["effect"] if len(ranked) else "", "found": found,
                "significant": bool(ranked.iloc[0]["significant"]) if len(ranked) else False,
@@ -116,7 +133,7 @@ def run_case(work: Path, config: dict, seed: int, expected: list[str], sim_effec
             row.update(amplitude=float(first["amplitude"]) if first is not None else float("nan"),
                        detectable=float(first["detectable_amplitude"]) if first is not None else float("nan"),
                        units=str(first["units"]) if first is not None else "")
-            ranked_after, unexplained_after, after = analyse(root, config, model + expected)
+            ranked_after, unexplained_after, after = analyse(root, config, model + expected, experiments)
             row.update(rms_after=float(after["rms_z"].max()),
                        floor=bool((after["rms_z"].to_numpy() < floor_of(after)).all()),
                        still=ranked_after[ranked_after["significant"]]["effect"].tolist() if len(ranked_after) else [],
@@ -147,8 +164,9 @@ def main() -> None:
     if any(m not in LEVELS for m in levels):
         sys.exit(f"error: --magnitudes takes clear and/or limit, got {args.magnitudes!r}")
     pairs = [p.split("+") for p in args.pairs.split(",") if p]
-    if any(len(p) != 2 or any(e not in MAGNITUDES for e in p) for p in pairs):
-        sys.exit(f"error: --pairs takes a+b with catalogue names of {', '.join(MAGNITUDES)}")
+    lab = [e for e in MAGNITUDES if e not in ROLLOFF_EFFECTS]
+    if any(len(p) != 2 or any(e not in lab for e in p) for p in pairs):
+        sys.exit(f"error: --pairs takes a+b with names of {', '.join(lab)}")
 
     config = load_config()
     tmp = None
@@ -161,13 +179,13 @@ def main() -> None:
     t0, c0 = time.perf_counter(), time.process_time()
     seed = args.seed
     rows = []
-    header = (f"{'case':34s} {'level':5s} {'injected':>10s} {'found':>10s} {'detect.':>10s} {'units':14s} "
+    header = (f"{'case':42s} {'level':5s} {'injected':>10s} {'found':>10s} {'detect.':>10s} {'units':14s} "
               f"{'top-ranked':16s} {'sig':3s} {'p':>8s} {'rms_z':>6s} {'after':>6s} {'floor':5s}")
     print(header)
 
     def show(label, level, row, injected):
         after = f"{row['rms_after']:6.2f}" if "rms_after" in row else "     -"
-        print(f"{label:34s} {level:5s} {injected:10.3g} {row.get('amplitude', np.nan):10.3g} "
+        print(f"{label:42s} {level:5s} {injected:10.3g} {row.get('amplitude', np.nan):10.3g} "
               f"{row.get('detectable', np.nan):10.3g} {row.get('units', ''):14s} {row['top']:16s} "
               f"{'yes' if row['significant'] else 'no':3s} {row['p']:8.1e} {row['rms_before']:6.2f} {after} "
               f"{'yes' if row['floor'] else 'no':5s}" + (f"  still significant: {' '.join(row['still'])}"
@@ -180,12 +198,15 @@ def main() -> None:
             i = LEVELS[level]
             if name in MAGNITUDES:
                 params = MAGNITUDES[name][i]
-                row = run_case(work, config, seed, [name], sim_effects=[(name, params)])
+                row = run_case(work, config, seed, [name], sim_effects=[(name, params)],
+                               experiments=("rolloff",) if name in ROLLOFF_EFFECTS else ("dark", "linearity"))
                 injected = injected_amplitude(name, params, row["truth"])
                 label, kind, effect = name, "catalogue", name
             else:
                 form = FORMS[name]
-                row = run_case(work, config, seed, [form.effect], form=form, amplitude=form.amplitudes[i])
+                exps = ("rolloff",) if "rolloff" in form.experiments else ("dark", "linearity")
+                row = run_case(work, config, seed, [form.effect], form=form, amplitude=form.amplitudes[i],
+                               experiments=exps)
                 injected, label, kind, effect = form.amplitudes[i], f"{name} ({form.effect})", "form", form.effect
             row.update(case=label, kind=kind, level=level, top1=row["top"] == effect and row["significant"],
                        ranked_first=row["top"] == effect)
@@ -206,7 +227,7 @@ def main() -> None:
         show(f"clean seed {300 + i} (lab noise)", "-", row, np.nan)
 
     print()
-    print("summary (tiny scale, dark and linearity experiments)")
+    print("summary (tiny scale; dark and linearity experiments, roll-off for its effects)")
     for kind in ("catalogue", "form", "pair"):
         for level in ("clear", "limit"):
             sub = [r for r in rows if r["kind"] == kind and r["level"] == level]
