@@ -62,7 +62,7 @@ MAGNITUDES = {
     "prnu": ({"sigma_rel": 0.015}, {"sigma_rel": 0.004}),
     "temperature": ({"bias_dn_per_c": 0.4, "dark_doubling_c": 6.0}, {"bias_dn_per_c": 0.04, "dark_doubling_c": 6.0}),
     "bias_drift": ({"sigma_dn": 2.5}, {"sigma_dn": 0.3}),
-    "stray_light": ({"fraction": 0.01}, {"fraction": 0.001}),
+    "stray_light": ({"fraction": 0.01}, {"fraction": 1e-4}),
     "rolloff_azimuth": ({"amplitude": 0.02, "phi0_deg": 50.0}, {"amplitude": 0.003, "phi0_deg": 50.0}),
 }
 #: effects seen in the roll-off experiment (the others in dark and linearity)
