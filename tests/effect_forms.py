@@ -327,6 +327,6 @@ FORMS = {
     "iso_gain_power_law": Form("iso_gain", iso_gain_power_law, (0.01, 0.003), "exponent deficit",
                                ("linearity",)),
     "temperature_bias_quadratic": Form("temperature", temperature_bias_quadratic, (0.4, 0.1), "DN degree_C-1"),
-    "stray_light_power_law": Form("stray_light", stray_light_power_law, (0.02, 3e-4), "fraction spread",
+    "stray_light_power_law": Form("stray_light", stray_light_power_law, (0.02, 0.005), "fraction spread",
                                   ("rolloff",)),
 }
