@@ -80,10 +80,10 @@ CASES = {
     "not a DNG": (lambda r, csv, v: v.write_text("lab notes, saved under the frame's name\n" * 20),
                   "victim", "not a readable DNG", True),
     "no ExposureTime tag": (lambda r, csv, v: _strip_tag(v, _EXPOSURE_TAG),
-                            "victim", "ExposureTime tag is missing or zero", True),
-    "no ISO tag": (lambda r, csv, v: _strip_tag(v, _ISO_TAG), "victim", "ISOSpeedRatings tag is missing or zero", True),
+                            "victim", "ExposureTime tag is missing or not a positive number of seconds", True),
+    "no ISO tag": (lambda r, csv, v: _strip_tag(v, _ISO_TAG), "victim", "ISOSpeedRatings tag is missing or not a positive number", True),
     "zero exposure tag": (lambda r, csv, v: _zero_rational(v, _EXPOSURE_TAG),
-                          "victim", "ExposureTime tag is missing or zero", True),
+                          "victim", "ExposureTime tag is missing or not a positive number of seconds", True),
     "negative exposure in frames.csv": (lambda r, csv, v: _edit_csv(csv, _set("exposure_s", 1, "-0.01")),
                                         "csv", "line 3, column 'exposure_s': -0.01 but the file's ExposureTime "
                                                "tag says", True),
@@ -100,9 +100,9 @@ CASES = {
     "frame of another size": (lambda r, csv, v: _other_size(v), "victim", "but most frames are", True),
     # the real cameras' files: no exposure tags (Canon: zero; Blackmagic: no EXIF block), another size
     "real Canon DNG as a frame": (lambda r, csv, v: shutil.copy(CANON, v), "victim",
-                                  "ExposureTime tag is missing or zero", False),
+                                  "ExposureTime tag is missing or not a positive number of seconds", False),
     "real Blackmagic DNG as a frame": (lambda r, csv, v: shutil.copy(BLACKMAGIC, v), "victim",
-                                       "ExposureTime tag is missing or zero", False),
+                                       "ExposureTime tag is missing or not a positive number of seconds", False),
 }
 
 

@@ -81,9 +81,9 @@ def planted(dataset):
         (lin, 9, "sweep", "value is empty"),
         (dark, 4, "file", f"{dark_files[2]} does not exist"),
         (dark, 7, "exposure_s", "0.5 but the file's ExposureTime tag says"),
-        (victim, None, None, "ExposureTime tag is missing or zero"),
-        (victim, None, None, "ISOSpeedRatings tag is missing or zero"),
-        (victim, None, None, "DateTimeOriginal tag is missing or zero"),
+        (victim, None, None, "ExposureTime tag is missing or not a positive number of seconds"),
+        (victim, None, None, "ISOSpeedRatings tag is missing or not a positive number"),
+        (victim, None, None, "DateTimeOriginal tag is missing or not a date and time (YYYY:MM:DD HH:MM:SS)"),
         (root / "dataset.yaml", None, None,
          "lenses.close (rows [128, 300), cols [0, 128)) does not fit the 256 x 128 frames"),
     ]
@@ -125,7 +125,7 @@ def test_command_line_lists_them_grouped_and_fails(planted):
     assert "  line 5, column 'lens': 'Far' is not one of far, close, both\n" in out
     assert "  line 9, column 'sweep': value is empty (one of exposure, gain)\n" in out
     assert "  line 7, column 'exposure_s': 0.5 but the file's ExposureTime tag says 0.001\n" in out
-    assert "ExposureTime tag is missing or zero" in out and out.count("fix: ") == len(expected)
+    assert "ExposureTime tag is missing or not a positive number of seconds" in out and out.count("fix: ") == len(expected)
     assert "Traceback" not in proc.stderr
 
 

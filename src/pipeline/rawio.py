@@ -25,7 +25,7 @@ import tifffile
 
 from pipeline.errors import InputError
 
-__all__ = ["RawFrame", "read_raw", "read_tags", "missing_tags", "write_dng", "TAG_NAMES"]
+__all__ = ["RawFrame", "read_raw", "read_tags", "missing_tags", "write_dng", "TAG_NAMES", "tag_problem"]
 
 # TIFF / EXIF / DNG tag codes used here.
 _IMAGE_WIDTH, _IMAGE_LENGTH = 256, 257
@@ -59,6 +59,17 @@ TAG_NAMES = {
     "white_level": "WhiteLevel",
     "cfa_pattern": "CFAPattern",
 }
+#: what is wrong with a tag the reader could not take (absent, unreadable, or a value no camera writes)
+_TAG_PROBLEM = {"exposure_s": "is missing or not a positive number of seconds",
+                "iso": "is missing or not a positive number",
+                "time": "is missing or not a date and time (YYYY:MM:DD HH:MM:SS)"}
+
+
+def tag_problem(key: str) -> str:
+    """One line: the tag's name and what is wrong with it (``key``: a field of :data:`TAG_NAMES`)."""
+    return f"{TAG_NAMES[key]} tag {_TAG_PROBLEM.get(key, 'is missing')}"
+
+
 # Tags a calibration frame needs, in report order.
 _REQUIRED_FOR_REPORT = ("exposure_s", "iso", "time", "make", "model",
                         "black_level", "white_level", "cfa_pattern")
@@ -331,10 +342,10 @@ def _check_require(path: Path, tags: dict, require) -> None:
     unknown = [name for name in require if name not in TAG_NAMES]
     if unknown:
         raise ValueError(f"unknown required field(s) {unknown}; known: {sorted(TAG_NAMES)}")
-    absent = [TAG_NAMES[name] for name in require if tags.get(name) is None]
+    absent = [name for name in require if tags.get(name) is None]
     if absent:
-        more = f" (also missing: {', '.join(absent[1:])})" if len(absent) > 1 else ""
-        raise InputError(path, f"{absent[0]} tag is missing or zero{more}")
+        more = f" (also: {', '.join(TAG_NAMES[name] for name in absent[1:])})" if len(absent) > 1 else ""
+        raise InputError(path, f"{tag_problem(absent[0])}{more}")
 
 
 # ---------------------------------------------------------------------------

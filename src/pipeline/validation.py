@@ -18,7 +18,7 @@ from pathlib import Path
 
 from pipeline.dataset import SIDECARS, Dataset, LayoutCheck, check_checksums, check_sidecars, inspect_layout
 from pipeline.errors import InputError, Problem
-from pipeline.rawio import TAG_NAMES, read_tags
+from pipeline.rawio import TAG_NAMES, read_tags, tag_problem
 
 __all__ = ["REQUIRED_TAGS", "validate_dataset", "inspect_dataset", "check_tags", "format_problems", "ok_line",
            "unlisted_files", "warning_lines"]
@@ -47,8 +47,8 @@ def check_tags(raw_path: Path) -> tuple[dict | None, list[Problem]]:
     except InputError as exc:
         return None, [Problem(Path(raw_path), message=exc.problem,
                               fix="replace it with the file as the camera wrote it")]
-    problems = [Problem(Path(raw_path), message=f"{name} tag is missing or zero", fix=_TAG_FIX)
-                for key, name in REQUIRED_TAGS.items() if tags.get(key) in (None, 0, 0.0)]
+    problems = [Problem(Path(raw_path), message=tag_problem(key), fix=_TAG_FIX)
+                for key in REQUIRED_TAGS if tags.get(key) in (None, 0, 0.0)]
     return tags, problems
 
 
