@@ -38,8 +38,11 @@ def build_sections(inputs: ReportInputs) -> list[RenderedSection]:
 
 def report_settings(config: dict) -> dict:
     """What the report reads of the configuration: the ``report`` section and the diagnostics'
-    ``structured_rms_z`` (the rms z above which an experiment's residuals are called structured)."""
-    return {**config["report"], "structured_rms_z": config["diagnostics"]["structured_rms_z"]}
+    ``structured_rms_z`` (the rms z above which an experiment's residuals are called structured),
+    ``covariate_bins`` and ``image_plane_cells`` (the bins and the grid of the residual tests, which the
+    closure figures show)."""
+    diag = config["diagnostics"]
+    return {**config["report"], **{k: diag[k] for k in ("structured_rms_z", "covariate_bins", "image_plane_cells")}}
 
 
 def _default_settings() -> dict:
