@@ -163,53 +163,64 @@ def z_covariate_figure(experiment: str, rows: pd.DataFrame, covariate: str, unit
 
 def image_plane_figure(experiment: str, rows: pd.DataFrame, cells: int) -> Figure | None:
     """Mean z per cell of a ``cells`` x ``cells`` grid over the measured span of the pixel positions (the
-    grid of the residual tests), one panel per lens, the cell that departs most outlined; None without
-    pixel positions."""
+    grid of the residual tests: per table, over all lenses), one panel per table (level) and lens, the
+    cell that departs most in each table outlined; None without pixel positions."""
     if not all(c in rows for c in IMAGE_PLANE_COLUMNS):
         return None
-    x, y, z = (rows[c].to_numpy(float) for c in (*IMAGE_PLANE_COLUMNS, "z"))
-    ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
-    if ok.sum() < 2 * cells * cells:
+    panels, patterns = [], []
+    for level in dict.fromkeys(rows["level"].astype(str)):
+        part = rows[rows["level"].astype(str) == level]
+        x, y, z = (part[c].to_numpy(float) for c in (*IMAGE_PLANE_COLUMNS, "z"))
+        ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(z)
+        if ok.sum() < 2 * cells * cells:
+            continue
+        part, x, y, z = part[ok].reset_index(drop=True), x[ok], y[ok], z[ok]
+        lens = part["lens"].astype(str).to_numpy() if "lens" in part else np.full(len(part), "")
+        edges_x = np.linspace(x.min(), x.max(), cells + 1)
+        edges_y = np.linspace(y.min(), y.max(), cells + 1)
+        ix = np.clip(np.searchsorted(edges_x, x, side="right") - 1, 0, cells - 1)
+        iy = np.clip(np.searchsorted(edges_y, y, side="right") - 1, 0, cells - 1)
+        pattern = image_plane_pattern(part, z, cells)
+        patterns.append((level, pattern))
+        for name in sorted(set(lens)):
+            sums = np.zeros((cells, cells))
+            counts = np.zeros((cells, cells))
+            sel = lens == name
+            np.add.at(sums, (iy[sel], ix[sel]), z[sel])
+            np.add.at(counts, (iy[sel], ix[sel]), 1)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                grid = np.where(counts > 0, sums / counts, np.nan)
+            outline = pattern if pattern is not None and pattern["lens"] == name else None
+            panels.append((level, name, edges_x, edges_y, grid, outline))
+    if not panels:
         return None
-    rows = rows[ok]
-    x, y, z = x[ok], y[ok], z[ok]
-    lens = rows["lens"].astype(str).to_numpy() if "lens" in rows else np.full(len(rows), "")
-    edges_x = np.linspace(x.min(), x.max(), cells + 1)
-    edges_y = np.linspace(y.min(), y.max(), cells + 1)
-    ix = np.clip(np.searchsorted(edges_x, x, side="right") - 1, 0, cells - 1)
-    iy = np.clip(np.searchsorted(edges_y, y, side="right") - 1, 0, cells - 1)
-    pattern = image_plane_pattern(rows.reset_index(drop=True), z, cells)
-    lenses = sorted(set(lens))
-    means = {}
-    for name in lenses:
-        grid = np.full((cells, cells), np.nan)
-        for j in range(cells):
-            for i in range(cells):
-                sel = (lens == name) & (ix == i) & (iy == j)
-                if sel.any():
-                    grid[j, i] = z[sel].mean()
-        means[name] = grid
-    vmax = max(float(np.nanmax(np.abs(np.concatenate([g.ravel() for g in means.values()])))), 0.5)
-    fig, axes = plt.subplots(1, len(lenses), figsize=(3.3 * len(lenses) + 1.0, 3.0), squeeze=False)
-    for ax, name in zip(axes[0], lenses):
-        mesh = ax.pcolormesh(edges_x, edges_y, means[name], cmap=DIVERGING_MAP, vmin=-vmax, vmax=vmax)
-        if pattern is not None and pattern["lens"] == name:
-            (x0, x1), (y0, y1) = pattern["x_px"], pattern["y_px"]
+    vmax = max(float(np.nanmax([np.nanmax(np.abs(p[4])) for p in panels])), 0.5)
+    ncols = min(len(panels), 4)
+    nrows = -(-len(panels) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(2.5 * ncols + 0.8, 2.5 * nrows), squeeze=False)
+    for k, (ax, (level, name, edges_x, edges_y, grid, outline)) in enumerate(zip(axes.ravel(), panels)):
+        ax.set_facecolor("#d9d9d9")
+        mesh = ax.pcolormesh(edges_x, edges_y, grid, cmap=DIVERGING_MAP, vmin=-vmax, vmax=vmax)
+        if outline is not None:
+            (x0, x1), (y0, y1) = outline["x_px"], outline["y_px"]
             ax.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec=OKABE_ITO[0], lw=2))
-        ax.set_title(f"lens {name}" if name else "all lenses", fontsize=8)
+        ax.set_title(f"{level}, lens {name}" if name else level, fontsize=8)
         ax.set_xlabel("x [px]")
-        ax.set_ylabel("y [px]")
+        if k % ncols == 0:
+            ax.set_ylabel("y [px]")
         ax.invert_yaxis()
         ax.set_aspect("equal", adjustable="box")
-    fig.colorbar(mesh, ax=list(axes[0]), label="mean z [1]", shrink=0.9)
-    where = ""
-    if pattern is not None:
-        where = (f" Outlined: the cell that departs most (mean z {pattern['mean_z']:+.2f} over {pattern['n']} "
-                 f"measurements; F test of the cell means p {pattern['p_value']:.2g}).")
+    for ax in axes.ravel()[len(panels):]:
+        ax.set_visible(False)
+    fig.colorbar(mesh, ax=list(axes.ravel()), label="mean z [1]", shrink=0.9)
+    where = "; ".join(f"{level}: mean z {p['mean_z']:+.2f} over {p['n']} measurements, F test of the cell means "
+                      f"p {p['p_value']:.2g}" for level, p in patterns if p is not None)
     return draw(fig, f"closure_image_plane_{experiment}",
                 f"Where on the image plane the {experiment} model fails: mean normalised residual z per cell of a "
-                f"{cells}×{cells} grid over the measured span of the pixel positions (full-resolution pixels, y "
-                f"down), per lens; white is zero, red the data above the model, blue below.{where}",
+                f"{cells}×{cells} grid over the measured span of each table's pixel positions (full-resolution "
+                f"pixels, y down), per table and lens; white is zero, red the data above the model, blue below, "
+                f"grey no measurements. Outlined: the cell that departs most in each table, from the closure "
+                f"table's z of the model's fit ({where}); the residual tests' table gives each test's own cell.",
                 alt=f"image-plane map of the mean z of the {experiment} measurements")
 
 
