@@ -380,7 +380,7 @@ def _residual_tests_and_closure(tmp_path):
 def test_residual_tests_and_closure_views_mark_the_structured_table(run, tmp_path):
     """Given residual_tests.csv and the closure table, the diagnostics section lists every table with the
     structured one highlighted, and draws per experiment z against the covariate its test names and, for the
-    measurements with pixel positions, the image-plane map (measured: about 2 s CPU)."""
+    measurements with pixel positions, the image-plane map (measured: 1.5 s CPU)."""
     import json
 
     tests_csv, closure = _residual_tests_and_closure(tmp_path)
