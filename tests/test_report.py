@@ -337,3 +337,72 @@ def test_a_section_module_registers_itself_in_page_order():
             section("dark", "Dark again", order=1)(lambda inputs: [])
     finally:
         _REGISTRY.pop("closure-test", None)
+
+
+def _residual_tests_and_closure(tmp_path):
+    """A residual_tests.csv with one structured table (the roll-off's, following spot_x_px, in the far
+    lens's right cell) and one at the noise floor, and the closure table of both as the closure artefact."""
+    import numpy as np
+    import xarray as xr
+
+    from pipeline.artefact import write_artefact
+
+    rng = np.random.default_rng(3)
+    n_dark, n_roll = 60, 180
+    x = rng.uniform(0, 900, n_roll)
+    y = rng.uniform(0, 600, n_roll)
+    z_roll = rng.normal(size=n_roll) + np.where(x > 600, 3.0, 0.0)
+    z = np.concatenate([rng.normal(size=n_dark), z_roll])
+    nan_dark = np.full(n_dark, np.nan)
+    n = n_dark + n_roll
+    text = {"experiment": ["dark"] * n_dark + ["rolloff"] * n_roll, "level": ["frame"] * n_dark + ["spot"] * n_roll,
+            "lens": ["far"] * n, "band": [""] * n}
+    numeric = {"z": (z, "1"), "value": (z, "DN"), "prediction": (np.zeros(n), "DN"), "residual": (z, "DN"),
+               "sigma": (np.ones(n), "DN"),
+               "exposure_s": (np.concatenate([rng.choice([0.01, 0.1, 1.0], n_dark), np.full(n_roll, np.nan)]), "s"),
+               "spot_x_px": (np.concatenate([nan_dark, x]), "pixel"),
+               "spot_y_px": (np.concatenate([nan_dark, y]), "pixel")}
+    ds = xr.Dataset({k: ("measurement", np.asarray(v, dtype=str)) for k, v in text.items()}
+                    | {k: ("measurement", v, {"units": u}) for k, (v, u) in numeric.items()})
+    closure = write_artefact(ds, tmp_path / "residuals.nc", stage="closure", inputs={}, config_subset={}, effects=[])
+    tests = pd.DataFrame([
+        {"experiment": "dark", "level": "frame", "n_obs": n_dark, "chi2": 58.0, "dof": 57, "rms_z": 1.0,
+         "p_chi2": 0.44, "p_block": 0.5, "significant": False, "covariate": "exposure_s",
+         "covariate_p_value": 0.6, "image_plane": ""},
+        {"experiment": "rolloff", "level": "spot", "n_obs": n_roll, "chi2": 700.0, "dof": 170, "rms_z": 2.0,
+         "p_chi2": 1e-60, "p_block": 1e-9, "significant": True, "covariate": "spot_x_px",
+         "covariate_p_value": 1e-30, "image_plane": "far lens, x 600 to 900 px, y 0 to 600 px"}])
+    tests_csv = tmp_path / "residual_tests.csv"
+    tests.to_csv(tests_csv, index=False)
+    return tests_csv, closure
+
+
+def test_residual_tests_and_closure_views_mark_the_structured_table(run, tmp_path):
+    """Given residual_tests.csv and the closure table, the diagnostics section lists every table with the
+    structured one highlighted, and draws per experiment z against the covariate its test names and, for the
+    measurements with pixel positions, the image-plane map (measured: 1.5 s CPU)."""
+    import json
+
+    tests_csv, closure = _residual_tests_and_closure(tmp_path)
+    out = build_report(dark={}, linearity={}, out_html=tmp_path / "r.html", figures_dir=tmp_path / "figures",
+                       residual_tests=tests_csv, closure=closure, **run["diag"])
+    sec = _section(out.read_text(encoding="utf-8"), "diagnostics")
+    rows = re.findall(r"<tr( class=\"flag\")?>(.*?)</tr>", sec.split('id="residual-tests"', 1)[1], re.S)
+    flagged = [cells for mark, cells in rows if mark]
+    assert len(flagged) == 1 and ">rolloff<" in flagged[0] and "spot_x_px" in flagged[0] and ">yes<" in flagged[0]
+    assert any(">dark<" in cells and ">no<" in cells for mark, cells in rows if not mark)
+    captions = {k: e["caption"] for k, e in json.loads((tmp_path / "figures" / "figures.json").read_text()).items()}
+    z_dark = [c for k, c in captions.items() if "closure_z_dark" in k]
+    z_roll = [c for k, c in captions.items() if "closure_z_rolloff" in k]
+    image = [c for k, c in captions.items() if "closure_image_plane" in k]
+    assert len(z_dark) == 1 and "against exposure_s" in z_dark[0] and "No table of this experiment" in z_dark[0]
+    assert len(z_roll) == 1 and "against spot_x_px" in z_roll[0] and "(spot) in vermillion" in z_roll[0]
+    # the image-plane map only for the experiment with pixel positions; its outlined cell is the shifted one
+    assert len(image) == 1 and "rolloff" in image[0] and "mean z +" in image[0]
+
+
+def test_report_without_residual_tests_or_closure_says_so(run):
+    """The run fixture's report is built without residual_tests.csv and the closure table: it still has its
+    diagnostics section, which says both are missing."""
+    sec = _section(run["html"], "diagnostics").split('id="residual-tests"', 1)[1].split("<h3", 1)[0]
+    assert "no residual tests" in sec and "No closure table" in sec and "<img" not in sec

@@ -161,12 +161,13 @@ def report_after_failure(results: str | Path, stage_lenses: dict[str, list[str]]
     try:
         diagnose_artefacts(written, stage_params(config, "diagnostics"), diag / "missing_effects.csv",
                            diag / "unexplained.csv", diag / "run_errors.csv", results / "diagnostics" / "ledger",
-                           diag / "error_history.csv")
+                           diag / "error_history.csv", diag / "residual_tests.csv", diag / "residuals.nc")
         # a bundle left by an earlier run is stale when one of its stages did not finish in this one
         calibration = [] if set(BUNDLE_STAGES) & set(not_finished) else sorted((results / "calibration").glob("*.nc"))
         build_report(**{stage: artefacts_by_lens(written.get(stage, [])) for stage in STAGES},
                      missing_effects=diag / "missing_effects.csv", unexplained=diag / "unexplained.csv",
                      run_errors=diag / "run_errors.csv", error_history=diag / "error_history.csv",
+                     residual_tests=diag / "residual_tests.csv", closure=diag / "residuals.nc",
                      out_html=diag / "index.html", skipped=skipped, failed=not_finished,
                      calibration=calibration[0] if calibration else None, settings=report_settings(config))
     except InputError as exc:

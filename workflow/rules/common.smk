@@ -144,6 +144,8 @@ def report_inputs(wildcards):
             "unexplained": "results/diagnostics/unexplained.csv",
             "run_errors": "results/diagnostics/run_errors.csv",
             "error_history": "results/diagnostics/error_history.csv",
+            "residual_tests": "results/diagnostics/residual_tests.csv",
+            "closure": "results/closure/residuals.nc",
         }
     )
     return out

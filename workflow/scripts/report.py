@@ -10,4 +10,6 @@ exit_on_input_error(build_report, **artefacts, missing_effects=smk.input.missing
                     unexplained=smk.input.unexplained, run_errors=smk.input.run_errors,
                     error_history=smk.input.error_history, out_html=smk.output.html, skipped=smk.params.skipped,
                     calibration=smk.input.calibration if "calibration" in smk.input.keys() else None,
+                    residual_tests=smk.input.residual_tests if "residual_tests" in smk.input.keys() else None,
+                    closure=smk.input.closure if "closure" in smk.input.keys() else None,
                     figures_dir=smk.output.figures, dataset=smk.params.dataset, settings=smk.params.settings)

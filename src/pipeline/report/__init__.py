@@ -13,6 +13,8 @@ import os
 from datetime import datetime, timezone
 from pathlib import Path
 
+import pandas as pd
+
 from pipeline.artefact import read_artefact
 from pipeline.report.formatting import fmt_uncertain, fmt_value, quantity, units_text
 from pipeline.report.inputs import ReportInputs, read_csv_or_empty
@@ -36,8 +38,11 @@ def build_sections(inputs: ReportInputs) -> list[RenderedSection]:
 
 def report_settings(config: dict) -> dict:
     """What the report reads of the configuration: the ``report`` section and the diagnostics'
-    ``structured_rms_z`` (the rms z above which an experiment's residuals are called structured)."""
-    return {**config["report"], "structured_rms_z": config["diagnostics"]["structured_rms_z"]}
+    ``structured_rms_z`` (the rms z above which an experiment's residuals are called structured),
+    ``covariate_bins`` and ``image_plane_cells`` (the bins and the grid of the residual tests, which the
+    closure figures show)."""
+    diag = config["diagnostics"]
+    return {**config["report"], **{k: diag[k] for k in ("structured_rms_z", "covariate_bins", "image_plane_cells")}}
 
 
 def _default_settings() -> dict:
@@ -53,17 +58,20 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                  spectral: dict[str, Path] | None = None, absolute: dict[str, Path] | None = None,
                  immersion: dict[str, Path] | None = None, calibration: Path | None = None,
                  field: dict[str, Path] | None = None, failed: dict[str, str] | None = None,
-                 dataset: dict | None = None, settings: dict | None = None) -> Path:
+                 dataset: dict | None = None, settings: dict | None = None,
+                 residual_tests: Path | None = None, closure: Path | None = None) -> Path:
     """Write the calibration report as one self-contained HTML file and return its path.
 
     Each stage argument maps lens name to that stage's artefact; a stage given as None or empty gets a
-    section saying it was not run, with its reason from ``skipped`` (stage -> reason). The four CSVs
-    come from the diagnostics stage. ``calibration`` (optional) is the calibration bundle (noise
-    floor). ``failed`` (after a run with failed jobs) maps a stage that did not finish to its error
-    line: the summary names them first. ``dataset`` (optional): ``path``, ``camera`` (make, model,
-    serial) and ``experiments`` for the summary. ``settings``: the config's ``report`` section
-    (:func:`report_settings`; the schema defaults when None). With ``figures_dir`` every figure is also written there as
-    ``NN_name.png`` with ``figures.json`` naming each one's section and caption. The HTML is written
+    section saying it was not run, with its reason from ``skipped`` (stage -> reason). The four CSVs come
+    from the diagnostics stage, and so do ``residual_tests`` (``residual_tests.csv``) and ``closure`` (the
+    closure table ``residuals.nc``), both optional: absent, the diagnostics section says so. ``calibration``
+    (optional) is the calibration bundle (noise floor). ``failed`` (after a run with failed jobs) maps a
+    stage that did not finish to its error line: the summary names them first. ``dataset`` (optional):
+    ``path``, ``camera`` (make, model, serial) and ``experiments`` for the summary. ``settings``: the
+    config's ``report`` section (:func:`report_settings`; the schema defaults when None). With
+    ``figures_dir`` every figure is also written there as ``NN_name.png`` with ``figures.json`` naming each
+    one's section and caption. The HTML is written
     to a temporary sibling and renamed.
     """
     out_html = Path(out_html)
@@ -78,6 +86,8 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
         unexplained=read_csv_or_empty(Path(unexplained)),
         run_errors=read_csv_or_empty(Path(run_errors)),
         error_history=read_csv_or_empty(Path(error_history)),
+        residual_tests=read_csv_or_empty(Path(residual_tests)) if residual_tests is not None else pd.DataFrame(),
+        closure=read_artefact(closure, "closure") if closure is not None and Path(closure).exists() else None,
         skipped={**dict(skipped or {}), **failed}, failed=failed,
         calibration=read_artefact(calibration, "calibration") if calibration is not None else None,
         dataset=dict(dataset or {}),

@@ -41,7 +41,8 @@ class Items:
 
 @dataclass
 class Table:
-    """A table with a caption above it; the first ``left`` columns are left-aligned.
+    """A table with a caption above it; the first ``left`` columns are left-aligned; ``marked`` (one
+    flag per row, optional) highlights the rows a reader should look at (class ``flag``).
 
     Rendered inside a scrolling box so that a wide table never widens the page.
     """
@@ -50,6 +51,7 @@ class Table:
     rows: list
     caption: str = ""
     left: int = 1
+    marked: list = field(default_factory=list)
 
 
 @dataclass

@@ -30,7 +30,9 @@ def input_count(ds: xr.Dataset) -> str:
 
 @dataclass
 class ReportInputs:
-    """The artefacts (``artefacts[stage][lens]``, their ``paths``), diagnostics tables and run facts."""
+    """The artefacts (``artefacts[stage][lens]``, their ``paths``), diagnostics tables and run facts;
+    ``residual_tests`` (one row per experiment and level) and ``closure`` (the closure table, every
+    measurement with its prediction and z) are empty / None when the diagnostics did not write them."""
 
     artefacts: dict[str, dict[str, xr.Dataset]]
     paths: dict[str, dict[str, Path]]
@@ -38,6 +40,8 @@ class ReportInputs:
     unexplained: pd.DataFrame
     run_errors: pd.DataFrame
     error_history: pd.DataFrame
+    residual_tests: pd.DataFrame = field(default_factory=pd.DataFrame)
+    closure: xr.Dataset | None = None
     skipped: dict[str, str] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
     calibration: xr.Dataset | None = None

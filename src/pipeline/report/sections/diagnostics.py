@@ -17,6 +17,7 @@ from pipeline.report.content import Details, Group, Items, Markup, Table, Text, 
 from pipeline.report.formatting import finite, fmt_value  # noqa: E402
 from pipeline.report.palette import OKABE_ITO, category  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
+from pipeline.report.sections._closure import closure_figures, residual_tests_table  # noqa: E402
 
 __all__ = ["as_bool", "top_effect", "amplitude_text", "run_labels", "history_figure", "flagged_experiments"]
 
@@ -227,9 +228,35 @@ def _missing_table(missing: pd.DataFrame) -> Table:
                  left=3)
 
 
+def _diagnostics_setting(inputs, name: str):
+    """A diagnostics setting the report shows (``report_settings``), the schema default when not given."""
+    if name in inputs.settings:
+        return inputs.settings[name]
+    from pipeline.config import load_config
+
+    return load_config()["diagnostics"][name]
+
+
+def _residual_test_blocks(inputs) -> list:
+    tests = inputs.residual_tests
+    blocks = []
+    if tests.empty or "experiment" not in tests:
+        blocks.append(Text("The diagnostics wrote no residual tests for this run.", "note"))
+    else:
+        blocks.append(residual_tests_table(tests))
+    if inputs.closure is None:
+        blocks.append(Text("No closure table (results/closure/residuals.nc) was given: no per-measurement views.",
+                           "note"))
+    else:
+        blocks += closure_figures(inputs.closure, tests, int(_diagnostics_setting(inputs, "covariate_bins")),
+                                  int(_diagnostics_setting(inputs, "image_plane_cells")))
+    return blocks
+
+
 @section("diagnostics", "Diagnostics: where the model fails", order=100,
-         intro="Closure of every stage against its own measurements and the field, the candidate effects the "
-               "residuals point to, structure no candidate explains, and how the error changed from run to run.")
+         intro="Closure of every stage against its own measurements and the field, the residual tests of every "
+               "table with the measurements' z against the covariate their structure follows, the candidate "
+               "effects the residuals point to, structure no candidate explains, and how the error changed from run to run.")
 def diagnostics_section(inputs) -> list:
     out = []
     errors = inputs.run_errors
@@ -254,6 +281,7 @@ def diagnostics_section(inputs) -> list:
         if fig is not None:
             search.append(fig)
         search.append(_missing_table(missing))
+    out.append(Group("Residual tests per table", _residual_test_blocks(inputs), id="residual-tests"))
     out.append(Group("Missing-effect search", search, id="missing-effects"))
     unexp = inputs.unexplained
     if unexp.empty:
