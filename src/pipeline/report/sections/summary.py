@@ -10,6 +10,7 @@ and one verdict per experiment: at the noise floor, or which effect is missing.
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 
 from pipeline.observations import dataset_to_table
 from pipeline.radiometry.rolloff import evaluate_rolloff
@@ -159,6 +160,8 @@ def stage_verdicts(inputs) -> list[list[str]]:
         return []
     unexp = inputs.unexplained
     limit = float(inputs.settings.get("structured_rms_z", 1.5))
+    tests = inputs.residual_tests
+    tests = tests if isinstance(tests, pd.DataFrame) and {"experiment", "p_value"} <= set(tests.columns) else None
     rows = []
     for _, r in errors.iterrows():
         exp = str(r["experiment"])
@@ -169,6 +172,10 @@ def stage_verdicts(inputs) -> list[list[str]]:
                        "in config/config.yaml and rerun")
         elif len(structure):
             verdict = f"structure no candidate explains: {structure.iloc[0].get('message', '')}"
+        elif tests is not None and (tests["experiment"].astype(str) == exp).any():
+            mine = tests[tests["experiment"].astype(str) == exp]
+            verdict = (f"at the noise floor (no table's residual chi-square significant; smallest p "
+                       f"{fmt_value(float(mine['p_value'].min()), 2)})")
         elif finite(r["rms_z"]) and float(r["rms_z"]) <= limit:
             verdict = "at the noise floor"
         else:
@@ -210,8 +217,8 @@ def summary_section(inputs) -> list:
                          "Verdict per experiment (rms z = 1 at the noise floor): the missing effect the diagnostics "
                          "find significant, else the residual structure no candidate explains (a chi-square test of "
                          "each experiment's residuals against their degrees of freedom, by frame or setting), else "
-                         "the noise floor when rms z is at most "
-                         f"{float(inputs.settings.get('structured_rms_z', 1.5)):g}:", left=3))
+                         "the noise floor (without the residual tests: rms z at most "
+                         f"{float(inputs.settings.get('structured_rms_z', 1.5)):g}):", left=3))
     top = top_effect(inputs.missing_effects)
     if top is not None and as_bool(top.get("significant")):
         out.append(Text(Markup("The residuals point to a missing effect: <b>{}</b> in the {} experiment ({}; "
