@@ -1,0 +1,209 @@
+"""The workflow's stages at the real camera's scale, one experiment at a time, against the decode floor.
+
+    python benchmarks/bench_full.py [--experiments dark,linearity,...] [--work DIR] [--keep]
+    python benchmarks/bench_full.py --scaling dark [--factors 1,2,4] [--base-frames 2] [--lens far]
+
+Default mode: for each experiment in turn, simulates it at the ``full`` scale (6912 x 3456
+frames, the paper's frame counts; the simulator's time printed) into ``--work``, runs the
+stage that reads it for each lens (one workflow job each, in a fresh process with one
+BLAS/OpenMP thread, as Snakemake runs a ``threads: 1`` rule; artefacts kept in
+``--work``/results for the stages downstream), measures the decode floor of the same frames in
+the same run (a fresh process that reads every frame of frames.csv once, as the stages do:
+bytes, MD5 and SHA-256, rawpy, and both lens regions split into R, G, B), and deletes the
+experiment's raw frames before the next one (``--keep`` keeps them), so the disk never holds the
+whole dataset. Prints per stage and lens: frames, MB decoded, wall and CPU seconds, peak resident
+memory, and the ratio of wall time to the floor's wall time.
+
+``--scaling EXPERIMENT``: the same experiment simulated with ``--base-frames`` times each factor
+frames per setting (dark and linearity have a per-setting frame count), its stage run for one
+lens at each size: wall time should grow linearly with the frames and peak memory stay flat.
+
+Each figure is printed beside the machine's load average (``os.getloadavg``): on a shared
+machine absolute times move with the load, the ratio to the floor measured in the same run
+much less. Results go to ``--work``/bench_full.csv (or bench_scaling.csv) as well.
+The field stage (it needs the calibration bundle of every other stage) is not run here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+LENSES = ("far", "close")
+#: the stage that reads each experiment's frames (the field stage needs the bundle: not run here)
+STAGE_OF = {"dark": "dark", "linearity": "linearity", "geometry": "geometry", "rolloff": "rolloff",
+            "spectral": "spectral", "absolute": "absolute", "immersion": "immersion"}
+EFFECTS = [("dark_current", {}), ("hot_pixels", {})]
+
+
+def floor_child(dataset: str, experiment: str) -> None:
+    """Decode every frame of the experiment once and split both lens regions into bands; print JSON."""
+    from pipeline.bands import cut_region, split_bands
+    from pipeline.dataset import open_dataset
+    from pipeline.rawio import read_raw
+
+    ds = open_dataset(dataset)
+    frames = ds.frames(experiment)
+    t0, c0 = time.perf_counter(), time.process_time()
+    for path in frames["path"]:
+        raw = read_raw(path)
+        for rows, cols in ds.lenses.values():
+            split_bands(cut_region(raw.cfa, rows, cols), raw.cfa_pattern)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu,
+                      "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+
+
+def _run(args: list[str]) -> dict:
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env)
+    if proc.returncode != 0:
+        sys.exit(f"{' '.join(args[:3])} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def stage_job(stage: str, dataset: Path, results: Path, lens: str) -> dict:
+    """One workflow job (stage, lens) in a fresh process: wall, CPU, peak RSS (bench_stages' child)."""
+    return _run([str(HERE / "bench_stages.py"), "--child", stage, str(dataset), str(results), lens])
+
+
+def decode_floor(dataset: Path, experiment: str) -> dict:
+    return _run([__file__, "--floor", str(dataset), experiment])
+
+
+def simulate(out: Path, experiment: str, scale, seed: int) -> float | None:
+    """Simulate one experiment into ``out`` unless it is there already; the simulator's wall time (None: reused)."""
+    from pipeline.simulate import simulate_dataset
+
+    if out.exists():
+        return None
+    t0 = time.perf_counter()
+    simulate_dataset(out, scale=scale, seed=seed, effects=EFFECTS, experiments=(experiment,), progress=False)
+    return time.perf_counter() - t0
+
+
+def remove_dataset(out: Path) -> None:
+    from pipeline.simulate.dataset import truth_dir_for
+
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(truth_dir_for(out), ignore_errors=True)
+
+
+def frames_and_mb(dataset: Path, experiment: str) -> tuple[int, float]:
+    from pipeline.dataset import open_dataset
+
+    frames = open_dataset(dataset).frames(experiment)
+    return len(frames), sum(Path(p).stat().st_size for p in frames["path"]) / 1e6
+
+
+def load() -> str:
+    return "/".join(f"{v:.1f}" for v in os.getloadavg())
+
+
+HEADER = (f"{'stage':<10} {'lens':<6} {'frames':>6} {'MB':>7} {'wall s':>8} {'CPU s':>8} {'peak MiB':>9} "
+          f"{'floor s':>8} {'ratio':>6}  load 1/5/15 min")
+
+
+def row_line(r: dict) -> str:
+    return (f"{r['stage']:<10} {r['lens']:<6} {r['frames']:>6} {r['mb_decoded']:>7.0f} {r['wall_s']:>8.1f} "
+            f"{r['cpu_s']:>8.1f} {r['peak_rss_mib']:>9.0f} {r['floor_wall_s']:>8.1f} {r['ratio_to_floor']:>6.2f}  "
+            f"{r['load']}")
+
+
+def measure(stage: str, experiment: str, dataset: Path, results: Path, lenses, extra: dict) -> list[dict]:
+    n, mb = frames_and_mb(dataset, experiment)
+    floor = decode_floor(dataset, experiment)
+    print(f"decode floor of {experiment}: {n} frames, {mb:.0f} MB, {floor['wall_s']:.1f} s wall, "
+          f"{floor['cpu_s']:.1f} s CPU, peak {floor['peak_rss_mib']:.0f} MiB (load {load()})", flush=True)
+    print(HEADER)
+    rows = []
+    for lens in lenses:
+        m = stage_job(stage, dataset, results, lens)
+        r = {**extra, "stage": stage, "lens": lens, "frames": n, "mb_decoded": mb, **m,
+             "floor_wall_s": floor["wall_s"], "floor_cpu_s": floor["cpu_s"],
+             "ratio_to_floor": m["wall_s"] / floor["wall_s"], "load": load()}
+        print(row_line(r), flush=True)
+        rows.append(r)
+    return rows
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {path}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--experiments", default="dark,linearity,geometry,rolloff,spectral,absolute,immersion")
+    ap.add_argument("--work", default=str(HERE / "out" / "full"), help="datasets, artefacts and the CSV go here")
+    ap.add_argument("--keep", action="store_true", help="keep each experiment's raw frames")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--scale", default="full", help="a scale of the simulator (default full; tiny to try the script)")
+    ap.add_argument("--scaling", metavar="EXPERIMENT", help="scaling mode: dark or linearity")
+    ap.add_argument("--factors", default="1,2,4")
+    ap.add_argument("--base-frames", type=int, default=2, help="frames per setting at factor 1 (scaling mode)")
+    ap.add_argument("--lens", default="far", help="the lens of the scaling mode's job")
+    ap.add_argument("--floor", nargs=2, metavar=("DATASET", "EXPERIMENT"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.floor:
+        floor_child(*args.floor)
+        return
+    from pipeline.simulate.dataset import SCALES, Scale
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    full = SCALES[args.scale]
+    rows = []
+    if args.scaling:
+        exp = args.scaling
+        if exp not in ("dark", "linearity"):
+            sys.exit("--scaling takes dark or linearity (the experiments with a per-setting frame count)")
+        for factor in (int(f) for f in args.factors.split(",")):
+            k = args.base_frames * factor
+            scale = Scale(full.name, lens_px=full.lens_px, dark_frames=k if exp == "dark" else full.dark_frames,
+                          linearity_frames=k if exp == "linearity" else full.linearity_frames)
+            dataset = work / f"scaling-{exp}-x{factor}"
+            sim = simulate(dataset, exp, scale, args.seed)
+            print(f"{exp} x{factor} ({k} frames per setting): "
+                  + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})", flush=True)
+            results = work / f"results-scaling-{exp}-x{factor}"
+            if exp == "linearity":       # linearity needs a dark artefact: the full scale's, from the default mode
+                dark = work / "results" / "dark" / f"{args.lens}.nc"
+                if not dark.exists():
+                    sys.exit(f"{dark}: run the default mode for dark first (linearity needs its artefact)")
+                (results / "dark").mkdir(parents=True, exist_ok=True)
+                shutil.copy(dark, results / "dark" / dark.name)
+            rows += measure(STAGE_OF[exp], exp, dataset, results, [args.lens], {"factor": factor,
+                                                                                 "frames_per_setting": k})
+            if not args.keep:
+                remove_dataset(dataset)
+        write_csv(work / "bench_scaling.csv", rows)
+        return
+    results = work / "results"
+    for exp in args.experiments.split(","):
+        if exp not in STAGE_OF:
+            sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
+        dataset = work / f"dataset-{exp}"
+        sim = simulate(dataset, exp, full, args.seed)
+        print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
+              flush=True)
+        rows += measure(STAGE_OF[exp], exp, dataset, results, LENSES, {})
+        if not args.keep:
+            remove_dataset(dataset)
+        write_csv(work / "bench_full.csv", rows)
+
+
+if __name__ == "__main__":
+    main()
