@@ -1,7 +1,7 @@
 """The workflow's stages at the real camera's scale, one experiment at a time, against the decode floor.
 
     python benchmarks/bench_full.py [--experiments dark,linearity,...] [--work DIR] [--keep]
-    python benchmarks/bench_full.py --scaling dark [--factors 1,2,4] [--base-frames 2] [--lens far]
+    python benchmarks/bench_full.py --scaling dark [--factors 1,2,4] [--base-frames 3] [--lens far]
 
 Default mode: for each experiment in turn, simulates it at the ``full`` scale (6912 x 3456
 frames, the paper's frame counts; the simulator's time printed) into ``--work``, runs the
@@ -14,9 +14,10 @@ experiment's raw frames before the next one (``--keep`` keeps them), so the disk
 whole dataset. Prints per stage and lens: frames, MB decoded, wall and CPU seconds, peak resident
 memory, and the ratio of wall time to the floor's wall time.
 
-``--scaling EXPERIMENT``: the same experiment simulated with ``--base-frames`` times each factor
-frames per setting (dark and linearity have a per-setting frame count), its stage run for one
-lens at each size: wall time should grow linearly with the frames and peak memory stay flat.
+``--scaling EXPERIMENT``: the experiment's full-scale frames (simulated as above, or the ones kept
+with ``--keep``) cut to the first ``--base-frames`` times each factor frames of each setting
+(hard links, no new simulation), its stage run for one lens at each size: wall time should grow
+linearly with the frames and peak memory stay flat.
 
 Each figure is printed beside the machine's load average (``os.getloadavg``): on a shared
 machine absolute times move with the load, the ratio to the floor measured in the same run
@@ -91,6 +92,42 @@ def simulate(out: Path, experiment: str, scale, seed: int) -> float | None:
     return time.perf_counter() - t0
 
 
+def frame_subset(source: Path, out: Path, experiment: str, per_setting: int) -> int:
+    """A copy of ``source`` whose ``experiment`` lists the first ``per_setting`` frames of each setting
+    (lens, sweep, ISO, exposure from the tags), the raw files hard-linked; returns its frame count."""
+    import pandas as pd
+
+    from pipeline.dataset import write_md5sums
+    from pipeline.rawio import read_tags
+
+    if out.exists():
+        shutil.rmtree(out)
+    table = pd.read_csv(source / experiment / "frames.csv")
+    tags = [read_tags(source / experiment / f) for f in table["file"]]
+    table["_key"] = [(r.lens, getattr(r, "sweep", ""), t["iso"], t["exposure_s"]) for r, t in zip(table.itertuples(), tags)]
+    keep = table[table.groupby("_key").cumcount() < per_setting].drop(columns="_key")
+    for path in source.rglob("*"):
+        rel = path.relative_to(source)
+        if path.is_file() and rel.parts[0] != experiment and rel.name != "MD5SUMS":
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(path, out / rel)
+    for sidecar in (source / experiment).iterdir():
+        if sidecar.is_file() and sidecar.name != "frames.csv":
+            (out / experiment).mkdir(parents=True, exist_ok=True)
+            shutil.copy(sidecar, out / experiment / sidecar.name)
+    (out / experiment / "raw").mkdir(parents=True, exist_ok=True)
+    for f in keep["file"]:
+        os.link(source / experiment / f, out / experiment / f)
+    keep.to_csv(out / experiment / "frames.csv", index=False)
+    write_md5sums(out)
+    return len(keep)
+
+
+#: the artefacts a stage needs from the default mode's results (the scaling mode copies them)
+STAGE_UPSTREAM = {"linearity": ("dark",), "rolloff": ("geometry",), "spectral": ("geometry",),
+                  "absolute": ("spectral", "geometry"), "immersion": ("geometry",)}
+
+
 def remove_dataset(out: Path) -> None:
     from pipeline.simulate.dataset import truth_dir_for
 
@@ -151,16 +188,16 @@ def main() -> None:
     ap.add_argument("--keep", action="store_true", help="keep each experiment's raw frames")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--scale", default="full", help="a scale of the simulator (default full; tiny to try the script)")
-    ap.add_argument("--scaling", metavar="EXPERIMENT", help="scaling mode: dark or linearity")
+    ap.add_argument("--scaling", metavar="EXPERIMENT", help="scaling mode: this experiment at 1x, 2x, 4x its frames")
     ap.add_argument("--factors", default="1,2,4")
-    ap.add_argument("--base-frames", type=int, default=2, help="frames per setting at factor 1 (scaling mode)")
+    ap.add_argument("--base-frames", type=int, default=3, help="frames per setting at factor 1 (scaling mode)")
     ap.add_argument("--lens", default="far", help="the lens of the scaling mode's job")
     ap.add_argument("--floor", nargs=2, metavar=("DATASET", "EXPERIMENT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.floor:
         floor_child(*args.floor)
         return
-    from pipeline.simulate.dataset import SCALES, Scale
+    from pipeline.simulate.dataset import SCALES
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
@@ -168,27 +205,29 @@ def main() -> None:
     rows = []
     if args.scaling:
         exp = args.scaling
-        if exp not in ("dark", "linearity"):
-            sys.exit("--scaling takes dark or linearity (the experiments with a per-setting frame count)")
+        if exp not in STAGE_OF:
+            sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
+        source = work / f"dataset-{exp}"
+        sim = simulate(source, exp, full, args.seed)
+        print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
+              flush=True)
         for factor in (int(f) for f in args.factors.split(",")):
             k = args.base_frames * factor
-            scale = Scale(full.name, lens_px=full.lens_px, dark_frames=k if exp == "dark" else full.dark_frames,
-                          linearity_frames=k if exp == "linearity" else full.linearity_frames)
             dataset = work / f"scaling-{exp}-x{factor}"
-            sim = simulate(dataset, exp, scale, args.seed)
-            print(f"{exp} x{factor} ({k} frames per setting): "
-                  + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})", flush=True)
+            n = frame_subset(source, dataset, exp, k)
+            print(f"{exp} x{factor}: the first {k} frames of each setting ({n} frames, hard links)", flush=True)
             results = work / f"results-scaling-{exp}-x{factor}"
-            if exp == "linearity":       # linearity needs a dark artefact: the full scale's, from the default mode
-                dark = work / "results" / "dark" / f"{args.lens}.nc"
-                if not dark.exists():
-                    sys.exit(f"{dark}: run the default mode for dark first (linearity needs its artefact)")
-                (results / "dark").mkdir(parents=True, exist_ok=True)
-                shutil.copy(dark, results / "dark" / dark.name)
+            for upstream in STAGE_UPSTREAM.get(exp, ()):     # e.g. linearity needs the dark artefact
+                art = work / "results" / upstream / f"{args.lens}.nc"
+                if not art.exists():
+                    sys.exit(f"{art}: run the default mode for {upstream} first ({exp} needs its artefact)")
+                (results / upstream).mkdir(parents=True, exist_ok=True)
+                shutil.copy(art, results / upstream / art.name)
             rows += measure(STAGE_OF[exp], exp, dataset, results, [args.lens], {"factor": factor,
                                                                                  "frames_per_setting": k})
-            if not args.keep:
-                remove_dataset(dataset)
+            shutil.rmtree(dataset)
+        if not args.keep:
+            remove_dataset(source)
         write_csv(work / "bench_scaling.csv", rows)
         return
     results = work / "results"
