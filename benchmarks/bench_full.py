@@ -21,7 +21,8 @@ linearly with the frames and peak memory stay flat.
 
 Each figure is printed beside the machine's load average (``os.getloadavg``): on a shared
 machine absolute times move with the load, the ratio to the floor measured in the same run
-much less. Results go to ``--work``/bench_full.csv (or bench_scaling.csv) as well.
+less, and the ratio of CPU times (stage CPU / floor CPU, the decode thread's included) least.
+Results go to ``--work``/bench_full.csv (or bench_scaling.csv) as well.
 The field stage (it needs the calibration bundle of every other stage) is not run here.
 """
 
@@ -147,13 +148,13 @@ def load() -> str:
 
 
 HEADER = (f"{'stage':<10} {'lens':<6} {'frames':>6} {'MB':>7} {'wall s':>8} {'CPU s':>8} {'peak MiB':>9} "
-          f"{'floor s':>8} {'ratio':>6}  load 1/5/15 min")
+          f"{'floor s':>8} {'ratio':>6} {'floor CPU':>9} {'CPU ratio':>9}  load 1/5/15 min")
 
 
 def row_line(r: dict) -> str:
     return (f"{r['stage']:<10} {r['lens']:<6} {r['frames']:>6} {r['mb_decoded']:>7.0f} {r['wall_s']:>8.1f} "
-            f"{r['cpu_s']:>8.1f} {r['peak_rss_mib']:>9.0f} {r['floor_wall_s']:>8.1f} {r['ratio_to_floor']:>6.2f}  "
-            f"{r['load']}")
+            f"{r['cpu_s']:>8.1f} {r['peak_rss_mib']:>9.0f} {r['floor_wall_s']:>8.1f} {r['ratio_to_floor']:>6.2f} "
+            f"{r['floor_cpu_s']:>9.1f} {r['cpu_ratio_to_floor']:>9.2f}  {r['load']}")
 
 
 def measure(stage: str, experiment: str, dataset: Path, results: Path, lenses, extra: dict) -> list[dict]:
@@ -167,7 +168,8 @@ def measure(stage: str, experiment: str, dataset: Path, results: Path, lenses, e
         m = stage_job(stage, dataset, results, lens)
         r = {**extra, "stage": stage, "lens": lens, "frames": n, "mb_decoded": mb, **m,
              "floor_wall_s": floor["wall_s"], "floor_cpu_s": floor["cpu_s"],
-             "ratio_to_floor": m["wall_s"] / floor["wall_s"], "load": load()}
+             "ratio_to_floor": m["wall_s"] / floor["wall_s"], "cpu_ratio_to_floor": m["cpu_s"] / floor["cpu_s"],
+             "load": load()}
         print(row_line(r), flush=True)
         rows.append(r)
     return rows

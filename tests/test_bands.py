@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.bands import BANDS, cut_region, split_bands
+from pipeline.bands import BANDS, cut_region, split_bands, split_saturation
 
 SITE_VALUES = {"R": 100, "G1": 200, "G2": 300, "B": 400}
 
@@ -79,3 +79,18 @@ def test_cut_region():
 def test_cut_region_rejects(rows, cols):
     with pytest.raises(ValueError):
         cut_region(np.zeros((12, 16)), rows, cols)
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "GBRG"])
+@pytest.mark.parametrize("threshold", [4094.0, 4093.5, 0.0, 70000.0])
+def test_split_saturation_flags_a_band_pixel_when_any_site_reaches_the_threshold(pattern, threshold):
+    """Against the definition written out with the 2x2 cells: a band pixel is saturated when any of its
+    sites (both sites for G) is at or above the threshold."""
+    rng = np.random.default_rng(3)
+    cfa = rng.integers(4090, 4096, size=(6, 8), dtype=np.uint16)
+    sat = split_saturation(cfa, pattern, threshold)
+    cells = cfa.reshape(3, 2, 4, 2).transpose(0, 2, 1, 3).reshape(3, 4, 4) >= threshold   # row-major 2x2 cell
+    for band in BANDS:
+        where = [k for k, letter in enumerate(pattern) if letter == band]
+        assert sat[band].dtype == bool
+        assert np.array_equal(sat[band], cells[:, :, where].any(axis=2)), band

@@ -128,6 +128,7 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
     hot: dict = {}
     base: dict = {}                                # (lens, band) -> mean map of the mask's shortest exposure
     corners = {}
+    circles = {}
     frame_rows = []
     inputs = {}
 
@@ -162,11 +163,12 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
                 img = images.bands[band]
                 if (lens, band) not in corners:
                     corners[(lens, band)] = corner_mask(img.shape, corner_fraction)
+                    circles[(lens, band)] = ~corners[(lens, band)]
                 cm = corners[(lens, band)]
                 open_moments.setdefault((lens, band), RunningMoments()).add(img)
                 frame_rows.append({
                     "lens": lens, "band": band, "iso": key[0], "exposure_s": key[1], "file_index": i,
-                    "circle_mean_dn": float(img[~cm].mean()), "corner_dn": float(img[cm].mean()),
+                    "circle_mean_dn": float(img[circles[(lens, band)]].mean()), "corner_dn": float(img[cm].mean()),
                     "temperature_c": dec.row.get("temperature_c", np.nan),
                 })
     if open_key is not None:
