@@ -6,10 +6,11 @@
 Default mode: for each experiment in turn, simulates it at the ``full`` scale (6912 x 3456
 frames, the paper's frame counts; the simulator's time printed) into ``--work``, runs the
 stage that reads it for each lens (one workflow job each, in a fresh process with one
-BLAS/OpenMP thread, as Snakemake runs a ``threads: 1`` rule; artefacts kept in
-``--work``/results for the stages downstream), measures the decode floor of the same frames in
-the same run (a fresh process that reads every frame of frames.csv once, as the stages do:
-bytes, MD5 and SHA-256, rawpy, and both lens regions split into R, G, B), and deletes the
+BLAS/OpenMP thread, as Snakemake runs a ``threads: 1`` rule, the two lens jobs side by side as
+the workflow runs them; artefacts kept in ``--work``/results for the stages downstream), and
+beside them the decode floor of the same frames (a fresh process that reads every frame of
+frames.csv once, as the stages do: bytes, MD5 and SHA-256, rawpy, and both lens regions split
+into R, G, B), so that the floor runs under the same load as the jobs; then it deletes the
 experiment's raw frames before the next one (``--keep`` keeps them), so the disk never holds the
 whole dataset. Prints per stage and lens: frames, MB decoded, wall and CPU seconds, peak resident
 memory, and the ratio of wall time to the floor's wall time.
@@ -65,21 +66,26 @@ def floor_child(dataset: str, experiment: str) -> None:
                       "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 
 
-def _run(args: list[str]) -> dict:
+def _start(args: list[str]) -> subprocess.Popen:
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env)
+    return subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
+
+
+def _result(proc: subprocess.Popen) -> dict:
+    out, err = proc.communicate()
     if proc.returncode != 0:
-        sys.exit(f"{' '.join(args[:3])} failed:\n{proc.stderr[-3000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+        sys.exit(f"{' '.join(proc.args[1:4])} failed:\n{err[-3000:]}")
+    return json.loads(out.strip().splitlines()[-1])
 
 
-def stage_job(stage: str, dataset: Path, results: Path, lens: str) -> dict:
-    """One workflow job (stage, lens) in a fresh process: wall, CPU, peak RSS (bench_stages' child)."""
-    return _run([str(HERE / "bench_stages.py"), "--child", stage, str(dataset), str(results), lens])
+def stage_job(stage: str, dataset: Path, results: Path, lens: str) -> subprocess.Popen:
+    """Start one workflow job (stage, lens) in a fresh process (bench_stages' child: wall, CPU, peak RSS)."""
+    return _start([str(HERE / "bench_stages.py"), "--child", stage, str(dataset), str(results), lens])
 
 
-def decode_floor(dataset: Path, experiment: str) -> dict:
-    return _run([__file__, "--floor", str(dataset), experiment])
+def decode_floor(dataset: Path, experiment: str) -> subprocess.Popen:
+    return _start([__file__, "--floor", str(dataset), experiment])
 
 
 def simulate(out: Path, experiment: str, scale, seed: int) -> float | None:
@@ -158,14 +164,19 @@ def row_line(r: dict) -> str:
 
 
 def measure(stage: str, experiment: str, dataset: Path, results: Path, lenses, extra: dict) -> list[dict]:
+    """The stage's job of each lens and the decode floor, all side by side (the workflow runs the two
+    lens jobs of a stage at once on 2 cores): the floor then decodes under the same load as the jobs."""
     n, mb = frames_and_mb(dataset, experiment)
-    floor = decode_floor(dataset, experiment)
+    load_start = load()
+    procs = {lens: stage_job(stage, dataset, results, lens) for lens in lenses}
+    floor_proc = decode_floor(dataset, experiment)
+    jobs = {lens: _result(p) for lens, p in procs.items()}
+    floor = _result(floor_proc)
     print(f"decode floor of {experiment}: {n} frames, {mb:.0f} MB, {floor['wall_s']:.1f} s wall, "
-          f"{floor['cpu_s']:.1f} s CPU, peak {floor['peak_rss_mib']:.0f} MiB (load {load()})", flush=True)
+          f"{floor['cpu_s']:.1f} s CPU, peak {floor['peak_rss_mib']:.0f} MiB (load at start {load_start})", flush=True)
     print(HEADER)
     rows = []
-    for lens in lenses:
-        m = stage_job(stage, dataset, results, lens)
+    for lens, m in jobs.items():
         r = {**extra, "stage": stage, "lens": lens, "frames": n, "mb_decoded": mb, **m,
              "floor_wall_s": floor["wall_s"], "floor_cpu_s": floor["cpu_s"],
              "ratio_to_floor": m["wall_s"] / floor["wall_s"], "cpu_ratio_to_floor": m["cpu_s"] / floor["cpu_s"],
