@@ -69,22 +69,35 @@ def iter_frames(dataset: Dataset, experiment: str, frames: pd.DataFrame | None =
         out = {lens: lens_images(raw, dataset.lenses[lens], lens, saturation_margin_dn) for lens in lenses}
         return DecodedFrame(row=row, raw=raw, lenses=out)
 
+    try:
+        for dec in _decoded_in_order(decode, rows):
+            if bar is not None:
+                bar.update()
+            yield dec
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+def _decoded_in_order(decode, rows) -> Iterator[DecodedFrame]:
+    """``decode(row)`` of each row in order, the next DECODE_AHEAD_FRAMES decoded in a background thread."""
+    if DECODE_AHEAD_FRAMES < 1:
+        for row in rows:
+            yield decode(row)
+        return
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="decode") as pool:
-        ahead = deque(pool.submit(decode, row) for row in islice(rows, DECODE_AHEAD_FRAMES + 1))
+        ahead = deque(pool.submit(decode, row) for row in islice(rows, DECODE_AHEAD_FRAMES))
         try:
             while ahead:
                 dec = ahead.popleft().result()
+                # the next frame starts decoding while the caller reduces this one
                 nxt = next(rows, None)
                 if nxt is not None:
                     ahead.append(pool.submit(decode, nxt))
-                if bar is not None:
-                    bar.update()
                 yield dec
         finally:
             for future in ahead:
                 future.cancel()
-            if bar is not None:
-                bar.close()
 
 
 def lens_images(raw: RawFrame, region_span, lens: str, saturation_margin_dn: float = 1.0) -> LensImages:
