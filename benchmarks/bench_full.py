@@ -88,15 +88,26 @@ def decode_floor(dataset: Path, experiment: str) -> subprocess.Popen:
     return _start([__file__, "--floor", str(dataset), experiment])
 
 
-def simulate(out: Path, experiment: str, scale, seed: int) -> float | None:
-    """Simulate one experiment into ``out`` unless it is there already; the simulator's wall time (None: reused)."""
-    from pipeline.simulate import simulate_dataset
+def simulate(out: Path, experiment: str, scale: str, seed: int) -> float | None:
+    """Simulate one experiment into ``out`` unless it is there already; the simulator's wall time (None: reused).
 
+    The simulator runs in its own process: a child forked from a parent that had grown to the
+    simulator's size would report that size as its own peak (Linux keeps ru_maxrss across exec).
+    """
     if out.exists():
         return None
     t0 = time.perf_counter()
-    simulate_dataset(out, scale=scale, seed=seed, effects=EFFECTS, experiments=(experiment,), progress=False)
+    proc = subprocess.run([sys.executable, __file__, "--simulate", str(out), experiment, scale, str(seed)])
+    if proc.returncode != 0:
+        sys.exit(f"simulating {experiment} into {out} failed")
     return time.perf_counter() - t0
+
+
+def simulate_child(out: str, experiment: str, scale: str, seed: str) -> None:
+    from pipeline.simulate import simulate_dataset
+
+    simulate_dataset(Path(out), scale=scale, seed=int(seed), effects=EFFECTS, experiments=(experiment,),
+                     progress=False)
 
 
 def frame_subset(source: Path, out: Path, experiment: str, per_setting: int) -> int:
@@ -206,22 +217,27 @@ def main() -> None:
     ap.add_argument("--base-frames", type=int, default=3, help="frames per setting at factor 1 (scaling mode)")
     ap.add_argument("--lens", default="far", help="the lens of the scaling mode's job")
     ap.add_argument("--floor", nargs=2, metavar=("DATASET", "EXPERIMENT"), help=argparse.SUPPRESS)
+    ap.add_argument("--simulate", nargs=4, metavar=("OUT", "EXPERIMENT", "SCALE", "SEED"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.floor:
         floor_child(*args.floor)
+        return
+    if args.simulate:
+        simulate_child(*args.simulate)
         return
     from pipeline.simulate.dataset import SCALES
 
     work = Path(args.work)
     work.mkdir(parents=True, exist_ok=True)
-    full = SCALES[args.scale]
+    if args.scale not in SCALES:
+        sys.exit(f"unknown scale {args.scale}; choose one of {', '.join(SCALES)}")
     rows = []
     if args.scaling:
         exp = args.scaling
         if exp not in STAGE_OF:
             sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
         source = work / f"dataset-{exp}"
-        sim = simulate(source, exp, full, args.seed)
+        sim = simulate(source, exp, args.scale, args.seed)
         print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
               flush=True)
         for factor in (int(f) for f in args.factors.split(",")):
@@ -248,7 +264,7 @@ def main() -> None:
         if exp not in STAGE_OF:
             sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
         dataset = work / f"dataset-{exp}"
-        sim = simulate(dataset, exp, full, args.seed)
+        sim = simulate(dataset, exp, args.scale, args.seed)
         print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
               flush=True)
         rows += measure(STAGE_OF[exp], exp, dataset, results, LENSES, {})
