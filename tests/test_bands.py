@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.bands import BANDS, cut_region, split_bands
+from pipeline.bands import BANDS, cut_region, split_bands, split_saturation
 
 SITE_VALUES = {"R": 100, "G1": 200, "G2": 300, "B": 400}
 
@@ -82,19 +82,32 @@ def test_cut_region_rejects(rows, cols):
 
 
 @pytest.mark.parametrize("pattern", ["RGGB", "BGGR", "GRBG", "GBRG"])
-def test_saturated_sites_mark_a_band_pixel_when_any_of_its_sites_reaches_the_threshold(pattern):
+def test_split_saturation_marks_a_band_pixel_when_any_of_its_sites_reaches_the_threshold(pattern):
     """Hand cells: one site at the threshold marks its band pixel only (both greens count for G)."""
-    from pipeline.frames import saturated_sites
-
     cfa = np.full((4, 6), 100, np.uint16)
     letters = {(dy, dx): pattern[2 * dy + dx] for dy in range(2) for dx in range(2)}
     cells = {(0, 0): (0, 0), (0, 1): (0, 1), (1, 0): (1, 0), (1, 2): (1, 1)}   # cell (row, col) -> site (dy, dx)
     for (r, c), (dy, dx) in cells.items():
         cfa[2 * r + dy, 2 * c + dx] = 1000
     cfa[0, 4] = 999   # below the threshold: nothing
-    sat = saturated_sites(cfa, pattern, 1000.0)
+    sat = split_saturation(cfa, pattern, 1000.0)
     want = {b: np.zeros((2, 3), bool) for b in BANDS}
     for (r, c), site in cells.items():
         want[letters[site]][r, c] = True
     for band in BANDS:
         np.testing.assert_array_equal(sat[band], want[band], err_msg=band)
+
+
+@pytest.mark.parametrize("pattern", ["RGGB", "GBRG"])
+@pytest.mark.parametrize("threshold", [4094.0, 4093.5, 0.0, 70000.0])
+def test_split_saturation_flags_a_band_pixel_when_any_site_reaches_the_threshold(pattern, threshold):
+    """Against the definition written out with the 2x2 cells: a band pixel is saturated when any of its
+    sites (both sites for G) is at or above the threshold."""
+    rng = np.random.default_rng(3)
+    cfa = rng.integers(4090, 4096, size=(6, 8), dtype=np.uint16)
+    sat = split_saturation(cfa, pattern, threshold)
+    cells = cfa.reshape(3, 2, 4, 2).transpose(0, 2, 1, 3).reshape(3, 4, 4) >= threshold   # row-major 2x2 cell
+    for band in BANDS:
+        where = [k for k, letter in enumerate(pattern) if letter == band]
+        assert sat[band].dtype == bool
+        assert np.array_equal(sat[band], cells[:, :, where].any(axis=2)), band

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["BANDS", "cut_region", "split_bands"]
+__all__ = ["BANDS", "cut_region", "split_bands", "split_saturation"]
 
 BANDS = ("R", "G", "B")
 
@@ -39,12 +39,8 @@ def cut_region(cfa, rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
     return cfa[r0:r1, c0:c1]
 
 
-def split_bands(cfa, pattern: str) -> dict[str, np.ndarray]:
-    """Split a Bayer mosaic into {"R", "G", "B"} float32 planes (rows//2, cols//2).
-
-    ``pattern`` is the 2x2 cell row-major, e.g. "RGGB", "BGGR", "GRBG", "GBRG".
-    An odd trailing row or column is dropped.
-    """
+def _sites(cfa, pattern: str) -> dict[str, list[np.ndarray]]:
+    """The views of each colour's CFA sites (no copy), after the checks both splits share."""
     cfa = np.asarray(cfa)
     if cfa.ndim != 2:
         raise ValueError(f"cfa must be 2-D, got shape {cfa.shape}")
@@ -54,10 +50,40 @@ def split_bands(cfa, pattern: str) -> dict[str, np.ndarray]:
     h, w = cfa.shape[0] // 2 * 2, cfa.shape[1] // 2 * 2
     if h == 0 or w == 0:
         raise ValueError(f"cfa of shape {cfa.shape} holds no complete 2x2 cell")
-    sites = {}
+    sites: dict[str, list[np.ndarray]] = {}
     for index, letter in enumerate(pattern):
         dy, dx = divmod(index, 2)
         sites.setdefault(letter, []).append(cfa[dy:h:2, dx:w:2])
+    return sites
+
+
+def split_saturation(cfa, pattern: str, threshold_dn: float) -> dict[str, np.ndarray]:
+    """Boolean {"R", "G", "B"} planes: True where any CFA site of the band pixel is at or above ``threshold_dn``.
+
+    Compares the integer mosaic's site views with the threshold rounded up to
+    an integer (the same test for integer values), so no float plane is made.
+    """
+    sites = _sites(cfa, pattern)
+    cfa = np.asarray(cfa)
+    if np.issubdtype(cfa.dtype, np.integer):
+        info = np.iinfo(cfa.dtype)
+        limit = int(np.ceil(threshold_dn))
+        if limit > info.max:
+            return {b: np.zeros(v[0].shape, dtype=bool) for b, v in sites.items()}
+        threshold_dn = cfa.dtype.type(max(limit, info.min))
+    (g1, g2) = sites["G"]
+    green = g1 >= threshold_dn
+    green |= g2 >= threshold_dn
+    return {"R": sites["R"][0] >= threshold_dn, "G": green, "B": sites["B"][0] >= threshold_dn}
+
+
+def split_bands(cfa, pattern: str) -> dict[str, np.ndarray]:
+    """Split a Bayer mosaic into {"R", "G", "B"} float32 planes (rows//2, cols//2).
+
+    ``pattern`` is the 2x2 cell row-major, e.g. "RGGB", "BGGR", "GRBG", "GBRG".
+    An odd trailing row or column is dropped.
+    """
+    sites = _sites(cfa, pattern)
     (g1, g2) = sites["G"]
     green = g1.astype(np.float32)
     green += g2

@@ -19,14 +19,16 @@ class RunningMoments:
         self.s2 = None
 
     def add(self, image: np.ndarray) -> None:
-        x = np.asarray(image, dtype=np.float64)
+        image = np.asarray(image)
         if self.s1 is None:
-            self.shift = float(np.mean(x))
-            self.s1 = np.zeros_like(x)
-            self.s2 = np.zeros_like(x)
-        d = x - self.shift
+            self.shift = float(np.mean(image, dtype=np.float64))
+            self.s1 = np.zeros(image.shape, dtype=np.float64)
+            self.s2 = np.zeros(image.shape, dtype=np.float64)
+        # one float64 temporary, squared in place (the same values as (x - shift) and its square)
+        d = np.subtract(image, self.shift, dtype=np.float64)
         self.s1 += d
-        self.s2 += d * d
+        np.multiply(d, d, out=d)
+        self.s2 += d
         self.n += 1
 
     def mean(self) -> np.ndarray:
@@ -44,34 +46,60 @@ class RunningPearson:
     """Per-pixel Pearson correlation of pixel values y against a scalar x, streaming.
 
     Samples where ``valid`` is False (e.g. saturated pixels) are left out of
-    that pixel's sums.
+    that pixel's sums. Only the sums that involve y are kept per pixel (three
+    float64 maps): x is one scalar per sample, so each pixel's count and sums of
+    x and x^2 follow exactly from the list of x and, per sample, the pixels it
+    left out (one bit per pixel, kept only for samples that left any out),
+    added up in the same order as the y sums when ``r`` is asked for.
     """
 
     def __init__(self):
-        self.n = self.sx = self.sy = self.sxx = self.syy = self.sxy = None
+        self.xs: list[float] = []
+        self.left_out: list[np.ndarray | None] = []    # per sample: packed bits of the invalid pixels, or None
+        self.shape = None
+        self.sy = self.syy = self.sxy = None
 
     def add(self, x: float, y: np.ndarray, valid: np.ndarray | None = None) -> None:
         y = np.asarray(y, dtype=np.float64)
-        w = np.ones_like(y) if valid is None else valid.astype(np.float64)
-        if self.n is None:
-            self.n, self.sx, self.sy, self.sxx, self.syy, self.sxy = (np.zeros_like(y) for _ in range(6))
-        yw = y * w
-        self.n += w
-        self.sx += w * x
+        if self.sy is None:
+            self.shape = y.shape
+            self.sy, self.syy, self.sxy = (np.zeros_like(y) for _ in range(3))
+        if valid is None or valid.all():
+            yw, packed = y, None
+        else:
+            yw, packed = y * valid, np.packbits(~valid, axis=None)
+        self.xs.append(float(x))
+        self.left_out.append(packed)
         self.sy += yw
-        self.sxx += w * x * x
         self.syy += yw * y
         self.sxy += yw * x
 
+    def _x_sums(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Per pixel: count, sum of x and sum of x^2 over the samples it was valid in."""
+        n, sx, sxx = (np.zeros(self.shape) for _ in range(3))
+        size = int(np.prod(self.shape))
+        for x, packed in zip(self.xs, self.left_out):
+            if packed is None:
+                n += 1.0
+                sx += x
+                sxx += x * x
+            else:
+                w = (np.unpackbits(packed, count=size) == 0).reshape(self.shape).astype(np.float64)
+                n += w
+                sx += w * x
+                sxx += w * x * x
+        return n, sx, sxx
+
     def r(self) -> np.ndarray:
-        n = np.maximum(self.n, 1)
-        cxx = self.sxx - self.sx**2 / n
+        count, sx, sxx = self._x_sums()
+        n = np.maximum(count, 1)
+        cxx = sxx - sx**2 / n
         cyy = self.syy - self.sy**2 / n
-        cxy = self.sxy - self.sx * self.sy / n
+        cxy = self.sxy - sx * self.sy / n
         denom = np.sqrt(np.maximum(cxx * cyy, 0.0))
         with np.errstate(invalid="ignore", divide="ignore"):
             r = np.where(denom > 0, cxy / denom, np.nan)
-        r[self.n < 3] = np.nan
+        r[count < 3] = np.nan
         return r
 
 

@@ -97,11 +97,13 @@ STAGES: dict[str, StageSpec] = {spec.name: spec for spec in (
 #: diagnostics job's peak, which holds no image) plus bytes per band pixel of the lens region,
 #: from the peak of each job in results/benchmarks/ of the small simulated dataset (288 x 288
 #: band pixels per lens, 2026-12-01): (peak - fixed) / pixels. A scheduler is asked for
-#: JOB_MEMORY_HEADROOM times that, and more on each retry. The dark stage's figure is the arithmetic
-#: of its running sums (mean and variance per setting: 14 settings x 3 bands x 2 float64 arrays,
-#: 672 bytes per band pixel), which the small dataset's peak is too close to the fixed part to show.
+#: JOB_MEMORY_HEADROOM times that, and more on each retry. The dark stage's figure is from its peak at
+#: the full scale (1728 x 1728 band pixels per lens; 1,455 to 1,553 MiB for 26 to 104 frames,
+#: benchmarks/bench_full.py --scaling dark, 2026-12-02), which the small dataset's peak is too close
+#: to the fixed part to show: it reduces one setting at a time, so the figure no longer grows with
+#: the number of settings (it was 700, for the running sums of every setting at once).
 JOB_MEMORY_FIXED_MIB = 230.0
-JOB_MEMORY_BYTES_PER_BAND_PIXEL = {"dark": 700.0, "linearity": 400.0, "geometry": 2000.0, "rolloff": 350.0,
+JOB_MEMORY_BYTES_PER_BAND_PIXEL = {"dark": 500.0, "linearity": 400.0, "geometry": 2000.0, "rolloff": 350.0,
                                    "spectral": 50.0, "absolute": 50.0, "immersion": 50.0,
                                    # the field applies the bundle (every per-pixel map of both lenses) to one frame at a time
                                    "field": 400.0}

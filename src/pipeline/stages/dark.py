@@ -1,7 +1,9 @@
 """Dark-frame stage (Larouche et al. 2024, Sections 2.8 and 3.7; Fig. 9).
 
-Streams the dark frames once, keeping per-setting running sums for each lens
-and band, and reduces them to:
+Streams the dark frames once, one setting at a time (running sums for each lens
+and band of the setting being read only, each finished setting reduced at once to
+the statistics below, so memory does not grow with the number of settings), and
+reduces them to:
 
 * per setting (ISO, exposure time): mean level and temporal spread, the
   histogram of the frame-averaged image with its Gaussian centre and width;
@@ -22,7 +24,7 @@ and band, and reduces them to:
 
 from __future__ import annotations
 
-from collections import defaultdict
+from collections import Counter
 
 import numpy as np
 import pandas as pd
@@ -31,11 +33,13 @@ import xarray as xr
 from pipeline.bands import BANDS
 from pipeline.dataset import Dataset
 from pipeline.effects.catalogue import drift_sigma
+from pipeline.errors import InputError
 from pipeline.fitting import base_design
 from pipeline.observations import fit_with_effects, table_to_dataset
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.moments import RunningMoments, unlit_mask
 from pipeline.radiometry.exposure import gain_from_iso
+from pipeline.rawio import read_tags
 
 STAGE = "dark"
 
@@ -51,32 +55,141 @@ def bias_reference(projection: str, has_optical_black: bool) -> str:
     return "optically black pixels" if has_optical_black else "none"
 
 
+def _tag_key(path) -> tuple[float, float]:
+    """The (ISO, exposure) setting of one dark frame from its tags, without decoding its pixels."""
+    tags = read_tags(path)
+    if not tags["iso"] or not tags["exposure_s"]:
+        raise InputError(path, "dark frame without ISOSpeedRatings or ExposureTime tag")
+    return (float(tags["iso"]), round(float(tags["exposure_s"]), 9))
+
+
+def hot_mask_settings(settings, persistence: int) -> list[tuple[float, float]]:
+    """The settings the hot-pixel mask is made from: the shortest and the ``persistence`` longest exposures
+    of the lowest ISO (only the shortest when that ISO has too few exposures for the mask)."""
+    iso = min(s[0] for s in settings)
+    times = sorted({s[1] for s in settings if s[0] == iso})
+    if len(times) < persistence + 1:
+        return [(iso, times[0])]
+    return [(iso, times[0])] + [(iso, t) for t in times[-persistence:]]
+
+
+def summarise_setting(mean: np.ndarray, var: np.ndarray, circle: np.ndarray, hot: np.ndarray,
+                      corners: np.ndarray, edges: np.ndarray) -> dict:
+    """What the fit and the artefact need of one setting's mean and variance maps, for both pixel sets that
+    ``analyse_dark`` may use (the whole image circle, or the circle without the hot pixels)."""
+    nonhot = circle & ~hot
+    out = {"corner_var_dn2": float(var[corners].mean()) if corners.any() else float("nan"),
+           "n_corner": int(corners.sum()),
+           "n_hot": int((hot & circle).sum()), "n_pixels": int(circle.sum())}
+    for name, used in (("circle", circle), ("nonhot", nonhot)):
+        m = mean[used]
+        out[name] = {"hist": np.histogram(m, bins=edges)[0], "centre_dn": float(m.mean()),
+                     "width_dn": float(m.std()), "var_dn2": float(var[used].mean()), "n_used": int(used.sum())}
+    return out
+
+
+class _Pending:
+    """A finished setting's maps kept until the hot-pixel mask is known, in float32 deviations.
+
+    Precision: the mean map is stored as its deviation from the setting's shift (the first
+    frame's mean level), which is the fixed pattern plus dark signal, a few DN and at most the
+    ADC range (4095 DN) for a hot pixel; float32 keeps 24 bits of it, an error below 1e-6 DN on
+    typical pixels and 2.4e-4 DN at worst, against the frame-averaged pixel's temporal noise of
+    about 1 DN / sqrt(frames) and the histogram bins of 0.5 DN. The variance map keeps 1 part in
+    1.7e7 of itself. The dark results move by far less than a hundredth of their uncertainty
+    (tests/test_dark_reduction.py, tests/test_regression.py).
+    """
+
+    def __init__(self, moments: RunningMoments):
+        self.shift = moments.shift
+        self.n = moments.n
+        self.deviation = (moments.s1 / moments.n).astype(np.float32)
+        self.var = moments.variance().astype(np.float32)
+
+    def mean(self) -> np.ndarray:
+        return self.deviation.astype(np.float64) + self.shift
+
+
 def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
-    """Stream the dark frames; returns per-lens/band/setting moments and per-frame statistics.
+    """Stream the dark frames one setting at a time; returns per-lens/band/setting summaries and per-frame
+    statistics.
+
+    The frames' settings are read from their tags first; the frames are then decoded grouped by
+    setting (the hot-pixel mask's settings first), so that only one setting's running sums are open
+    at a time and each finished setting is reduced at once to what the fit needs
+    (:func:`summarise_setting`). Only the few settings the hot-pixel mask is made from are kept as
+    maps until it is known, so memory does not grow with the number of settings.
 
     Each frame's black-level reference (``corner_dn``) is the mean of its unlit corners
     (fisheye) or of the sensor's optically black pixels (rectilinear, when the DNG
-    declares them; NaN otherwise).
+    declares them; NaN otherwise). The histograms' range (``dark.histogram_range_dn``) keeps its
+    width and moves to the data when the dark level of the first setting lies outside it (another
+    camera's black level, a 12-bit phone's 256 DN), the dark level at 30 % of it.
     """
-    frames = dataset.frames(STAGE)
+    cfg = config["dark"]
+    frames = dataset.frames(STAGE).reset_index(drop=True)
     lenses = list(dataset.lenses)
+    corner_fraction = config["bias"]["corner_min_radius_fraction"]
     projections = {lens: dataset.projection(lens) for lens in lenses}
-    moments = defaultdict(RunningMoments)          # (lens, band, setting) -> RunningMoments
-    frame_rows = []
+    edges: dict = {}                               # lens -> histogram bin edges (histogram_edges)
+    keys = [_tag_key(p) for p in frames["path"]]
+    counts = Counter(keys)
+    first_seen = list(dict.fromkeys(keys))
+    mask_settings = hot_mask_settings(first_seen, cfg["hot_pixel_persistence"])
+    rank = {s: k for k, s in enumerate(mask_settings + [s for s in first_seen if s not in mask_settings])}
+    order = sorted(range(len(frames)), key=lambda k: rank[keys[k]])    # stable: frames.csv order inside a setting
+
+    open_moments: dict = {}                        # (lens, band) -> RunningMoments of the setting being read
+    open_key = None
+    pending: dict = {}                             # setting -> (lens, band) -> _Pending, until the mask is known
+    stats: dict = {}                               # (lens, band, setting) -> summarise_setting(...)
+    hot: dict = {}
+    base: dict = {}                                # (lens, band) -> mean map of the mask's shortest exposure
     corners = {}
+    circles = {}
+    frame_rows = []
     inputs = {}
     optical_black = []
-    for i, dec in enumerate(iter_frames(dataset, STAGE, frames, lenses, progress=progress)):
+
+    def finish(key):
+        pending[key] = {lb: _Pending(m) for lb, m in open_moments.items()}
+        open_moments.clear()
+        if not hot and all(s in pending for s in mask_settings):
+            for lens, band in pending[mask_settings[0]]:
+                means = {s: pending[s][(lens, band)].mean() for s in mask_settings}
+                hot[(lens, band)] = find_hot_pixels(means, None, mask_settings[0][0], cfg["hot_pixel_threshold_sigma"],
+                                                    cfg["hot_pixel_persistence"])
+                base[(lens, band)] = pending[mask_settings[0]][(lens, band)]
+            for lens in {lens for lens, _ in hot}:
+                b = base[(lens, BANDS[0])]
+                level = float(np.median(b.mean()[~corners[(lens, BANDS[0])] & ~hot[(lens, BANDS[0])]]))
+                edges[lens] = histogram_edges(cfg, level)
+        if hot:
+            for s in list(pending):
+                for (lens, band), p in pending.pop(s).items():
+                    cm = corners[(lens, band)]
+                    stats[(lens, band, s)] = {"n_frames": p.n, **summarise_setting(
+                        p.mean(), p.var.astype(np.float64), ~cm, hot[(lens, band)], cm, edges[lens])}
+                    p.var = None
+
+    sub = frames.iloc[order]
+    for i, dec in zip(order, iter_frames(dataset, STAGE, sub, lenses, progress=progress)):
         key = _setting_key(dec.raw)
+        if key != keys[i]:
+            raise InputError(dec.row["path"], f"setting {key} differs from the tags read before decoding {keys[i]}")
+        if open_key is not None and key != open_key:
+            finish(open_key)
+        open_key = key
         inputs[dec.row["file"]] = dec.raw.sha256
         optical_black.append(dec.raw.optical_black_dn is not None)
         for lens, images in dec.lenses.items():
             for band in BANDS:
                 img = images.bands[band]
                 if (lens, band) not in corners:
-                    corners[(lens, band)] = unlit_mask(img.shape, projections[lens], config["bias"]["corner_min_radius_fraction"])
+                    corners[(lens, band)] = unlit_mask(img.shape, projections[lens], corner_fraction)
+                    circles[(lens, band)] = ~corners[(lens, band)]
                 cm = corners[(lens, band)]
-                moments[(lens, band, key)].add(img)
+                open_moments.setdefault((lens, band), RunningMoments()).add(img)
                 if cm.any():
                     corner_dn, n_ob = float(img[cm].mean()), 0
                 elif dec.raw.optical_black_dn is not None:
@@ -85,14 +198,27 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
                     corner_dn, n_ob = np.nan, 0
                 frame_rows.append({
                     "lens": lens, "band": band, "iso": key[0], "exposure_s": key[1], "file_index": i,
-                    "circle_mean_dn": float(img[~cm].mean()), "corner_dn": corner_dn,
+                    "circle_mean_dn": float(img[circles[(lens, band)]].mean()), "corner_dn": corner_dn,
                     "n_optical_black": n_ob,
                     "temperature_c": dec.row.get("temperature_c", np.nan),
                 })
+    if open_key is not None:
+        finish(open_key)
+    # the frame table in frames.csv order, as the frames were listed
+    table = pd.DataFrame(frame_rows).sort_values("file_index", kind="stable").reset_index(drop=True)
     has_ob = bool(optical_black) and all(optical_black)
-    return {"moments": moments, "frames": pd.DataFrame(frame_rows), "corners": corners,
-            "inputs": inputs, "lenses": lenses, "projections": projections,
+    return {"stats": stats, "settings": sorted(counts), "hot": hot, "base": base, "frames": table,
+            "corners": corners, "inputs": inputs, "lenses": lenses, "edges": edges, "projections": projections,
             "bias_reference": {lens: bias_reference(p, has_ob) for lens, p in projections.items()}}
+
+
+def histogram_edges(cfg: dict, level_dn: float | None = None) -> np.ndarray:
+    """Bin edges of the dark histograms (``dark.histogram_range_dn``, ``dark.histogram_bin_dn``); a dark level
+    ``level_dn`` outside the range moves the range, its width kept, to put the level at 30 % of it."""
+    lo, hi = (float(v) for v in cfg["histogram_range_dn"])
+    if level_dn is not None and not lo <= level_dn <= hi:
+        lo, hi = level_dn - 0.3 * (hi - lo), level_dn + 0.7 * (hi - lo)
+    return np.arange(lo, hi + 1e-9, cfg["histogram_bin_dn"])
 
 
 def find_hot_pixels(means: dict[tuple[float, float], np.ndarray], variances, iso: float,
@@ -119,43 +245,33 @@ def find_hot_pixels(means: dict[tuple[float, float], np.ndarray], variances, iso
 
 def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, xr.Dataset]:
     """Fit the dark model and build one artefact Dataset per lens."""
-    cfg = config["dark"]
-    moments = reduced["moments"]
+    stats = reduced["stats"]
     frames = reduced["frames"]
     lenses = reduced["lenses"]
     use_hot = "hot_pixels" in effects
     use_drift = "bias_drift" in effects
-    settings = sorted({k[2] for k in moments})
+    settings = reduced["settings"]
     isos = sorted({s[0] for s in settings})
     ref_iso = isos[0]
+    pixels = "nonhot" if use_hot else "circle"
 
-    per_lens_band = {}
     setting_rows = []
     for lens in lenses:
         for band in BANDS:
-            means = {s: moments[(lens, band, s)].mean() for s in settings}
-            varis = {s: moments[(lens, band, s)].variance() for s in settings}
-            cm = reduced["corners"][(lens, band)]
-            hot = find_hot_pixels(means, varis, ref_iso, cfg["hot_pixel_threshold_sigma"],
-                                  cfg["hot_pixel_persistence"])
-            circle = ~cm
-            used = circle & ~hot if use_hot else circle
-            per_lens_band[(lens, band)] = {"means": means, "vars": varis, "hot": hot, "used": used}
             for s in settings:
-                m, v = means[s], varis[s]
-                mean_all = float(m[circle].mean())
-                mean_nonhot = float(m[circle & ~hot].mean())
+                d = stats[(lens, band, s)]
                 # the reference's own noise: the corners' temporal variance, or (optically black
                 # pixels, all CFA sites, read noise only) that of one raw pixel of the band
-                corner_var = float(v[cm].mean()) if cm.any() else float(v[used].mean()) * SITES_PER_BAND_PIXEL[band]
+                corner_var = (d["corner_var_dn2"] if d["n_corner"] > 0
+                              else d[pixels]["var_dn2"] * SITES_PER_BAND_PIXEL[band])
                 setting_rows.append({
                     "lens": lens, "band": band, "iso": s[0], "exposure_s": s[1],
-                    "n_frames": moments[(lens, band, s)].n,
-                    "pixel_var_dn2": float(v[used].mean()),
+                    "n_frames": d["n_frames"],
+                    "pixel_var_dn2": d[pixels]["var_dn2"],
                     "corner_var_dn2": corner_var,
-                    "n_used": int(used.sum()), "n_corner": int(cm.sum()),
-                    "hot_excess_dn": mean_all - mean_nonhot,
-                    "n_hot": int((hot & circle).sum()), "n_pixels": int(circle.sum()),
+                    "n_used": d[pixels]["n_used"], "n_corner": d["n_corner"],
+                    "hot_excess_dn": d["circle"]["centre_dn"] - d["nonhot"]["centre_dn"],
+                    "n_hot": d["n_hot"], "n_pixels": d["n_pixels"],
                 })
     st = pd.DataFrame(setting_rows)
     st["gain"] = gain_from_iso(st["iso"])
@@ -217,16 +333,17 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
         temperature = {"coef": temperature[0], "sigma": temperature[1],
                        "reference_c": float(st["temperature_ref_c"].iloc[0])}
 
+    offset_var: dict = {}                          # (lens, band) -> setting -> the frames' common offset variance
     if use_drift and testable:
         # each setting's frames share their black-level offsets, whose sample variance every pixel's
         # temporal variance holds; the unlit pixels measure it (less their own noise): the read noise
         # of a pixel is what is left
         per = fr.groupby(["lens", "band", "iso", "exposure_s"])
-        offset_var = (per["corner_dev_dn"].apply(lambda d: float(np.sum(np.square(d))) / max(len(d) - 1, 1))
-                      - per["sigma_corner_dn"].apply(lambda v: float(np.mean(np.square(v)))))
-        for (lens, band, iso, t), v in offset_var.items():
-            per_lens_band[(lens, band)].setdefault("offset_var", {})[(float(iso), float(t))] = max(float(v), 0.0)
-    out = {lens: _lens_dataset(lens, st, fr, per_lens_band, params, dark_rate, drift, fit, ffit,
+        offsets = (per["corner_dev_dn"].apply(lambda d: float(np.sum(np.square(d))) / max(len(d) - 1, 1))
+                   - per["sigma_corner_dn"].apply(lambda v: float(np.mean(np.square(v)))))
+        for (lens, band, iso, t), v in offsets.items():
+            offset_var.setdefault((lens, band), {})[(float(iso), float(t))] = max(float(v), 0.0)
+    out = {lens: _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, drift, fit, ffit,
                                config, settings, ref_iso)
            for lens in lenses}
     for lens, ds in out.items():
@@ -261,17 +378,9 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     return out
 
 
-def _lens_dataset(lens, st, fr, per_lens_band, params, dark_rate, drift, fit, ffit, config,
+def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, drift, fit, ffit, config,
                   settings, ref_iso) -> xr.Dataset:
-    cfg = config["dark"]
-    lo, hi = (float(v) for v in cfg["histogram_range_dn"])
-    first = per_lens_band[(lens, BANDS[0])]
-    level = float(np.median(first["means"][settings[0]][first["used"]]))
-    if not lo <= level <= hi:
-        # another camera's black level (a 12-bit phone's 256 DN): the range keeps its width and moves
-        # to the data, the dark level at 30 % of it, instead of leaving the histograms empty
-        lo, hi = level - 0.3 * (hi - lo), level + 0.7 * (hi - lo)
-    edges = np.arange(lo, hi + 1e-9, cfg["histogram_bin_dn"])
+    edges = reduced["edges"][lens]
     st_l = st[st["lens"] == lens].reset_index(drop=True)
     fr_l = fr[fr["lens"] == lens].reset_index(drop=True)
     n_set = len(settings)
@@ -279,26 +388,26 @@ def _lens_dataset(lens, st, fr, per_lens_band, params, dark_rate, drift, fit, ff
     centre = np.zeros((len(BANDS), n_set))
     width = np.zeros((len(BANDS), n_set))
     temporal = np.zeros((len(BANDS), n_set))
-    first = per_lens_band[(lens, BANDS[0])]["means"][settings[0]]
-    fpn = np.zeros((len(BANDS),) + first.shape, dtype=np.float32)
-    hot = np.zeros((len(BANDS),) + first.shape, dtype=np.uint8)
+    shape = reduced["hot"][(lens, BANDS[0])].shape
+    fpn = np.zeros((len(BANDS),) + shape, dtype=np.float32)
+    hot = np.zeros((len(BANDS),) + shape, dtype=np.uint8)
     b0 = np.zeros((len(BANDS), 2))
     b1 = np.zeros((len(BANDS), 2))
     for bi, band in enumerate(BANDS):
-        d = per_lens_band[(lens, band)]
-        used = d["used"]
         for si, s in enumerate(settings):
-            m = d["means"][s][used]
-            hist[bi, si] = np.histogram(m, bins=edges)[0]
-            centre[bi, si] = m.mean()
-            width[bi, si] = m.std()
+            d = reduced["stats"][(lens, band, s)][pixels]
+            hist[bi, si] = d["hist"]
+            centre[bi, si] = d["centre_dn"]
+            width[bi, si] = d["width_dn"]
             # temporal noise of one raw pixel (the G band pixel averages two sites)
-            common = d.get("offset_var", {}).get((float(s[0]), float(s[1])), 0.0)
-            temporal[bi, si] = np.sqrt(max(d["vars"][s][used].mean() - common, 0.0) * SITES_PER_BAND_PIXEL[band])
-        shortest = min(t for (i, t) in settings if i == ref_iso)
-        m0 = d["means"][(ref_iso, shortest)]
+            common = offset_var.get((lens, band), {}).get((float(s[0]), float(s[1])), 0.0)
+            temporal[bi, si] = np.sqrt(max(d["var_dn2"] - common, 0.0) * SITES_PER_BAND_PIXEL[band])
+        hot_map = reduced["hot"][(lens, band)]
+        cm = reduced["corners"][(lens, band)]
+        used = ~cm & ~hot_map if pixels == "nonhot" else ~cm
+        m0 = reduced["base"][(lens, band)].mean()
         fpn[bi] = (m0 - m0[used].mean()).astype(np.float32)
-        hot[bi] = d["hot"].astype(np.uint8)
+        hot[bi] = hot_map.astype(np.uint8)
         b0[bi] = params[f"{lens}/{band}:b0"]
         b1[bi] = params[f"{lens}/{band}:b1"]
 
@@ -316,7 +425,7 @@ def _lens_dataset(lens, st, fr, per_lens_band, params, dark_rate, drift, fit, ff
             "setting": ("setting", np.arange(n_set)),
             "iso": ("iso", np.array(isos, float), {"long_name": "ISO speed", "units": "1"}),
             "hist_bin_centre_dn": ("hist_bin", 0.5 * (edges[1:] + edges[:-1]), {"units": "DN"}),
-            "y": ("y", np.arange(first.shape[0])), "x": ("x", np.arange(first.shape[1])),
+            "y": ("y", np.arange(shape[0])), "x": ("x", np.arange(shape[1])),
         },
         data_vars={
             "setting_iso": ("setting", iso_s, {"long_name": "ISO speed of the setting", "units": "1"}),

@@ -1,0 +1,277 @@
+"""The workflow's stages at the real camera's scale, one experiment at a time, against the decode floor.
+
+    python benchmarks/bench_full.py [--experiments dark,linearity,...] [--work DIR] [--keep]
+    python benchmarks/bench_full.py --scaling dark [--factors 1,2,4] [--base-frames 3] [--lens far]
+
+Default mode: for each experiment in turn, simulates it at the ``full`` scale (6912 x 3456
+frames, the paper's frame counts; the simulator's time printed) into ``--work``, runs the
+stage that reads it for each lens (one workflow job each, in a fresh process with one
+BLAS/OpenMP thread, as Snakemake runs a ``threads: 1`` rule, the two lens jobs side by side as
+the workflow runs them; artefacts kept in ``--work``/results for the stages downstream), and
+beside them the decode floor of the same frames (a fresh process that reads every frame of
+frames.csv once, as the stages do: bytes, MD5 and SHA-256, rawpy, and both lens regions split
+into R, G, B), so that the floor runs under the same load as the jobs; then it deletes the
+experiment's raw frames before the next one (``--keep`` keeps them), so the disk never holds the
+whole dataset. Prints per stage and lens: frames, MB decoded, wall and CPU seconds, peak resident
+memory, and the ratio of wall time to the floor's wall time.
+
+``--scaling EXPERIMENT``: the experiment's full-scale frames (simulated as above, or the ones kept
+with ``--keep``) cut to the first ``--base-frames`` times each factor frames of each setting
+(hard links, no new simulation), its stage run for one lens at each size: wall time should grow
+linearly with the frames and peak memory stay flat.
+
+Each figure is printed beside the machine's load average (``os.getloadavg``): on a shared
+machine absolute times move with the load, the ratio to the floor measured in the same run
+less, and the ratio of CPU times (stage CPU / floor CPU, the decode thread's included) least.
+Results go to ``--work``/bench_full.csv (or bench_scaling.csv) as well.
+The field stage (it needs the calibration bundle of every other stage) is not run here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+LENSES = ("far", "close")
+#: the stage that reads each experiment's frames (the field stage needs the bundle: not run here)
+STAGE_OF = {"dark": "dark", "linearity": "linearity", "geometry": "geometry", "rolloff": "rolloff",
+            "spectral": "spectral", "absolute": "absolute", "immersion": "immersion"}
+EFFECTS = [("dark_current", {}), ("hot_pixels", {})]
+
+
+def floor_child(dataset: str, experiment: str) -> None:
+    """Decode every frame of the experiment once and split both lens regions into bands; print JSON."""
+    from pipeline.bands import cut_region, split_bands
+    from pipeline.dataset import open_dataset
+    from pipeline.rawio import read_raw
+
+    ds = open_dataset(dataset)
+    frames = ds.frames(experiment)
+    t0, c0 = time.perf_counter(), time.process_time()
+    for path in frames["path"]:
+        raw = read_raw(path)
+        for rows, cols in ds.lenses.values():
+            split_bands(cut_region(raw.cfa, rows, cols), raw.cfa_pattern)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu,
+                      "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+
+
+def _start(args: list[str]) -> subprocess.Popen:
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    return subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
+
+
+def _result(proc: subprocess.Popen) -> dict:
+    out, err = proc.communicate()
+    if proc.returncode != 0:
+        sys.exit(f"{' '.join(proc.args[1:4])} failed:\n{err[-3000:]}")
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def stage_job(stage: str, dataset: Path, results: Path, lens: str) -> subprocess.Popen:
+    """Start one workflow job (stage, lens) in a fresh process (bench_stages' child: wall, CPU, peak RSS)."""
+    return _start([str(HERE / "bench_stages.py"), "--child", stage, str(dataset), str(results), lens])
+
+
+def decode_floor(dataset: Path, experiment: str) -> subprocess.Popen:
+    return _start([__file__, "--floor", str(dataset), experiment])
+
+
+def simulate(out: Path, experiment: str, scale: str, seed: int) -> float | None:
+    """Simulate one experiment into ``out`` unless it is there already; the simulator's wall time (None: reused).
+
+    The simulator runs in its own process: a child forked from a parent that had grown to the
+    simulator's size would report that size as its own peak (Linux keeps ru_maxrss across exec).
+    """
+    if out.exists():
+        return None
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, __file__, "--simulate", str(out), experiment, scale, str(seed)])
+    if proc.returncode != 0:
+        sys.exit(f"simulating {experiment} into {out} failed")
+    return time.perf_counter() - t0
+
+
+def simulate_child(out: str, experiment: str, scale: str, seed: str) -> None:
+    from pipeline.simulate import simulate_dataset
+
+    simulate_dataset(Path(out), scale=scale, seed=int(seed), effects=EFFECTS, experiments=(experiment,),
+                     progress=False)
+
+
+def frame_subset(source: Path, out: Path, experiment: str, per_setting: int) -> int:
+    """A copy of ``source`` whose ``experiment`` lists the first ``per_setting`` frames of each setting
+    (lens, sweep, ISO, exposure from the tags), the raw files hard-linked; returns its frame count."""
+    import pandas as pd
+
+    from pipeline.dataset import write_md5sums
+    from pipeline.rawio import read_tags
+
+    if out.exists():
+        shutil.rmtree(out)
+    table = pd.read_csv(source / experiment / "frames.csv")
+    tags = [read_tags(source / experiment / f) for f in table["file"]]
+    table["_key"] = [(r.lens, getattr(r, "sweep", ""), t["iso"], t["exposure_s"]) for r, t in zip(table.itertuples(), tags)]
+    keep = table[table.groupby("_key").cumcount() < per_setting].drop(columns="_key")
+    for path in source.rglob("*"):
+        rel = path.relative_to(source)
+        if path.is_file() and rel.parts[0] != experiment and rel.name != "MD5SUMS":
+            (out / rel).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy(path, out / rel)
+    for sidecar in (source / experiment).iterdir():
+        if sidecar.is_file() and sidecar.name != "frames.csv":
+            (out / experiment).mkdir(parents=True, exist_ok=True)
+            shutil.copy(sidecar, out / experiment / sidecar.name)
+    (out / experiment / "raw").mkdir(parents=True, exist_ok=True)
+    for f in keep["file"]:
+        os.link(source / experiment / f, out / experiment / f)
+    keep.to_csv(out / experiment / "frames.csv", index=False)
+    write_md5sums(out)
+    return len(keep)
+
+
+#: the artefacts a stage needs from the default mode's results (the scaling mode copies them)
+STAGE_UPSTREAM = {"linearity": ("dark",), "rolloff": ("geometry",), "spectral": ("geometry",),
+                  "absolute": ("spectral", "geometry"), "immersion": ("geometry",)}
+
+
+def remove_dataset(out: Path) -> None:
+    from pipeline.simulate.dataset import truth_dir_for
+
+    shutil.rmtree(out, ignore_errors=True)
+    shutil.rmtree(truth_dir_for(out), ignore_errors=True)
+
+
+def frames_and_mb(dataset: Path, experiment: str) -> tuple[int, float]:
+    from pipeline.dataset import open_dataset
+
+    frames = open_dataset(dataset).frames(experiment)
+    return len(frames), sum(Path(p).stat().st_size for p in frames["path"]) / 1e6
+
+
+def load() -> str:
+    return "/".join(f"{v:.1f}" for v in os.getloadavg())
+
+
+HEADER = (f"{'stage':<10} {'lens':<6} {'frames':>6} {'MB':>7} {'wall s':>8} {'CPU s':>8} {'peak MiB':>9} "
+          f"{'floor s':>8} {'ratio':>6} {'floor CPU':>9} {'CPU ratio':>9}  load 1/5/15 min")
+
+
+def row_line(r: dict) -> str:
+    return (f"{r['stage']:<10} {r['lens']:<6} {r['frames']:>6} {r['mb_decoded']:>7.0f} {r['wall_s']:>8.1f} "
+            f"{r['cpu_s']:>8.1f} {r['peak_rss_mib']:>9.0f} {r['floor_wall_s']:>8.1f} {r['ratio_to_floor']:>6.2f} "
+            f"{r['floor_cpu_s']:>9.1f} {r['cpu_ratio_to_floor']:>9.2f}  {r['load']}")
+
+
+def measure(stage: str, experiment: str, dataset: Path, results: Path, lenses, extra: dict) -> list[dict]:
+    """The stage's job of each lens and the decode floor, all side by side (the workflow runs the two
+    lens jobs of a stage at once on 2 cores): the floor then decodes under the same load as the jobs."""
+    n, mb = frames_and_mb(dataset, experiment)
+    load_start = load()
+    procs = {lens: stage_job(stage, dataset, results, lens) for lens in lenses}
+    floor_proc = decode_floor(dataset, experiment)
+    jobs = {lens: _result(p) for lens, p in procs.items()}
+    floor = _result(floor_proc)
+    print(f"decode floor of {experiment}: {n} frames, {mb:.0f} MB, {floor['wall_s']:.1f} s wall, "
+          f"{floor['cpu_s']:.1f} s CPU, peak {floor['peak_rss_mib']:.0f} MiB (load at start {load_start})", flush=True)
+    print(HEADER)
+    rows = []
+    for lens, m in jobs.items():
+        r = {**extra, "stage": stage, "lens": lens, "frames": n, "mb_decoded": mb, **m,
+             "floor_wall_s": floor["wall_s"], "floor_cpu_s": floor["cpu_s"],
+             "ratio_to_floor": m["wall_s"] / floor["wall_s"], "cpu_ratio_to_floor": m["cpu_s"] / floor["cpu_s"],
+             "load": load()}
+        print(row_line(r), flush=True)
+        rows.append(r)
+    return rows
+
+
+def write_csv(path: Path, rows: list[dict]) -> None:
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    print(f"wrote {path}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--experiments", default="dark,linearity,geometry,rolloff,spectral,absolute,immersion")
+    ap.add_argument("--work", default=str(HERE / "out" / "full"), help="datasets, artefacts and the CSV go here")
+    ap.add_argument("--keep", action="store_true", help="keep each experiment's raw frames")
+    ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--scale", default="full", help="a scale of the simulator (default full; tiny to try the script)")
+    ap.add_argument("--scaling", metavar="EXPERIMENT", help="scaling mode: this experiment at 1x, 2x, 4x its frames")
+    ap.add_argument("--factors", default="1,2,4")
+    ap.add_argument("--base-frames", type=int, default=3, help="frames per setting at factor 1 (scaling mode)")
+    ap.add_argument("--lens", default="far", help="the lens of the scaling mode's job")
+    ap.add_argument("--floor", nargs=2, metavar=("DATASET", "EXPERIMENT"), help=argparse.SUPPRESS)
+    ap.add_argument("--simulate", nargs=4, metavar=("OUT", "EXPERIMENT", "SCALE", "SEED"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.floor:
+        floor_child(*args.floor)
+        return
+    if args.simulate:
+        simulate_child(*args.simulate)
+        return
+    from pipeline.simulate.dataset import SCALES
+
+    work = Path(args.work)
+    work.mkdir(parents=True, exist_ok=True)
+    if args.scale not in SCALES:
+        sys.exit(f"unknown scale {args.scale}; choose one of {', '.join(SCALES)}")
+    rows = []
+    if args.scaling:
+        exp = args.scaling
+        if exp not in STAGE_OF:
+            sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
+        source = work / f"dataset-{exp}"
+        sim = simulate(source, exp, args.scale, args.seed)
+        print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
+              flush=True)
+        for factor in (int(f) for f in args.factors.split(",")):
+            k = args.base_frames * factor
+            dataset = work / f"scaling-{exp}-x{factor}"
+            n = frame_subset(source, dataset, exp, k)
+            print(f"{exp} x{factor}: the first {k} frames of each setting ({n} frames, hard links)", flush=True)
+            results = work / f"results-scaling-{exp}-x{factor}"
+            for upstream in STAGE_UPSTREAM.get(exp, ()):     # e.g. linearity needs the dark artefact
+                art = work / "results" / upstream / f"{args.lens}.nc"
+                if not art.exists():
+                    sys.exit(f"{art}: run the default mode for {upstream} first ({exp} needs its artefact)")
+                (results / upstream).mkdir(parents=True, exist_ok=True)
+                shutil.copy(art, results / upstream / art.name)
+            rows += measure(STAGE_OF[exp], exp, dataset, results, [args.lens], {"factor": factor,
+                                                                                 "frames_per_setting": k})
+            shutil.rmtree(dataset)
+        if not args.keep:
+            remove_dataset(source)
+        write_csv(work / "bench_scaling.csv", rows)
+        return
+    results = work / "results"
+    for exp in args.experiments.split(","):
+        if exp not in STAGE_OF:
+            sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
+        dataset = work / f"dataset-{exp}"
+        sim = simulate(dataset, exp, args.scale, args.seed)
+        print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
+              flush=True)
+        rows += measure(STAGE_OF[exp], exp, dataset, results, LENSES, {})
+        if not args.keep:
+            remove_dataset(dataset)
+        write_csv(work / "bench_full.csv", rows)
+
+
+if __name__ == "__main__":
+    main()
