@@ -19,6 +19,16 @@ the other lens looks the opposite way (nadir): zenith angle 180 - theta and
 azimuth -phi (mirrored, as a back-to-back lens sees its sensor's x axis
 reversed), both mod 360.
 
+A rectilinear lens (a phone or an ordinary camera, bundle ``projection``)
+has no image circle and no unlit corners: every pixel with a field angle is
+measured, those beyond the roll-off's calibrated field angle are flagged, and
+on the sphere grid it covers only its field (NaN elsewhere). With
+``bias_drift`` in the model each frame's black level is then the mean of the
+frame's optically black pixels (DNG ActiveArea/MaskedAreas) less the dark
+stage's ``optical_black_offset_dn`` (their level above the region's dark
+level); a frame without them keeps the dark model's bias, and the output's
+``bias_drift_note`` says that the bias drift was not corrected.
+
 A frame from another camera (make, model, serial), with an ISO or exposure
 outside those the bundle was calibrated for, or for a medium the bundle
 lacks, is refused with one line naming the file.
@@ -96,6 +106,28 @@ def _unlit_corners(shape: tuple[int, int], fraction: float) -> np.ndarray:
     return corner_mask(shape, fraction)
 
 
+def _projection(bundle: xr.Dataset, lens: str) -> str:
+    return str(bundle["projection"].sel(lens=lens).values) if "projection" in bundle else "fisheye"
+
+
+def optical_black_level(raw, bundle: xr.Dataset, lens: str, band: str) -> tuple[float, float] | None:
+    """The black level (DN) of a band pixel of ``lens`` in this frame from its optically black pixels, and its variance.
+
+    The optically black pixels' mean (:attr:`pipeline.rawio.RawFrame.optical_black_dn`) less the dark
+    stage's ``optical_black_offset_dn`` (their mean less the region's dark level in the dark frames); the
+    variance is the standard error of that mean squared (their sample variance over their number; the
+    offset's own error, from the dark frames, is about 0.01 DN and not propagated). None when the frame
+    declares no optically black pixels or the bundle has no offset for them.
+    """
+    if raw.optical_black_dn is None or raw.optical_black_count < 2 or "optical_black_offset_dn" not in bundle:
+        return None
+    offset = float(bundle["optical_black_offset_dn"].sel(lens=lens, band=band))
+    if not np.isfinite(offset):
+        return None
+    var = float(raw.optical_black_var_dn2 or 0.0) / raw.optical_black_count
+    return float(raw.optical_black_dn) - offset, var
+
+
 def _crop(b: xr.Dataset, name: str, rows: slice, cols: slice):
     return b[name].isel(y=rows, x=cols).values if name in b else None
 
@@ -116,7 +148,7 @@ def _stored_rolloff(g: xr.Dataset, rows: slice, cols: slice, effects) -> mm.Roll
 
 def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str, effects,
                   frame: mm.FrameSettings, window=None, *, negative_sigma: float | None = None,
-                  source=None, out=None, scratch=None) -> mm.Measured:
+                  source=None, out=None, scratch=None, frame_black=None) -> mm.Measured:
     """The measurement chain on one band image of one lens: raw DN to radiance with its uncertainty.
 
     ``images`` is what :func:`pipeline.frames.lens_images` returns for
@@ -133,7 +165,10 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
     of the crop's shape, e.g. slots of the output maps) the radiance and its
     random and systematic sigma are evaluated there
     (:meth:`~pipeline.radiometry.measurement.Measured.evaluate_into`, with
-    ``scratch``, one more such array, for the sums on the way).
+    ``scratch``, one more such array, for the sums on the way). With
+    ``bias_drift`` the frame's black level comes from the unlit corners of a
+    fisheye lens, or for a rectilinear lens from ``frame_black`` (level and
+    variance, :func:`optical_black_level`; without it the dark model's bias).
     """
     effects = tuple(effects)
     image = images.bands[band]
@@ -156,7 +191,7 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
                                  theta_deg_sigma=_crop(g, "theta_deg_sigma", rows, cols))
     b = bundle.sel(lens=lens, band=band)
     unlit = None
-    if "bias_drift" in effects:
+    if "bias_drift" in effects and _projection(bundle, lens) != "rectilinear":
         # the frame's own black level from the unlit corners of the whole band image (not only the crop)
         corners = _unlit_corners(tuple(shape), _default_corner_fraction())
         hot = _crop(b, "hot_pixel_mask", slice(None), slice(None))
@@ -169,7 +204,8 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
                         flat_field=_crop(b, "flat_field", rows, cols),
                         flat_field_sigma=_crop(b, "flat_field_sigma", rows, cols),
                         prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
-                        phi_deg=phi, rolloff=rolloff)
+                        phi_deg=phi, rolloff=rolloff,
+                        frame_black_dn=frame_black if _projection(bundle, lens) == "rectilinear" else None)
     if out is not None:
         m.evaluate_into(*out, scratch=scratch)
     if negative_sigma is None:
@@ -204,10 +240,12 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dt
         maps = {name: np.empty((len(BANDS),) + shape, dtype) for name in ("radiance", "random", "systematic")}
         maps["flags"] = np.empty((len(BANDS),) + shape, np.uint8)
     scratch = np.empty(shape, dtype)  # one per lens (the lenses may run in two threads), reused by its bands
+    rectilinear = _projection(bundle, lens) == "rectilinear"
     for j, band in enumerate(BANDS):
+        black = optical_black_level(raw, bundle, lens, band) if rectilinear and "bias_drift" in effects else None
         m = band_radiance(images, bundle, lens, band, medium, effects, frame, negative_sigma=negative_sigma,
                           source=raw.path, out=(maps["radiance"][j], maps["random"][j], maps["systematic"][j]),
-                          scratch=scratch)
+                          scratch=scratch, frame_black=black)
         np.copyto(maps["flags"][j], m.flags)
         del m
     return {name: list(maps[name]) for name in ("radiance", "random", "systematic", "flags")}
@@ -371,6 +409,8 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
     meta = []
+    rectilinear = [lens for lens in lenses if _projection(bundle, lens) == "rectilinear"]
+    uncorrected = []   # (frame, lens) whose bias drift the model has and no optically black pixels measure
     # the chain's results, per frame with the pixel maps; else one frame's, reused by every frame
     shape = (len(raw_paths) if pixels else 1, len(lenses), len(BANDS)) + bundle["rolloff_inverse"].shape[-2:] \
         if "rolloff_inverse" in bundle else None
@@ -385,6 +425,9 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool,
                                    maps=None if maps is None else {k: v[f if pixels else 0] for k, v in maps.items()})
         meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
+        if "bias_drift" in effects:
+            uncorrected += [(path.name, lens) for lens in rectilinear
+                            if optical_black_level(raw, bundle, lens, BANDS[0]) is None]
         del raw
         cells, zen, azi = directions.result()
 
@@ -463,6 +506,16 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
                            "nonlinearity, roll-off (and its azimuthal term), immersion factor and R^-1, common to a band",
         },
     )
+    ds.attrs["black_level"] = "; ".join(
+        f"{lens}: " + ("the dark model's bias (bias_drift not in the model)" if "bias_drift" not in effects
+                       else "each frame's optically black pixels" if lens in rectilinear
+                       else "each frame's unlit corners") for lens in lenses)
+    if uncorrected:
+        ds.attrs["bias_drift_note"] = (
+            "bias drift not corrected (the dark model's bias used) for "
+            + ", ".join(f"{name} lens {lens}" for name, lens in uncorrected)
+            + ": the frame declares no optically black pixels (DNG ActiveArea/MaskedAreas) or the calibration "
+              "has no optical_black_offset_dn")
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.name}.tmp")
     # the sphere grid: zlib level 1 with the byte shuffle (about as small as level 4 without it)

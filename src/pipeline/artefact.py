@@ -50,11 +50,13 @@ from pipeline.errors import ArtefactError
 #: moved to a dark level outside the configured one, and with ``bias_drift`` the read and temporal noise
 #: without the frames' common offsets (linearity: the flat field's noise too); calibration 7: those;
 #: geometry 3: the ``projection`` attribute, and for a rectilinear region the pinhole fit's variables
-#: (``pinhole_parameters`` and their covariance; no image circle), see stages.geometry_rectilinear.
+#: (``pinhole_parameters`` and their covariance; no image circle), see stages.geometry_rectilinear;
+#: calibration 8: a lens's ``projection`` and ``bias_reference``, the dark's ``optical_black_offset_dn``,
+#: a rectilinear lens's geometry without the fisheye model's variables (NaN) and no image circle.
 #: closure 1: the diagnostics' closure table
 #: (``results/closure/residuals.nc``, one row per measurement of every experiment, pipeline.diagnostics).
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 2, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 7, "field": 2, "closure": 1}
+                     "absolute": 3, "immersion": 2, "calibration": 8, "field": 2, "closure": 1}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -11,7 +11,7 @@ covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``, version 7; 2: the per-pixel
+versioned artefact (``artefact = calibration``, version 8; 2: the per-pixel
 maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
 flat field's uncertainty; 5: theta_deg_sigma, the absolute budget's new lamp
 term, and what depends only on lens, medium and band precomputed per pixel:
@@ -21,6 +21,14 @@ linearity artefacts' bias-drift spread weighted by the corners' noise; 7: the da
 artefacts' projection and black-level reference; older files are
 refused with a line asking to rebuild) carrying the sha256 of every artefact it came from,
 the model's effects and the camera's make, model and serial number.
+
+A rectilinear lens (dataset.yaml ``projection: rectilinear``; the geometry
+stage's pinhole fit, :mod:`pipeline.stages.geometry_rectilinear`) brings the
+same theta, phi, solid-angle and theta-sigma maps; it has no image circle (its
+circle variables are NaN, the fisheye model's ``poly`` and stretch NaN too, and
+no pixel is flagged outside the image circle), and its field ends where the
+roll-off's measurements end (``calibrated_field_angle_deg``, the flag beyond
+the calibrated field angle). A bundle may hold lenses of both kinds.
 
 :func:`band_parameters` turns the bundle back into the small parameter
 objects of :mod:`pipeline.radiometry.measurement`, so ``apply`` and the NER
@@ -62,13 +70,20 @@ def _relative(path: Path, root: Path) -> str:
 
 
 def _stack(per_lens: dict[str, xr.DataArray | xr.Dataset], lenses: list[str]):
-    return xr.concat([per_lens[lens] for lens in lenses], dim="lens", join="exact").assign_coords(lens=lenses)
+    parts = [per_lens[lens] for lens in lenses]
+    # a variable one kind of lens has and the other lacks (the fisheye model's poly and stretch for a
+    # rectilinear lens): NaN of the same shape where it is missing
+    for part in parts:
+        for other in parts:
+            for name in set(other.data_vars) - set(part.data_vars):
+                part[name] = xr.full_like(other[name], np.nan, dtype=float)
+    return xr.concat(parts, dim="lens", join="exact").assign_coords(lens=lenses)
 
 
 def _dark_part(ds: xr.Dataset) -> xr.Dataset:
     keep = ["bias_dn", "bias_dn_sigma", "bias_per_gain_dn", "bias_per_gain_dn_sigma", "dark_current_dn_per_s",
             "dark_current_dn_per_s_sigma", "read_noise_dn", "hot_pixel_mask", "temperature_bias_dn_per_c",
-            "temperature_dark_dn_per_s_per_c", "temperature_reference_c"]
+            "temperature_dark_dn_per_s_per_c", "temperature_reference_c", "optical_black_offset_dn"]
     out = ds[[v for v in keep if v in ds]].drop_vars(["setting", "hist_bin"], errors="ignore")
     out["offset_pattern_dn"] = ds["fpn_map_dn"].std(("y", "x")).assign_attrs(
         long_name="spatial spread of the pixel offsets about the dark model's level (ISO 100, shortest exposure)",
@@ -111,8 +126,10 @@ def _linearity_part(ds: xr.Dataset) -> xr.Dataset:
 def _geometry_part(ds: xr.Dataset) -> xr.Dataset:
     # theta_deg_sigma: the fit's theta uncertainty (geometry artefact 2); a geometry written from known optics
     # (tests) has none
+    # a rectilinear lens (pinhole fit) has no fisheye polynomial nor stretch: _stack fills them with NaN
+    # beside a fisheye lens
     sigma = ["theta_deg_sigma"] if "theta_deg_sigma" in ds else []
-    return ds[["theta_deg", "phi_deg", "solid_angle_sr", "poly", *GEOMETRY_SCALARS, *sigma]]
+    return ds[[v for v in ("theta_deg", "phi_deg", "solid_angle_sr", "poly", *GEOMETRY_SCALARS, *sigma) if v in ds]]
 
 
 def _rolloff_part(ds: xr.Dataset) -> xr.Dataset:
@@ -121,8 +138,8 @@ def _rolloff_part(ds: xr.Dataset) -> xr.Dataset:
     used = ds["obs_setting__used"].values.astype(bool)
     medium = ds["obs_setting__medium"].values.astype(str)
     theta = np.abs(ds["obs_setting__theta_deg"].values.astype(float))
-    reach = [float(np.nanmax(theta[(kind == "spot") & used & (medium == m)], initial=np.nan))
-             for m in ds["medium"].values]
+    spots = [(kind == "spot") & used & (medium == m) for m in ds["medium"].values]
+    reach = [float(np.nanmax(theta[s])) if np.any(s & np.isfinite(theta)) else np.nan for s in spots]
     out["calibrated_field_angle_deg"] = ("medium", np.array(reach),
                                          {"long_name": "largest field angle the roll-off was measured at", "units": "degree"})
     if "effect_rolloff_azimuth" in ds:
@@ -213,8 +230,11 @@ def band_parameters(bundle: xr.Dataset, lens: str, band: str, medium: str, frame
 def outside_image_circle(g: xr.Dataset, theta: np.ndarray, rows: slice, cols: slice, shape) -> np.ndarray:
     """Pixels of the crop ``rows, cols`` of a band image (full ``shape``) outside the image circle or the half FOV.
 
-    ``g`` is the bundle at one lens, medium and band (circle centre and radius, half field of view).
+    ``g`` is the bundle at one lens, medium and band (circle centre and radius, half field of view). A
+    rectilinear lens has no image circle (radius NaN): only pixels without a field angle are outside.
     """
+    if not np.isfinite(float(g["circle_radius_px"])):
+        return ~np.isfinite(theta)
     y = np.arange(shape[0])[rows]
     x = np.arange(shape[1])[cols]
     r = np.hypot(x[None, :] - float(g["circle_xc_px"]), y[:, None] - float(g["circle_yc_px"]))
@@ -233,6 +253,8 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
     of evaluating them on every frame.
     """
     lenses, media = list(bundle["lens"].values), list(bundle["medium"].values)
+    # apply's choice: the default zenith lens, or the first lens of a camera without one (a phone's only lens)
+    zenith_lens = ZENITH_LENS if ZENITH_LENS in lenses else lenses[0]
     shape = bundle["theta_deg"].shape
     inverse = np.empty(shape, np.float32)
     rel = np.empty(shape, np.float32)
@@ -257,7 +279,7 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
                     rel_angle[i, k, j] = r.relative_var["field_angle"]
                 if azimuth and "rolloff_azimuth" in r.relative_var:
                     rel_az[i, k, j] = r.relative_var["rolloff_azimuth"]
-                zen, azi = sphere_coordinates(g["theta_deg"].values, phi, lens == ZENITH_LENS)
+                zen, azi = sphere_coordinates(g["theta_deg"].values, phi, lens == zenith_lens)
                 cells[i, k, j] = sphere_cells(zen, azi, grid_deg)
     dims = bundle["theta_deg"].dims
     out = xr.Dataset({
@@ -270,7 +292,7 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
                                                      "circle, beyond the calibrated field angle)", "units": "1"}),
         "sphere_cell": (dims, cells, {"long_name": "cell of the pixel's direction on the sphere grid, row-major "
                                                    "(zenith, azimuth); -1: no direction", "units": "1",
-                                      "grid_deg": float(grid_deg), "zenith_lens": ZENITH_LENS}),
+                                      "grid_deg": float(grid_deg), "zenith_lens": zenith_lens}),
     })
     if rel_angle is not None:
         out["field_angle_relative_variance"] = (dims, rel_angle, {
@@ -344,6 +366,8 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
         raise InputError(out_path, f"the calibration bundle needs the {', '.join(missing)} artefact(s)")
     lenses = sorted(artefacts["dark"])
     effects, first, inputs = None, None, {}
+    projection = {lens: "fisheye" for lens in lenses}
+    bias_reference = {lens: "unlit corners" for lens in lenses}
     parts: dict[str, dict[str, xr.Dataset]] = {}
     for stage in BUNDLE_STAGES:
         paths = artefacts.get(stage) or {}
@@ -361,7 +385,18 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
                 raise InputError(paths[lens], f"was fitted with the model [{', '.join(found)}], {first} with "
                                               f"[{', '.join(effects)}]: rerun the stages with one model")
             inputs[_relative(paths[lens], results_root)] = sha256_file(paths[lens])
+            if stage == "geometry":
+                projection[lens] = str(ds.attrs.get("projection", "fisheye"))
+            if stage == "dark":
+                bias_reference[lens] = str(ds.attrs.get("bias_reference", "unlit corners"))
             parts[stage][lens] = PARTS[stage](ds)
+    if "geometry" in parts and "rolloff" in parts:
+        # only the media the geometry has maps for (a rectilinear region calibrated in air only; its roll-off
+        # artefact may list water without measurements): an outer join would add them with NaN maps
+        for lens in lenses:
+            have = list(parts["geometry"][lens]["medium"].values)
+            part = parts["rolloff"][lens]
+            parts["rolloff"][lens] = part.sel(medium=[m for m in part["medium"].values if m in have])
     merged = []
     for stage, per_lens in parts.items():
         try:
@@ -375,6 +410,12 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
             value = float(bundle["inverse_responsivity"].sel(lens=lens, band=band))
             mm.check_inverse_responsivity(value, f"of lens {lens}, band {band} ")
     bundle["lens"].attrs.update(long_name="lens of the camera (dataset.yaml lenses)")
+    bundle["projection"] = ("lens", np.array([projection[lens] for lens in lenses], dtype=str), {
+        "long_name": "projection of the lens region (fisheye: image circle and fisheye model; rectilinear: "
+                     "pinhole fit, no image circle)"})
+    bundle["bias_reference"] = ("lens", np.array([bias_reference[lens] for lens in lenses], dtype=str), {
+        "long_name": "what measures each frame's black level with bias_drift (unlit corners, optically black "
+                     "pixels, none)"})
     media = ["air"] + (["water"] if "immersion" in parts else [])
     bundle = bundle.merge(_noise_floor(bundle, effects, config["calibration"]))
     try:

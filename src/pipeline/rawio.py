@@ -100,6 +100,8 @@ class RawFrame:
     #: :func:`optical_black_rectangles`), None when it declares none
     optical_black_dn: float | None = None
     optical_black_count: int = 0   # number of raw pixels averaged in optical_black_dn
+    #: sample variance (DN^2, ddof 1) of those pixels' raw values, None when the DNG declares none
+    optical_black_var_dn2: float | None = None
 
 
 # ---------------------------------------------------------------------------
@@ -432,6 +434,7 @@ def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = T
             black_pixels = [p for p in black_pixels if p.size]
             black_count = int(sum(p.size for p in black_pixels))
             black_sum = float(sum(p.sum(dtype=np.float64) for p in black_pixels))
+            black_sumsq = float(sum(np.square(p, dtype=np.float64).sum() for p in black_pixels))
             raw_pattern = raw.raw_pattern
             colour_desc = raw.color_desc.decode("ascii", "replace")
             black_per_channel = list(raw.black_level_per_channel)
@@ -458,6 +461,8 @@ def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = T
         black_level=float(black), white_level=float(white), cfa_pattern=pattern,
         make=tags["make"], model=tags["model"], md5=md5, sha256=sha256, serial=tags.get("serial"),
         optical_black_dn=black_sum / black_count if black_count else None, optical_black_count=black_count,
+        optical_black_var_dn2=(max(black_sumsq - black_sum**2 / black_count, 0.0) / (black_count - 1)
+                               if black_count > 1 else None),
     )
 
 

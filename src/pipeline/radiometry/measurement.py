@@ -420,7 +420,8 @@ def from_raw(image_dn, saturated=None) -> Measured:
     return Measured(value=value, units="DN", flags=flags)
 
 
-def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects, unlit_dn=None) -> Measured:
+def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects, unlit_dn=None,
+                  frame_black_dn=None) -> Measured:
     """Raw DN -> DN above the dark level of the dark model at the frame's ISO, exposure and temperature.
 
     Adds the random variances of the raw reading (per band pixel: read noise
@@ -436,7 +437,11 @@ def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects, u
     error of that mean, their sample variance over their number, is the
     systematic term ``bias_drift`` (common to every pixel of this frame's
     band image, independent between frames). The dark model's parameter
-    term then no longer applies to the level and is dropped.
+    term then no longer applies to the level and is dropped. A lens without
+    unlit pixels (a rectilinear region) gives the frame's black level as
+    ``frame_black_dn = (level_dn, variance_dn2)`` instead: the level of its
+    band pixels measured by the sensor's optically black pixels, and the
+    variance of that level (the ``bias_drift`` term).
     """
     gain = gain_from_iso(frame.iso)
     current = dark.dark_current_dn_per_s if "dark_current" in effects else 0.0
@@ -458,6 +463,9 @@ def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects, u
     if "bias_drift" in effects and unlit is not None and unlit.size > 1:
         level = float(unlit.mean())
         sys_abs["bias_drift"] = float(unlit.var(ddof=1) / unlit.size)
+    elif "bias_drift" in effects and frame_black_dn is not None:
+        level = float(frame_black_dn[0])
+        sys_abs["bias_drift"] = float(frame_black_dn[1])
     else:
         sys_abs["dark_model"] = float(dark.bias_dn_sigma**2 + ((gain - 1.0) * dark.bias_per_gain_dn_sigma) ** 2
                                       + ((gain * frame.exposure_s * dark.dark_current_dn_per_s_sigma) ** 2
@@ -674,14 +682,15 @@ def to_radiance(m: Measured, calibration: BandCalibration) -> Measured:
 def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: ResponseModel,
                  calibration: BandCalibration, theta_deg, medium: str, effects, *, saturated=None,
                  hot_mask=None, flat_field=None, prnu_sigma_rel: float = 0.0, phi_deg=None,
-                 flat_field_sigma=None, rolloff: RolloffMap | None = None, unlit_dn=None) -> Measured:
+                 flat_field_sigma=None, rolloff: RolloffMap | None = None, unlit_dn=None,
+                 frame_black_dn=None) -> Measured:
     """One band image of one lens from raw DN to spectral radiance: the whole inverse of Eq. (4).
 
     ``rolloff``: the :func:`rolloff_map` of the image's pixels when already at hand (the bundle stores it).
     """
     effects = tuple(effects)
     m = from_raw(image_dn, saturated)
-    m = subtract_dark(m, dark, frame, effects, unlit_dn)
+    m = subtract_dark(m, dark, frame, effects, unlit_dn, frame_black_dn)
     m = add_shot_noise(m, dark, response, frame, effects)
     m = flag_hot_pixels(m, hot_mask, effects)
     m = flag_saturation(m, response)
