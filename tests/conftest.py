@@ -51,3 +51,17 @@ def calibrated(make_dataset, config, tmp_path_factory):
     out = tmp_path_factory.mktemp("results")
     artefacts, bundle_path, meta = calibrate(root, config, out)
     return root, truth, out, artefacts, bundle_path, meta
+
+
+#: the test files that take longest (wall seconds on 2 workers, measured from `pytest --durations`), run first:
+#: with ``--dist loadfile`` each file goes whole to one worker in the order collected, so the long ones first
+#: and the short ones filling in after is what keeps both workers busy to the end (longest-first scheduling)
+LONGEST_FIRST = ("test_workflow.py", "test_workflow_default.py", "test_workflow_radiometric.py",
+                 "test_geometry_stage.py", "test_geometry_theta_accuracy.py", "test_coverage_over_seeds.py",
+                 "test_report.py", "test_apply_truth_sky.py", "test_apply.py", "test_geometry_calibrate.py",
+                 "test_effect_forms.py")
+
+
+def pytest_collection_modifyitems(session, config, items):
+    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))   # stable: the rest keep their order
