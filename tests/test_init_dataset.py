@@ -245,7 +245,25 @@ def test_files_it_cannot_place_stop_before_writing(original, tmp_path):
     assert "no experiment for this raw file" in proc.stderr and proc.stderr.splitlines()[-1].startswith("error: ")
 
 
+def _in_process(*args) -> tuple[int, str]:
+    """The command line's exit code and standard output, run in this process (argparse's exits caught)."""
+    import contextlib
+    import io
+
+    from pipeline.cli import main
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        try:
+            code = main(list(args))
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+    return code, out.getvalue()
+
+
 def test_help_and_version():
+    """`python -m pipeline --help` as a user runs it (one process); the other answers of the same parser
+    in this process, which costs no interpreter start-up each."""
     proc = _cli("--help")
     assert proc.returncode == 0
     for command, description in (("init-dataset", "lay out a folder of raw files as a calibration dataset"),
@@ -254,10 +272,10 @@ def test_help_and_version():
         assert any(line.split()[:1] == [command] and description in line for line in proc.stdout.splitlines())
     assert "examples:" in proc.stdout and "exit codes:" in proc.stdout
     assert "snakemake --cores 2 --config dataset=" in proc.stdout
-    proc = _cli("--version")
-    assert proc.returncode == 0 and proc.stdout.strip() == f"python -m pipeline {__version__}"
-    assert _cli("no-such-command").returncode == 2
-    assert _cli("validate").returncode == 2
+    code, out = _in_process("--version")
+    assert code == 0 and out.strip() == f"python -m pipeline {__version__}"
+    assert _in_process("no-such-command")[0] == 2
+    assert _in_process("validate")[0] == 2
     for command in ("init-dataset", "validate", "simulate"):
-        sub = _cli(command, "--help")
-        assert sub.returncode == 0 and "examples:" in sub.stdout
+        code, out = _in_process(command, "--help")
+        assert code == 0 and "examples:" in out

@@ -23,6 +23,7 @@ from report_browser import (  # noqa: F401  (the browser's tests, collected here
     test_each_check_finds_its_fault_on_a_page_made_to_fail, test_every_expected_section_is_present_with_content,
     test_every_image_is_decoded_and_non_empty, test_no_console_errors_or_failed_requests,
     test_no_horizontal_overflow_at_1280_px, test_screenshot_is_a_non_blank_png, test_the_browser_leaves_no_process_behind)
+from helpers import assert_g_theta_within_a_band_pixel
 from workflow_runs import LENSES, REPO, SNAKEMAKE, planned_rules, snakemake
 
 
@@ -42,6 +43,12 @@ def default_run(tmp_path_factory):
 def page(default_run, tmp_path_factory):
     """What headless Chromium saw of the default run's report (tests/report_browser.py)."""
     return browse(default_run[0] / "results/report/index.html", tmp_path_factory.mktemp("browser"))
+
+
+def test_the_default_runs_geometry_is_within_a_band_pixel_of_the_truth(default_run):
+    """The geometry the workflow fitted to the command line's default tiny simulation (tests/helpers.py)."""
+    tmp_path, dataset, _ = default_run
+    assert_g_theta_within_a_band_pixel(dataset, {lens: tmp_path / f"results/geometry/{lens}.nc" for lens in LENSES})
 
 
 def test_the_default_tiny_simulation_runs_through_the_whole_workflow(default_run):
