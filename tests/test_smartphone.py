@@ -321,7 +321,7 @@ def phone_bundle(phone, tmp_path_factory):
     frames = {"with": base / "uniform.dng", "without": base / "uniform_no_black.dng"}
     write_dng(frames["with"], raw, active_area=(top, left) + raw.shape, **tags)
     write_dng(frames["without"], np.ascontiguousarray(raw[top:, left:]), **tags)
-    return bundle_path, read_bundle(bundle_path), frames, radiance, offset_dn
+    return bundle_path, read_bundle(bundle_path), frames, radiance, offset_dn, {**paths, "dark": dark, "geometry": geo}
 
 
 def test_black_level_from_the_optically_black_pixels(phone, phone_bundle):
@@ -369,7 +369,7 @@ def test_apply_recovers_a_uniform_radiance(phone_bundle, tmp_path):
     from pipeline.apply import apply_calibration
     from pipeline.radiometry import measurement as mm
 
-    bundle_path, bundle, frames, radiance, _ = phone_bundle
+    bundle_path, bundle, frames, radiance, *_ = phone_bundle
     assert str(bundle["projection"].sel(lens=LENS).values) == "rectilinear"
     assert list(bundle["medium"].values) == ["air"]
     out = apply_calibration(bundle_path, [frames["with"]], "air", tmp_path / "applied.nc")
@@ -406,3 +406,22 @@ def test_apply_recovers_a_uniform_radiance(phone_bundle, tmp_path):
     out2 = apply_calibration(bundle_path, [frames["without"]], "air", tmp_path / "applied_no_black.nc", pixels=False)
     with xr.open_dataset(out2) as ds2:
         assert "bias drift not corrected" in ds2.attrs["bias_drift_note"]
+
+
+def test_report_of_the_phone_shows_its_sections_with_the_rectilinear_geometry(phone_bundle, tmp_path):
+    """The report built from the phone's artefacts (one lens, air only, no immersion or field): it is written
+    (the summary's half field of view in water is n/a, not a failure: the phone has no water geometry), the
+    geometry and dark sections say the lens is rectilinear, and the absolute section shows R^-1."""
+    from pipeline.report import build_report
+
+    bundle_path, *_, artefacts = phone_bundle
+    missing = tmp_path / "absent.csv"        # no diagnostics files: the report says so
+    html = build_report(**artefacts, calibration=bundle_path, missing_effects=missing, unexplained=missing,
+                        run_errors=missing, error_history=missing, out_html=tmp_path / "index.html",
+                        skipped={"immersion": "the dataset has no immersion/ folder"}).read_text()
+    for anchor in ("summary", "dark", "linearity", "geometry", "rolloff", "spectral", "absolute"):
+        assert f'id="{anchor}"' in html, anchor
+    geometry = html.split('id="geometry"', 1)[1].split("<section", 1)[0]
+    assert "rectilinear region (dataset.yaml), fitted with the pinhole model" in geometry and "<img" in geometry
+    assert "rectilinear" in html.split('id="dark"', 1)[1].split("<section", 1)[0]
+    assert "the dataset has no immersion/ folder" in html

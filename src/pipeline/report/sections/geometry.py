@@ -22,6 +22,9 @@ from pipeline.report.sections._common import per_lens  # noqa: E402
 
 def _geometry_section(lens: str, ds: xr.Dataset, inputs) -> list:
     out = []
+    if ds.attrs.get("projection") == "rectilinear":
+        out.append(Text(f"Lens {lens}: rectilinear region (dataset.yaml), fitted with the pinhole model and its "
+                        "radial and tangential distortion; the θ, φ and solid-angle maps come from that fit."))
     media, bands = media_list(ds), band_list(ds)
     has_curves = "projection_theta_deg" in ds and "rho_px" in ds.coords
     if media and "theta_deg" in ds:
@@ -143,7 +146,9 @@ def _geometry_section(lens: str, ds: xr.Dataset, inputs) -> list:
 
 
 @section("geometry", "Geometry", order=40,
-         intro="Fisheye camera model per lens, medium and band (Section 3.2): projection function against the "
-               "usual fisheye references, band differences against G, reprojection errors and half field of view.")
+         intro="Camera model per lens, medium and band (Section 3.2): for a fisheye region (the default projection) "
+               "the projection function against the usual fisheye references, band differences against G, "
+               "reprojection errors and half field of view; a region declared `projection: rectilinear` is fitted "
+               "with the pinhole model and its distortion, and its artefact says so.")
 def geometry_section(inputs) -> list:
     return per_lens(inputs, "geometry", "geometry", _geometry_section)

@@ -122,7 +122,8 @@ def calibration_rows(inputs, angles: list[float]) -> tuple[tuple[list[str], list
             radiometry.append([lens, b, wl, hb, r_inv, budget, ner, lod])
             i_f = quantity(im, "immersion_factor", units=False, interval=False, band=b) if im is not None else "n/a"
             fov = [quantity(geo, "half_fov_deg", units=False, digits=3, medium=m, band=b)
-                   if geo is not None and "half_fov_deg" in geo else "n/a" for m in ("air", "water")]
+                   if geo is not None and "half_fov_deg" in geo and m in media_list(geo) else "n/a"
+                   for m in ("air", "water")]
             g = [_rolloff_at(ro, m, b, ang) for ang in angles for m in rolloff_media]
             optics.append([lens, b, i_f, *fov, *g])
     return (radiometry_header, radiometry), (optics_header, optics)
