@@ -189,7 +189,7 @@ def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects,
         "effects": {e.name: e.truth() for e in effects},
         "lab_errors": lab_errors,
         "lab_noise": lab_noise.truth(),
-        "experiments_truth": _plain(experiment_truth),
+        "experiments_truth": yaml_plain(experiment_truth),
         "derived": {
             "bias_dn": s.bias_dn,
             "conversion_gain_dn_per_e_iso100": k100,
@@ -209,12 +209,12 @@ def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects,
     (folder / "truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False))
 
 
-def _plain(value):
+def yaml_plain(value):
     """Numbers and lists YAML can write (numpy arrays and scalars converted)."""
     if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
+        return {str(k): yaml_plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
+        return [yaml_plain(v) for v in value]
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, np.generic):

@@ -43,6 +43,7 @@ from pipeline.geometry.chessboard import Board
 from pipeline.rawio import write_dng
 from pipeline.simulate.camera import SensorParams
 from pipeline.simulate.chessboard import render_chessboard
+from pipeline.simulate.dataset import yaml_plain
 from pipeline.simulate.plan import PLANNERS, FrameSpec, LensGeometry, SimContext
 from pipeline.simulate.sensor import draw_static_pattern, expose, true_exposure_and_gain
 
@@ -523,16 +524,5 @@ def _write_truth(folder: Path, phone: Smartphone, scale: PhoneScale, seed: int, 
     if any(e.name == "dark_current" for e in effects):
         dc = next(e for e in effects if e.name == "dark_current")
         truth["derived"]["dark_current_dn_per_s_iso100"] = dc.params["rate_e_per_s"] * k100
-    (folder / "truth.yaml").write_text(yaml.safe_dump(_plain(truth), sort_keys=False))
+    (folder / "truth.yaml").write_text(yaml.safe_dump(yaml_plain(truth), sort_keys=False))
 
-
-def _plain(value):
-    if isinstance(value, dict):
-        return {str(k): _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value
