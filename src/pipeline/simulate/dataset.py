@@ -104,13 +104,7 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
     ctx = SimContext(camera=camera, scale=sc, seed=seed, rng=np.random.default_rng([seed, 104729]),
                      effects=effect_objs, lab_errors=draw_lab_errors(seed) if lab_errors else no_lab_errors())
 
-    tmp = out.parent / f".{out.name}.partial"
-    tmp_truth = out.parent / f".{truth.name}.partial"
-    for path in (tmp, tmp_truth):
-        if path.exists():
-            shutil.rmtree(path)
-    tmp.mkdir(parents=True)
-    tmp_truth.mkdir(parents=True)
+    tmp, tmp_truth = partial_folders(out, truth)
 
     plans = {exp: PLANNERS[exp](ctx) for exp in experiments}
     noise = (lab_noise if isinstance(lab_noise, LabNoise) else LabNoise()) if lab_noise else no_lab_noise()
@@ -207,6 +201,18 @@ def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects,
         dc = next(e for e in effects if e.name == "dark_current")
         truth["derived"]["dark_current_dn_per_s_iso100"] = dc.params["rate_e_per_s"] * k100
     (folder / "truth.yaml").write_text(yaml.safe_dump(truth, sort_keys=False))
+
+
+def partial_folders(out: Path, truth: Path) -> tuple[Path, Path]:
+    """Fresh hidden folders beside ``out`` and ``truth`` that a simulation fills and then renames into
+    place, so that an interrupted run leaves no half-written dataset (a partial folder left by an earlier
+    run is removed first)."""
+    folders = (out.parent / f".{out.name}.partial", out.parent / f".{truth.name}.partial")
+    for path in folders:
+        if path.exists():
+            shutil.rmtree(path)
+        path.mkdir(parents=True)
+    return folders
 
 
 def yaml_plain(value):

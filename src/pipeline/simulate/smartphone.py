@@ -25,7 +25,6 @@ frame offsets) is :func:`pipeline.simulate.sensor.expose`.
 
 from __future__ import annotations
 
-import shutil
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timedelta
 from pathlib import Path
@@ -43,7 +42,7 @@ from pipeline.geometry.chessboard import Board
 from pipeline.rawio import write_dng
 from pipeline.simulate.camera import SensorParams
 from pipeline.simulate.chessboard import render_chessboard
-from pipeline.simulate.dataset import yaml_plain
+from pipeline.simulate.dataset import partial_folders, yaml_plain
 from pipeline.simulate.plan import PLANNERS, FrameSpec, LensGeometry, SimContext
 from pipeline.simulate.sensor import draw_static_pattern, expose, true_exposure_and_gain
 
@@ -437,13 +436,7 @@ def simulate_smartphone_dataset(out: str | Path, scale: str = "tiny", seed: int 
     phone = phone or Smartphone()
     effect_objs = [get_effect(name, **params) for name, params in effects]
     renderer = PhoneRenderer(phone, sc, seed, effect_objs)
-    tmp = out.parent / f".{out.name}.partial"
-    tmp_truth = out.parent / f".{truth_dir.name}.partial"
-    for path in (tmp, tmp_truth):
-        if path.exists():
-            shutil.rmtree(path)
-    tmp.mkdir(parents=True)
-    tmp_truth.mkdir(parents=True)
+    tmp, tmp_truth = partial_folders(out, truth_dir)
     plans = {}
     if "dark" in experiments:
         plans["dark"] = (_dark_plan(phone, sc.dark_frames), {})
