@@ -16,6 +16,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.layout_engine import PlaceHolderLayoutEngine  # noqa: E402
 from markupsafe import Markup  # noqa: E402
 
 __all__ = ["Text", "Items", "Table", "Figure", "Group", "Details", "Block", "draw", "Markup", "FIGURE_DPI"]
@@ -90,6 +91,11 @@ Block = Union[Text, Items, Table, Figure, Group, Details]
 def draw(fig, name: str, caption: str, alt: str | None = None) -> Figure:
     """The matplotlib figure ``fig`` as a :class:`Figure` (PNG bytes); the figure is closed."""
     buf = io.BytesIO()
+    # a figure laid out once by ``tight_layout`` keeps a placeholder layout engine, for which savefig draws
+    # the whole figure once more before drawing it into the PNG; the placeholder lays nothing out, so it
+    # is dropped: the same pixels at about half the cost
+    if isinstance(fig.get_layout_engine(), PlaceHolderLayoutEngine):
+        fig.set_layout_engine(None)
     try:
         fig.savefig(buf, format="png", dpi=FIGURE_DPI)
     finally:
