@@ -31,9 +31,10 @@ lint: $(VENV)/.installed
 	$(BIN)/snakefmt --check Snakefile workflow/rules
 
 # --dist loadfile: the tests of one file run on one worker, so a module's fixture (a simulated and
-# calibrated dataset) is built once
+# calibrated dataset) is built once; --durations: the slowest tests and fixtures of every run are
+# printed at the end, so the suite's cost is on record where it is paid
 test: lint
-	$(BIN)/python -m pytest -n $(CORES) --dist loadfile -q
+	$(BIN)/python -m pytest -n $(CORES) --dist loadfile -q --durations=25
 
 bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/bench_stages.py
