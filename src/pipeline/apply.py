@@ -313,13 +313,14 @@ class _BandPlan:
     factors: mm.PixelFactors
     cells: np.ndarray
     corners: np.ndarray | None
-    #: per block of rows: its rows, its first cell, every pixel's cell less the first (np.intp; one past its
+    #: per block of rows: its (rows, columns) (all columns with the pixel maps; else those that reach inside
+    #: the image circle; blocks wholly outside it left out), its first cell, every pixel's cell less the first (np.intp; one past its
     #: last cell, the block's spill cell, where a frame-independent flag (outside the image circle, beyond
     #: the calibrated field angle, hot) or no direction keeps the pixel off the grid) and its pixels per cell
     blocks: list
 
 
-def _band_plan(bundle, lens, band, medium, effects, cells, n_cells: int, block_rows: int) -> _BandPlan:
+def _band_plan(bundle, lens, band, medium, effects, cells, n_cells: int, block_rows: int, pixels: bool) -> _BandPlan:
     g = bundle.sel(lens=lens, medium=medium, band=band)
     shape = g["theta_deg" if "theta_deg" in g else "rolloff_inverse"].shape
     whole = (slice(0, shape[0]), slice(0, shape[1]))
@@ -346,20 +347,36 @@ def _band_plan(bundle, lens, band, medium, effects, cells, n_cells: int, block_r
             corners = corners & ~(np.asarray(hot) > 0)
     # per block the range of its cells: a pixel's index in the block is its cell less the block's first one
     cells = np.where((factors.flags & EXCLUDED_FROM_GRID) != 0, -1, cells).astype(np.int32, copy=False)
+    unsigned = cells.view(np.uint32)
+    # each row's first and last column inside the image circle (a row wholly outside: first > last)
+    inside = (factors.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) == 0
+    row_first = np.where(inside.any(axis=1), inside.argmax(axis=1), shape[1])
+    row_last = shape[1] - 1 - inside[:, ::-1].argmax(axis=1)
     blocks = []
     for r0 in range(0, shape[0], block_rows):
         r = slice(r0, min(r0 + block_rows, shape[0]))
-        cell = cells[r]
-        on = cell >= 0
-        first, last = (int(cell.min(where=on, initial=n_cells)), int(cell.max(where=on, initial=-1))) \
-            if on.any() else (0, -1)
-        n = last - first + 1
+        c = slice(0, shape[1])
+        if not pixels:
+            # the grid alone: only the block's columns that reach inside the image circle (the pixels
+            # outside it neither enter the grid nor the negative-mean check)
+            c0, c1 = int(row_first[r].min()), int(row_last[r][row_first[r] < shape[1]].max(initial=-1)) + 1
+            if c1 <= c0:
+                continue
+            c = slice(c0, c1)
+        # as uint32 the -1 of a pixel off the grid is the largest value: the block's first cell is the minimum
+        cell = unsigned[r, c]
+        first, last = int(cell.min()), int(cells[r, c].max())
+        first, n = (first, last - first + 1) if last >= 0 else (0, 0)
         # the block's index: cell - first, n (the block's spill cell) off the grid; and its pixels per cell
-        index = cell.astype(np.intp).ravel()
-        index -= first
-        index[~on.ravel()] = n
-        blocks.append((r, first, index, np.bincount(index, minlength=n + 1)[:-1]))
+        index = np.minimum(cell - np.uint32(first), np.uint32(n)).astype(np.intp).ravel()
+        blocks.append(((r, c), first, index, np.bincount(index, minlength=n + 1)[:-1]))
     return _BandPlan(factors=factors, cells=cells, corners=corners, blocks=blocks)
+
+
+def _lens_plans(bundle, lens, medium, effects, cells, n_cells: int, block_rows: int, pixels: bool) -> dict:
+    """The :class:`_BandPlan` of every band of ``lens`` ({band: plan}; ``cells`` per band)."""
+    return {band: _band_plan(bundle, lens, band, medium, effects, cells[j], n_cells, block_rows, pixels)
+            for j, band in enumerate(BANDS)}
 
 
 class _LensSums:
@@ -398,7 +415,7 @@ class _LensSums:
 
 
 def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, plans, block_rows, maps=None,
-                   sums=None):
+                   sums=None, parameters=None):
     """One lens of a decoded frame through the chain, a block of ``block_rows`` rows of a band image at a time.
 
     ``plans`` the lens's :class:`_BandPlan` per band. With ``maps``
@@ -409,7 +426,10 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
     chain on the whole image. A mean radiance over the unflagged pixels inside
     the circle more than ``negative_sigma`` standard errors below zero raises
     :class:`~pipeline.errors.ImpossibleResult`, as :func:`band_radiance` does.
+    ``parameters``: a dict that keeps the chain's parameter objects of each
+    lens, band and frame setting for the next frames of the call.
     """
+    parameters = {} if parameters is None else parameters
     span = bundle["lens_region_px"].sel(lens=lens).values
     images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
     shape = images.bands[BANDS[0]].shape
@@ -418,13 +438,16 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
                                    f"{tuple(plans[BANDS[0]].factors.inverse.shape)}")
     rows = max(1, min(int(block_rows), shape[0]))
     # per block: the chain's three results (unless written into maps) and one scratch for its sums of variances
-    block = {name: np.empty((rows, shape[1]), np.float32) for name in ("radiance", "random", "systematic", "scratch")}
+    block = {name: np.empty(rows * shape[1], np.float32) for name in ("radiance", "random", "systematic", "scratch")}
     rectilinear = _projection(bundle, lens) == "rectilinear"
     good_bits = mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT
     for j, band in enumerate(BANDS):
         plan = plans[band]
         image, saturated = images.bands[band], images.saturated[band]
-        dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
+        key = (lens, band, frame)
+        if key not in parameters:
+            parameters[key] = band_parameters(bundle, lens, band, medium, frame, effects)
+        dark, response, cal = parameters[key]
         black = None
         if "bias_drift" in effects:
             if rectilinear:
@@ -434,25 +457,28 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
                 # subtract_dark's level and variance from the unlit pixels, taken once for the blocks
                 black = (float(unlit.mean()), float(unlit.var(ddof=1) / unlit.size)) if unlit.size > 1 else None
         total, total_var, n_good = 0.0, 0.0, 0
-        for r, first, index, count in plan.blocks:
-            n = r.stop - r.start
-            m = mm.measure_band(image[r], frame, dark, response, cal, None, medium, effects,
-                                saturated=saturated[r], factors=plan.factors.window(r), frame_black_dn=black)
+        for window, first, index, count in plan.blocks:
+            m = mm.measure_band(image[window], frame, dark, response, cal, None, medium, effects,
+                                saturated=saturated[window], factors=plan.factors.window(window),
+                                frame_black_dn=black)
             if maps is not None:
-                value, rnd, sy = maps["radiance"][j][r], maps["random"][j][r], maps["systematic"][j][r]
-                np.copyto(maps["flags"][j][r], m.flags)
+                value, rnd, sy = (maps[name][j][window] for name in ("radiance", "random", "systematic"))
+                np.copyto(maps["flags"][j][window], m.flags)
+                scratch = block["scratch"][:value.size].reshape(value.shape)
             else:
-                value, rnd, sy = block["radiance"][:n], block["random"][:n], block["systematic"][:n]
-            m.evaluate_into(value, rnd, sy, scratch=block["scratch"][:n])
+                value, rnd, sy, scratch = (block[name][:index.size].reshape(m.flags.shape)
+                                           for name in ("radiance", "random", "systematic", "scratch"))
+            m.evaluate_into(value, rnd, sy, scratch=scratch)
+            finite = np.isfinite(value)
             good = (m.flags & good_bits) == 0
-            good &= np.isfinite(value)
+            good &= finite
             n_good += int(np.count_nonzero(good))
             # sums over the good pixels in float64 (the chain runs in float32)
             total += float(np.sum(value, where=good, dtype=float))
-            total_var += float(np.sum(np.square(rnd, out=block["scratch"][:n]), where=good, dtype=float))
+            total_var += float(np.sum(np.square(rnd, out=scratch), where=good, dtype=float))
             if sums is not None:
                 excluded = (m.flags & EXCLUDED_FROM_GRID) != 0
-                excluded |= ~np.isfinite(value)
+                excluded |= np.logical_not(finite, out=finite)
                 sums.add_block(j, first, index, count, value, rnd, sy, excluded)
             del m
         if n_good:
@@ -566,8 +592,9 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
     # what does not depend on the frame, once per call for every frame: the hot-pixel flags, flat field and
     # roll-off of every pixel as one factor with its terms, its cell, the unlit corners
     negative_sigma, block_rows = float(cfg["negative_mean_sigma"]), int(cfg["block_rows"])
-    plans = [{band: _band_plan(bundle, lens, band, medium, effects, cells[i][j], n_z * n_a, block_rows)
-              for j, band in enumerate(BANDS)} for i, lens in enumerate(lenses)]
+    plans = [job.result() for job in [pool.submit(_lens_plans, bundle, lens, medium, effects, cells[i], n_z * n_a,
+                                                  block_rows, pixels) for i, lens in enumerate(lenses)]]
+    parameters = {}  # the chain's parameter objects per lens, band and frame setting
     for f, path in enumerate(raw_paths):
         raw = decoding.result()
         decoding = pool.submit(read_raw, raw_paths[f + 1], checksums=False) if f + 1 < len(raw_paths) else None
@@ -576,7 +603,8 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         sums = [_LensSums(n_z * n_a, len(BANDS)) for _ in lenses]
         # the lenses side by side (numpy releases the GIL in its array operations), each binning its own sums
         jobs = [pool.submit(_lens_radiance, raw, bundle, lens, medium, effects, frame, negative_sigma, plans[i],
-                            block_rows, None if maps is None else {k: v[f, i] for k, v in maps.items()}, sums[i])
+                            block_rows, None if maps is None else {k: v[f, i] for k, v in maps.items()}, sums[i],
+                            parameters)
                 for i, lens in enumerate(lenses)]
         for job in jobs:
             job.result()
@@ -668,9 +696,11 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
               "has no optical_black_offset_dn")
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.name}.tmp")
-    # the sphere grid: zlib level 1 with the byte shuffle (about as small as level 4 without it)
-    big = {name: {"zlib": True, "complevel": 1, "shuffle": True} for name, var in ds.data_vars.items()
-           if var.dtype.kind in "fiu" and var.size > 1024}
+    # the sphere grid: uncompressed by default (zlib level 1 with the byte shuffle took 0.16 s of CPU per frame
+    # for 4.6 MB instead of 7.0 MB at 1 degree); apply.sphere_zlib_level > 0 compresses it, with the shuffle
+    level = int(cfg["sphere_zlib_level"])
+    big = {name: ({"zlib": True, "complevel": level, "shuffle": True} if level else {"zlib": False})
+           for name, var in ds.data_vars.items() if var.dtype.kind in "fiu" and var.size > 1024}
     # the per-pixel maps uncompressed: compressing them (zlib level 1) was most of apply's time at the full
     # scale (9 of 22 s) for a file half the size (benchmarks/bench_apply.py; --no-pixels when size matters)
     big.update({name: {"zlib": False, "contiguous": True} for name, var in ds.data_vars.items() if "y" in var.dims})

@@ -677,10 +677,10 @@ class PixelFactors:
     random_rel: dict
     flags: np.ndarray
 
-    def window(self, rows: slice) -> "PixelFactors":
-        """These factors on a band of rows (views)."""
+    def window(self, key) -> "PixelFactors":
+        """These factors on a window of the image (``key`` a slice of rows or a (rows, columns) pair; views)."""
         def cut(x):
-            return x[rows] if np.ndim(x) else x
+            return x[key] if np.ndim(x) else x
         return PixelFactors(cut(self.inverse), {k: cut(v) for k, v in self.systematic_rel.items()},
                             {k: cut(v) for k, v in self.random_rel.items()}, cut(self.flags))
 
