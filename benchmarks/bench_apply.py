@@ -1,6 +1,6 @@
 """Time ``apply`` on one full-resolution frame against the decode of the same frame, in the same run.
 
-    python benchmarks/bench_apply.py [--repeat 5] [--work /tmp/bench-apply] [--seed 1]
+    python benchmarks/bench_apply.py [--repeat 5] [--warmup 1] [--work /tmp/bench-apply] [--seed 1]
 
 The decode floor is what every stage pays per frame: ``pipeline.rawio.read_raw``
 (rawpy decode and tags) of the DNG plus ``pipeline.bands.split_bands`` of each
@@ -9,8 +9,10 @@ lens region. ``apply`` is ``pipeline.apply.apply_calibration(bundle, [frame],
 lenses, the sphere grid and the NetCDF write; ``apply-grid`` the same with
 ``pixels=False`` (``--no-pixels``: the sphere grid only, no per-pixel maps
 written). Each is run ``--repeat`` times, each run in a fresh Python process,
-alternating; the script prints the minimum and median wall time, the median CPU time (all
-threads, user and system), the peak
+alternating, after ``--warmup`` untimed rounds (1: the bundle and the frame
+into the page cache); the script prints the minimum and median wall time,
+the median CPU time (all threads, user and system, and each apart: the
+system time is mostly the kernel's page faults and page-cache copies), the peak
 resident memory of each process (``VmHWM``) and the ratios apply / decode
 of the medians.
 
@@ -153,7 +155,7 @@ def child(what: str, frame: str, bundle: str, out: str) -> None:
     from pipeline.rawio import read_raw
 
     meta = yaml.safe_load((Path(frame).parents[2] / "dataset.yaml").read_text())
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0, c0, r0 = time.perf_counter(), time.process_time(), resource.getrusage(resource.RUSAGE_SELF)
     if what == "decode":
         raw = read_raw(frame)
         for lens in LENSES:
@@ -162,7 +164,9 @@ def child(what: str, frame: str, bundle: str, out: str) -> None:
     else:
         apply_calibration(bundle, [frame], "air", out, overwrite=True, pixels=what == "apply")
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": _peak_rss_mib()}))
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "user_s": r1.ru_utime - r0.ru_utime,
+                      "system_s": r1.ru_stime - r0.ru_stime, "peak_rss_mib": _peak_rss_mib()}))
 
 
 def _peak_rss_mib() -> float:
@@ -182,6 +186,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--work", default="/tmp/bench-apply", help="folder for the datasets, artefacts and bundle")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--warmup", type=int, default=1, help="untimed rounds first (the bundle and the frame into "
+                                                           "the page cache)")
     ap.add_argument("--child", nargs=4, metavar=("WHAT", "FRAME", "BUNDLE", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
@@ -193,26 +199,34 @@ def main() -> None:
     print(f"frame {frame} ({frame.stat().st_size / 1e6:.0f} MB), bundle {bundle} ({bundle.stat().st_size / 1e6:.0f} MB)")
     runs = {"decode": [], "apply": [], "apply-grid": []}
     load_before = os.getloadavg()[0]
-    for _ in range(args.repeat):
+    for k in range(args.warmup + args.repeat):
         for what in runs:
             proc = subprocess.run([sys.executable, __file__, "--child", what, str(frame), str(bundle), str(out)],
                                   capture_output=True, text=True)
             if proc.returncode != 0:
                 sys.exit(f"{what} failed:\n{proc.stderr[-2000:]}")
-            runs[what].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+            if k >= args.warmup:
+                runs[what].append(json.loads(proc.stdout.strip().splitlines()[-1]))
     print(f"{args.repeat} runs each, each in a fresh process; load average (1 min) {load_before:.1f} before, "
           f"{os.getloadavg()[0]:.1f} after")
-    print(f"{'':<10} {'min ms':>8} {'median ms':>10} {'CPU median ms':>14} {'peak MiB':>9}")
-    med, cpu = {}, {}
+    print(f"{'':<10} {'min ms':>8} {'median ms':>10} {'CPU median ms':>14} {'user median ms':>15} "
+          f"{'system median ms':>17} {'peak MiB':>9}")
+    med, cpu, user = {}, {}, {}
     for what, rs in runs.items():
         walls = [r["wall_s"] * 1e3 for r in rs]
         med[what] = statistics.median(walls)
         cpu[what] = statistics.median(r["cpu_s"] * 1e3 for r in rs)
-        print(f"{what:<10} {min(walls):8.0f} {med[what]:10.0f} {cpu[what]:14.0f} {max(r['peak_rss_mib'] for r in rs):9.0f}")
+        user[what] = statistics.median(r["user_s"] * 1e3 for r in rs)
+        system = statistics.median(r["system_s"] * 1e3 for r in rs)
+        print(f"{what:<10} {min(walls):8.0f} {med[what]:10.0f} {cpu[what]:14.0f} {user[what]:15.0f} {system:17.0f} "
+              f"{max(r['peak_rss_mib'] for r in rs):9.0f}")
     print(f"apply / decode (wall medians): {med['apply'] / med['decode']:.2f} with the pixel maps, "
           f"{med['apply-grid'] / med['decode']:.2f} the sphere grid only (--no-pixels)")
     print(f"apply / decode (CPU medians, all threads): {cpu['apply'] / cpu['decode']:.2f} with the pixel maps, "
           f"{cpu['apply-grid'] / cpu['decode']:.2f} the sphere grid only")
+    print(f"apply / decode (user CPU medians, without the kernel's page-cache and page-fault time): "
+          f"{user['apply'] / user['decode']:.2f} with the pixel maps, {user['apply-grid'] / user['decode']:.2f} "
+          "the sphere grid only")
 
 
 if __name__ == "__main__":

@@ -166,8 +166,11 @@ def _forward_dn(radiance, theta, frame, dark, response, cal, flat, medium):
     return bent + level
 
 
+@pytest.mark.parametrize("once", [False, True], ids=["steps", "pixel_factors"])
 @pytest.mark.parametrize("medium", ["air", "water"])
-def test_chain_inverts_the_forward_model(medium):
+def test_chain_inverts_the_forward_model(medium, once):
+    """The chain recovers the radiance the forward model of this file made (float64: to 1e-9); with
+    ``once`` the flat field and roll-off enter as apply's frame-independent product (pixel_factors)."""
     rng = np.random.default_rng(4)
     shape = (20, 30)
     radiance = 10 ** rng.uniform(-5.0, -3.0, shape)
@@ -177,7 +180,12 @@ def test_chain_inverts_the_forward_model(medium):
     dark, response, cal = _dark(), _response(), _calibration()
     raw = _forward_dn(radiance, theta, frame, dark, response, cal, flat, medium)
     assert raw.max() < 800 + response.saturation_dn
-    out = mm.measure_band(raw, frame, dark, response, cal, theta, medium, ALL, flat_field=flat)
+    if once:
+        factors = mm.pixel_factors(mm.rolloff_map(theta, cal, None, ALL, float), ALL, flat_field=flat,
+                                   sites=dark.sites_per_pixel, dtype=float)
+        out = mm.measure_band(raw, frame, dark, response, cal, None, medium, ALL, factors=factors)
+    else:
+        out = mm.measure_band(raw, frame, dark, response, cal, theta, medium, ALL, flat_field=flat)
     np.testing.assert_allclose(out.value, radiance, rtol=1e-9)
     assert out.units == "W sr-1 m-2 nm-1"
     assert not out.flags.any()

@@ -40,6 +40,7 @@ import argparse
 import os
 import sys
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -51,7 +52,7 @@ from pipeline.bands import BANDS
 from pipeline.calibration import band_parameters, calibrated_isos, outside_image_circle, read_bundle
 from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
-from pipeline.frames import lens_images
+from pipeline.frames import SITES_PER_BAND_PIXEL, lens_images
 from pipeline.geometry.sphere import ZENITH_LENS, grid_shape, sphere_cells, sphere_coordinates
 from pipeline.moments import corner_mask
 from pipeline.radiometry import measurement as mm
@@ -226,46 +227,63 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
     return m
 
 
-def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, dtype, maps=None):
-    """Radiance, random and systematic sigma (``dtype``) and flags of one lens of a decoded frame, per band.
+class _CellSums:
+    """Running per-cell sums of pixel values (count, sum, sum of squares and of ``extra`` quantities).
 
-    The chain evaluates each band straight into ``maps`` ({name: (band, y, x)
-    array}: ``radiance``, ``random``, ``systematic`` of ``dtype``, ``flags``
-    uint8; new arrays when not given); returned as lists of views of them.
+    :meth:`add` takes the pixels of one block (any shape) at a time, so a
+    band image is binned while its rows are still in the cache; every pixel
+    is counted with ``np.bincount``, those that do not enter (cell < 0, value
+    not finite, ``excluded``) go to one more cell, dropped at the end. The
+    sums are float64; ``squared[k]`` squares the k-th extra quantity first.
     """
-    span = bundle["lens_region_px"].sel(lens=lens).values
-    images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
-    shape = images.bands[BANDS[0]].shape
-    if maps is None:
-        maps = {name: np.empty((len(BANDS),) + shape, dtype) for name in ("radiance", "random", "systematic")}
-        maps["flags"] = np.empty((len(BANDS),) + shape, np.uint8)
-    scratch = np.empty(shape, dtype)  # one per lens (the lenses may run in two threads), reused by its bands
-    rectilinear = _projection(bundle, lens) == "rectilinear"
-    for j, band in enumerate(BANDS):
-        black = optical_black_level(raw, bundle, lens, band) if rectilinear and "bias_drift" in effects else None
-        m = band_radiance(images, bundle, lens, band, medium, effects, frame, negative_sigma=negative_sigma,
-                          source=raw.path, out=(maps["radiance"][j], maps["random"][j], maps["systematic"][j]),
-                          scratch=scratch, frame_black=black)
-        np.copyto(maps["flags"][j], m.flags)
-        del m
-    return {name: list(maps[name]) for name in ("radiance", "random", "systematic", "flags")}
 
+    def __init__(self, n_cells: int, n_extra: int = 0, squared=()):
+        self.n_cells = n_cells
+        self.squared = tuple(squared) + (False,) * (n_extra - len(squared))
+        self.count = np.zeros(n_cells + 1)
+        self.sums = np.zeros((2 + n_extra, n_cells + 1))
 
-def _frame_radiance(raw, bundle, medium, effects, negative_sigma, dtype=np.float32, pool=None, maps=None):
-    """Radiance, random and systematic sigma, flags of one decoded frame: per lens, lists over the bands.
+    def add(self, cell, value, extra=(), excluded=None) -> None:
+        v = np.asarray(value).ravel()
+        cell = np.asarray(cell).ravel()
+        out = ~np.isfinite(v)
+        out |= cell < 0
+        if excluded is not None:
+            out |= np.asarray(excluded).ravel()
+        index = cell.astype(np.intp)
+        np.copyto(index, self.n_cells, where=out)
+        n = self.n_cells + 1
+        self.count += np.bincount(index, minlength=n)
+        w = v.astype(float)  # a NaN goes to the spill cell only
+        self.sums[0] += np.bincount(index, weights=w, minlength=n)
+        np.square(w, out=w)
+        self.sums[1] += np.bincount(index, weights=w, minlength=n)
+        for k, x in enumerate(extra):
+            np.copyto(w, np.asarray(x).ravel())
+            if self.squared[k]:
+                np.square(w, out=w)
+            self.sums[2 + k] += np.bincount(index, weights=w, minlength=n)
 
-    With a thread ``pool`` the lenses run side by side (numpy releases the
-    GIL in its array operations); ``bundle`` must then be in memory. With
-    ``maps`` ({name: (lens, band, y, x) array}) the results are written there.
-    """
-    lenses = list(bundle["lens"].values)
-    frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
-    args = (medium, effects, frame, negative_sigma, dtype)
-    per = [None if maps is None else {k: v[i] for k, v in maps.items()} for i in range(len(lenses))]
-    if pool is None:
-        return [_lens_radiance(raw, bundle, lens, *args, per[i]) for i, lens in enumerate(lenses)]
-    return [f.result() for f in [pool.submit(_lens_radiance, raw, bundle, lens, *args, per[i])
-                                 for i, lens in enumerate(lenses)]]
+    def merge(self, other: "_CellSums") -> "_CellSums":
+        self.count += other.count
+        self.sums += other.sums
+        return self
+
+    def result(self):
+        """Mean, spread (standard deviation, NaN below 2 pixels), count (int32) and the extras' means per cell.
+
+        The spread in one pass, from the sum of squares less n mean^2 (a float32 value squares exactly in
+        float64; the cancellation leaves about 1e-8 of the mean in the spread of a cell of equal values).
+        """
+        count, sums = self.count[:self.n_cells], self.sums[:, :self.n_cells]
+        has = count > 0
+        per = np.where(has, count, 1)
+        mean = np.where(has, sums[0] / per, np.nan)
+        var = sums[1] - count * np.square(np.where(has, mean, 0.0))
+        np.clip(var, 0.0, None, out=var)
+        spread = np.where(count > 1, np.sqrt(var / np.where(count > 1, count - 1, 1)), np.nan)
+        means = [np.where(has, sums[2 + k] / per, np.nan) for k in range(len(sums) - 2)]
+        return mean, spread, count.astype(np.int32), means
 
 
 def _bin_cells(cells, values, n_cells: int, extra=(), excluded=None, squared=()):
@@ -274,48 +292,209 @@ def _bin_cells(cells, values, n_cells: int, extra=(), excluded=None, squared=())
     A value enters where its cell is >= 0, it is finite and (with
     ``excluded``, a list of boolean arrays like ``values``) not excluded;
     ``extra`` (a list of such lists) are averaged over the same pixels of
-    each cell, squared first where ``squared[k]``. Every pixel is counted
-    with ``np.bincount``; those that do not enter go to one more cell, dropped
-    at the end (no copy of the pixels that enter). The sums are taken in
-    float64 through one scratch array; the spread in one pass, from the sum
-    of squares less n mean^2 (a float32 value squares exactly in float64; the
-    cancellation leaves about 1e-8 of the mean in the spread of a cell of
-    equal values).
+    each cell, squared first where ``squared[k]`` (:class:`_CellSums`).
     """
-    squared = tuple(squared) + (False,) * (len(extra) - len(squared))
-    count = np.zeros(n_cells + 1)
-    sums = np.zeros((2 + len(extra), n_cells + 1))
-    scratch = None
+    sums = _CellSums(n_cells, len(extra), squared)
     for i, (cell, v) in enumerate(zip(cells, values)):
-        v = np.asarray(v).ravel()
-        cell = np.asarray(cell).ravel()
-        out = ~np.isfinite(v)
-        out |= cell < 0
-        if excluded is not None:
-            out |= np.asarray(excluded[i]).ravel()
-        index = cell.astype(np.intp)
-        np.copyto(index, n_cells, where=out)
-        count += np.bincount(index, minlength=n_cells + 1)
-        if scratch is None or scratch.shape != v.shape:
-            scratch = np.empty(v.shape, float)
-        np.copyto(scratch, v)  # a NaN goes to the spill cell only
-        sums[0] += np.bincount(index, weights=scratch, minlength=n_cells + 1)
-        np.square(scratch, out=scratch)
-        sums[1] += np.bincount(index, weights=scratch, minlength=n_cells + 1)
-        for k, x in enumerate(extra):
-            np.copyto(scratch, np.asarray(x[i]).ravel())
-            if squared[k]:
-                np.square(scratch, out=scratch)
-            sums[2 + k] += np.bincount(index, weights=scratch, minlength=n_cells + 1)
-    count, sums = count[:n_cells], sums[:, :n_cells]
-    has = count > 0
-    per = np.where(has, count, 1)
-    mean = np.where(has, sums[0] / per, np.nan)
-    var = sums[1] - count * np.square(np.where(has, mean, 0.0))
-    np.clip(var, 0.0, None, out=var)
-    spread = np.where(count > 1, np.sqrt(var / np.where(count > 1, count - 1, 1)), np.nan)
-    means = [np.where(has, sums[2 + k] / per, np.nan) for k in range(len(extra))]
-    return mean, spread, count.astype(np.int32), means
+        sums.add(cell, v, [x[i] for x in extra], None if excluded is None else excluded[i])
+    return sums.result()
+
+
+@dataclass(frozen=True)
+class _BandPlan:
+    """What the chain needs of one band of one lens for every frame of an ``apply`` call (made once per call).
+
+    ``factors`` the hot-pixel flags, flat field and roll-off taken together
+    (:func:`pipeline.radiometry.measurement.pixel_factors`), ``cells`` the
+    sphere cell of every pixel, ``corners`` the unlit corners whose mean is
+    the frame's black level with ``bias_drift`` (fisheye lenses; else None).
+    """
+
+    factors: mm.PixelFactors
+    cells: np.ndarray
+    corners: np.ndarray | None
+    #: per block of rows: its (rows, columns) (all columns with the pixel maps; else those that reach inside
+    #: the image circle; blocks wholly outside it left out), its first cell, every pixel's cell less the first (np.intp; one past its
+    #: last cell, the block's spill cell, where a frame-independent flag (outside the image circle, beyond
+    #: the calibrated field angle, hot) or no direction keeps the pixel off the grid) and its pixels per cell
+    blocks: list
+
+
+def _band_plan(bundle, lens, band, medium, effects, cells, n_cells: int, block_rows: int, pixels: bool) -> _BandPlan:
+    g = bundle.sel(lens=lens, medium=medium, band=band)
+    shape = g["theta_deg" if "theta_deg" in g else "rolloff_inverse"].shape
+    whole = (slice(0, shape[0]), slice(0, shape[1]))
+    rolloff = _stored_rolloff(g, *whole, effects)
+    if rolloff is None:
+        theta = np.asarray(g["theta_deg"].values, dtype=float)
+        theta = np.where(outside_image_circle(g, theta, *whole, shape), np.nan, theta)
+        frame = mm.FrameSettings(exposure_s=1.0, iso=float(bundle["dark_iso"].values.min()))
+        cal = band_parameters(bundle, lens, band, medium, frame, effects)[2]
+        rolloff = mm.rolloff_map(theta, cal, g["phi_deg"].values, effects, np.float32,
+                                 theta_deg_sigma=g["theta_deg_sigma"].values if "theta_deg_sigma" in g else None)
+    b = bundle.sel(lens=lens, band=band)
+    factors = mm.pixel_factors(rolloff, effects, hot_mask=_crop(b, "hot_pixel_mask", *whole),
+                               flat_field=_crop(b, "flat_field", *whole),
+                               flat_field_sigma=_crop(b, "flat_field_sigma", *whole),
+                               prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
+                               sites=SITES_PER_BAND_PIXEL[band])
+    corners = None
+    if "bias_drift" in effects and _projection(bundle, lens) != "rectilinear":
+        # the frame's own black level from the unlit corners of the whole band image
+        corners = _unlit_corners(tuple(shape), _default_corner_fraction())
+        hot = _crop(b, "hot_pixel_mask", *whole)
+        if hot is not None and "hot_pixels" in effects:
+            corners = corners & ~(np.asarray(hot) > 0)
+    # per block the range of its cells: a pixel's index in the block is its cell less the block's first one
+    cells = np.where((factors.flags & EXCLUDED_FROM_GRID) != 0, -1, cells).astype(np.int32, copy=False)
+    unsigned = cells.view(np.uint32)
+    # each row's first and last column inside the image circle (a row wholly outside: first > last)
+    inside = (factors.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) == 0
+    row_first = np.where(inside.any(axis=1), inside.argmax(axis=1), shape[1])
+    row_last = shape[1] - 1 - inside[:, ::-1].argmax(axis=1)
+    blocks = []
+    for r0 in range(0, shape[0], block_rows):
+        r = slice(r0, min(r0 + block_rows, shape[0]))
+        c = slice(0, shape[1])
+        if not pixels:
+            # the grid alone: only the block's columns that reach inside the image circle (the pixels
+            # outside it neither enter the grid nor the negative-mean check)
+            c0, c1 = int(row_first[r].min()), int(row_last[r][row_first[r] < shape[1]].max(initial=-1)) + 1
+            if c1 <= c0:
+                continue
+            c = slice(c0, c1)
+        # as uint32 the -1 of a pixel off the grid is the largest value: the block's first cell is the minimum
+        cell = unsigned[r, c]
+        first, last = int(cell.min()), int(cells[r, c].max())
+        first, n = (first, last - first + 1) if last >= 0 else (0, 0)
+        # the block's index: cell - first, n (the block's spill cell) off the grid; and its pixels per cell
+        index = np.minimum(cell - np.uint32(first), np.uint32(n)).astype(np.intp).ravel()
+        blocks.append(((r, c), first, index, np.bincount(index, minlength=n + 1)[:-1]))
+    return _BandPlan(factors=factors, cells=cells, corners=corners, blocks=blocks)
+
+
+def _lens_plans(bundle, lens, medium, effects, cells, n_cells: int, block_rows: int, pixels: bool) -> dict:
+    """The :class:`_BandPlan` of every band of ``lens`` ({band: plan}; ``cells`` per band)."""
+    return {band: _band_plan(bundle, lens, band, medium, effects, cells[j], n_cells, block_rows, pixels)
+            for j, band in enumerate(BANDS)}
+
+
+class _LensSums:
+    """The sphere-grid sums of one lens of a frame, per band: count, sum and sum of squares of the radiance,
+    sum of the random sigma squared and of the systematic sigma (:class:`_CellSums`, float64).
+
+    Each block of a band image is binned while it is in the cache, with
+    ``np.bincount`` over the block's own cells (a few thousand, so the counts
+    stay in the cache too; the pixels of a cell are summed in the order
+    :func:`_bin_cells` sums them); the pixels a frame's flags keep off
+    (saturated, not finite) go to the block's spill cell.
+    """
+
+    def __init__(self, n_cells: int, n_bands: int):
+        self.bands = [_CellSums(n_cells, 2, squared=(True, False)) for _ in range(n_bands)]
+
+    def add_block(self, band: int, first: int, index, count, value, rnd, sy, excluded) -> None:
+        """Bin one block (``first``, ``index``, ``count``: :attr:`_BandPlan.blocks`); ``excluded`` kept off."""
+        n = count.size + 1
+        excluded = excluded.ravel()
+        cells = slice(first, first + count.size)
+        total = self.bands[band]
+        # the pixels a frame's flags keep off: out of the count, zero weight
+        total.count[cells] += count - np.bincount(index[excluded], minlength=n)[:-1]
+        w = value.ravel().astype(float)
+        np.copyto(w, 0.0, where=excluded)
+        total.sums[0, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        np.square(w, out=w)
+        total.sums[1, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        np.square(rnd.ravel(), out=w, dtype=float)
+        np.copyto(w, 0.0, where=excluded)
+        total.sums[2, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        np.copyto(w, sy.ravel())
+        np.copyto(w, 0.0, where=excluded)
+        total.sums[3, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+
+
+def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, plans, block_rows, maps=None,
+                   sums=None, parameters=None):
+    """One lens of a decoded frame through the chain, a block of ``block_rows`` rows of a band image at a time.
+
+    ``plans`` the lens's :class:`_BandPlan` per band. With ``maps``
+    ({name: (band, y, x) array}: ``radiance``, ``random``, ``systematic``
+    float32, ``flags`` uint8) each block is evaluated straight into them;
+    with ``sums`` (a :class:`_LensSums`) each block's weights for the sphere
+    grid are taken while it is in the cache, and each band binned. Each pixel's result is the one of the
+    chain on the whole image. A mean radiance over the unflagged pixels inside
+    the circle more than ``negative_sigma`` standard errors below zero raises
+    :class:`~pipeline.errors.ImpossibleResult`, as :func:`band_radiance` does.
+    ``parameters``: a dict that keeps the chain's parameter objects of each
+    lens, band and frame setting for the next frames of the call.
+    """
+    parameters = {} if parameters is None else parameters
+    span = bundle["lens_region_px"].sel(lens=lens).values
+    images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
+    shape = images.bands[BANDS[0]].shape
+    if tuple(plans[BANDS[0]].factors.inverse.shape) != tuple(shape):
+        raise InputError(raw.path, f"lens '{lens}' band image is {shape}, the calibration's "
+                                   f"{tuple(plans[BANDS[0]].factors.inverse.shape)}")
+    rows = max(1, min(int(block_rows), shape[0]))
+    # per block: the chain's three results (unless written into maps) and one scratch for its sums of variances
+    block = {name: np.empty(rows * shape[1], np.float32) for name in ("radiance", "random", "systematic", "scratch")}
+    block["wide"] = np.empty(rows * shape[1])
+    rectilinear = _projection(bundle, lens) == "rectilinear"
+    good_bits = mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT
+    for j, band in enumerate(BANDS):
+        plan = plans[band]
+        image, saturated = images.bands[band], images.saturated[band]
+        key = (lens, band, frame)
+        if key not in parameters:
+            parameters[key] = band_parameters(bundle, lens, band, medium, frame, effects)
+        dark, response, cal = parameters[key]
+        black = None
+        if "bias_drift" in effects:
+            if rectilinear:
+                black = optical_black_level(raw, bundle, lens, band)
+            elif plan.corners is not None:
+                unlit = np.asarray(image[plan.corners], dtype=float)
+                # subtract_dark's level and variance from the unlit pixels, taken once for the blocks
+                black = (float(unlit.mean()), float(unlit.var(ddof=1) / unlit.size)) if unlit.size > 1 else None
+        total, total_var, n_good = 0.0, 0.0, 0
+        for window, first, index, count in plan.blocks:
+            m = mm.measure_band(image[window], frame, dark, response, cal, None, medium, effects,
+                                saturated=saturated[window], factors=plan.factors.window(window),
+                                frame_black_dn=black)
+            if maps is not None:
+                value, rnd, sy = (maps[name][j][window] for name in ("radiance", "random", "systematic"))
+                np.copyto(maps["flags"][j][window], m.flags)
+                scratch = block["scratch"][:value.size].reshape(value.shape)
+            else:
+                value, rnd, sy, scratch = (block[name][:index.size].reshape(m.flags.shape)
+                                           for name in ("radiance", "random", "systematic", "scratch"))
+            m.evaluate_into(value, rnd, sy, scratch=scratch)
+            finite = np.isfinite(value)
+            bad = (m.flags & good_bits) != 0
+            bad |= ~finite
+            n_good += bad.size - int(np.count_nonzero(bad))
+            # sums over the good pixels in float64 (the chain runs in float32), the others zeroed in a float64
+            # copy (a reduction with where= took 0.28 ms per block, these 0.05)
+            wide = block["wide"][:bad.size].reshape(bad.shape)
+            np.copyto(wide, value)
+            np.copyto(wide, 0.0, where=bad)
+            total += float(wide.sum())
+            np.square(rnd, out=wide, dtype=np.float64)
+            np.copyto(wide, 0.0, where=bad)
+            total_var += float(wide.sum())
+            if sums is not None:
+                excluded = (m.flags & EXCLUDED_FROM_GRID) != 0
+                excluded |= np.logical_not(finite, out=finite)
+                sums.add_block(j, first, index, count, value, rnd, sy, excluded)
+            del m
+        if n_good:
+            mean, se = total / n_good, np.sqrt(total_var) / n_good
+            if mean < -negative_sigma * se:
+                raise ImpossibleResult(raw.path, f"lens {lens}, band {band}: mean radiance {mean:.3g} W sr-1 m-2 "
+                                                 f"nm-1 over the image circle is {-mean / se:.1f} standard errors "
+                                                 "below zero: the dark level or the calibration does not fit this "
+                                                 "frame")
 
 
 def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
@@ -411,39 +590,45 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
     meta = []
     rectilinear = [lens for lens in lenses if _projection(bundle, lens) == "rectilinear"]
     uncorrected = []   # (frame, lens) whose bias drift the model has and no optically black pixels measure
-    # the chain's results, per frame with the pixel maps; else one frame's, reused by every frame
-    shape = (len(raw_paths) if pixels else 1, len(lenses), len(BANDS)) + bundle["rolloff_inverse"].shape[-2:] \
-        if "rolloff_inverse" in bundle else None
-    maps = None if shape is None else {
+    # the pixel maps of every frame (only with pixels: the sphere grid is binned block by block)
+    shape = (len(raw_paths), len(lenses), len(BANDS)) + bundle["rolloff_inverse"].shape[-2:]
+    maps = None if not pixels else {
         "radiance": np.empty(shape, np.float32), "random": np.empty(shape, np.float32),
         "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
+    cells, zen, azi = directions.result()
+    # what does not depend on the frame, once per call for every frame: the hot-pixel flags, flat field and
+    # roll-off of every pixel as one factor with its terms, its cell, the unlit corners
+    negative_sigma, block_rows = float(cfg["negative_mean_sigma"]), int(cfg["block_rows"])
+    plans = [job.result() for job in [pool.submit(_lens_plans, bundle, lens, medium, effects, cells[i], n_z * n_a,
+                                                  block_rows, pixels) for i, lens in enumerate(lenses)]]
+    parameters = {}  # the chain's parameter objects per lens, band and frame setting
     for f, path in enumerate(raw_paths):
         raw = decoding.result()
         decoding = pool.submit(read_raw, raw_paths[f + 1], checksums=False) if f + 1 < len(raw_paths) else None
         check_frame(raw, bundle, effects)
-        # float32 as the chain runs on the band images (the grid's sums are taken in float64)
-        per_lens = _frame_radiance(raw, bundle, medium, effects, float(cfg["negative_mean_sigma"]), pool=pool,
-                                   maps=None if maps is None else {k: v[f if pixels else 0] for k, v in maps.items()})
+        frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
+        sums = [_LensSums(n_z * n_a, len(BANDS)) for _ in lenses]
+        # the lenses side by side (numpy releases the GIL in its array operations), each binning its own sums
+        jobs = [pool.submit(_lens_radiance, raw, bundle, lens, medium, effects, frame, negative_sigma, plans[i],
+                            block_rows, None if maps is None else {k: v[f, i] for k, v in maps.items()}, sums[i],
+                            parameters)
+                for i, lens in enumerate(lenses)]
+        for job in jobs:
+            job.result()
         meta.append((str(path), float(raw.exposure_s), float(raw.iso), raw.time.isoformat() if raw.time else ""))
         if "bias_drift" in effects:
             uncorrected += [(path.name, lens) for lens in rectilinear
                             if optical_black_level(raw, bundle, lens, BANDS[0]) is None]
         del raw
-        cells, zen, azi = directions.result()
-
-        def bin_band(j, per_lens=per_lens):
-            return _bin_cells([c[j] for c in cells], [r["radiance"][j] for r in per_lens], n_z * n_a,
-                              extra=([r["random"][j] for r in per_lens], [r["systematic"][j] for r in per_lens]),
-                              excluded=[(r["flags"][j] & EXCLUDED_FROM_GRID) != 0 for r in per_lens],
-                              squared=(True, False))
-
-        # the bands side by side (np.bincount and the array operations release the GIL)
-        for j, (mean, spread, n, (rnd, sy)) in enumerate(pool.map(bin_band, range(len(BANDS)))):
+        for j in range(len(BANDS)):
+            total = sums[0].bands[j]
+            for other in sums[1:]:
+                total.merge(other.bands[j])
+            mean, spread, n, (rnd, sy) = total.result()
             grid["mean"][f, j], grid["spread"][f, j] = mean.reshape(n_z, n_a), spread.reshape(n_z, n_a)
             count[f, j] = n.reshape(n_z, n_a)
             grid["random"][f, j] = np.sqrt(rnd / np.where(n > 0, n, 1)).reshape(n_z, n_a)
             grid["systematic"][f, j] = sy.reshape(n_z, n_a)
-        del per_lens
     rad_units = "W sr-1 m-2 nm-1"
     convention = SPHERE_CONVENTION.format(zenith=zenith_lens)
     flag_values = np.array(list(mm.FLAG_MEANINGS.values()), np.uint8)
@@ -518,9 +703,11 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
               "has no optical_black_offset_dn")
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.name}.tmp")
-    # the sphere grid: zlib level 1 with the byte shuffle (about as small as level 4 without it)
-    big = {name: {"zlib": True, "complevel": 1, "shuffle": True} for name, var in ds.data_vars.items()
-           if var.dtype.kind in "fiu" and var.size > 1024}
+    # the sphere grid: uncompressed by default (zlib level 1 with the byte shuffle took 0.16 s of CPU per frame
+    # for 4.6 MB instead of 7.0 MB at 1 degree); apply.sphere_zlib_level > 0 compresses it, with the shuffle
+    level = int(cfg["sphere_zlib_level"])
+    big = {name: ({"zlib": True, "complevel": level, "shuffle": True} if level else {"zlib": False})
+           for name, var in ds.data_vars.items() if var.dtype.kind in "fiu" and var.size > 1024}
     # the per-pixel maps uncompressed: compressing them (zlib level 1) was most of apply's time at the full
     # scale (9 of 22 s) for a file half the size (benchmarks/bench_apply.py; --no-pixels when size matters)
     big.update({name: {"zlib": False, "contiguous": True} for name, var in ds.data_vars.items() if "y" in var.dims})

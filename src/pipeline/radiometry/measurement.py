@@ -56,7 +56,7 @@ from pipeline.radiometry.rolloff import rolloff_on_image, rolloff_slope_on_image
 __all__ = [
     "FLAG_SATURATED", "FLAG_HOT", "FLAG_OUTSIDE_IMAGE_CIRCLE", "FLAG_BEYOND_CALIBRATED_ANGLE", "FLAG_MEANINGS",
     "Measured", "FrameSettings", "DarkModel", "ResponseModel", "BandCalibration",
-    "RolloffMap", "rolloff_map",
+    "RolloffMap", "rolloff_map", "PixelFactors", "pixel_factors", "flat_field_terms", "correct_pixel_factors",
     "from_raw", "subtract_dark", "add_shot_noise", "flag_hot_pixels", "flag_saturation", "linearise", "normalise_exposure",
     "correct_flat_field", "correct_rolloff", "correct_immersion", "to_radiance", "measure_band",
     "check_inverse_responsivity",
@@ -570,14 +570,19 @@ def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float =
     """
     if "prnu" not in effects or flat_field is None:
         return m
-    dtype = np.result_type(np.float32, m.base)
+    inverse, rel = flat_field_terms(flat_field, flat_field_sigma, prnu_sigma_rel, sites, np.result_type(np.float32, m.base))
+    out = m.scaled(inverse, m.units)
+    return out._replace(random_rel={**out.random_rel, "prnu": rel})
+
+
+def flat_field_terms(flat_field, flat_field_sigma=None, prnu_sigma_rel: float = 0.0, sites: int = 1, dtype=np.float32):
+    """What :func:`correct_flat_field` multiplies by (1 / F, 1 where F is not measured) and its ``prnu`` relative variance."""
     flat = np.asarray(flat_field, dtype=dtype)
     measured = np.isfinite(flat) & (flat > 0)
     flat = np.where(measured, flat, 1.0).astype(dtype, copy=False)
-    out = m.scaled(1.0 / flat, m.units)
     flat_rel = 0.0 if flat_field_sigma is None else np.nan_to_num(np.asarray(flat_field_sigma, dtype)) / flat
     rel = np.where(measured, np.square(flat_rel), float(prnu_sigma_rel) ** 2 / sites).astype(dtype, copy=False)
-    return out._replace(random_rel={**out.random_rel, "prnu": rel})
+    return (1.0 / flat).astype(dtype, copy=False), rel
 
 
 @dataclass(frozen=True)
@@ -652,6 +657,57 @@ def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration, phi_de
     return out.flagged_by(rolloff.flags)
 
 
+@dataclass(frozen=True)
+class PixelFactors:
+    """The frame-independent per-pixel part of the chain, taken once: flat field, hot pixels and roll-off together.
+
+    ``inverse`` the product of the flat-field step's 1 / F (``prnu``) and the
+    roll-off step's 1 / g(theta, phi); ``systematic_rel`` the roll-off's
+    relative variances (:attr:`RolloffMap.relative_var`); ``random_rel`` the
+    flat field's (``prnu``, empty without the effect); ``flags`` the roll-off
+    map's geometry bits ORed with :data:`FLAG_HOT` of the hot-pixel mask
+    (``hot_pixels``). :func:`measure_band` with them applies in one step what
+    :func:`flag_hot_pixels`, :func:`correct_flat_field` and
+    :func:`correct_rolloff` apply in three: the same factors and terms (the
+    product of the two maps is rounded once in float32).
+    """
+
+    inverse: np.ndarray
+    systematic_rel: dict
+    random_rel: dict
+    flags: np.ndarray
+
+    def window(self, key) -> "PixelFactors":
+        """These factors on a window of the image (``key`` a slice of rows or a (rows, columns) pair; views)."""
+        def cut(x):
+            return x[key] if np.ndim(x) else x
+        return PixelFactors(cut(self.inverse), {k: cut(v) for k, v in self.systematic_rel.items()},
+                            {k: cut(v) for k, v in self.random_rel.items()}, cut(self.flags))
+
+
+def pixel_factors(rolloff: RolloffMap, effects, *, hot_mask=None, flat_field=None, flat_field_sigma=None,
+                  prnu_sigma_rel: float = 0.0, sites: int = 1, dtype=np.float32) -> PixelFactors:
+    """The :class:`PixelFactors` of a band image from its roll-off map and, per ``effects``, flat field and hot pixels."""
+    inverse = np.asarray(rolloff.inverse, dtype)
+    flags = np.asarray(rolloff.flags, np.uint8)
+    random_rel = {}
+    if "prnu" in effects and flat_field is not None:
+        flat_inverse, random_rel["prnu"] = flat_field_terms(flat_field, flat_field_sigma, prnu_sigma_rel, sites, dtype)
+        inverse = np.multiply(inverse, flat_inverse, dtype=dtype)
+    if "hot_pixels" in effects and hot_mask is not None:
+        flags = flags | np.where(np.asarray(hot_mask) > 0, np.uint8(FLAG_HOT), np.uint8(0))
+    rel = {k: np.asarray(v, dtype) for k, v in rolloff.relative_var.items()}
+    return PixelFactors(inverse=inverse, systematic_rel=rel, random_rel=random_rel, flags=flags)
+
+
+def correct_pixel_factors(m: Measured, factors: PixelFactors) -> Measured:
+    """Hot pixels, flat field and roll-off in one step (:class:`PixelFactors`)."""
+    out = m.scaled(factors.inverse, m.units, relative_systematic=factors.systematic_rel)
+    if factors.random_rel:
+        out = out._replace(random_rel={**out.random_rel, **factors.random_rel})
+    return out.flagged_by(factors.flags)
+
+
 def correct_immersion(m: Measured, calibration: BandCalibration, medium: str) -> Measured:
     """In water multiply by the immersion factor I, Eq. (4) and (11); term ``immersion_factor``. In air, nothing."""
     if medium != "water":
@@ -683,20 +739,27 @@ def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: Resp
                  calibration: BandCalibration, theta_deg, medium: str, effects, *, saturated=None,
                  hot_mask=None, flat_field=None, prnu_sigma_rel: float = 0.0, phi_deg=None,
                  flat_field_sigma=None, rolloff: RolloffMap | None = None, unlit_dn=None,
-                 frame_black_dn=None) -> Measured:
+                 frame_black_dn=None, factors: PixelFactors | None = None) -> Measured:
     """One band image of one lens from raw DN to spectral radiance: the whole inverse of Eq. (4).
 
     ``rolloff``: the :func:`rolloff_map` of the image's pixels when already at hand (the bundle stores it).
+    ``factors``: the :func:`pixel_factors` of the image's pixels (hot pixels, flat field and roll-off taken
+    once for many frames); ``hot_mask``, the flat field, ``rolloff``, ``theta_deg`` and ``phi_deg`` are
+    then not used.
     """
     effects = tuple(effects)
     m = from_raw(image_dn, saturated)
     m = subtract_dark(m, dark, frame, effects, unlit_dn, frame_black_dn)
     m = add_shot_noise(m, dark, response, frame, effects)
-    m = flag_hot_pixels(m, hot_mask, effects)
+    if factors is None:
+        m = flag_hot_pixels(m, hot_mask, effects)
     m = flag_saturation(m, response)
     m = linearise(m, response, effects)
     m = normalise_exposure(m, response, frame, effects)
-    m = correct_flat_field(m, flat_field, effects, prnu_sigma_rel, flat_field_sigma, dark.sites_per_pixel)
-    m = correct_rolloff(m, theta_deg, calibration, phi_deg, effects, rolloff)
+    if factors is None:
+        m = correct_flat_field(m, flat_field, effects, prnu_sigma_rel, flat_field_sigma, dark.sites_per_pixel)
+        m = correct_rolloff(m, theta_deg, calibration, phi_deg, effects, rolloff)
+    else:
+        m = correct_pixel_factors(m, factors)
     m = correct_immersion(m, calibration, medium)
     return to_radiance(m, calibration)
