@@ -526,21 +526,27 @@ def write_closure_table(observations: list[Observations], model_effects: list[st
 
 
 def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, missing_csv, unexplained_csv,
-                       errors_csv, ledger_dir, history_csv, residual_tests_csv=None, closure_nc=None) -> pd.DataFrame:
-    """Rank missing effects over the stages' artefacts, test every table's residuals, write this run's figures
-    and the error history; ``residual_tests_csv`` defaults to ``residual_tests.csv`` beside ``unexplained_csv``;
-    the closure table is written to ``closure_nc`` when given."""
+                       errors_csv, ledger_dir, history_csv, residual_tests_csv=None, closure_nc=None,
+                       lens_tests_csv=None) -> pd.DataFrame:
+    """Rank missing effects over the stages' artefacts and the cross-experiment closure tables
+    (:mod:`pipeline.cross_closure`), test every table's residuals and whether one value shared by the lenses
+    is enough, write this run's figures and the error history; ``residual_tests_csv`` and ``lens_tests_csv``
+    default to ``residual_tests.csv`` and ``lens_tests.csv`` beside ``unexplained_csv``; the closure table
+    is written to ``closure_nc`` when given."""
     from pipeline.artefact import read_artefact, sha256_file
+    from pipeline.cross_closure import closure_observations, describe_closure, lens_interaction_tests
 
     load_plugins(config["model"].get("plugins", []))
     effects = list(config["model"]["effects"])
     loaded = {exp: [read_artefact(p, exp) for p in paths] for exp, paths in artefacts.items() if paths}
-    obs = observations_from_artefacts(loaded)
+    obs = observations_from_artefacts(loaded) + closure_observations(loaded, config)
     ranked, unexplained, tests = rank_missing_effects(obs, effects, config, with_tests=True)
+    unexplained = describe_closure(unexplained, obs, effects)
     figures = error_figures(obs, effects)
     residual_tests_csv = residual_tests_csv or Path(unexplained_csv).with_name("residual_tests.csv")
+    lens_tests_csv = lens_tests_csv or Path(unexplained_csv).with_name("lens_tests.csv")
     for path, table in ((missing_csv, ranked), (unexplained_csv, unexplained), (errors_csv, figures),
-                        (residual_tests_csv, tests)):
+                        (residual_tests_csv, tests), (lens_tests_csv, lens_interaction_tests(obs, effects, config))):
         _write_csv_atomic(table, Path(path))
     if closure_nc is not None:
         inputs = {f"{exp}/{Path(p).name}": sha256_file(p) for exp, paths in artefacts.items() for p in paths}
