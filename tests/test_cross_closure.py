@@ -39,9 +39,11 @@ from effect_forms import FORMS
 from pipeline.artefact import read_artefact
 from pipeline.cross_closure import closure_observations, describe_closure, lens_interaction_tests
 from pipeline.dataset import write_md5sums
+from pipeline.diagnosis import diagnosis_lines
 from pipeline.diagnostics import (_fit, model_design, observations_from_artefacts, residual_tests,
                                   unexplained_structure)
 from pipeline.rawio import read_raw, write_dng
+from pipeline.report.sections._closure import lens_tests_table
 from pipeline.workflow import run_stage
 
 LENSES = ("far", "close")
@@ -190,3 +192,14 @@ def test_shutter_offset_per_lens_reported_as_not_one_shared_value(lens_and_frame
     for name, lo, hi in zip(row["lenses"].split(), row["lows"].split(), row["highs"].split()):
         assert float(lo) <= truth[name] <= float(hi), (name, lo, hi, truth[name])
     assert row["message"].startswith("shutter_offset differs between the lenses: ")
+    # diagnose prints every test, and the differing one among the findings
+    empty = pd.DataFrame()
+    found = {"model_effects": effects, "n_measurements": 0, "run_errors": empty, "residual_tests": empty,
+             "missing_effects": empty, "unexplained": empty, "error_history": empty, "lens_tests": lens.reset_index()}
+    lines = diagnosis_lines(found)
+    findings = lines[lines.index("Findings:") + 1:]
+    assert any(line.strip().startswith("1. Shutter_offset differs between the lenses") for line in findings), lines
+    assert sum("shared value enough" in line for line in lines) == 2, lines
+    # the report's table marks the same row
+    table = lens_tests_table(lens.reset_index())
+    assert table.marked == [e == "shutter_offset" for e in lens.index]
