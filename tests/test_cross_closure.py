@@ -38,6 +38,7 @@ import yaml
 from effect_forms import FORMS
 from pipeline.artefact import read_artefact
 from pipeline.cross_closure import closure_observations, describe_closure, lens_interaction_tests
+from pipeline.config import stage_params
 from pipeline.dataset import write_md5sums
 from pipeline.diagnosis import diagnosis_lines
 from pipeline.diagnostics import (_fit, model_design, observations_from_artefacts, residual_tests,
@@ -86,7 +87,7 @@ def _loaded(artefacts: dict) -> dict:
 
 
 def _closure_tests(loaded, config, effects):
-    obs = closure_observations(loaded, config)
+    obs = closure_observations(loaded, stage_params(config, "diagnostics"))   # what the diagnostics rule gets
     tests = residual_tests(obs, effects, pd.DataFrame(), config["diagnostics"])
     return obs, tests.set_index("level")
 
@@ -108,7 +109,8 @@ def test_clean_closure_tables_stay_clean(clean, config):
     assert set(resp["source"]) == {"linearity_exposure", "linearity_gain", "rolloff_air", "absolute"}
     assert len(resp) == 4 * 2 * 3
     assert not tests["significant"].any(), tests[["chi2", "dof", "p_value"]]
-    lens = lens_interaction_tests(observations_from_artefacts(loaded) + obs, effects, config)
+    lens = lens_interaction_tests(observations_from_artefacts(loaded) + obs, effects,
+                                  stage_params(config, "diagnostics"))
     assert set(lens["effect"]) == {"dark_current", "shutter_offset", "iso_gain"}
     assert not lens["significant"].any(), lens[["effect", "values", "p_value"]]
 

@@ -23,7 +23,8 @@ chi-square against its degrees of freedom, the closure table, ``diagnose``'s sen
   linearity's nonlinearity and divided by the true exposure (t + offset) times ISO / 100; the
   absolute stage's DN/s comes corrected by the fitted response. Each mask mean is the axis value
   times the mean roll-off over the mask (equidistant: weight theta d theta), from the roll-off
-  artefact, which the linearity and absolute rows are divided by. The uncertainty of each row is
+  artefact, which the linearity and absolute rows are divided by (the mask half-angles as the
+  linearity artefact's recorded config and the absolute artefact state them). The uncertainty of each row is
   its own stage's standard error (relative, since the value is a logarithm). The table is tested by
   its chi-square tail, one block per row: the three bands of one source and lens share frames, but
   with eight source-lens blocks a block test cannot tell a source whose level moved between the
@@ -58,6 +59,8 @@ Nothing here reads a simulator's truth: only the stage artefacts.
 """
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pandas as pd
@@ -94,6 +97,15 @@ def _lens_of(ds: xr.Dataset) -> str | None:
 
 def _by_lens(datasets: list[xr.Dataset]) -> dict[str, xr.Dataset]:
     return {lens: ds for ds in datasets if (lens := _lens_of(ds)) is not None}
+
+
+def _stage_setting(ds: xr.Dataset, stage: str, key: str, default: float) -> float:
+    """A setting of the stage that wrote ``ds``, from the config subset its artefact records (the diagnostics
+    rule is given only the model and diagnostics sections)."""
+    try:
+        return float(json.loads(ds.attrs.get("config", "{}")).get(stage, {}).get(key, default))
+    except (json.JSONDecodeError, TypeError, ValueError):
+        return default
 
 
 def _effect_value(ds: xr.Dataset, name: str) -> float:
@@ -163,7 +175,7 @@ def responsivity_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.
                 if sweep == "gain" and len(t_gain):
                     t = float(t_gain.iloc[0])
                     rate *= t / (t + offset)
-                rate /= mask_factor(lens, band, config["linearity"]["mask_half_angle_deg"])
+                rate /= mask_factor(lens, band, _stage_setting(ds, "linearity", "mask_half_angle_deg", 0.0))
                 rows.append({"source": f"linearity_{sweep}", "lens": lens, "band": band, "rate": rate,
                              "sigma": relative * rate})
     for lens, ds in roll.items():
