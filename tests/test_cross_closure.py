@@ -18,7 +18,7 @@ injected cases rewrite copies of one or two of its experiment folders and rerun 
   far lens (gain sweep), not in the dark model. Its unlit corners sit 0.6 DN above the dark model
   against a noise of 1.6 DN / sqrt(868 sites) = 0.055 DN (R, B; G has twice the sites): about
   11 sigma per band. ``closure/dark_corners`` is structured and its rows beyond 5 sigma are that
-  frame's.
+  frame's three bands.
 * A shutter offset of each lens's own (tests/effect_forms.py ``shutter_offset_per_lens``: 0.6 ms far,
   0.2 ms close; the package fits one shared by both lenses): the lens-interaction test of
   ``shutter_offset`` is significant and each lens's 95 % interval holds its own truth. The same copy
@@ -177,7 +177,7 @@ def test_frame_bias_offset_found_in_the_dark_corner_closure(lens_and_frame, conf
     dark = table.table
     z = _fit(table, model_design(table, effects)).z
     far_rows = dark[np.abs(z) > 5]
-    assert len(far_rows) >= 2, dark.assign(z=z).sort_values("z").tail()
+    assert len(far_rows) == 3, dark.assign(z=z).sort_values("z").tail()      # the frame's three bands
     assert far_rows["frame_index"].nunique() == 1
     assert set(far_rows["lens"]) == {"far"} and set(far_rows["iso"]) == {100.0}
     assert set(far_rows["sweep"]) == {"gain"}

@@ -137,7 +137,9 @@ def _rolloff_axis(ds: xr.Dataset) -> pd.DataFrame:
         g = g.reset_index(drop=True)
         a0 = float(np.median(g["signal_dn"] / g["value_dn"]))      # the stage's normalisation (DN)
         X, names = base_design(g)
-        fit = wls(g["value_dn"].to_numpy(float), g["sigma_dn"].to_numpy(float), X)
+        # less the fitted effects' share of each spot (stray light with it in the model), as the stage fits a0
+        y = g["value_dn"].to_numpy(float) - (np.nan_to_num(g["effect_dn"].to_numpy(float)) if "effect_dn" in g else 0.0)
+        fit = wls(y, g["sigma_dn"].to_numpy(float), X)
         k = [i for i, n in enumerate(names) if n.endswith(":p0")]
         if not k:
             continue
