@@ -293,6 +293,8 @@ def describe_closure(unexplained: pd.DataFrame, observations: list[Observations]
 # ------------------------------------------------------------------------------------------- per lens
 
 def _amount(value: float, units: str) -> str:
+    if units == "s" and abs(value) < 0.1:       # shutter offsets read in milliseconds
+        return f"{1e3 * value:.3g} ms"
     return f"{value:.3g}" + ("" if units in ("", "1") else f" {units}")
 
 
