@@ -181,6 +181,11 @@ def test_frame_bias_offset_found_in_the_dark_corner_closure(lens_and_frame, conf
     assert far_rows["frame_index"].nunique() == 1
     assert set(far_rows["lens"]) == {"far"} and set(far_rows["iso"]) == {100.0}
     assert set(far_rows["sweep"]) == {"gain"}
+    # diagnose's sentence says what the table compares and names the frame
+    message = describe_closure(unexplained_structure(tests.reset_index()), obs, effects)
+    text = " ".join(message.loc[message["level"] == "dark_corners", "message"])
+    assert text.startswith("the dark model mispredicts the unlit corners of the lit linearity frames"), text
+    assert f"largest departure is frame {int(far_rows['frame_index'].iloc[0])}, far lens" in text, text
 
 
 def test_shutter_offset_per_lens_reported_as_not_one_shared_value(lens_and_frame, config):
