@@ -20,7 +20,7 @@ injected cases rewrite copies of one or two of its experiment folders and rerun 
   11 sigma per band. ``closure/dark_corners`` is structured and its rows beyond 5 sigma are that
   frame's three bands.
 * A shutter offset of each lens's own (tests/effect_forms.py ``shutter_offset_per_lens``: 0.6 ms far,
-  0.2 ms close; the package fits one shared by both lenses): the lens-interaction test of
+  0.2 ms close; the candidate test fits one shared by both lenses): the lens-interaction test of
   ``shutter_offset`` is significant and each lens's 95 % interval holds its own truth. The same copy
   carries the bias offset of the case above (one linearity rerun for both): the offset frame changes
   its setting's mean by 0.15 DN, under a tenth of a setting's noise.

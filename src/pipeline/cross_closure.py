@@ -47,11 +47,14 @@ chi-square against its degrees of freedom, the closure table, ``diagnose``'s sen
   spread is common to a frame's rows, and the frame (``file_index``) is the block.
 
 Per-lens parameters (:func:`lens_interaction_tests`): the two lenses are two sensors, so dark
-current, shutter offset and the ISO gain factors may differ between them; the stages fit one value
-shared by both lenses (``Effect.columns``). For each effect of ``diagnostics.lens_interaction_effects``
-(in the model or a candidate), on every table whose rows carry both lenses, the effect's columns
-shared by the lenses are compared with the same columns split per lens (the rest of the model as
-it is): the drop in chi-square F-tested against the split model's residual variance and, by
+current, shutter offset and the ISO gain factors may differ between them. Every stage fits each lens
+on its own (one job and one artefact per lens), so an effect of the model has each lens's own value
+in its artefact, and the diagnostics refit it per lens on their pooled tables
+(:func:`pipeline.diagnostics.per_lens_columns`); a candidate is tested with one column shared by the
+lenses (``Effect.columns``). Whether one shared value is enough: for each effect of
+``diagnostics.lens_interaction_effects`` (in the model or a candidate), on every table whose rows
+carry both lenses, the effect's columns shared by the lenses are compared with the same columns split
+per lens (the rest of the model as it is): the drop in chi-square F-tested against the split model's residual variance and, by
 block, with the cluster-robust Wald test of the differences (the larger p-value, Bonferroni over
 the tests made). Each lens's value and its 95 % interval come from the split fit.
 
@@ -383,9 +386,9 @@ def lens_sentence(r: dict) -> str:
             f"lens {float(r['chi2_split']):.1f} for {int(r['dof_split'])} dof in {r['experiment']} ({r['level']} level), "
             f"p {float(r['p_value']):.2g}")
     if bool(r["significant"]):
-        then = ("the stages fit one value shared by the lenses: treat the calibration's value as their mean"
-                if bool(r["in_model"]) else f"add `{r['effect']}` to model.effects, and know that the stages fit one "
-                                             "value shared by the lenses")
+        then = ("each lens's artefact has its own value (every stage fits each lens on its own), as it must"
+                if bool(r["in_model"]) else f"add `{r['effect']}` to model.effects: every stage fits each lens on "
+                                             "its own, so each lens gets its own value")
         return f"{r['effect']} differs between the lenses: {each} (95 % intervals); {stat}; {then}"
     return f"{r['effect']}: one value shared by the lenses is enough ({each}; {stat})"
 

@@ -109,6 +109,7 @@ def observations_from_artefacts(artefacts: dict[str, list]) -> list[Observations
 
 
 def model_design(obs: Observations, model_effects: list[str]) -> np.ndarray:
+    """Base columns plus the columns of the model's effects; each lens its own (:func:`per_lens_columns`)."""
     X, _ = base_design(obs.table)
     cols = [X]
     for name in model_effects:
@@ -117,8 +118,20 @@ def model_design(obs: Observations, model_effects: list[str]) -> np.ndarray:
             continue
         c = effect.columns(obs.experiment, obs.level, obs.table)
         if c is not None:
-            cols.append(c)
+            cols.append(per_lens_columns(c, obs.table))
     return np.hstack(cols)
+
+
+def per_lens_columns(columns: np.ndarray, table: pd.DataFrame) -> np.ndarray:
+    """An effect's columns once per lens of a table that pools both lenses: every stage fits each lens on its
+    own (one job and one artefact per lens), so the model the diagnostics refit has each lens's own value."""
+    if "lens" not in table:
+        return columns
+    lens = table["lens"].astype(str).to_numpy()
+    names = list(dict.fromkeys(lens))
+    if len(names) < 2:
+        return columns
+    return np.hstack([columns * (lens == name)[:, None] for name in names])
 
 
 def blocks_of(table: pd.DataFrame, keys) -> tuple[np.ndarray, str]:

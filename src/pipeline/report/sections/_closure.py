@@ -82,8 +82,8 @@ def lens_tests_table(tests: pd.DataFrame) -> Table:
                  "Per-lens parameters: the two lenses are two sensors; each effect whose value may differ between "
                  "them is fitted once shared by both and once per lens (the rest of the model as it is); p is the "
                  "larger of the F test of the drop in χ² and its block-robust Wald test, and the lenses differ "
-                 "(highlighted) below the diagnostics' significance level over the tests made. The stages fit one "
-                 "shared value.", left=3, marked=marked)
+                 "(highlighted) below the diagnostics' significance level over the tests made. Every stage fits "
+                 "each lens on its own, so an effect of the model has each lens's value in its artefact.", left=3, marked=marked)
 
 
 def closure_frame(ds: xr.Dataset) -> tuple[pd.DataFrame, dict[str, str]]:
