@@ -20,7 +20,9 @@ chi-square against its degrees of freedom, the closure table, ``diagnose``'s sen
   linearity model's (shutter offset, ISO gain and nonlinearity fitted beside it); the gain sweep's
   rate, fitted against the nominal exposure, is divided by (t + shutter offset) / t; the roll-off's
   on-axis DN (a0 of its polynomial fit to the spot signals in air, Eq. 13) is linearised with the
-  linearity's nonlinearity and divided by the true exposure (t + offset) times ISO / 100; the
+  linearity's nonlinearity and divided by the true exposure (t + offset) times ISO / 100 (the
+  roll-off frames are at ISO 100, where the ISO gain factor is 1 by definition; at another ISO its
+  factor would be left out); the
   absolute stage's DN/s comes corrected by the fitted response. Each mask mean is the axis value
   times the mean roll-off over the mask (equidistant: weight theta d theta), from the roll-off
   artefact, which the linearity and absolute rows are divided by (the mask half-angles as the
