@@ -67,7 +67,8 @@ def test_artefacts_and_report(run):
     assert ranked.iloc[0]["effect"] == "shutter_offset" and bool(ranked.iloc[0]["significant"])
     history = pd.read_csv(workdir / "results/diagnostics/error_history.csv")
     assert set(history.columns) >= {"run_time", "experiment", "model_effects", "rms_z"}
-    assert set(history["experiment"]) == {"dark", "linearity"}
+    # the dark model against the linearity frames' unlit corners: the cross-experiment closure (pipeline.cross_closure)
+    assert set(history["experiment"]) == {"dark", "linearity", "closure"}
 
 
 def test_nothing_to_do_when_nothing_changed(run):
@@ -154,7 +155,7 @@ def test_keep_going_finishes_the_independent_jobs_and_reports_the_failure(run, t
     assert not (results / "report/index.html").exists() and not (results / "diagnostics/run_errors.csv").exists()
     assert f"  linearity: failed for lens far: {victim}: checksum mismatch" in proc.stderr
     failed = results / "failed_run"
-    assert set(pd.read_csv(failed / "run_errors.csv")["experiment"]) == {"dark", "linearity"}
+    assert set(pd.read_csv(failed / "run_errors.csv")["experiment"]) == {"dark", "linearity", "closure"}
     html = (failed / "index.html").read_text()
     assert "This run failed: <b>linearity</b> failed for lens far: " in html and f"{victim}: checksum mismatch" in html
     assert planned_rules(work, dataset) == {"linearity", "diagnostics", "report", "all"}

@@ -55,8 +55,11 @@ from pipeline.errors import ArtefactError
 #: a rectilinear lens's geometry without the fisheye model's variables (NaN) and no image circle.
 #: closure 1: the diagnostics' closure table
 #: (``results/closure/residuals.nc``, one row per measurement of every experiment, pipeline.diagnostics).
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 2, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 8, "field": 2, "closure": 1}
+#: rolloff 3: ``obs_setting`` gains the frames' ``exposure_s`` and ``iso`` (the cross-experiment closure turns
+#: the on-axis DN into DN per second); closure 2: the cross-experiment tables (experiment ``closure``, levels
+#: ``responsivity`` and ``dark_corners``, pipeline.cross_closure) among its rows.
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 3, "spectral": 2,
+                     "absolute": 3, "immersion": 2, "calibration": 8, "field": 2, "closure": 2}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

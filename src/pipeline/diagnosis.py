@@ -8,7 +8,11 @@ table ``results/closure/residuals.nc``); it recomputes nothing. Findings:
   constant as 1/t at short exposures, as a shutter_offset of 0.000406 s would; add `shutter_offset` to
   model.effects");
 * each table (experiment and level) whose residuals stay structured, with the covariate and the
-  image-plane cell they follow, beside the candidate that explains part of them if there is one.
+  image-plane cell they follow, beside the candidate that explains part of them if there is one; the
+  cross-experiment closure tables (experiment ``closure``, :mod:`pipeline.cross_closure`) among them, with
+  what they compare and their largest departure;
+* each effect whose value differs between the two lenses (``lens_tests.csv``: one value shared by the
+  sensors against one per lens), with both values and their intervals.
 
 ``--explain EFFECT`` prints the effect's physics and signature, whether the model has it, and how it
 fared in this run's ranking (p-values, evidence, amplitude, the smallest amplitude the data could show).
@@ -32,7 +36,10 @@ __all__ = ["diagnosis_lines", "explain_lines", "read_diagnostics"]
 #: the files the diagnostics rule writes, relative to the results folder
 FILES = {"missing_effects": "diagnostics/missing_effects.csv", "unexplained": "diagnostics/unexplained.csv",
          "residual_tests": "diagnostics/residual_tests.csv", "run_errors": "diagnostics/run_errors.csv",
-         "error_history": "diagnostics/error_history.csv", "closure": "closure/residuals.nc"}
+         "error_history": "diagnostics/error_history.csv", "closure": "closure/residuals.nc",
+         "lens_tests": "diagnostics/lens_tests.csv"}
+#: files a results folder written before they existed may lack (read as empty tables)
+OPTIONAL = ("lens_tests",)
 #: runs of the error history that ``diagnose`` prints (the latest)
 HISTORY_RUNS = 5
 
@@ -43,6 +50,9 @@ def read_diagnostics(results: str | Path) -> dict:
     out = {}
     for key, rel in FILES.items():
         path = results / rel
+        if not path.exists() and key in OPTIONAL:
+            out[key] = pd.DataFrame()
+            continue
         if not path.exists():
             raise InputError(path, "not found: run the workflow first (snakemake --cores 2), whose diagnostics "
                                    "rule writes it, or give the results folder with --results DIR")
@@ -130,6 +140,17 @@ def diagnosis_lines(found: dict, results: str | Path = "results") -> list[str]:
     unexplained = found["unexplained"]
     for _, row in unexplained.iterrows():
         findings.append(str(row["message"]))
+    lens_tests = found.get("lens_tests", pd.DataFrame())
+    if len(lens_tests):
+        lines += ["", "Per-lens parameters (one value shared by the two sensors against one per lens):"]
+        for _, t in lens_tests.iterrows():
+            verdict = "differ" if _truthy(t["significant"]) else "shared value enough"
+            values = ", ".join(f"{lens} {_amount(v, t['units'])}" for lens, v in
+                               zip(str(t["lenses"]).split(), str(t["values"]).split()))
+            lines.append(f"  {t['effect'] + ' (' + t['experiment'] + '/' + t['level'] + ')':<36} {values}; "
+                         f"p {float(t['p_value']):.2g}  {verdict}")
+            if _truthy(t["significant"]):
+                findings.append(str(t["message"]))
     lines += ["", "Findings:"]
     if not findings:
         lines.append("  none: no candidate effect is significant and every table's residuals are at the noise "

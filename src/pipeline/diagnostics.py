@@ -109,6 +109,7 @@ def observations_from_artefacts(artefacts: dict[str, list]) -> list[Observations
 
 
 def model_design(obs: Observations, model_effects: list[str]) -> np.ndarray:
+    """Base columns plus the columns of the model's effects; each lens its own (:func:`per_lens_columns`)."""
     X, _ = base_design(obs.table)
     cols = [X]
     for name in model_effects:
@@ -117,8 +118,20 @@ def model_design(obs: Observations, model_effects: list[str]) -> np.ndarray:
             continue
         c = effect.columns(obs.experiment, obs.level, obs.table)
         if c is not None:
-            cols.append(c)
+            cols.append(per_lens_columns(c, obs.table))
     return np.hstack(cols)
+
+
+def per_lens_columns(columns: np.ndarray, table: pd.DataFrame) -> np.ndarray:
+    """An effect's columns once per lens of a table that pools both lenses: every stage fits each lens on its
+    own (one job and one artefact per lens), so the model the diagnostics refit has each lens's own value."""
+    if "lens" not in table:
+        return columns
+    lens = table["lens"].astype(str).to_numpy()
+    names = list(dict.fromkeys(lens))
+    if len(names) < 2:
+        return columns
+    return np.hstack([columns * (lens == name)[:, None] for name in names])
 
 
 def blocks_of(table: pd.DataFrame, keys) -> tuple[np.ndarray, str]:
@@ -526,21 +539,27 @@ def write_closure_table(observations: list[Observations], model_effects: list[st
 
 
 def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, missing_csv, unexplained_csv,
-                       errors_csv, ledger_dir, history_csv, residual_tests_csv=None, closure_nc=None) -> pd.DataFrame:
-    """Rank missing effects over the stages' artefacts, test every table's residuals, write this run's figures
-    and the error history; ``residual_tests_csv`` defaults to ``residual_tests.csv`` beside ``unexplained_csv``;
-    the closure table is written to ``closure_nc`` when given."""
+                       errors_csv, ledger_dir, history_csv, residual_tests_csv=None, closure_nc=None,
+                       lens_tests_csv=None) -> pd.DataFrame:
+    """Rank missing effects over the stages' artefacts and the cross-experiment closure tables
+    (:mod:`pipeline.cross_closure`), test every table's residuals and whether one value shared by the lenses
+    is enough, write this run's figures and the error history; ``residual_tests_csv`` and ``lens_tests_csv``
+    default to ``residual_tests.csv`` and ``lens_tests.csv`` beside ``unexplained_csv``; the closure table
+    is written to ``closure_nc`` when given."""
     from pipeline.artefact import read_artefact, sha256_file
+    from pipeline.cross_closure import closure_observations, describe_closure, lens_interaction_tests
 
     load_plugins(config["model"].get("plugins", []))
     effects = list(config["model"]["effects"])
     loaded = {exp: [read_artefact(p, exp) for p in paths] for exp, paths in artefacts.items() if paths}
-    obs = observations_from_artefacts(loaded)
+    obs = observations_from_artefacts(loaded) + closure_observations(loaded, config)
     ranked, unexplained, tests = rank_missing_effects(obs, effects, config, with_tests=True)
+    unexplained = describe_closure(unexplained, obs, effects)
     figures = error_figures(obs, effects)
     residual_tests_csv = residual_tests_csv or Path(unexplained_csv).with_name("residual_tests.csv")
+    lens_tests_csv = lens_tests_csv or Path(unexplained_csv).with_name("lens_tests.csv")
     for path, table in ((missing_csv, ranked), (unexplained_csv, unexplained), (errors_csv, figures),
-                        (residual_tests_csv, tests)):
+                        (residual_tests_csv, tests), (lens_tests_csv, lens_interaction_tests(obs, effects, config))):
         _write_csv_atomic(table, Path(path))
     if closure_nc is not None:
         inputs = {f"{exp}/{Path(p).name}": sha256_file(p) for exp, paths in artefacts.items() for p in paths}

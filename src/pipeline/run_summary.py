@@ -168,6 +168,7 @@ def report_after_failure(results: str | Path, stage_lenses: dict[str, list[str]]
                      missing_effects=diag / "missing_effects.csv", unexplained=diag / "unexplained.csv",
                      run_errors=diag / "run_errors.csv", error_history=diag / "error_history.csv",
                      residual_tests=diag / "residual_tests.csv", closure=diag / "residuals.nc",
+                     lens_tests=diag / "lens_tests.csv",
                      out_html=diag / "index.html", skipped=skipped, failed=not_finished,
                      calibration=calibration[0] if calibration else None, settings=report_settings(config))
     except InputError as exc:

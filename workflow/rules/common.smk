@@ -145,6 +145,7 @@ def report_inputs(wildcards):
             "run_errors": "results/diagnostics/run_errors.csv",
             "error_history": "results/diagnostics/error_history.csv",
             "residual_tests": "results/diagnostics/residual_tests.csv",
+            "lens_tests": "results/diagnostics/lens_tests.csv",
             "closure": "results/closure/residuals.nc",
         }
     )

@@ -10,6 +10,8 @@ rule diagnostics:
         run_errors="results/diagnostics/run_errors.csv",
         # per experiment and level: residual chi-square against its dof, where structure sits
         residual_tests="results/diagnostics/residual_tests.csv",
+        # per effect that may differ between the two sensors: one shared value against one per lens
+        lens_tests="results/diagnostics/lens_tests.csv",
         # rebuilt at every run from the append-only ledger folder (one file per run, never rewritten)
         error_history="results/diagnostics/error_history.csv",
         # every measurement of every experiment: prediction, residual, expected noise, covariates

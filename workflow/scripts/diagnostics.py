@@ -7,4 +7,5 @@ smk = snakemake  # noqa: F821 (snakemake injects this object)
 setup_log(smk.log[0])
 exit_on_input_error(diagnose_artefacts, {stage: list(paths) for stage, paths in smk.input.items()},
                     smk.params.config, smk.output.missing_effects, smk.output.unexplained, smk.output.run_errors,
-                    smk.params.ledger, smk.output.error_history, smk.output.residual_tests, smk.output.closure)
+                    smk.params.ledger, smk.output.error_history, smk.output.residual_tests, smk.output.closure,
+                    smk.output.lens_tests)

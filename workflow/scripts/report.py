@@ -12,4 +12,5 @@ exit_on_input_error(build_report, **artefacts, missing_effects=smk.input.missing
                     calibration=smk.input.calibration if "calibration" in smk.input.keys() else None,
                     residual_tests=smk.input.residual_tests if "residual_tests" in smk.input.keys() else None,
                     closure=smk.input.closure if "closure" in smk.input.keys() else None,
+                    lens_tests=smk.input.lens_tests if "lens_tests" in smk.input.keys() else None,
                     figures_dir=smk.output.figures, dataset=smk.params.dataset, settings=smk.params.settings)

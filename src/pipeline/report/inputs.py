@@ -42,6 +42,8 @@ class ReportInputs:
     error_history: pd.DataFrame
     residual_tests: pd.DataFrame = field(default_factory=pd.DataFrame)
     closure: xr.Dataset | None = None
+    #: ``lens_tests.csv``: per effect that may differ between the sensors, one shared value against one per lens
+    lens_tests: pd.DataFrame = field(default_factory=pd.DataFrame)
     skipped: dict[str, str] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
     calibration: xr.Dataset | None = None

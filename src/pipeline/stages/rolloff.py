@@ -174,6 +174,7 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
                 "circle": img[circle], "annulus_mean": float(img[annulus].mean()) if annulus.size else np.nan,
                 "halo": float(weights @ img[spot]) if annulus.size else 0.0,
                 "saturated": bool(images.saturated[band].ravel()[circle].any()),
+                "exposure_s": float(dec.raw.exposure_s), "iso": float(dec.raw.iso),
             })
     water_file = dataset.root / "immersion" / "water.yaml"
     water = read_water(dataset) if water_file.exists() else None
@@ -223,6 +224,9 @@ def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
             "saturated": any(f["saturated"] for f in frames),
             "dark_var_dn2": st["dark_var"][band], "n_dark": st["n_dark"],
             "deg_per_px": st["deg_per_px"],
+            # the frames' settings (tags): the cross-experiment closure turns the on-axis DN into DN per second
+            "exposure_s": float(np.mean([f["exposure_s"] for f in frames])),
+            "iso": float(np.mean([f["iso"] for f in frames])),
         })
     return pd.DataFrame(rows)
 

@@ -17,7 +17,7 @@ from pipeline.report.content import Details, Group, Items, Markup, Table, Text, 
 from pipeline.report.formatting import finite, fmt_value  # noqa: E402
 from pipeline.report.palette import OKABE_ITO, category  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
-from pipeline.report.sections._closure import closure_figures, residual_tests_table  # noqa: E402
+from pipeline.report.sections._closure import closure_figures, lens_tests_table, residual_tests_table  # noqa: E402
 
 __all__ = ["as_bool", "top_effect", "amplitude_text", "run_labels", "history_figure", "flagged_experiments"]
 
@@ -244,6 +244,8 @@ def _residual_test_blocks(inputs) -> list:
         blocks.append(Text("The diagnostics wrote no residual tests for this run.", "note"))
     else:
         blocks.append(residual_tests_table(tests))
+    if not inputs.lens_tests.empty and "effect" in inputs.lens_tests:
+        blocks.append(lens_tests_table(inputs.lens_tests))
     if inputs.closure is None:
         blocks.append(Text("No closure table (results/closure/residuals.nc) was given: no per-measurement views.",
                            "note"))
