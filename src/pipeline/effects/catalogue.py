@@ -96,7 +96,9 @@ class ShutterOffset(Effect):
 
     Linearity model term for the exposure sweep: ``rate * gain * offset_s``
     where ``rate`` (DN/s at ISO 100) is the group's fitted slope, so the
-    coefficient is the offset in seconds, shared by all bands and lenses.
+    coefficient is the offset in seconds, shared by all bands. Each lens's linearity job fits its own
+    offset; as a candidate in the pooled diagnostics the column is one value for both lenses, and
+    whether one value is enough is :func:`pipeline.cross_closure.lens_interaction_tests`' question.
     """
 
     name = "shutter_offset"
