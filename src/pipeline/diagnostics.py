@@ -35,9 +35,14 @@ tau^2 estimated by moments from the within-block products of the larger
 model's residuals (so that the candidate's own signal is not counted as block
 noise). The drop in chi-square is then recomputed by generalised least squares
 under that covariance (:func:`pipeline.fitting.block_gls_drop`) and
-F = (drop / k) / max(chi2 / dof, 1) is referred to F(k, G - 1) for G blocks
-(the fewest over the tables the candidate touches): the block noise is known
-only from the G blocks. A table with G - 1 <= k cannot be tested this way;
+F = (drop / k) / (chi2 / dof), both from that fit, is referred to F(k, G - 1)
+for G blocks (the fewest over the tables the candidate touches): the block
+noise is known only from the G blocks. The scale chi2 / dof is not floored at
+1 as in the F test of the rows: a stage's sigma may already hold noise common
+to a block (the field's reference-window term is common to the bands of a
+frame), which the random effect then counts twice (the field's glare: F test
+1e-9, the block test 2e-4 with the floor, 1e-6 without); the p-value that
+counts is the larger of the two tests, so the floored F test still bounds it. A table with G - 1 <= k cannot be tested this way;
 the candidate keeps the F test alone (``p_value_block`` NaN, ``n_blocks`` 0).
 The block test's p-value is used only when it is the larger, and the
 amplitude interval uses its covariance, with the t(G - 1) quantile, when that
@@ -218,7 +223,10 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
     if all(p["gls"] is not None for p in parts):
         n_blocks = min(p["gls"].n_blocks for p in parts)
         k_gls = sum(p["gls"].k for p in parts)
-        s2_gls = max(sum(p["gls"].chi2 for p in parts) / max(sum(p["gls"].dof for p in parts), 1), 1.0)
+        # the scale from the residuals, not floored at 1: a stage's sigma may already hold the noise common to
+        # a block (the field's reference-window term), which the random effect then counts twice; the F test
+        # of the rows (floored) still bounds the p-value from below
+        s2_gls = sum(p["gls"].chi2 for p in parts) / max(sum(p["gls"].dof for p in parts), 1)
         f_gls = sum(p["gls"].delta_chi2 for p in parts) / k_gls / s2_gls
         p_block = float(stats.f.sf(f_gls, k_gls, n_blocks - 1))
         p_value = max(p_model, p_block)
