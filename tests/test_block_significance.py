@@ -60,7 +60,7 @@ def synthetic_dark_frames(rng: np.random.Generator) -> pd.DataFrame:
 
 def test_false_alarm_rate_with_block_correlated_noise_is_nominal(config):
     """400 draws at level 0.05: at most the binomial 0.999 quantile of false alarms (35 of 400; measured 20,
-    and 7 of 400 at level 0.01, with the block-noise test; 18 and 5 with the former CR3 test). CPU about 7 s."""
+    and 7 of 400 at level 0.01, with the block-noise test; 18 and 5 with the former CR3 test). About 4.6 s wall."""
     n_draws, level = 400, 0.05
     rng = np.random.default_rng(20261201)
     p_block, p_rows = [], []
@@ -170,7 +170,7 @@ def test_block_noise_test_nominal_with_few_blocks_and_keeps_power_when_structure
     binomial 0.001 quantile for a power of 0.97; measured 40), the former CR3 test in at most 24 (the
     0.999 quantile at the rate measured for it on another seed, 14 of 40; 9 here): its leverage correction
     (I - H_gg)^-1 inflates the misfit of the linear signature in the two high-leverage blocks. CPU about
-    5 s."""
+    1.5 s (wall, on an idle machine)."""
     rng = np.random.default_rng(20261202)
     p_null = [candidate_significance("temperature", [Observations("dark", "setting", synthetic_dark_settings(rng))],
                                      [], config)["p_value"] for _ in range(200)]
