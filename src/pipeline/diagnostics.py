@@ -74,7 +74,7 @@ cluster bootstrap with the null imposed is no way out with 13 blocks: its
 2^13 Rademacher sign patterns give no p-value below 2/8192 = 2.4e-4, above the
 Bonferroni level 7.7e-5. The reference F(k, G - 1) rather than the rows' dof:
 with 13 blocks and a setting-level covariate the rows' dof gave 64, 24 and 6
-false alarms in 800 draws at 0.05, 0.01 and 0.001 (block noise half sigma), a
+false alarms in 800 draws at 0.05, 0.01 and 0.001 (block noise half sigma; measured with the scale floored at 1), a
 Satterthwaite mix of the two 61, 21 and 6, F(k, G - 1) 50, 7 and 1 (expected 40, 8 and 0.8).
 
 Then every table (experiment and level) has its residual chi-square tested against its degrees of
