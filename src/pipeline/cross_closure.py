@@ -57,8 +57,9 @@ lenses (``Effect.columns``). Whether one shared value is enough: for each effect
 ``diagnostics.lens_interaction_effects`` (in the model or a candidate), on every table whose rows
 carry both lenses, the effect's columns shared by the lenses are compared with the same columns split
 per lens (the rest of the model as it is): the drop in chi-square F-tested against the split model's residual variance and, by
-block, with the cluster-robust Wald test of the differences (the larger p-value, Bonferroni over
-the tests made). Each lens's value and its 95 % interval come from the split fit.
+block, with the same drop by generalised least squares under the noise common to a block
+(:func:`pipeline.fitting.block_gls_drop`, F(k, G - 1), as the candidates are tested; the larger
+p-value, Bonferroni over the tests made). Each lens's value and its 95 % interval come from the split fit.
 
 Nothing here reads a simulator's truth: only the stage artefacts.
 """
@@ -73,10 +74,10 @@ import xarray as xr
 from scipy import stats
 
 from pipeline.bands import BANDS
-from pipeline.diagnostics import Observations, _fit, block_wald, blocks_of, model_design
+from pipeline.diagnostics import Observations, _fit, blocks_of, model_design
 from pipeline.effects import available
 from pipeline.effects import get as get_effect
-from pipeline.fitting import base_design, cluster_robust_cov, wls
+from pipeline.fitting import base_design, block_gls_drop, wls
 from pipeline.observations import dataset_to_table
 from pipeline.radiometry.rolloff import evaluate_rolloff
 
@@ -336,20 +337,29 @@ def lens_interaction_tests(observations: list[Observations], model_effects: list
             s2 = max(fit_p.chi2 / max(fit_p.dof, 1), 1.0)
             p_model = float(stats.f.sf((fit_s.chi2 - fit_p.chi2) / k / s2, k, max(fit_p.dof, 1)))
             sigma = t["sigma_dn"].to_numpy(float)
+            y = t["value_dn"].to_numpy(float)
             blocks, _ = blocks_of(t, cfg["block_keys"])
-            robust = block_wald(fit_d, Xd, sigma, blocks, X.shape[1] + S.shape[1], k)
-            p_block, n_blocks = (float(stats.f.sf(robust[0] / k, k, robust[1] - 1)), robust[1]) if robust \
-                else (float("nan"), 0)
-            p_value = max(p_model, p_block) if robust else p_model
+            forms = cfg["block_noise_forms"]
+            # the same drop with the noise common to a block as a random effect (generalised least squares,
+            # F(k, G - 1)), as the candidates are tested (pipeline.diagnostics)
+            gls = block_gls_drop(y, sigma, Xs, Xd, blocks, forms, fit_d)
+            p_block, n_blocks = float("nan"), 0
+            if gls.k > 0 and gls.n_blocks - 1 > gls.k:
+                n_blocks = gls.n_blocks
+                f_block = gls.delta_chi2 / gls.k / (gls.chi2 / max(gls.dof, 1))
+                p_block = float(stats.f.sf(f_block, gls.k, n_blocks - 1))
+            p_value = max(p_model, p_block) if n_blocks else p_model
             # each lens's value and interval: the split fit's covariance, scaled by the residual variance, or
-            # the block-robust one (t(G - 1) quantile) where it is wider
+            # the block-noise one (t(G - 1) quantile) where it is wider
             V = fit_p.cov * s2
-            Vr, G = cluster_robust_cov(fit_p, Xp, sigma, blocks)
-            if G - 1 > k:
-                Vr = Vr * (stats.t.isf(0.025, G - 1) / stats.norm.isf(0.025)) ** 2
-                d, dr = np.diag(V)[X.shape[1]:], np.diag(Vr)[X.shape[1]:]
-                if np.all(d > 0) and np.mean(dr / d) > 1.0:
-                    V = Vr
+            split = block_gls_drop(y, sigma, X, Xp, blocks, forms, fit_p)
+            if split.n_blocks - 1 > k:
+                t_ratio = stats.t.isf(0.025, split.n_blocks - 1) / stats.norm.isf(0.025)
+                Vb = split.cov * max(split.chi2 / max(split.dof, 1), 1.0) * t_ratio**2
+                d = np.diag(V)[X.shape[1]:]
+                if Vb.shape == (len(d), len(d)) and np.all(d > 0) and np.mean(np.diag(Vb) / d) > 1.0:
+                    V = V.copy()
+                    V[X.shape[1]:, X.shape[1]:] = Vb
             m = S.shape[1]
             values, lows, highs = [], [], []
             for i, lens in enumerate(lenses):

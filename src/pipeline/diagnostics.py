@@ -8,9 +8,9 @@ the model's design and the fit is redone on the same observations; the drop
 in chi-square measures how well the signature explains the residuals.
 
 * significance: F test of the drop against the residual variance of the
-  larger model (robust to a mis-scaled noise), and a cluster-robust Wald test
-  by block (below); the larger of the two p-values is Bonferroni-corrected
-  for the number of candidates tried;
+  larger model (robust to a mis-scaled noise), and the same drop tested with
+  the noise common to each block allowed for (below); the larger of the two
+  p-values is Bonferroni-corrected for the number of candidates tried;
 * evidence: drop in chi-square, divided by the larger model's reduced
   chi-square when it exceeds 1, minus the BIC penalty k ln(n) for the k
   parameters the effect adds; candidates are ranked by it;
@@ -27,21 +27,55 @@ independent makes any signature that varies between frames look significant.
 The rows of a table are therefore grouped into blocks (the first of
 ``diagnostics.block_keys`` present in the table: the raw frame's
 ``file_index``, the ``frame``, the ``sweep`` and ``setting``, the ``setting``),
-and each candidate's coefficients get a cluster-robust (sandwich)
-covariance: the scores summed per block, so that any correlation inside a
-block, of any size, is allowed for (:func:`pipeline.fitting.cluster_robust_cov`,
-CR3: each block's residuals corrected by its leverage, (I - H_gg)^-1, the
-jackknife-like form that keeps the test near its nominal level with a few
-tens of blocks). The Wald statistic b' V^-1 b / k is referred to an
-F(k, G - 1) distribution for G blocks (the smallest G over the tables the
-candidate touches), the usual correction for few clusters. A table with too
-few blocks for its candidate's k parameters (G - 1 <= k) cannot be tested
-this way; the candidate then keeps the F test alone (``p_value_block`` NaN,
-``n_blocks`` 0). The robust p-value is used only when it is the larger (a noise model that
-holds is never made less exacting by the sandwich's own scatter), and the
-amplitude interval uses the robust covariance, with the t(G - 1) quantile,
-when it is the wider. Forward selection, evidence and explained fraction
-still use the drop in chi-square, for ranking only.
+and the noise common to a block is modelled as what it physically is, a random
+effect per block (:func:`pipeline.fitting.block_random_effects`): an offset in
+the value's units (black-level jitter) and a relative change of the prediction
+(flicker, drift), ``diagnostics.block_noise_forms``, each with a variance
+tau^2 estimated by moments from the within-block products of the larger
+model's residuals (so that the candidate's own signal is not counted as block
+noise). The drop in chi-square is then recomputed by generalised least squares
+under that covariance (:func:`pipeline.fitting.block_gls_drop`) and
+F = (drop / k) / (chi2 / dof), both from that fit, is referred to F(k, G - 1)
+for G blocks (the fewest over the tables the candidate touches): the block
+noise is known only from the G blocks. The scale chi2 / dof is not floored at
+1 as in the F test of the rows: a stage's sigma may already hold noise common
+to a block (the field's reference-window term is common to the bands of a
+frame), which the random effect then counts twice (the field's glare: F test
+1e-9, the block test 2e-4 with the floor, 1e-6 without); the p-value that
+counts is the larger of the two tests, so the floored F test still bounds it. A table with G - 1 <= k cannot be tested this way;
+the candidate keeps the F test alone (``p_value_block`` NaN, ``n_blocks`` 0).
+The block test's p-value is used only when it is the larger, and the
+amplitude interval uses its covariance, with the t(G - 1) quantile, when that
+is the wider. Forward selection, evidence and explained fraction still use the
+drop in chi-square of the rows, for ranking only.
+
+Why not a cluster-robust (sandwich) covariance, the former test (CR3,
+:func:`pipeline.fitting.cluster_robust_cov`): it estimates the coefficients'
+covariance from the spread of the G per-block scores, so the structure that a
+candidate's approximate signature leaves in a few high-leverage blocks is
+taken for block noise. Measured on the tiny dataset (seed 101, the linearity
+setting table, 13 blocks of 6 rows): a tanh nonlinearity, F test p 4e-25,
+CR3 Wald 3.05 (p 0.11), the same sandwich without CR3's leverage correction
+191 (1e-8): the two longest exposures carry the leverage (largest eigenvalue
+of H_gg 0.90 and 0.68, (I - H_gg)^-1 multiplying their residuals by up to 10
+and 3) and there the quadratic signature misfits the tanh (sum z^2 32 and 19
+over 6 rows); a shutter offset of each lens's own, 3e-14 against 7e-4 (the
+shortest exposures: leverage 0.51, sum z^2 25 in one block); a black level
+quadratic in temperature, 6e-219 against 2e-4 (two terms over the 13
+settings, one over the 65 frames; the linear terms' misfit up to 5800 over 6
+rows in 8 settings). Where
+one block alone fixes a parameter (the ISO gain factors, one setting per ISO)
+its leverage is 1, its residuals are zero and (I - H_gg) is singular: the
+sandwich is degenerate either way (the simulated phone's iso_gain p 1.0 at
+rms_z 12.7, the power-law gain ladder's 2e-24). The random effect costs two
+variances per table instead of a k x k covariance from G scores: the same
+three give 5e-8, 5e-7 and 7e-6 (``tests/test_effect_forms.py``). A wild
+cluster bootstrap with the null imposed is no way out with 13 blocks: its
+2^13 Rademacher sign patterns give no p-value below 2/8192 = 2.4e-4, above the
+Bonferroni level 7.7e-5. The reference F(k, G - 1) rather than the rows' dof:
+with 13 blocks and a setting-level covariate the rows' dof gave 64, 24 and 6
+false alarms in 800 draws at 0.05, 0.01 and 0.001 (block noise half sigma; measured with the scale floored at 1), a
+Satterthwaite mix of the two 61, 21 and 6, F(k, G - 1) 50, 7 and 1 (expected 40, 8 and 0.8).
 
 Then every table (experiment and level) has its residual chi-square tested against its degrees of
 freedom, after the accepted candidates (:func:`residual_tests`, :mod:`pipeline.residual_structure`):
@@ -65,7 +99,7 @@ from scipy import stats
 
 from pipeline.effects import available, load_plugins
 from pipeline.effects import get as get_effect
-from pipeline.fitting import base_design, cluster_robust_cov, wls
+from pipeline.fitting import base_design, block_gls_drop, wls
 from pipeline.observations import dataset_to_table
 from pipeline.residual_structure import (
     covariates_of,
@@ -144,17 +178,6 @@ def blocks_of(table: pd.DataFrame, keys) -> tuple[np.ndarray, str]:
     return np.arange(len(table)).astype(str), "row"
 
 
-def block_wald(fit, X: np.ndarray, sigma: np.ndarray, blocks: np.ndarray, first: int, k: int):
-    """Cluster-robust Wald statistic b' V^-1 b of the coefficients from column ``first`` on, the number of
-    blocks G and their robust covariance; None when G - 1 <= k (too few blocks to test k parameters)."""
-    V, n_blocks = cluster_robust_cov(fit, X, sigma, blocks)
-    if n_blocks - 1 <= k:
-        return None
-    Vs = V[first:, first:]
-    b = fit.coef[first:]
-    return float(b @ np.linalg.pinv(Vs, hermitian=True) @ b), n_blocks, Vs
-
-
 def _fit(obs: Observations, X: np.ndarray):
     return wls(obs.table["value_dn"].to_numpy(float), obs.table["sigma_dn"].to_numpy(float), X)
 
@@ -192,8 +215,11 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         coef = fit1.coef[X.shape[1]:]
         cov = fit1.cov[X.shape[1]:, X.shape[1]:]
         blocks, _ = blocks_of(obs.table, cfg["block_keys"])
-        robust = block_wald(fit1, Xf, obs.table["sigma_dn"].to_numpy(float), blocks, X.shape[1], k)
-        parts.append({"obs": obs, "fit0": fit0, "fit1": fit1, "k": k, "coef": coef, "cov": cov, "robust": robust})
+        sigma = obs.table["sigma_dn"].to_numpy(float)
+        gls = block_gls_drop(obs.table["value_dn"].to_numpy(float), sigma, X, Xf, blocks, cfg["block_noise_forms"],
+                             fit1)
+        parts.append({"obs": obs, "fit0": fit0, "fit1": fit1, "k": k, "coef": coef, "cov": cov,
+                      "gls": gls if gls.k > 0 and gls.n_blocks - 1 > gls.k else None})
     if not parts:
         return None
     d_chi2 = sum(p["fit0"].chi2 - p["fit1"].chi2 for p in parts)
@@ -207,20 +233,27 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
     p_model = float(stats.f.sf(f_stat, k, max(dof_1, 1)))
     # the same drop tested at the level of blocks (cluster-robust Wald, F(k, G - 1))
     p_value, p_block, n_blocks = p_model, float("nan"), 0
-    if all(p["robust"] is not None for p in parts):
-        n_blocks = min(p["robust"][1] for p in parts)
-        p_block = float(stats.f.sf(sum(p["robust"][0] for p in parts) / k, k, n_blocks - 1))
+    if all(p["gls"] is not None for p in parts):
+        n_blocks = min(p["gls"].n_blocks for p in parts)
+        k_gls = sum(p["gls"].k for p in parts)
+        # the scale from the residuals, not floored at 1: a stage's sigma may already hold the noise common to
+        # a block (the field's reference-window term), which the random effect then counts twice; the F test
+        # of the rows (floored) still bounds the p-value from below
+        s2_gls = sum(p["gls"].chi2 for p in parts) / max(sum(p["gls"].dof for p in parts), 1)
+        f_gls = sum(p["gls"].delta_chi2 for p in parts) / k_gls / s2_gls
+        p_block = float(stats.f.sf(f_gls, k_gls, n_blocks - 1))
         p_value = max(p_model, p_block)
     best = max(parts, key=lambda p: p["fit0"].chi2 - p["fit1"].chi2)
     # scale the coefficient covariance by the residual variance when the noise is underestimated;
-    # the block-robust covariance (interval from t(G - 1), not the normal 1.96) when it is wider
+    # the block-noise covariance (interval from t(G - 1), not the normal 1.96) when it is wider
     cov_amp = best["cov"] * max(best["fit1"].chi2 / max(best["fit1"].dof, 1), 1.0)
-    if best["robust"] is not None:
-        t_ratio = stats.t.isf(0.025, best["robust"][1] - 1) / stats.norm.isf(0.025)
-        cov_robust = best["robust"][2] * t_ratio**2
-        d_model, d_robust = np.diag(cov_amp), np.diag(cov_robust)
-        if np.mean(d_robust[d_model > 0] / d_model[d_model > 0]) > 1.0:
-            cov_amp = cov_robust
+    if best["gls"] is not None:
+        g = best["gls"]
+        t_ratio = stats.t.isf(0.025, g.n_blocks - 1) / stats.norm.isf(0.025)
+        cov_block = g.cov * max(g.chi2 / max(g.dof, 1), 1.0) * t_ratio**2
+        d_model, d_block = np.diag(cov_amp), np.diag(cov_block)
+        if d_block.shape == d_model.shape and np.mean(d_block[d_model > 0] / d_model[d_model > 0]) > 1.0:
+            cov_amp = cov_block
     amp, lo, hi = effect.amplitude(best["obs"].experiment, best["obs"].level, best["obs"].table,
                                    best["coef"], cov_amp)
     se = float(np.sqrt(max(cov_amp[0, 0], 0.0)))

@@ -4,6 +4,12 @@ A stage's model is linear in its parameters: per-group base columns (stored
 in the observation table as ``x_<name>``, one block per ``group``) plus columns
 shared by all groups (the effects in the model). Residuals are normalised by
 the expected noise ``sigma_dn`` so that a correct model leaves unit spread.
+
+Rows that share a raw frame or setting (a block) share its noise: :func:`block_random_effects` estimates
+that noise as a random effect per block (an offset and a relative change), :func:`block_gls_drop` tests
+added columns by generalised least squares under it (the diagnostics' block test);
+:func:`cluster_robust_cov` is the cluster-robust sandwich it replaced there (see :mod:`pipeline.diagnostics`
+for why the sandwich loses the effects that sit in a few high-leverage blocks).
 """
 
 from __future__ import annotations
@@ -88,7 +94,8 @@ def cluster_robust_cov(fit: Fit, X: np.ndarray, sigma: np.ndarray, blocks: np.nd
     V = (G - 1)/G (A'A)^+ (sum_g u_g u_g') (A'A)^+
     (CR3, the jackknife-like form whose leverage correction keeps the test honest with a few tens of
     blocks, where the plain sandwich is too small). Returns (V, G); with ``blocks`` all different this is
-    the heteroskedasticity-robust covariance HC3.
+    the heteroskedasticity-robust covariance HC3. A block whose rows alone fix a parameter has leverage 1
+    there: its residuals are zero and (I - H_gg) singular, and V is degenerate in that direction.
     """
     w = 1.0 / np.asarray(sigma, dtype=float)
     A = X * w[:, None]
@@ -106,3 +113,138 @@ def cluster_robust_cov(fit: Fit, X: np.ndarray, sigma: np.ndarray, blocks: np.nd
     meat = scores.T @ scores
     factor = (n_blocks - 1) / max(n_blocks, 1)
     return fit.cov @ meat @ fit.cov * factor, n_blocks
+
+
+#: forms of the noise common to the rows of one block that :func:`block_random_effects` estimates: an offset
+#: in the value's own units (black-level jitter, in DN) and a relative change of the predicted value
+#: (source flicker and drift, common to every pixel of a frame)
+BLOCK_NOISE_FORMS = ("offset", "relative")
+
+
+def _block_index(blocks: np.ndarray) -> tuple[np.ndarray, int]:
+    codes = pd.factorize(pd.Series(blocks).astype(str))[0]
+    return codes, (int(codes.max()) + 1 if len(codes) else 0)
+
+
+def _column_space(A: np.ndarray) -> np.ndarray:
+    """Orthonormal basis of the columns of A (numerical rank)."""
+    if A.shape[1] == 0:
+        return np.zeros((A.shape[0], 0))
+    U, s, _ = np.linalg.svd(A, full_matrices=False)
+    keep = s > s.max() * max(A.shape) * np.finfo(float).eps if s.size else np.zeros(0, bool)
+    return U[:, keep]
+
+
+def block_noise_columns(fit: Fit, sigma: np.ndarray, forms=BLOCK_NOISE_FORMS) -> list[np.ndarray]:
+    """Whitened loading of each block-noise form on every row: 1/sigma for an offset (one value per block,
+    in the value's units), prediction/sigma for a relative change (one fraction per block)."""
+    w = 1.0 / np.asarray(sigma, dtype=float)
+    out = {"offset": w, "relative": fit.pred * w}
+    unknown = set(forms) - set(out)
+    if unknown:
+        raise ValueError(f"diagnostics.block_noise_forms: unknown form(s) {sorted(unknown)}; known: {sorted(out)}")
+    return [out[f] for f in forms]
+
+
+def block_random_effects(fit: Fit, X: np.ndarray, sigma: np.ndarray, blocks: np.ndarray,
+                         forms=BLOCK_NOISE_FORMS) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Variances of the noise common to the rows of a block, estimated from a weighted fit's residuals.
+
+    Model: value_i = X_i b + e_i + sum_f c_fi u_fg, i in block g, with e_i ~ N(0, sigma_i^2) independent and,
+    per block, u_fg ~ N(0, tau_f^2) for each form f of ``forms`` (loadings c_f: 1 for an offset, the
+    prediction for a relative change; :func:`block_noise_columns`). In whitened units (z = (y - X b)/sigma)
+    the covariance is Sigma = I + sum_f tau_f^2 C_f, C_f block-diagonal with blocks c_fg c_fg' / sigma^2.
+    Moments: the residuals r = M z, M = I - H, have E[r r'] = M Sigma M, so for every pair i != j of one
+    block r_i r_j - M_ij = sum_f tau_f^2 (M C_f M)_ij + noise; the tau_f^2 >= 0 are the non-negative least
+    squares solution over all such pairs (the diagonal, the stated sigma's own business, is left out).
+
+    Returns (tau^2 per form, the whitened loadings)."""
+    from scipy.optimize import nnls
+
+    sigma = np.asarray(sigma, dtype=float)
+    cols = block_noise_columns(fit, sigma, forms)
+    codes, n_blocks = _block_index(blocks)
+    nf = len(cols)
+    U = _column_space(X / sigma[:, None])
+    i, j = np.nonzero(np.triu(codes[:, None] == codes[None, :], 1))
+    if not len(i) or not nf:
+        return np.zeros(nf), cols
+    rhs = fit.z[i] * fit.z[j] + np.sum(U[i] * U[j], axis=1)
+    design = []
+    for c in cols:
+        # (M C M)_ij within a block: c_i c_j - a_i c_j - c_i a_j + U_i K U_j', a_i = U_i . v_g(i), v_g = U_g' c_g
+        v = np.zeros((n_blocks, U.shape[1]))
+        np.add.at(v, codes, U * c[:, None])
+        a = np.sum(U * v[codes], axis=1)
+        K = v.T @ v
+        design.append(c[i] * c[j] - a[i] * c[j] - c[i] * a[j] + np.sum((U[i] @ K) * U[j], axis=1))
+    D = np.array(design).T
+    tau2, _ = nnls(D, rhs)
+    return tau2, cols
+
+
+def block_whitener(sigma: np.ndarray, blocks: np.ndarray, tau2: np.ndarray, cols: list[np.ndarray]):
+    """A function applying L^-1 to whitened columns, Sigma = L L' the covariance of :func:`block_random_effects`
+    (block-diagonal: one Cholesky factor per block, the blocks of one size solved together)."""
+    codes, n_blocks = _block_index(blocks)
+    order = np.argsort(codes, kind="stable")
+    sizes = np.bincount(codes, minlength=n_blocks)
+    start = np.concatenate([[0], np.cumsum(sizes)])
+    groups = []
+    for m in np.unique(sizes):
+        rows = np.stack([order[start[g]:start[g + 1]] for g in np.nonzero(sizes == m)[0]])   # (blocks, m)
+        S = np.broadcast_to(np.eye(m), (len(rows), m, m)).copy()
+        for t, c in zip(tau2, cols):
+            S += t * c[rows][:, :, None] * c[rows][:, None, :]
+        groups.append((rows, np.linalg.cholesky(S)))
+
+    def solve(M: np.ndarray) -> np.ndarray:
+        out = np.empty_like(M, dtype=float)
+        for rows, L in groups:
+            out[rows] = np.linalg.solve(L, M[rows])
+        return out
+
+    return solve
+
+
+@dataclass
+class BlockGLSDrop:
+    """Chi-square drop of added columns under the block-noise covariance (:func:`block_gls_drop`)."""
+
+    delta_chi2: float
+    chi2: float          # of the larger model, generalised least squares
+    dof: int
+    k: int
+    n_blocks: int
+    tau2: np.ndarray     # variance per form of diagnostics.block_noise_forms
+    coef: np.ndarray     # the added coefficients, generalised least squares
+    cov: np.ndarray      # their covariance under the block-noise covariance (unscaled)
+def _svd_fit(A: np.ndarray, b: np.ndarray):
+    """Least squares by one SVD: (chi2, rank, coef, covariance)."""
+    if A.shape[1] == 0:
+        return float(b @ b), 0, np.zeros(0), np.zeros((0, 0))
+    U, s, Vt = np.linalg.svd(A, full_matrices=False)
+    keep = s > s.max() * max(A.shape) * np.finfo(float).eps if s.size else np.zeros(0, bool)
+    U, s, Vt = U[:, keep], s[keep], Vt[keep]
+    coef = Vt.T @ ((U.T @ b) / s)
+    r = b - A @ coef
+    return float(r @ r), int(keep.sum()), coef, (Vt.T / s**2) @ Vt
+
+
+def block_gls_drop(y: np.ndarray, sigma: np.ndarray, X0: np.ndarray, X1: np.ndarray, blocks: np.ndarray,
+                   forms=BLOCK_NOISE_FORMS, fit1: Fit | None = None) -> BlockGLSDrop:
+    """Drop in chi-square from the design ``X0`` to ``X1`` (its first columns X0) by generalised least squares,
+    the covariance that of noise common to each block (:func:`block_random_effects`, estimated from the larger
+    model's residuals ``fit1``, so that the added columns' signal is not counted as block noise)."""
+    y = np.asarray(y, dtype=float)
+    sigma = np.asarray(sigma, dtype=float)
+    fit1 = fit1 if fit1 is not None else wls(y, sigma, X1)
+    tau2, cols = block_random_effects(fit1, X1, sigma, blocks, forms)
+    solve = block_whitener(sigma, blocks, tau2, cols)
+    w = 1.0 / sigma
+    b = solve((y * w)[:, None])[:, 0]
+    chi0, rank0, _, _ = _svd_fit(solve(X0 * w[:, None]), b)
+    chi1, rank1, coef, cov = _svd_fit(solve(X1 * w[:, None]), b)
+    first = X0.shape[1]
+    return BlockGLSDrop(delta_chi2=max(chi0 - chi1, 0.0), chi2=chi1, dof=len(y) - rank1, k=rank1 - rank0,
+                        n_blocks=_block_index(blocks)[1], tau2=tau2, coef=coef[first:], cov=cov[first:, first:])
