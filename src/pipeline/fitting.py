@@ -7,9 +7,10 @@ the expected noise ``sigma_dn`` so that a correct model leaves unit spread.
 
 Rows that share a raw frame or setting (a block) share its noise: :func:`block_random_effects` estimates
 that noise as a random effect per block (an offset and a relative change), :func:`block_gls_drop` tests
-added columns by generalised least squares under it (the diagnostics' block test);
-:func:`cluster_robust_cov` is the cluster-robust sandwich it replaced there (see :mod:`pipeline.diagnostics`
-for why the sandwich loses the effects that sit in a few high-leverage blocks).
+added columns by generalised least squares under it (the diagnostics' block test; see
+:mod:`pipeline.diagnostics` for why it replaced a cluster-robust sandwich, which loses the effects that sit
+in a few high-leverage blocks; the sandwich itself is kept in ``tests/test_block_significance.py`` as the
+comparison).
 """
 
 from __future__ import annotations
@@ -82,37 +83,6 @@ def ols_line(x: np.ndarray, y: np.ndarray, level: float = 0.95) -> dict:
         "intercept": res.intercept, "intercept_ci": tq * res.intercept_stderr,
         "r": res.rvalue, "n": n,
     }
-
-
-def cluster_robust_cov(fit: Fit, X: np.ndarray, sigma: np.ndarray, blocks: np.ndarray) -> tuple[np.ndarray, int]:
-    """Cluster-robust (sandwich) covariance of a weighted fit's coefficients, rows of one block correlated.
-
-    Rows that share a block (one raw frame, one setting) share that block's fluctuations (source flicker,
-    black-level jitter), so their residuals are not independent. With A = X / sigma, the whitened residuals
-    z, H_gg = A_g (A'A)^+ A_g' the block's part of the hat matrix and the per-block scores
-    u_g = A_g' (I - H_gg)^-1 z_g,
-    V = (G - 1)/G (A'A)^+ (sum_g u_g u_g') (A'A)^+
-    (CR3, the jackknife-like form whose leverage correction keeps the test honest with a few tens of
-    blocks, where the plain sandwich is too small). Returns (V, G); with ``blocks`` all different this is
-    the heteroskedasticity-robust covariance HC3. A block whose rows alone fix a parameter has leverage 1
-    there: its residuals are zero and (I - H_gg) singular, and V is degenerate in that direction.
-    """
-    w = 1.0 / np.asarray(sigma, dtype=float)
-    A = X * w[:, None]
-    codes = pd.factorize(pd.Series(blocks).astype(str))[0]
-    n_blocks = int(codes.max()) + 1 if len(codes) else 0
-    order = np.argsort(codes, kind="stable")
-    bounds = np.searchsorted(codes[order], np.arange(n_blocks + 1))
-    scores = np.zeros((n_blocks, A.shape[1]))
-    for g in range(n_blocks):
-        rows = order[bounds[g]:bounds[g + 1]]
-        Ag = A[rows]
-        Hgg = Ag @ fit.cov @ Ag.T
-        adjusted = np.linalg.lstsq(np.eye(len(rows)) - Hgg, fit.z[rows], rcond=None)[0]
-        scores[g] = Ag.T @ adjusted
-    meat = scores.T @ scores
-    factor = (n_blocks - 1) / max(n_blocks, 1)
-    return fit.cov @ meat @ fit.cov * factor, n_blocks
 
 
 #: forms of the noise common to the rows of one block that :func:`block_random_effects` estimates: an offset
