@@ -50,7 +50,7 @@ is the wider. Forward selection, evidence and explained fraction still use the
 drop in chi-square of the rows, for ranking only.
 
 Why not a cluster-robust (sandwich) covariance, the former test (CR3,
-:func:`pipeline.fitting.cluster_robust_cov`): it estimates the coefficients'
+kept for comparison in ``tests/test_block_significance.py``): it estimates the coefficients'
 covariance from the spread of the G per-block scores, so the structure that a
 candidate's approximate signature leaves in a few high-leverage blocks is
 taken for block noise. Measured on the tiny dataset (seed 101, the linearity
