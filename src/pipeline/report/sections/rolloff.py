@@ -61,7 +61,10 @@ def _rolloff_section(lens: str, ds: xr.Dataset, inputs) -> list:
             ax.set_xlabel("θ, angle from the optical axis [°]")
             ax.set_ylabel("relative illumination g(θ) [1]")
             ax.set_title(f"{m}", fontsize=9)
-            ax.legend(fontsize=6, ncol=2)
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=6, ncol=2)
+            else:   # no band of this medium has finite coefficients
+                ax.text(0.5, 0.5, f"no roll-off fitted in {m}", transform=ax.transAxes, ha="center", va="center")
         fig.tight_layout()
         out.append(draw(fig, f"rolloff_{lens}",
                               f"Lens {lens}: roll-off per band and medium: normalised spot means (open markers, "
