@@ -2,6 +2,7 @@
 
     python benchmarks/bench_full.py [--experiments dark,linearity,...] [--work DIR] [--keep]
     python benchmarks/bench_full.py --scaling dark [--factors 1,2,4] [--base-frames 3] [--lens far]
+    [--frames-per-setting K]: simulate K frames per dark and linearity setting (full scale: 15 and 4)
 
 Default mode: for each experiment in turn, simulates it at the ``full`` scale (6912 x 3456
 frames, the paper's frame counts; the simulator's time printed) into ``--work``, runs the
@@ -13,7 +14,8 @@ frames.csv once, as the stages do: bytes, MD5 and SHA-256, rawpy, and both lens 
 into R, G, B), so that the floor runs under the same load as the jobs; then it deletes the
 experiment's raw frames before the next one (``--keep`` keeps them), so the disk never holds the
 whole dataset. Prints per stage and lens: frames, MB decoded, wall and CPU seconds, peak resident
-memory, and the ratio of wall time to the floor's wall time.
+memory (the child's own, VmHWM: see :func:`peak_mib`), and the ratio of wall time to the floor's
+wall time.
 
 ``--scaling EXPERIMENT``: the experiment's full-scale frames (simulated as above, or the ones kept
 with ``--keep``) cut to the first ``--base-frames`` times each factor frames of each setting
@@ -48,6 +50,39 @@ STAGE_OF = {"dark": "dark", "linearity": "linearity", "geometry": "geometry", "r
 EFFECTS = [("dark_current", {}), ("hot_pixels", {})]
 
 
+def peak_mib() -> float:
+    """This process's peak resident memory since its exec, MiB (Linux: VmHWM of /proc/self/status).
+
+    Not ``getrusage``'s ``ru_maxrss``: Linux carries that across exec from the parent that started
+    the child, so a child of a large parent reports the parent's peak as its own (a child of a
+    600 MiB parent that allocates nothing reports 625 MiB).
+    """
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def job_child(stage: str, dataset: str, results: str, lens: str) -> None:
+    """Run one stage for one lens (one workflow job) in this process; print wall, CPU and peak as JSON."""
+    from pipeline.config import load_config
+    from pipeline.workflow import STAGES, run_stage
+
+    cfg = load_config(overrides={"dataset": dataset})
+    res = Path(results)
+    spec = STAGES[stage]
+    upstream = {name: {lens: res / f"{name}/{lens}.nc"} for name in spec.upstream + spec.optional_upstream
+                if (res / f"{name}/{lens}.nc").exists()}
+    t0, c0 = time.perf_counter(), time.process_time()
+    run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_mib()}))
+
+
 def floor_child(dataset: str, experiment: str) -> None:
     """Decode every frame of the experiment once and split both lens regions into bands; print JSON."""
     from pipeline.bands import cut_region, split_bands
@@ -62,8 +97,7 @@ def floor_child(dataset: str, experiment: str) -> None:
         for rows, cols in ds.lenses.values():
             split_bands(cut_region(raw.cfa, rows, cols), raw.cfa_pattern)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    print(json.dumps({"wall_s": wall, "cpu_s": cpu,
-                      "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_mib()}))
 
 
 def _start(args: list[str]) -> subprocess.Popen:
@@ -80,8 +114,8 @@ def _result(proc: subprocess.Popen) -> dict:
 
 
 def stage_job(stage: str, dataset: Path, results: Path, lens: str) -> subprocess.Popen:
-    """Start one workflow job (stage, lens) in a fresh process (bench_stages' child: wall, CPU, peak RSS)."""
-    return _start([str(HERE / "bench_stages.py"), "--child", stage, str(dataset), str(results), lens])
+    """Start one workflow job (stage, lens) in a fresh process (:func:`job_child`: wall, CPU, peak RSS)."""
+    return _start([__file__, "--job", stage, str(dataset), str(results), lens])
 
 
 def decode_floor(dataset: Path, experiment: str) -> subprocess.Popen:
@@ -104,9 +138,16 @@ def simulate(out: Path, experiment: str, scale: str, seed: int) -> float | None:
 
 
 def simulate_child(out: str, experiment: str, scale: str, seed: str) -> None:
-    from pipeline.simulate import simulate_dataset
+    """``scale`` is a scale's name, or ``NAME:K`` for that scale with K frames per dark and linearity setting."""
+    from dataclasses import replace
 
-    simulate_dataset(Path(out), scale=scale, seed=int(seed), effects=EFFECTS, experiments=(experiment,),
+    from pipeline.simulate import simulate_dataset
+    from pipeline.simulate.dataset import SCALES
+
+    name, _, per_setting = scale.partition(":")
+    sc = replace(SCALES[name], dark_frames=int(per_setting), linearity_frames=int(per_setting)) if per_setting \
+        else name
+    simulate_dataset(Path(out), scale=sc, seed=int(seed), effects=EFFECTS, experiments=(experiment,),
                      progress=False)
 
 
@@ -212,15 +253,21 @@ def main() -> None:
     ap.add_argument("--keep", action="store_true", help="keep each experiment's raw frames")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--scale", default="full", help="a scale of the simulator (default full; tiny to try the script)")
+    ap.add_argument("--frames-per-setting", type=int, metavar="K",
+                    help="simulate K frames per dark and linearity setting instead of the scale's (15 and 4 at full)")
     ap.add_argument("--scaling", metavar="EXPERIMENT", help="scaling mode: this experiment at 1x, 2x, 4x its frames")
     ap.add_argument("--factors", default="1,2,4")
     ap.add_argument("--base-frames", type=int, default=3, help="frames per setting at factor 1 (scaling mode)")
     ap.add_argument("--lens", default="far", help="the lens of the scaling mode's job")
     ap.add_argument("--floor", nargs=2, metavar=("DATASET", "EXPERIMENT"), help=argparse.SUPPRESS)
+    ap.add_argument("--job", nargs=4, metavar=("STAGE", "DATASET", "RESULTS", "LENS"), help=argparse.SUPPRESS)
     ap.add_argument("--simulate", nargs=4, metavar=("OUT", "EXPERIMENT", "SCALE", "SEED"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.floor:
         floor_child(*args.floor)
+        return
+    if args.job:
+        job_child(*args.job)
         return
     if args.simulate:
         simulate_child(*args.simulate)
@@ -231,13 +278,14 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     if args.scale not in SCALES:
         sys.exit(f"unknown scale {args.scale}; choose one of {', '.join(SCALES)}")
+    scale = f"{args.scale}:{args.frames_per_setting}" if args.frames_per_setting else args.scale
     rows = []
     if args.scaling:
         exp = args.scaling
         if exp not in STAGE_OF:
             sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
         source = work / f"dataset-{exp}"
-        sim = simulate(source, exp, args.scale, args.seed)
+        sim = simulate(source, exp, scale, args.seed)
         print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
               flush=True)
         for factor in (int(f) for f in args.factors.split(",")):
@@ -264,7 +312,7 @@ def main() -> None:
         if exp not in STAGE_OF:
             sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
         dataset = work / f"dataset-{exp}"
-        sim = simulate(dataset, exp, args.scale, args.seed)
+        sim = simulate(dataset, exp, scale, args.seed)
         print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
               flush=True)
         rows += measure(STAGE_OF[exp], exp, dataset, results, LENSES, {})
