@@ -9,9 +9,10 @@ frames, the paper's frame counts; the simulator's time printed) into ``--work``,
 stage that reads it for each lens (one workflow job each, in a fresh process with one
 BLAS/OpenMP thread, as Snakemake runs a ``threads: 1`` rule, the two lens jobs side by side as
 the workflow runs them; artefacts kept in ``--work``/results for the stages downstream), and
-beside them the decode floor of the same frames (a fresh process that reads every frame of
-frames.csv once, as the stages do: bytes, MD5 and SHA-256, rawpy, and both lens regions split
-into R, G, B), so that the floor runs under the same load as the jobs; then it deletes the
+beside them each job's decode floor (a fresh process per lens that reads every frame the job
+reads, those of its lens or of both, once as the stages do: bytes, MD5 and SHA-256, rawpy, and
+that lens's region split into R, G, B), so that the floors run under the same load as the jobs
+(two jobs and two floors on the 2 cores); then it deletes the
 experiment's raw frames before the next one (``--keep`` keeps them), so the disk never holds the
 whole dataset. Prints per stage and lens: frames, MB decoded, wall and CPU seconds, peak resident
 memory (the child's own, VmHWM: see :func:`peak_mib`), and the ratio of wall time to the floor's
@@ -25,7 +26,7 @@ linearly with the frames and peak memory stay flat.
 Each figure is printed beside the machine's load average (``os.getloadavg``): on a shared
 machine absolute times move with the load, the ratio to the floor measured in the same run
 less, and the ratio of CPU times (stage CPU / floor CPU, the decode thread's included) least.
-Results go to ``--work``/bench_full.csv (or bench_scaling.csv) as well.
+Results go to ``--work``/bench_full-EXPERIMENTS.csv (or bench_scaling-EXPERIMENT.csv) as well.
 The field stage (it needs the calibration bundle of every other stage) is not run here.
 """
 
@@ -83,19 +84,24 @@ def job_child(stage: str, dataset: str, results: str, lens: str) -> None:
     print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_mib()}))
 
 
-def floor_child(dataset: str, experiment: str) -> None:
-    """Decode every frame of the experiment once and split both lens regions into bands; print JSON."""
+def floor_child(dataset: str, experiment: str, lens: str) -> None:
+    """Decode every frame the lens's job reads once and split its lens region into bands; print JSON.
+
+    The frames of the lens or of both lenses (the job's view, ``workflow.lens_view``), read as the
+    stages read them (bytes, MD5 and SHA-256, LibRaw) and that lens's region split into R, G, B.
+    """
     from pipeline.bands import cut_region, split_bands
     from pipeline.dataset import open_dataset
     from pipeline.rawio import read_raw
+    from pipeline.workflow import lens_view
 
-    ds = open_dataset(dataset)
+    ds = lens_view(open_dataset(dataset), lens)
     frames = ds.frames(experiment)
+    rows, cols = ds.lenses[lens]
     t0, c0 = time.perf_counter(), time.process_time()
     for path in frames["path"]:
         raw = read_raw(path)
-        for rows, cols in ds.lenses.values():
-            split_bands(cut_region(raw.cfa, rows, cols), raw.cfa_pattern)
+        split_bands(cut_region(raw.cfa, rows, cols), raw.cfa_pattern)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_mib()}))
 
@@ -118,8 +124,8 @@ def stage_job(stage: str, dataset: Path, results: Path, lens: str) -> subprocess
     return _start([__file__, "--job", stage, str(dataset), str(results), lens])
 
 
-def decode_floor(dataset: Path, experiment: str) -> subprocess.Popen:
-    return _start([__file__, "--floor", str(dataset), experiment])
+def decode_floor(dataset: Path, experiment: str, lens: str) -> subprocess.Popen:
+    return _start([__file__, "--floor", str(dataset), experiment, lens])
 
 
 def simulate(out: Path, experiment: str, scale: str, seed: int) -> float | None:
@@ -194,10 +200,12 @@ def remove_dataset(out: Path) -> None:
     shutil.rmtree(truth_dir_for(out), ignore_errors=True)
 
 
-def frames_and_mb(dataset: Path, experiment: str) -> tuple[int, float]:
+def frames_and_mb(dataset: Path, experiment: str, lens: str) -> tuple[int, float]:
+    """Frames the lens's job reads (of the lens or of both) and their size."""
     from pipeline.dataset import open_dataset
+    from pipeline.workflow import lens_view
 
-    frames = open_dataset(dataset).frames(experiment)
+    frames = lens_view(open_dataset(dataset), lens).frames(experiment)
     return len(frames), sum(Path(p).stat().st_size for p in frames["path"]) / 1e6
 
 
@@ -216,21 +224,26 @@ def row_line(r: dict) -> str:
 
 
 def measure(stage: str, experiment: str, dataset: Path, results: Path, lenses, extra: dict) -> list[dict]:
-    """The stage's job of each lens and the decode floor, all side by side (the workflow runs the two
-    lens jobs of a stage at once on 2 cores): the floor then decodes under the same load as the jobs."""
-    n, mb = frames_and_mb(dataset, experiment)
+    """The stage's job of each lens and each job's decode floor, all side by side (the workflow runs the
+    two lens jobs of a stage at once on 2 cores): the floors then decode under the same load as the jobs."""
+    sizes = {lens: frames_and_mb(dataset, experiment, lens) for lens in lenses}
     load_start = load()
     procs = {lens: stage_job(stage, dataset, results, lens) for lens in lenses}
-    floor_proc = decode_floor(dataset, experiment)
+    floor_procs = {lens: decode_floor(dataset, experiment, lens) for lens in lenses}
     jobs = {lens: _result(p) for lens, p in procs.items()}
-    floor = _result(floor_proc)
-    print(f"decode floor of {experiment}: {n} frames, {mb:.0f} MB, {floor['wall_s']:.1f} s wall, "
-          f"{floor['cpu_s']:.1f} s CPU, peak {floor['peak_rss_mib']:.0f} MiB (load at start {load_start})", flush=True)
+    floors = {lens: _result(p) for lens, p in floor_procs.items()}
+    for lens, floor in floors.items():
+        n, mb = sizes[lens]
+        print(f"decode floor of {experiment}, {lens} lens: {n} frames, {mb:.0f} MB, {floor['wall_s']:.1f} s wall, "
+              f"{floor['cpu_s']:.1f} s CPU, peak {floor['peak_rss_mib']:.0f} MiB (load at start {load_start})",
+              flush=True)
     print(HEADER)
     rows = []
     for lens, m in jobs.items():
+        n, mb = sizes[lens]
+        floor = floors[lens]
         r = {**extra, "stage": stage, "lens": lens, "frames": n, "mb_decoded": mb, **m,
-             "floor_wall_s": floor["wall_s"], "floor_cpu_s": floor["cpu_s"],
+             "floor_wall_s": floor["wall_s"], "floor_cpu_s": floor["cpu_s"], "floor_peak_rss_mib": floor["peak_rss_mib"],
              "ratio_to_floor": m["wall_s"] / floor["wall_s"], "cpu_ratio_to_floor": m["cpu_s"] / floor["cpu_s"],
              "load": load()}
         print(row_line(r), flush=True)
@@ -259,7 +272,7 @@ def main() -> None:
     ap.add_argument("--factors", default="1,2,4")
     ap.add_argument("--base-frames", type=int, default=3, help="frames per setting at factor 1 (scaling mode)")
     ap.add_argument("--lens", default="far", help="the lens of the scaling mode's job")
-    ap.add_argument("--floor", nargs=2, metavar=("DATASET", "EXPERIMENT"), help=argparse.SUPPRESS)
+    ap.add_argument("--floor", nargs=3, metavar=("DATASET", "EXPERIMENT", "LENS"), help=argparse.SUPPRESS)
     ap.add_argument("--job", nargs=4, metavar=("STAGE", "DATASET", "RESULTS", "LENS"), help=argparse.SUPPRESS)
     ap.add_argument("--simulate", nargs=4, metavar=("OUT", "EXPERIMENT", "SCALE", "SEED"), help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -305,7 +318,7 @@ def main() -> None:
             shutil.rmtree(dataset)
         if not args.keep:
             remove_dataset(source)
-        write_csv(work / "bench_scaling.csv", rows)
+        write_csv(work / f"bench_scaling-{exp}.csv", rows)
         return
     results = work / "results"
     for exp in args.experiments.split(","):
@@ -318,7 +331,7 @@ def main() -> None:
         rows += measure(STAGE_OF[exp], exp, dataset, results, LENSES, {})
         if not args.keep:
             remove_dataset(dataset)
-        write_csv(work / "bench_full.csv", rows)
+        write_csv(work / f"bench_full-{args.experiments.replace(',', '-')}.csv", rows)
 
 
 if __name__ == "__main__":
