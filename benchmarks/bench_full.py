@@ -2,18 +2,21 @@
 
     python benchmarks/bench_full.py [--experiments dark,linearity,...] [--work DIR] [--keep]
     python benchmarks/bench_full.py --scaling dark [--factors 1,2,4] [--base-frames 3] [--lens far]
+    [--frames-per-setting K]: simulate K frames per dark and linearity setting (full scale: 15 and 4)
 
 Default mode: for each experiment in turn, simulates it at the ``full`` scale (6912 x 3456
 frames, the paper's frame counts; the simulator's time printed) into ``--work``, runs the
 stage that reads it for each lens (one workflow job each, in a fresh process with one
 BLAS/OpenMP thread, as Snakemake runs a ``threads: 1`` rule, the two lens jobs side by side as
 the workflow runs them; artefacts kept in ``--work``/results for the stages downstream), and
-beside them the decode floor of the same frames (a fresh process that reads every frame of
-frames.csv once, as the stages do: bytes, MD5 and SHA-256, rawpy, and both lens regions split
-into R, G, B), so that the floor runs under the same load as the jobs; then it deletes the
+beside them each job's decode floor (a fresh process per lens that reads every frame the job
+reads, those of its lens or of both, once as the stages do: bytes, MD5 and SHA-256, rawpy, and
+that lens's region split into R, G, B), so that the floors run under the same load as the jobs
+(two jobs and two floors on the 2 cores); then it deletes the
 experiment's raw frames before the next one (``--keep`` keeps them), so the disk never holds the
 whole dataset. Prints per stage and lens: frames, MB decoded, wall and CPU seconds, peak resident
-memory, and the ratio of wall time to the floor's wall time.
+memory (the child's own, VmHWM: see :func:`peak_mib`), and the ratio of wall time to the floor's
+wall time.
 
 ``--scaling EXPERIMENT``: the experiment's full-scale frames (simulated as above, or the ones kept
 with ``--keep``) cut to the first ``--base-frames`` times each factor frames of each setting
@@ -23,7 +26,7 @@ linearly with the frames and peak memory stay flat.
 Each figure is printed beside the machine's load average (``os.getloadavg``): on a shared
 machine absolute times move with the load, the ratio to the floor measured in the same run
 less, and the ratio of CPU times (stage CPU / floor CPU, the decode thread's included) least.
-Results go to ``--work``/bench_full.csv (or bench_scaling.csv) as well.
+Results go to ``--work``/bench_full-EXPERIMENTS.csv (or bench_scaling-EXPERIMENT.csv) as well.
 The field stage (it needs the calibration bundle of every other stage) is not run here.
 """
 
@@ -48,22 +51,59 @@ STAGE_OF = {"dark": "dark", "linearity": "linearity", "geometry": "geometry", "r
 EFFECTS = [("dark_current", {}), ("hot_pixels", {})]
 
 
-def floor_child(dataset: str, experiment: str) -> None:
-    """Decode every frame of the experiment once and split both lens regions into bands; print JSON."""
+def peak_mib() -> float:
+    """This process's peak resident memory since its exec, MiB (Linux: VmHWM of /proc/self/status).
+
+    Not ``getrusage``'s ``ru_maxrss``: Linux carries that across exec from the parent that started
+    the child, so a child of a large parent reports the parent's peak as its own (a child of a
+    600 MiB parent that allocates nothing reports 625 MiB).
+    """
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def job_child(stage: str, dataset: str, results: str, lens: str) -> None:
+    """Run one stage for one lens (one workflow job) in this process; print wall, CPU and peak as JSON."""
+    from pipeline.config import load_config
+    from pipeline.workflow import STAGES, run_stage
+
+    cfg = load_config(overrides={"dataset": dataset})
+    res = Path(results)
+    spec = STAGES[stage]
+    upstream = {name: {lens: res / f"{name}/{lens}.nc"} for name in spec.upstream + spec.optional_upstream
+                if (res / f"{name}/{lens}.nc").exists()}
+    t0, c0 = time.perf_counter(), time.process_time()
+    run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_mib()}))
+
+
+def floor_child(dataset: str, experiment: str, lens: str) -> None:
+    """Decode every frame the lens's job reads once and split its lens region into bands; print JSON.
+
+    The frames of the lens or of both lenses (the job's view, ``workflow.lens_view``), read as the
+    stages read them (bytes, MD5 and SHA-256, LibRaw) and that lens's region split into R, G, B.
+    """
     from pipeline.bands import cut_region, split_bands
     from pipeline.dataset import open_dataset
     from pipeline.rawio import read_raw
+    from pipeline.workflow import lens_view
 
-    ds = open_dataset(dataset)
+    ds = lens_view(open_dataset(dataset), lens)
     frames = ds.frames(experiment)
+    rows, cols = ds.lenses[lens]
     t0, c0 = time.perf_counter(), time.process_time()
     for path in frames["path"]:
         raw = read_raw(path)
-        for rows, cols in ds.lenses.values():
-            split_bands(cut_region(raw.cfa, rows, cols), raw.cfa_pattern)
+        split_bands(cut_region(raw.cfa, rows, cols), raw.cfa_pattern)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    print(json.dumps({"wall_s": wall, "cpu_s": cpu,
-                      "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+    print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_mib()}))
 
 
 def _start(args: list[str]) -> subprocess.Popen:
@@ -80,12 +120,12 @@ def _result(proc: subprocess.Popen) -> dict:
 
 
 def stage_job(stage: str, dataset: Path, results: Path, lens: str) -> subprocess.Popen:
-    """Start one workflow job (stage, lens) in a fresh process (bench_stages' child: wall, CPU, peak RSS)."""
-    return _start([str(HERE / "bench_stages.py"), "--child", stage, str(dataset), str(results), lens])
+    """Start one workflow job (stage, lens) in a fresh process (:func:`job_child`: wall, CPU, peak RSS)."""
+    return _start([__file__, "--job", stage, str(dataset), str(results), lens])
 
 
-def decode_floor(dataset: Path, experiment: str) -> subprocess.Popen:
-    return _start([__file__, "--floor", str(dataset), experiment])
+def decode_floor(dataset: Path, experiment: str, lens: str) -> subprocess.Popen:
+    return _start([__file__, "--floor", str(dataset), experiment, lens])
 
 
 def simulate(out: Path, experiment: str, scale: str, seed: int) -> float | None:
@@ -104,9 +144,16 @@ def simulate(out: Path, experiment: str, scale: str, seed: int) -> float | None:
 
 
 def simulate_child(out: str, experiment: str, scale: str, seed: str) -> None:
-    from pipeline.simulate import simulate_dataset
+    """``scale`` is a scale's name, or ``NAME:K`` for that scale with K frames per dark and linearity setting."""
+    from dataclasses import replace
 
-    simulate_dataset(Path(out), scale=scale, seed=int(seed), effects=EFFECTS, experiments=(experiment,),
+    from pipeline.simulate import simulate_dataset
+    from pipeline.simulate.dataset import SCALES
+
+    name, _, per_setting = scale.partition(":")
+    sc = replace(SCALES[name], dark_frames=int(per_setting), linearity_frames=int(per_setting)) if per_setting \
+        else name
+    simulate_dataset(Path(out), scale=sc, seed=int(seed), effects=EFFECTS, experiments=(experiment,),
                      progress=False)
 
 
@@ -153,10 +200,12 @@ def remove_dataset(out: Path) -> None:
     shutil.rmtree(truth_dir_for(out), ignore_errors=True)
 
 
-def frames_and_mb(dataset: Path, experiment: str) -> tuple[int, float]:
+def frames_and_mb(dataset: Path, experiment: str, lens: str) -> tuple[int, float]:
+    """Frames the lens's job reads (of the lens or of both) and their size."""
     from pipeline.dataset import open_dataset
+    from pipeline.workflow import lens_view
 
-    frames = open_dataset(dataset).frames(experiment)
+    frames = lens_view(open_dataset(dataset), lens).frames(experiment)
     return len(frames), sum(Path(p).stat().st_size for p in frames["path"]) / 1e6
 
 
@@ -175,21 +224,26 @@ def row_line(r: dict) -> str:
 
 
 def measure(stage: str, experiment: str, dataset: Path, results: Path, lenses, extra: dict) -> list[dict]:
-    """The stage's job of each lens and the decode floor, all side by side (the workflow runs the two
-    lens jobs of a stage at once on 2 cores): the floor then decodes under the same load as the jobs."""
-    n, mb = frames_and_mb(dataset, experiment)
+    """The stage's job of each lens and each job's decode floor, all side by side (the workflow runs the
+    two lens jobs of a stage at once on 2 cores): the floors then decode under the same load as the jobs."""
+    sizes = {lens: frames_and_mb(dataset, experiment, lens) for lens in lenses}
     load_start = load()
     procs = {lens: stage_job(stage, dataset, results, lens) for lens in lenses}
-    floor_proc = decode_floor(dataset, experiment)
+    floor_procs = {lens: decode_floor(dataset, experiment, lens) for lens in lenses}
     jobs = {lens: _result(p) for lens, p in procs.items()}
-    floor = _result(floor_proc)
-    print(f"decode floor of {experiment}: {n} frames, {mb:.0f} MB, {floor['wall_s']:.1f} s wall, "
-          f"{floor['cpu_s']:.1f} s CPU, peak {floor['peak_rss_mib']:.0f} MiB (load at start {load_start})", flush=True)
+    floors = {lens: _result(p) for lens, p in floor_procs.items()}
+    for lens, floor in floors.items():
+        n, mb = sizes[lens]
+        print(f"decode floor of {experiment}, {lens} lens: {n} frames, {mb:.0f} MB, {floor['wall_s']:.1f} s wall, "
+              f"{floor['cpu_s']:.1f} s CPU, peak {floor['peak_rss_mib']:.0f} MiB (load at start {load_start})",
+              flush=True)
     print(HEADER)
     rows = []
     for lens, m in jobs.items():
+        n, mb = sizes[lens]
+        floor = floors[lens]
         r = {**extra, "stage": stage, "lens": lens, "frames": n, "mb_decoded": mb, **m,
-             "floor_wall_s": floor["wall_s"], "floor_cpu_s": floor["cpu_s"],
+             "floor_wall_s": floor["wall_s"], "floor_cpu_s": floor["cpu_s"], "floor_peak_rss_mib": floor["peak_rss_mib"],
              "ratio_to_floor": m["wall_s"] / floor["wall_s"], "cpu_ratio_to_floor": m["cpu_s"] / floor["cpu_s"],
              "load": load()}
         print(row_line(r), flush=True)
@@ -212,15 +266,21 @@ def main() -> None:
     ap.add_argument("--keep", action="store_true", help="keep each experiment's raw frames")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--scale", default="full", help="a scale of the simulator (default full; tiny to try the script)")
+    ap.add_argument("--frames-per-setting", type=int, metavar="K",
+                    help="simulate K frames per dark and linearity setting instead of the scale's (15 and 4 at full)")
     ap.add_argument("--scaling", metavar="EXPERIMENT", help="scaling mode: this experiment at 1x, 2x, 4x its frames")
     ap.add_argument("--factors", default="1,2,4")
     ap.add_argument("--base-frames", type=int, default=3, help="frames per setting at factor 1 (scaling mode)")
     ap.add_argument("--lens", default="far", help="the lens of the scaling mode's job")
-    ap.add_argument("--floor", nargs=2, metavar=("DATASET", "EXPERIMENT"), help=argparse.SUPPRESS)
+    ap.add_argument("--floor", nargs=3, metavar=("DATASET", "EXPERIMENT", "LENS"), help=argparse.SUPPRESS)
+    ap.add_argument("--job", nargs=4, metavar=("STAGE", "DATASET", "RESULTS", "LENS"), help=argparse.SUPPRESS)
     ap.add_argument("--simulate", nargs=4, metavar=("OUT", "EXPERIMENT", "SCALE", "SEED"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.floor:
         floor_child(*args.floor)
+        return
+    if args.job:
+        job_child(*args.job)
         return
     if args.simulate:
         simulate_child(*args.simulate)
@@ -231,13 +291,14 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     if args.scale not in SCALES:
         sys.exit(f"unknown scale {args.scale}; choose one of {', '.join(SCALES)}")
+    scale = f"{args.scale}:{args.frames_per_setting}" if args.frames_per_setting else args.scale
     rows = []
     if args.scaling:
         exp = args.scaling
         if exp not in STAGE_OF:
             sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
         source = work / f"dataset-{exp}"
-        sim = simulate(source, exp, args.scale, args.seed)
+        sim = simulate(source, exp, scale, args.seed)
         print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
               flush=True)
         for factor in (int(f) for f in args.factors.split(",")):
@@ -257,20 +318,20 @@ def main() -> None:
             shutil.rmtree(dataset)
         if not args.keep:
             remove_dataset(source)
-        write_csv(work / "bench_scaling.csv", rows)
+        write_csv(work / f"bench_scaling-{exp}.csv", rows)
         return
     results = work / "results"
     for exp in args.experiments.split(","):
         if exp not in STAGE_OF:
             sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
         dataset = work / f"dataset-{exp}"
-        sim = simulate(dataset, exp, args.scale, args.seed)
+        sim = simulate(dataset, exp, scale, args.seed)
         print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
               flush=True)
         rows += measure(STAGE_OF[exp], exp, dataset, results, LENSES, {})
         if not args.keep:
             remove_dataset(dataset)
-        write_csv(work / "bench_full.csv", rows)
+        write_csv(work / f"bench_full-{args.experiments.replace(',', '-')}.csv", rows)
 
 
 if __name__ == "__main__":

@@ -456,3 +456,34 @@ def test_projection_declared_per_lens(ds_root):
     others = [lens for lens in ds.lenses if lens != "far"]
     assert ds.projection("far") == "rectilinear"
     assert others and all(ds.projection(lens) == "fisheye" for lens in others)
+
+
+def test_decode_ahead_setting_chooses_where_frames_are_decoded(ds_root, monkeypatch):
+    """performance.decode_ahead_frames as the runner sets it (frames.decode_ahead): 0 decodes in the
+    caller's thread, 1 or more in the background thread; the frames and their bands are the same, in order."""
+    import threading
+
+    from pipeline import frames as frames_mod
+    from pipeline.bands import cut_region, split_bands
+
+    threads = []
+
+    def recording_read_raw(path):
+        threads.append(threading.current_thread().name)
+        return read_raw(path)
+
+    monkeypatch.setattr(frames_mod, "read_raw", recording_read_raw)
+    ds = open_dataset(ds_root)
+    expected = [split_bands(cut_region(r.cfa, *ds.lenses["far"]), r.cfa_pattern)["G"]
+                for r in (read_raw(p) for p in ds.frames("dark")["path"])]
+    for ahead in (0, 1, 2):
+        threads.clear()
+        with frames_mod.decode_ahead(ahead):
+            got = [dec.lenses["far"].bands["G"] for dec in frames_mod.iter_frames(ds, "dark", lenses=["far"])]
+        assert len(got) == 2 and all(np.array_equal(g, e) for g, e in zip(got, expected))
+        main = threading.current_thread().name
+        assert (threads == [main, main]) if ahead == 0 else all(t.startswith("decode") for t in threads), threads
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="decode_ahead_frames must be an integer >= 0"):
+            with frames_mod.decode_ahead(bad):
+                pass

@@ -108,19 +108,20 @@ def _defaults(schema_mtime_ns: int) -> dict:
     return validate_config({"dataset": "unused"})
 
 
-#: config sections each rule depends on (its params rerun trigger)
+#: config sections each rule depends on (its params rerun trigger); ``performance`` (how many frames are
+#: decoded ahead) goes to every stage that decodes frames, since the job reads it from its params
 STAGE_SECTIONS = {
-    "dark": ("model", "bias", "dark"),
-    "linearity": ("model", "bias", "linearity"),
-    "geometry": ("model", "bias", "geometry"),
-    "rolloff": ("model", "rolloff"),
-    "spectral": ("model", "bias", "spectral"),
-    "absolute": ("model", "bias", "absolute"),
-    "immersion": ("model", "immersion"),
+    "dark": ("model", "bias", "dark", "performance"),
+    "linearity": ("model", "bias", "linearity", "performance"),
+    "geometry": ("model", "bias", "geometry", "performance"),
+    "rolloff": ("model", "rolloff", "performance"),
+    "spectral": ("model", "bias", "spectral", "performance"),
+    "absolute": ("model", "bias", "absolute", "performance"),
+    "immersion": ("model", "immersion", "performance"),
     "diagnostics": ("model", "diagnostics"),
     # apply: the bundle stores every pixel's cell on the default sphere grid (apply.grid_deg)
     "calibration": ("model", "calibration", "apply"),
-    "field": ("model", "apply", "field"),
+    "field": ("model", "apply", "field", "performance"),
 }
 
 

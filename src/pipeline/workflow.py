@@ -35,11 +35,12 @@ import pandas as pd
 import xarray as xr
 
 from pipeline.artefact import BUNDLE_REQUIRED_STAGES, read_artefact, sha256_file, write_artefact
-from pipeline.config import stage_params, validate_config
+from pipeline.config import defaults, stage_params, validate_config
 from pipeline.dataset import Dataset, open_dataset
 from pipeline.effects import available, load_plugins
 from pipeline.entry import exit_on_input_error, setup_log
 from pipeline.errors import InputError
+from pipeline.frames import decode_ahead
 from pipeline.validation import format_problems, inspect_dataset, unlisted_files, warning_lines
 
 log = logging.getLogger("pipeline.workflow")
@@ -194,6 +195,11 @@ def _relative(path: Path, root: Path) -> str:
         return str(path)
 
 
+def decode_ahead_frames(config: dict) -> int:
+    """The job's ``performance.decode_ahead_frames`` (the schema's default where the config lacks the section)."""
+    return (config.get("performance") or defaults()["performance"])["decode_ahead_frames"]
+
+
 def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: dict[str, str | Path],
               upstream: dict[str, dict[str, str | Path]] | None = None,
               progress: bool = False, bundle: str | Path | None = None) -> dict[str, xr.Dataset]:
@@ -239,7 +245,8 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
             inputs[_relative(bundle, results_root)] = sha256_file(bundle)
         ctx = StageContext(stage=stage, lens=lens, dataset=lens_view(ds, lens), config=config,
                            effects=effects, upstream=artefacts, progress=progress, bundle=calibration)
-        art = module.compute(ctx)
+        with decode_ahead(decode_ahead_frames(config)):
+            art = module.compute(ctx)
         inputs.update(ctx.inputs)
         write_artefact(art, out_path, stage=stage, inputs=inputs, config_subset=stage_params(config, stage),
                        effects=effects)

@@ -57,6 +57,9 @@ def reduce_immersion(dataset, geometry: dict[str, xr.Dataset], config: dict, pro
     frames = dataset.frames(STAGE)
     order = pd.concat([frames[frames["kind"] == "dark"], frames[frames["kind"] == "signal"]])
     dark = defaultdict(RunningMoments)
+    # each (lens, band)'s dark mean map, made once when the first signal frame needs it (the dark frames
+    # come first) instead of once per signal frame; only the signal frames' mask pixels are converted
+    dark_mean = {}
     inputs, rows = {}, []
     masks = {}
     for dec in iter_frames(dataset, STAGE, order, progress=progress):
@@ -65,9 +68,10 @@ def reduce_immersion(dataset, geometry: dict[str, xr.Dataset], config: dict, pro
         lenses = list(dataset.lenses) if row["lens"] == "both" else [row["lens"]]
         for lens in lenses:
             for band in BANDS:
-                img = dec.lenses[lens].bands[band].astype(float)
+                img = dec.lenses[lens].bands[band]
                 if row["kind"] == "dark":
-                    dark[(lens, band)].add(img)
+                    dark[(lens, band)].add(img)      # float64 sums of the float32 image
+                    dark_mean.pop((lens, band), None)
                     continue
                 medium = "water" if row["condition"] == "water" else "air"
                 key = (lens, medium, band)
@@ -77,9 +81,11 @@ def reduce_immersion(dataset, geometry: dict[str, xr.Dataset], config: dict, pro
                 if dark[(lens, band)].n == 0:
                     raise InputError(dataset.root / STAGE / "frames.csv", f"no dark frames for lens {lens}")
                 m = masks[key]
+                if (lens, band) not in dark_mean:
+                    dark_mean[(lens, band)] = dark[(lens, band)].mean()
                 rows.append({"lens": lens, "band": band, "condition": row["condition"],
                              "water_height_cm": float(row["water_height_cm"]) if medium == "water" else 0.0,
-                             "dn": float((img[m] - dark[(lens, band)].mean()[m]).mean()),
+                             "dn": float((img[m].astype(float) - dark_mean[(lens, band)][m]).mean()),
                              "exposure_s": float(dec.raw.exposure_s), "iso": float(dec.raw.iso),
                              "n_mask": int(m.sum())})
     return {"frames": pd.DataFrame(rows), "inputs": inputs}
