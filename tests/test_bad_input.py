@@ -214,3 +214,21 @@ def test_diagnose_without_a_run_names_the_missing_file(tmp_path, capsys):
     assert err == [f"error: {tmp_path / 'diagnostics/missing_effects.csv'}: not found: run the workflow first "
                    "(snakemake --cores 2), whose diagnostics rule writes it, or give the results folder with "
                    "--results DIR"], err
+
+
+def test_numbers_in_a_command_line_override_are_read_as_numbers():
+    """Snakemake hands the nested values of a ``--config`` override over as text (its own parser, used
+    here, gives '0' and '6.5'); where the schema wants a number the text is read as one, so the override
+    works, while text that is no number is still refused in one line."""
+    from snakemake.cli import parse_config
+
+    from pipeline.config import validate_config
+
+    override = parse_config(["performance={decode_ahead_frames: 0}", "dark={hot_pixel_threshold_sigma: 6.5}"])
+    assert override["performance"]["decode_ahead_frames"] == "0"          # what the workflow receives
+    config = validate_config({"dataset": "d", **override})
+    assert config["performance"]["decode_ahead_frames"] == 0
+    assert isinstance(config["performance"]["decode_ahead_frames"], int)
+    assert config["dark"]["hot_pixel_threshold_sigma"] == 6.5
+    with pytest.raises(InputError, match="'six' is not of type 'number'"):
+        validate_config({"dataset": "d", **parse_config(["dark={hot_pixel_threshold_sigma: six}"])})

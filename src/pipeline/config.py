@@ -66,10 +66,42 @@ def _read_yaml(path: str | Path):
     return yaml.load(Path(path).read_text(), Loader=_SAFE_LOADER)  # noqa: S506 (a safe loader)
 
 
+_TEXT_TYPES = {"integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
+               "number": lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+               "boolean": lambda v: isinstance(v, bool), "null": lambda v: v is None}
+
+
+def values_from_text(config, schema: dict):
+    """``config`` with the text of a number, boolean or null read as one where the schema wants one.
+
+    Snakemake reads a ``--config key={a: 0, b: 0.5}`` override's nested values as text (its YAML base
+    loader), so ``performance={decode_ahead_frames: 0}`` would arrive as the string '0' and be refused;
+    the text is read with YAML where the schema's type for that key is not a string and the reading has
+    that type (anything else is left for the validator to name)."""
+    if isinstance(config, dict):
+        props = schema.get("properties", {})
+        return {k: values_from_text(v, props[k]) if k in props else v for k, v in config.items()}
+    if isinstance(config, list) and isinstance(schema.get("items"), dict):
+        return [values_from_text(v, schema["items"]) for v in config]
+    wanted = schema.get("type")
+    wanted = wanted if isinstance(wanted, list) else [wanted]
+    if isinstance(config, str) and "string" not in wanted and any(t in _TEXT_TYPES for t in wanted):
+        try:
+            value = yaml.safe_load(config)
+        except yaml.YAMLError:
+            return config
+        if any(_TEXT_TYPES[t](value) for t in wanted if t in _TEXT_TYPES):
+            return value
+    return config
+
+
 def validate_config(config: dict, schema_path: str | Path = SCHEMA_PATH) -> dict:
     """Validate ``config`` in place, filling defaults; InputError with the first problem (a key the
-    schema does not know included: see :func:`unknown_keys`)."""
+    schema does not know included: see :func:`unknown_keys`). Numbers, booleans and nulls given as text
+    where the schema wants them (Snakemake's ``--config`` overrides) are read first
+    (:func:`values_from_text`)."""
     schema = _read_yaml(schema_path)
+    config.update(values_from_text(config, schema))
     unknown = unknown_keys(config, schema)
     if unknown:
         path, known = unknown[0]
