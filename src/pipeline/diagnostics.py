@@ -256,7 +256,16 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
             cov_amp = cov_block
     amp, lo, hi = effect.amplitude(best["obs"].experiment, best["obs"].level, best["obs"].table,
                                    best["coef"], cov_amp)
-    se = float(np.sqrt(max(cov_amp[0, 0], 0.0)))
+    # the smallest amplitude the counted test would call significant: the larger of the rows' test (normal
+    # quantile, the scaled model covariance) and the block test (its t(G - 1) quantile, its own scale), as
+    # the p-value that counts is the larger of the two
+    alpha = cfg["significance_level"] / max(n_candidates, 1)
+    var_model = best["cov"][0, 0] * max(best["fit1"].chi2 / max(best["fit1"].dof, 1), 1.0)
+    detectable = float(np.sqrt(max(var_model, 0.0))) * stats.norm.isf(alpha / 2)
+    if best["gls"] is not None:
+        g = best["gls"]
+        var_block = g.cov[0, 0] * g.chi2 / max(g.dof, 1)
+        detectable = max(detectable, float(np.sqrt(max(var_block, 0.0))) * stats.t.isf(alpha / 2, g.n_blocks - 1))
     evidence = d_chi2 / s2 - k * np.log(max(n, 2))
     amplitude_name, units = effect.amplitude_label(best["obs"].experiment)
     return {
@@ -274,7 +283,7 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         "amplitude": amp, "amplitude_low": lo, "amplitude_high": hi,
         "units": units,
         "amplitude_name": amplitude_name,
-        "detectable_amplitude": se * stats.norm.isf(cfg["significance_level"] / max(n_candidates, 1) / 2),
+        "detectable_amplitude": detectable,
     }
 
 
