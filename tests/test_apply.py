@@ -59,6 +59,46 @@ def test_bundle_contents_and_provenance(calibrated):
         assert "units" in bundle[name].attrs or bundle[name].dtype.kind in "iub", name
 
 
+def test_bundle_pixel_factors_are_the_rolloff_polynomial_and_the_grid_cells(calibrated):
+    """The compact per-pixel factors apply reads: 1 / g(theta) of Eq. (13), its relative variance from the
+    coefficients' covariance and theta's sigma, the flags and the sphere cell, against the formulas here."""
+    _, _, _, _, bundle_path, _ = calibrated
+    bundle = read_bundle(bundle_path)
+    n_z, n_a = 180, 360  # apply.grid_deg 1 (default)
+    assert float(bundle["sphere_cell"].attrs["grid_deg"]) == 1.0
+    for lens in LENSES:
+        for medium in ("air", "water"):
+            for band in ("R", "G", "B"):
+                g = bundle.sel(lens=lens, medium=medium, band=band)
+                a = g["rolloff_coefficients"].values.astype(float)
+                cov = g["rolloff_covariance"].values.astype(float)
+                theta = g["theta_deg"].values.astype(float)
+                y, x = np.indices(theta.shape)
+                inside = (np.hypot(x - float(g["circle_xc_px"]), y - float(g["circle_yc_px"]))
+                          <= float(g["circle_radius_px"])) & (theta <= float(g["half_fov_deg"]))
+                powers = np.stack([theta ** (2 * k) for k in range(a.size)])  # g = sum a_k theta^(2k), degrees
+                roll = np.tensordot(a, powers, 1)
+                slope = np.tensordot(a[1:] * 2 * np.arange(1, a.size), powers[:-1] * theta, 1)  # dg / dtheta
+                rel = np.einsum("k...,kl,l...->...", powers, cov, powers) / roll ** 2
+                rel += (slope / roll * np.nan_to_num(g["theta_deg_sigma"].values)) ** 2
+                factor = g["pixel_factor"].values
+                assert np.isnan(factor[~inside]).all() and np.isfinite(factor[inside]).all()
+                np.testing.assert_allclose(factor[inside], 1.0 / roll[inside], rtol=2e-6)
+                np.testing.assert_allclose(g["pixel_systematic_relative_variance"].values[inside], rel[inside],
+                                           rtol=1e-4, atol=1e-12)
+                flag = g["pixel_flag"].values
+                assert ((flag & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) != 0).tolist() == (~inside).tolist()
+                beyond = inside & (theta > float(g["calibrated_field_angle_deg"]))
+                assert ((flag & mm.FLAG_BEYOND_CALIBRATED_ANGLE) != 0).tolist() == beyond.tolist()
+                # the cell: zenith theta (close lens, at the zenith) or 180 - theta, azimuth phi or -phi
+                phi = g["phi_deg"].values.astype(float)
+                zen, azi = (theta, phi % 360) if lens == "close" else (180 - theta, -phi % 360)
+                cell = np.minimum(zen.astype(int), n_z - 1) * n_a + np.minimum(azi.astype(int), n_a - 1)
+                on = inside & ~beyond
+                assert (g["sphere_cell"].values[~on] == -1).all()
+                np.testing.assert_array_equal(g["sphere_cell"].values[on], cell[on])
+
+
 def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
     import shutil
 

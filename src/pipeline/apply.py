@@ -49,10 +49,11 @@ import xarray as xr
 
 from pipeline.artefact import model_effects
 from pipeline.bands import BANDS
-from pipeline.calibration import band_parameters, calibrated_isos, outside_image_circle, read_bundle
+from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects,
+                                  outside_image_circle, read_bundle)
 from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
-from pipeline.frames import SITES_PER_BAND_PIXEL, lens_images
+from pipeline.frames import lens_images
 from pipeline.geometry.sphere import ZENITH_LENS, grid_shape, sphere_cells, sphere_coordinates
 from pipeline.moments import corner_mask
 from pipeline.radiometry import measurement as mm
@@ -62,8 +63,7 @@ __all__ = ["apply_calibration", "band_radiance", "check_frame", "sphere_coordina
            "apply_command"]
 
 #: flags that keep a pixel out of the sphere grid
-EXCLUDED_FROM_GRID = (mm.FLAG_SATURATED | mm.FLAG_HOT | mm.FLAG_OUTSIDE_IMAGE_CIRCLE
-                      | mm.FLAG_BEYOND_CALIBRATED_ANGLE)
+EXCLUDED_FROM_GRID = mm.FLAG_SATURATED | STATIC_OFF_GRID
 SPHERE_CONVENTION = ("the {zenith} lens's optical axis is the zenith (zenith angle = theta, azimuth = phi); "
                      "the other lens looks at the nadir (zenith angle = 180 - theta, azimuth = -phi mod 360, mirrored); "
                      "theta, phi from the bundle's geometry maps (phi from the band image's +x towards +y)")
@@ -133,18 +133,18 @@ def _crop(b: xr.Dataset, name: str, rows: slice, cols: slice):
     return b[name].isel(y=rows, x=cols).values if name in b else None
 
 
-def _stored_rolloff(g: xr.Dataset, rows: slice, cols: slice, effects) -> mm.RolloffMap | None:
-    """The bundle's roll-off map of the crop (:func:`pipeline.calibration.build_bundle`), when made for ``effects``."""
-    if "rolloff_inverse" not in g or bool(g["rolloff_inverse"].attrs.get("rolloff_azimuth", 0)) != (
-            "rolloff_azimuth" in effects):
+def _stored_factors(g: xr.Dataset, b: xr.Dataset, rows: slice, cols: slice, effects) -> mm.PixelFactors | None:
+    """The bundle's per-pixel factors of the crop (:func:`pipeline.calibration.build_bundle`), when made for ``effects``.
+
+    ``g`` the bundle at one lens, medium and band, ``b`` at that lens and band (the flat field's term).
+    """
+    if "pixel_factor" not in g or str(g["pixel_factor"].attrs.get("effects", "")) != factor_effects(effects):
         return None
-    rel = {"rolloff": _crop(g, "rolloff_relative_variance", rows, cols)}
-    if "rolloff_azimuth_relative_variance" in g:
-        rel["rolloff_azimuth"] = _crop(g, "rolloff_azimuth_relative_variance", rows, cols)
-    if "field_angle_relative_variance" in g:
-        rel["field_angle"] = _crop(g, "field_angle_relative_variance", rows, cols)
-    return mm.RolloffMap(inverse=_crop(g, "rolloff_inverse", rows, cols), relative_var=rel,
-                         flags=_crop(g, "geometry_flag", rows, cols))
+    random = ({"prnu": _crop(b, "pixel_random_relative_variance", rows, cols)}
+              if "pixel_random_relative_variance" in b else {})
+    return mm.PixelFactors(inverse=_crop(g, "pixel_factor", rows, cols),
+                           systematic_rel={"rolloff": _crop(g, "pixel_systematic_relative_variance", rows, cols)},
+                           random_rel=random, flags=_crop(g, "pixel_flag", rows, cols))
 
 
 def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str, effects,
@@ -174,23 +174,23 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
     effects = tuple(effects)
     image = images.bands[band]
     g = bundle.sel(lens=lens, medium=medium, band=band)
-    shape = g["theta_deg" if "theta_deg" in g else "rolloff_inverse"].shape
+    shape = g["theta_deg" if "theta_deg" in g else "pixel_factor"].shape
     if image.shape != tuple(shape):
         raise InputError(source, f"lens '{lens}' band image is {image.shape}, the calibration's {tuple(shape)}")
     rows, cols = (slice(None), slice(None)) if window is None else window
     rows = slice(*rows.indices(shape[0]))
     cols = slice(*cols.indices(shape[1]))
-    rolloff = _stored_rolloff(g, rows, cols, effects)
-    theta = phi = None
-    if rolloff is None:
+    b = bundle.sel(lens=lens, band=band)
+    factors = _stored_factors(g, b, rows, cols, effects)
+    theta = phi = rolloff = None
+    if factors is None:
         theta = np.asarray(_crop(g, "theta_deg", rows, cols), dtype=float)
         theta = np.where(outside_image_circle(g, theta, rows, cols, shape), np.nan, theta)
         phi = _crop(g, "phi_deg", rows, cols)
     dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
-    if rolloff is None:
+    if factors is None:
         rolloff = mm.rolloff_map(theta, cal, phi, effects, np.result_type(np.float32, image.dtype),
                                  theta_deg_sigma=_crop(g, "theta_deg_sigma", rows, cols))
-    b = bundle.sel(lens=lens, band=band)
     unlit = None
     if "bias_drift" in effects and _projection(bundle, lens) != "rectilinear":
         # the frame's own black level from the unlit corners of the whole band image (not only the crop)
@@ -205,7 +205,7 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
                         flat_field=_crop(b, "flat_field", rows, cols),
                         flat_field_sigma=_crop(b, "flat_field_sigma", rows, cols),
                         prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
-                        phi_deg=phi, rolloff=rolloff,
+                        phi_deg=phi, rolloff=rolloff, factors=factors,
                         frame_black_dn=frame_black if _projection(bundle, lens) == "rectilinear" else None)
     if out is not None:
         m.evaluate_into(*out, scratch=scratch)
@@ -320,33 +320,23 @@ class _BandPlan:
     blocks: list
 
 
-def _band_plan(bundle, lens, band, medium, effects, cells, n_cells: int, block_rows: int, pixels: bool) -> _BandPlan:
-    g = bundle.sel(lens=lens, medium=medium, band=band)
-    shape = g["theta_deg" if "theta_deg" in g else "rolloff_inverse"].shape
-    whole = (slice(0, shape[0]), slice(0, shape[1]))
-    rolloff = _stored_rolloff(g, *whole, effects)
-    if rolloff is None:
-        theta = np.asarray(g["theta_deg"].values, dtype=float)
-        theta = np.where(outside_image_circle(g, theta, *whole, shape), np.nan, theta)
-        frame = mm.FrameSettings(exposure_s=1.0, iso=float(bundle["dark_iso"].values.min()))
-        cal = band_parameters(bundle, lens, band, medium, frame, effects)[2]
-        rolloff = mm.rolloff_map(theta, cal, g["phi_deg"].values, effects, np.float32,
-                                 theta_deg_sigma=g["theta_deg_sigma"].values if "theta_deg_sigma" in g else None)
-    b = bundle.sel(lens=lens, band=band)
-    factors = mm.pixel_factors(rolloff, effects, hot_mask=_crop(b, "hot_pixel_mask", *whole),
-                               flat_field=_crop(b, "flat_field", *whole),
-                               flat_field_sigma=_crop(b, "flat_field_sigma", *whole),
-                               prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
-                               sites=SITES_PER_BAND_PIXEL[band])
-    corners = None
-    if "bias_drift" in effects and _projection(bundle, lens) != "rectilinear":
-        # the frame's own black level from the unlit corners of the whole band image
-        corners = _unlit_corners(tuple(shape), _default_corner_fraction())
-        hot = _crop(b, "hot_pixel_mask", *whole)
-        if hot is not None and "hot_pixels" in effects:
-            corners = corners & ~(np.asarray(hot) > 0)
+def _band_plan(factors: mm.PixelFactors, cells, folded: bool, corners: bool, block_rows: int,
+               pixels: bool) -> _BandPlan:
+    """The :class:`_BandPlan` of one band image from its stored ``factors`` and sphere ``cells``.
+
+    ``folded``: the cells already -1 where a frame-independent flag keeps the pixel off the grid (the
+    bundle's ``sphere_cell``); ``corners``: the frame's black level from the unlit corners (``bias_drift``,
+    fisheye lens).
+    """
+    shape = factors.inverse.shape
+    unlit = None
+    if corners:
+        # the frame's own black level from the unlit corners of the whole band image, less the hot pixels
+        unlit = _unlit_corners(tuple(shape), _default_corner_fraction()) & ((factors.flags & mm.FLAG_HOT) == 0)
     # per block the range of its cells: a pixel's index in the block is its cell less the block's first one
-    cells = np.where((factors.flags & EXCLUDED_FROM_GRID) != 0, -1, cells).astype(np.int32, copy=False)
+    if not folded:
+        cells = np.where((factors.flags & EXCLUDED_FROM_GRID) != 0, -1, cells)
+    cells = np.asarray(cells).astype(np.int32, copy=False)
     unsigned = cells.view(np.uint32)
     # each row's first and last column inside the image circle (a row wholly outside: first > last)
     inside = (factors.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) == 0
@@ -370,13 +360,23 @@ def _band_plan(bundle, lens, band, medium, effects, cells, n_cells: int, block_r
         # the block's index: cell - first, n (the block's spill cell) off the grid; and its pixels per cell
         index = np.minimum(cell - np.uint32(first), np.uint32(n)).astype(np.intp).ravel()
         blocks.append(((r, c), first, index, np.bincount(index, minlength=n + 1)[:-1]))
-    return _BandPlan(factors=factors, cells=cells, corners=corners, blocks=blocks)
+    return _BandPlan(factors=factors, cells=cells, corners=unlit, blocks=blocks)
 
 
-def _lens_plans(bundle, lens, medium, effects, cells, n_cells: int, block_rows: int, pixels: bool) -> dict:
-    """The :class:`_BandPlan` of every band of ``lens`` ({band: plan}; ``cells`` per band)."""
-    return {band: _band_plan(bundle, lens, band, medium, effects, cells[j], n_cells, block_rows, pixels)
-            for j, band in enumerate(BANDS)}
+def _lens_plans(maps: dict, i: int, cells, folded: bool, corners: bool, block_rows: int, pixels: bool) -> dict:
+    """The :class:`_BandPlan` of every band of lens ``i`` ({band: plan}) from the bundle's maps of the medium.
+
+    ``maps``: the bundle's ``pixel_*`` variables at the medium, (lens, band, y, x); ``cells`` per band.
+    """
+    plans = {}
+    for j, band in enumerate(BANDS):
+        random = maps.get("pixel_random_relative_variance")
+        factors = mm.PixelFactors(inverse=maps["pixel_factor"][i, j],
+                                  systematic_rel={"rolloff": maps["pixel_systematic_relative_variance"][i, j]},
+                                  random_rel={} if random is None else {"prnu": random[i, j]},
+                                  flags=maps["pixel_flag"][i, j])
+        plans[band] = _band_plan(factors, cells[j], folded, corners, block_rows, pixels)
+    return plans
 
 
 class _LensSums:
@@ -509,19 +509,24 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     return mean.reshape(shape), spread.reshape(shape), count.reshape(shape)
 
 
-def _pixel_directions(at_medium, lenses, zenith_lens, grid_deg, stored_cells, pixels):
-    """The sphere cell of every band pixel ([lens][band] (y, x)) and, with ``pixels``, the zenith and azimuth maps."""
+def _pixel_directions(maps, lenses, zenith_lens, grid_deg, pixels):
+    """The sphere cell of every band pixel ([lens][band] (y, x)) and, with ``pixels``, the zenith and azimuth maps.
+
+    ``maps`` the bundle's maps at the medium ((lens, band, y, x)): its ``sphere_cell`` when there, else
+    the cells from ``theta_deg`` and ``phi_deg`` (which the zenith and azimuth maps need too).
+    """
     cells, zen, azi = [], None, None
+    stored = maps.get("sphere_cell")
     if pixels:
         # written straight into the output maps
-        zen, azi = (np.empty(at_medium["theta_deg"].shape, np.float32) for _ in range(2))
+        zen, azi = (np.empty(maps["theta_deg"].shape, np.float32) for _ in range(2))
     for i, lens in enumerate(lenses):
         cells.append([])
         for j in range(len(BANDS)):
-            if pixels or not stored_cells:
-                z, a = sphere_coordinates(at_medium["theta_deg"].values[i, j], at_medium["phi_deg"].values[i, j],
-                                          lens == zenith_lens, out=(zen[i, j], azi[i, j]) if pixels else None)
-            cells[i].append(at_medium["sphere_cell"].values[i, j] if stored_cells else sphere_cells(z, a, grid_deg))
+            if pixels or stored is None:
+                z, a = sphere_coordinates(maps["theta_deg"][i, j], maps["phi_deg"][i, j], lens == zenith_lens,
+                                          out=(zen[i, j], azi[i, j]) if pixels else None)
+            cells[i].append(stored[i, j] if stored is not None else sphere_cells(z, a, grid_deg))
     return cells, zen, azi
 
 
@@ -565,41 +570,49 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         effects = model_effects(on_disk)
         if medium not in _media(on_disk):
             raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(_media(on_disk))})")
-        # only this medium, the solid angles only when the pixel maps are written, the flat field and the
-        # hot-pixel mask only when the model has their effect (the chain's steps skip them otherwise)
+        if "pixel_factor" not in on_disk or str(on_disk["pixel_factor"].attrs.get("effects", "")) != factor_effects(
+                effects):
+            raise InputError(bundle_path, "has no per-pixel factors for its model's effects: rebuild the bundle")
         lenses = list(on_disk["lens"].values)
         if zenith_lens not in lenses:
             zenith_lens = lenses[0]
         # the bundle's sphere cells when made for this grid and zenith lens; theta and phi then only for the pixel maps
-        cell_attrs = on_disk["sphere_cell"].attrs if "sphere_cell" in on_disk else {}
+        cell_attrs = on_disk["sphere_cell"].attrs
         stored_cells = (np.isclose(float(cell_attrs.get("grid_deg", np.nan)), grid_deg)
                         and cell_attrs.get("zenith_lens") == zenith_lens)
-        stored_rolloff = "rolloff_inverse" in on_disk and bool(on_disk["rolloff_inverse"].attrs.get(
-            "rolloff_azimuth", 0)) == ("rolloff_azimuth" in effects)
-        skip = ([] if pixels else ["solid_angle_sr"]) + ([] if "prnu" in effects else ["flat_field", "flat_field_sigma"]) \
-            + ([] if "hot_pixels" in effects else ["hot_pixel_mask"]) + ([] if stored_cells else ["sphere_cell"]) \
-            + ([] if pixels or not (stored_cells and stored_rolloff) else ["theta_deg", "phi_deg"])
-        bundle = on_disk.drop_vars(skip, errors="ignore").sel(medium=[medium]).load()
+        # of the per-pixel maps only those of this medium that the chain needs (the compact factors, the
+        # cells), the geometry only for the pixel maps (or cells on another grid); each read as one hyperslab
+        names = ["pixel_factor", "pixel_systematic_relative_variance", "pixel_flag"] \
+            + [n for n in ("pixel_random_relative_variance",) if n in on_disk] \
+            + (["sphere_cell"] if stored_cells else []) \
+            + (["theta_deg", "phi_deg"] if pixels or not stored_cells else []) + (["solid_angle_sr"] if pixels else [])
+        at = {"medium": list(on_disk["medium"].values).index(medium)}
+        maps = {}
+        for name in names:
+            var = on_disk[name].variable
+            maps[name] = var.isel({d: k for d, k in at.items() if d in var.dims}).transpose(
+                "lens", "band", "y", "x").values
+        # the small variables (parameters, scalars, per-band tables) loaded whole, at this medium
+        bundle = on_disk.drop_vars([n for n, v in on_disk.data_vars.items() if "y" in v.dims]).sel(
+            medium=[medium]).load()
     n_z, n_a = grid_shape(grid_deg)
-    at_medium = bundle.sel(medium=medium)
-    geo = at_medium[["theta_deg", "phi_deg", "solid_angle_sr"]] if pixels else None
     # the cell of every band pixel, once per lens and band (not per frame), beside the first frame's chain
-    directions = pool.submit(_pixel_directions, at_medium, lenses, zenith_lens, grid_deg, stored_cells, pixels)
+    directions = pool.submit(_pixel_directions, maps, lenses, zenith_lens, grid_deg, pixels)
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
     meta = []
     rectilinear = [lens for lens in lenses if _projection(bundle, lens) == "rectilinear"]
     uncorrected = []   # (frame, lens) whose bias drift the model has and no optically black pixels measure
     # the pixel maps of every frame (only with pixels: the sphere grid is binned block by block)
-    shape = (len(raw_paths), len(lenses), len(BANDS)) + bundle["rolloff_inverse"].shape[-2:]
-    maps = None if not pixels else {
+    shape = (len(raw_paths), len(lenses), len(BANDS)) + maps["pixel_factor"].shape[-2:]
+    out_maps = None if not pixels else {
         "radiance": np.empty(shape, np.float32), "random": np.empty(shape, np.float32),
         "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
     cells, zen, azi = directions.result()
-    # what does not depend on the frame, once per call for every frame: the hot-pixel flags, flat field and
-    # roll-off of every pixel as one factor with its terms, its cell, the unlit corners
+    # what does not depend on the frame, once per call for every frame: each block's cells, the unlit corners
     negative_sigma, block_rows = float(cfg["negative_mean_sigma"]), int(cfg["block_rows"])
-    plans = [job.result() for job in [pool.submit(_lens_plans, bundle, lens, medium, effects, cells[i], n_z * n_a,
+    corners = {lens: "bias_drift" in effects and lens not in rectilinear for lens in lenses}
+    plans = [job.result() for job in [pool.submit(_lens_plans, maps, i, cells[i], stored_cells, corners[lens],
                                                   block_rows, pixels) for i, lens in enumerate(lenses)]]
     parameters = {}  # the chain's parameter objects per lens, band and frame setting
     for f, path in enumerate(raw_paths):
@@ -610,8 +623,8 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         sums = [_LensSums(n_z * n_a, len(BANDS)) for _ in lenses]
         # the lenses side by side (numpy releases the GIL in its array operations), each binning its own sums
         jobs = [pool.submit(_lens_radiance, raw, bundle, lens, medium, effects, frame, negative_sigma, plans[i],
-                            block_rows, None if maps is None else {k: v[f, i] for k, v in maps.items()}, sums[i],
-                            parameters)
+                            block_rows, None if out_maps is None else {k: v[f, i] for k, v in out_maps.items()},
+                            sums[i], parameters)
                 for i, lens in enumerate(lenses)]
         for job in jobs:
             job.result()
@@ -636,29 +649,29 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
     if pixels:
         pixel_dims = ("frame", "lens", "band", "y", "x")
         pixel_vars = {
-            "radiance": (pixel_dims, maps["radiance"],
+            "radiance": (pixel_dims, out_maps["radiance"],
                          _attrs("effective spectral radiance of the band pixel, inverse of Eq. (4)", rad_units)),
-            "radiance_random_sigma": (pixel_dims, maps["random"],
+            "radiance_random_sigma": (pixel_dims, out_maps["random"],
                                       _attrs("random standard uncertainty (shot, read, dark noise), independent between "
                                              "pixels and frames", rad_units)),
-            "radiance_systematic_sigma": (pixel_dims, maps["systematic"],
+            "radiance_systematic_sigma": (pixel_dims, out_maps["systematic"],
                                           _attrs("systematic standard uncertainty (calibration terms), common to the "
                                                  "pixels of a band", rad_units)),
-            "quality_flag": (pixel_dims, maps["flags"],
+            "quality_flag": (pixel_dims, out_maps["flags"],
                              {"long_name": "quality flag bits", "units": "1", "flag_masks": flag_values,
                               "flag_meanings": " ".join(mm.FLAG_MEANINGS)}),
-            "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values.astype(np.float32, copy=False),
+            "theta_deg": (("lens", "band", "y", "x"), maps["theta_deg"].astype(np.float32, copy=False),
                           _attrs("angle of the viewing direction from the lens's optical axis", "degree")),
-            "phi_deg": (("lens", "band", "y", "x"), geo["phi_deg"].values.astype(np.float32, copy=False),
+            "phi_deg": (("lens", "band", "y", "x"), maps["phi_deg"].astype(np.float32, copy=False),
                         _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
-            "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values.astype(np.float32, copy=False),
+            "solid_angle_sr": (("lens", "band", "y", "x"), maps["solid_angle_sr"].astype(np.float32, copy=False),
                                _attrs("solid angle seen by the band pixel", "sr")),
             "zenith_deg": (("lens", "band", "y", "x"), zen,
                            _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
             "azimuth_deg": (("lens", "band", "y", "x"), azi,
                             _attrs("azimuth of the pixel's direction on the sphere", "degree", convention=convention)),
         }
-        del maps
+        del out_maps
     ds = xr.Dataset(
         {
             **pixel_vars,

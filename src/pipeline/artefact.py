@@ -52,11 +52,13 @@ from pipeline.errors import ArtefactError
 #: geometry 3: the ``projection`` attribute, and for a rectilinear region the pinhole fit's variables
 #: (``pinhole_parameters`` and their covariance; no image circle), see stages.geometry_rectilinear;
 #: calibration 8: a lens's ``projection`` and ``bias_reference``, the dark's ``optical_black_offset_dn``,
-#: a rectilinear lens's geometry without the fisheye model's variables (NaN) and no image circle.
+#: a rectilinear lens's geometry without the fisheye model's variables (NaN) and no image circle;
+#: calibration 9: the per-pixel factors in apply's compact form (pixel_factor, pixel_flag, ...), see
+#: pipeline.calibration.
 #: closure 1: the diagnostics' closure table
 #: (``results/closure/residuals.nc``, one row per measurement of every experiment, pipeline.diagnostics).
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 2, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 8, "field": 2, "closure": 1}
+                     "absolute": 3, "immersion": 2, "calibration": 9, "field": 2, "closure": 1}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
