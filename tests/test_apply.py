@@ -65,7 +65,8 @@ def test_bundle_pixel_factors_are_the_rolloff_polynomial_and_the_grid_cells(cali
     _, _, _, _, bundle_path, _ = calibrated
     bundle = read_bundle(bundle_path)
     n_z, n_a = 180, 360  # apply.grid_deg 1 (default)
-    assert float(bundle["sphere_cell"].attrs["grid_deg"]) == 1.0
+    cell_attrs = bundle["sphere_cell_in_block"].attrs
+    assert float(cell_attrs["grid_deg"]) == 1.0
     for lens in LENSES:
         for medium in ("air", "water"):
             for band in ("R", "G", "B"):
@@ -94,9 +95,15 @@ def test_bundle_pixel_factors_are_the_rolloff_polynomial_and_the_grid_cells(cali
                 phi = g["phi_deg"].values.astype(float)
                 zen, azi = (theta, phi % 360) if lens == "close" else (180 - theta, -phi % 360)
                 cell = np.minimum(zen.astype(int), n_z - 1) * n_a + np.minimum(azi.astype(int), n_a - 1)
+                # stored per block of rows: the cell less the block's first, the block's cell count off the grid
+                block = np.arange(theta.shape[0]) // int(cell_attrs["block_rows"])
+                index = g["sphere_cell_in_block"].values.astype(int)
+                n = g["sphere_block_n_cells"].values[block][:, None]
+                stored = np.where(index == n, -1, index + g["sphere_block_first_cell"].values[block][:, None])
+                assert (index <= n).all()
                 on = inside & ~beyond
-                assert (g["sphere_cell"].values[~on] == -1).all()
-                np.testing.assert_array_equal(g["sphere_cell"].values[on], cell[on])
+                assert (stored[~on] == -1).all()
+                np.testing.assert_array_equal(stored[on], cell[on])
 
 
 def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):

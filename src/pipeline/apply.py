@@ -50,7 +50,7 @@ import xarray as xr
 from pipeline.artefact import model_effects
 from pipeline.bands import BANDS
 from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects,
-                                  outside_image_circle, read_bundle)
+                                  outside_image_circle, read_bundle, sphere_blocks)
 from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
 from pipeline.frames import lens_images
@@ -302,68 +302,50 @@ def _bin_cells(cells, values, n_cells: int, extra=(), excluded=None, squared=())
 
 @dataclass(frozen=True)
 class _BandPlan:
-    """What the chain needs of one band of one lens for every frame of an ``apply`` call (made once per call).
+    """What the chain needs of one band of one lens for every frame of an ``apply`` call.
 
     ``factors`` the hot-pixel flags, flat field and roll-off taken together
-    (:func:`pipeline.radiometry.measurement.pixel_factors`), ``cells`` the
-    sphere cell of every pixel, ``corners`` the unlit corners whose mean is
-    the frame's black level with ``bias_drift`` (fisheye lenses; else None).
+    (:class:`pipeline.radiometry.measurement.PixelFactors`, the bundle's ``pixel_*`` maps),
+    ``corners`` the unlit corners whose mean is the frame's black level with ``bias_drift``
+    (fisheye lenses; else None).
     """
 
     factors: mm.PixelFactors
-    cells: np.ndarray
     corners: np.ndarray | None
     #: per block of rows: its (rows, columns) (all columns with the pixel maps; else those that reach inside
-    #: the image circle; blocks wholly outside it left out), its first cell, every pixel's cell less the first (np.intp; one past its
-    #: last cell, the block's spill cell, where a frame-independent flag (outside the image circle, beyond
-    #: the calibrated field angle, hot) or no direction keeps the pixel off the grid) and its pixels per cell
+    #: the image circle; blocks wholly outside it left out), its first cell, its number of cells n and
+    #: every pixel's cell less the first (a view of the bundle's ``sphere_cell_in_block``: n, the block's
+    #: spill cell, where no direction or a frame-independent flag keeps the pixel off the grid)
     blocks: list
 
 
-def _band_plan(factors: mm.PixelFactors, cells, folded: bool, corners: bool, block_rows: int,
-               pixels: bool) -> _BandPlan:
-    """The :class:`_BandPlan` of one band image from its stored ``factors`` and sphere ``cells``.
+def _band_plan(factors: mm.PixelFactors, cells, corners: bool, block_rows: int, pixels: bool) -> _BandPlan:
+    """The :class:`_BandPlan` of one band image from its ``factors`` and ``cells`` (:func:`sphere_blocks`).
 
-    ``folded``: the cells already -1 where a frame-independent flag keeps the pixel off the grid (the
-    bundle's ``sphere_cell``); ``corners``: the frame's black level from the unlit corners (``bias_drift``,
-    fisheye lens).
+    ``corners``: the frame's black level from the unlit corners (``bias_drift``, fisheye lens).
     """
     shape = factors.inverse.shape
     unlit = None
     if corners:
         # the frame's own black level from the unlit corners of the whole band image, less the hot pixels
         unlit = _unlit_corners(tuple(shape), _default_corner_fraction()) & ((factors.flags & mm.FLAG_HOT) == 0)
-    # per block the range of its cells: a pixel's index in the block is its cell less the block's first one
-    if not folded:
-        cells = np.where((factors.flags & EXCLUDED_FROM_GRID) != 0, -1, cells)
-    cells = np.asarray(cells).astype(np.int32, copy=False)
-    unsigned = cells.view(np.uint32)
-    # each row's first and last column inside the image circle (a row wholly outside: first > last)
-    inside = (factors.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) == 0
-    row_first = np.where(inside.any(axis=1), inside.argmax(axis=1), shape[1])
-    row_last = shape[1] - 1 - inside[:, ::-1].argmax(axis=1)
+    index, first, n_cells, columns = cells
     blocks = []
-    for r0 in range(0, shape[0], block_rows):
+    for b, r0 in enumerate(range(0, shape[0], block_rows)):
         r = slice(r0, min(r0 + block_rows, shape[0]))
         c = slice(0, shape[1])
         if not pixels:
             # the grid alone: only the block's columns that reach inside the image circle (the pixels
             # outside it neither enter the grid nor the negative-mean check)
-            c0, c1 = int(row_first[r].min()), int(row_last[r][row_first[r] < shape[1]].max(initial=-1)) + 1
+            c0, c1 = (int(v) for v in columns[b])
             if c1 <= c0:
                 continue
             c = slice(c0, c1)
-        # as uint32 the -1 of a pixel off the grid is the largest value: the block's first cell is the minimum
-        cell = unsigned[r, c]
-        first, last = int(cell.min()), int(cells[r, c].max())
-        first, n = (first, last - first + 1) if last >= 0 else (0, 0)
-        # the block's index: cell - first, n (the block's spill cell) off the grid; and its pixels per cell
-        index = np.minimum(cell - np.uint32(first), np.uint32(n)).astype(np.intp).ravel()
-        blocks.append(((r, c), first, index, np.bincount(index, minlength=n + 1)[:-1]))
-    return _BandPlan(factors=factors, cells=cells, corners=unlit, blocks=blocks)
+        blocks.append(((r, c), int(first[b]), int(n_cells[b]), index[r, c]))
+    return _BandPlan(factors=factors, corners=unlit, blocks=blocks)
 
 
-def _lens_plans(maps: dict, i: int, cells, folded: bool, corners: bool, block_rows: int, pixels: bool) -> dict:
+def _lens_plans(maps: dict, i: int, cells, corners: bool, block_rows: int, pixels: bool) -> dict:
     """The :class:`_BandPlan` of every band of lens ``i`` ({band: plan}) from the bundle's maps of the medium.
 
     ``maps``: the bundle's ``pixel_*`` variables at the medium, (lens, band, y, x); ``cells`` per band.
@@ -375,7 +357,7 @@ def _lens_plans(maps: dict, i: int, cells, folded: bool, corners: bool, block_ro
                                   systematic_rel={"rolloff": maps["pixel_systematic_relative_variance"][i, j]},
                                   random_rel={} if random is None else {"prnu": random[i, j]},
                                   flags=maps["pixel_flag"][i, j])
-        plans[band] = _band_plan(factors, cells[j], folded, corners, block_rows, pixels)
+        plans[band] = _band_plan(factors, cells[j], corners, block_rows, pixels)
     return plans
 
 
@@ -393,25 +375,27 @@ class _LensSums:
     def __init__(self, n_cells: int, n_bands: int):
         self.bands = [_CellSums(n_cells, 2, squared=(True, False)) for _ in range(n_bands)]
 
-    def add_block(self, band: int, first: int, index, count, value, rnd, sy, excluded) -> None:
-        """Bin one block (``first``, ``index``, ``count``: :attr:`_BandPlan.blocks`); ``excluded`` kept off."""
-        n = count.size + 1
-        excluded = excluded.ravel()
-        cells = slice(first, first + count.size)
+    def add_block(self, band: int, first: int, n: int, index, value, rnd, sy, excluded, at, wide) -> None:
+        """Bin one block (``first``, ``n``, ``index``: :attr:`_BandPlan.blocks`); ``excluded`` kept off.
+
+        ``at`` (np.intp) and ``wide`` (float64): buffers of at least the block's size.
+        """
+        at = at[:index.size]
+        np.copyto(at.reshape(index.shape), index)
+        # the pixels a frame's flags keep off (saturated, not finite) into the block's spill cell n
+        np.copyto(at, n, where=excluded.ravel())
+        cells = slice(first, first + n)
         total = self.bands[band]
-        # the pixels a frame's flags keep off: out of the count, zero weight
-        total.count[cells] += count - np.bincount(index[excluded], minlength=n)[:-1]
-        w = value.ravel().astype(float)
-        np.copyto(w, 0.0, where=excluded)
-        total.sums[0, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        total.count[cells] += np.bincount(at, minlength=n + 1)[:n]
+        w = wide[:index.size]
+        np.copyto(w, value.ravel())
+        total.sums[0, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
         np.square(w, out=w)
-        total.sums[1, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        total.sums[1, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
         np.square(rnd.ravel(), out=w, dtype=float)
-        np.copyto(w, 0.0, where=excluded)
-        total.sums[2, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        total.sums[2, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
         np.copyto(w, sy.ravel())
-        np.copyto(w, 0.0, where=excluded)
-        total.sums[3, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        total.sums[3, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
 
 
 def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, plans, block_rows, maps=None,
@@ -440,6 +424,8 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
     # per block: the chain's three results (unless written into maps) and one scratch for its sums of variances
     block = {name: np.empty(rows * shape[1], np.float32) for name in ("radiance", "random", "systematic", "scratch")}
     block["wide"] = np.empty(rows * shape[1])
+    block["sums"] = np.empty(rows * shape[1])
+    block["at"] = np.empty(rows * shape[1], np.intp)
     rectilinear = _projection(bundle, lens) == "rectilinear"
     good_bits = mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT
     for j, band in enumerate(BANDS):
@@ -458,7 +444,7 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
                 # subtract_dark's level and variance from the unlit pixels, taken once for the blocks
                 black = (float(unlit.mean()), float(unlit.var(ddof=1) / unlit.size)) if unlit.size > 1 else None
         total, total_var, n_good = 0.0, 0.0, 0
-        for window, first, index, count in plan.blocks:
+        for window, first, n, index in plan.blocks:
             m = mm.measure_band(image[window], frame, dark, response, cal, None, medium, effects,
                                 saturated=saturated[window], factors=plan.factors.window(window),
                                 frame_black_dn=black)
@@ -467,7 +453,7 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
                 np.copyto(maps["flags"][j][window], m.flags)
                 scratch = block["scratch"][:value.size].reshape(value.shape)
             else:
-                value, rnd, sy, scratch = (block[name][:index.size].reshape(m.flags.shape)
+                value, rnd, sy, scratch = (block[name][:index.size].reshape(index.shape)
                                            for name in ("radiance", "random", "systematic", "scratch"))
             m.evaluate_into(value, rnd, sy, scratch=scratch)
             finite = np.isfinite(value)
@@ -486,7 +472,7 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
             if sums is not None:
                 excluded = (m.flags & EXCLUDED_FROM_GRID) != 0
                 excluded |= np.logical_not(finite, out=finite)
-                sums.add_block(j, first, index, count, value, rnd, sy, excluded)
+                sums.add_block(j, first, n, index, value, rnd, sy, excluded, block["at"], block["sums"])
             del m
         if n_good:
             mean, se = total / n_good, np.sqrt(total_var) / n_good
@@ -509,24 +495,32 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     return mean.reshape(shape), spread.reshape(shape), count.reshape(shape)
 
 
-def _pixel_directions(maps, lenses, zenith_lens, grid_deg, pixels):
-    """The sphere cell of every band pixel ([lens][band] (y, x)) and, with ``pixels``, the zenith and azimuth maps.
+def _pixel_directions(maps, lenses, zenith_lens, grid_deg, block_rows, pixels):
+    """The sphere cells of every band pixel per block ([lens][band]: :func:`~pipeline.calibration.sphere_blocks`)
+    and, with ``pixels``, the zenith and azimuth maps.
 
-    ``maps`` the bundle's maps at the medium ((lens, band, y, x)): its ``sphere_cell`` when there, else
-    the cells from ``theta_deg`` and ``phi_deg`` (which the zenith and azimuth maps need too).
+    ``maps`` the bundle's maps at the medium ((lens, band, y, x)): its ``sphere_cell_in_block`` and
+    ``sphere_block_*`` when made for this grid, zenith lens and block size, else the cells from
+    ``theta_deg`` and ``phi_deg`` (which the zenith and azimuth maps need too) and ``pixel_flag``.
     """
     cells, zen, azi = [], None, None
-    stored = maps.get("sphere_cell")
+    stored = "sphere_cell_in_block" in maps
     if pixels:
         # written straight into the output maps
         zen, azi = (np.empty(maps["theta_deg"].shape, np.float32) for _ in range(2))
     for i, lens in enumerate(lenses):
         cells.append([])
         for j in range(len(BANDS)):
-            if pixels or stored is None:
+            if pixels or not stored:
                 z, a = sphere_coordinates(maps["theta_deg"][i, j], maps["phi_deg"][i, j], lens == zenith_lens,
                                           out=(zen[i, j], azi[i, j]) if pixels else None)
-            cells[i].append(stored[i, j] if stored is not None else sphere_cells(z, a, grid_deg))
+            if stored:
+                cells[i].append(tuple(maps[name][i, j] for name in ("sphere_cell_in_block", "sphere_block_first_cell",
+                                                                     "sphere_block_n_cells", "sphere_block_columns")))
+            else:
+                flags = maps["pixel_flag"][i, j]
+                cell = np.where((flags & STATIC_OFF_GRID) != 0, -1, sphere_cells(z, a, grid_deg))
+                cells[i].append(sphere_blocks(cell, flags, block_rows))
     return cells, zen, azi
 
 
@@ -576,28 +570,32 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         lenses = list(on_disk["lens"].values)
         if zenith_lens not in lenses:
             zenith_lens = lenses[0]
-        # the bundle's sphere cells when made for this grid and zenith lens; theta and phi then only for the pixel maps
-        cell_attrs = on_disk["sphere_cell"].attrs
+        # the bundle's sphere cells when made for this grid, zenith lens and block size; theta and phi then
+        # only for the pixel maps
+        block_rows = int(cfg["block_rows"])
+        cell_attrs = on_disk["sphere_cell_in_block"].attrs
         stored_cells = (np.isclose(float(cell_attrs.get("grid_deg", np.nan)), grid_deg)
-                        and cell_attrs.get("zenith_lens") == zenith_lens)
+                        and cell_attrs.get("zenith_lens") == zenith_lens
+                        and int(cell_attrs.get("block_rows", -1)) == block_rows)
         # of the per-pixel maps only those of this medium that the chain needs (the compact factors, the
         # cells), the geometry only for the pixel maps (or cells on another grid); each read as one hyperslab
         names = ["pixel_factor", "pixel_systematic_relative_variance", "pixel_flag"] \
             + [n for n in ("pixel_random_relative_variance",) if n in on_disk] \
-            + (["sphere_cell"] if stored_cells else []) \
+            + (["sphere_cell_in_block", "sphere_block_first_cell", "sphere_block_n_cells", "sphere_block_columns"]
+               if stored_cells else []) \
             + (["theta_deg", "phi_deg"] if pixels or not stored_cells else []) + (["solid_angle_sr"] if pixels else [])
         at = {"medium": list(on_disk["medium"].values).index(medium)}
         maps = {}
         for name in names:
             var = on_disk[name].variable
-            maps[name] = var.isel({d: k for d, k in at.items() if d in var.dims}).transpose(
-                "lens", "band", "y", "x").values
+            var = var.isel({d: k for d, k in at.items() if d in var.dims})
+            maps[name] = var.transpose("lens", "band", *(d for d in var.dims if d not in ("lens", "band"))).values
         # the small variables (parameters, scalars, per-band tables) loaded whole, at this medium
-        bundle = on_disk.drop_vars([n for n, v in on_disk.data_vars.items() if "y" in v.dims]).sel(
+        bundle = on_disk.drop_vars([n for n, v in on_disk.data_vars.items() if "y" in v.dims or "block" in v.dims]).sel(
             medium=[medium]).load()
     n_z, n_a = grid_shape(grid_deg)
     # the cell of every band pixel, once per lens and band (not per frame), beside the first frame's chain
-    directions = pool.submit(_pixel_directions, maps, lenses, zenith_lens, grid_deg, pixels)
+    directions = pool.submit(_pixel_directions, maps, lenses, zenith_lens, grid_deg, block_rows, pixels)
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
     meta = []
@@ -610,10 +608,9 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
     cells, zen, azi = directions.result()
     # what does not depend on the frame, once per call for every frame: each block's cells, the unlit corners
-    negative_sigma, block_rows = float(cfg["negative_mean_sigma"]), int(cfg["block_rows"])
+    negative_sigma = float(cfg["negative_mean_sigma"])
     corners = {lens: "bias_drift" in effects and lens not in rectilinear for lens in lenses}
-    plans = [job.result() for job in [pool.submit(_lens_plans, maps, i, cells[i], stored_cells, corners[lens],
-                                                  block_rows, pixels) for i, lens in enumerate(lenses)]]
+    plans = [_lens_plans(maps, i, cells[i], corners[lens], block_rows, pixels) for i, lens in enumerate(lenses)]
     parameters = {}  # the chain's parameter objects per lens, band and frame setting
     for f, path in enumerate(raw_paths):
         raw = decoding.result()

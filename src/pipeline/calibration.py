@@ -57,7 +57,7 @@ from pipeline.geometry.sphere import ZENITH_LENS, sphere_cells, sphere_coordinat
 from pipeline.radiometry import measurement as mm
 
 __all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "STATIC_OFF_GRID", "FACTOR_EFFECTS", "factor_effects",
-           "build_bundle", "read_bundle", "band_parameters",
+           "sphere_blocks", "build_bundle", "read_bundle", "band_parameters",
            "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script"]
 
 #: stages a bundle is gathered from (in the order of the calibration chain) and those it cannot lack
@@ -256,7 +256,41 @@ def factor_effects(effects) -> str:
     return ",".join(e for e in FACTOR_EFFECTS if e in tuple(effects))
 
 
-def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
+def sphere_blocks(cells: np.ndarray, flags: np.ndarray, block_rows: int):
+    """The sphere cells of a band image (y, x) per block of ``block_rows`` rows, in the form apply bins them.
+
+    ``cells`` the cell of every pixel (-1 off the grid), ``flags`` its frame-independent flags. Returns
+    ``index`` (y, x; uint16, uint32 where a block spans 65,535 cells or more): the pixel's cell less its
+    block's first cell, the block's number of cells (its spill cell) where the pixel is off the grid;
+    and per block ``first`` (its first cell), ``n_cells`` and ``columns`` ([start, stop) of the columns
+    that reach inside the image circle; start = stop for a block wholly outside it), int32.
+    """
+    shape = cells.shape
+    starts = range(0, shape[0], block_rows)
+    first = np.zeros(len(starts), np.int32)
+    n_cells = np.zeros(len(starts), np.int32)
+    columns = np.zeros((len(starts), 2), np.int32)
+    # each row's first and last column inside the image circle (a row wholly outside: first > last)
+    inside = (flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) == 0
+    row_first = np.where(inside.any(axis=1), inside.argmax(axis=1), shape[1])
+    row_last = shape[1] - 1 - inside[:, ::-1].argmax(axis=1)
+    # as uint32 the -1 of a pixel off the grid is the largest value: a block's first cell is the minimum
+    unsigned = np.asarray(cells, np.int32).view(np.uint32)
+    for b, r0 in enumerate(starts):
+        r = slice(r0, min(r0 + block_rows, shape[0]))
+        lo, last = int(unsigned[r].min()), int(cells[r].max())
+        first[b], n_cells[b] = (lo, last - lo + 1) if last >= 0 else (0, 0)
+        c0, c1 = int(row_first[r].min()), int(row_last[r][row_first[r] < shape[1]].max(initial=-1)) + 1
+        columns[b] = (c0, max(c0, c1))
+    dtype = np.uint16 if n_cells.max(initial=0) < np.iinfo(np.uint16).max else np.uint32
+    index = np.empty(shape, dtype)
+    for b, r0 in enumerate(starts):
+        r = slice(r0, min(r0 + block_rows, shape[0]))
+        np.minimum(unsigned[r] - np.uint32(first[b]), np.uint32(n_cells[b]), out=index[r], casting="unsafe")
+    return index, first, n_cells, columns
+
+
+def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float, block_rows: int) -> xr.Dataset:
     """What depends only on lens, medium and band, per band pixel, in the compact form the chain uses.
 
     The chain's :func:`~pipeline.radiometry.measurement.pixel_factors` of
@@ -269,9 +303,10 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
     (``hot_pixels``), ``pixel_random_relative_variance`` the flat field's
     relative variance (``prnu``; per lens and band); and the cell of every
     pixel on the default sphere grid (``apply.grid_deg``, the
-    :mod:`pipeline.geometry.sphere` convention), -1 where no direction or a
-    frame-independent flag keeps it off the grid. ``apply`` reads these for
-    its medium instead of evaluating them on every call.
+    :mod:`pipeline.geometry.sphere` convention; off the grid where no direction or a
+    frame-independent flag keeps it off) per block of ``apply.block_rows`` rows
+    (:func:`sphere_blocks`). ``apply`` reads these for its medium instead of
+    evaluating them on every call.
     """
     lenses, media = list(bundle["lens"].values), list(bundle["medium"].values)
     # apply's choice: the default zenith lens, or the first lens of a camera without one (a phone's only lens)
@@ -282,7 +317,7 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
     inverse = np.empty(shape, np.float32)
     rel = np.empty(shape, np.float32)
     flags = np.empty(shape, np.uint8)
-    cells = np.empty(shape, np.int32)
+    blocks = {}
     flat = "prnu" in effects and "flat_field" in bundle
     random_rel = np.empty(per_band, np.float32) if flat else None
     frame = mm.FrameSettings(exposure_s=1.0, iso=float(bundle["dark_iso"].values.min()))
@@ -312,7 +347,18 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
                 if flat and k == 0:
                     random_rel[i, j] = f.random_rel["prnu"]
                 zen, azi = sphere_coordinates(g["theta_deg"].values, phi, lens == zenith_lens)
-                cells[index] = np.where((f.flags & STATIC_OFF_GRID) != 0, -1, sphere_cells(zen, azi, grid_deg))
+                cells = np.where((f.flags & STATIC_OFF_GRID) != 0, -1, sphere_cells(zen, azi, grid_deg))
+                blocks[i, k, j] = index, sphere_blocks(cells, f.flags, block_rows)
+    # one index type for all (uint16 unless a block spans 65,535 cells or more)
+    dtype = np.result_type(*(b[1][0].dtype for b in blocks.values()))
+    cell_index = np.empty(shape, dtype)
+    n_blocks = len(next(iter(blocks.values()))[1][1])
+    block_dims = ("lens", "medium", "band", "block")
+    per_block = {name: np.empty((len(lenses), len(media), len(BANDS), n_blocks) + extra, np.int32)
+                 for name, extra in (("first", ()), ("n_cells", ()), ("columns", (2,)))}
+    for at, (index, (cell, first, n_cells, columns)) in blocks.items():
+        cell_index[index] = cell
+        per_block["first"][at], per_block["n_cells"][at], per_block["columns"][at] = first, n_cells, columns
     used = factor_effects(effects)
     out = xr.Dataset({
         "pixel_factor": (dims, inverse, {
@@ -328,10 +374,19 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
             "flag_masks": np.array([mm.FLAG_OUTSIDE_IMAGE_CIRCLE, mm.FLAG_BEYOND_CALIBRATED_ANGLE, mm.FLAG_HOT],
                                    np.uint8),
             "flag_meanings": "outside_image_circle beyond_calibrated_angle hot_pixel", "effects": used}),
-        "sphere_cell": (dims, cells, {
-            "long_name": "cell of the pixel's direction on the sphere grid, row-major (zenith, azimuth); -1: no "
-                         "direction, or a frame-independent flag keeps the pixel off the grid", "units": "1",
-            "grid_deg": float(grid_deg), "zenith_lens": zenith_lens, "effects": used}),
+        "sphere_cell_in_block": (dims, cell_index, {
+            "long_name": "cell of the pixel's direction on the sphere grid (row-major zenith, azimuth) less its "
+                         "block's first cell (sphere_block_first_cell); sphere_block_n_cells: off the grid (no "
+                         "direction, or a frame-independent flag)", "units": "1",
+            "grid_deg": float(grid_deg), "zenith_lens": zenith_lens, "block_rows": int(block_rows),
+            "effects": used}),
+        "sphere_block_first_cell": (block_dims, per_block["first"], {
+            "long_name": "first sphere cell of each block of block_rows rows", "units": "1"}),
+        "sphere_block_n_cells": (block_dims, per_block["n_cells"], {
+            "long_name": "sphere cells a block spans (also its spill index: pixels off the grid)", "units": "1"}),
+        "sphere_block_columns": (block_dims + ("bound",), per_block["columns"], {
+            "long_name": "columns of each block that reach inside the image circle, [start, stop)",
+            "units": "pixel"}),
     })
     if flat:
         out["pixel_random_relative_variance"] = (("lens", "band", "y", "x"), random_rel, {
@@ -460,8 +515,8 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
     bundle["lens_region_px"] = (("lens", "axis", "bound"), span,
                                 {"long_name": "lens region of the raw mosaic: rows then columns, [start, stop)",
                                  "units": "pixel"})
-    grid_deg = float((config.get("apply") or defaults()["apply"])["grid_deg"])
-    bundle = bundle.merge(_pixel_factors(bundle, effects, grid_deg))
+    apply_cfg = config.get("apply") or defaults()["apply"]
+    bundle = bundle.merge(_pixel_factors(bundle, effects, float(apply_cfg["grid_deg"]), int(apply_cfg["block_rows"])))
     bundle.attrs.update({
         "title": "calibration bundle of a RAW camera as a radiometer (Larouche et al. 2024)",
         "camera_make": str(camera.get("make", "")), "camera_model": str(camera.get("model", "")),
