@@ -203,6 +203,24 @@ def test_output_is_cf_and_the_sphere_has_nan_where_no_pixel_falls(applied):
     assert count[..., :80, :].sum() > 0 and count[..., 100:, :].sum() > 0
 
 
+def test_pixel_maps_without_their_geometry_name_the_bundles(calibrated, applied, tmp_path):
+    """--no-pixel-geometry: the same pixel maps, no geometry maps, and the hashes of the geometry artefacts."""
+    import hashlib
+
+    root, _, out, _, bundle_path, _ = calibrated
+    path = tmp_path / "no-geometry.nc"
+    apply_calibration(bundle_path, [_signal_frame(root, "far")], "air", path, pixel_geometry=False)
+    with xr.open_dataset(path) as ds:
+        for name in ("theta_deg", "phi_deg", "solid_angle_sr", "zenith_deg", "azimuth_deg"):
+            assert name not in ds, name
+        assert "medium 'air'" in ds.attrs["pixel_geometry"]
+        want = {f"geometry/{lens}.nc": hashlib.sha256((out / "geometry" / f"{lens}.nc").read_bytes()).hexdigest()
+                for lens in LENSES}
+        assert json.loads(ds.attrs["geometry_sha256"]) == want
+        np.testing.assert_array_equal(ds["radiance"].values, applied["far"]["radiance"].values)
+        assert ds["radiance"].attrs["units"] == "W sr-1 m-2 nm-1"
+
+
 def test_frames_the_bundle_does_not_calibrate_are_refused(calibrated, tmp_path):
     root, _, out, artefacts, bundle_path, meta = calibrated
     raw = read_raw(_signal_frame(root, "far"))

@@ -37,6 +37,7 @@ lacks, is refused with one line naming the file.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -530,12 +531,16 @@ def _attrs(long_name, units, **extra):
 
 def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: float | None = None, *,
                       overwrite: bool = False, zenith_lens: str = ZENITH_LENS, config: dict | None = None,
-                      pixels: bool = True) -> Path:
+                      pixels: bool = True, pixel_geometry: bool = True) -> Path:
     """Turn raw frames into radiance maps with the calibration bundle; write ``out_path`` (NetCDF).
 
     Returns the path written. Each frame is decoded once. The sphere grid is
     always written; the per-pixel maps (radiance, uncertainties, flags and
-    the geometry of every band pixel of both lenses) only with ``pixels``.
+    the geometry of every band pixel of both lenses) only with ``pixels``;
+    ``pixel_geometry=False`` leaves the geometry maps (theta, phi, solid
+    angle, zenith, azimuth) out: the output then names them in the bundle
+    (attribute ``pixel_geometry``, with the sha256 of the geometry artefacts
+    they came from, ``geometry_sha256``).
     The output is written to a temporary name and renamed; an existing
     ``out_path`` is replaced only with ``overwrite``.
     """
@@ -555,10 +560,11 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     # (numpy, rawpy and the NetCDF reads release the GIL)
     with ThreadPoolExecutor(max_workers=2) as pool:
         return _apply_frames(pool, pool.submit(read_raw, raw_paths[0], checksums=False), bundle_path, raw_paths, medium, out_path,
-                             grid_deg, cfg, zenith_lens, pixels)
+                             grid_deg, cfg, zenith_lens, pixels, pixel_geometry)
 
 
-def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid_deg, cfg, zenith_lens, pixels):
+def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid_deg, cfg, zenith_lens, pixels,
+                  pixel_geometry=True):
     """:func:`apply_calibration` once the arguments are checked; ``decoding`` the future of the first frame."""
     with read_bundle(bundle_path, load=False) as on_disk:
         effects = model_effects(on_disk)
@@ -573,6 +579,7 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         # the bundle's sphere cells when made for this grid, zenith lens and block size; theta and phi then
         # only for the pixel maps
         block_rows = int(cfg["block_rows"])
+        geometry = pixels and pixel_geometry
         cell_attrs = on_disk["sphere_cell_in_block"].attrs
         stored_cells = (np.isclose(float(cell_attrs.get("grid_deg", np.nan)), grid_deg)
                         and cell_attrs.get("zenith_lens") == zenith_lens
@@ -583,7 +590,8 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
             + [n for n in ("pixel_random_relative_variance",) if n in on_disk] \
             + (["sphere_cell_in_block", "sphere_block_first_cell", "sphere_block_n_cells", "sphere_block_columns"]
                if stored_cells else []) \
-            + (["theta_deg", "phi_deg"] if pixels or not stored_cells else []) + (["solid_angle_sr"] if pixels else [])
+            + (["theta_deg", "phi_deg"] if geometry or not stored_cells else []) \
+            + (["solid_angle_sr"] if geometry else [])
         at = {"medium": list(on_disk["medium"].values).index(medium)}
         maps = {}
         for name in names:
@@ -595,7 +603,7 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
             medium=[medium]).load()
     n_z, n_a = grid_shape(grid_deg)
     # the cell of every band pixel, once per lens and band (not per frame), beside the first frame's chain
-    directions = pool.submit(_pixel_directions, maps, lenses, zenith_lens, grid_deg, block_rows, pixels)
+    directions = pool.submit(_pixel_directions, maps, lenses, zenith_lens, grid_deg, block_rows, geometry)
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
     meta = []
@@ -657,17 +665,20 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
             "quality_flag": (pixel_dims, out_maps["flags"],
                              {"long_name": "quality flag bits", "units": "1", "flag_masks": flag_values,
                               "flag_meanings": " ".join(mm.FLAG_MEANINGS)}),
-            "theta_deg": (("lens", "band", "y", "x"), maps["theta_deg"].astype(np.float32, copy=False),
-                          _attrs("angle of the viewing direction from the lens's optical axis", "degree")),
-            "phi_deg": (("lens", "band", "y", "x"), maps["phi_deg"].astype(np.float32, copy=False),
-                        _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
-            "solid_angle_sr": (("lens", "band", "y", "x"), maps["solid_angle_sr"].astype(np.float32, copy=False),
-                               _attrs("solid angle seen by the band pixel", "sr")),
-            "zenith_deg": (("lens", "band", "y", "x"), zen,
-                           _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
-            "azimuth_deg": (("lens", "band", "y", "x"), azi,
-                            _attrs("azimuth of the pixel's direction on the sphere", "degree", convention=convention)),
         }
+        if geometry:
+            pixel_vars.update({
+                "theta_deg": (("lens", "band", "y", "x"), maps["theta_deg"].astype(np.float32, copy=False),
+                              _attrs("angle of the viewing direction from the lens's optical axis", "degree")),
+                "phi_deg": (("lens", "band", "y", "x"), maps["phi_deg"].astype(np.float32, copy=False),
+                            _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
+                "solid_angle_sr": (("lens", "band", "y", "x"), maps["solid_angle_sr"].astype(np.float32, copy=False),
+                                   _attrs("solid angle seen by the band pixel", "sr")),
+                "zenith_deg": (("lens", "band", "y", "x"), zen,
+                               _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
+                "azimuth_deg": (("lens", "band", "y", "x"), azi,
+                                _attrs("azimuth of the pixel's direction on the sphere", "degree", convention=convention)),
+            })
         del out_maps
     ds = xr.Dataset(
         {
@@ -701,6 +712,15 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
                            "nonlinearity, roll-off (and its azimuthal term), immersion factor and R^-1, common to a band",
         },
     )
+    if pixels and not geometry:
+        # the geometry maps stay in the bundle: named there, with the hashes of the artefacts they came from
+        hashes = json.loads(bundle.attrs.get("input_sha256", "{}"))
+        ds.attrs["pixel_geometry"] = (
+            f"not in this file: theta_deg, phi_deg and solid_angle_sr of every band pixel are the calibration "
+            f"bundle's (dims lens, medium, band, y, x) at medium '{medium}', the same y, x as the pixel maps; "
+            "zenith and azimuth follow from theta and phi by sphere_convention")
+        ds.attrs["geometry_sha256"] = json.dumps({k: v for k, v in hashes.items() if k.startswith("geometry/")},
+                                                 sort_keys=True)
     ds.attrs["black_level"] = "; ".join(
         f"{lens}: " + ("the dark model's bias (bias_drift not in the model)" if "bias_drift" not in effects
                        else "each frame's optically black pixels" if lens in rectilinear
@@ -742,6 +762,10 @@ def add_apply_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--pixels", action=argparse.BooleanOptionalAction, default=True,
                    help="write the per-pixel maps of both lenses besides the sphere grid (default); "
                         "--no-pixels writes the sphere grid only")
+    p.add_argument("--pixel-geometry", action=argparse.BooleanOptionalAction, default=True,
+                   help="with the pixel maps also write each band pixel's theta, phi, solid angle, zenith and "
+                        "azimuth (default); --no-pixel-geometry leaves them in the calibration bundle and names "
+                        "them there (360 MB less per file at the full resolution)")
     return p
 
 
@@ -749,7 +773,8 @@ def apply_command(args) -> int:
     """Run ``apply`` from parsed arguments; bad input prints one line and returns 1."""
     try:
         out = apply_calibration(args.calibration, args.raw, args.medium, args.out, args.grid_deg,
-                                overwrite=args.overwrite, pixels=args.pixels)
+                                overwrite=args.overwrite, pixels=args.pixels,
+                                pixel_geometry=getattr(args, "pixel_geometry", True))
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
