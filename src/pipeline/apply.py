@@ -37,7 +37,6 @@ lacks, is refused with one line naming the file.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -714,13 +713,11 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
     )
     if pixels and not geometry:
         # the geometry maps stay in the bundle: named there, with the hashes of the artefacts they came from
-        hashes = json.loads(bundle.attrs.get("input_sha256", "{}"))
         ds.attrs["pixel_geometry"] = (
             f"not in this file: theta_deg, phi_deg and solid_angle_sr of every band pixel are the calibration "
             f"bundle's (dims lens, medium, band, y, x) at medium '{medium}', the same y, x as the pixel maps; "
             "zenith and azimuth follow from theta and phi by sphere_convention")
-        ds.attrs["geometry_sha256"] = json.dumps({k: v for k, v in hashes.items() if k.startswith("geometry/")},
-                                                 sort_keys=True)
+        ds.attrs["geometry_sha256"] = str(bundle.attrs.get("geometry_sha256", "{}"))
     ds.attrs["black_level"] = "; ".join(
         f"{lens}: " + ("the dark model's bias (bias_drift not in the model)" if "bias_drift" not in effects
                        else "each frame's optically black pixels" if lens in rectilinear

@@ -40,6 +40,7 @@ use the same chain.
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -455,7 +456,7 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
     if missing:
         raise InputError(out_path, f"the calibration bundle needs the {', '.join(missing)} artefact(s)")
     lenses = sorted(artefacts["dark"])
-    effects, first, inputs = None, None, {}
+    effects, first, inputs, geometry_inputs = None, None, {}, {}
     projection = {lens: "fisheye" for lens in lenses}
     bias_reference = {lens: "unlit corners" for lens in lenses}
     parts: dict[str, dict[str, xr.Dataset]] = {}
@@ -475,6 +476,8 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
                 raise InputError(paths[lens], f"was fitted with the model [{', '.join(found)}], {first} with "
                                               f"[{', '.join(effects)}]: rerun the stages with one model")
             inputs[_relative(paths[lens], results_root)] = sha256_file(paths[lens])
+            if stage == "geometry":
+                geometry_inputs[_relative(paths[lens], results_root)] = inputs[_relative(paths[lens], results_root)]
             if stage == "geometry":
                 projection[lens] = str(ds.attrs.get("projection", "fisheye"))
             if stage == "dark":
@@ -522,6 +525,8 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
         "camera_make": str(camera.get("make", "")), "camera_model": str(camera.get("model", "")),
         "camera_serial": str(camera.get("serial", "")),
         "media": ",".join(media), "stages": ",".join(parts),
+        # what names the per-pixel geometry maps (theta, phi, solid angle) in an apply output without them
+        "geometry_sha256": json.dumps(geometry_inputs, sort_keys=True),
     })
     # the per-pixel maps uncompressed and contiguous: apply reads one lens, band and medium of them
     # as one block, where decompressing them cost it seconds at the full resolution
