@@ -8,7 +8,9 @@ lens region. ``apply`` is ``pipeline.apply.apply_calibration(bundle, [frame],
 "air", out)``: decode, the measurement chain on every band pixel of both
 lenses, the sphere grid and the NetCDF write; ``apply-grid`` the same with
 ``pixels=False`` (``--no-pixels``: the sphere grid only, no per-pixel maps
-written). Each is run ``--repeat`` times, each run in a fresh Python process,
+written); ``apply-maps`` the pixel maps with ``pixel_geometry=False``
+(``--no-pixel-geometry``: no theta, phi, solid angle, zenith and azimuth
+maps, which stay in the bundle). Each is run ``--repeat`` times, each run in a fresh Python process,
 alternating, after ``--warmup`` untimed rounds (1: the bundle and the frame
 into the page cache); the script prints the minimum and median wall time,
 the median CPU time (all threads, user and system, and each apart: the
@@ -162,7 +164,8 @@ def child(what: str, frame: str, bundle: str, out: str) -> None:
             region = meta["lenses"][lens]
             split_bands(cut_region(raw.cfa, region["rows"], region["cols"]), raw.cfa_pattern)
     else:
-        apply_calibration(bundle, [frame], "air", out, overwrite=True, pixels=what == "apply")
+        apply_calibration(bundle, [frame], "air", out, overwrite=True, pixels=what != "apply-grid",
+                          pixel_geometry=what != "apply-maps")
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     r1 = resource.getrusage(resource.RUSAGE_SELF)
     print(json.dumps({"wall_s": wall, "cpu_s": cpu, "user_s": r1.ru_utime - r0.ru_utime,
@@ -197,7 +200,7 @@ def main() -> None:
     bundle, frame = build(work, args.seed)
     out = work / "apply-out.nc"
     print(f"frame {frame} ({frame.stat().st_size / 1e6:.0f} MB), bundle {bundle} ({bundle.stat().st_size / 1e6:.0f} MB)")
-    runs = {"decode": [], "apply": [], "apply-grid": []}
+    runs = {"decode": [], "apply": [], "apply-maps": [], "apply-grid": []}
     load_before = os.getloadavg()[0]
     for k in range(args.warmup + args.repeat):
         for what in runs:
@@ -221,6 +224,7 @@ def main() -> None:
         print(f"{what:<10} {min(walls):8.0f} {med[what]:10.0f} {cpu[what]:14.0f} {user[what]:15.0f} {system:17.0f} "
               f"{max(r['peak_rss_mib'] for r in rs):9.0f}")
     print(f"apply / decode (wall medians): {med['apply'] / med['decode']:.2f} with the pixel maps, "
+          f"{med['apply-maps'] / med['decode']:.2f} without the pixel geometry (--no-pixel-geometry), "
           f"{med['apply-grid'] / med['decode']:.2f} the sphere grid only (--no-pixels)")
     print(f"apply / decode (CPU medians, all threads): {cpu['apply'] / cpu['decode']:.2f} with the pixel maps, "
           f"{cpu['apply-grid'] / cpu['decode']:.2f} the sphere grid only")

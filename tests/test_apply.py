@@ -59,6 +59,53 @@ def test_bundle_contents_and_provenance(calibrated):
         assert "units" in bundle[name].attrs or bundle[name].dtype.kind in "iub", name
 
 
+def test_bundle_pixel_factors_are_the_rolloff_polynomial_and_the_grid_cells(calibrated):
+    """The compact per-pixel factors apply reads: 1 / g(theta) of Eq. (13), its relative variance from the
+    coefficients' covariance and theta's sigma, the flags and the sphere cell, against the formulas here."""
+    _, _, _, _, bundle_path, _ = calibrated
+    bundle = read_bundle(bundle_path)
+    n_z, n_a = 180, 360  # apply.grid_deg 1 (default)
+    cell_attrs = bundle["sphere_cell_in_block"].attrs
+    assert float(cell_attrs["grid_deg"]) == 1.0
+    for lens in LENSES:
+        for medium in ("air", "water"):
+            for band in ("R", "G", "B"):
+                g = bundle.sel(lens=lens, medium=medium, band=band)
+                a = g["rolloff_coefficients"].values.astype(float)
+                cov = g["rolloff_covariance"].values.astype(float)
+                theta = g["theta_deg"].values.astype(float)
+                y, x = np.indices(theta.shape)
+                inside = (np.hypot(x - float(g["circle_xc_px"]), y - float(g["circle_yc_px"]))
+                          <= float(g["circle_radius_px"])) & (theta <= float(g["half_fov_deg"]))
+                powers = np.stack([theta ** (2 * k) for k in range(a.size)])  # g = sum a_k theta^(2k), degrees
+                roll = np.tensordot(a, powers, 1)
+                slope = np.tensordot(a[1:] * 2 * np.arange(1, a.size), powers[:-1] * theta, 1)  # dg / dtheta
+                rel = np.einsum("k...,kl,l...->...", powers, cov, powers) / roll ** 2
+                rel += (slope / roll * np.nan_to_num(g["theta_deg_sigma"].values)) ** 2
+                factor = g["pixel_factor"].values
+                assert np.isnan(factor[~inside]).all() and np.isfinite(factor[inside]).all()
+                np.testing.assert_allclose(factor[inside], 1.0 / roll[inside], rtol=2e-6)
+                np.testing.assert_allclose(g["pixel_systematic_relative_variance"].values[inside], rel[inside],
+                                           rtol=1e-4, atol=1e-12)
+                flag = g["pixel_flag"].values
+                assert ((flag & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) != 0).tolist() == (~inside).tolist()
+                beyond = inside & (theta > float(g["calibrated_field_angle_deg"]))
+                assert ((flag & mm.FLAG_BEYOND_CALIBRATED_ANGLE) != 0).tolist() == beyond.tolist()
+                # the cell: zenith theta (close lens, at the zenith) or 180 - theta, azimuth phi or -phi
+                phi = g["phi_deg"].values.astype(float)
+                zen, azi = (theta, phi % 360) if lens == "close" else (180 - theta, -phi % 360)
+                cell = np.minimum(zen.astype(int), n_z - 1) * n_a + np.minimum(azi.astype(int), n_a - 1)
+                # stored per block of rows: the cell less the block's first, the block's cell count off the grid
+                block = np.arange(theta.shape[0]) // int(cell_attrs["block_rows"])
+                index = g["sphere_cell_in_block"].values.astype(int)
+                n = g["sphere_block_n_cells"].values[block][:, None]
+                stored = np.where(index == n, -1, index + g["sphere_block_first_cell"].values[block][:, None])
+                assert (index <= n).all()
+                on = inside & ~beyond
+                assert (stored[~on] == -1).all()
+                np.testing.assert_array_equal(stored[on], cell[on])
+
+
 def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
     import shutil
 
@@ -154,6 +201,24 @@ def test_output_is_cf_and_the_sphere_has_nan_where_no_pixel_falls(applied):
     assert "zenith" in ds.attrs["sphere_convention"]
     # both lenses reach the grid: the upper and the lower hemisphere hold pixels
     assert count[..., :80, :].sum() > 0 and count[..., 100:, :].sum() > 0
+
+
+def test_pixel_maps_without_their_geometry_name_the_bundles(calibrated, applied, tmp_path):
+    """--no-pixel-geometry: the same pixel maps, no geometry maps, and the hashes of the geometry artefacts."""
+    import hashlib
+
+    root, _, out, _, bundle_path, _ = calibrated
+    path = tmp_path / "no-geometry.nc"
+    apply_calibration(bundle_path, [_signal_frame(root, "far")], "air", path, pixel_geometry=False)
+    with xr.open_dataset(path) as ds:
+        for name in ("theta_deg", "phi_deg", "solid_angle_sr", "zenith_deg", "azimuth_deg"):
+            assert name not in ds, name
+        assert "medium 'air'" in ds.attrs["pixel_geometry"]
+        want = {f"geometry/{lens}.nc": hashlib.sha256((out / "geometry" / f"{lens}.nc").read_bytes()).hexdigest()
+                for lens in LENSES}
+        assert json.loads(ds.attrs["geometry_sha256"]) == want
+        np.testing.assert_array_equal(ds["radiance"].values, applied["far"]["radiance"].values)
+        assert ds["radiance"].attrs["units"] == "W sr-1 m-2 nm-1"
 
 
 def test_frames_the_bundle_does_not_calibrate_are_refused(calibrated, tmp_path):

@@ -49,10 +49,11 @@ import xarray as xr
 
 from pipeline.artefact import model_effects
 from pipeline.bands import BANDS
-from pipeline.calibration import band_parameters, calibrated_isos, outside_image_circle, read_bundle
+from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects,
+                                  outside_image_circle, read_bundle, sphere_blocks)
 from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
-from pipeline.frames import SITES_PER_BAND_PIXEL, lens_images
+from pipeline.frames import lens_images
 from pipeline.geometry.sphere import ZENITH_LENS, grid_shape, sphere_cells, sphere_coordinates
 from pipeline.moments import corner_mask
 from pipeline.radiometry import measurement as mm
@@ -62,8 +63,7 @@ __all__ = ["apply_calibration", "band_radiance", "check_frame", "sphere_coordina
            "apply_command"]
 
 #: flags that keep a pixel out of the sphere grid
-EXCLUDED_FROM_GRID = (mm.FLAG_SATURATED | mm.FLAG_HOT | mm.FLAG_OUTSIDE_IMAGE_CIRCLE
-                      | mm.FLAG_BEYOND_CALIBRATED_ANGLE)
+EXCLUDED_FROM_GRID = mm.FLAG_SATURATED | STATIC_OFF_GRID
 SPHERE_CONVENTION = ("the {zenith} lens's optical axis is the zenith (zenith angle = theta, azimuth = phi); "
                      "the other lens looks at the nadir (zenith angle = 180 - theta, azimuth = -phi mod 360, mirrored); "
                      "theta, phi from the bundle's geometry maps (phi from the band image's +x towards +y)")
@@ -133,18 +133,18 @@ def _crop(b: xr.Dataset, name: str, rows: slice, cols: slice):
     return b[name].isel(y=rows, x=cols).values if name in b else None
 
 
-def _stored_rolloff(g: xr.Dataset, rows: slice, cols: slice, effects) -> mm.RolloffMap | None:
-    """The bundle's roll-off map of the crop (:func:`pipeline.calibration.build_bundle`), when made for ``effects``."""
-    if "rolloff_inverse" not in g or bool(g["rolloff_inverse"].attrs.get("rolloff_azimuth", 0)) != (
-            "rolloff_azimuth" in effects):
+def _stored_factors(g: xr.Dataset, b: xr.Dataset, rows: slice, cols: slice, effects) -> mm.PixelFactors | None:
+    """The bundle's per-pixel factors of the crop (:func:`pipeline.calibration.build_bundle`), when made for ``effects``.
+
+    ``g`` the bundle at one lens, medium and band, ``b`` at that lens and band (the flat field's term).
+    """
+    if "pixel_factor" not in g or str(g["pixel_factor"].attrs.get("effects", "")) != factor_effects(effects):
         return None
-    rel = {"rolloff": _crop(g, "rolloff_relative_variance", rows, cols)}
-    if "rolloff_azimuth_relative_variance" in g:
-        rel["rolloff_azimuth"] = _crop(g, "rolloff_azimuth_relative_variance", rows, cols)
-    if "field_angle_relative_variance" in g:
-        rel["field_angle"] = _crop(g, "field_angle_relative_variance", rows, cols)
-    return mm.RolloffMap(inverse=_crop(g, "rolloff_inverse", rows, cols), relative_var=rel,
-                         flags=_crop(g, "geometry_flag", rows, cols))
+    random = ({"prnu": _crop(b, "pixel_random_relative_variance", rows, cols)}
+              if "pixel_random_relative_variance" in b else {})
+    return mm.PixelFactors(inverse=_crop(g, "pixel_factor", rows, cols),
+                           systematic_rel={"rolloff": _crop(g, "pixel_systematic_relative_variance", rows, cols)},
+                           random_rel=random, flags=_crop(g, "pixel_flag", rows, cols))
 
 
 def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str, effects,
@@ -174,23 +174,23 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
     effects = tuple(effects)
     image = images.bands[band]
     g = bundle.sel(lens=lens, medium=medium, band=band)
-    shape = g["theta_deg" if "theta_deg" in g else "rolloff_inverse"].shape
+    shape = g["theta_deg" if "theta_deg" in g else "pixel_factor"].shape
     if image.shape != tuple(shape):
         raise InputError(source, f"lens '{lens}' band image is {image.shape}, the calibration's {tuple(shape)}")
     rows, cols = (slice(None), slice(None)) if window is None else window
     rows = slice(*rows.indices(shape[0]))
     cols = slice(*cols.indices(shape[1]))
-    rolloff = _stored_rolloff(g, rows, cols, effects)
-    theta = phi = None
-    if rolloff is None:
+    b = bundle.sel(lens=lens, band=band)
+    factors = _stored_factors(g, b, rows, cols, effects)
+    theta = phi = rolloff = None
+    if factors is None:
         theta = np.asarray(_crop(g, "theta_deg", rows, cols), dtype=float)
         theta = np.where(outside_image_circle(g, theta, rows, cols, shape), np.nan, theta)
         phi = _crop(g, "phi_deg", rows, cols)
     dark, response, cal = band_parameters(bundle, lens, band, medium, frame, effects)
-    if rolloff is None:
+    if factors is None:
         rolloff = mm.rolloff_map(theta, cal, phi, effects, np.result_type(np.float32, image.dtype),
                                  theta_deg_sigma=_crop(g, "theta_deg_sigma", rows, cols))
-    b = bundle.sel(lens=lens, band=band)
     unlit = None
     if "bias_drift" in effects and _projection(bundle, lens) != "rectilinear":
         # the frame's own black level from the unlit corners of the whole band image (not only the crop)
@@ -205,7 +205,7 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
                         flat_field=_crop(b, "flat_field", rows, cols),
                         flat_field_sigma=_crop(b, "flat_field_sigma", rows, cols),
                         prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
-                        phi_deg=phi, rolloff=rolloff,
+                        phi_deg=phi, rolloff=rolloff, factors=factors,
                         frame_black_dn=frame_black if _projection(bundle, lens) == "rectilinear" else None)
     if out is not None:
         m.evaluate_into(*out, scratch=scratch)
@@ -302,81 +302,63 @@ def _bin_cells(cells, values, n_cells: int, extra=(), excluded=None, squared=())
 
 @dataclass(frozen=True)
 class _BandPlan:
-    """What the chain needs of one band of one lens for every frame of an ``apply`` call (made once per call).
+    """What the chain needs of one band of one lens for every frame of an ``apply`` call.
 
     ``factors`` the hot-pixel flags, flat field and roll-off taken together
-    (:func:`pipeline.radiometry.measurement.pixel_factors`), ``cells`` the
-    sphere cell of every pixel, ``corners`` the unlit corners whose mean is
-    the frame's black level with ``bias_drift`` (fisheye lenses; else None).
+    (:class:`pipeline.radiometry.measurement.PixelFactors`, the bundle's ``pixel_*`` maps),
+    ``corners`` the unlit corners whose mean is the frame's black level with ``bias_drift``
+    (fisheye lenses; else None).
     """
 
     factors: mm.PixelFactors
-    cells: np.ndarray
     corners: np.ndarray | None
     #: per block of rows: its (rows, columns) (all columns with the pixel maps; else those that reach inside
-    #: the image circle; blocks wholly outside it left out), its first cell, every pixel's cell less the first (np.intp; one past its
-    #: last cell, the block's spill cell, where a frame-independent flag (outside the image circle, beyond
-    #: the calibrated field angle, hot) or no direction keeps the pixel off the grid) and its pixels per cell
+    #: the image circle; blocks wholly outside it left out), its first cell, its number of cells n and
+    #: every pixel's cell less the first (a view of the bundle's ``sphere_cell_in_block``: n, the block's
+    #: spill cell, where no direction or a frame-independent flag keeps the pixel off the grid)
     blocks: list
 
 
-def _band_plan(bundle, lens, band, medium, effects, cells, n_cells: int, block_rows: int, pixels: bool) -> _BandPlan:
-    g = bundle.sel(lens=lens, medium=medium, band=band)
-    shape = g["theta_deg" if "theta_deg" in g else "rolloff_inverse"].shape
-    whole = (slice(0, shape[0]), slice(0, shape[1]))
-    rolloff = _stored_rolloff(g, *whole, effects)
-    if rolloff is None:
-        theta = np.asarray(g["theta_deg"].values, dtype=float)
-        theta = np.where(outside_image_circle(g, theta, *whole, shape), np.nan, theta)
-        frame = mm.FrameSettings(exposure_s=1.0, iso=float(bundle["dark_iso"].values.min()))
-        cal = band_parameters(bundle, lens, band, medium, frame, effects)[2]
-        rolloff = mm.rolloff_map(theta, cal, g["phi_deg"].values, effects, np.float32,
-                                 theta_deg_sigma=g["theta_deg_sigma"].values if "theta_deg_sigma" in g else None)
-    b = bundle.sel(lens=lens, band=band)
-    factors = mm.pixel_factors(rolloff, effects, hot_mask=_crop(b, "hot_pixel_mask", *whole),
-                               flat_field=_crop(b, "flat_field", *whole),
-                               flat_field_sigma=_crop(b, "flat_field_sigma", *whole),
-                               prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
-                               sites=SITES_PER_BAND_PIXEL[band])
-    corners = None
-    if "bias_drift" in effects and _projection(bundle, lens) != "rectilinear":
-        # the frame's own black level from the unlit corners of the whole band image
-        corners = _unlit_corners(tuple(shape), _default_corner_fraction())
-        hot = _crop(b, "hot_pixel_mask", *whole)
-        if hot is not None and "hot_pixels" in effects:
-            corners = corners & ~(np.asarray(hot) > 0)
-    # per block the range of its cells: a pixel's index in the block is its cell less the block's first one
-    cells = np.where((factors.flags & EXCLUDED_FROM_GRID) != 0, -1, cells).astype(np.int32, copy=False)
-    unsigned = cells.view(np.uint32)
-    # each row's first and last column inside the image circle (a row wholly outside: first > last)
-    inside = (factors.flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) == 0
-    row_first = np.where(inside.any(axis=1), inside.argmax(axis=1), shape[1])
-    row_last = shape[1] - 1 - inside[:, ::-1].argmax(axis=1)
+def _band_plan(factors: mm.PixelFactors, cells, corners: bool, block_rows: int, pixels: bool) -> _BandPlan:
+    """The :class:`_BandPlan` of one band image from its ``factors`` and ``cells`` (:func:`sphere_blocks`).
+
+    ``corners``: the frame's black level from the unlit corners (``bias_drift``, fisheye lens).
+    """
+    shape = factors.inverse.shape
+    unlit = None
+    if corners:
+        # the frame's own black level from the unlit corners of the whole band image, less the hot pixels
+        unlit = _unlit_corners(tuple(shape), _default_corner_fraction()) & ((factors.flags & mm.FLAG_HOT) == 0)
+    index, first, n_cells, columns = cells
     blocks = []
-    for r0 in range(0, shape[0], block_rows):
+    for b, r0 in enumerate(range(0, shape[0], block_rows)):
         r = slice(r0, min(r0 + block_rows, shape[0]))
         c = slice(0, shape[1])
         if not pixels:
             # the grid alone: only the block's columns that reach inside the image circle (the pixels
             # outside it neither enter the grid nor the negative-mean check)
-            c0, c1 = int(row_first[r].min()), int(row_last[r][row_first[r] < shape[1]].max(initial=-1)) + 1
+            c0, c1 = (int(v) for v in columns[b])
             if c1 <= c0:
                 continue
             c = slice(c0, c1)
-        # as uint32 the -1 of a pixel off the grid is the largest value: the block's first cell is the minimum
-        cell = unsigned[r, c]
-        first, last = int(cell.min()), int(cells[r, c].max())
-        first, n = (first, last - first + 1) if last >= 0 else (0, 0)
-        # the block's index: cell - first, n (the block's spill cell) off the grid; and its pixels per cell
-        index = np.minimum(cell - np.uint32(first), np.uint32(n)).astype(np.intp).ravel()
-        blocks.append(((r, c), first, index, np.bincount(index, minlength=n + 1)[:-1]))
-    return _BandPlan(factors=factors, cells=cells, corners=corners, blocks=blocks)
+        blocks.append(((r, c), int(first[b]), int(n_cells[b]), index[r, c]))
+    return _BandPlan(factors=factors, corners=unlit, blocks=blocks)
 
 
-def _lens_plans(bundle, lens, medium, effects, cells, n_cells: int, block_rows: int, pixels: bool) -> dict:
-    """The :class:`_BandPlan` of every band of ``lens`` ({band: plan}; ``cells`` per band)."""
-    return {band: _band_plan(bundle, lens, band, medium, effects, cells[j], n_cells, block_rows, pixels)
-            for j, band in enumerate(BANDS)}
+def _lens_plans(maps: dict, i: int, cells, corners: bool, block_rows: int, pixels: bool) -> dict:
+    """The :class:`_BandPlan` of every band of lens ``i`` ({band: plan}) from the bundle's maps of the medium.
+
+    ``maps``: the bundle's ``pixel_*`` variables at the medium, (lens, band, y, x); ``cells`` per band.
+    """
+    plans = {}
+    for j, band in enumerate(BANDS):
+        random = maps.get("pixel_random_relative_variance")
+        factors = mm.PixelFactors(inverse=maps["pixel_factor"][i, j],
+                                  systematic_rel={"rolloff": maps["pixel_systematic_relative_variance"][i, j]},
+                                  random_rel={} if random is None else {"prnu": random[i, j]},
+                                  flags=maps["pixel_flag"][i, j])
+        plans[band] = _band_plan(factors, cells[j], corners, block_rows, pixels)
+    return plans
 
 
 class _LensSums:
@@ -393,25 +375,27 @@ class _LensSums:
     def __init__(self, n_cells: int, n_bands: int):
         self.bands = [_CellSums(n_cells, 2, squared=(True, False)) for _ in range(n_bands)]
 
-    def add_block(self, band: int, first: int, index, count, value, rnd, sy, excluded) -> None:
-        """Bin one block (``first``, ``index``, ``count``: :attr:`_BandPlan.blocks`); ``excluded`` kept off."""
-        n = count.size + 1
-        excluded = excluded.ravel()
-        cells = slice(first, first + count.size)
+    def add_block(self, band: int, first: int, n: int, index, value, rnd, sy, excluded, at, wide) -> None:
+        """Bin one block (``first``, ``n``, ``index``: :attr:`_BandPlan.blocks`); ``excluded`` kept off.
+
+        ``at`` (np.intp) and ``wide`` (float64): buffers of at least the block's size.
+        """
+        at = at[:index.size]
+        np.copyto(at.reshape(index.shape), index)
+        # the pixels a frame's flags keep off (saturated, not finite) into the block's spill cell n
+        np.copyto(at, n, where=excluded.ravel())
+        cells = slice(first, first + n)
         total = self.bands[band]
-        # the pixels a frame's flags keep off: out of the count, zero weight
-        total.count[cells] += count - np.bincount(index[excluded], minlength=n)[:-1]
-        w = value.ravel().astype(float)
-        np.copyto(w, 0.0, where=excluded)
-        total.sums[0, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        total.count[cells] += np.bincount(at, minlength=n + 1)[:n]
+        w = wide[:index.size]
+        np.copyto(w, value.ravel())
+        total.sums[0, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
         np.square(w, out=w)
-        total.sums[1, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        total.sums[1, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
         np.square(rnd.ravel(), out=w, dtype=float)
-        np.copyto(w, 0.0, where=excluded)
-        total.sums[2, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        total.sums[2, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
         np.copyto(w, sy.ravel())
-        np.copyto(w, 0.0, where=excluded)
-        total.sums[3, cells] += np.bincount(index, weights=w, minlength=n)[:-1]
+        total.sums[3, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
 
 
 def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, plans, block_rows, maps=None,
@@ -440,6 +424,8 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
     # per block: the chain's three results (unless written into maps) and one scratch for its sums of variances
     block = {name: np.empty(rows * shape[1], np.float32) for name in ("radiance", "random", "systematic", "scratch")}
     block["wide"] = np.empty(rows * shape[1])
+    block["sums"] = np.empty(rows * shape[1])
+    block["at"] = np.empty(rows * shape[1], np.intp)
     rectilinear = _projection(bundle, lens) == "rectilinear"
     good_bits = mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT
     for j, band in enumerate(BANDS):
@@ -458,7 +444,7 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
                 # subtract_dark's level and variance from the unlit pixels, taken once for the blocks
                 black = (float(unlit.mean()), float(unlit.var(ddof=1) / unlit.size)) if unlit.size > 1 else None
         total, total_var, n_good = 0.0, 0.0, 0
-        for window, first, index, count in plan.blocks:
+        for window, first, n, index in plan.blocks:
             m = mm.measure_band(image[window], frame, dark, response, cal, None, medium, effects,
                                 saturated=saturated[window], factors=plan.factors.window(window),
                                 frame_black_dn=black)
@@ -467,7 +453,7 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
                 np.copyto(maps["flags"][j][window], m.flags)
                 scratch = block["scratch"][:value.size].reshape(value.shape)
             else:
-                value, rnd, sy, scratch = (block[name][:index.size].reshape(m.flags.shape)
+                value, rnd, sy, scratch = (block[name][:index.size].reshape(index.shape)
                                            for name in ("radiance", "random", "systematic", "scratch"))
             m.evaluate_into(value, rnd, sy, scratch=scratch)
             finite = np.isfinite(value)
@@ -486,7 +472,7 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
             if sums is not None:
                 excluded = (m.flags & EXCLUDED_FROM_GRID) != 0
                 excluded |= np.logical_not(finite, out=finite)
-                sums.add_block(j, first, index, count, value, rnd, sy, excluded)
+                sums.add_block(j, first, n, index, value, rnd, sy, excluded, block["at"], block["sums"])
             del m
         if n_good:
             mean, se = total / n_good, np.sqrt(total_var) / n_good
@@ -509,19 +495,32 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     return mean.reshape(shape), spread.reshape(shape), count.reshape(shape)
 
 
-def _pixel_directions(at_medium, lenses, zenith_lens, grid_deg, stored_cells, pixels):
-    """The sphere cell of every band pixel ([lens][band] (y, x)) and, with ``pixels``, the zenith and azimuth maps."""
+def _pixel_directions(maps, lenses, zenith_lens, grid_deg, block_rows, pixels):
+    """The sphere cells of every band pixel per block ([lens][band]: :func:`~pipeline.calibration.sphere_blocks`)
+    and, with ``pixels``, the zenith and azimuth maps.
+
+    ``maps`` the bundle's maps at the medium ((lens, band, y, x)): its ``sphere_cell_in_block`` and
+    ``sphere_block_*`` when made for this grid, zenith lens and block size, else the cells from
+    ``theta_deg`` and ``phi_deg`` (which the zenith and azimuth maps need too) and ``pixel_flag``.
+    """
     cells, zen, azi = [], None, None
+    stored = "sphere_cell_in_block" in maps
     if pixels:
         # written straight into the output maps
-        zen, azi = (np.empty(at_medium["theta_deg"].shape, np.float32) for _ in range(2))
+        zen, azi = (np.empty(maps["theta_deg"].shape, np.float32) for _ in range(2))
     for i, lens in enumerate(lenses):
         cells.append([])
         for j in range(len(BANDS)):
-            if pixels or not stored_cells:
-                z, a = sphere_coordinates(at_medium["theta_deg"].values[i, j], at_medium["phi_deg"].values[i, j],
-                                          lens == zenith_lens, out=(zen[i, j], azi[i, j]) if pixels else None)
-            cells[i].append(at_medium["sphere_cell"].values[i, j] if stored_cells else sphere_cells(z, a, grid_deg))
+            if pixels or not stored:
+                z, a = sphere_coordinates(maps["theta_deg"][i, j], maps["phi_deg"][i, j], lens == zenith_lens,
+                                          out=(zen[i, j], azi[i, j]) if pixels else None)
+            if stored:
+                cells[i].append(tuple(maps[name][i, j] for name in ("sphere_cell_in_block", "sphere_block_first_cell",
+                                                                     "sphere_block_n_cells", "sphere_block_columns")))
+            else:
+                flags = maps["pixel_flag"][i, j]
+                cell = np.where((flags & STATIC_OFF_GRID) != 0, -1, sphere_cells(z, a, grid_deg))
+                cells[i].append(sphere_blocks(cell, flags, block_rows))
     return cells, zen, azi
 
 
@@ -531,12 +530,16 @@ def _attrs(long_name, units, **extra):
 
 def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: float | None = None, *,
                       overwrite: bool = False, zenith_lens: str = ZENITH_LENS, config: dict | None = None,
-                      pixels: bool = True) -> Path:
+                      pixels: bool = True, pixel_geometry: bool = True) -> Path:
     """Turn raw frames into radiance maps with the calibration bundle; write ``out_path`` (NetCDF).
 
     Returns the path written. Each frame is decoded once. The sphere grid is
     always written; the per-pixel maps (radiance, uncertainties, flags and
-    the geometry of every band pixel of both lenses) only with ``pixels``.
+    the geometry of every band pixel of both lenses) only with ``pixels``;
+    ``pixel_geometry=False`` leaves the geometry maps (theta, phi, solid
+    angle, zenith, azimuth) out: the output then names them in the bundle
+    (attribute ``pixel_geometry``, with the sha256 of the geometry artefacts
+    they came from, ``geometry_sha256``).
     The output is written to a temporary name and renamed; an existing
     ``out_path`` is replaced only with ``overwrite``.
     """
@@ -556,51 +559,65 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     # (numpy, rawpy and the NetCDF reads release the GIL)
     with ThreadPoolExecutor(max_workers=2) as pool:
         return _apply_frames(pool, pool.submit(read_raw, raw_paths[0], checksums=False), bundle_path, raw_paths, medium, out_path,
-                             grid_deg, cfg, zenith_lens, pixels)
+                             grid_deg, cfg, zenith_lens, pixels, pixel_geometry)
 
 
-def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid_deg, cfg, zenith_lens, pixels):
+def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid_deg, cfg, zenith_lens, pixels,
+                  pixel_geometry=True):
     """:func:`apply_calibration` once the arguments are checked; ``decoding`` the future of the first frame."""
     with read_bundle(bundle_path, load=False) as on_disk:
         effects = model_effects(on_disk)
         if medium not in _media(on_disk):
             raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(_media(on_disk))})")
-        # only this medium, the solid angles only when the pixel maps are written, the flat field and the
-        # hot-pixel mask only when the model has their effect (the chain's steps skip them otherwise)
+        if "pixel_factor" not in on_disk or str(on_disk["pixel_factor"].attrs.get("effects", "")) != factor_effects(
+                effects):
+            raise InputError(bundle_path, "has no per-pixel factors for its model's effects: rebuild the bundle")
         lenses = list(on_disk["lens"].values)
         if zenith_lens not in lenses:
             zenith_lens = lenses[0]
-        # the bundle's sphere cells when made for this grid and zenith lens; theta and phi then only for the pixel maps
-        cell_attrs = on_disk["sphere_cell"].attrs if "sphere_cell" in on_disk else {}
+        # the bundle's sphere cells when made for this grid, zenith lens and block size; theta and phi then
+        # only for the pixel maps
+        block_rows = int(cfg["block_rows"])
+        geometry = pixels and pixel_geometry
+        cell_attrs = on_disk["sphere_cell_in_block"].attrs
         stored_cells = (np.isclose(float(cell_attrs.get("grid_deg", np.nan)), grid_deg)
-                        and cell_attrs.get("zenith_lens") == zenith_lens)
-        stored_rolloff = "rolloff_inverse" in on_disk and bool(on_disk["rolloff_inverse"].attrs.get(
-            "rolloff_azimuth", 0)) == ("rolloff_azimuth" in effects)
-        skip = ([] if pixels else ["solid_angle_sr"]) + ([] if "prnu" in effects else ["flat_field", "flat_field_sigma"]) \
-            + ([] if "hot_pixels" in effects else ["hot_pixel_mask"]) + ([] if stored_cells else ["sphere_cell"]) \
-            + ([] if pixels or not (stored_cells and stored_rolloff) else ["theta_deg", "phi_deg"])
-        bundle = on_disk.drop_vars(skip, errors="ignore").sel(medium=[medium]).load()
+                        and cell_attrs.get("zenith_lens") == zenith_lens
+                        and int(cell_attrs.get("block_rows", -1)) == block_rows)
+        # of the per-pixel maps only those of this medium that the chain needs (the compact factors, the
+        # cells), the geometry only for the pixel maps (or cells on another grid); each read as one hyperslab
+        names = ["pixel_factor", "pixel_systematic_relative_variance", "pixel_flag"] \
+            + [n for n in ("pixel_random_relative_variance",) if n in on_disk] \
+            + (["sphere_cell_in_block", "sphere_block_first_cell", "sphere_block_n_cells", "sphere_block_columns"]
+               if stored_cells else []) \
+            + (["theta_deg", "phi_deg"] if geometry or not stored_cells else []) \
+            + (["solid_angle_sr"] if geometry else [])
+        at = {"medium": list(on_disk["medium"].values).index(medium)}
+        maps = {}
+        for name in names:
+            var = on_disk[name].variable
+            var = var.isel({d: k for d, k in at.items() if d in var.dims})
+            maps[name] = var.transpose("lens", "band", *(d for d in var.dims if d not in ("lens", "band"))).values
+        # the small variables (parameters, scalars, per-band tables) loaded whole, at this medium
+        bundle = on_disk.drop_vars([n for n, v in on_disk.data_vars.items() if "y" in v.dims or "block" in v.dims]).sel(
+            medium=[medium]).load()
     n_z, n_a = grid_shape(grid_deg)
-    at_medium = bundle.sel(medium=medium)
-    geo = at_medium[["theta_deg", "phi_deg", "solid_angle_sr"]] if pixels else None
     # the cell of every band pixel, once per lens and band (not per frame), beside the first frame's chain
-    directions = pool.submit(_pixel_directions, at_medium, lenses, zenith_lens, grid_deg, stored_cells, pixels)
+    directions = pool.submit(_pixel_directions, maps, lenses, zenith_lens, grid_deg, block_rows, geometry)
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
     meta = []
     rectilinear = [lens for lens in lenses if _projection(bundle, lens) == "rectilinear"]
     uncorrected = []   # (frame, lens) whose bias drift the model has and no optically black pixels measure
     # the pixel maps of every frame (only with pixels: the sphere grid is binned block by block)
-    shape = (len(raw_paths), len(lenses), len(BANDS)) + bundle["rolloff_inverse"].shape[-2:]
-    maps = None if not pixels else {
+    shape = (len(raw_paths), len(lenses), len(BANDS)) + maps["pixel_factor"].shape[-2:]
+    out_maps = None if not pixels else {
         "radiance": np.empty(shape, np.float32), "random": np.empty(shape, np.float32),
         "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
     cells, zen, azi = directions.result()
-    # what does not depend on the frame, once per call for every frame: the hot-pixel flags, flat field and
-    # roll-off of every pixel as one factor with its terms, its cell, the unlit corners
-    negative_sigma, block_rows = float(cfg["negative_mean_sigma"]), int(cfg["block_rows"])
-    plans = [job.result() for job in [pool.submit(_lens_plans, bundle, lens, medium, effects, cells[i], n_z * n_a,
-                                                  block_rows, pixels) for i, lens in enumerate(lenses)]]
+    # what does not depend on the frame, once per call for every frame: each block's cells, the unlit corners
+    negative_sigma = float(cfg["negative_mean_sigma"])
+    corners = {lens: "bias_drift" in effects and lens not in rectilinear for lens in lenses}
+    plans = [_lens_plans(maps, i, cells[i], corners[lens], block_rows, pixels) for i, lens in enumerate(lenses)]
     parameters = {}  # the chain's parameter objects per lens, band and frame setting
     for f, path in enumerate(raw_paths):
         raw = decoding.result()
@@ -610,8 +627,8 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         sums = [_LensSums(n_z * n_a, len(BANDS)) for _ in lenses]
         # the lenses side by side (numpy releases the GIL in its array operations), each binning its own sums
         jobs = [pool.submit(_lens_radiance, raw, bundle, lens, medium, effects, frame, negative_sigma, plans[i],
-                            block_rows, None if maps is None else {k: v[f, i] for k, v in maps.items()}, sums[i],
-                            parameters)
+                            block_rows, None if out_maps is None else {k: v[f, i] for k, v in out_maps.items()},
+                            sums[i], parameters)
                 for i, lens in enumerate(lenses)]
         for job in jobs:
             job.result()
@@ -636,29 +653,32 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
     if pixels:
         pixel_dims = ("frame", "lens", "band", "y", "x")
         pixel_vars = {
-            "radiance": (pixel_dims, maps["radiance"],
+            "radiance": (pixel_dims, out_maps["radiance"],
                          _attrs("effective spectral radiance of the band pixel, inverse of Eq. (4)", rad_units)),
-            "radiance_random_sigma": (pixel_dims, maps["random"],
+            "radiance_random_sigma": (pixel_dims, out_maps["random"],
                                       _attrs("random standard uncertainty (shot, read, dark noise), independent between "
                                              "pixels and frames", rad_units)),
-            "radiance_systematic_sigma": (pixel_dims, maps["systematic"],
+            "radiance_systematic_sigma": (pixel_dims, out_maps["systematic"],
                                           _attrs("systematic standard uncertainty (calibration terms), common to the "
                                                  "pixels of a band", rad_units)),
-            "quality_flag": (pixel_dims, maps["flags"],
+            "quality_flag": (pixel_dims, out_maps["flags"],
                              {"long_name": "quality flag bits", "units": "1", "flag_masks": flag_values,
                               "flag_meanings": " ".join(mm.FLAG_MEANINGS)}),
-            "theta_deg": (("lens", "band", "y", "x"), geo["theta_deg"].values.astype(np.float32, copy=False),
-                          _attrs("angle of the viewing direction from the lens's optical axis", "degree")),
-            "phi_deg": (("lens", "band", "y", "x"), geo["phi_deg"].values.astype(np.float32, copy=False),
-                        _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
-            "solid_angle_sr": (("lens", "band", "y", "x"), geo["solid_angle_sr"].values.astype(np.float32, copy=False),
-                               _attrs("solid angle seen by the band pixel", "sr")),
-            "zenith_deg": (("lens", "band", "y", "x"), zen,
-                           _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
-            "azimuth_deg": (("lens", "band", "y", "x"), azi,
-                            _attrs("azimuth of the pixel's direction on the sphere", "degree", convention=convention)),
         }
-        del maps
+        if geometry:
+            pixel_vars.update({
+                "theta_deg": (("lens", "band", "y", "x"), maps["theta_deg"].astype(np.float32, copy=False),
+                              _attrs("angle of the viewing direction from the lens's optical axis", "degree")),
+                "phi_deg": (("lens", "band", "y", "x"), maps["phi_deg"].astype(np.float32, copy=False),
+                            _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
+                "solid_angle_sr": (("lens", "band", "y", "x"), maps["solid_angle_sr"].astype(np.float32, copy=False),
+                                   _attrs("solid angle seen by the band pixel", "sr")),
+                "zenith_deg": (("lens", "band", "y", "x"), zen,
+                               _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
+                "azimuth_deg": (("lens", "band", "y", "x"), azi,
+                                _attrs("azimuth of the pixel's direction on the sphere", "degree", convention=convention)),
+            })
+        del out_maps
     ds = xr.Dataset(
         {
             **pixel_vars,
@@ -691,6 +711,13 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
                            "nonlinearity, roll-off (and its azimuthal term), immersion factor and R^-1, common to a band",
         },
     )
+    if pixels and not geometry:
+        # the geometry maps stay in the bundle: named there, with the hashes of the artefacts they came from
+        ds.attrs["pixel_geometry"] = (
+            f"not in this file: theta_deg, phi_deg and solid_angle_sr of every band pixel are the calibration "
+            f"bundle's (dims lens, medium, band, y, x) at medium '{medium}', the same y, x as the pixel maps; "
+            "zenith and azimuth follow from theta and phi by sphere_convention")
+        ds.attrs["geometry_sha256"] = str(bundle.attrs.get("geometry_sha256", "{}"))
     ds.attrs["black_level"] = "; ".join(
         f"{lens}: " + ("the dark model's bias (bias_drift not in the model)" if "bias_drift" not in effects
                        else "each frame's optically black pixels" if lens in rectilinear
@@ -732,6 +759,10 @@ def add_apply_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--pixels", action=argparse.BooleanOptionalAction, default=True,
                    help="write the per-pixel maps of both lenses besides the sphere grid (default); "
                         "--no-pixels writes the sphere grid only")
+    p.add_argument("--pixel-geometry", action=argparse.BooleanOptionalAction, default=True,
+                   help="with the pixel maps also write each band pixel's theta, phi, solid angle, zenith and "
+                        "azimuth (default); --no-pixel-geometry leaves them in the calibration bundle and names "
+                        "them there (360 MB less per file at the full resolution)")
     return p
 
 
@@ -739,7 +770,8 @@ def apply_command(args) -> int:
     """Run ``apply`` from parsed arguments; bad input prints one line and returns 1."""
     try:
         out = apply_calibration(args.calibration, args.raw, args.medium, args.out, args.grid_deg,
-                                overwrite=args.overwrite, pixels=args.pixels)
+                                overwrite=args.overwrite, pixels=args.pixels,
+                                pixel_geometry=getattr(args, "pixel_geometry", True))
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

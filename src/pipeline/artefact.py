@@ -52,14 +52,16 @@ from pipeline.errors import ArtefactError
 #: geometry 3: the ``projection`` attribute, and for a rectilinear region the pinhole fit's variables
 #: (``pinhole_parameters`` and their covariance; no image circle), see stages.geometry_rectilinear;
 #: calibration 8: a lens's ``projection`` and ``bias_reference``, the dark's ``optical_black_offset_dn``,
-#: a rectilinear lens's geometry without the fisheye model's variables (NaN) and no image circle.
+#: a rectilinear lens's geometry without the fisheye model's variables (NaN) and no image circle;
+#: calibration 9: the per-pixel factors in apply's compact form (pixel_factor, pixel_flag, ...), see
+#: pipeline.calibration.
 #: closure 1: the diagnostics' closure table
 #: (``results/closure/residuals.nc``, one row per measurement of every experiment, pipeline.diagnostics).
 #: rolloff 3: ``obs_setting`` gains the frames' ``exposure_s`` and ``iso`` (the cross-experiment closure turns
 #: the on-axis DN into DN per second); closure 2: the cross-experiment tables (experiment ``closure``, levels
 #: ``responsivity`` and ``dark_corners``, pipeline.cross_closure) among its rows.
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 3, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 8, "field": 2, "closure": 2}
+                     "absolute": 3, "immersion": 2, "calibration": 9, "field": 2, "closure": 2}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

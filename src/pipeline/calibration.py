@@ -11,14 +11,17 @@ covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``, version 8; 2: the per-pixel
+versioned artefact (``artefact = calibration``, version 9; 2: the per-pixel
 maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
 flat field's uncertainty; 5: theta_deg_sigma, the absolute budget's new lamp
 term, and what depends only on lens, medium and band precomputed per pixel:
 the roll-off step's factor 1 / g(theta, phi), its relative variances, the
 geometry flags and the cell on the default sphere grid; 6: the dark and
 linearity artefacts' bias-drift spread weighted by the corners' noise; 7: the dark and linearity
-artefacts' projection and black-level reference; older files are
+artefacts' projection and black-level reference; 9: the per-pixel factors in the compact form apply's
+chain takes them: 1 / (F g) with the flat field folded in, one relative variance of the roll-off
+terms, the flags with the hot-pixel mask folded in, the flat field's random relative variance, and
+the sphere cell -1 where a frame-independent flag keeps the pixel off the grid; older files are
 refused with a line asking to rebuild) carrying the sha256 of every artefact it came from,
 the model's effects and the camera's make, model and serial number.
 
@@ -37,6 +40,7 @@ use the same chain.
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -53,7 +57,8 @@ from pipeline.frames import SITES_PER_BAND_PIXEL
 from pipeline.geometry.sphere import ZENITH_LENS, sphere_cells, sphere_coordinates
 from pipeline.radiometry import measurement as mm
 
-__all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "build_bundle", "read_bundle", "band_parameters",
+__all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "STATIC_OFF_GRID", "FACTOR_EFFECTS", "factor_effects",
+           "sphere_blocks", "build_bundle", "read_bundle", "band_parameters",
            "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script"]
 
 #: stages a bundle is gathered from (in the order of the calibration chain) and those it cannot lack
@@ -241,67 +246,153 @@ def outside_image_circle(g: xr.Dataset, theta: np.ndarray, rows: slice, cols: sl
     return (r > float(g["circle_radius_px"])) | ~np.isfinite(theta) | (theta > float(g["half_fov_deg"]))
 
 
-def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float) -> xr.Dataset:
-    """What depends only on lens, medium and band, per band pixel: the roll-off map and the sphere cell.
+#: frame-independent flags that keep a pixel off the sphere grid (apply adds the frame's saturation)
+STATIC_OFF_GRID = mm.FLAG_HOT | mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_BEYOND_CALIBRATED_ANGLE
+#: the effects the stored per-pixel factors depend on (apply's chain and band_radiance check them)
+FACTOR_EFFECTS = ("hot_pixels", "prnu", "rolloff_azimuth")
 
-    The roll-off step's :func:`~pipeline.radiometry.measurement.rolloff_map`
-    (1 / g(theta, phi), its relative variances and the geometry flags) of
-    every pixel, computed by the chain's own function on the pixels inside
-    the image circle, in float32 (the chain's type for band images); and the
-    cell of every pixel on the default sphere grid (``apply.grid_deg``, the
-    :mod:`pipeline.geometry.sphere` convention). ``apply`` reads these instead
-    of evaluating them on every frame.
+
+def factor_effects(effects) -> str:
+    """The effects of ``effects`` that the bundle's ``pixel_factor`` depends on, comma-separated."""
+    return ",".join(e for e in FACTOR_EFFECTS if e in tuple(effects))
+
+
+def sphere_blocks(cells: np.ndarray, flags: np.ndarray, block_rows: int):
+    """The sphere cells of a band image (y, x) per block of ``block_rows`` rows, in the form apply bins them.
+
+    ``cells`` the cell of every pixel (-1 off the grid), ``flags`` its frame-independent flags. Returns
+    ``index`` (y, x; uint16, uint32 where a block spans 65,535 cells or more): the pixel's cell less its
+    block's first cell, the block's number of cells (its spill cell) where the pixel is off the grid;
+    and per block ``first`` (its first cell), ``n_cells`` and ``columns`` ([start, stop) of the columns
+    that reach inside the image circle; start = stop for a block wholly outside it), int32.
+    """
+    shape = cells.shape
+    starts = range(0, shape[0], block_rows)
+    first = np.zeros(len(starts), np.int32)
+    n_cells = np.zeros(len(starts), np.int32)
+    columns = np.zeros((len(starts), 2), np.int32)
+    # each row's first and last column inside the image circle (a row wholly outside: first > last)
+    inside = (flags & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) == 0
+    row_first = np.where(inside.any(axis=1), inside.argmax(axis=1), shape[1])
+    row_last = shape[1] - 1 - inside[:, ::-1].argmax(axis=1)
+    # as uint32 the -1 of a pixel off the grid is the largest value: a block's first cell is the minimum
+    unsigned = np.asarray(cells, np.int32).view(np.uint32)
+    for b, r0 in enumerate(starts):
+        r = slice(r0, min(r0 + block_rows, shape[0]))
+        lo, last = int(unsigned[r].min()), int(cells[r].max())
+        first[b], n_cells[b] = (lo, last - lo + 1) if last >= 0 else (0, 0)
+        c0, c1 = int(row_first[r].min()), int(row_last[r][row_first[r] < shape[1]].max(initial=-1)) + 1
+        columns[b] = (c0, max(c0, c1))
+    dtype = np.uint16 if n_cells.max(initial=0) < np.iinfo(np.uint16).max else np.uint32
+    index = np.empty(shape, dtype)
+    for b, r0 in enumerate(starts):
+        r = slice(r0, min(r0 + block_rows, shape[0]))
+        np.minimum(unsigned[r] - np.uint32(first[b]), np.uint32(n_cells[b]), out=index[r], casting="unsafe")
+    return index, first, n_cells, columns
+
+
+def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float, block_rows: int) -> xr.Dataset:
+    """What depends only on lens, medium and band, per band pixel, in the compact form the chain uses.
+
+    The chain's :func:`~pipeline.radiometry.measurement.pixel_factors` of
+    every pixel, computed by the chain's own functions (in float32, the
+    chain's type for band images): ``pixel_factor`` = 1 / (F g(theta, phi))
+    (the flat field F only with ``prnu``), ``pixel_systematic_relative_variance``
+    the sum of the roll-off's relative variances (``rolloff``, ``field_angle``,
+    ``rolloff_azimuth``; the chain adds them in quadrature per pixel),
+    ``pixel_flag`` the geometry flags with the hot-pixel mask folded in
+    (``hot_pixels``), ``pixel_random_relative_variance`` the flat field's
+    relative variance (``prnu``; per lens and band); and the cell of every
+    pixel on the default sphere grid (``apply.grid_deg``, the
+    :mod:`pipeline.geometry.sphere` convention; off the grid where no direction or a
+    frame-independent flag keeps it off) per block of ``apply.block_rows`` rows
+    (:func:`sphere_blocks`). ``apply`` reads these for its medium instead of
+    evaluating them on every call.
     """
     lenses, media = list(bundle["lens"].values), list(bundle["medium"].values)
     # apply's choice: the default zenith lens, or the first lens of a camera without one (a phone's only lens)
     zenith_lens = ZENITH_LENS if ZENITH_LENS in lenses else lenses[0]
     shape = bundle["theta_deg"].shape
+    dims = bundle["theta_deg"].dims
+    per_band = tuple(shape[dims.index(d)] for d in ("lens", "band", "y", "x"))
     inverse = np.empty(shape, np.float32)
     rel = np.empty(shape, np.float32)
-    azimuth = "rolloff_azimuth" in effects and "rolloff_azimuth_amplitude" in bundle
-    rel_az = np.zeros(shape, np.float32) if azimuth else None
-    rel_angle = np.zeros(shape, np.float32) if "theta_deg_sigma" in bundle else None
     flags = np.empty(shape, np.uint8)
-    cells = np.empty(shape, np.int32)
+    blocks = {}
+    flat = "prnu" in effects and "flat_field" in bundle
+    random_rel = np.empty(per_band, np.float32) if flat else None
     frame = mm.FrameSettings(exposure_s=1.0, iso=float(bundle["dark_iso"].values.min()))
     for i, lens in enumerate(lenses):
+        b_lens = bundle.sel(lens=lens)
         for k, medium in enumerate(media):
             for j, band in enumerate(BANDS):
                 g = bundle.sel(lens=lens, medium=medium, band=band)
+                b = b_lens.sel(band=band)
+                at = {"lens": i, "medium": k, "band": j}
+                index = tuple(at.get(d, slice(None)) for d in dims)
                 theta = g["theta_deg"].values.astype(float)
                 phi = g["phi_deg"].values
                 theta = np.where(outside_image_circle(g, theta, slice(None), slice(None), theta.shape), np.nan, theta)
                 cal = band_parameters(bundle, lens, band, medium, frame, effects)[2]
-                sigma = g["theta_deg_sigma"].values if rel_angle is not None else None
+                sigma = g["theta_deg_sigma"].values if "theta_deg_sigma" in g else None
                 r = mm.rolloff_map(theta, cal, phi, effects, np.float32, theta_deg_sigma=sigma)
-                inverse[i, k, j], rel[i, k, j], flags[i, k, j] = r.inverse, r.relative_var["rolloff"], r.flags
-                if rel_angle is not None:
-                    rel_angle[i, k, j] = r.relative_var["field_angle"]
-                if azimuth and "rolloff_azimuth" in r.relative_var:
-                    rel_az[i, k, j] = r.relative_var["rolloff_azimuth"]
+                f = mm.pixel_factors(r, effects, hot_mask=b["hot_pixel_mask"].values if "hot_pixel_mask" in b else None,
+                                     flat_field=b["flat_field"].values if flat else None,
+                                     flat_field_sigma=b["flat_field_sigma"].values
+                                     if flat and "flat_field_sigma" in b else None,
+                                     prnu_sigma_rel=float(b["prnu_sigma_rel"]) if "prnu_sigma_rel" in b else 0.0,
+                                     sites=SITES_PER_BAND_PIXEL[band])
+                inverse[index], flags[index] = f.inverse, f.flags
+                terms = list(f.systematic_rel.values())
+                rel[index] = np.sum(terms, axis=0, dtype=np.float32) if terms else 0.0
+                if flat and k == 0:
+                    random_rel[i, j] = f.random_rel["prnu"]
                 zen, azi = sphere_coordinates(g["theta_deg"].values, phi, lens == zenith_lens)
-                cells[i, k, j] = sphere_cells(zen, azi, grid_deg)
-    dims = bundle["theta_deg"].dims
+                cells = np.where((f.flags & STATIC_OFF_GRID) != 0, -1, sphere_cells(zen, azi, grid_deg))
+                blocks[i, k, j] = index, sphere_blocks(cells, f.flags, block_rows)
+    # one index type for all (uint16 unless a block spans 65,535 cells or more)
+    dtype = np.result_type(*(b[1][0].dtype for b in blocks.values()))
+    cell_index = np.empty(shape, dtype)
+    n_blocks = len(next(iter(blocks.values()))[1][1])
+    block_dims = ("lens", "medium", "band", "block")
+    per_block = {name: np.empty((len(lenses), len(media), len(BANDS), n_blocks) + extra, np.int32)
+                 for name, extra in (("first", ()), ("n_cells", ()), ("columns", (2,)))}
+    for at, (index, (cell, first, n_cells, columns)) in blocks.items():
+        cell_index[index] = cell
+        per_block["first"][at], per_block["n_cells"][at], per_block["columns"][at] = first, n_cells, columns
+    used = factor_effects(effects)
     out = xr.Dataset({
-        "rolloff_inverse": (dims, inverse, {"long_name": "1 / g(theta, phi): the roll-off step's factor (Eq. 13), "
-                                                         "NaN outside the image circle", "units": "1",
-                                            "rolloff_azimuth": int("rolloff_azimuth" in effects)}),
-        "rolloff_relative_variance": (dims, rel, {"long_name": "relative variance of g(theta) from the roll-off "
-                                                               "covariance (systematic term rolloff)", "units": "1"}),
-        "geometry_flag": (dims, flags, {"long_name": "quality flag bits of the pixel's direction (outside the image "
-                                                     "circle, beyond the calibrated field angle)", "units": "1"}),
-        "sphere_cell": (dims, cells, {"long_name": "cell of the pixel's direction on the sphere grid, row-major "
-                                                   "(zenith, azimuth); -1: no direction", "units": "1",
-                                      "grid_deg": float(grid_deg), "zenith_lens": zenith_lens}),
+        "pixel_factor": (dims, inverse, {
+            "long_name": "the chain's frame-independent factor 1 / (F g(theta, phi)): roll-off (Eq. 13) and, with "
+                         "prnu, flat field; NaN without a direction", "units": "1", "effects": used}),
+        "pixel_systematic_relative_variance": (dims, rel, {
+            "long_name": "relative variance of the roll-off factor: the sum of the terms rolloff (coefficient "
+                         "covariance), field_angle (theta_deg_sigma) and rolloff_azimuth", "units": "1",
+            "effects": used}),
+        "pixel_flag": (dims, flags, {
+            "long_name": "frame-independent quality flag bits: outside the image circle, beyond the calibrated "
+                         "field angle, hot pixel (hot_pixels)", "units": "1",
+            "flag_masks": np.array([mm.FLAG_OUTSIDE_IMAGE_CIRCLE, mm.FLAG_BEYOND_CALIBRATED_ANGLE, mm.FLAG_HOT],
+                                   np.uint8),
+            "flag_meanings": "outside_image_circle beyond_calibrated_angle hot_pixel", "effects": used}),
+        "sphere_cell_in_block": (dims, cell_index, {
+            "long_name": "cell of the pixel's direction on the sphere grid (row-major zenith, azimuth) less its "
+                         "block's first cell (sphere_block_first_cell); sphere_block_n_cells: off the grid (no "
+                         "direction, or a frame-independent flag)", "units": "1",
+            "grid_deg": float(grid_deg), "zenith_lens": zenith_lens, "block_rows": int(block_rows),
+            "effects": used}),
+        "sphere_block_first_cell": (block_dims, per_block["first"], {
+            "long_name": "first sphere cell of each block of block_rows rows", "units": "1"}),
+        "sphere_block_n_cells": (block_dims, per_block["n_cells"], {
+            "long_name": "sphere cells a block spans (also its spill index: pixels off the grid)", "units": "1"}),
+        "sphere_block_columns": (block_dims + ("bound",), per_block["columns"], {
+            "long_name": "columns of each block that reach inside the image circle, [start, stop)",
+            "units": "pixel"}),
     })
-    if rel_angle is not None:
-        out["field_angle_relative_variance"] = (dims, rel_angle, {
-            "long_name": "relative variance of g(theta) from the field angle's uncertainty theta_deg_sigma, "
-                         "(g'(theta) / g sigma_theta)^2 (systematic term field_angle)", "units": "1"})
-    if azimuth:
-        out["rolloff_azimuth_relative_variance"] = (dims, rel_az, {
-            "long_name": "relative variance of the roll-off's azimuthal factor (systematic term rolloff_azimuth)",
-            "units": "1"})
+    if flat:
+        out["pixel_random_relative_variance"] = (("lens", "band", "y", "x"), random_rel, {
+            "long_name": "relative variance of the flat field 1 / F (random term prnu: its measurement noise, or "
+                         "the PRNU where unmeasured)", "units": "1", "effects": used})
     return out
 
 
@@ -365,7 +456,7 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
     if missing:
         raise InputError(out_path, f"the calibration bundle needs the {', '.join(missing)} artefact(s)")
     lenses = sorted(artefacts["dark"])
-    effects, first, inputs = None, None, {}
+    effects, first, inputs, geometry_inputs = None, None, {}, {}
     projection = {lens: "fisheye" for lens in lenses}
     bias_reference = {lens: "unlit corners" for lens in lenses}
     parts: dict[str, dict[str, xr.Dataset]] = {}
@@ -385,6 +476,8 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
                 raise InputError(paths[lens], f"was fitted with the model [{', '.join(found)}], {first} with "
                                               f"[{', '.join(effects)}]: rerun the stages with one model")
             inputs[_relative(paths[lens], results_root)] = sha256_file(paths[lens])
+            if stage == "geometry":
+                geometry_inputs[_relative(paths[lens], results_root)] = inputs[_relative(paths[lens], results_root)]
             if stage == "geometry":
                 projection[lens] = str(ds.attrs.get("projection", "fisheye"))
             if stage == "dark":
@@ -425,13 +518,15 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
     bundle["lens_region_px"] = (("lens", "axis", "bound"), span,
                                 {"long_name": "lens region of the raw mosaic: rows then columns, [start, stop)",
                                  "units": "pixel"})
-    grid_deg = float((config.get("apply") or defaults()["apply"])["grid_deg"])
-    bundle = bundle.merge(_pixel_factors(bundle, effects, grid_deg))
+    apply_cfg = config.get("apply") or defaults()["apply"]
+    bundle = bundle.merge(_pixel_factors(bundle, effects, float(apply_cfg["grid_deg"]), int(apply_cfg["block_rows"])))
     bundle.attrs.update({
         "title": "calibration bundle of a RAW camera as a radiometer (Larouche et al. 2024)",
         "camera_make": str(camera.get("make", "")), "camera_model": str(camera.get("model", "")),
         "camera_serial": str(camera.get("serial", "")),
         "media": ",".join(media), "stages": ",".join(parts),
+        # what names the per-pixel geometry maps (theta, phi, solid angle) in an apply output without them
+        "geometry_sha256": json.dumps(geometry_inputs, sort_keys=True),
     })
     # the per-pixel maps uncompressed and contiguous: apply reads one lens, band and medium of them
     # as one block, where decompressing them cost it seconds at the full resolution
