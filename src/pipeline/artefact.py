@@ -59,7 +59,7 @@ from pipeline.errors import ArtefactError
 #: the on-axis DN into DN per second); closure 2: the cross-experiment tables (experiment ``closure``, levels
 #: ``responsivity`` and ``dark_corners``, pipeline.cross_closure) among its rows.
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 3, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 8, "field": 2, "closure": 2}
+                     "absolute": 3, "immersion": 2, "calibration": 8, "field": 3, "closure": 2}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
