@@ -53,7 +53,9 @@ Observation table (``obs_frame``, the diagnostics read it like any stage's): one
 band; base model camera = k_b x reference (one scale per band, fitted with
 :func:`pipeline.observations.fit_with_effects`); ``sigma_dn`` adds the
 camera's random standard error, k_b times the reference's window
-uncertainty and the mask's sampling term (:func:`mask_sampling_sigma`) in quadrature, k_b the median camera/reference ratio of the band
+uncertainty, the mask's sampling term (:func:`mask_sampling_sigma`) and its pointing term
+(:func:`mask_pointing_sigma`: the sky's gradient at the mask, fitted to the frame's pixels, times
+the bundle's pointing uncertainty) in quadrature, k_b the median camera/reference ratio of the band
 (fixed before the fit). With ``spectral_mismatch`` in ``model.effects`` the
 prediction is the band-convolved reference, the nearest channel otherwise.
 With ``clock_offset`` in the model the camera clock offset c (camera - UTC, s)
@@ -112,11 +114,17 @@ MASK_EXCLUDED = mm.FLAG_SATURATED | mm.FLAG_HOT | mm.FLAG_OUTSIDE_IMAGE_CIRCLE
 
 # --------------------------------------------------------------------------- the mask
 def field_masks(bundle: xr.Dataset, lens: str, half_angle_deg: float, min_pixels: int):
-    """Per band the mask (theta <= half angle, or the ``min_pixels`` nearest the axis) and the crop holding them all.
+    """Per band the mask (theta <= half angle, or the ``min_pixels`` nearest the axis), the sky around it and the crop.
 
-    Returns ({band: boolean mask of the crop}, (row_slice, col_slice)).
+    The sky around the mask, where :func:`sky_gradient` fits the radiance's gradient, is theta <= h + p:
+    the mask's half angle h (the largest theta in it) and one band-pixel pitch p = h sqrt(pi / n) (n
+    pixels in the mask). Per band also the direction components theta cos(phi), theta sin(phi) (degree)
+    of the bundle's map and the pointing uncertainty of the mask: the bundle's theta_deg_sigma at the
+    pixel nearest the axis (how far from the zenith the direction the bundle calls the axis may lie;
+    0 when the bundle has no uncertainty). The crop holds the masks and the sky around them.
+    Returns ({band: mask of the crop}, (row_slice, col_slice), {band: (around, x_deg, y_deg, pointing_deg)}).
     """
-    full = {}
+    full, around = {}, {}
     for band in BANDS:
         g = bundle.sel(lens=lens, medium=MEDIUM, band=band)
         theta = g["theta_deg"].values.astype(float)
@@ -132,10 +140,17 @@ def field_masks(bundle: xr.Dataset, lens: str, half_angle_deg: float, min_pixels
         if not mask.any():
             raise InputError(None, f"lens {lens}, band {band}: the bundle's theta map has no pixel near the axis")
         full[band] = mask
-    union = np.logical_or.reduce(list(full.values()))
+        h = float(theta[mask].max())
+        phi = np.radians(g["phi_deg"].values.astype(float))
+        axis = np.unravel_index(np.argmin(theta), theta.shape)
+        pointing = float(g["theta_deg_sigma"].values[axis]) if "theta_deg_sigma" in g else 0.0
+        around[band] = (theta <= h + h * np.sqrt(np.pi / mask.sum()), theta * np.cos(phi), theta * np.sin(phi),
+                        pointing if np.isfinite(pointing) else 0.0)
+    union = np.logical_or.reduce([a[0] for a in around.values()] + list(full.values()))
     rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
     window = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
-    return {band: m[window] for band, m in full.items()}, window
+    return ({band: m[window] for band, m in full.items()}, window,
+            {band: (a[0][window], a[1][window], a[2][window], a[3]) for band, a in around.items()})
 
 
 def mask_statistics(m: mm.Measured, mask: np.ndarray) -> dict:
@@ -163,6 +178,31 @@ def mask_sampling_sigma(spread, n_pixels):
     """
     spread = np.nan_to_num(np.asarray(spread, float))
     return spread / np.sqrt(np.maximum(np.asarray(n_pixels, float), 1.0))
+
+
+def mask_pointing_sigma(gradient, pointing_deg):
+    """How far the camera's mask mean may sit from the reference's cone mean because the mask may not point
+    where the bundle says: |grad L| (radiance per degree, :func:`sky_gradient`) times the pointing
+    uncertainty (degree).
+
+    A mask whose centre lies delta degrees from the cone's averages the sky shifted by delta: grad L . delta.
+    For a clear sky the gradient near the zenith is small; at a cloud edge it is large, and with the clouds
+    drifting over the cone (frozen advection, dL/dt = -v . grad L) that difference follows the reference's
+    dL/dt: left out of the noise, a pointing error looks like a clock offset of delta / |v| (for a cloud
+    layer at 1800 m moving at 11 m/s, 2.9 s per degree).
+    """
+    return np.nan_to_num(np.asarray(gradient, float)) * np.asarray(pointing_deg, float)
+
+
+def sky_gradient(m: mm.Measured, region: np.ndarray, x_deg: np.ndarray, y_deg: np.ndarray) -> float:
+    """|grad L| (radiance per degree) of a plane fitted to the unflagged pixels of ``region`` against the
+    direction's components theta cos(phi), theta sin(phi) (degrees, the bundle's map)."""
+    good = region & ((m.flags & MASK_EXCLUDED) == 0) & np.isfinite(m.value)
+    if good.sum() < 4:
+        return float("nan")
+    a = np.column_stack([np.ones(int(good.sum())), x_deg[good], y_deg[good]])
+    coef = np.linalg.lstsq(a, m.value[good], rcond=None)[0]
+    return float(np.hypot(coef[1], coef[2]))
 
 
 # --------------------------------------------------------------------------- the reference
@@ -312,7 +352,7 @@ def _sun_position(times_utc: pd.DatetimeIndex, site: dict) -> tuple[np.ndarray, 
     return pos["zenith"].to_numpy(float), pos["apparent_elevation"].to_numpy(float)
 
 
-def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma):
+def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma, around):
     """Stream the field frames: per frame and band the mask numbers; the middle frame's sky map."""
     bundle, lens = ctx.bundle, ctx.lens
     frames = ctx.dataset.frames(STAGE)
@@ -346,6 +386,7 @@ def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma):
                                                     f"{-st['mean'] / st['random_se']:.1f} standard errors below zero: "
                                                     "the dark level or the calibration does not fit this frame")
             out.update({f"{k}_{band}": v for k, v in st.items()})
+            out[f"gradient_{band}"] = sky_gradient(m, *around[band][:3])
         if i == middle:
             sky = _sky_map(images, bundle, lens, frame, ctx.effects, grid_deg, row["file"], row["path"])
         rows.append(out)
@@ -391,9 +432,10 @@ def compute(ctx) -> xr.Dataset:
     channels = np.asarray(reference.attrs["channels_nm"], float)
     if len(reference) < 2:
         raise InputError(ref_path, "needs at least two readings")
-    masks, window = field_masks(bundle, ctx.lens, float(cfg["mask_half_angle_deg"]), int(cfg["min_mask_pixels"]))
+    masks, window, around = field_masks(bundle, ctx.lens, float(cfg["mask_half_angle_deg"]),
+                                        int(cfg["min_mask_pixels"]))
     frames, inputs, sky = _reduce_frames(ctx, masks, window, float(cfg["sky_map_grid_deg"]),
-                                         float(ctx.config["apply"]["negative_mean_sigma"]))
+                                         float(ctx.config["apply"]["negative_mean_sigma"]), around)
     ctx.record_frames(inputs)
 
     # camera time (local) -> UTC, seconds since the first frame
@@ -430,7 +472,9 @@ def compute(ctx) -> xr.Dataset:
     predict = "convolved" if "spectral_mismatch" in ctx.effects else "nearest"
     y = {b: frames[f"mean_{b}"].to_numpy(float) for b in BANDS}
     sy = {b: frames[f"random_se_{b}"].to_numpy(float) for b in BANDS}
-    sampling = {b: mask_sampling_sigma(frames[f"spread_{b}"].to_numpy(float), frames[f"n_{b}"].to_numpy(float))
+    pointing = {b: around[b][3] for b in BANDS}
+    sampling = {b: np.hypot(mask_sampling_sigma(frames[f"spread_{b}"].to_numpy(float), frames[f"n_{b}"].to_numpy(float)),
+                            mask_pointing_sigma(frames[f"gradient_{b}"].to_numpy(float), pointing[b]))
                 if cfg["mask_sampling_term"] else np.zeros(len(frames)) for b in BANDS}
 
     clock = None
@@ -538,6 +582,12 @@ def compute(ctx) -> xr.Dataset:
     out = _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_reference, stat, n_matchups,
                    table, fit, scales, nearest_idx, channels, lam_eff, conv_w, outside, sky, predict, sun_zenith,
                    masks, window)
+    out["sky_gradient"] = (("frame", "band"), np.stack([frames[f"gradient_{b}"].to_numpy(float) for b in BANDS], axis=1),
+                           _attrs("|grad L| of a plane fitted to the radiance in and one pixel pitch around the mask "
+                                  "(the sky's change per degree of pointing)", f"{RAD} degree-1"))
+    out["mask_pointing_sigma"] = ("band", np.array([pointing[b] for b in BANDS]), _attrs(
+        "pointing uncertainty of the mask: the bundle's theta_deg_sigma at the pixel nearest the axis; times "
+        "sky_gradient it is in the match-up noise", "degree"))
     out["sun_seen"] = ("frame", sun_seen.astype(np.int8),
                        _attrs(f"1: the sun disc is seen (at least {cfg['sun_seen_min_pixels']} band pixels in the "
                               f"lens at {cfg['sun_seen_fraction_of_full_scale']:g} of the full scale or above)", "1"))
