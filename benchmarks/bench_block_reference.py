@@ -1,6 +1,6 @@
 """Is F(k, G - 1) the right reference for the block test when one block fixes each tested parameter?
 
-    python benchmarks/bench_block_reference.py [--null N] [--power N] [--draws B] [--seed S]
+    python benchmarks/bench_block_reference.py [--null N] [--power N] [--draws B] [--seed S] [--form-case]
 
 The diagnostics test a candidate's drop in chi-square by generalised least squares under noise common to each
 block (a random effect per block, ``pipeline.fitting.block_gls_drop``) and refer F = (drop / k) / (chi2 / dof)
@@ -18,13 +18,21 @@ On synthetic 13-block linearity setting tables shaped as the tiny camera's (7 ex
 an effect, the false alarms at 0.05 and 0.01 of F(k, G - 1), of the two bootstrap references and of the rows
 treated as independent, for block noise of a relative 0.3 % and 0.5 DN, of a relative 0.6 % and 0.5 DN, and
 of 2 DN offsets alone; and with a gain ladder (ISO/100)^(-0.01), how often each calls ``iso_gain``
-significant at 0.001 / 13. A benchmark, not a test: nothing is asserted.
+significant at 0.001 / 13. ``--form-case`` first prints the same for the linearity setting table of the
+tiny dataset (seed 101) with the power-law gain ladder of ``tests/effect_forms.py`` written into its raw
+frames (amplitude 0.01, rewrite seed 7): the drops in chi-square, the block-noise variances, the F statistic
+against F(k, G - 1) and F(k, dof), and the bootstrap null distribution of its F (2000 draws). A benchmark,
+not a test: nothing is asserted.
 """
 
 from __future__ import annotations
 
 import argparse
+import shutil
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -211,18 +219,68 @@ def bootstrap_p_values(table: pd.DataFrame, config: dict, alpha: float, draws: i
     return out[0], out[1]
 
 
+def form_case(config: dict, draws: int = 2000) -> None:
+    """The power-law gain ladder on the tiny dataset: the block test's figures and its bootstrap null."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    import yaml
+    from effect_forms import FORMS
+
+    from pipeline.dataset import open_dataset
+    from pipeline.diagnostics import observations_from_artefacts
+    from pipeline.simulate import simulate_dataset, truth_dir_for
+    from pipeline.stages.dark import analyse_dark, reduce_dark
+    from pipeline.stages.linearity import analyse_linearity, reduce_linearity
+
+    cfg = config["diagnostics"]
+    with tempfile.TemporaryDirectory(prefix="bench-block-reference-") as tmp:
+        root = Path(tmp) / "dataset"
+        simulate_dataset(root, scale="tiny", seed=101, effects=[], experiments=("dark", "linearity"), progress=False)
+        truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())
+        form = FORMS["iso_gain_power_law"]
+        form.inject(root, form.amplitudes[0], truth["derived"]["conversion_gain_dn_per_e_iso100"], 7)
+        ds = open_dataset(root)
+        dark = analyse_dark(reduce_dark(ds, config), config, [])
+        lin = analyse_linearity(reduce_linearity(ds, dark, config, []), dark, config, [])
+        obs = observations_from_artefacts({"dark": list(dark.values()), "linearity": list(lin.values())})
+        shutil.rmtree(root, ignore_errors=True)
+    table = next(o.table for o in obs if (o.experiment, o.level) == ("linearity", "setting"))
+    X, _ = base_design(table)
+    X1 = np.hstack([X, get_effect("iso_gain").columns("linearity", "setting", table)])
+    y, sigma = table["value_dn"].to_numpy(float), table["sigma_dn"].to_numpy(float)
+    blocks, _ = blocks_of(table, cfg["block_keys"])
+    fit0, fit1 = wls(y, sigma, X), wls(y, sigma, X1)
+    g = block_gls_drop(y, sigma, X, X1, blocks, cfg["block_noise_forms"], fit1)
+    f_obs = g.delta_chi2 / g.k / (g.chi2 / g.dof)
+    d, c = block_gls_null_draws(sigma, X, X1, blocks, fit1, cfg["block_noise_forms"], draws=draws, seed=0)
+    f = d / g.k / (c / g.dof)
+    nu = f_reference_dof(f, g.dof)
+    print(f"tiny seed 101, iso_gain_power_law 0.01, linearity settings: {len(table)} rows, {g.n_blocks} blocks; "
+          f"rows' drop {fit0.chi2 - fit1.chi2:.1f} (chi2 {fit0.chi2:.1f} -> {fit1.chi2:.1f}, dof {fit1.dof}); "
+          f"block-noise variances {', '.join(f'{n} {float(v):.3g}' for n, v in zip(cfg['block_noise_forms'], g.tau2))} (offset DN2, relative 1); "
+          f"GLS drop {g.delta_chi2:.1f}, chi2 {g.chi2:.1f} for {g.dof} dof; F {f_obs:.2f} on k = {g.k}: "
+          f"F(k, G - 1) p {stats.f.sf(f_obs, g.k, g.n_blocks - 1):.2g}, F(k, dof) p {stats.f.sf(f_obs, g.k, g.dof):.2g}")
+    print(f"  bootstrap null ({draws} draws at the fitted variances): mean F {f.mean():.3f}, 0.99 and 0.999 quantiles "
+          f"{np.quantile(f, 0.99):.2f} {np.quantile(f, 0.999):.2f} (F(k, G - 1) {stats.f.isf(0.01, g.k, g.n_blocks - 1):.2f} "
+          f"{stats.f.isf(0.001, g.k, g.n_blocks - 1):.2f}, F(k, dof) {stats.f.isf(0.01, g.k, g.dof):.2f} "
+          f"{stats.f.isf(0.001, g.k, g.dof):.2f}); draws above the observed F {int(np.sum(f >= f_obs))}; "
+          f"matched nu {nu:.1f}, p {stats.f.sf(f_obs, g.k, nu):.2g}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--null", type=int, default=200, help="tables per null case")
     ap.add_argument("--power", type=int, default=40, help="tables with the gain ladder")
     ap.add_argument("--draws", type=int, default=400, help="bootstrap draws per table")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--form-case", action="store_true", help="first the power-law gain ladder on the tiny dataset")
     args = ap.parse_args()
     config = load_config()
+    if args.form_case:
+        form_case(config)
     rng = np.random.default_rng(args.seed)
     t0, c0 = time.perf_counter(), time.process_time()
     print(f"{'case':34s} {'level':>6s} {'F(k,G-1)':>9s} {'plug-in':>8s} {'inflated':>8s} {'rows':>5s}  (counts of p below level)")
-    for rel, off in NULL_CASES:
+    for rel, off in NULL_CASES if args.null else ():
         p = []
         for i in range(args.null):
             table = synthetic_linearity_settings(rng, rel, off)
@@ -235,7 +293,7 @@ def main() -> None:
             print(f"null: relative {rel:.3f}, offset {off:.1f} DN {level:6.2f} {counts}  of {args.null} "
                   f"(expected {args.null * level:.0f}, binomial 0.999 bound {stats.binom.ppf(0.999, args.null, level):.0f})")
     level = config["diagnostics"]["significance_level"] / 13
-    for rel, off in ((0.0, 0.0), (0.003, 0.5)):
+    for rel, off in ((0.0, 0.0), (0.003, 0.5)) if args.power else ():
         p = []
         for i in range(args.power):
             table = synthetic_linearity_settings(rng, rel, off, gain_deficit=0.01)
