@@ -1,6 +1,6 @@
 """Is F(k, G - 1) the right reference for the block test when one block fixes each tested parameter?
 
-    python benchmarks/bench_block_reference.py [--null N] [--power N] [--draws B] [--seed S] [--form-case]
+    python benchmarks/bench_block_reference.py [--null N] [--power N] [--draws B] [--seed S] [--form-case] [--tanh-case]
 
 The diagnostics test a candidate's drop in chi-square by generalised least squares under noise common to each
 block (a random effect per block, ``pipeline.fitting.block_gls_drop``) and refer F = (drop / k) / (chi2 / dof)
@@ -21,8 +21,10 @@ of 2 DN offsets alone; and with a gain ladder (ISO/100)^(-0.01), how often each 
 significant at 0.001 / 13. ``--form-case`` first prints the same for the linearity setting table of the
 tiny dataset (seed 101) with the power-law gain ladder of ``tests/effect_forms.py`` written into its raw
 frames (amplitude 0.01, rewrite seed 7): the drops in chi-square, the block-noise variances, the F statistic
-against F(k, G - 1) and F(k, dof), and the bootstrap null distribution of its F (2000 draws). A benchmark,
-not a test: nothing is asserted.
+against F(k, G - 1) and F(k, dof), and the bootstrap null distribution of its F (2000 draws);
+``--tanh-case`` the residual tests of the linearity setting table of the detection benchmark's tanh case
+(seed 521, 4 % at full scale) once ``nonlinearity`` is in the model, their parts, and the mean residual by
+signal level. A benchmark, not a test: nothing is asserted.
 """
 
 from __future__ import annotations
@@ -219,8 +221,9 @@ def bootstrap_p_values(table: pd.DataFrame, config: dict, alpha: float, draws: i
     return out[0], out[1]
 
 
-def form_case(config: dict, draws: int = 2000) -> None:
-    """The power-law gain ladder on the tiny dataset: the block test's figures and its bootstrap null."""
+def form_tables(config: dict, name: str, seed: int, rewrite_seed: int, model: list[str]):
+    """The dark and linearity observation tables of a clean tiny dataset with a form of tests/effect_forms.py
+    written into its raw frames at its clear amplitude, the stages run with ``model``."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     import yaml
     from effect_forms import FORMS
@@ -231,18 +234,63 @@ def form_case(config: dict, draws: int = 2000) -> None:
     from pipeline.stages.dark import analyse_dark, reduce_dark
     from pipeline.stages.linearity import analyse_linearity, reduce_linearity
 
-    cfg = config["diagnostics"]
     with tempfile.TemporaryDirectory(prefix="bench-block-reference-") as tmp:
         root = Path(tmp) / "dataset"
-        simulate_dataset(root, scale="tiny", seed=101, effects=[], experiments=("dark", "linearity"), progress=False)
+        simulate_dataset(root, scale="tiny", seed=seed, effects=[], experiments=("dark", "linearity"), progress=False)
         truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())
-        form = FORMS["iso_gain_power_law"]
-        form.inject(root, form.amplitudes[0], truth["derived"]["conversion_gain_dn_per_e_iso100"], 7)
+        form = FORMS[name]
+        form.inject(root, form.amplitudes[0], truth["derived"]["conversion_gain_dn_per_e_iso100"], rewrite_seed)
         ds = open_dataset(root)
-        dark = analyse_dark(reduce_dark(ds, config), config, [])
-        lin = analyse_linearity(reduce_linearity(ds, dark, config, []), dark, config, [])
+        dark = analyse_dark(reduce_dark(ds, config), config, model)
+        lin = analyse_linearity(reduce_linearity(ds, dark, config, model), dark, config, model)
         obs = observations_from_artefacts({"dark": list(dark.values()), "linearity": list(lin.values())})
         shutil.rmtree(root, ignore_errors=True)
+    return obs
+
+
+def tanh_case(config: dict) -> None:
+    """The tanh nonlinearity at 4 % with ``nonlinearity`` in the model (the detection benchmark's case, seed 521):
+    the linearity setting table's residual tests, their parts, and how the residuals follow the signal level."""
+    from pipeline.diagnostics import model_design, rank_missing_effects
+    from pipeline.residual_structure import block_bound_p_value, covariate_tests, leverage
+
+    cfg = config["diagnostics"]
+    obs = form_tables(config, "nonlinearity_tanh", 521, 521, ["nonlinearity"])
+    _, _, tests = rank_missing_effects(obs, ["nonlinearity"], config, with_tests=True)
+    level = cfg["structure_level"] / len(obs)
+    row = tests.set_index(["experiment", "level"]).loc[("linearity", "setting")]
+    o = next(o for o in obs if (o.experiment, o.level) == ("linearity", "setting"))
+    t = o.table
+    X = model_design(o, ["nonlinearity"])       # each lens its own beta, as the stages fit it
+    sigma = t["sigma_dn"].to_numpy(float)
+    fit = wls(t["value_dn"].to_numpy(float), sigma, X)
+    codes = pd.factorize(pd.Series(blocks_of(t, cfg["block_keys"])[0]))[0]
+    n_blocks = int(codes.max()) + 1
+    free = 1.0 - leverage(X, sigma)
+    d = np.bincount(codes, weights=fit.z**2 - free, minlength=n_blocks)
+    t_stat = d.mean() / (d.std(ddof=1) / np.sqrt(n_blocks))
+    bound = block_bound_p_value(fit.chi2, np.bincount(codes, weights=free, minlength=n_blocks))
+    fraction = pd.Series(t["pred_linear_dn"] / t["full_scale_dn"]).reset_index(drop=True)
+    print(f"tiny seed 521, nonlinearity_tanh 0.04, model nonlinearity, linearity settings: chi2 {row['chi2']:.1f} for "
+          f"{int(row['dof'])} dof (rms_z {row['rms_z']:.2f}), chi-square tail {row['p_chi2']:.2g}; block t test "
+          f"{stats.t.sf(t_stat, n_blocks - 1):.3g} (t {t_stat:.2f}, {n_blocks - 1} dof, excess in "
+          f"{int(np.sum(d > 0))} of {n_blocks} blocks), bound {bound:.2g}, block p (twice the smaller) "
+          f"{row['p_block']:.3g}; table p {row['p_value']:.3g} against {level:.2g} ({len(obs)} tables): "
+          f"{'reported' if row['significant'] else 'not reported'}")
+    bins = pd.qcut(fraction, 6, labels=False)
+    means = pd.Series(fit.z).groupby(bins).mean()
+    edges = fraction.groupby(bins).agg(["min", "max"])
+    print("  mean z by signal level (fraction of full scale): " + ", ".join(
+        f"{edges.loc[b, 'min']:.3f}-{edges.loc[b, 'max']:.3f}: {means[b]:+.2f}" for b in means.index))
+    print(f"  signal level as a covariate (line or 6 bins): p {covariate_tests(fit.z, fraction, 6)[0]:.2g}, its "
+          f"logarithm {covariate_tests(fit.z, np.log(fraction), 6)[0]:.2g}; the covariate the diagnostics name: "
+          f"{row['covariate']} (p {row['covariate_p_value']:.2g})")
+
+
+def form_case(config: dict, draws: int = 2000) -> None:
+    """The power-law gain ladder on the tiny dataset: the block test's figures and its bootstrap null."""
+    cfg = config["diagnostics"]
+    obs = form_tables(config, "iso_gain_power_law", 101, 7, [])
     table = next(o.table for o in obs if (o.experiment, o.level) == ("linearity", "setting"))
     X, _ = base_design(table)
     X1 = np.hstack([X, get_effect("iso_gain").columns("linearity", "setting", table)])
@@ -273,10 +321,13 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=400, help="bootstrap draws per table")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--form-case", action="store_true", help="first the power-law gain ladder on the tiny dataset")
+    ap.add_argument("--tanh-case", action="store_true", help="then the tanh nonlinearity's residual tests")
     args = ap.parse_args()
     config = load_config()
     if args.form_case:
         form_case(config)
+    if args.tanh_case:
+        tanh_case(config)
     rng = np.random.default_rng(args.seed)
     t0, c0 = time.perf_counter(), time.process_time()
     print(f"{'case':34s} {'level':>6s} {'F(k,G-1)':>9s} {'plug-in':>8s} {'inflated':>8s} {'rows':>5s}  (counts of p below level)")
