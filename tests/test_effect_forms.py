@@ -119,7 +119,9 @@ NOT_SIGNIFICANT = {
         "ranked first, block-noise test p 5e-4 against 7.7e-5 (F test 1e-6): each of the five ISO factors is "
         "fixed by the one setting (block) taken at that ISO, so the test of k = 5 rests on the 13 settings' "
         "spread, F(5, 12); the CR3 test's 2e-24 that called it significant before was its degenerate covariance "
-        "(those blocks' leverage 1, residuals zero there)"),
+        "(those blocks' leverage 1, residuals zero there). F = 10.4 with block-noise variances 0.52 DN2 (offset) "
+        "and 0 (relative); its own bootstrap null is close to F(5, 59) (p 2e-5), but that reference raises false "
+        "alarms with large block offsets (benchmarks/bench_block_reference.py), so F(k, G - 1) stays"),
 }
 
 

@@ -75,7 +75,12 @@ cluster bootstrap with the null imposed is no way out with 13 blocks: its
 Bonferroni level 7.7e-5. The reference F(k, G - 1) rather than the rows' dof:
 with 13 blocks and a setting-level covariate the rows' dof gave 64, 24 and 6
 false alarms in 800 draws at 0.05, 0.01 and 0.001 (block noise half sigma; measured with the scale floored at 1), a
-Satterthwaite mix of the two 61, 21 and 6, F(k, G - 1) 50, 7 and 1 (expected 40, 8 and 0.8).
+Satterthwaite mix of the two 61, 21 and 6, F(k, G - 1) 50, 7 and 1 (expected 40, 8 and 0.8). Assumption
+behind F(k, G - 1): the block variances' uncertainty is that of G blocks whatever the tested columns; where
+each tested parameter is fixed by one block and the relative block noise is about its standard error
+(``iso_gain``, 13 settings, 0.6 %), it gave 55 and 19 false alarms in 600 at 0.05 and 0.01, and a
+parametric bootstrap of the statistic, nominal there, raised them with large offsets instead
+(``benchmarks/bench_block_reference.py``, README "Closure and diagnostics").
 
 Then every table (experiment and level) has its residual chi-square tested against its degrees of
 freedom, after the accepted candidates (:func:`residual_tests`, :mod:`pipeline.residual_structure`):

@@ -116,6 +116,22 @@ def block_noise_columns(fit: Fit, sigma: np.ndarray, forms=BLOCK_NOISE_FORMS) ->
     return [out[f] for f in forms]
 
 
+def _moment_design(U: np.ndarray, cols: list[np.ndarray], codes: np.ndarray, n_blocks: int):
+    """The pairs (i, j) of rows of one block, the moment design D (one column per form: (M C_f M)_ij) and the
+    offset U_i . U_j (= -M_ij) that :func:`block_random_effects` regresses the residual products on."""
+    i, j = np.nonzero(np.triu(codes[:, None] == codes[None, :], 1))
+    design = []
+    for c in cols:
+        # (M C M)_ij within a block: c_i c_j - a_i c_j - c_i a_j + U_i K U_j', a_i = U_i . v_g(i), v_g = U_g' c_g
+        v = np.zeros((n_blocks, U.shape[1]))
+        np.add.at(v, codes, U * c[:, None])
+        a = np.sum(U * v[codes], axis=1)
+        K = v.T @ v
+        design.append(c[i] * c[j] - a[i] * c[j] - c[i] * a[j] + np.sum((U[i] @ K) * U[j], axis=1))
+    D = np.array(design).T if cols else np.zeros((len(i), 0))
+    return i, j, D, np.sum(U[i] * U[j], axis=1)
+
+
 def block_random_effects(fit: Fit, X: np.ndarray, sigma: np.ndarray, blocks: np.ndarray,
                          forms=BLOCK_NOISE_FORMS) -> tuple[np.ndarray, list[np.ndarray]]:
     """Variances of the noise common to the rows of a block, estimated from a weighted fit's residuals.
@@ -136,19 +152,10 @@ def block_random_effects(fit: Fit, X: np.ndarray, sigma: np.ndarray, blocks: np.
     codes, n_blocks = _block_index(blocks)
     nf = len(cols)
     U = _column_space(X / sigma[:, None])
-    i, j = np.nonzero(np.triu(codes[:, None] == codes[None, :], 1))
+    i, j, D, offset = _moment_design(U, cols, codes, n_blocks)
     if not len(i) or not nf:
         return np.zeros(nf), cols
-    rhs = fit.z[i] * fit.z[j] + np.sum(U[i] * U[j], axis=1)
-    design = []
-    for c in cols:
-        # (M C M)_ij within a block: c_i c_j - a_i c_j - c_i a_j + U_i K U_j', a_i = U_i . v_g(i), v_g = U_g' c_g
-        v = np.zeros((n_blocks, U.shape[1]))
-        np.add.at(v, codes, U * c[:, None])
-        a = np.sum(U * v[codes], axis=1)
-        K = v.T @ v
-        design.append(c[i] * c[j] - a[i] * c[j] - c[i] * a[j] + np.sum((U[i] @ K) * U[j], axis=1))
-    D = np.array(design).T
+    rhs = fit.z[i] * fit.z[j] + offset
     tau2, _ = nnls(D, rhs)
     return tau2, cols
 
@@ -218,3 +225,4 @@ def block_gls_drop(y: np.ndarray, sigma: np.ndarray, X0: np.ndarray, X1: np.ndar
     first = X0.shape[1]
     return BlockGLSDrop(delta_chi2=max(chi0 - chi1, 0.0), chi2=chi1, dof=len(y) - rank1, k=rank1 - rank0,
                         n_blocks=_block_index(blocks)[1], tau2=tau2, coef=coef[first:], cov=cov[first:, first:])
+
