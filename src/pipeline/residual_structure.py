@@ -60,8 +60,8 @@ COVARIATES = ("exposure_s", "gain", "lens", "band", "sweep", "temperature_c", "f
 #: a signal level spanning decades, whose bend shows per decade
 LOG_SCALE_COVARIATES = ("signal_fraction",)
 #: plain words for a covariate where its column name is not plain enough
-COVARIATE_LABELS = {"signal_fraction": "signal level (fraction of full scale)",
-                    "frame_in_setting": "order of the frame within its setting"}
+COVARIATE_LABELS = {"signal_fraction": "the signal level as a fraction of full scale",
+                    "frame_in_setting": "the frame's order within its setting"}
 #: pixel position columns (band pixels of the lens image) of tables that know where each measurement sits
 IMAGE_PLANE_COLUMNS = ("spot_x_px", "spot_y_px")
 
@@ -146,10 +146,10 @@ def covariates_of(table: pd.DataFrame) -> pd.DataFrame:
 
 
 def covariate_label(name: str) -> str:
-    """The covariate in plain words, with its column name: 'signal level (fraction of full scale),
-    signal_fraction'; the column name alone where it is plain."""
+    """The covariate in plain words, with its column name: 'the signal level as a fraction of full scale
+    (signal_fraction)'; the column name alone where it is plain."""
     label = COVARIATE_LABELS.get(name)
-    return f"{label}, {name}" if label else name
+    return f"{label} ({name})" if label else name
 
 
 def scan_values(name: str, values: pd.Series) -> pd.Series:
