@@ -21,7 +21,9 @@ significance, p-value, the amplitude found and the smallest detectable one again
 rms_z before and after adding, the noise floor 1 + 2 sqrt(2/dof); for a pair, the effects forward
 selection accepted in turn and the second effect's rank, injected, found and detectable amplitude and
 p-value) and a summary: top-1 accuracy (clear and near-limit apart), the false-alarm rate on clean data,
-and how often the error falls back to the floor. ``--effects`` takes catalogue names and form names; ``--magnitudes clear`` runs one magnitude;
+and how often the error falls back to the floor; for the clean datasets also the tables the residual tests
+report as structured (false alarms of those tests), the covariate scan's smallest p and how often it names
+the signal level. ``--effects`` takes catalogue names and form names; ``--magnitudes clear`` runs one magnitude;
 ``--pairs ''`` and ``--clean 0`` skip those parts. Each case is simulated with its own seed, in a
 temporary folder removed after it (``--work`` to keep them elsewhere). A benchmark, not a test: nothing
 here is asserted.
@@ -98,13 +100,13 @@ def analyse(root: Path, config: dict, model: list[str], experiments=("dark", "li
         geo = {lens: true_geometry_dataset(lens, band_px) for lens in ("far", "close")}
         arts = analyse_rolloff(reduce_rolloff(ds, geo, config), config, model)
         obs = observations_from_artefacts({"rolloff": list(arts.values())})
-        ranked, unexplained = rank_missing_effects(obs, model, config)
-        return ranked, unexplained, error_figures(obs, model)
+        ranked, unexplained, tests = rank_missing_effects(obs, model, config, with_tests=True)
+        return ranked, unexplained, error_figures(obs, model), tests
     dark = analyse_dark(reduce_dark(ds, config), config, model)
     lin = analyse_linearity(reduce_linearity(ds, dark, config, model), dark, config, model)
     obs = observations_from_artefacts({"dark": list(dark.values()), "linearity": list(lin.values())})
-    ranked, unexplained = rank_missing_effects(obs, model, config)
-    return ranked, unexplained, error_figures(obs, model)
+    ranked, unexplained, tests = rank_missing_effects(obs, model, config, with_tests=True)
+    return ranked, unexplained, error_figures(obs, model), tests
 
 
 def floor_of(figures) -> np.ndarray:
@@ -123,7 +125,7 @@ def run_case(work: Path, config: dict, seed: int, expected: list[str], sim_effec
         if form is not None:
             form.inject(root, amplitude, truth["derived"]["conversion_gain_dn_per_e_iso100"], seed)
         model = list(base_model)
-        ranked, unexplained, before = analyse(root, config, model, experiments)
+        ranked, unexplained, before, tests = analyse(root, config, model, experiments)
         found = ranked[ranked["significant"]]["effect"].tolist() if len(ranked) else []
         row = {"top": ranked.iloc[0]["effect"] if len(ranked) else "", "found": found,
                "significant": bool(ranked.iloc[0]["significant"]) if len(ranked) else False,
@@ -138,13 +140,20 @@ def run_case(work: Path, config: dict, seed: int, expected: list[str], sim_effec
                 second = ranked.set_index("effect").loc[expected[1]]
                 row.update(second=(expected[1], int(second["rank"]), float(second["amplitude"]),
                                    float(second["detectable_amplitude"]), float(second["p_value"])))
-            ranked_after, unexplained_after, after = analyse(root, config, model + expected, experiments)
+            ranked_after, unexplained_after, after, _ = analyse(root, config, model + expected, experiments)
             row.update(rms_after=float(after["rms_z"].max()),
                        floor=bool((after["rms_z"].to_numpy() < floor_of(after)).all()),
                        still=ranked_after[ranked_after["significant"]]["effect"].tolist() if len(ranked_after) else [],
                        reported=unexplained_after["experiment"].tolist())
         else:
-            row.update(floor=bool((before["rms_z"].to_numpy() < floor_of(before)).all()))
+            # clean data: any table reported as structured is a false alarm of the residual tests; the
+            # covariate scan's smallest p over the tables, and the table's own smallest p
+            best = tests.loc[tests["covariate_p_value"].idxmin()]
+            row.update(floor=bool((before["rms_z"].to_numpy() < floor_of(before)).all()),
+                       reported=[f"{t.experiment}/{t.level}" for t in unexplained.itertuples()],
+                       scan=(str(best["covariate"]), f"{best['experiment']}/{best['level']}",
+                             float(best["covariate_p_value"]), float(tests["p_value"].min())),
+                       signal_level=tests.loc[tests["covariate"] == "signal_fraction", "covariate_p_value"].tolist())
         return row
     finally:
         shutil.rmtree(root.parent, ignore_errors=True)
@@ -197,6 +206,8 @@ def main() -> None:
                                                        if row.get("still") else "")
               + (f"  reported: {' '.join(row['reported'])}" if row.get("reported") else "")
               + (f"  significant in turn: {' '.join(row['found']) or '-'}" if row.get("kind") == "pair" else "")
+              + ("  covariate scan: smallest p {2:.2g} ({0}, {1}); smallest table p {3:.2g}".format(*row["scan"])
+                 if "scan" in row else "")
               + ("  second ({}): rank {}, injected {:.3g}, found {:.3g}, detect. {:.3g}, p {:.1e}".format(*row["second"])
                  if row.get("kind") == "pair" and "second" in row else ""),
               flush=True)
@@ -255,7 +266,11 @@ def main() -> None:
     if clean:
         alarms = sum(bool(r["found"]) for r in clean)
         print(f"  clean (lab noise, bias_drift in the model): false alarms {alarms}/{len(clean)} "
-              f"({100 * alarms / len(clean):.0f} %), rms_z within the floor {sum(r['floor'] for r in clean)}/{len(clean)}")
+              f"({100 * alarms / len(clean):.0f} %), rms_z within the floor {sum(r['floor'] for r in clean)}/{len(clean)}, "
+              f"residual structure reported {sum(bool(r['reported']) for r in clean)}/{len(clean)}, smallest "
+              f"covariate-scan p {min(r['scan'][2] for r in clean):.2g}; the signal level (signal_fraction) named "
+              f"in {sum(len(r['signal_level']) for r in clean)} tables of {len(clean)} datasets, smallest p "
+              f"{min((p for r in clean for p in r['signal_level']), default=float('nan')):.2g}")
     print(f"  {time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU")
     if tmp is not None:
         tmp.cleanup()

@@ -60,9 +60,12 @@ from pipeline.errors import ArtefactError
 #: rolloff 3: ``obs_setting`` gains the frames' ``exposure_s`` and ``iso`` (the cross-experiment closure turns
 #: the on-axis DN into DN per second); closure 2: the cross-experiment tables (experiment ``closure``, levels
 #: ``responsivity`` and ``dark_corners``, pipeline.cross_closure) among its rows; field 3: the match-up's
-#: noise with the mask's pointing term (``sky_gradient``, ``mask_pointing_sigma``), see stages.field.
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 3, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 9, "field": 3, "closure": 2}
+#: noise with the mask's pointing term (``sky_gradient``, ``mask_pointing_sigma``), see stages.field;
+#: linearity 6: ``obs_frame`` and ``obs_setting`` gain the raw files' ``white_level_dn`` and the signal level
+#: ``signal_fraction`` (predicted signal above black over the range between the black and the white level);
+#: closure 3: the ``signal_fraction`` covariate (NaN where a table has none), scanned by the residual tests.
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 3, "rolloff": 3, "spectral": 2,
+                     "absolute": 3, "immersion": 2, "calibration": 9, "field": 3, "closure": 3}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

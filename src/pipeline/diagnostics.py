@@ -107,6 +107,7 @@ from pipeline.effects import get as get_effect
 from pipeline.fitting import base_design, block_gls_drop, wls
 from pipeline.observations import dataset_to_table
 from pipeline.residual_structure import (
+    covariate_label,
     covariates_of,
     describe_image_plane,
     image_plane_pattern,
@@ -431,7 +432,7 @@ def unexplained_structure(tests: pd.DataFrame) -> pd.DataFrame:
     beside the candidate when one was accepted there (it explains part, not all), alone otherwise."""
     rows = []
     for _, t in tests[tests["significant"].astype(bool)].iterrows():
-        where = f"they follow {t['covariate']} most closely"
+        where = f"they follow {covariate_label(str(t['covariate']))} most closely"
         if t["image_plane"]:
             where += f"; on the image plane they depart most at {t['image_plane']}"
         stat = f"chi2 {t['chi2']:.1f} for {int(t['dof'])} dof, p {t['p_value']:.2g}"
@@ -508,7 +509,7 @@ CLOSURE_COVARIATES = {"exposure_s": "s", "iso": "1", "gain": "1", "temperature_c
                       "file_index": "1", "setting": "1", "frame": "1", "frame_in_setting": "1", "time_s": "s",
                       "theta_deg": "degree", "phi_deg": "degree", "azimuth_deg": "degree", "angle_deg": "degree",
                       "spot_x_px": "pixel", "spot_y_px": "pixel", "water_height_cm": "cm",
-                      "wavelength_nm": "nm"}
+                      "wavelength_nm": "nm", "signal_fraction": "1"}
 CLOSURE_TEXT = ("lens", "band", "sweep", "medium", "kind")
 
 

@@ -37,7 +37,9 @@ pooled rms_z would dilute a setting-level effect with the frame-level rows of th
 test per table does not.
 
 Where the residuals sit: the covariate whose grouping of z is most significant (F test of group means;
-numeric covariates also as a straight line and in quantile bins), and, where the table has the pixel
+numeric covariates also as a straight line and in quantile bins; the signal level ``signal_fraction``, the
+predicted signal above black over the raw range between the black level and the white level, on a log scale,
+where a response whose form the model lacks bends: measured in README "Detection benchmark"), and, where the table has the pixel
 position of each measurement, the cell of a coarse grid over the image plane whose mean z departs most.
 Nothing here reads a simulator's truth.
 """
@@ -52,7 +54,14 @@ from scipy import stats
 
 #: covariates scanned to say where structure sits (``frame_in_setting`` is derived, see :func:`covariates_of`)
 COVARIATES = ("exposure_s", "gain", "lens", "band", "sweep", "temperature_c", "frame", "frame_in_setting",
-              "file_index", "time_s", "theta_deg", "azimuth_deg", "water_height_cm", "wavelength_nm")
+              "file_index", "time_s", "theta_deg", "azimuth_deg", "water_height_cm", "wavelength_nm",
+              "signal_fraction")
+#: covariates scanned on a logarithmic scale (their straight-line test; the quantile bins do not depend on it):
+#: a signal level spanning decades, whose bend shows per decade
+LOG_SCALE_COVARIATES = ("signal_fraction",)
+#: plain words for a covariate where its column name is not plain enough
+COVARIATE_LABELS = {"signal_fraction": "the signal level as a fraction of full scale",
+                    "frame_in_setting": "the frame's order within its setting"}
 #: pixel position columns (band pixels of the lens image) of tables that know where each measurement sits
 IMAGE_PLANE_COLUMNS = ("spot_x_px", "spot_y_px")
 
@@ -136,6 +145,21 @@ def covariates_of(table: pd.DataFrame) -> pd.DataFrame:
     return out
 
 
+def covariate_label(name: str) -> str:
+    """The covariate in plain words, with its column name: 'the signal level as a fraction of full scale
+    (signal_fraction)'; the column name alone where it is plain."""
+    label = COVARIATE_LABELS.get(name)
+    return f"{label} ({name})" if label else name
+
+
+def scan_values(name: str, values: pd.Series) -> pd.Series:
+    """A covariate's values as scanned: the base-10 logarithm for :data:`LOG_SCALE_COVARIATES` when every
+    value is positive, else as they are."""
+    if name in LOG_SCALE_COVARIATES and values.dtype.kind in "fi" and len(values) and bool((values > 0).all()):
+        return np.log10(values.astype(float))
+    return values
+
+
 def grouping_test(z: np.ndarray, groups: np.ndarray) -> tuple[float, float]:
     """F-test p-value of group means of the residuals, and the share of their variance they explain.
 
@@ -178,7 +202,7 @@ def where_structure_sits(table: pd.DataFrame, z: np.ndarray, bins: int) -> tuple
         if values.nunique() < 2:
             continue
         n += 1
-        p, share = covariate_tests(z, values.reset_index(drop=True), bins)
+        p, share = covariate_tests(z, scan_values(name, values.reset_index(drop=True)), bins)
         if p < best_p:
             best, best_p, best_share = name, p, share
     return best, best_p, best_share, n

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["saturated_settings"]
+__all__ = ["saturated_settings", "signal_fraction"]
 
 
 def saturated_settings(exposure, signal_dn, variance_dn2, plateau_fraction: float,
@@ -55,3 +55,15 @@ def saturated_settings(exposure, signal_dn, variance_dn2, plateau_fraction: floa
                 last = i
             v_max = max(v_max, v[i])
     return out
+
+
+def signal_fraction(signal_dn, black_dn, white_level_dn) -> np.ndarray:
+    """Fraction of the raw range a signal fills: ``signal_dn`` above the black level over the range left
+    between the black level ``black_dn`` and the raw files' white level (unit 1; 1 at the ADC top).
+
+    The covariate a response that bends with signal level follows (a nonlinearity whose form the model
+    lacks leaves residuals that change sign along it); NaN where the range is not positive."""
+    signal = np.asarray(signal_dn, dtype=float)
+    span = np.asarray(white_level_dn, dtype=float) - np.asarray(black_dn, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(span > 0, signal / np.where(span > 0, span, 1.0), np.nan)

@@ -48,7 +48,7 @@ from pipeline.observations import effect_coefficients, fit_with_effects, table_t
 from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
 from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso
 from pipeline.radiometry.response import linear_signal
-from pipeline.radiometry.saturation import saturated_settings
+from pipeline.radiometry.saturation import saturated_settings, signal_fraction
 from pipeline.stages.flatfield import flatfield
 
 STAGE = "linearity"
@@ -207,6 +207,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     "corner_dn": corner_dn, "n_corner_sites": corner_sites,
                     "saturated": bool(images.saturated[band][m].any()),
                     "temperature_c": float(row.get("temperature_c", np.nan)),
+                    "white_level_dn": float(dec.raw.white_level),
                 })
     return {"moments": moments, "pearson": pearson, "frames": pd.DataFrame(frame_rows), "masks": masks,
             "corners": corners, "geometry": circles, "angle_source": angle_source, "projection": projection, "ptc": ptc, "inputs": inputs,
@@ -372,6 +373,8 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     fr["z"] = np.nan
     fr.loc[ok, "pred_dn"] = ffit.pred
     fr.loc[ok, "z"] = ffit.z
+    # the signal level each frame's row predicts, as a fraction of its raw range (a covariate of the residuals)
+    fr["signal_fraction"] = signal_fraction(fr["pred_dn"], fr["dark_mask_dn"], fr["white_level_dn"])
 
     # ----- setting table
     st = fr.groupby(["lens", "band", "sweep", "setting", "iso", "exposure_s"]).agg(
@@ -379,7 +382,8 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         pixel_var_dn2=("pixel_var_dn2", "first"), ptc_var_dn2=("ptc_var_dn2", "first"),
         ptc_mean_dn=("ptc_mean_dn", "first"), offset_var_dn2=("offset_var_dn2", "first"), saturated=("saturated", "any"),
         clipped_at_white_level=("clipped_at_white_level", "any"),
-        dark_mask_dn=("dark_mask_dn", "mean"), temperature_c=("temperature_c", "mean")).reset_index()
+        dark_mask_dn=("dark_mask_dn", "mean"), temperature_c=("temperature_c", "mean"),
+        white_level_dn=("white_level_dn", "min")).reset_index()
     st["gain"] = gain_from_iso(st["iso"])
     # with bias_drift in the model each frame is corrected against the dark level of the
     # unlit corners, so no drift is left in the setting mean; without it the drift is
@@ -393,6 +397,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     st["full_scale_dn"] = saturation["level_dn"] if saturation["reached"] else saturation["adc_range_dn"]
     fit, names, extra, pred = _fit_model(st, effects)
     st["pred_dn"] = pred
+    st["signal_fraction"] = signal_fraction(pred, st["dark_mask_dn"], st["white_level_dn"])
     st["z"] = (st["value_dn"] - pred) / st["sigma_dn"]
     st.loc[~st["used"], "z"] = np.nan
 

@@ -17,7 +17,14 @@ from matplotlib.patches import Rectangle  # noqa: E402
 from pipeline.report.content import Figure, Table, draw  # noqa: E402
 from pipeline.report.formatting import finite, fmt_value, units_text  # noqa: E402
 from pipeline.report.palette import DIVERGING_MAP, OKABE_ITO  # noqa: E402
-from pipeline.residual_structure import IMAGE_PLANE_COLUMNS, covariate_tests, image_plane_pattern  # noqa: E402
+from pipeline.residual_structure import (  # noqa: E402
+    IMAGE_PLANE_COLUMNS,
+    LOG_SCALE_COVARIATES,
+    covariate_label,
+    covariate_tests,
+    image_plane_pattern,
+    scan_values,
+)
 
 __all__ = ["is_structured", "lens_tests_table", "residual_tests_table", "closure_frame", "plotted_covariate", "z_covariate_figure",
            "image_plane_figure", "closure_figures"]
@@ -49,7 +56,7 @@ def residual_tests_table(tests: pd.DataFrame) -> Table:
         structured = is_structured(r)
         cov = _text(r.get("covariate"))
         if cov and finite(r.get("covariate_p_value")):
-            cov = f"{cov} (p {fmt_value(r['covariate_p_value'], 2)})"
+            cov = f"{covariate_label(cov)} (p {fmt_value(r['covariate_p_value'], 2)})"
         rows.append([_text(r.get("experiment")), _text(r.get("level")), fmt_value(r.get("n_obs"), 6),
                      fmt_value(dof, 6), fmt_value(ratio, 3), fmt_value(r.get("p_chi2"), 2),
                      fmt_value(r.get("p_block"), 2), "yes" if structured else "no", cov,
@@ -119,7 +126,7 @@ def plotted_covariate(rows: pd.DataFrame, tests: pd.DataFrame, bins: int) -> str
         if values.notna().sum() < 3 or values.nunique(dropna=True) < 2:
             continue
         ok = values.notna().to_numpy()
-        p, _ = covariate_tests(z[ok], values[ok].reset_index(drop=True), bins)
+        p, _ = covariate_tests(z[ok], scan_values(name, values[ok].reset_index(drop=True)), bins)
         if p < best_p:
             best, best_p = name, p
     return best
@@ -166,7 +173,12 @@ def z_covariate_figure(experiment: str, rows: pd.DataFrame, covariate: str, unit
         ax.set_xticks(range(len(cats)))
         ax.set_xticklabels(cats, fontsize=8)
     unit = units_text(units.get(covariate, ""))
-    ax.set_xlabel(f"{covariate} [{unit or '1'}]" if not categorical else covariate)
+    label = covariate_label(covariate)
+    ax.set_xlabel(f"{label} [{unit or '1'}]" if not categorical else label)
+    log_x = (not categorical and covariate in LOG_SCALE_COVARIATES
+             and bool((rows[covariate].dropna() > 0).all()) and rows[covariate].notna().any())
+    if log_x:
+        ax.set_xscale("log")
     ax.set_ylabel("normalised residual z [1]")
     ax.set_ylim(-Z_PLOT_LIMIT - 0.3, Z_PLOT_LIMIT + 0.3)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
@@ -176,11 +188,12 @@ def z_covariate_figure(experiment: str, rows: pd.DataFrame, covariate: str, unit
               if flagged else " No table of this experiment is structured.")
     return draw(fig, f"closure_z_{experiment}",
                 f"Where the {experiment} model fails: the normalised residual z = (value − prediction)/σ of each "
-                f"of its {len(rows)} measurements in the closure table against {covariate}, the covariate its "
+                f"of its {len(rows)} measurements in the closure table against {label}"
+                f"{' (log scale)' if log_x else ''}, the covariate its "
                 f"residual test names (or, when it names none the table has, the numeric covariate whose grouping "
                 f"of z is most significant); one colour per table (level), the shaded band ±2, black the mean z "
                 f"per quantile bin; |z| beyond {Z_PLOT_LIMIT:g} piled at the edge.{marked}",
-                alt=f"z of the {experiment} measurements against {covariate}")
+                alt=f"z of the {experiment} measurements against {label}")
 
 
 def image_plane_figure(experiment: str, rows: pd.DataFrame, cells: int) -> Figure | None:

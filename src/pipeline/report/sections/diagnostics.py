@@ -18,6 +18,7 @@ from pipeline.report.formatting import finite, fmt_value  # noqa: E402
 from pipeline.report.palette import OKABE_ITO, category  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
 from pipeline.report.sections._closure import closure_figures, lens_tests_table, residual_tests_table  # noqa: E402
+from pipeline.residual_structure import covariate_label  # noqa: E402
 
 __all__ = ["as_bool", "top_effect", "amplitude_text", "run_labels", "history_figure", "flagged_experiments"]
 
@@ -295,7 +296,7 @@ def diagnostics_section(inputs) -> list:
             if "rms_z" in r and finite(r["rms_z"]):
                 extra.append(f"rms z {fmt_value(r['rms_z'], 3)}")
             if "covariate" in r and isinstance(r["covariate"], str):
-                extra.append(f"covariate {r['covariate']}")
+                extra.append(f"covariate {covariate_label(r['covariate'])}")
             if "association" in r and finite(r["association"]):
                 extra.append(f"association {fmt_value(r['association'], 3)}")
             items.append(Markup("<b>{}</b>: {} <span class='note'>({})</span>").format(
