@@ -48,12 +48,12 @@ import numpy as np
 import xarray as xr
 
 from pipeline.artefact import model_effects
-from pipeline.bands import BANDS
+from pipeline.bands import BANDS, band_plane, band_saturation, cut_region
 from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects,
                                   outside_image_circle, read_bundle, sphere_blocks)
 from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
-from pipeline.frames import lens_images
+from pipeline.frames import SATURATION_MARGIN_DN, lens_images
 from pipeline.geometry.sphere import ZENITH_LENS, grid_shape, sphere_cells, sphere_coordinates
 from pipeline.moments import corner_mask
 from pipeline.radiometry import measurement as mm
@@ -459,8 +459,22 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
     """
     parameters = {} if parameters is None else parameters
     span = bundle["lens_region_px"].sel(lens=lens).values
-    images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
-    shape = images.bands[BANDS[0]].shape
+    span = (tuple(span[0]), tuple(span[1]))
+    rectilinear = _projection(bundle, lens) == "rectilinear"
+    images = region = None
+    if "bias_drift" in effects and not rectilinear:
+        # the frame's black level from the unlit corners of each whole band image: the band split first
+        images = lens_images(raw, span, lens)
+        shape = images.bands[BANDS[0]].shape
+    else:
+        # each block's band pixels split from the mosaic's rows into a block buffer (the same numbers as
+        # the whole band image's; no full-size float32 planes to allocate and fill)
+        try:
+            region = cut_region(raw.cfa, *span)
+        except ValueError as exc:
+            raise InputError(raw.path, f"lens '{lens}' region does not fit the frame ({exc})") from None
+        shape = (region.shape[0] // 2, region.shape[1] // 2)
+        white = raw.white_level - SATURATION_MARGIN_DN
     if tuple(plans[BANDS[0]].factors.inverse.shape) != tuple(shape):
         raise InputError(raw.path, f"lens '{lens}' band image is {shape}, the calibration's "
                                    f"{tuple(plans[BANDS[0]].factors.inverse.shape)}")
@@ -469,12 +483,14 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
     block = {name: np.empty(rows * shape[1], np.float32) for name in ("radiance", "random", "systematic", "scratch")}
     block["sums"] = np.empty(rows * shape[1])
     block["at"] = np.empty(rows * shape[1], np.intp)
+    block["image"] = np.empty(rows * shape[1], np.float32)
+    block["saturated"] = np.empty(rows * shape[1], bool)
     sub = np.arange(rows * shape[1], dtype=np.intp)
     sub %= SUB_HISTOGRAMS
-    rectilinear = _projection(bundle, lens) == "rectilinear"
     for j, band in enumerate(BANDS):
         plan = plans[band]
-        image, saturated = images.bands[band], images.saturated[band]
+        if images is not None:
+            image, saturated = images.bands[band], images.saturated[band]
         key = (lens, band, frame)
         if key not in parameters:
             parameters[key] = band_parameters(bundle, lens, band, medium, frame, effects)
@@ -488,9 +504,15 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
                 # subtract_dark's level and variance from the unlit pixels, taken once for the blocks
                 black = (float(unlit.mean()), float(unlit.var(ddof=1) / unlit.size)) if unlit.size > 1 else None
         for window, first, n, index in plan.blocks:
-            m = mm.measure_band(image[window], frame, dark, response, cal, None, medium, effects,
-                                saturated=saturated[window], factors=plan.factors.window(window),
-                                frame_black_dn=black)
+            if images is not None:
+                dn, sat = image[window], saturated[window]
+            else:
+                size = index.size
+                dn = band_plane(region, raw.cfa_pattern, band, window, block["image"][:size].reshape(index.shape))
+                sat = band_saturation(region, raw.cfa_pattern, band, white, window,
+                                      block["saturated"][:size].reshape(index.shape))
+            m = mm.measure_band(dn, frame, dark, response, cal, None, medium, effects, saturated=sat,
+                                factors=plan.factors.window(window), frame_black_dn=black)
             if maps is not None:
                 value, rnd, sy = (maps[name][j][window] for name in ("radiance", "random", "systematic"))
                 np.copyto(maps["flags"][j][window], m.flags)
@@ -577,9 +599,6 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     The output is written to a temporary name and renamed; an existing
     ``out_path`` is replaced only with ``overwrite``.
     """
-    config = config if config is not None else defaults()
-    cfg = config["apply"]
-    grid_deg = float(cfg["grid_deg"] if grid_deg is None else grid_deg)
     out_path = Path(out_path)
     if out_path.exists() and not overwrite:
         raise InputError(out_path, "exists; add --overwrite to replace it")
@@ -589,11 +608,19 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     bundle_path = Path(bundle_path)
     # two threads for two cores (a third would bin the three bands at once: more memory at the peak, no
     # core to run it on): the lenses' chains side by side (then the bands' binning), the decode of the next
-    # frame (of the first while this thread reads the bundle) and the pixels' directions queued with them
-    # (numpy, rawpy and the NetCDF reads release the GIL)
+    # frame (of the first while this thread reads the configuration and the bundle) and the pixels'
+    # directions queued with them (numpy, rawpy and the NetCDF reads release the GIL)
     with ThreadPoolExecutor(max_workers=2) as pool:
-        return _apply_frames(pool, pool.submit(read_raw, raw_paths[0], checksums=False), bundle_path, raw_paths, medium, out_path,
-                             grid_deg, cfg, zenith_lens, pixels, pixel_geometry)
+        decoding = pool.submit(read_raw, raw_paths[0], checksums=False)
+        try:
+            # the schema's defaults are validated on the first call of a process (20 to 40 ms): beside the decode
+            cfg = (config if config is not None else defaults())["apply"]
+            grid_deg = float(cfg["grid_deg"] if grid_deg is None else grid_deg)
+        except BaseException:
+            decoding.cancel()
+            raise
+        return _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid_deg, cfg, zenith_lens,
+                             pixels, pixel_geometry)
 
 
 def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid_deg, cfg, zenith_lens, pixels,
