@@ -361,12 +361,6 @@ def _lens_plans(maps: dict, i: int, cells, corners: bool, block_rows: int, pixel
     return plans
 
 
-#: sub-histograms per block: the pixels of a row run through the same cell a few at a time, and
-#: ``np.bincount``'s additions into one cell wait for each other; pixel k of a block adds into
-#: sub-histogram k mod this, so that neighbours add into different ones (summed at the end)
-SUB_HISTOGRAMS = 8
-
-
 class _LensSums:
     """The sphere-grid sums of one lens of a frame, per band: count, sum and sum of squares of the radiance,
     sum of the random sigma squared and of the systematic sigma (:class:`_CellSums`, float64); and per band
@@ -374,11 +368,9 @@ class _LensSums:
     pixel inside the image circle (the grid's pixels and those of the blocks' second spill cell).
 
     Each block of a band image is binned while it is in the cache, with
-    ``np.bincount`` over the block's own cells (a few thousand, so the counts
-    stay in the cache too), each pixel into one of :data:`SUB_HISTOGRAMS`
-    sub-histograms by its position (interleaved: cell c's sub-histograms
-    are adjacent), summed per cell at the end of the block; the pixels a
-    frame's flags keep off (saturated, not finite) go to the block's spill cell.
+    ``np.bincount`` over the block's own range of cells (the pixels of a cell
+    summed in the order :func:`_bin_cells` sums them); the pixels a frame's
+    flags keep off (saturated, not finite) go to the block's spill cell.
     """
 
     def __init__(self, n_cells: int, n_bands: int):
@@ -386,46 +378,37 @@ class _LensSums:
         #: per band: [pixels, sum of the radiance, sum of its random variance] of the negative-mean check
         self.checked = [[0, 0.0, 0.0] for _ in range(n_bands)]
 
-    def add_block(self, band: int, first: int, n: int, index, value, rnd, sy, excluded, at, wide, sub,
+    def add_block(self, band: int, first: int, n: int, index, value, rnd, sy, excluded, at, wide,
                   check: bool = True) -> bool:
         """Bin one block (``first``, ``n``, ``index``: :attr:`_BandPlan.blocks`); ``excluded`` kept off.
 
         ``excluded``: None when no pixel of the block is, else a boolean map of the block. ``at``
-        (np.intp) and ``wide`` (float64): buffers of at least the block's size; ``sub`` (np.intp) each
-        pixel's sub-histogram (its position in the block mod :data:`SUB_HISTOGRAMS`), as long.
+        (np.intp) and ``wide`` (float64): buffers of at least the block's size.
         With ``check``, returns False (nothing added) when a value or its random sigma is not finite
         where the pixel is not excluded: the caller then excludes the non-finite values and adds the
         block again (``check=False``: a non-finite random sigma of a finite value then enters its cell).
         """
-        k = SUB_HISTOGRAMS
         size = index.size
         at = at[:size]
-        # cell * k + the pixel's sub-histogram, one pass from the stored uint16 index
-        np.multiply(index.reshape(-1), k, out=at, dtype=np.intp)
+        np.copyto(at.reshape(index.shape), index)
         if excluded is not None:
             # the pixels a frame's flags keep off (saturated, not finite) into the block's spill cell n
-            off = np.flatnonzero(excluded)
-            at[off] = n * k + sub[off]
-        at += sub[:size]
-        m = (n + 2) * k
-
-        def per_cell(x):
-            return x.reshape(n + 2, k).sum(axis=1)
-
-        count = per_cell(np.bincount(at, minlength=m))
+            np.copyto(at, n, where=excluded.reshape(-1))
+        m = n + 2
+        count = np.bincount(at, minlength=m)
         w = wide[:size]
         np.copyto(w, value.reshape(-1))
-        s0 = per_cell(np.bincount(at, weights=w, minlength=m))
+        s0 = np.bincount(at, weights=w, minlength=m)
         np.square(w, out=w)
-        s1 = per_cell(np.bincount(at, weights=w, minlength=m))
+        s1 = np.bincount(at, weights=w, minlength=m)
         np.square(rnd.reshape(-1), out=w, dtype=float)
-        s2 = per_cell(np.bincount(at, weights=w, minlength=m))
+        s2 = np.bincount(at, weights=w, minlength=m)
         # a non-finite value that was not excluded would make its cell's sums non-finite (a float32 value
         # squared is finite in float64): checked on the cells, not the pixels
         if check and not np.isfinite(s1[:n].sum() + s1[n + 1] + s2[:n].sum() + s2[n + 1]):
             return False
         np.copyto(w, sy.reshape(-1))
-        s3 = per_cell(np.bincount(at, weights=w, minlength=m))
+        s3 = np.bincount(at, weights=w, minlength=m)
         cells = slice(first, first + n)
         total = self.bands[band]
         total.count[cells] += count[:n]
@@ -485,8 +468,6 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
     block["at"] = np.empty(rows * shape[1], np.intp)
     block["image"] = np.empty(rows * shape[1], np.float32)
     block["saturated"] = np.empty(rows * shape[1], bool)
-    sub = np.arange(rows * shape[1], dtype=np.intp)
-    sub %= SUB_HISTOGRAMS
     for j, band in enumerate(BANDS):
         plan = plans[band]
         if images is not None:
@@ -525,9 +506,9 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
             # frame-independent ones are in the block's index)
             excluded = (m.flags & mm.FLAG_SATURATED) != 0
             args = (j, first, n, index, value, rnd, sy)
-            if not sums.add_block(*args, excluded if excluded.any() else None, block["at"], block["sums"], sub):
+            if not sums.add_block(*args, excluded if excluded.any() else None, block["at"], block["sums"]):
                 excluded |= ~np.isfinite(value)
-                sums.add_block(*args, excluded, block["at"], block["sums"], sub, check=False)
+                sums.add_block(*args, excluded, block["at"], block["sums"], check=False)
             del m
         n_good, total, total_var = sums.checked[j]
         if n_good:
