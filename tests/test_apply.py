@@ -95,15 +95,18 @@ def test_bundle_pixel_factors_are_the_rolloff_polynomial_and_the_grid_cells(cali
                 phi = g["phi_deg"].values.astype(float)
                 zen, azi = (theta, phi % 360) if lens == "close" else (180 - theta, -phi % 360)
                 cell = np.minimum(zen.astype(int), n_z - 1) * n_a + np.minimum(azi.astype(int), n_a - 1)
-                # stored per block of rows: the cell less the block's first, the block's cell count off the grid
+                # stored per block of rows: the cell less the block's first, the block's cell count off the grid,
+                # one more where off the grid but inside the circle (beyond the calibrated angle: the
+                # negative-mean check's pixels; no hot pixels in this model)
                 block = np.arange(theta.shape[0]) // int(cell_attrs["block_rows"])
                 index = g["sphere_cell_in_block"].values.astype(int)
                 n = g["sphere_block_n_cells"].values[block][:, None]
-                stored = np.where(index == n, -1, index + g["sphere_block_first_cell"].values[block][:, None])
-                assert (index <= n).all()
+                stored = np.where(index >= n, -1, index + g["sphere_block_first_cell"].values[block][:, None])
+                assert (index <= n + 1).all()
                 on = inside & ~beyond
                 assert (stored[~on] == -1).all()
                 np.testing.assert_array_equal(stored[on], cell[on])
+                assert ((index == n + 1) == beyond).all()
 
 
 def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
@@ -203,6 +206,58 @@ def test_output_is_cf_and_the_sphere_has_nan_where_no_pixel_falls(applied):
     assert count[..., :80, :].sum() > 0 and count[..., 100:, :].sum() > 0
 
 
+def _check_grid_is_the_binning_of_the_pixel_maps(ds, grid_deg):
+    flags = ds["quality_flag"].values[0]
+    n_z, n_a = ds.sizes["zenith"], ds.sizes["azimuth"]
+    checked = 0
+    for j in range(ds.sizes["band"]):
+        zen = ds["zenith_deg"].values[:, j].astype(float)
+        azi = ds["azimuth_deg"].values[:, j].astype(float)
+        on = (flags[:, j] == 0) & np.isfinite(ds["radiance"].values[0][:, j])
+        cell = (np.minimum((zen[on] / grid_deg).astype(int), n_z - 1) * n_a
+                + np.minimum((azi[on] / grid_deg).astype(int), n_a - 1))
+        value = ds["radiance"].values[0][:, j][on].astype(float)
+        rnd = ds["radiance_random_sigma"].values[0][:, j][on].astype(float)
+        sy = ds["radiance_systematic_sigma"].values[0][:, j][on].astype(float)
+        count = np.bincount(cell, minlength=n_z * n_a)
+        has = count > 0
+        per = np.maximum(count, 1)
+        mean = np.bincount(cell, value, n_z * n_a) / per
+        spread = np.sqrt(np.bincount(cell, (value - mean[cell]) ** 2, n_z * n_a) / np.maximum(count - 1, 1))
+        random = np.sqrt(np.bincount(cell, rnd**2, n_z * n_a)) / per
+        systematic = np.bincount(cell, sy, n_z * n_a) / per
+        got = {k: ds[f"sphere_{k}"].values[0, j].ravel() for k in ("count", "radiance", "radiance_spread",
+                                                                 "radiance_random_sigma", "radiance_systematic_sigma")}
+        np.testing.assert_array_equal(got["count"], count)
+        assert np.isnan(got["radiance"][~has]).all() and np.isnan(got["radiance_random_sigma"][~has]).all()
+        for name, want in (("radiance", mean), ("radiance_random_sigma", random), ("radiance_systematic_sigma",
+                                                                                  systematic)):
+            np.testing.assert_allclose(got[name][has], want[has], rtol=1e-12, atol=0, err_msg=name)
+        two = count > 1
+        if two.any():
+            np.testing.assert_allclose(got["radiance_spread"][two], spread[two], rtol=1e-6,
+                                       atol=1e-10 * np.abs(mean[two]).max())
+        assert np.isnan(got["radiance_spread"][~two]).all()
+        checked += int(np.count_nonzero(two))
+    return checked
+
+
+def test_sphere_grid_is_the_binning_of_the_pixel_maps(calibrated, applied, tmp_path):
+    """The grid against its definition, computed here from the written pixel maps in float64: each cell's
+    count, mean, spread (ddof 1), random sigma of the mean (sqrt of the sum of the pixels' random variances
+    over the count) and mean systematic sigma of the unflagged pixels (flags 1, 2, 4, 8 all keep a pixel
+    off) whose direction (zenith_deg, azimuth_deg) falls in it. The grid sums the same float32 pixel values
+    in float64 in another order: rounding alone, 1e-12 relative (the spread, one pass, to 1e-6 of itself).
+    On the 1-degree grid (the bundle's cells) and a 10-degree one (apply's own cells from theta and phi),
+    where the tiny frame's cells hold many pixels each, so that the spread is checked too."""
+    for lens in LENSES:
+        _check_grid_is_the_binning_of_the_pixel_maps(applied[lens], 1.0)
+    root = calibrated[0]
+    path = apply_calibration(calibrated[4], [_signal_frame(root, "far")], "air", tmp_path / "coarse.nc", 10.0)
+    with xr.open_dataset(path) as ds:
+        assert _check_grid_is_the_binning_of_the_pixel_maps(ds.load(), 10.0) > 100
+
+
 def test_pixel_maps_without_their_geometry_name_the_bundles(calibrated, applied, tmp_path):
     """--no-pixel-geometry: the same pixel maps, no geometry maps, and the hashes of the geometry artefacts."""
     import hashlib
@@ -219,6 +274,51 @@ def test_pixel_maps_without_their_geometry_name_the_bundles(calibrated, applied,
         assert json.loads(ds.attrs["geometry_sha256"]) == want
         np.testing.assert_array_equal(ds["radiance"].values, applied["far"]["radiance"].values)
         assert ds["radiance"].attrs["units"] == "W sr-1 m-2 nm-1"
+
+
+def test_a_dark_level_too_high_stops_apply_with_the_mean_over_the_image_circle(calibrated, tmp_path):
+    """A bundle whose dark level is 40 DN too high (the frame's dark pixels read about 40 DN below it) makes
+    the mean radiance over the image circle negative: apply stops, naming the lens, the band, the mean and
+    how many standard errors below zero it is. Both numbers against their definition computed here from
+    the chain's per-pixel output (band_radiance on the same frame, no check): the mean and the standard
+    error sqrt(sum sigma^2) / n of every pixel inside the circle that is neither saturated nor hot,
+    those beyond the calibrated field angle included (off the grid, but in the check)."""
+    import re
+    import shutil
+
+    import netCDF4
+
+    from pipeline.errors import ImpossibleResult
+    from pipeline.calibration import read_bundle
+
+    root, _, _, _, bundle_path, _ = calibrated
+    bad = tmp_path / "bad.nc"
+    shutil.copy(bundle_path, bad)
+    with netCDF4.Dataset(bad, "a") as nc:
+        nc["bias_dn"][:] = nc["bias_dn"][:] + 40.0
+    frame = _signal_frame(root, "far")
+    with pytest.raises(ImpossibleResult) as err:
+        apply_calibration(bad, [frame], "air", tmp_path / "out.nc", pixels=False)
+    found = re.search(r"lens (\w+), band (\w): mean radiance (\S+) W sr-1 m-2 nm-1 over the image circle is "
+                      r"(\S+) standard errors below zero", str(err.value))
+    assert found, str(err.value)
+    lens, band, mean_text, sigmas_text = found.groups()
+    bundle = read_bundle(bad)
+    raw = read_raw(frame)
+    span = bundle["lens_region_px"].sel(lens=lens).values
+    images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
+    effects = bundle.attrs["model_effects"].split(",")
+    m = band_radiance(images, bundle, lens, band, "air", effects,
+                      mm.FrameSettings(exposure_s=raw.exposure_s, iso=raw.iso), negative_sigma=np.inf)
+    good = ((m.flags & (mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT)) == 0) & np.isfinite(m.value)
+    assert ((m.flags[good] & mm.FLAG_BEYOND_CALIBRATED_ANGLE) != 0).any()
+    value, sigma = m.value[good].astype(float), m.random_sigma[good].astype(float)
+    mean = value.mean()
+    se = np.sqrt(np.sum(sigma**2)) / value.size
+    assert mean < 0
+    # the message's 3 significant digits of the mean and 1 decimal of the count
+    assert float(mean_text) == pytest.approx(mean, rel=6e-3)
+    assert float(sigmas_text) == pytest.approx(-mean / se, abs=0.051)
 
 
 def test_frames_the_bundle_does_not_calibrate_are_refused(calibrated, tmp_path):

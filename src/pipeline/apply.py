@@ -48,12 +48,12 @@ import numpy as np
 import xarray as xr
 
 from pipeline.artefact import model_effects
-from pipeline.bands import BANDS
+from pipeline.bands import BANDS, band_plane, band_saturation, cut_region
 from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects,
                                   outside_image_circle, read_bundle, sphere_blocks)
 from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
-from pipeline.frames import lens_images
+from pipeline.frames import SATURATION_MARGIN_DN, lens_images
 from pipeline.geometry.sphere import ZENITH_LENS, grid_shape, sphere_cells, sphere_coordinates
 from pipeline.moments import corner_mask
 from pipeline.radiometry import measurement as mm
@@ -356,81 +356,122 @@ def _lens_plans(maps: dict, i: int, cells, corners: bool, block_rows: int, pixel
         factors = mm.PixelFactors(inverse=maps["pixel_factor"][i, j],
                                   systematic_rel={"rolloff": maps["pixel_systematic_relative_variance"][i, j]},
                                   random_rel={} if random is None else {"prnu": random[i, j]},
-                                  flags=maps["pixel_flag"][i, j])
+                                  flags=maps["pixel_flag"][i, j] if "pixel_flag" in maps else None)
         plans[band] = _band_plan(factors, cells[j], corners, block_rows, pixels)
     return plans
 
 
 class _LensSums:
     """The sphere-grid sums of one lens of a frame, per band: count, sum and sum of squares of the radiance,
-    sum of the random sigma squared and of the systematic sigma (:class:`_CellSums`, float64).
+    sum of the random sigma squared and of the systematic sigma (:class:`_CellSums`, float64); and per band
+    the negative-mean check's count, sum of the radiance and of its random variance over every unflagged
+    pixel inside the image circle (the grid's pixels and those of the blocks' second spill cell).
 
     Each block of a band image is binned while it is in the cache, with
-    ``np.bincount`` over the block's own cells (a few thousand, so the counts
-    stay in the cache too; the pixels of a cell are summed in the order
-    :func:`_bin_cells` sums them); the pixels a frame's flags keep off
-    (saturated, not finite) go to the block's spill cell.
+    ``np.bincount`` over the block's own range of cells (the pixels of a cell
+    summed in the order :func:`_bin_cells` sums them); the pixels a frame's
+    flags keep off (saturated, not finite) go to the block's spill cell.
     """
 
     def __init__(self, n_cells: int, n_bands: int):
         self.bands = [_CellSums(n_cells, 2, squared=(True, False)) for _ in range(n_bands)]
+        #: per band: [pixels, sum of the radiance, sum of its random variance] of the negative-mean check
+        self.checked = [[0, 0.0, 0.0] for _ in range(n_bands)]
 
-    def add_block(self, band: int, first: int, n: int, index, value, rnd, sy, excluded, at, wide) -> None:
+    def add_block(self, band: int, first: int, n: int, index, value, rnd, sy, excluded, at, wide,
+                  check: bool = True) -> bool:
         """Bin one block (``first``, ``n``, ``index``: :attr:`_BandPlan.blocks`); ``excluded`` kept off.
 
-        ``at`` (np.intp) and ``wide`` (float64): buffers of at least the block's size.
+        ``excluded``: None when no pixel of the block is, else a boolean map of the block. ``at``
+        (np.intp) and ``wide`` (float64): buffers of at least the block's size.
+        With ``check``, returns False (nothing added) when a value or its random sigma is not finite
+        where the pixel is not excluded: the caller then excludes the non-finite values and adds the
+        block again (``check=False``: a non-finite random sigma of a finite value then enters its cell).
         """
-        at = at[:index.size]
+        size = index.size
+        at = at[:size]
         np.copyto(at.reshape(index.shape), index)
-        # the pixels a frame's flags keep off (saturated, not finite) into the block's spill cell n
-        np.copyto(at, n, where=excluded.ravel())
+        if excluded is not None:
+            # the pixels a frame's flags keep off (saturated, not finite) into the block's spill cell n
+            np.copyto(at, n, where=excluded.reshape(-1))
+        m = n + 2
+        count = np.bincount(at, minlength=m)
+        w = wide[:size]
+        np.copyto(w, value.reshape(-1))
+        s0 = np.bincount(at, weights=w, minlength=m)
+        np.square(w, out=w)
+        s1 = np.bincount(at, weights=w, minlength=m)
+        np.square(rnd.reshape(-1), out=w, dtype=float)
+        s2 = np.bincount(at, weights=w, minlength=m)
+        # a non-finite value that was not excluded would make its cell's sums non-finite (a float32 value
+        # squared is finite in float64): checked on the cells, not the pixels
+        if check and not np.isfinite(s1[:n].sum() + s1[n + 1] + s2[:n].sum() + s2[n + 1]):
+            return False
+        np.copyto(w, sy.reshape(-1))
+        s3 = np.bincount(at, weights=w, minlength=m)
         cells = slice(first, first + n)
         total = self.bands[band]
-        total.count[cells] += np.bincount(at, minlength=n + 1)[:n]
-        w = wide[:index.size]
-        np.copyto(w, value.ravel())
-        total.sums[0, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
-        np.square(w, out=w)
-        total.sums[1, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
-        np.square(rnd.ravel(), out=w, dtype=float)
-        total.sums[2, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
-        np.copyto(w, sy.ravel())
-        total.sums[3, cells] += np.bincount(at, weights=w, minlength=n + 1)[:n]
+        total.count[cells] += count[:n]
+        total.sums[0, cells] += s0[:n]
+        total.sums[1, cells] += s1[:n]
+        total.sums[2, cells] += s2[:n]
+        total.sums[3, cells] += s3[:n]
+        checked = self.checked[band]
+        checked[0] += int(count[:n].sum() + count[n + 1])
+        checked[1] += float(s0[:n].sum() + s0[n + 1])
+        checked[2] += float(s2[:n].sum() + s2[n + 1])
+        return True
 
 
-def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, plans, block_rows, maps=None,
-                   sums=None, parameters=None):
+def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, plans, block_rows, sums, maps=None,
+                   parameters=None):
     """One lens of a decoded frame through the chain, a block of ``block_rows`` rows of a band image at a time.
 
     ``plans`` the lens's :class:`_BandPlan` per band. With ``maps``
     ({name: (band, y, x) array}: ``radiance``, ``random``, ``systematic``
     float32, ``flags`` uint8) each block is evaluated straight into them;
-    with ``sums`` (a :class:`_LensSums`) each block's weights for the sphere
-    grid are taken while it is in the cache, and each band binned. Each pixel's result is the one of the
+    into ``sums`` (a :class:`_LensSums`) each block is binned onto the sphere
+    grid while it is in the cache. Each pixel's result is the one of the
     chain on the whole image. A mean radiance over the unflagged pixels inside
     the circle more than ``negative_sigma`` standard errors below zero raises
-    :class:`~pipeline.errors.ImpossibleResult`, as :func:`band_radiance` does.
+    :class:`~pipeline.errors.ImpossibleResult`, as :func:`band_radiance` does
+    (its sums are the grid's, with the blocks' second spill cell: the pixels
+    inside the circle that are off the grid only beyond the calibrated field angle).
     ``parameters``: a dict that keeps the chain's parameter objects of each
     lens, band and frame setting for the next frames of the call.
     """
     parameters = {} if parameters is None else parameters
     span = bundle["lens_region_px"].sel(lens=lens).values
-    images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
-    shape = images.bands[BANDS[0]].shape
+    span = (tuple(span[0]), tuple(span[1]))
+    rectilinear = _projection(bundle, lens) == "rectilinear"
+    images = region = None
+    if "bias_drift" in effects and not rectilinear:
+        # the frame's black level from the unlit corners of each whole band image: the band split first
+        images = lens_images(raw, span, lens)
+        shape = images.bands[BANDS[0]].shape
+    else:
+        # each block's band pixels split from the mosaic's rows into a block buffer (the same numbers as
+        # the whole band image's; no full-size float32 planes to allocate and fill)
+        try:
+            region = cut_region(raw.cfa, *span)
+        except ValueError as exc:
+            raise InputError(raw.path, f"lens '{lens}' region does not fit the frame ({exc})") from None
+        shape = (region.shape[0] // 2, region.shape[1] // 2)
+        white = raw.white_level - SATURATION_MARGIN_DN
     if tuple(plans[BANDS[0]].factors.inverse.shape) != tuple(shape):
         raise InputError(raw.path, f"lens '{lens}' band image is {shape}, the calibration's "
                                    f"{tuple(plans[BANDS[0]].factors.inverse.shape)}")
     rows = max(1, min(int(block_rows), shape[0]))
     # per block: the chain's three results (unless written into maps) and one scratch for its sums of variances
     block = {name: np.empty(rows * shape[1], np.float32) for name in ("radiance", "random", "systematic", "scratch")}
-    block["wide"] = np.empty(rows * shape[1])
     block["sums"] = np.empty(rows * shape[1])
     block["at"] = np.empty(rows * shape[1], np.intp)
-    rectilinear = _projection(bundle, lens) == "rectilinear"
-    good_bits = mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_SATURATED | mm.FLAG_HOT
+    block["image"] = np.empty(rows * shape[1], np.float32)
+    block["saturated"] = np.empty(rows * shape[1], bool)
     for j, band in enumerate(BANDS):
         plan = plans[band]
-        image, saturated = images.bands[band], images.saturated[band]
+        if images is not None:
+            image, saturated = images.bands[band], images.saturated[band]
         key = (lens, band, frame)
         if key not in parameters:
             parameters[key] = band_parameters(bundle, lens, band, medium, frame, effects)
@@ -443,11 +484,16 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
                 unlit = np.asarray(image[plan.corners], dtype=float)
                 # subtract_dark's level and variance from the unlit pixels, taken once for the blocks
                 black = (float(unlit.mean()), float(unlit.var(ddof=1) / unlit.size)) if unlit.size > 1 else None
-        total, total_var, n_good = 0.0, 0.0, 0
         for window, first, n, index in plan.blocks:
-            m = mm.measure_band(image[window], frame, dark, response, cal, None, medium, effects,
-                                saturated=saturated[window], factors=plan.factors.window(window),
-                                frame_black_dn=black)
+            if images is not None:
+                dn, sat = image[window], saturated[window]
+            else:
+                size = index.size
+                dn = band_plane(region, raw.cfa_pattern, band, window, block["image"][:size].reshape(index.shape))
+                sat = band_saturation(region, raw.cfa_pattern, band, white, window,
+                                      block["saturated"][:size].reshape(index.shape))
+            m = mm.measure_band(dn, frame, dark, response, cal, None, medium, effects, saturated=sat,
+                                factors=plan.factors.window(window), frame_black_dn=black)
             if maps is not None:
                 value, rnd, sy = (maps[name][j][window] for name in ("radiance", "random", "systematic"))
                 np.copyto(maps["flags"][j][window], m.flags)
@@ -456,24 +502,15 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
                 value, rnd, sy, scratch = (block[name][:index.size].reshape(index.shape)
                                            for name in ("radiance", "random", "systematic", "scratch"))
             m.evaluate_into(value, rnd, sy, scratch=scratch)
-            finite = np.isfinite(value)
-            bad = (m.flags & good_bits) != 0
-            bad |= ~finite
-            n_good += bad.size - int(np.count_nonzero(bad))
-            # sums over the good pixels in float64 (the chain runs in float32), the others zeroed in a float64
-            # copy (a reduction with where= took 0.28 ms per block, these 0.05)
-            wide = block["wide"][:bad.size].reshape(bad.shape)
-            np.copyto(wide, value)
-            np.copyto(wide, 0.0, where=bad)
-            total += float(wide.sum())
-            np.square(rnd, out=wide, dtype=np.float64)
-            np.copyto(wide, 0.0, where=bad)
-            total_var += float(wide.sum())
-            if sums is not None:
-                excluded = (m.flags & EXCLUDED_FROM_GRID) != 0
-                excluded |= np.logical_not(finite, out=finite)
-                sums.add_block(j, first, n, index, value, rnd, sy, excluded, block["at"], block["sums"])
+            # the frame's flags that keep a pixel off the grid and out of the negative-mean check (the
+            # frame-independent ones are in the block's index)
+            excluded = (m.flags & mm.FLAG_SATURATED) != 0
+            args = (j, first, n, index, value, rnd, sy)
+            if not sums.add_block(*args, excluded if excluded.any() else None, block["at"], block["sums"]):
+                excluded |= ~np.isfinite(value)
+                sums.add_block(*args, excluded, block["at"], block["sums"], check=False)
             del m
+        n_good, total, total_var = sums.checked[j]
         if n_good:
             mean, se = total / n_good, np.sqrt(total_var) / n_good
             if mean < -negative_sigma * se:
@@ -543,9 +580,6 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     The output is written to a temporary name and renamed; an existing
     ``out_path`` is replaced only with ``overwrite``.
     """
-    config = config if config is not None else defaults()
-    cfg = config["apply"]
-    grid_deg = float(cfg["grid_deg"] if grid_deg is None else grid_deg)
     out_path = Path(out_path)
     if out_path.exists() and not overwrite:
         raise InputError(out_path, "exists; add --overwrite to replace it")
@@ -555,11 +589,19 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     bundle_path = Path(bundle_path)
     # two threads for two cores (a third would bin the three bands at once: more memory at the peak, no
     # core to run it on): the lenses' chains side by side (then the bands' binning), the decode of the next
-    # frame (of the first while this thread reads the bundle) and the pixels' directions queued with them
-    # (numpy, rawpy and the NetCDF reads release the GIL)
+    # frame (of the first while this thread reads the configuration and the bundle) and the pixels'
+    # directions queued with them (numpy, rawpy and the NetCDF reads release the GIL)
     with ThreadPoolExecutor(max_workers=2) as pool:
-        return _apply_frames(pool, pool.submit(read_raw, raw_paths[0], checksums=False), bundle_path, raw_paths, medium, out_path,
-                             grid_deg, cfg, zenith_lens, pixels, pixel_geometry)
+        decoding = pool.submit(read_raw, raw_paths[0], checksums=False)
+        try:
+            # the schema's defaults are validated on the first call of a process (20 to 40 ms): beside the decode
+            cfg = (config if config is not None else defaults())["apply"]
+            grid_deg = float(cfg["grid_deg"] if grid_deg is None else grid_deg)
+        except BaseException:
+            decoding.cancel()
+            raise
+        return _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid_deg, cfg, zenith_lens,
+                             pixels, pixel_geometry)
 
 
 def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid_deg, cfg, zenith_lens, pixels,
@@ -585,7 +627,10 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
                         and int(cell_attrs.get("block_rows", -1)) == block_rows)
         # of the per-pixel maps only those of this medium that the chain needs (the compact factors, the
         # cells), the geometry only for the pixel maps (or cells on another grid); each read as one hyperslab
-        names = ["pixel_factor", "pixel_systematic_relative_variance", "pixel_flag"] \
+        # the frame-independent flags only for the pixel maps, the unlit corners (bias_drift) or cells on
+        # another grid: the stored cells keep the flagged pixels off the grid and out of the negative-mean check
+        flags = pixels or "bias_drift" in effects or not stored_cells
+        names = ["pixel_factor", "pixel_systematic_relative_variance"] + (["pixel_flag"] if flags else []) \
             + [n for n in ("pixel_random_relative_variance",) if n in on_disk] \
             + (["sphere_cell_in_block", "sphere_block_first_cell", "sphere_block_n_cells", "sphere_block_columns"]
                if stored_cells else []) \
@@ -627,8 +672,8 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         sums = [_LensSums(n_z * n_a, len(BANDS)) for _ in lenses]
         # the lenses side by side (numpy releases the GIL in its array operations), each binning its own sums
         jobs = [pool.submit(_lens_radiance, raw, bundle, lens, medium, effects, frame, negative_sigma, plans[i],
-                            block_rows, None if out_maps is None else {k: v[f, i] for k, v in out_maps.items()},
-                            sums[i], parameters)
+                            block_rows, sums[i], None if out_maps is None else {k: v[f, i] for k, v in out_maps.items()},
+                            parameters)
                 for i, lens in enumerate(lenses)]
         for job in jobs:
             job.result()

@@ -54,7 +54,9 @@ from pipeline.errors import ArtefactError
 #: calibration 8: a lens's ``projection`` and ``bias_reference``, the dark's ``optical_black_offset_dn``,
 #: a rectilinear lens's geometry without the fisheye model's variables (NaN) and no image circle;
 #: calibration 9: the per-pixel factors in apply's compact form (pixel_factor, pixel_flag, ...), see
-#: pipeline.calibration.
+#: pipeline.calibration; calibration 10: ``sphere_cell_in_block`` with a second spill value (the block's
+#: cell count + 1) for the pixels inside the image circle, not hot, but off the grid (beyond the
+#: calibrated field angle), so that apply takes its negative-mean sums from the grid's sums.
 #: closure 1: the diagnostics' closure table
 #: (``results/closure/residuals.nc``, one row per measurement of every experiment, pipeline.diagnostics).
 #: rolloff 3: ``obs_setting`` gains the frames' ``exposure_s`` and ``iso`` (the cross-experiment closure turns
@@ -65,7 +67,7 @@ from pipeline.errors import ArtefactError
 #: ``signal_fraction`` (predicted signal above black over the range between the black and the white level);
 #: closure 3: the ``signal_fraction`` covariate (NaN where a table has none), scanned by the residual tests.
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 3, "rolloff": 3, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 9, "field": 3, "closure": 3}
+                     "absolute": 3, "immersion": 2, "calibration": 10, "field": 3, "closure": 3}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["BANDS", "cut_region", "split_bands", "split_saturation"]
+__all__ = ["BANDS", "cut_region", "split_bands", "split_saturation", "band_plane", "band_saturation"]
 
 BANDS = ("R", "G", "B")
 
@@ -57,24 +57,60 @@ def _sites(cfa, pattern: str) -> dict[str, list[np.ndarray]]:
     return sites
 
 
+def _window(view: np.ndarray, window) -> np.ndarray:
+    return view if window is None else view[window]
+
+
+def _integer_threshold(cfa: np.ndarray, threshold_dn: float):
+    """The threshold for an integer mosaic, rounded up to an integer (the same test for integer values);
+    None when no value of the type reaches it."""
+    if not np.issubdtype(cfa.dtype, np.integer):
+        return threshold_dn
+    info = np.iinfo(cfa.dtype)
+    limit = int(np.ceil(threshold_dn))
+    if limit > info.max:
+        return None
+    return cfa.dtype.type(max(limit, info.min))
+
+
+def band_saturation(cfa, pattern: str, band: str, threshold_dn: float, window=None, out=None) -> np.ndarray:
+    """One band of :func:`split_saturation`, on ``window`` ((row slice, column slice) of the band plane) when
+    given; into ``out`` (boolean, the window's shape) when given."""
+    cfa = np.asarray(cfa)
+    sites = [_window(v, window) for v in _sites(cfa, pattern)[band]]
+    limit = _integer_threshold(cfa, threshold_dn)
+    if out is None:
+        out = np.empty(sites[0].shape, bool)
+    if limit is None:
+        out[...] = False
+        return out
+    np.greater_equal(sites[0], limit, out=out)
+    for v in sites[1:]:
+        out |= v >= limit
+    return out
+
+
 def split_saturation(cfa, pattern: str, threshold_dn: float) -> dict[str, np.ndarray]:
     """Boolean {"R", "G", "B"} planes: True where any CFA site of the band pixel is at or above ``threshold_dn``.
 
     Compares the integer mosaic's site views with the threshold rounded up to
     an integer (the same test for integer values), so no float plane is made.
     """
-    sites = _sites(cfa, pattern)
-    cfa = np.asarray(cfa)
-    if np.issubdtype(cfa.dtype, np.integer):
-        info = np.iinfo(cfa.dtype)
-        limit = int(np.ceil(threshold_dn))
-        if limit > info.max:
-            return {b: np.zeros(v[0].shape, dtype=bool) for b, v in sites.items()}
-        threshold_dn = cfa.dtype.type(max(limit, info.min))
-    (g1, g2) = sites["G"]
-    green = g1 >= threshold_dn
-    green |= g2 >= threshold_dn
-    return {"R": sites["R"][0] >= threshold_dn, "G": green, "B": sites["B"][0] >= threshold_dn}
+    return {b: band_saturation(cfa, pattern, b, threshold_dn) for b in BANDS}
+
+
+def band_plane(cfa, pattern: str, band: str, window=None, out=None) -> np.ndarray:
+    """One float32 plane of :func:`split_bands` (G the mean of its two sites), on ``window`` ((row slice,
+    column slice) of the plane) when given; into ``out`` (float32, the window's shape) when given. The same
+    operations in the same order either way, so the same numbers."""
+    sites = [_window(v, window) for v in _sites(cfa, pattern)[band]]
+    if out is None:
+        out = np.empty(sites[0].shape, np.float32)
+    np.copyto(out, sites[0], casting="unsafe")
+    if len(sites) > 1:
+        out += sites[1]
+        out *= np.float32(0.5)
+    return out
 
 
 def split_bands(cfa, pattern: str) -> dict[str, np.ndarray]:
@@ -83,13 +119,4 @@ def split_bands(cfa, pattern: str) -> dict[str, np.ndarray]:
     ``pattern`` is the 2x2 cell row-major, e.g. "RGGB", "BGGR", "GRBG", "GBRG".
     An odd trailing row or column is dropped.
     """
-    sites = _sites(cfa, pattern)
-    (g1, g2) = sites["G"]
-    green = g1.astype(np.float32)
-    green += g2
-    green *= np.float32(0.5)
-    return {
-        "R": sites["R"][0].astype(np.float32),
-        "G": green,
-        "B": sites["B"][0].astype(np.float32),
-    }
+    return {b: band_plane(cfa, pattern, b) for b in BANDS}

@@ -11,7 +11,7 @@ covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``, version 9; 2: the per-pixel
+versioned artefact (``artefact = calibration``, version 10; 2: the per-pixel
 maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
 flat field's uncertainty; 5: theta_deg_sigma, the absolute budget's new lamp
 term, and what depends only on lens, medium and band precomputed per pixel:
@@ -21,7 +21,9 @@ linearity artefacts' bias-drift spread weighted by the corners' noise; 7: the da
 artefacts' projection and black-level reference; 9: the per-pixel factors in the compact form apply's
 chain takes them: 1 / (F g) with the flat field folded in, one relative variance of the roll-off
 terms, the flags with the hot-pixel mask folded in, the flat field's random relative variance, and
-the sphere cell -1 where a frame-independent flag keeps the pixel off the grid; older files are
+the sphere cell -1 where a frame-independent flag keeps the pixel off the grid; 10: the block's
+second spill index for the pixels inside the image circle, not hot, beyond the calibrated field
+angle, which the negative-mean check counts and the grid does not; older files are
 refused with a line asking to rebuild) carrying the sha256 of every artefact it came from,
 the model's effects and the camera's make, model and serial number.
 
@@ -261,8 +263,11 @@ def sphere_blocks(cells: np.ndarray, flags: np.ndarray, block_rows: int):
     """The sphere cells of a band image (y, x) per block of ``block_rows`` rows, in the form apply bins them.
 
     ``cells`` the cell of every pixel (-1 off the grid), ``flags`` its frame-independent flags. Returns
-    ``index`` (y, x; uint16, uint32 where a block spans 65,535 cells or more): the pixel's cell less its
-    block's first cell, the block's number of cells (its spill cell) where the pixel is off the grid;
+    ``index`` (y, x; uint16, uint32 where a block spans 65,534 cells or more): the pixel's cell less its
+    block's first cell where it is on the grid; off the grid the block's number of cells n (its spill
+    cell: no direction, or a hot pixel) or n + 1 (a second spill: inside the image circle and not hot,
+    but off the grid, i.e. beyond the calibrated field angle; such pixels enter apply's negative-mean
+    check, which takes every unflagged pixel inside the circle, but not the grid);
     and per block ``first`` (its first cell), ``n_cells`` and ``columns`` ([start, stop) of the columns
     that reach inside the image circle; start = stop for a block wholly outside it), int32.
     """
@@ -283,11 +288,15 @@ def sphere_blocks(cells: np.ndarray, flags: np.ndarray, block_rows: int):
         first[b], n_cells[b] = (lo, last - lo + 1) if last >= 0 else (0, 0)
         c0, c1 = int(row_first[r].min()), int(row_last[r][row_first[r] < shape[1]].max(initial=-1)) + 1
         columns[b] = (c0, max(c0, c1))
-    dtype = np.uint16 if n_cells.max(initial=0) < np.iinfo(np.uint16).max else np.uint32
+    dtype = np.uint16 if n_cells.max(initial=0) + 1 < np.iinfo(np.uint16).max else np.uint32
     index = np.empty(shape, dtype)
+    # off the grid but counted by the negative-mean check: inside the circle, not hot
+    checked = (flags & (mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_HOT)) == 0
+    checked &= np.asarray(cells) < 0
     for b, r0 in enumerate(starts):
         r = slice(r0, min(r0 + block_rows, shape[0]))
         np.minimum(unsigned[r] - np.uint32(first[b]), np.uint32(n_cells[b]), out=index[r], casting="unsafe")
+        np.copyto(index[r], dtype(n_cells[b] + 1), where=checked[r])
     return index, first, n_cells, columns
 
 
@@ -378,7 +387,8 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float, block_rows: int
         "sphere_cell_in_block": (dims, cell_index, {
             "long_name": "cell of the pixel's direction on the sphere grid (row-major zenith, azimuth) less its "
                          "block's first cell (sphere_block_first_cell); sphere_block_n_cells: off the grid (no "
-                         "direction, or a frame-independent flag)", "units": "1",
+                         "direction, or a hot pixel); sphere_block_n_cells + 1: off the grid but inside the image "
+                         "circle and not hot (beyond the calibrated field angle)", "units": "1",
             "grid_deg": float(grid_deg), "zenith_lens": zenith_lens, "block_rows": int(block_rows),
             "effects": used}),
         "sphere_block_first_cell": (block_dims, per_block["first"], {

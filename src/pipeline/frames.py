@@ -123,7 +123,11 @@ def _decoded_in_order(decode, rows, ahead_frames: int) -> Iterator[DecodedFrame]
                 future.cancel()
 
 
-def lens_images(raw: RawFrame, region_span, lens: str, saturation_margin_dn: float = 1.0) -> LensImages:
+#: a band pixel is saturated where a CFA site reaches the white level less this (DN)
+SATURATION_MARGIN_DN = 1.0
+
+
+def lens_images(raw: RawFrame, region_span, lens: str, saturation_margin_dn: float = SATURATION_MARGIN_DN) -> LensImages:
     """One lens's band images of a decoded frame; ``region_span`` is its (rows, cols) in the mosaic."""
     rows_span, cols_span = region_span
     try:

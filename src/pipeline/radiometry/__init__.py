@@ -12,6 +12,14 @@ Small modules of pure, vectorised functions:
 * ``rolloff``   Eq. (13): design matrix, fit, evaluation, slope
 """
 
-from . import absolute, exposure, fresnel, immersion, rolloff, source, spectral, water
+import importlib
 
 __all__ = ["absolute", "exposure", "fresnel", "immersion", "rolloff", "source", "spectral", "water"]
+
+
+def __getattr__(name: str):
+    """The submodules imported when first named (``apply``'s chain needs none of scipy.stats, which
+    ``immersion`` imports)."""
+    if name in __all__:
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

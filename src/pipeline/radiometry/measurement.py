@@ -666,7 +666,8 @@ class PixelFactors:
     relative variances (:attr:`RolloffMap.relative_var`); ``random_rel`` the
     flat field's (``prnu``, empty without the effect); ``flags`` the roll-off
     map's geometry bits ORed with :data:`FLAG_HOT` of the hot-pixel mask
-    (``hot_pixels``). :func:`measure_band` with them applies in one step what
+    (``hot_pixels``; None for a caller that keeps these pixels apart by other means and
+    needs no flag map: ``apply`` with the sphere grid only). :func:`measure_band` with them applies in one step what
     :func:`flag_hot_pixels`, :func:`correct_flat_field` and
     :func:`correct_rolloff` apply in three: the same factors and terms (the
     product of the two maps is rounded once in float32).
@@ -701,11 +702,11 @@ def pixel_factors(rolloff: RolloffMap, effects, *, hot_mask=None, flat_field=Non
 
 
 def correct_pixel_factors(m: Measured, factors: PixelFactors) -> Measured:
-    """Hot pixels, flat field and roll-off in one step (:class:`PixelFactors`)."""
+    """Hot pixels, flat field and roll-off in one step (:class:`PixelFactors`; ``flags`` None: no flag added)."""
     out = m.scaled(factors.inverse, m.units, relative_systematic=factors.systematic_rel)
     if factors.random_rel:
         out = out._replace(random_rel={**out.random_rel, **factors.random_rel})
-    return out.flagged_by(factors.flags)
+    return out if factors.flags is None else out.flagged_by(factors.flags)
 
 
 def correct_immersion(m: Measured, calibration: BandCalibration, medium: str) -> Measured:
