@@ -100,7 +100,7 @@ def test_spot_search_in_a_window_finds_the_whole_image_spot():
     scipy's uniform_filter defines it, in random scenes of discs and hot pixels."""
     from scipy import ndimage
 
-    from pipeline.stages.rolloff import SPOT_WINDOW_HALF_PX, _find_spot, _peak_pixel
+    from pipeline.stages.rolloff import SPOT_WINDOW_HALF_PX, _find_spot, _lit_image, _peak_pixel
 
     rng = np.random.default_rng(5)
     yy, xx = np.indices((600, 600))
@@ -110,7 +110,8 @@ def test_spot_search_in_a_window_finds_the_whole_image_spot():
     img[50, 500] = 5000.0                              # 3 x 3 mean 555 DN: brighter pixel, dimmer mean
     lit = np.ones(disc.shape, bool)
     for level in (0.5, 0.05):
-        cx, cy, (sy, sx) = _find_spot(img, lit, level)
+        dark = np.zeros(img.shape)
+        cx, cy, (sy, sx) = _find_spot(img, dark, lit, level, _peak_pixel(_lit_image(img, dark, lit)))
         found = np.zeros(disc.shape, bool)
         found[sy, sx] = True
         assert np.array_equal(found, disc), level
@@ -123,4 +124,4 @@ def test_spot_search_in_a_window_finds_the_whole_image_spot():
         img[tuple(rng.integers(0, 240, 5)), tuple(rng.integers(0, 300, 5))] += rng.uniform(0, 8000, 5)
         lit = np.hypot(xx[:240, :300] - 150, yy[:240, :300] - 120) <= rng.uniform(60, 200)
         want = np.unravel_index(np.argmax(ndimage.uniform_filter(np.where(lit, img, 0.0), 3)), img.shape)
-        assert _peak_pixel(img, lit) == tuple(int(v) for v in want)
+        assert _peak_pixel(_lit_image(img, np.zeros(img.shape), lit)) == tuple(int(v) for v in want)

@@ -90,17 +90,23 @@ def _contains(win: tuple[slice, slice], inner: tuple[slice, slice]) -> bool:
     return all(w.start <= i.start and i.stop <= w.stop for w, i in zip(win, inner))
 
 
-def _peak_pixel(img: np.ndarray, lit: np.ndarray) -> tuple[int, int]:
-    """The pixel of the largest 3 x 3 mean of the lit image (``lit`` False counts as 0), as
-    ``argmax(uniform_filter(where(lit, img, 0), 3))`` of the whole image, without filtering it all.
+def _lit_image(band: np.ndarray, dark: np.ndarray, lit: np.ndarray) -> np.ndarray:
+    """The dark-subtracted band image where ``lit``, 0 elsewhere (float64, one pass)."""
+    out = np.zeros(band.shape)
+    np.subtract(band, dark, out=out, where=lit)
+    return out
+
+
+def _peak_pixel(a: np.ndarray) -> tuple[int, int]:
+    """The pixel of the largest 3 x 3 mean of the lit image ``a`` (:func:`_lit_image`), as
+    ``argmax(uniform_filter(a, 3))`` of the whole image, without filtering it all.
 
     The mean is filtered in a window around the brightest lit pixel; its best value S bounds the answer:
     a pixel whose 3 x 3 mean reaches S has a neighbour (or is one) of at least S, so every candidate lies
-    within one pixel of {img >= S, lit}. When that set (grown by one pixel) is inside the window, the
+    within one pixel of {a >= S}. When that set (grown by one pixel) is inside the window, the
     window's argmax is the whole image's (the first in raster order among equals, as argmax); otherwise
     the window grows to hold it.
     """
-    a = np.where(lit, img, 0.0)
     iy, ix = np.unravel_index(int(np.argmax(a)), a.shape)
     win = _window(a.shape, iy, ix, SPOT_WINDOW_HALF_PX)
     while True:
@@ -127,32 +133,33 @@ def _peak_pixel(img: np.ndarray, lit: np.ndarray) -> tuple[int, int]:
     return win[0].start + int(wy), win[1].start + int(wx)
 
 
-def _find_spot(img: np.ndarray, lit: np.ndarray, level: float):
-    """Centroid (x, y) and pixels (rows, columns) of the port spot in a dark-subtracted band image:
-    the pixels above ``level`` times its peak (the brightest pixel beside the largest 3 x 3 mean of the
-    lit image) connected to that peak, and their flux-weighted centroid.
+def _find_spot(band: np.ndarray, dark: np.ndarray, lit: np.ndarray, level: float, peak_px: tuple[int, int]):
+    """Centroid (x, y) and pixels (rows, columns) of the port spot in ``band`` minus ``dark``: the lit
+    pixels above ``level`` times its peak (the brightest pixel beside ``peak_px``, the largest 3 x 3 mean
+    of the lit image, :func:`_peak_pixel`) connected to that peak, and their flux-weighted centroid.
 
-    Labelled in a window around the peak, grown until the spot touches no edge of it that is not the
-    image's own: the same pixels as a labelling of the whole image.
+    Dark-subtracted and labelled in a window around the peak, grown until the spot touches no edge of it
+    that is not the image's own: the same pixels and values as in the whole image.
     """
-    iy, ix = _peak_pixel(img, lit)
-    peak = img[max(iy - 1, 0):iy + 2, max(ix - 1, 0):ix + 2].max()
-    whole = (slice(0, img.shape[0]), slice(0, img.shape[1]))
+    iy, ix = peak_px
+    near = (slice(max(iy - 1, 0), iy + 2), slice(max(ix - 1, 0), ix + 2))
+    peak = (band[near].astype(float) - dark[near]).max()
+    whole = (slice(0, band.shape[0]), slice(0, band.shape[1]))
     half = SPOT_WINDOW_HALF_PX
     while True:
-        win = _window(img.shape, iy, ix, half)
-        w_img = img[win]
+        win = _window(band.shape, iy, ix, half)
+        w_img = band[win].astype(float) - dark[win]
         lab, _ = ndimage.label((w_img > level * peak) & lit[win])
         ly, lx = iy - win[0].start, ix - win[1].start
         k = lab[ly, lx]
         if not k and win != whole:
             # the peak itself below the level: the 3 x 3 fallback's label order is the whole image's
-            half = max(img.shape)
+            half = max(band.shape)
             continue
         k = k if k else lab[max(ly - 1, 0):ly + 2, max(lx - 1, 0):lx + 2].max()
         comp = lab == k
-        edges = ((comp[0].any() and win[0].start > 0) or (comp[-1].any() and win[0].stop < img.shape[0])
-                 or (comp[:, 0].any() and win[1].start > 0) or (comp[:, -1].any() and win[1].stop < img.shape[1]))
+        edges = ((comp[0].any() and win[0].start > 0) or (comp[-1].any() and win[0].stop < band.shape[0])
+                 or (comp[:, 0].any() and win[1].start > 0) or (comp[:, -1].any() and win[1].stop < band.shape[1]))
         if not edges or win == whole:
             break
         half *= 2
@@ -163,17 +170,19 @@ def _find_spot(img: np.ndarray, lit: np.ndarray, level: float):
     return cx, cy, (y, x)
 
 
-def _setting_masks(sub: dict[str, np.ndarray], lit: np.ndarray, r_avg: float, sigma_psf: float, cfg: dict):
-    """One setting's pixels, as flat indices of the band image: the averaging circle of radius ``r_avg``
-    around the G spot's centroid, the halo annulus, the port's own pixels in every band, the halo
-    weights of those pixels, and the centroid. Computed in a window that holds the circle, the port and
-    the annulus: the same pixels as over the whole image."""
-    shape = sub["G"].shape
-    cx, cy, _ = _find_spot(sub["G"], lit, cfg["spot_threshold_fraction"])
+def _setting_masks(bands: dict[str, np.ndarray], darks: dict[str, np.ndarray], lit: np.ndarray, r_avg: float,
+                   sigma_psf: float, cfg: dict):
+    """One setting's pixels in its first frame's ``bands`` minus the ``darks``, as flat indices of the
+    band image: the averaging circle of radius ``r_avg`` around the G spot's centroid, the halo annulus,
+    the port's own pixels in every band, the halo weights of those pixels, and the centroid. Computed in
+    a window that holds the circle, the port and the annulus: the same pixels as over the whole image."""
+    shape = bands["G"].shape
+    peaks = {b: _peak_pixel(_lit_image(bands[b], darks[b], lit)) for b in BANDS}
+    cx, cy, _ = _find_spot(bands["G"], darks["G"], lit, cfg["spot_threshold_fraction"], peaks["G"])
     # the port's own pixels in every band: the R and B sites sit a quarter band pixel off the
     # G sites, so at the disc's edge R or B pixels are lit where G is not; the halo column must
     # convolve all of each band's flux, not only the part inside the G spot
-    parts = [_find_spot(sub[b], lit, cfg["halo_spot_fraction"])[2] for b in BANDS]
+    parts = [_find_spot(bands[b], darks[b], lit, cfg["halo_spot_fraction"], peaks[b])[2] for b in BANDS]
     sy, sx = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
     r_in = float(np.max(np.hypot(sx - cx, sy - cy))) + cfg["halo_gap_px"]
     reach = int(np.ceil(max(r_in + cfg["halo_width_px"], r_avg))) + 2
@@ -259,11 +268,9 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
         st = static[(lens, medium)]
         key = (lens, medium, float(row["azimuth_deg"]), float(row["angle_deg"]))
         if key not in setting_masks:
-            # the first frame of a setting finds its pixels in the whole dark-subtracted band images
-            sub = {b: images.bands[b].astype(float) - st["dark"][b] for b in BANDS}
-            setting_masks[key] = _setting_masks(sub, st["lit"], st["r_avg"],
+            # the first frame of a setting finds its pixels
+            setting_masks[key] = _setting_masks(images.bands, st["dark"], st["lit"], st["r_avg"],
                                                 cfg["stray_light_psf_sigma_fraction"] * st["circle_px"], cfg)
-            del sub
         circle, annulus, spot, weights, (_cx, _cy) = setting_masks[key]
         for band in BANDS:
             # dark-subtracted at the setting's pixels only (the same values as the whole image's there)
