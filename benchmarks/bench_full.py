@@ -3,6 +3,8 @@
     python benchmarks/bench_full.py [--experiments dark,linearity,...] [--work DIR] [--keep]
     python benchmarks/bench_full.py --scaling dark [--factors 1,2,4] [--base-frames 3] [--lens far]
     [--frames-per-setting K]: simulate K frames per dark and linearity setting (full scale: 15 and 4)
+    [--rolloff-stride K]: simulate every K-th rotation angle of the roll-off experiment (all its darks)
+    [--true-geometry]: the simulator's true geometry artefacts where --work/results has none
 
 Default mode: for each experiment in turn, simulates it at the ``full`` scale (6912 x 3456
 frames, the paper's frame counts; the simulator's time printed) into ``--work``, runs the
@@ -21,7 +23,14 @@ wall time.
 ``--scaling EXPERIMENT``: the experiment's full-scale frames (simulated as above, or the ones kept
 with ``--keep``) cut to the first ``--base-frames`` times each factor frames of each setting
 (hard links, no new simulation), its stage run for one lens at each size: wall time should grow
-linearly with the frames and peak memory stay flat.
+linearly with the frames and peak memory stay flat. For ``rolloff`` (two frames per setting) the cut is
+of the rotation angles instead: every dark frame and one angle in ``max(factors) / factor`` of each
+medium, so that the signal frames grow with the factor and the dark frames (80) stay.
+
+The stages downstream of geometry (roll-off, spectral, absolute, immersion) read the geometry artefacts
+in ``--work``/results: a geometry run's (``--experiments geometry`` first; simulating it takes about
+15 minutes) or, with ``--true-geometry``, maps of the simulator's true optics of the same size written
+there (no ``theta_deg_sigma``: the roll-off closure then uses ``rolloff.field_angle_sigma_px``).
 
 Each figure is printed beside the machine's load average (``os.getloadavg``): on a shared
 machine absolute times move with the load, the ratio to the floor measured in the same run
@@ -143,16 +152,26 @@ def simulate(out: Path, experiment: str, scale: str, seed: int) -> float | None:
     return time.perf_counter() - t0
 
 
+def scale_spec(name: str, frames_per_setting: int | None = None, rolloff_stride: int | None = None) -> str:
+    """The ``--simulate`` child's scale argument: ``name``, or ``name:JSON`` with the scale's fields replaced."""
+    overrides = {}
+    if frames_per_setting:
+        overrides.update(dark_frames=frames_per_setting, linearity_frames=frames_per_setting)
+    if rolloff_stride:
+        overrides["rolloff_angle_stride"] = rolloff_stride
+    return f"{name}:{json.dumps(overrides)}" if overrides else name
+
+
 def simulate_child(out: str, experiment: str, scale: str, seed: str) -> None:
-    """``scale`` is a scale's name, or ``NAME:K`` for that scale with K frames per dark and linearity setting."""
+    """``scale`` is a scale's name, or ``NAME:JSON`` for that scale with the fields of the JSON object
+    replaced (e.g. ``full:{"dark_frames": 4, "linearity_frames": 4}``, see :func:`scale_spec`)."""
     from dataclasses import replace
 
     from pipeline.simulate import simulate_dataset
     from pipeline.simulate.dataset import SCALES
 
-    name, _, per_setting = scale.partition(":")
-    sc = replace(SCALES[name], dark_frames=int(per_setting), linearity_frames=int(per_setting)) if per_setting \
-        else name
+    name, _, overrides = scale.partition(":")
+    sc = replace(SCALES[name], **json.loads(overrides)) if overrides else name
     simulate_dataset(Path(out), scale=sc, seed=int(seed), effects=EFFECTS, experiments=(experiment,),
                      progress=False)
 
@@ -162,15 +181,33 @@ def frame_subset(source: Path, out: Path, experiment: str, per_setting: int) -> 
     (lens, sweep, ISO, exposure from the tags), the raw files hard-linked; returns its frame count."""
     import pandas as pd
 
-    from pipeline.dataset import write_md5sums
     from pipeline.rawio import read_tags
 
-    if out.exists():
-        shutil.rmtree(out)
     table = pd.read_csv(source / experiment / "frames.csv")
     tags = [read_tags(source / experiment / f) for f in table["file"]]
     table["_key"] = [(r.lens, getattr(r, "sweep", ""), t["iso"], t["exposure_s"]) for r, t in zip(table.itertuples(), tags)]
-    keep = table[table.groupby("_key").cumcount() < per_setting].drop(columns="_key")
+    return linked_copy(source, out, experiment, table[table.groupby("_key").cumcount() < per_setting].drop(columns="_key"))
+
+
+def position_subset(source: Path, out: Path, stride: int) -> int:
+    """A copy of the roll-off dataset ``source`` with every dark frame and the signal frames of every
+    ``stride``-th rotation angle of each lens, medium and azimuth plane (hard links); its frame count."""
+    import pandas as pd
+
+    table = pd.read_csv(source / "rolloff" / "frames.csv")
+    signal = table["kind"] == "signal"
+    angles = {m: sorted(table.loc[signal & (table["medium"] == m), "angle_deg"].unique()) for m in table["medium"].unique()}
+    pos = [angles[m].index(a) if k == "signal" else 0 for m, a, k in zip(table["medium"], table["angle_deg"], table["kind"])]
+    return linked_copy(source, out, "rolloff", table[~signal | (pd.Series(pos, index=table.index) % stride == 0)])
+
+
+def linked_copy(source: Path, out: Path, experiment: str, keep) -> int:
+    """``source`` copied to ``out`` with ``experiment`` listing only the rows of ``keep`` (its raw files
+    hard-linked, the other experiments' files and every sidecar copied, MD5SUMS written anew)."""
+    from pipeline.dataset import write_md5sums
+
+    if out.exists():
+        shutil.rmtree(out)
     for path in source.rglob("*"):
         rel = path.relative_to(source)
         if path.is_file() and rel.parts[0] != experiment and rel.name != "MD5SUMS":
@@ -191,6 +228,24 @@ def frame_subset(source: Path, out: Path, experiment: str, per_setting: int) -> 
 #: the artefacts a stage needs from the default mode's results (the scaling mode copies them)
 STAGE_UPSTREAM = {"linearity": ("dark",), "rolloff": ("geometry",), "spectral": ("geometry",),
                   "absolute": ("spectral", "geometry"), "immersion": ("geometry",)}
+
+
+def write_true_geometry(results: Path, band_px: int) -> None:
+    """Geometry artefacts of the simulator's true optics (as the roll-off tests and ``bench_apply`` make
+    them: :func:`pipeline.simulate.rolloff.true_band_models` laid out by ``geometry_maps.maps_dataset``)
+    in ``results``/geometry, for the lenses that have none: the maps a geometry run would give, without
+    simulating and fitting the geometry experiment (no ``theta_deg_sigma``: the stages then use
+    their configured field-angle uncertainty)."""
+    from pipeline.artefact import write_artefact
+    from pipeline.simulate.rolloff import true_band_models
+    from pipeline.stages.geometry_maps import maps_dataset
+
+    for lens in LENSES:
+        path = results / "geometry" / f"{lens}.nc"
+        if not path.exists():
+            write_artefact(maps_dataset(true_band_models(lens, band_px), (band_px, band_px)), path, stage="geometry",
+                           inputs={}, config_subset={}, effects=[])
+            print(f"{path}: the simulator's true geometry ({band_px} x {band_px} band pixels)", flush=True)
 
 
 def remove_dataset(out: Path) -> None:
@@ -268,6 +323,12 @@ def main() -> None:
     ap.add_argument("--scale", default="full", help="a scale of the simulator (default full; tiny to try the script)")
     ap.add_argument("--frames-per-setting", type=int, metavar="K",
                     help="simulate K frames per dark and linearity setting instead of the scale's (15 and 4 at full)")
+    ap.add_argument("--rolloff-stride", type=int, metavar="K",
+                    help="simulate every K-th rotation angle of the roll-off experiment in each medium (its 80 "
+                         "dark frames all); with --scaling rolloff the factors cut these positions further")
+    ap.add_argument("--true-geometry", action="store_true",
+                    help="where --work/results has no geometry artefacts, write those of the simulator's true "
+                         "optics instead of running the geometry experiment (for the stages that read them)")
     ap.add_argument("--scaling", metavar="EXPERIMENT", help="scaling mode: this experiment at 1x, 2x, 4x its frames")
     ap.add_argument("--factors", default="1,2,4")
     ap.add_argument("--base-frames", type=int, default=3, help="frames per setting at factor 1 (scaling mode)")
@@ -291,8 +352,10 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     if args.scale not in SCALES:
         sys.exit(f"unknown scale {args.scale}; choose one of {', '.join(SCALES)}")
-    scale = f"{args.scale}:{args.frames_per_setting}" if args.frames_per_setting else args.scale
+    scale = scale_spec(args.scale, args.frames_per_setting, args.rolloff_stride)
     rows = []
+    if args.true_geometry:
+        write_true_geometry(work / "results", SCALES[args.scale].lens_px // 2)
     if args.scaling:
         exp = args.scaling
         if exp not in STAGE_OF:
@@ -301,11 +364,18 @@ def main() -> None:
         sim = simulate(source, exp, scale, args.seed)
         print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
               flush=True)
-        for factor in (int(f) for f in args.factors.split(",")):
-            k = args.base_frames * factor
+        factors = [int(f) for f in args.factors.split(",")]
+        for factor in factors:
             dataset = work / f"scaling-{exp}-x{factor}"
-            n = frame_subset(source, dataset, exp, k)
-            print(f"{exp} x{factor}: the first {k} frames of each setting ({n} frames, hard links)", flush=True)
+            if exp == "rolloff":     # one frame count per setting: cut the rotation angles instead
+                k = max(factors) // factor
+                n = position_subset(source, dataset, k)
+                print(f"{exp} x{factor}: every dark frame and one rotation angle in {k} ({n} frames, hard links)",
+                      flush=True)
+            else:
+                k = args.base_frames * factor
+                n = frame_subset(source, dataset, exp, k)
+                print(f"{exp} x{factor}: the first {k} frames of each setting ({n} frames, hard links)", flush=True)
             results = work / f"results-scaling-{exp}-x{factor}"
             for upstream in STAGE_UPSTREAM.get(exp, ()):     # e.g. linearity needs the dark artefact
                 art = work / "results" / upstream / f"{args.lens}.nc"
@@ -313,8 +383,8 @@ def main() -> None:
                     sys.exit(f"{art}: run the default mode for {upstream} first ({exp} needs its artefact)")
                 (results / upstream).mkdir(parents=True, exist_ok=True)
                 shutil.copy(art, results / upstream / art.name)
-            rows += measure(STAGE_OF[exp], exp, dataset, results, [args.lens], {"factor": factor,
-                                                                                 "frames_per_setting": k})
+            rows += measure(STAGE_OF[exp], exp, dataset, results, [args.lens],
+                            {"factor": factor, ("angle_stride" if exp == "rolloff" else "frames_per_setting"): k})
             shutil.rmtree(dataset)
         if not args.keep:
             remove_dataset(source)

@@ -36,6 +36,9 @@ class Scale:
     lens_px: int
     dark_frames: int
     linearity_frames: int
+    #: every k-th rotation angle of the roll-off experiment in each medium (1: the paper's every 5 deg
+    #: in air and 2 deg in water; a benchmark's subset of the positions, dark frames unchanged)
+    rolloff_angle_stride: int = 1
 
 
 SCALES = {

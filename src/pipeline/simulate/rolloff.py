@@ -90,7 +90,7 @@ def plan_rolloff(ctx: SimContext) -> ExperimentPlan:
                                     {"medium": medium, "azimuth_deg": "", "angle_deg": ""}, None, medium=medium))
         for lens in ctx.camera.lens_names:
             for az in AZIMUTHS_DEG:
-                for angle in ANGLES_DEG[medium]:
+                for angle in ANGLES_DEG[medium][::ctx.scale.rolloff_angle_stride]:
                     theta, phi = port_direction(float(angle), az)
                     scene = PortScene(sphere, theta, phi, radius)
                     for _ in range(FRAMES_PER_SETTING):

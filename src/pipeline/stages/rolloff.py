@@ -70,20 +70,140 @@ log = logging.getLogger("pipeline.rolloff")
 
 
 # ----------------------------------------------------------------------------- reduction
-def _find_spot(img: np.ndarray, lit: np.ndarray, level: float):
-    """Centroid (x, y), pixel set and radius of the port spot in a dark-subtracted band image."""
-    sm = ndimage.uniform_filter(np.where(lit, img, 0.0), 3)
-    iy, ix = np.unravel_index(np.argmax(sm), sm.shape)
-    peak = img[max(iy - 1, 0):iy + 2, max(ix - 1, 0):ix + 2].max()
-    above = (img > level * peak) & lit
-    lab, _ = ndimage.label(above)
-    k = lab[iy, ix] if lab[iy, ix] else lab[max(iy - 1, 0):iy + 2, max(ix - 1, 0):ix + 2].max()
-    comp = lab == k
+#: half-size (band pixels) of the first window in which a spot is searched; doubled until the spot's
+#: connected pixels lie inside it, up to the whole image. The result does not depend on it (only the time):
+#: the window is searched only where it provably holds what the whole image would give.
+SPOT_WINDOW_HALF_PX = 48
+
+
+def _window(shape, iy: int, ix: int, half: int) -> tuple[slice, slice]:
+    return (slice(max(iy - half, 0), min(iy + half + 1, shape[0])),
+            slice(max(ix - half, 0), min(ix + half + 1, shape[1])))
+
+
+def _bounding_window(shape, ys: np.ndarray, xs: np.ndarray, margin: int) -> tuple[slice, slice]:
+    return (slice(max(int(ys.min()) - margin, 0), min(int(ys.max()) + margin + 1, shape[0])),
+            slice(max(int(xs.min()) - margin, 0), min(int(xs.max()) + margin + 1, shape[1])))
+
+
+def _contains(win: tuple[slice, slice], inner: tuple[slice, slice]) -> bool:
+    return all(w.start <= i.start and i.stop <= w.stop for w, i in zip(win, inner))
+
+
+def _lit_image(band: np.ndarray, dark: np.ndarray, lit: np.ndarray) -> np.ndarray:
+    """The dark-subtracted band image where ``lit``, 0 elsewhere (float64, one pass)."""
+    out = np.zeros(band.shape)
+    np.subtract(band, dark, out=out, where=lit)
+    return out
+
+
+def _peak_pixel(a: np.ndarray) -> tuple[int, int]:
+    """The pixel of the largest 3 x 3 mean of the lit image ``a`` (:func:`_lit_image`), as
+    ``argmax(uniform_filter(a, 3))`` of the whole image, without filtering it all.
+
+    The mean is filtered in a window around the brightest lit pixel; its best value S bounds the answer:
+    a pixel whose 3 x 3 mean reaches S has a neighbour (or is one) of at least S, so every candidate lies
+    within one pixel of {a >= S}. When that set (grown by one pixel) is inside the window, the
+    window's argmax is the whole image's (the first in raster order among equals, as argmax); otherwise
+    the window grows to hold it.
+    """
+    iy, ix = np.unravel_index(int(np.argmax(a)), a.shape)
+    win = _window(a.shape, iy, ix, SPOT_WINDOW_HALF_PX)
+    while True:
+        # the 3 x 3 means of the window's pixels need their neighbours: filter the window grown by one
+        # pixel (the image's own edge reflected as uniform_filter does for the whole image)
+        ext = (slice(max(win[0].start - 1, 0), min(win[0].stop + 1, a.shape[0])),
+               slice(max(win[1].start - 1, 0), min(win[1].stop + 1, a.shape[1])))
+        sm = ndimage.uniform_filter(a[ext], 3)[win[0].start - ext[0].start:win[0].stop - ext[0].start,
+                                              win[1].start - ext[1].start:win[1].stop - ext[1].start]
+        wy, wx = np.unravel_index(int(np.argmax(sm)), sm.shape)
+        best = float(sm[wy, wx])
+        if win == (slice(0, a.shape[0]), slice(0, a.shape[1])):
+            break
+        if best <= 0.0:                    # no bound: every pixel is a candidate
+            win = (slice(0, a.shape[0]), slice(0, a.shape[1]))
+            continue
+        # the bound, lowered by far more than the filter's rounding so that no candidate is missed
+        ys, xs = np.nonzero(a >= best * (1.0 - 1e-9))
+        need = _bounding_window(a.shape, ys, xs, 1)
+        if _contains(win, need):
+            break
+        win = (slice(min(win[0].start, need[0].start), max(win[0].stop, need[0].stop)),
+               slice(min(win[1].start, need[1].start), max(win[1].stop, need[1].stop)))
+    return win[0].start + int(wy), win[1].start + int(wx)
+
+
+def _find_spot(band: np.ndarray, dark: np.ndarray, lit: np.ndarray, level: float, peak_px: tuple[int, int]):
+    """Centroid (x, y) and pixels (rows, columns) of the port spot in ``band`` minus ``dark``: the lit
+    pixels above ``level`` times its peak (the brightest pixel beside ``peak_px``, the largest 3 x 3 mean
+    of the lit image, :func:`_peak_pixel`) connected to that peak, and their flux-weighted centroid.
+
+    Dark-subtracted and labelled in a window around the peak, grown until the spot touches no edge of it
+    that is not the image's own: the same pixels and values as in the whole image.
+    """
+    iy, ix = peak_px
+    near = (slice(max(iy - 1, 0), iy + 2), slice(max(ix - 1, 0), ix + 2))
+    peak = (band[near].astype(float) - dark[near]).max()
+    whole = (slice(0, band.shape[0]), slice(0, band.shape[1]))
+    half = SPOT_WINDOW_HALF_PX
+    while True:
+        win = _window(band.shape, iy, ix, half)
+        w_img = band[win].astype(float) - dark[win]
+        lab, _ = ndimage.label((w_img > level * peak) & lit[win])
+        ly, lx = iy - win[0].start, ix - win[1].start
+        k = lab[ly, lx]
+        if not k and win != whole:
+            # the peak itself below the level: the 3 x 3 fallback's label order is the whole image's
+            half = max(band.shape)
+            continue
+        k = k if k else lab[max(ly - 1, 0):ly + 2, max(lx - 1, 0):lx + 2].max()
+        comp = lab == k
+        edges = ((comp[0].any() and win[0].start > 0) or (comp[-1].any() and win[0].stop < band.shape[0])
+                 or (comp[:, 0].any() and win[1].start > 0) or (comp[:, -1].any() and win[1].stop < band.shape[1]))
+        if not edges or win == whole:
+            break
+        half *= 2
     y, x = np.nonzero(comp)
-    w = img[comp]
+    w = w_img[comp]
+    y, x = y + win[0].start, x + win[1].start
     cx, cy = float(np.sum(w * x) / np.sum(w)), float(np.sum(w * y) / np.sum(w))
-    radius = float(np.max(np.hypot(x - cx, y - cy))) + 0.5
-    return cx, cy, comp, radius
+    return cx, cy, (y, x)
+
+
+def _setting_masks(bands: dict[str, np.ndarray], darks: dict[str, np.ndarray], lit: np.ndarray, r_avg: float,
+                   sigma_psf: float, cfg: dict):
+    """One setting's pixels in its first frame's ``bands`` minus the ``darks``, as flat indices of the
+    band image: the averaging circle of radius ``r_avg`` around the G spot's centroid, the halo annulus,
+    the port's own pixels in every band, the halo weights of those pixels, and the centroid. Computed in
+    a window that holds the circle, the port and the annulus: the same pixels as over the whole image."""
+    shape = bands["G"].shape
+    peaks = {b: _peak_pixel(_lit_image(bands[b], darks[b], lit)) for b in BANDS}
+    cx, cy, _ = _find_spot(bands["G"], darks["G"], lit, cfg["spot_threshold_fraction"], peaks["G"])
+    # the port's own pixels in every band: the R and B sites sit a quarter band pixel off the
+    # G sites, so at the disc's edge R or B pixels are lit where G is not; the halo column must
+    # convolve all of each band's flux, not only the part inside the G spot
+    parts = [_find_spot(bands[b], darks[b], lit, cfg["halo_spot_fraction"], peaks[b])[2] for b in BANDS]
+    sy, sx = np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+    r_in = float(np.max(np.hypot(sx - cx, sy - cy))) + cfg["halo_gap_px"]
+    reach = int(np.ceil(max(r_in + cfg["halo_width_px"], r_avg))) + 2
+    win = _bounding_window(shape, np.array([int(round(cy)), sy.min(), sy.max()]),
+                           np.array([int(round(cx)), sx.min(), sx.max()]), reach)
+    yy = np.arange(win[0].start, win[0].stop)[:, None]
+    xx = np.arange(win[1].start, win[1].stop)[None, :]
+    dist = np.hypot(xx - cx, yy - cy)
+    circle = dist <= r_avg
+    if not circle.any():
+        circle = dist <= dist.min() + 1e-9
+    annulus = (dist > r_in) & (dist <= r_in + cfg["halo_width_px"]) & lit[win]
+    spot = np.zeros(dist.shape, bool)
+    spot[sy - win[0].start, sx - win[1].start] = True
+
+    def flat(mask):
+        my, mx = np.nonzero(mask)
+        return (my + win[0].start) * shape[1] + (mx + win[1].start)
+
+    # pixel indices, not images: a setting keeps a few hundred numbers, never a frame
+    return flat(circle), flat(annulus), flat(spot), _halo_weights(spot, annulus, sigma_psf), (cx, cy)
 
 
 def _deg_per_px(theta: np.ndarray) -> float:
@@ -147,32 +267,19 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
                 raise InputError(dataset.root / STAGE / "frames.csv", f"needs at least two dark frames in {medium}")
         st = static[(lens, medium)]
         key = (lens, medium, float(row["azimuth_deg"]), float(row["angle_deg"]))
-        sub = {b: images.bands[b].astype(float) - st["dark"][b] for b in BANDS}
         if key not in setting_masks:
-            cx, cy, comp, radius = _find_spot(sub["G"], st["lit"], cfg["spot_threshold_fraction"])
-            yy, xx = np.indices(comp.shape)
-            dist = np.hypot(xx - cx, yy - cy)
-            circle = dist <= st["r_avg"]
-            if not circle.any():
-                circle = dist <= dist.min() + 1e-9
-            # the port's own pixels in every band: the R and B sites sit a quarter band pixel off the
-            # G sites, so at the disc's edge R or B pixels are lit where G is not; the halo column must
-            # convolve all of each band's flux, not only the part inside the G spot
-            spot_full = np.zeros_like(comp)
-            for b in BANDS:
-                spot_full |= _find_spot(sub[b], st["lit"], cfg["halo_spot_fraction"])[2]
-            r_in = float(np.max(dist[spot_full])) + cfg["halo_gap_px"]
-            annulus = (dist > r_in) & (dist <= r_in + cfg["halo_width_px"]) & st["lit"]
-            sigma_psf = cfg["stray_light_psf_sigma_fraction"] * st["circle_px"]
-            # pixel indices, not images: a setting keeps a few hundred numbers, never a frame
-            setting_masks[key] = (np.flatnonzero(circle), np.flatnonzero(annulus), np.flatnonzero(spot_full),
-                                  _halo_weights(spot_full, annulus, sigma_psf), (cx, cy))
+            # the first frame of a setting finds its pixels
+            setting_masks[key] = _setting_masks(images.bands, st["dark"], st["lit"], st["r_avg"],
+                                                cfg["stray_light_psf_sigma_fraction"] * st["circle_px"], cfg)
         circle, annulus, spot, weights, (_cx, _cy) = setting_masks[key]
         for band in BANDS:
-            img = sub[band].ravel()
+            # dark-subtracted at the setting's pixels only (the same values as the whole image's there)
+            img, dk = images.bands[band].ravel(), st["dark"][band].ravel()
+            ann = img[annulus].astype(float) - dk[annulus]
             acc[key + (band,)].append({
-                "circle": img[circle], "annulus_mean": float(img[annulus].mean()) if annulus.size else np.nan,
-                "halo": float(weights @ img[spot]) if annulus.size else 0.0,
+                "circle": img[circle].astype(float) - dk[circle],
+                "annulus_mean": float(ann.mean()) if annulus.size else np.nan,
+                "halo": float(weights @ (img[spot].astype(float) - dk[spot])) if annulus.size else 0.0,
                 "saturated": bool(images.saturated[band].ravel()[circle].any()),
                 "exposure_s": float(dec.raw.exposure_s), "iso": float(dec.raw.iso),
             })
