@@ -61,8 +61,14 @@ from pipeline.errors import ArtefactError
 #: the on-axis DN into DN per second); closure 2: the cross-experiment tables (experiment ``closure``, levels
 #: ``responsivity`` and ``dark_corners``, pipeline.cross_closure) among its rows; field 3: the match-up's
 #: noise with the mask's pointing term (``sky_gradient``, ``mask_pointing_sigma``), see stages.field.
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 3, "rolloff": 3, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 9, "field": 3, "closure": 2}
+#: geometry 4: ``geometry_parameter_covariance`` (and from it ``theta_deg_sigma``) by default a leave-one-board-out
+#: jackknife (attribute ``estimate`` ``board_jackknife``); rolloff 4: ``obs_setting`` and ``obs_water`` gain the
+#: principal point's nuisance columns ``x_centre_1``, ``x_centre_2``, rows of kind ``centre_prior`` holding their
+#: prior, and the spots' gradients of theta in the centre (``theta_centre_grad_*``); the spots' sigma without the
+#: independent field-angle term; calibration 10: the bundle's ``theta_deg_sigma`` and field-angle variance from
+#: the jackknife covariance.
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 4, "rolloff": 4, "spectral": 2,
+                     "absolute": 3, "immersion": 2, "calibration": 10, "field": 3, "closure": 2}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
