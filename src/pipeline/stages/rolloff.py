@@ -23,6 +23,17 @@ Streams the roll-off frames once (dark frames first, then the port images):
   8th-degree polynomial (radiometry.rolloff.fit_rolloff) over both azimuth
   planes, plus the effects of the model (``rolloff_azimuth``,
   ``stray_light``, ``immersion_angle``);
+* the field angle's error from the geometric calibration as what it is, an
+  error of the fitted model common to every spot of a band image: the
+  principal point's share (odd in azimuth, the look-alike of
+  ``rolloff_azimuth``) as two whitened nuisance columns per group
+  (``x_centre_1``, ``x_centre_2``: the spot's slope times d theta / d centre
+  times the square root of the geometry artefact's centre covariance,
+  :mod:`pipeline.geometry.centre_shift`) and their prior as two rows of kind
+  ``centre_prior`` (0 +/- 1), so that the diagnostics' refits carry it too;
+  the radial share is absorbed by the even polynomial. Without the
+  geometry's covariance, ``rolloff.field_angle_sigma_px`` per spot as
+  independent noise;
 * observation tables: ``obs_setting`` (one row per setting: the port spot,
   ``kind=spot``, base columns the even polynomial terms; and its halo,
   ``kind=halo``, base prediction 0) and ``obs_water`` (closure: each
