@@ -452,16 +452,16 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
         slope[g.index] = rolloff_slope(f.coefficients, g["theta_deg"])
     a0 = tab["group"].map(norm)
     # the field angle itself is uncertain (geometric calibration). Its error is that of the geometry's fitted
-    # parameters, common to every spot of a band image, not noise of each spot: the principal point's share
-    # (odd in azimuth, the look-alike of rolloff_azimuth) as two nuisance columns per group with their prior
-    # as pseudo-measurements (_centre_terms, _centre_prior_rows); the rest (the focal length and f(rho):
-    # radially symmetric) moves every spot along theta alike, which the even polynomial absorbs. A spot's own
-    # noise is then its signal's. Without the geometry's covariance (a rectilinear region, maps without a fit)
-    # the field angle's error stays rolloff.field_angle_sigma_px per spot, independent, through dg/dtheta.
+    # parameters, common to every spot of a band image: the principal point's share (odd in azimuth, the
+    # look-alike of rolloff_azimuth) as two nuisance columns per group with their prior as pseudo-measurements
+    # (_centre_terms, _centre_prior_rows). The spots keep rolloff.field_angle_sigma_px as an independent term
+    # beside it, through dg/dtheta: without it the rim spots (the steepest slope) weigh more and the published
+    # curve moved at the rim of the in-water field (the truth-sky test's random spread, water/close/G 1.04 ->
+    # 1.17); the centre's share is so counted twice, on the safe side (README, "Uncertainty of the field angle")
     centre_cols, centre_var = _centre_terms(tab, slope / a0, reduced["static"], "centre",
                                             ("theta_centre_grad_x_deg_per_px", "theta_centre_grad_y_deg_per_px"))
     has_centre = np.isfinite(centre_var)
-    theta_sigma = np.where(has_centre, 0.0, config["rolloff"]["field_angle_sigma_px"] * tab["deg_per_px"].to_numpy(float))
+    theta_sigma = config["rolloff"]["field_angle_sigma_px"] * tab["deg_per_px"].to_numpy(float)
     sigma_spot = np.hypot(tab["sigma_raw_dn"] / a0, np.abs(slope) / a0 * theta_sigma)
     spot = tab.assign(kind="spot", value_dn=tab["signal_dn"] / a0, sigma_dn=sigma_spot,
                       halo_column_dn=0.0, **_poly_columns(tab["theta_deg"]),
