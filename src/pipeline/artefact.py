@@ -64,8 +64,8 @@ from pipeline.errors import ArtefactError
 #: geometry 4: ``geometry_parameter_covariance`` (and from it ``theta_deg_sigma``) by default a leave-one-board-out
 #: jackknife (attribute ``estimate`` ``board_jackknife``); rolloff 4: ``obs_setting`` and ``obs_water`` gain the
 #: principal point's nuisance columns ``x_centre_1``, ``x_centre_2``, rows of kind ``centre_prior`` holding their
-#: prior, and the spots' gradients of theta in the centre (``theta_centre_grad_*``); the spots' sigma without the
-#: independent field-angle term; calibration 10: the bundle's ``theta_deg_sigma`` and field-angle variance from
+#: prior, and the spots' gradients of theta in the centre (``theta_centre_grad_*``, ``theta_sigma_deg``);
+#: calibration 10: the bundle's ``theta_deg_sigma`` and field-angle variance from
 #: the jackknife covariance.
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 5, "geometry": 4, "rolloff": 4, "spectral": 2,
                      "absolute": 3, "immersion": 2, "calibration": 10, "field": 3, "closure": 2}

@@ -31,9 +31,9 @@ Streams the roll-off frames once (dark frames first, then the port images):
   times the square root of the geometry artefact's centre covariance,
   :mod:`pipeline.geometry.centre_shift`) and their prior as two rows of kind
   ``centre_prior`` (0 +/- 1), so that the diagnostics' refits carry it too;
-  the radial share is absorbed by the even polynomial. Without the
-  geometry's covariance, ``rolloff.field_angle_sigma_px`` per spot as
-  independent noise;
+  the radial share is absorbed by the even polynomial. Each spot keeps
+  ``rolloff.field_angle_sigma_px`` as independent noise besides (the only
+  term without the geometry's covariance);
 * observation tables: ``obs_setting`` (one row per setting: the port spot,
   ``kind=spot``, base columns the even polynomial terms; and its halo,
   ``kind=halo``, base prediction 0) and ``obs_water`` (closure: each
@@ -205,7 +205,7 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
 def _centre_geometry(geo: xr.Dataset, medium: str) -> dict | None:
     """Per band of one medium's geometry: the fitted model and the covariance of its principal point, for the
     correlated centre term (:mod:`pipeline.geometry.centre_shift`); None for a geometry without the fisheye
-    model's covariance (a rectilinear region, or maps without a fit), whose spots keep
+    model's covariance (a rectilinear region, or maps without a fit), whose spots have only
     ``rolloff.field_angle_sigma_px`` as independent noise."""
     if "geometry_parameter_covariance" not in geo or geo.attrs.get("projection", "fisheye") != "fisheye":
         return None
