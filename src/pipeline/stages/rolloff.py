@@ -347,7 +347,7 @@ def _centre_prior_rows(rows: pd.DataFrame) -> pd.DataFrame:
             if "halo_column_dn" in r:
                 r["halo_column_dn"] = 0.0
             out.append(r)
-    return pd.concat(out, ignore_index=True) if out else pd.DataFrame(columns=rows.columns)
+    return pd.concat(out, ignore_index=True) if out else rows.iloc[:0]
 
 
 def _fit_setting(obs: pd.DataFrame, effects: list[str]):
@@ -471,7 +471,8 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
                       halo_column_dn=tab["halo_raw_dn"] / a0, group=tab["group"] + "/halo",
                       **{c: 0.0 for c in _poly_columns(tab["theta_deg"])}, **{c: 0.0 for c in CENTRE_COLUMNS})
     halo["used"] = ((tab["n_annulus"] > 0) & np.isfinite(tab["annulus_dn"])).astype(int)
-    obs = pd.concat([spot, halo, _centre_prior_rows(spot[has_centre])], ignore_index=True)
+    prior = _centre_prior_rows(spot[has_centre])
+    obs = pd.concat([spot, halo] + ([prior] if len(prior) else []), ignore_index=True)
     fit, names, extra, pred, X = _fit_setting(obs, effects)
     obs["pred_dn"] = pred
     obs["z"] = (obs["value_dn"] - pred) / obs["sigma_dn"]
