@@ -305,6 +305,28 @@ def stray_light_power_law(root, amplitude, k100, seed):
     return rewrite_frames(root, change, ("rolloff",))
 
 
+def rolloff_azimuth_illumination_gradient(root, amplitude, k100, seed, phi0_deg=50.0):
+    """A decentred optic as an illumination gradient across the image plane: every signal frame of the
+    roll-off experiment times 1 + A ((x - x_m) cos phi0 + (y - y_m) sin phi0) / R, x to the right and y down
+    in raw pixels of each lens region, (x_m, y_m) the region's middle, R its half width (the image
+    circle's radius only roughly: the gradient runs on past the rim). The package's signature is
+    A (theta / 90 deg) cos(phi - phi0) in field angle about the fitted centre: the two agree only as far as
+    the lens is equidistant and centred in its region. Dark frames are left alone (the source is off)."""
+
+    def change(s, info):
+        if info.row.get("kind") != "signal":
+            return s
+        for rows, cols in info.lenses.values():
+            ny, nx = rows.stop - rows.start, cols.stop - cols.start
+            y, x = np.mgrid[0:ny, 0:nx].astype(float)
+            half = 0.5 * nx
+            ramp = ((x - (nx - 1) / 2) * np.cos(np.radians(phi0_deg)) + (y - (ny - 1) / 2) * np.sin(np.radians(phi0_deg)))
+            s[rows, cols] = s[rows, cols] * (1.0 + amplitude * ramp / half)
+        return s
+
+    return rewrite_frames(root, change, ("rolloff",))
+
+
 @dataclass(frozen=True)
 class Form:
     effect: str                  # the catalogue name the diagnostics should find

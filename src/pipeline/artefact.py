@@ -65,9 +65,15 @@ from pipeline.errors import ArtefactError
 #: noise with the mask's pointing term (``sky_gradient``, ``mask_pointing_sigma``), see stages.field;
 #: linearity 6: ``obs_frame`` and ``obs_setting`` gain the raw files' ``white_level_dn`` and the signal level
 #: ``signal_fraction`` (predicted signal above black over the range between the black and the white level);
-#: closure 3: the ``signal_fraction`` covariate (NaN where a table has none), scanned by the residual tests.
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 3, "rolloff": 3, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 10, "field": 3, "closure": 3}
+#: closure 3: the ``signal_fraction`` covariate (NaN where a table has none), scanned by the residual tests;
+#: geometry 4: ``geometry_parameter_covariance`` (and from it ``theta_deg_sigma``) by default a leave-one-board-out
+#: jackknife (attribute ``estimate`` ``board_jackknife``); rolloff 4: ``obs_setting`` and ``obs_water`` gain the
+#: principal point's nuisance columns ``x_centre_1``, ``x_centre_2``, rows of kind ``centre_prior`` holding their
+#: prior, and the spots' gradients of theta in the centre (``theta_centre_grad_*``, ``theta_sigma_deg``);
+#: calibration 11: the bundle's ``theta_deg_sigma`` and field-angle variance from the jackknife covariance,
+#: beside version 10's second spill cell.
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 4, "rolloff": 4, "spectral": 2,
+                     "absolute": 3, "immersion": 2, "calibration": 11, "field": 3, "closure": 3}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -408,8 +408,8 @@ def _theta_uncertainty(models, results, media, band_shape, cfg) -> xr.Dataset:
         cov[i, j], chi2[i, j] = res.parameter_covariance, res.reduced_chi2_px2
         sigma[i, j] = theta_sigma_map(model, names, res.parameter_covariance, band_shape)
         summary[i, j] = theta_sigma_at_field_angles(model, names, res.parameter_covariance, summary_deg)
-    how = {"board_clustered": "cluster-robust over the boards", "reduced_chi2": "scaled by the reduced chi-square "
-           "of the corner residuals"}[cfg["covariance"]]
+    how = {"board_jackknife": "leave-one-board-out jackknife", "board_clustered": "cluster-robust over the boards",
+           "reduced_chi2": "scaled by the reduced chi-square of the corner residuals"}[cfg["covariance"]]
     how = ("first-order propagation of the fitted model's parameter covariance (centre, stretch, f(rho) "
            f"coefficients; board poses profiled out; {how})")
     return xr.Dataset(

@@ -23,6 +23,17 @@ Streams the roll-off frames once (dark frames first, then the port images):
   8th-degree polynomial (radiometry.rolloff.fit_rolloff) over both azimuth
   planes, plus the effects of the model (``rolloff_azimuth``,
   ``stray_light``, ``immersion_angle``);
+* the field angle's error from the geometric calibration as what it is, an
+  error of the fitted model common to every spot of a band image: the
+  principal point's share (odd in azimuth, the look-alike of
+  ``rolloff_azimuth``) as two whitened nuisance columns per group
+  (``x_centre_1``, ``x_centre_2``: the spot's slope times d theta / d centre
+  times the square root of the geometry artefact's centre covariance,
+  :mod:`pipeline.geometry.centre_shift`) and their prior as two rows of kind
+  ``centre_prior`` (0 +/- 1), so that the diagnostics' refits carry it too;
+  the radial share is absorbed by the even polynomial. Each spot keeps
+  ``rolloff.field_angle_sigma_px`` as independent noise besides (the only
+  term without the geometry's covariance);
 * observation tables: ``obs_setting`` (one row per setting: the port spot,
   ``kind=spot``, base columns the even polynomial terms; and its halo,
   ``kind=halo``, base prediction 0) and ``obs_water`` (closure: each
@@ -52,12 +63,14 @@ from pipeline.effects.optics import azimuth_from_coefficients
 from pipeline.fitting import base_design, wls
 from pipeline.errors import InputError
 from pipeline.frames import iter_frames
+from pipeline.geometry.centre_shift import centre_columns, centre_root, centre_theta_gradient, centre_variance
 from pipeline.moments import RunningMoments
 from pipeline.observations import table_to_dataset
 from pipeline.radiometry.immersion_rolloff import water_rolloff_factor
 from pipeline.radiometry.rolloff import (ROLLOFF_POWERS, evaluate_rolloff, fit_rolloff, normalise_rolloff,
                                          rolloff_design_matrix, rolloff_slope)
 from pipeline.radiometry.water import refractive_index_water
+from pipeline.stages.geometry_maps import model_from_dataset
 from pipeline.stages.immersion import NOMINAL_WAVELENGTH_NM
 
 STAGE = "rolloff"
@@ -65,6 +78,10 @@ MEDIA = ("air", "water")
 #: scale of theta in the stored base columns (conditioning): u = theta / 90 deg
 THETA_SCALE_DEG = 90.0
 SETTING_EFFECTS = ("rolloff_azimuth", "stray_light")
+#: the nuisance columns of the principal point's error (whitened, one pair per band image) and the kind of the
+#: pseudo-measurement rows that hold their prior (:mod:`pipeline.geometry.centre_shift`)
+CENTRE_COLUMNS = ("x_centre_1", "x_centre_2")
+CENTRE_PRIOR_KIND = "centre_prior"
 WATER_EFFECTS = ("rolloff_azimuth", "immersion_angle")
 log = logging.getLogger("pipeline.rolloff")
 
@@ -260,6 +277,10 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
             # the air model's stated field-angle uncertainty per pixel (geometry artefact version 2), if any
             static[(lens, medium)]["theta_air_sigma"] = (air_geo["theta_deg_sigma"].values
                                                          if air_geo is not None and "theta_deg_sigma" in air_geo else None)
+            static[(lens, medium)]["centre"] = _centre_geometry(geometry[lens], medium)
+            static[(lens, medium)]["theta_sigma"] = geo["theta_deg_sigma"].values if "theta_deg_sigma" in geo else None
+            static[(lens, medium)]["centre_air"] = (_centre_geometry(geometry[lens], "air") if air_geo is not None
+                                                    else None)
             if static[(lens, medium)]["theta_air"] is not None:
                 static[(lens, medium)]["deg_per_px_air"] = _deg_per_px(
                     geometry[lens].sel(medium="air")["theta_deg"].sel(band="G").values.astype(float))
@@ -286,6 +307,25 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
     water_file = dataset.root / "immersion" / "water.yaml"
     water = read_water(dataset) if water_file.exists() else None
     return {"acc": acc, "masks": setting_masks, "static": static, "inputs": inputs, "water": water}
+
+
+def _centre_geometry(geo: xr.Dataset, medium: str) -> dict | None:
+    """Per band of one medium's geometry: the fitted model and the covariance of its principal point, for the
+    correlated centre term (:mod:`pipeline.geometry.centre_shift`); None for a geometry without the fisheye
+    model's covariance (a rectilinear region, or maps without a fit), whose spots have only
+    ``rolloff.field_angle_sigma_px`` as independent noise."""
+    if "geometry_parameter_covariance" not in geo or geo.attrs.get("projection", "fisheye") != "fisheye":
+        return None
+    names = [str(n) for n in geo["geometry_parameter"].values]
+    if names[:2] != ["xc_px", "yc_px"]:
+        return None
+    out = {}
+    for band in BANDS:
+        cov = geo["geometry_parameter_covariance"].sel(medium=medium, band=band).values[:2, :2]
+        if not np.all(np.isfinite(cov)):
+            return None
+        out[band] = {"model": model_from_dataset(geo, medium, band), "cov": cov}
+    return out
 
 
 def _halo_weights(spot: np.ndarray, annulus: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -317,13 +357,24 @@ def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
         theta_air_sigma = (float(np.sqrt(np.nanmean(st["theta_air_sigma"][bi].ravel()[circle] ** 2)))
                            if st.get("theta_air_sigma") is not None else np.nan)
         spot_theta = float(ndimage.map_coordinates(np.nan_to_num(st["theta"][bi]), [[cy], [cx]], order=1)[0])
+        # the principal point's share of the field angle's error: d theta / d (xc, yc) at the spot's pixels
+        width = st["theta"].shape[-1]
+        pix_u, pix_v = (circle % width).astype(float), (circle // width).astype(float)
+        grad = (centre_theta_gradient(st["centre"][band]["model"], pix_u, pix_v) if st.get("centre")
+                else np.full(2, np.nan))
+        grad_air = (centre_theta_gradient(st["centre_air"][band]["model"], pix_u, pix_v) if st.get("centre_air")
+                    else np.full(2, np.nan))
+        theta_sigma = (float(np.sqrt(np.nanmean(st["theta_sigma"][bi].ravel()[circle] ** 2)))
+                       if st.get("theta_sigma") is not None else np.nan)
         rows.append({
             "lens": lens, "band": band, "medium": medium, "azimuth_deg": az, "angle_deg": angle,
             "n_frames": m, "n_pix": int(circle.size), "n_annulus": int(annulus.size),
             "signal_dn": float(stack.mean()),
             "diff_var_dn2": float(np.mean(stack.var(axis=0, ddof=1))) if m > 1 else np.nan,
             "theta_deg": float(np.mean(theta)), "theta_air_deg": theta_air, "deg_per_px_air": st.get("deg_per_px_air", np.nan),
-            "theta_air_sigma_deg": theta_air_sigma,
+            "theta_air_sigma_deg": theta_air_sigma, "theta_sigma_deg": theta_sigma,
+            "theta_centre_grad_x_deg_per_px": grad[0], "theta_centre_grad_y_deg_per_px": grad[1],
+            "theta_air_centre_grad_x_deg_per_px": grad_air[0], "theta_air_centre_grad_y_deg_per_px": grad_air[1],
             "phi_deg": float(np.degrees(np.arctan2(np.mean(np.sin(phi)), np.mean(np.cos(phi))))),
             "spot_theta_deg": spot_theta, "spot_x_px": cx, "spot_y_px": cy,
             "annulus_dn": float(np.mean([f["annulus_mean"] for f in frames])),
@@ -367,6 +418,45 @@ def _poly_columns(theta_deg: np.ndarray) -> dict[str, np.ndarray]:
     return {f"x_p{p}": a[..., k] for k, p in enumerate(ROLLOFF_POWERS)}
 
 
+def _centre_terms(tab: pd.DataFrame, slope: np.ndarray, static: dict, which: str, grad_cols) -> tuple:
+    """The whitened principal-point columns of each row (n, 2) and the variance of theta they stand for (n,),
+    NaN where the geometry has no centre covariance: the slope (per degree) of the fitted quantity times
+    d theta / d (xc, yc) at the row's pixels times L, L L^T the centre's covariance of that band image
+    (``which``: "centre" the spot's own geometry, "centre_air" the air model of a water point)."""
+    n = len(tab)
+    cols, var = np.zeros((n, 2)), np.full(n, np.nan)
+    grad = tab[list(grad_cols)].to_numpy(float)
+    slope = np.asarray(slope, float)
+    for i, (lens, medium, band) in enumerate(zip(tab["lens"], tab["medium"], tab["band"])):
+        geo = static[(lens, medium)].get(which)
+        if not geo or not np.all(np.isfinite(grad[i])) or not np.isfinite(slope[i]):
+            continue
+        cov = geo[band]["cov"]
+        cols[i] = centre_columns(slope[i:i + 1], grad[i:i + 1], centre_root(cov))[0]
+        var[i] = centre_variance(grad[i:i + 1], cov)[0]
+    return cols, var
+
+
+def _centre_prior_rows(rows: pd.DataFrame) -> pd.DataFrame:
+    """The prior of the whitened centre shift as two pseudo-measurements per group, u_k = 0 +/- 1: the
+    geometry stage's statement of how well it knows the principal point, so that every fit of the table
+    (the stage's and the diagnostics') can move the centre only as far as that covariance allows. Rows of
+    kind ``centre_prior``: no effect column touches them (the effects' columns are those of the spots or
+    the halo), their base columns are zero but their own centre column."""
+    out = []
+    for _, g in rows.groupby("group", sort=True):
+        for col in CENTRE_COLUMNS:
+            r = g.iloc[[0]].copy()
+            for c in [c for c in r.columns if c.startswith("x_")]:
+                r[c] = 1.0 if c == col else 0.0
+            r = r.assign(kind=CENTRE_PRIOR_KIND, value_dn=0.0, sigma_dn=1.0, pred_dn=0.0, used=1, saturated=False,
+                         spot_x_px=np.nan, spot_y_px=np.nan)
+            if "halo_column_dn" in r:
+                r["halo_column_dn"] = 0.0
+            out.append(r)
+    return pd.concat(out, ignore_index=True) if out else rows.iloc[:0]
+
+
 def _fit_setting(obs: pd.DataFrame, effects: list[str]):
     """WLS of the setting table: even polynomial per group plus the model's effect columns (iterated)."""
     used = obs["used"].to_numpy(bool)
@@ -402,7 +492,7 @@ def water_indices(reduced: dict, config: dict) -> tuple[dict[str, float], float]
 
 
 def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max_air_deg: float,
-                   field_angle_sigma_px: float) -> pd.DataFrame:
+                   field_angle_sigma_px: float, static: dict) -> pd.DataFrame:
     """The in-water roll-off predicted from the in-air fit and the immersion physics, per lens/band.
 
     Each water point (its own normalisation, the water fit's a0) is predicted as
@@ -425,14 +515,26 @@ def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max
         # field-angle uncertainty of theta_a: the geometry artefact's stated theta_deg_sigma at those pixels
         # where it has one, else rolloff.field_angle_sigma_px in air band pixels
         sig_theta = g["theta_air_sigma_deg"].to_numpy(float)
+        # the air model's principal point: common to every point of the lens and band (nuisance columns with
+        # their prior, as in the setting table). The stated theta uncertainty stays in each point's sigma as
+        # well: its radial share is correlated too, but the closure's one scale does not absorb it (it would
+        # mimic immersion_angle); the centre's share is so counted twice here, on the safe side
+        slope_air = rolloff_slope(coef_air, ta)
+        centre_cols, centre_var = _centre_terms(g, slope_air * factor, static, "centre_air",
+                                                ("theta_air_centre_grad_x_deg_per_px",
+                                                 "theta_air_centre_grad_y_deg_per_px"))
+        has_centre = np.isfinite(centre_var) & np.isfinite(sig_theta)
         sig_theta = np.where(np.isfinite(sig_theta), sig_theta, field_angle_sigma_px * g["deg_per_px_air"].to_numpy(float))
-        sig_air = np.hypot(sig_air, np.abs(rolloff_slope(coef_air, ta)) * sig_theta)
+        sig_air = np.hypot(sig_air, np.abs(slope_air) * sig_theta)
         pred = g_air * factor
-        t = g.assign(x_scale=pred, pred_dn=pred, water_factor=factor, air_prediction_sigma=sig_air * factor)
+        t = g.assign(x_scale=pred, pred_dn=pred, water_factor=factor, air_prediction_sigma=sig_air * factor,
+                     **{c: np.where(has_centre & ok, centre_cols[:, k], 0.0) for k, c in enumerate(CENTRE_COLUMNS)})
         t["sigma_dn"] = np.hypot(t["sigma_dn"], sig_air * factor)
         t["used"] = (t["used"].to_numpy(bool) & ok).astype(int)
         t["group"] = lens + "/" + band + "/water_from_air"
         out.append(t)
+        if np.any(has_centre & ok):
+            out.append(_centre_prior_rows(t[has_centre & ok]))
     return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
 
 
@@ -456,17 +558,28 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
         norm[grp] = float(f.coefficients[0])
         slope[g.index] = rolloff_slope(f.coefficients, g["theta_deg"])
     a0 = tab["group"].map(norm)
-    # the field angle itself is uncertain (geometric calibration): sigma_g = |dg/dtheta| sigma_theta
-    theta_sigma = config["rolloff"]["field_angle_sigma_px"] * tab["deg_per_px"]
+    # the field angle itself is uncertain (geometric calibration). Its error is that of the geometry's fitted
+    # parameters, common to every spot of a band image: the principal point's share (odd in azimuth, the
+    # look-alike of rolloff_azimuth) as two nuisance columns per group with their prior as pseudo-measurements
+    # (_centre_terms, _centre_prior_rows). The spots keep rolloff.field_angle_sigma_px as an independent term
+    # beside it, through dg/dtheta: without it the rim spots (the steepest slope) weigh more and the published
+    # curve moved at the rim of the in-water field (the truth-sky test's random spread, water/close/G 1.04 ->
+    # 1.17); the centre's share is so counted twice, on the safe side (README, "Uncertainty of the field angle")
+    centre_cols, centre_var = _centre_terms(tab, slope / a0, reduced["static"], "centre",
+                                            ("theta_centre_grad_x_deg_per_px", "theta_centre_grad_y_deg_per_px"))
+    has_centre = np.isfinite(centre_var)
+    theta_sigma = config["rolloff"]["field_angle_sigma_px"] * tab["deg_per_px"].to_numpy(float)
     sigma_spot = np.hypot(tab["sigma_raw_dn"] / a0, np.abs(slope) / a0 * theta_sigma)
     spot = tab.assign(kind="spot", value_dn=tab["signal_dn"] / a0, sigma_dn=sigma_spot,
-                      halo_column_dn=0.0, **_poly_columns(tab["theta_deg"]))
+                      halo_column_dn=0.0, **_poly_columns(tab["theta_deg"]),
+                      **{c: np.where(has_centre, centre_cols[:, k], 0.0) for k, c in enumerate(CENTRE_COLUMNS)})
     spot["used"] = (~spot["saturated"]).astype(int)
     halo = tab.assign(kind="halo", value_dn=tab["annulus_dn"] / a0, sigma_dn=tab["sigma_annulus_dn"] / a0,
                       halo_column_dn=tab["halo_raw_dn"] / a0, group=tab["group"] + "/halo",
-                      **{c: 0.0 for c in _poly_columns(tab["theta_deg"])})
+                      **{c: 0.0 for c in _poly_columns(tab["theta_deg"])}, **{c: 0.0 for c in CENTRE_COLUMNS})
     halo["used"] = ((tab["n_annulus"] > 0) & np.isfinite(tab["annulus_dn"])).astype(int)
-    obs = pd.concat([spot, halo], ignore_index=True)
+    prior = _centre_prior_rows(spot[has_centre])
+    obs = pd.concat([spot, halo] + ([prior] if len(prior) else []), ignore_index=True)
     fit, names, extra, pred, X = _fit_setting(obs, effects)
     obs["pred_dn"] = pred
     obs["z"] = (obs["value_dn"] - pred) / obs["sigma_dn"]
@@ -499,7 +612,8 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
     if len(wat) and air_fits:
         wat = wat[[(l_, b_) in air_fits for l_, b_ in zip(wat["lens"], wat["band"])]]
         n_w, n_g = water_indices(reduced, config)
-        water_tab = _water_closure(wat, air_fits, n_w, n_g, max_air, config[STAGE]["field_angle_sigma_px"])
+        water_tab = _water_closure(wat, air_fits, n_w, n_g, max_air, config[STAGE]["field_angle_sigma_px"],
+                                   reduced["static"])
         used = water_tab["used"].to_numpy(bool)
         Xw, wnames = base_design(water_tab)
         wcols = [(e, get_effect(e).columns(STAGE, "water", water_tab)) for e in effects if e in WATER_EFFECTS]
@@ -510,6 +624,8 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
         water_tab["z"] = (water_tab["value_dn"] - water_tab["pred_dn"]) / water_tab["sigma_dn"]
         water_tab.loc[~used, "z"] = np.nan
         for k, name in enumerate(wnames):
+            if not name.endswith(":scale"):
+                continue
             lens_, band_ = name.split("/")[:2]
             scale[(lens_, band_)] = (float(wfit.coef[k]), float(np.sqrt(max(wfit.cov[k, k], 0.0))))
         col = Xw.shape[1]
