@@ -195,10 +195,9 @@ def synthetic_linearity_settings(rng, rel_sigma: float, offset_dn: float, gain_d
     return table
 
 
-def bootstrap_p_values(table: pd.DataFrame, config: dict, alpha: float, draws: int, seed: int) -> tuple[float, float]:
-    """p-values of the iso_gain block test against the plug-in and the inflated bootstrap references (the
-    F(k, G - 1) p-value where the rows' F test is not below ``alpha``)."""
-    cfg = config["diagnostics"]
+def iso_block_test(table: pd.DataFrame, cfg: dict):
+    """The iso_gain block test of a linearity setting table: the base and extended designs, the rows'
+    sigma and blocks, both weighted fits, the block GLS drop and its F statistic."""
     X, _ = base_design(table)
     X1 = np.hstack([X, get_effect("iso_gain").columns("linearity", "setting", table)])
     y, sigma = table["value_dn"].to_numpy(float), table["sigma_dn"].to_numpy(float)
@@ -206,6 +205,14 @@ def bootstrap_p_values(table: pd.DataFrame, config: dict, alpha: float, draws: i
     fit0, fit1 = wls(y, sigma, X), wls(y, sigma, X1)
     g = block_gls_drop(y, sigma, X, X1, blocks, cfg["block_noise_forms"], fit1)
     f_obs = g.delta_chi2 / g.k / (g.chi2 / g.dof)
+    return X, X1, sigma, blocks, fit0, fit1, g, f_obs
+
+
+def bootstrap_p_values(table: pd.DataFrame, config: dict, alpha: float, draws: int, seed: int) -> tuple[float, float]:
+    """p-values of the iso_gain block test against the plug-in and the inflated bootstrap references (the
+    F(k, G - 1) p-value where the rows' F test is not below ``alpha``)."""
+    cfg = config["diagnostics"]
+    X, X1, sigma, blocks, fit0, fit1, g, f_obs = iso_block_test(table, cfg)
     k = fit0.dof - fit1.dof
     p_model = stats.f.sf((fit0.chi2 - fit1.chi2) / k / max(fit1.chi2 / fit1.dof, 1.0), k, fit1.dof)
     p_g = float(stats.f.sf(f_obs, g.k, g.n_blocks - 1))
@@ -292,13 +299,7 @@ def form_case(config: dict, draws: int = 2000) -> None:
     cfg = config["diagnostics"]
     obs = form_tables(config, "iso_gain_power_law", 101, 7, [])
     table = next(o.table for o in obs if (o.experiment, o.level) == ("linearity", "setting"))
-    X, _ = base_design(table)
-    X1 = np.hstack([X, get_effect("iso_gain").columns("linearity", "setting", table)])
-    y, sigma = table["value_dn"].to_numpy(float), table["sigma_dn"].to_numpy(float)
-    blocks, _ = blocks_of(table, cfg["block_keys"])
-    fit0, fit1 = wls(y, sigma, X), wls(y, sigma, X1)
-    g = block_gls_drop(y, sigma, X, X1, blocks, cfg["block_noise_forms"], fit1)
-    f_obs = g.delta_chi2 / g.k / (g.chi2 / g.dof)
+    X, X1, sigma, blocks, fit0, fit1, g, f_obs = iso_block_test(table, cfg)
     d, c = block_gls_null_draws(sigma, X, X1, blocks, fit1, cfg["block_noise_forms"], draws=draws, seed=0)
     f = d / g.k / (c / g.dof)
     nu = f_reference_dof(f, g.dof)
