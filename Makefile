@@ -16,8 +16,9 @@ $(BIN)/activate:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --upgrade pip
 
-$(VENV)/.installed: pyproject.toml | $(BIN)/activate
-	$(BIN)/python -m pip install -e ".[test]"
+# constraints.txt: the tested version of every package (reproducible numbers; tests/regression/tiny.json)
+$(VENV)/.installed: pyproject.toml constraints.txt | $(BIN)/activate
+	$(BIN)/python -m pip install -c constraints.txt -e ".[test]"
 	touch $@
 
 venv: $(VENV)/.installed
