@@ -5,6 +5,7 @@
     [--frames-per-setting K]: simulate K frames per dark and linearity setting (full scale: 15 and 4)
     [--rolloff-stride K]: simulate every K-th rotation angle of the roll-off experiment (all its darks)
     [--true-geometry]: the simulator's true geometry artefacts where --work/results has none
+    python benchmarks/bench_full.py --experiments field --bundle BUNDLE [--work DIR]
 
 Default mode: for each experiment in turn, simulates it at the ``full`` scale (6912 x 3456
 frames, the paper's frame counts; the simulator's time printed) into ``--work``, runs the
@@ -36,7 +37,12 @@ Each figure is printed beside the machine's load average (``os.getloadavg``): on
 machine absolute times move with the load, the ratio to the floor measured in the same run
 less, and the ratio of CPU times (stage CPU / floor CPU, the decode thread's included) least.
 Results go to ``--work``/bench_full-EXPERIMENTS.csv (or bench_scaling-EXPERIMENT.csv) as well.
-The field stage (it needs the calibration bundle of every other stage) is not run here.
+
+``--experiments field --bundle BUNDLE``: the field hour (31 frames of the zenith lens at the full scale)
+against a full-resolution calibration bundle, one job (the lens at the zenith) and its floor. The bundle
+must be of the simulated camera (``bench_apply.py`` makes one: dark, linearity and absolute fitted at
+the full resolution, the true geometry, roll-off and spectral from the small scale); the match-up's
+numbers are then not a calibration's, its cost is.
 """
 
 from __future__ import annotations
@@ -54,9 +60,9 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 LENSES = ("far", "close")
-#: the stage that reads each experiment's frames (the field stage needs the bundle: not run here)
+#: the stage that reads each experiment's frames (the field stage only with --bundle)
 STAGE_OF = {"dark": "dark", "linearity": "linearity", "geometry": "geometry", "rolloff": "rolloff",
-            "spectral": "spectral", "absolute": "absolute", "immersion": "immersion"}
+            "spectral": "spectral", "absolute": "absolute", "immersion": "immersion", "field": "field"}
 EFFECTS = [("dark_current", {}), ("hot_pixels", {})]
 
 
@@ -77,8 +83,9 @@ def peak_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def job_child(stage: str, dataset: str, results: str, lens: str) -> None:
-    """Run one stage for one lens (one workflow job) in this process; print wall, CPU and peak as JSON."""
+def job_child(stage: str, dataset: str, results: str, lens: str, bundle: str = "") -> None:
+    """Run one stage for one lens (one workflow job) in this process; print wall, CPU and peak as JSON.
+    ``bundle``: the calibration bundle of a stage that applies it (the field), "" for none."""
     from pipeline.config import load_config
     from pipeline.workflow import STAGES, run_stage
 
@@ -88,7 +95,7 @@ def job_child(stage: str, dataset: str, results: str, lens: str) -> None:
     upstream = {name: {lens: res / f"{name}/{lens}.nc"} for name in spec.upstream + spec.optional_upstream
                 if (res / f"{name}/{lens}.nc").exists()}
     t0, c0 = time.perf_counter(), time.process_time()
-    run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream)
+    run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream, bundle=bundle or None)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_mib()}))
 
@@ -128,9 +135,9 @@ def _result(proc: subprocess.Popen) -> dict:
     return json.loads(out.strip().splitlines()[-1])
 
 
-def stage_job(stage: str, dataset: Path, results: Path, lens: str) -> subprocess.Popen:
+def stage_job(stage: str, dataset: Path, results: Path, lens: str, bundle: Path | None = None) -> subprocess.Popen:
     """Start one workflow job (stage, lens) in a fresh process (:func:`job_child`: wall, CPU, peak RSS)."""
-    return _start([__file__, "--job", stage, str(dataset), str(results), lens])
+    return _start([__file__, "--job", stage, str(dataset), str(results), lens, str(bundle or "")])
 
 
 def decode_floor(dataset: Path, experiment: str, lens: str) -> subprocess.Popen:
@@ -278,12 +285,26 @@ def row_line(r: dict) -> str:
             f"{r['floor_cpu_s']:>9.1f} {r['cpu_ratio_to_floor']:>9.2f}  {r['load']}")
 
 
-def measure(stage: str, experiment: str, dataset: Path, results: Path, lenses, extra: dict) -> list[dict]:
+def stage_lenses(dataset: Path, experiment: str) -> tuple[str, ...]:
+    """The lenses whose jobs the workflow runs for ``experiment``: both, or those its frames.csv names (the
+    field: the lens at the zenith)."""
+    import pandas as pd
+
+    from pipeline.workflow import STAGES
+
+    if not STAGES[STAGE_OF[experiment]].lenses_from_frames:
+        return LENSES
+    named = set(pd.read_csv(dataset / experiment / "frames.csv")["lens"])
+    return tuple(lens for lens in LENSES if lens in named)
+
+
+def measure(stage: str, experiment: str, dataset: Path, results: Path, lenses, extra: dict,
+            bundle: Path | None = None) -> list[dict]:
     """The stage's job of each lens and each job's decode floor, all side by side (the workflow runs the
     two lens jobs of a stage at once on 2 cores): the floors then decode under the same load as the jobs."""
     sizes = {lens: frames_and_mb(dataset, experiment, lens) for lens in lenses}
     load_start = load()
-    procs = {lens: stage_job(stage, dataset, results, lens) for lens in lenses}
+    procs = {lens: stage_job(stage, dataset, results, lens, bundle) for lens in lenses}
     floor_procs = {lens: decode_floor(dataset, experiment, lens) for lens in lenses}
     jobs = {lens: _result(p) for lens, p in procs.items()}
     floors = {lens: _result(p) for lens, p in floor_procs.items()}
@@ -329,12 +350,16 @@ def main() -> None:
     ap.add_argument("--true-geometry", action="store_true",
                     help="where --work/results has no geometry artefacts, write those of the simulator's true "
                          "optics instead of running the geometry experiment (for the stages that read them)")
+    ap.add_argument("--bundle", metavar="BUNDLE",
+                    help="the calibration bundle the field stage applies (a full-resolution one: "
+                         "benchmarks/bench_apply.py makes it in its --work, results/calibration/bundle.nc); "
+                         "--experiments field needs it")
     ap.add_argument("--scaling", metavar="EXPERIMENT", help="scaling mode: this experiment at 1x, 2x, 4x its frames")
     ap.add_argument("--factors", default="1,2,4")
     ap.add_argument("--base-frames", type=int, default=3, help="frames per setting at factor 1 (scaling mode)")
     ap.add_argument("--lens", default="far", help="the lens of the scaling mode's job")
     ap.add_argument("--floor", nargs=3, metavar=("DATASET", "EXPERIMENT", "LENS"), help=argparse.SUPPRESS)
-    ap.add_argument("--job", nargs=4, metavar=("STAGE", "DATASET", "RESULTS", "LENS"), help=argparse.SUPPRESS)
+    ap.add_argument("--job", nargs=5, metavar=("STAGE", "DATASET", "RESULTS", "LENS", "BUNDLE"), help=argparse.SUPPRESS)
     ap.add_argument("--simulate", nargs=4, metavar=("OUT", "EXPERIMENT", "SCALE", "SEED"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.floor:
@@ -394,11 +419,14 @@ def main() -> None:
     for exp in args.experiments.split(","):
         if exp not in STAGE_OF:
             sys.exit(f"unknown experiment {exp}; choose among {', '.join(STAGE_OF)}")
+        if exp == "field" and not args.bundle:
+            sys.exit("--experiments field: the field stage applies a calibration bundle; give --bundle")
         dataset = work / f"dataset-{exp}"
         sim = simulate(dataset, exp, scale, args.seed)
         print(f"{exp}: " + (f"simulated in {sim:.0f} s" if sim is not None else "reused") + f" (load {load()})",
               flush=True)
-        rows += measure(STAGE_OF[exp], exp, dataset, results, LENSES, {})
+        rows += measure(STAGE_OF[exp], exp, dataset, results, stage_lenses(dataset, exp), {},
+                        Path(args.bundle) if exp == "field" else None)
         if not args.keep:
             remove_dataset(dataset)
         write_csv(work / f"bench_full-{args.experiments.replace(',', '-')}.csv", rows)
