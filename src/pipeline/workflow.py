@@ -226,7 +226,10 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
     if spec.bundle:
         if bundle is None:
             raise InputError(None, f"{stage} stage needs the calibration bundle; run the 'calibration' rule first")
-        calibration = read_artefact(bundle, "calibration")
+        # only the lenses of this call (the field: the one at the zenith): the per-pixel maps of the other lens
+        # are half the bundle (about 0.5 GB at the full scale) and the stage never reads them
+        with read_artefact(bundle, "calibration", load=False) as on_disk:
+            calibration = on_disk.sel(lens=[lens for lens in outputs if lens in on_disk["lens"].values]).load()
     out = {}
     for lens, out_path in outputs.items():
         out_path = Path(out_path)
