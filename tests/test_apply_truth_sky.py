@@ -17,7 +17,9 @@ chain splits its uncertainty:
   n - p independent residuals (shot, read and dark noise are drawn per pixel; stray light
   spreads the mean light before the photon noise, PRNU is fixed per pixel but divided out by
   the flat field, bias drift is one offset per frame and goes into the smooth part), so its
-  standard error is 1 / sqrt(2 (n - p));
+  sampling error is 1 / sqrt(2 (n - p)); the 6 spreads of a lens share one more error, that of the
+  fitted shot-noise gain (see :func:`spread_z`), so they are checked about their mean, the mean about 1
+  with that gain's stated sigma, and water against air;
 * systematic part: the band-mean deviation over the stated systematic sigma of the band mean
   (one draw per lens, band and medium, all 12 correlated through the shared calibration terms);
 * shape: the deviation relative to the truth, averaged in cells of field angle and azimuth,
@@ -36,7 +38,7 @@ dataset with every effect on).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from datetime import datetime
 
 import numpy as np
@@ -171,9 +173,9 @@ SMOOTH_DEGREE = 6
 #: error grows steeply towards the rim of the field (g(theta) falls fastest there), faster than the
 #: polynomial follows; it is common to the pixels of a ring, not pixel-to-pixel noise
 THETA_KNOT_DEG = 5.0
-#: standard errors of a sample spread allowed: 3, so that with 12 spreads one strays beyond by chance
-#: with probability about 12 x 0.27 % = 3 % (the spread estimates are close to normal at n - p ~ 2,000)
-SPREAD_SE_FACTOR = 3.0
+#: the random spreads are checked as 16 draws, per lens its 6 spreads about their mean, that mean about 1 and
+#: the water spreads' mean less the air spreads' (:func:`spread_z`), Bonferroni at CONFIDENCE (c about 2.96)
+SPREAD_DRAWS = 16
 #: confidence of the systematic and shape bounds (Bonferroni over the draws: valid whatever their correlation)
 CONFIDENCE = 0.95
 #: shape cells: rings of field angle (deg) from the reference disc out to the limit, four azimuth quadrants
@@ -201,6 +203,7 @@ class Group:
     x: np.ndarray
     y: np.ndarray
     scale_rel_sigma: float       # the stated systematic terms that are one scale for the whole band
+    shot_gain_rel_sigma: float   # stated relative sigma of the shot noise's gain K_100 f_ISO at the sky ISO
 
 
 def _scale_rel_sigma(bundle, lens, band, medium):
@@ -216,6 +219,19 @@ def _scale_rel_sigma(bundle, lens, band, medium):
         f = b.sel(gain_iso=SKY_ISO)
         var += (float(f["iso_gain_factor_sigma"]) / float(f["iso_gain_factor"])) ** 2
     return float(np.sqrt(var))
+
+
+def _shot_gain_rel_sigma(bundle, lens):
+    """Relative sigma of the photon-transfer gain at the sky ISO, K_100 f_ISO (the linearity stage's stated
+    sigmas of K_100 and of the ISO gain factor, independent fits): the shot variance the chain states for every
+    pixel of the lens is K_100 f_ISO (ISO / 100) times the signal, so an error of K_100 f_ISO is one
+    factor on the stated shot variance of all its pixels, common to the lens's 6 spreads."""
+    b = bundle.sel(lens=lens)
+    rel = float(b["conversion_gain_dn_per_e_sigma"]) / float(b["conversion_gain_dn_per_e"])
+    if "iso_gain_factor" in b:
+        f = b.sel(gain_iso=SKY_ISO)
+        rel = float(np.hypot(rel, float(f["iso_gain_factor_sigma"]) / float(f["iso_gain_factor"])))
+    return rel
 
 
 @pytest.fixture(scope="module")
@@ -235,7 +251,7 @@ def groups(calibrated, sky):
                 out.append(Group(medium, lens, band, (radiance - true)[sel], true[sel], get("radiance_random_sigma")[sel],
                                  get("radiance_systematic_sigma")[sel], theta[sel],
                                  np.mod(ds["phi_deg"].sel(lens=lens, band=band).values[sel], 360.0), x, y,
-                                 _scale_rel_sigma(bundle, lens, band, medium)))
+                                 _scale_rel_sigma(bundle, lens, band, medium), _shot_gain_rel_sigma(bundle, lens)))
     return out
 
 
@@ -263,27 +279,78 @@ def random_spread(g: Group) -> tuple[float, int]:
     return float(np.sqrt(np.sum(resid**2) / dof)), dof
 
 
-@pytest.mark.parametrize("lens", [
-    "close",
-    pytest.param("far", marks=pytest.mark.xfail(strict=True, reason=(
-        "water/far/R: spread 0.950 against the bound 0.955 (3.3 standard errors low) since the simulator's "
-        "in-water roll-off comes from Snell and Fresnel: the water frames are a new draw (the air spreads are "
-        "unchanged, the other water spreads moved by up to 0.03: 0.972 -> 0.950 for far R, 1.009 -> 1.038 for "
-        "close G); whether a low draw or a random sigma overstated in water is not isolated"))),
-])
-def test_random_part_has_unit_spread(groups, lens):
-    """Each of the lens's 6 spreads rests on n - p (about 2,100 - 44) independent pixels: standard error
-    1 / sqrt(2 (n - p)), about 0.016 (p: 28 polynomial terms and 14 to 17 in theta); allowed
-    |spread - 1| <= 3 standard errors. (The close lens's G spreads were 1.055 and 1.052 while its
-    photon-transfer gain came out 3 sigma low and its PRNU spread 7 % low: see tests/test_photon_transfer.py
-    and the flat field on the linearised signal; now 0.996 to 1.010.)"""
-    bad = []
-    for g in (g for g in groups if g.lens == lens):
+def spread_z(groups, lens) -> tuple[list[tuple[str, float]], float, float]:
+    """The lens's 6 spreads as 8 draws: each spread about the lens's mean spread (z, the 6 contrasts), that
+    mean about 1 (z of the mean) and the mean of the water spreads less that of the air spreads (z of the media).
+
+    A spread s_k (:func:`random_spread`) has the sampling standard error e_k = 1 / sqrt(2 (n_k - p - 1)). Besides,
+    the chain states every pixel's shot variance as K_100 f_ISO (ISO / 100) times its signal, with K_100 f_ISO
+    the linearity stage's fit (stated relative sigma ``shot_gain_rel_sigma``, about 1.4 to 1.8 %): an error delta
+    of it multiplies the stated variance of the shot fraction f of every pixel of the lens by (1 + delta), so
+    all 6 spreads move together by -f delta / 2 (f is 0.66 to 0.90 here; bounded by 1). Hence
+      contrast: s_k - mean(s), free of delta, variance e_k^2 (1 - 2/6) + sum(e^2) / 36;
+      mean: mean(s) - 1, variance sum(e^2) / 36 + (shot_gain_rel_sigma / 2)^2;
+      media: mean(s, water) - mean(s, air), free of delta, variance sum(e^2) / 9
+    (a random sigma wrong in one medium only, by a factor, moves the media's z most).
+    """
+    gs = [g for g in groups if g.lens == lens]
+    spreads, ses = [], []
+    for g in gs:
         spread, dof = random_spread(g)
-        tol = SPREAD_SE_FACTOR / np.sqrt(2.0 * (dof - 1))
-        if abs(spread - 1.0) > tol:
-            bad.append(f"{g.medium}/{g.lens}/{g.band}: {spread:.3f} (n - p = {dof}, tolerance {tol:.3f})")
-    assert not bad, "random spread off unity: " + "; ".join(bad)
+        spreads.append(spread)
+        ses.append(1.0 / np.sqrt(2.0 * (dof - 1)))
+    spreads, ses = np.array(spreads), np.array(ses)
+    n = len(spreads)
+    mean, se_mean = spreads.mean(), np.sqrt(np.sum(ses**2)) / n
+    contrast = (spreads - mean) / np.sqrt(ses**2 * (1.0 - 2.0 / n) + se_mean**2)
+    shot_gain = max(g.shot_gain_rel_sigma for g in gs)
+    z_mean = (mean - 1.0) / np.hypot(se_mean, shot_gain / 2.0)
+    water = np.array([g.medium == "water" for g in gs])
+    z_media = (spreads[water].mean() - spreads[~water].mean()) / (np.sqrt(np.sum(ses**2)) / (n / 2))
+    names = [f"{g.medium}/{g.lens}/{g.band} {s:.3f}" for g, s in zip(gs, spreads)]
+    return list(zip(names, contrast.tolist())), float(z_mean), float(z_media)
+
+
+@pytest.mark.parametrize("lens", ["close", "far"])
+def test_random_part_has_unit_spread(groups, lens):
+    """The stated random sigma of each lens, band and medium is the spread of the random part: the lens's 6
+    spreads about their mean, that mean about 1 and water against air (:func:`spread_z`), all |z| within the
+    Bonferroni bound over the 16 draws of both lenses at 95 % (c = 2.96; the spreads are close to normal at
+    n - p ~ 2,000; the residuals' excess kurtosis over the seeds below was -0.04 to 0.06).
+
+    The shared shot-gain term is why the spreads of one lens scatter more than their sampling error of about
+    0.016 (issue 8): over the dataset seeds 1 to 30 (SEED here; 12 and 15 stop in the roll-off stage, and the
+    12 of the other 112 lenses and media whose roll-off fit failed, reduced chi-square 12 to 335, are left out:
+    45 lenses with all 6 groups), the spreads' sd was 0.017 to 0.025 against 0.015
+    to 0.016, their lens means' sd 0.012 to 0.014 against 0.006, correlated (r = -0.5, -0.65) with the fitted
+    K_100 f_ISO's error (slope -0.55, -0.52: -f / 2). Water is not overstated: pooled mean spread 1.0047 +- 0.0015
+    in water (141), 1.0029 +- 0.0017 in air (159); water/far/R 1.000 +- 0.004 (23 seeds), its 0.950 at this seed
+    a low draw. With each spread against 3 sampling errors 6 of the 45 lens draws failed (nominal 1.6 %); with
+    this test the contrasts' z had sd 1.06 (270), the lens means' 1.18 (mean +0.34), water less air 1.11 (mean
+    +0.19, largest 2.53), 1 of 45 failed (seed 8, far, mean z 3.55). Here: far contrast z down to -2.26
+    (water R), mean z -1.96, media -0.78. (The close lens's G spreads
+    were 1.055 and 1.052 while its photon-transfer gain came out 3 sigma low and its PRNU spread 7 % low: see
+    tests/test_photon_transfer.py and the flat field on the linearised signal.)"""
+    c = stats.norm.ppf(1.0 - (1.0 - CONFIDENCE) / (2 * SPREAD_DRAWS))
+    contrasts, z_mean, z_media = spread_z(groups, lens)
+    print(f"{lens}: spreads " + ", ".join(f"{name} (z {z:+.2f})" for name, z in contrasts)
+          + f"; lens mean z {z_mean:+.2f}, water less air z {z_media:+.2f}, bound {c:.2f}")
+    bad = [f"{name}: contrast z {z:+.2f}" for name, z in contrasts if abs(z) > c]
+    bad += [f"{lens} {what}: z {z:+.2f}" for what, z in (("mean spread", z_mean), ("water less air", z_media))
+            if abs(z) > c]
+    assert not bad, f"random spread off unity beyond {c:.2f}: " + "; ".join(bad)
+
+
+def test_random_spread_check_sees_a_water_sigma_5_percent_high(groups):
+    """The check above could fail: the water pixels' random sigma stated 5 % too high (the question of issue 8)
+    drops the 3 water spreads of a lens by 1 - 1 / 1.05 = 0.048, the media's z by 0.048 / (sqrt(6) 0.0153 / 3)
+    = 3.8 against the bound 2.96 (over the 45 seed draws of the media's z, sd 1.11, this shift takes about 70 % of the
+    lenses beyond it); at this seed the media's z are -0.78 (far) and +1.07 (close), so about -4.6 and -2.7: the
+    far lens fails."""
+    c = stats.norm.ppf(1.0 - (1.0 - CONFIDENCE) / (2 * SPREAD_DRAWS))
+    inflated = [replace(g, random_sigma=g.random_sigma * 1.05) if g.medium == "water" else g for g in groups]
+    z_media = {lens: spread_z(inflated, lens)[2] for lens in LENSES}
+    assert min(z_media.values()) < -c, z_media
 
 
 def test_band_mean_deviation_within_the_systematic_sigma(groups):
