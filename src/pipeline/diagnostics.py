@@ -104,6 +104,7 @@ from scipy import stats
 
 from pipeline.effects import available, load_plugins
 from pipeline.effects import get as get_effect
+from pipeline.block_bootstrap import BlockTestPart, block_test_p_value
 from pipeline.fitting import base_design, block_gls_drop, wls
 from pipeline.observations import dataset_to_table
 from pipeline.residual_structure import (
@@ -225,7 +226,8 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         gls = block_gls_drop(obs.table["value_dn"].to_numpy(float), sigma, X, Xf, blocks, cfg["block_noise_forms"],
                              fit1)
         parts.append({"obs": obs, "fit0": fit0, "fit1": fit1, "k": k, "coef": coef, "cov": cov,
-                      "gls": gls if gls.k > 0 and gls.n_blocks - 1 > gls.k else None})
+                      "gls": gls if gls.k > 0 and gls.n_blocks - 1 > gls.k else None,
+                      "test": BlockTestPart(sigma, X, Xf, blocks, fit1, tuple(cfg["block_noise_forms"]))})
     if not parts:
         return None
     d_chi2 = sum(p["fit0"].chi2 - p["fit1"].chi2 for p in parts)
@@ -237,8 +239,9 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
     s2 = max(chi2_1 / max(dof_1, 1), 1.0)
     f_stat = (d_chi2 / k) / s2
     p_model = float(stats.f.sf(f_stat, k, max(dof_1, 1)))
-    # the same drop tested at the level of blocks (cluster-robust Wald, F(k, G - 1))
-    p_value, p_block, n_blocks = p_model, float("nan"), 0
+    # the same drop tested at the level of blocks (generalised least squares under the block noise)
+    alpha = cfg["significance_level"] / max(n_candidates, 1)
+    p_value, p_block, n_blocks, reference, nu = p_model, float("nan"), 0, "", float("nan")
     if all(p["gls"] is not None for p in parts):
         n_blocks = min(p["gls"].n_blocks for p in parts)
         k_gls = sum(p["gls"].k for p in parts)
@@ -247,7 +250,8 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         # of the rows (floored) still bounds the p-value from below
         s2_gls = sum(p["gls"].chi2 for p in parts) / max(sum(p["gls"].dof for p in parts), 1)
         f_gls = sum(p["gls"].delta_chi2 for p in parts) / k_gls / s2_gls
-        p_block = float(stats.f.sf(f_gls, k_gls, n_blocks - 1))
+        p_block, reference, nu = block_test_p_value(f_gls, k_gls, n_blocks, [p["test"] for p in parts], p_model,
+                                                    alpha, cfg)
         p_value = max(p_model, p_block)
     best = max(parts, key=lambda p: p["fit0"].chi2 - p["fit1"].chi2)
     # scale the coefficient covariance by the residual variance when the noise is underestimated;
@@ -265,7 +269,6 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
     # the smallest amplitude the counted test would call significant: the larger of the rows' test (normal
     # quantile, the scaled model covariance) and the block test (its t(G - 1) quantile, its own scale), as
     # the p-value that counts is the larger of the two
-    alpha = cfg["significance_level"] / max(n_candidates, 1)
     var_model = best["cov"][0, 0] * max(best["fit1"].chi2 / max(best["fit1"].dof, 1), 1.0)
     detectable = float(np.sqrt(max(var_model, 0.0))) * stats.norm.isf(alpha / 2)
     if best["gls"] is not None:
@@ -284,6 +287,8 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         "p_value_model": p_model,
         "p_value_block": p_block,
         "n_blocks": n_blocks,
+        "block_reference": reference,
+        "block_reference_dof": nu,
         "significant": bool(p_value < cfg["significance_level"] / max(n_candidates, 1) and evidence > 0),
         "explained_fraction": float(np.clip(d_chi2 / excess, 0.0, 1.0)) if excess > 0 else 0.0,
         "amplitude": amp, "amplitude_low": lo, "amplitude_high": hi,
