@@ -1,27 +1,31 @@
-"""Is F(k, G - 1) the right reference for the block test when one block fixes each tested parameter?
+"""Which reference for the block test when one block fixes each tested parameter? F(k, G - 1) or a bootstrap.
 
     python benchmarks/bench_block_reference.py [--null N] [--power N] [--draws B] [--seed S] [--form-case] [--tanh-case]
 
 The diagnostics test a candidate's drop in chi-square by generalised least squares under noise common to each
 block (a random effect per block, ``pipeline.fitting.block_gls_drop``) and refer F = (drop / k) / (chi2 / dof)
-to F(k, G - 1) for G blocks. Where each tested parameter is fixed by one block (``iso_gain``: one gain-sweep
-setting per ISO, k = 5 on 13 settings) that reference has little power. This script measures an alternative:
-the statistic's own null distribution by a parametric bootstrap (the table simulated under the block-noise
-model fitted to it, every draw through the same estimator of the block variances and the same generalised
-least squares), summarised as F(k, nu) with nu matched to the draws' mean (raised by two standard errors),
-used where the rows' F test is below the level (where it can change the verdict). Two variants: the
-variances at their estimate (plug-in), and at the estimate plus two standard deviations of the draws' own
-estimates (inflated).
+to the distribution ``diagnostics.block_reference`` names. Where each tested parameter is fixed by one block
+(``iso_gain``: one gain-sweep setting per ISO, k = 5 on 13 settings) F(k, G - 1) for G blocks is a poor
+reference. This script measures the alternatives of ``pipeline.block_bootstrap`` (one piece of code with the
+diagnostics): the statistic's own null distribution by a parametric bootstrap (the table simulated under the
+block-noise model fitted to it, every draw through the same estimator of the block variances and the same
+generalised least squares), summarised as F(k, nu) with nu matched to the draws' mean (raised by two
+standard errors), used where the rows' F test is below the level (where it can change the verdict). Columns:
+F(k, G - 1) (the diagnostics with ``block_reference: f``); the bootstrap at the variances' estimate
+(plug-in); with the estimate's uncertainty carried into the draws, each at the variances a first draw at the
+estimate estimated (bootstrap: the diagnostics' default); at the estimate plus two standard deviations of
+the draws' own estimates (inflated); the larger of the plug-in's and F(k, G - 1)'s p-values (max(p,F)); and
+the rows treated as independent. ``--draws`` defaults to ``diagnostics.block_bootstrap_draws``.
 
 On synthetic 13-block linearity setting tables shaped as the tiny camera's (7 exposure settings at ISO 100,
 6 gain settings at 8.33 ms, 2 lenses x 3 bands; row noise 0.1 sqrt(DN x ISO/100) + 1 DN) it counts, without
-an effect, the false alarms at 0.05 and 0.01 of F(k, G - 1), of the two bootstrap references and of the rows
-treated as independent, for block noise of a relative 0.3 % and 0.5 DN, of a relative 0.6 % and 0.5 DN, and
-of 2 DN offsets alone; and with a gain ladder (ISO/100)^(-0.01), how often each calls ``iso_gain``
+an effect, the false alarms at 0.05 and 0.01 of each, for block noise of a relative 0.3 % and 0.5 DN, of a
+relative 0.6 % and 0.5 DN, and of 2 DN offsets alone; and with a gain ladder (ISO/100)^(-0.01), how often each calls ``iso_gain``
 significant at 0.001 / 13. ``--form-case`` first prints the same for the linearity setting table of the
 tiny dataset (seed 101) with the power-law gain ladder of ``tests/effect_forms.py`` written into its raw
 frames (amplitude 0.01, rewrite seed 7): the drops in chi-square, the block-noise variances, the F statistic
-against F(k, G - 1) and F(k, dof), and the bootstrap null distribution of its F (2000 draws);
+against F(k, G - 1) and F(k, dof), the bootstrap null distribution of its F (2000 draws at the
+variances' estimate) and the diagnostics' references and p-value;
 ``--tanh-case`` the residual tests of the linearity setting table of the detection benchmark's tanh case
 (seed 521, 4 % at full scale) once ``nonlinearity`` is in the model, their parts, and the mean residual by
 signal level. A benchmark, not a test: nothing is asserted.
@@ -192,6 +196,7 @@ def form_case(config: dict, draws: int = 2000) -> None:
     nu = f_reference_dof(f, g.dof)
     ref = block_bootstrap_reference([BlockTestPart(sigma, X, X1, blocks, fit1, tuple(cfg["block_noise_forms"]))],
                                     cfg["block_bootstrap_draws"], cfg["block_bootstrap_seed"])
+    r = candidate_significance("iso_gain", [o for o in obs if o.experiment == "linearity"], [], config, 13)
     print(f"tiny seed 101, iso_gain_power_law 0.01, linearity settings: {len(table)} rows, {g.n_blocks} blocks; "
           f"rows' drop {fit0.chi2 - fit1.chi2:.1f} (chi2 {fit0.chi2:.1f} -> {fit1.chi2:.1f}, dof {fit1.dof}); "
           f"block-noise variances {', '.join(f'{n} {float(v):.3g}' for n, v in zip(cfg['block_noise_forms'], g.tau2))} (offset DN2, relative 1); "
@@ -205,19 +210,21 @@ def form_case(config: dict, draws: int = 2000) -> None:
     print(f"  the diagnostics' references ({cfg['block_bootstrap_draws']} draws, seed {cfg['block_bootstrap_seed']}): "
           f"plug-in nu {ref.nu_plug_in:.1f}, p {stats.f.sf(f_obs, g.k, ref.nu_plug_in):.2g}; propagated (bootstrap) "
           f"nu {ref.nu_propagated:.1f}, p {stats.f.sf(f_obs, g.k, ref.nu_propagated):.2g}; the diagnostics' "
-          f"p-value {candidate_significance('iso_gain', [o for o in obs if o.experiment == 'linearity'], [], config, 13)['p_value']:.2g}")
+          f"(the seed from the table): p-value {r['p_value']:.2g}, {r['block_reference']} nu {r['block_reference_dof']:.1f}")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--null", type=int, default=200, help="tables per null case")
     ap.add_argument("--power", type=int, default=40, help="tables with the gain ladder")
-    ap.add_argument("--draws", type=int, default=400, help="bootstrap draws per table")
+    ap.add_argument("--draws", type=int, default=None,
+                    help="bootstrap draws per table (default diagnostics.block_bootstrap_draws)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--form-case", action="store_true", help="first the power-law gain ladder on the tiny dataset")
     ap.add_argument("--tanh-case", action="store_true", help="then the tanh nonlinearity's residual tests")
     args = ap.parse_args()
     config = load_config()
+    args.draws = args.draws or config["diagnostics"]["block_bootstrap_draws"]
     # the diagnostics with F(k, G - 1) for the first column; the bootstrap references drawn here
     config_f = {**config, "diagnostics": {**config["diagnostics"], "block_reference": "f"}}
     if args.form_case:

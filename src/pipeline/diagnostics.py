@@ -35,9 +35,15 @@ tau^2 estimated by moments from the within-block products of the larger
 model's residuals (so that the candidate's own signal is not counted as block
 noise). The drop in chi-square is then recomputed by generalised least squares
 under that covariance (:func:`pipeline.fitting.block_gls_drop`) and
-F = (drop / k) / (chi2 / dof), both from that fit, is referred to F(k, G - 1)
-for G blocks (the fewest over the tables the candidate touches): the block
-noise is known only from the G blocks. The scale chi2 / dof is not floored at
+F = (drop / k) / (chi2 / dof), both from that fit, is referred to the distribution
+``diagnostics.block_reference`` names: by default (``bootstrap``) the statistic's own
+null distribution, a parametric bootstrap of the tables under the block-noise model
+fitted to them with the variances' own uncertainty carried into the draws,
+summarised as F(k, nu) (:mod:`pipeline.block_bootstrap`), drawn only where the rows'
+F test is below the level (elsewhere the candidate is not significant whatever the
+block reference, and F(k, G - 1) is reported); ``f``, F(k, G - 1) for G blocks (the
+fewest over the tables the candidate touches). ``block_reference`` and
+``block_reference_dof`` say which was read, with its nu. The scale chi2 / dof is not floored at
 1 as in the F test of the rows: a stage's sigma may already hold noise common
 to a block (the field's reference-window term is common to the bands of a
 frame), which the random effect then counts twice (the field's glare: F test
@@ -78,9 +84,11 @@ false alarms in 800 draws at 0.05, 0.01 and 0.001 (block noise half sigma; measu
 Satterthwaite mix of the two 61, 21 and 6, F(k, G - 1) 50, 7 and 1 (expected 40, 8 and 0.8). Assumption
 behind F(k, G - 1): the block variances' uncertainty is that of G blocks whatever the tested columns; where
 each tested parameter is fixed by one block and the relative block noise is about its standard error
-(``iso_gain``, 13 settings, 0.6 %), it gave 55 and 19 false alarms in 600 at 0.05 and 0.01, and a
-parametric bootstrap of the statistic, nominal there, raised them with large offsets instead
-(``benchmarks/bench_block_reference.py``, README "Closure and diagnostics").
+(``iso_gain``, 13 settings, 0.6 %) it is 1.6 to 2 times too liberal, and without block noise it misses half
+the gain ladders the bootstrap finds; the bootstrap at the variances' estimate (plug-in) is too liberal with
+large offsets, underestimated by chance; carrying the estimate's uncertainty into the draws keeps the false
+alarms within their binomial interval in the three null cases measured (``benchmarks/bench_block_reference.py``,
+README "Closure and diagnostics", for the counts).
 
 Then every table (experiment and level) has its residual chi-square tested against its degrees of
 freedom, after the accepted candidates (:func:`residual_tests`, :mod:`pipeline.residual_structure`):
