@@ -121,8 +121,8 @@ NOT_SIGNIFICANT = {
         "fixed by the one setting (block) taken at that ISO; F = 10.4 with block-noise variances 0.52 DN2 (offset) "
         "and 0 (relative). Against F(5, 12) p 4.9e-4; the bootstrap reference (diagnostics.block_reference) "
         "matches nu to 400 draws' mean plus two standard errors, and this table's draws (its seed from "
-        "block_bootstrap_seed and the table) give nu 13.8, where seed 0 gives 21.8 (p 3.3e-5), "
-        "): the reference's Monte Carlo error decides this case, its power on synthetic ladders is twice "
+        "block_bootstrap_seed and the table) give nu 13.8, where seed 0 gives 21.8 (p 3.3e-5): "
+        "the reference's Monte Carlo error decides this case, its power on synthetic ladders is twice "
         "F(k, G - 1)'s (benchmarks/bench_block_reference.py)"),
 }
 
