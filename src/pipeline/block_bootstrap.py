@@ -195,7 +195,8 @@ def block_bootstrap_reference(parts: list[BlockTestPart], draws: int, seed: int)
     ``parts`` (the tables a candidate touches, drawn independently, the draws of one index combined), summarised
     as F(k, nu): at the block-noise variances estimated from each table (plug-in), and with each draw at the
     variances estimated by a first draw at the estimate (propagated: the estimate's own sampling spread carried
-    into the reference). ``2 draws`` tables are simulated per part; the seed of part j is ``seed + j``."""
+    into the reference). 2 x ``draws`` tables are simulated per part, from the seeds ``seed + j`` and
+    ``seed + j + 7919`` for part j."""
     k, dof = 0, 0
     drop_plug, chi_plug, drop_prop, chi_prop = 0.0, 0.0, 0.0, 0.0
     for j, p in enumerate(parts):
@@ -228,7 +229,7 @@ def table_seed(parts: list[BlockTestPart], seed: int) -> int:
     so that the Monte Carlo error of the reference is independent between tables, as
     ``benchmarks/bench_block_reference.py`` measured it, while the same tables always give the same draws. (One
     seed for every table gave nu 11.7 on each of eight gain-ladder tables without block noise where seeds
-    1 and 2 gave 20 and 14: the same draws for tables of one shape.)"""
+    1 and 2 gave 20 and 15: the same draws for tables of one shape.)"""
     crc = [zlib.crc32(np.ascontiguousarray(np.round(p.fit1.z, 6)).tobytes()) for p in parts]
     return int(np.random.SeedSequence([seed, *crc]).generate_state(1)[0])
 
