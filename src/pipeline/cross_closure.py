@@ -58,7 +58,8 @@ lenses (``Effect.columns``). Whether one shared value is enough: for each effect
 carry both lenses, the effect's columns shared by the lenses are compared with the same columns split
 per lens (the rest of the model as it is): the drop in chi-square F-tested against the split model's residual variance and, by
 block, with the same drop by generalised least squares under the noise common to a block
-(:func:`pipeline.fitting.block_gls_drop`, F(k, G - 1), as the candidates are tested; the larger
+(:func:`pipeline.fitting.block_gls_drop`, the reference of ``diagnostics.block_reference``, as the
+candidates are tested; the larger
 p-value, Bonferroni over the tests made). Each lens's value and its 95 % interval come from the split fit.
 
 Nothing here reads a simulator's truth: only the stage artefacts.
@@ -74,6 +75,7 @@ import xarray as xr
 from scipy import stats
 
 from pipeline.bands import BANDS
+from pipeline.block_bootstrap import BlockTestPart, block_test_p_value
 from pipeline.diagnostics import Observations, _fit, blocks_of, model_design
 from pipeline.effects import available
 from pipeline.effects import get as get_effect
@@ -340,14 +342,18 @@ def lens_interaction_tests(observations: list[Observations], model_effects: list
             y = t["value_dn"].to_numpy(float)
             blocks, _ = blocks_of(t, cfg["block_keys"])
             forms = cfg["block_noise_forms"]
-            # the same drop with the noise common to a block as a random effect (generalised least squares,
-            # F(k, G - 1)), as the candidates are tested (pipeline.diagnostics)
+            # the same drop with the noise common to a block as a random effect (generalised least squares),
+            # as the candidates are tested (pipeline.diagnostics)
             gls = block_gls_drop(y, sigma, Xs, Xd, blocks, forms, fit_d)
             p_block, n_blocks = float("nan"), 0
             if gls.k > 0 and gls.n_blocks - 1 > gls.k:
                 n_blocks = gls.n_blocks
                 f_block = gls.delta_chi2 / gls.k / (gls.chi2 / max(gls.dof, 1))
-                p_block = float(stats.f.sf(f_block, gls.k, n_blocks - 1))
+                # the reference of diagnostics.block_reference, drawn where the rows' test is below the level
+                # before the Bonferroni correction (a superset of where it can change the verdict)
+                p_block, _, _ = block_test_p_value(f_block, gls.k, n_blocks,
+                                                   [BlockTestPart(sigma, Xs, Xd, blocks, fit_d, tuple(forms))],
+                                                   p_model, cfg["significance_level"], cfg)
             p_value = max(p_model, p_block) if n_blocks else p_model
             # each lens's value and interval: the split fit's covariance, scaled by the residual variance, or
             # the block-noise one (t(G - 1) quantile) where it is wider

@@ -193,8 +193,10 @@ def explain_lines(found: dict, name: str) -> list[str]:
         given = f", given {row['conditional_on']}" if isinstance(row.get("conditional_on"), str) and \
             row.get("conditional_on") else ""
         verdict = "significant" if _truthy(row["significant"]) else "not significant"
+        reference = row.get("block_reference")
+        against = f" against {reference}" if isinstance(reference, str) and reference else ""
         lines.append(f"  tested on {row['experiment']}{given}: rank {int(row['rank'])}, {verdict} (p {float(row['p_value']):.2g}; "
-                     f"F test {float(row['p_value_model']):.2g}, block test {float(row['p_value_block']):.2g} over "
+                     f"F test {float(row['p_value_model']):.2g}, block test {float(row['p_value_block']):.2g}{against} over "
                      f"{int(row['n_blocks'])} blocks), evidence {float(row['evidence']):.1f}, explains "
                      f"{float(row['explained_fraction']):.0%} of the excess chi-square")
         label = row.get("amplitude_name") if isinstance(row.get("amplitude_name"), str) else "amplitude"

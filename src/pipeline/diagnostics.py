@@ -35,9 +35,15 @@ tau^2 estimated by moments from the within-block products of the larger
 model's residuals (so that the candidate's own signal is not counted as block
 noise). The drop in chi-square is then recomputed by generalised least squares
 under that covariance (:func:`pipeline.fitting.block_gls_drop`) and
-F = (drop / k) / (chi2 / dof), both from that fit, is referred to F(k, G - 1)
-for G blocks (the fewest over the tables the candidate touches): the block
-noise is known only from the G blocks. The scale chi2 / dof is not floored at
+F = (drop / k) / (chi2 / dof), both from that fit, is referred to the distribution
+``diagnostics.block_reference`` names: by default (``bootstrap``) the statistic's own
+null distribution, a parametric bootstrap of the tables under the block-noise model
+fitted to them with the variances' own uncertainty carried into the draws,
+summarised as F(k, nu) (:mod:`pipeline.block_bootstrap`), drawn only where the rows'
+F test is below the level (elsewhere the candidate is not significant whatever the
+block reference, and F(k, G - 1) is reported); ``f``, F(k, G - 1) for G blocks (the
+fewest over the tables the candidate touches). ``block_reference`` and
+``block_reference_dof`` say which was read, with its nu. The scale chi2 / dof is not floored at
 1 as in the F test of the rows: a stage's sigma may already hold noise common
 to a block (the field's reference-window term is common to the bands of a
 frame), which the random effect then counts twice (the field's glare: F test
@@ -78,9 +84,11 @@ false alarms in 800 draws at 0.05, 0.01 and 0.001 (block noise half sigma; measu
 Satterthwaite mix of the two 61, 21 and 6, F(k, G - 1) 50, 7 and 1 (expected 40, 8 and 0.8). Assumption
 behind F(k, G - 1): the block variances' uncertainty is that of G blocks whatever the tested columns; where
 each tested parameter is fixed by one block and the relative block noise is about its standard error
-(``iso_gain``, 13 settings, 0.6 %), it gave 55 and 19 false alarms in 600 at 0.05 and 0.01, and a
-parametric bootstrap of the statistic, nominal there, raised them with large offsets instead
-(``benchmarks/bench_block_reference.py``, README "Closure and diagnostics").
+(``iso_gain``, 13 settings, 0.6 %) it is 1.6 to 2 times too liberal, and without block noise it misses half
+the gain ladders the bootstrap finds; the bootstrap at the variances' estimate (plug-in) is too liberal with
+large offsets, underestimated by chance; carrying the estimate's uncertainty into the draws keeps the false
+alarms within their binomial interval in the three null cases measured (``benchmarks/bench_block_reference.py``,
+README "Closure and diagnostics", for the counts).
 
 Then every table (experiment and level) has its residual chi-square tested against its degrees of
 freedom, after the accepted candidates (:func:`residual_tests`, :mod:`pipeline.residual_structure`):
@@ -104,6 +112,7 @@ from scipy import stats
 
 from pipeline.effects import available, load_plugins
 from pipeline.effects import get as get_effect
+from pipeline.block_bootstrap import BlockTestPart, block_test_p_value
 from pipeline.fitting import base_design, block_gls_drop, wls
 from pipeline.observations import dataset_to_table
 from pipeline.residual_structure import (
@@ -225,7 +234,8 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         gls = block_gls_drop(obs.table["value_dn"].to_numpy(float), sigma, X, Xf, blocks, cfg["block_noise_forms"],
                              fit1)
         parts.append({"obs": obs, "fit0": fit0, "fit1": fit1, "k": k, "coef": coef, "cov": cov,
-                      "gls": gls if gls.k > 0 and gls.n_blocks - 1 > gls.k else None})
+                      "gls": gls if gls.k > 0 and gls.n_blocks - 1 > gls.k else None,
+                      "test": BlockTestPart(sigma, X, Xf, blocks, fit1, tuple(cfg["block_noise_forms"]))})
     if not parts:
         return None
     d_chi2 = sum(p["fit0"].chi2 - p["fit1"].chi2 for p in parts)
@@ -237,8 +247,9 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
     s2 = max(chi2_1 / max(dof_1, 1), 1.0)
     f_stat = (d_chi2 / k) / s2
     p_model = float(stats.f.sf(f_stat, k, max(dof_1, 1)))
-    # the same drop tested at the level of blocks (cluster-robust Wald, F(k, G - 1))
-    p_value, p_block, n_blocks = p_model, float("nan"), 0
+    # the same drop tested at the level of blocks (generalised least squares under the block noise)
+    alpha = cfg["significance_level"] / max(n_candidates, 1)
+    p_value, p_block, n_blocks, reference, nu = p_model, float("nan"), 0, "", float("nan")
     if all(p["gls"] is not None for p in parts):
         n_blocks = min(p["gls"].n_blocks for p in parts)
         k_gls = sum(p["gls"].k for p in parts)
@@ -247,7 +258,8 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         # of the rows (floored) still bounds the p-value from below
         s2_gls = sum(p["gls"].chi2 for p in parts) / max(sum(p["gls"].dof for p in parts), 1)
         f_gls = sum(p["gls"].delta_chi2 for p in parts) / k_gls / s2_gls
-        p_block = float(stats.f.sf(f_gls, k_gls, n_blocks - 1))
+        p_block, reference, nu = block_test_p_value(f_gls, k_gls, n_blocks, [p["test"] for p in parts], p_model,
+                                                    alpha, cfg)
         p_value = max(p_model, p_block)
     best = max(parts, key=lambda p: p["fit0"].chi2 - p["fit1"].chi2)
     # scale the coefficient covariance by the residual variance when the noise is underestimated;
@@ -265,7 +277,6 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
     # the smallest amplitude the counted test would call significant: the larger of the rows' test (normal
     # quantile, the scaled model covariance) and the block test (its t(G - 1) quantile, its own scale), as
     # the p-value that counts is the larger of the two
-    alpha = cfg["significance_level"] / max(n_candidates, 1)
     var_model = best["cov"][0, 0] * max(best["fit1"].chi2 / max(best["fit1"].dof, 1), 1.0)
     detectable = float(np.sqrt(max(var_model, 0.0))) * stats.norm.isf(alpha / 2)
     if best["gls"] is not None:
@@ -284,6 +295,8 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         "p_value_model": p_model,
         "p_value_block": p_block,
         "n_blocks": n_blocks,
+        "block_reference": reference,
+        "block_reference_dof": nu,
         "significant": bool(p_value < cfg["significance_level"] / max(n_candidates, 1) and evidence > 0),
         "explained_fraction": float(np.clip(d_chi2 / excess, 0.0, 1.0)) if excess > 0 else 0.0,
         "amplitude": amp, "amplitude_low": lo, "amplitude_high": hi,
