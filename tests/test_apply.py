@@ -129,6 +129,38 @@ def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
         apply_calibration(old, [_signal_frame(calibrated[0], "far")], "air", tmp_path / "out.nc")
 
 
+def test_mapped_maps_are_the_netcdf_values_and_a_compressed_bundle_gives_the_same_output(calibrated, tmp_path):
+    """The per-pixel maps apply memory-maps are the values NetCDF reads, for every map of the bundle; a bundle
+    whose maps are compressed (not mappable) is read through NetCDF and gives the same output bit for bit,
+    with the pixel maps and with the sphere grid only."""
+    from pipeline.calibration import mapped_maps
+
+    root, _, _, _, bundle_path, _ = calibrated
+    with read_bundle(bundle_path, load=False) as ds:
+        names = [n for n, v in ds.data_vars.items() if v.dims[-2:] == ("y", "x")]
+        assert {"pixel_factor", "pixel_systematic_relative_variance", "pixel_flag", "sphere_cell_in_block",
+                "theta_deg", "phi_deg", "solid_angle_sr"} <= set(names)
+        mapped = mapped_maps(bundle_path, ds, names)
+        assert sorted(mapped) == sorted(names)
+        for name in names:
+            assert not mapped[name].flags.writeable, name
+            assert mapped[name].dtype == ds[name].dtype, name
+            np.testing.assert_array_equal(mapped[name], ds[name].values, err_msg=name)
+        packed = ds.load()
+        packed.to_netcdf(tmp_path / "zlib.nc", engine="netcdf4",
+                         encoding={n: {"zlib": True, "complevel": 1, "contiguous": False} for n in names})
+    with read_bundle(tmp_path / "zlib.nc", load=False) as ds:
+        assert mapped_maps(tmp_path / "zlib.nc", ds, names) == {}
+    frame = _signal_frame(root, "far")
+    for pixels in (True, False):
+        got = [xr.open_dataset(apply_calibration(b, [frame], "air", tmp_path / f"{k}-{pixels}.nc", pixels=pixels))
+               for k, b in enumerate((bundle_path, tmp_path / "zlib.nc"))]
+        with got[0] as a, got[1] as b:
+            assert set(a.data_vars) == set(b.data_vars)
+            for name in a.data_vars:
+                np.testing.assert_array_equal(a[name].values, b[name].values, err_msg=f"{name} pixels={pixels}")
+
+
 def test_absolute_frame_recovers_the_port_radiance(calibrated, applied):
     _, truth, _, _, _, _ = calibrated
     bands = truth["experiments_truth"]["absolute"]["bands"]

@@ -49,7 +49,7 @@ import xarray as xr
 
 from pipeline.artefact import model_effects
 from pipeline.bands import BANDS, band_plane, band_saturation, cut_region
-from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects,
+from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects, mapped_maps,
                                   outside_image_circle, read_bundle, sphere_blocks)
 from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
@@ -637,9 +637,14 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
             + (["theta_deg", "phi_deg"] if geometry or not stored_cells else []) \
             + (["solid_angle_sr"] if geometry else [])
         at = {"medium": list(on_disk["medium"].values).index(medium)}
+        # the per-pixel maps memory-mapped where stored contiguous (the chain touches the page cache's pages;
+        # no copy into fresh memory), the others read through NetCDF
+        mapped = mapped_maps(bundle_path, on_disk, [n for n in names if on_disk[n].dims[-2:] == ("y", "x")])
         maps = {}
         for name in names:
             var = on_disk[name].variable
+            if name in mapped:
+                var = xr.Variable(var.dims, mapped[name])
             var = var.isel({d: k for d, k in at.items() if d in var.dims})
             maps[name] = var.transpose("lens", "band", *(d for d in var.dims if d not in ("lens", "band"))).values
         # the small variables (parameters, scalars, per-band tables) loaded whole, at this medium
