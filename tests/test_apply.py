@@ -290,6 +290,44 @@ def test_sphere_grid_is_the_binning_of_the_pixel_maps(calibrated, applied, tmp_p
         assert _check_grid_is_the_binning_of_the_pixel_maps(ds.load(), 10.0) > 100
 
 
+def test_saturated_pixels_leave_the_stored_cell_counts(calibrated, applied, tmp_path):
+    """The grid's counts start from the bundle's pixels per cell (sphere_cell_count) and lose the pixels a
+    frame's saturation keeps off: a frame with a patch of sites at the white level inside the far lens's
+    circle is still the binning of its pixel maps (saturated pixels flagged, off the grid), its cells there
+    count fewer pixels than the frame without the patch, and the grid alone (--no-pixels) is the same."""
+    root, _, _, _, bundle_path, meta = calibrated
+    raw = read_raw(_signal_frame(root, "far"))
+    bundle = read_bundle(bundle_path)
+    (r0, r1), (c0, c1) = bundle["lens_region_px"].sel(lens="far").values
+    cfa = raw.cfa.copy()
+    rows, cols = (r0 + r1) // 2 + np.arange(-9, 7), (c0 + c1) // 2 + np.arange(5, 30)
+    cfa[np.ix_(rows, cols)] = raw.white_level
+    path = tmp_path / "saturated.dng"
+    write_dng(path, cfa, exposure_s=raw.exposure_s, iso=raw.iso, time=raw.time, black_level=raw.black_level,
+              white_level=raw.white_level, serial=meta["camera"]["serial"])
+    with xr.open_dataset(apply_calibration(bundle_path, [path], "air", tmp_path / "sat.nc")) as ds, \
+            xr.open_dataset(apply_calibration(bundle_path, [path], "air", tmp_path / "sat-grid.nc", pixels=False)) as grid:
+        ds = ds.load()
+        saturated = (ds["quality_flag"].values & mm.FLAG_SATURATED) != 0
+        assert saturated.sum() >= 100
+        _check_grid_is_the_binning_of_the_pixel_maps(ds, 1.0)
+        fewer = ds["sphere_count"].values < applied["far"]["sphere_count"].values
+        assert fewer.any() and (ds["sphere_count"].values <= applied["far"]["sphere_count"].values).all()
+        for name in ("sphere_count", "sphere_radiance", "sphere_radiance_random_sigma", "sphere_radiance_systematic_sigma"):
+            np.testing.assert_array_equal(grid[name].values, ds[name].values, err_msg=name)
+    # the stored counts are the pixels on each cell and in the check, from the stored cells and flags
+    for lens in LENSES:
+        for band in ("R", "G", "B"):
+            g = bundle.sel(lens=lens, medium="air", band=band)
+            index = g["sphere_cell_in_block"].values.astype(int)
+            block = np.arange(index.shape[0]) // int(g["sphere_cell_in_block"].attrs["block_rows"])
+            n = g["sphere_block_n_cells"].values[block][:, None]
+            on = index < n
+            cell = (index + g["sphere_block_first_cell"].values[block][:, None])[on]
+            np.testing.assert_array_equal(g["sphere_cell_count"].values, np.bincount(cell, minlength=180 * 360))
+            assert int(g["sphere_checked_count"]) == on.sum() + (index == n + 1).sum()
+
+
 def test_pixel_maps_without_their_geometry_name_the_bundles(calibrated, applied, tmp_path):
     """--no-pixel-geometry: the same pixel maps, no geometry maps, and the hashes of the geometry artefacts."""
     import hashlib
