@@ -12,7 +12,10 @@ written); ``apply-maps`` the pixel maps with ``pixel_geometry=False``
 (``--no-pixel-geometry``: no theta, phi, solid angle, zenith and azimuth
 maps, which stay in the bundle). Each is run ``--repeat`` times, each run in a fresh Python process,
 alternating, after ``--warmup`` untimed rounds (1: the bundle and the frame
-into the page cache); the script prints the minimum and median wall time,
+into the page cache); before each run the output of the one before is deleted
+and the file system synced, untimed (so that no run pays for freeing the
+598 MB written by the run before, or shares the cores with its writeback);
+the script prints the minimum and median wall time,
 the median CPU time (all threads, user and system, and each apart: the
 system time is mostly the kernel's page faults and page-cache copies), the peak
 resident memory of each process (``VmHWM``) and the ratios apply / decode
@@ -204,6 +207,10 @@ def main() -> None:
     load_before = os.getloadavg()[0]
     for k in range(args.warmup + args.repeat):
         for what in runs:
+            # untimed: no earlier output to replace (its pages freed in the child's rename) and no dirty pages
+            # of the child before still being written back while this one runs
+            out.unlink(missing_ok=True)
+            os.sync()
             proc = subprocess.run([sys.executable, __file__, "--child", what, str(frame), str(bundle), str(out)],
                                   capture_output=True, text=True)
             if proc.returncode != 0:

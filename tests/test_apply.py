@@ -129,6 +129,38 @@ def test_a_bundle_of_the_old_layout_is_refused(calibrated, tmp_path):
         apply_calibration(old, [_signal_frame(calibrated[0], "far")], "air", tmp_path / "out.nc")
 
 
+def test_mapped_maps_are_the_netcdf_values_and_a_compressed_bundle_gives_the_same_output(calibrated, tmp_path):
+    """The per-pixel maps apply memory-maps are the values NetCDF reads, for every map of the bundle; a bundle
+    whose maps are compressed (not mappable) is read through NetCDF and gives the same output bit for bit,
+    with the pixel maps and with the sphere grid only."""
+    from pipeline.calibration import mapped_maps
+
+    root, _, _, _, bundle_path, _ = calibrated
+    with read_bundle(bundle_path, load=False) as ds:
+        names = [n for n, v in ds.data_vars.items() if v.dims[-2:] == ("y", "x")]
+        assert {"pixel_factor", "pixel_systematic_relative_variance", "pixel_flag", "sphere_cell_in_block",
+                "theta_deg", "phi_deg", "solid_angle_sr"} <= set(names)
+        mapped = mapped_maps(bundle_path, ds, names)
+        assert sorted(mapped) == sorted(names)
+        for name in names:
+            assert not mapped[name].flags.writeable, name
+            assert mapped[name].dtype == ds[name].dtype, name
+            np.testing.assert_array_equal(mapped[name], ds[name].values, err_msg=name)
+        packed = ds.load()
+        packed.to_netcdf(tmp_path / "zlib.nc", engine="netcdf4",
+                         encoding={n: {"zlib": True, "complevel": 1, "contiguous": False} for n in names})
+    with read_bundle(tmp_path / "zlib.nc", load=False) as ds:
+        assert mapped_maps(tmp_path / "zlib.nc", ds, names) == {}
+    frame = _signal_frame(root, "far")
+    for pixels in (True, False):
+        got = [xr.open_dataset(apply_calibration(b, [frame], "air", tmp_path / f"{k}-{pixels}.nc", pixels=pixels))
+               for k, b in enumerate((bundle_path, tmp_path / "zlib.nc"))]
+        with got[0] as a, got[1] as b:
+            assert set(a.data_vars) == set(b.data_vars)
+            for name in a.data_vars:
+                np.testing.assert_array_equal(a[name].values, b[name].values, err_msg=f"{name} pixels={pixels}")
+
+
 def test_absolute_frame_recovers_the_port_radiance(calibrated, applied):
     _, truth, _, _, _, _ = calibrated
     bands = truth["experiments_truth"]["absolute"]["bands"]
@@ -256,6 +288,44 @@ def test_sphere_grid_is_the_binning_of_the_pixel_maps(calibrated, applied, tmp_p
     path = apply_calibration(calibrated[4], [_signal_frame(root, "far")], "air", tmp_path / "coarse.nc", 10.0)
     with xr.open_dataset(path) as ds:
         assert _check_grid_is_the_binning_of_the_pixel_maps(ds.load(), 10.0) > 100
+
+
+def test_saturated_pixels_leave_the_stored_cell_counts(calibrated, applied, tmp_path):
+    """The grid's counts start from the bundle's pixels per cell (sphere_cell_count) and lose the pixels a
+    frame's saturation keeps off: a frame with a patch of sites at the white level inside the far lens's
+    circle is still the binning of its pixel maps (saturated pixels flagged, off the grid), its cells there
+    count fewer pixels than the frame without the patch, and the grid alone (--no-pixels) is the same."""
+    root, _, _, _, bundle_path, meta = calibrated
+    raw = read_raw(_signal_frame(root, "far"))
+    bundle = read_bundle(bundle_path)
+    (r0, r1), (c0, c1) = bundle["lens_region_px"].sel(lens="far").values
+    cfa = raw.cfa.copy()
+    rows, cols = (r0 + r1) // 2 + np.arange(-9, 7), (c0 + c1) // 2 + np.arange(5, 30)
+    cfa[np.ix_(rows, cols)] = raw.white_level
+    path = tmp_path / "saturated.dng"
+    write_dng(path, cfa, exposure_s=raw.exposure_s, iso=raw.iso, time=raw.time, black_level=raw.black_level,
+              white_level=raw.white_level, serial=meta["camera"]["serial"])
+    with xr.open_dataset(apply_calibration(bundle_path, [path], "air", tmp_path / "sat.nc")) as ds, \
+            xr.open_dataset(apply_calibration(bundle_path, [path], "air", tmp_path / "sat-grid.nc", pixels=False)) as grid:
+        ds = ds.load()
+        saturated = (ds["quality_flag"].values & mm.FLAG_SATURATED) != 0
+        assert saturated.sum() >= 100
+        _check_grid_is_the_binning_of_the_pixel_maps(ds, 1.0)
+        fewer = ds["sphere_count"].values < applied["far"]["sphere_count"].values
+        assert fewer.any() and (ds["sphere_count"].values <= applied["far"]["sphere_count"].values).all()
+        for name in ("sphere_count", "sphere_radiance", "sphere_radiance_random_sigma", "sphere_radiance_systematic_sigma"):
+            np.testing.assert_array_equal(grid[name].values, ds[name].values, err_msg=name)
+    # the stored counts are the pixels on each cell and in the check, from the stored cells and flags
+    for lens in LENSES:
+        for band in ("R", "G", "B"):
+            g = bundle.sel(lens=lens, medium="air", band=band)
+            index = g["sphere_cell_in_block"].values.astype(int)
+            block = np.arange(index.shape[0]) // int(g["sphere_cell_in_block"].attrs["block_rows"])
+            n = g["sphere_block_n_cells"].values[block][:, None]
+            on = index < n
+            cell = (index + g["sphere_block_first_cell"].values[block][:, None])[on]
+            np.testing.assert_array_equal(g["sphere_cell_count"].values, np.bincount(cell, minlength=180 * 360))
+            assert int(g["sphere_checked_count"]) == on.sum() + (index == n + 1).sum()
 
 
 def test_pixel_maps_without_their_geometry_name_the_bundles(calibrated, applied, tmp_path):

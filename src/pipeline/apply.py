@@ -49,8 +49,8 @@ import xarray as xr
 
 from pipeline.artefact import model_effects
 from pipeline.bands import BANDS, band_plane, band_saturation, cut_region
-from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects,
-                                  outside_image_circle, read_bundle, sphere_blocks)
+from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects, mapped_maps,
+                                  outside_image_circle, read_bundle, sphere_blocks, sphere_counts)
 from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
 from pipeline.frames import SATURATION_MARGIN_DN, lens_images
@@ -371,12 +371,19 @@ class _LensSums:
     ``np.bincount`` over the block's own range of cells (the pixels of a cell
     summed in the order :func:`_bin_cells` sums them); the pixels a frame's
     flags keep off (saturated, not finite) go to the block's spill cell.
+    The counts are not binned: ``counts`` gives per band the pixels of each
+    cell and of the check (:func:`~pipeline.calibration.sphere_counts`, from
+    the bundle), less those the frame's flags keep off, counted per block.
     """
 
-    def __init__(self, n_cells: int, n_bands: int):
-        self.bands = [_CellSums(n_cells, 2, squared=(True, False)) for _ in range(n_bands)]
+    def __init__(self, n_cells: int, counts):
+        self.bands = [_CellSums(n_cells, 2, squared=(True, False)) for _ in counts]
         #: per band: [pixels, sum of the radiance, sum of its random variance] of the negative-mean check
-        self.checked = [[0, 0.0, 0.0] for _ in range(n_bands)]
+        self.checked = [[int(checked), 0.0, 0.0] for _, checked in counts]
+        # the pixels of each cell and of the check before the frame's flags (sphere_counts), less those
+        # flags when a block is added
+        for total, (count, _) in zip(self.bands, counts):
+            total.count[:n_cells] = count
 
     def add_block(self, band: int, first: int, n: int, index, value, rnd, sy, excluded, at, wide,
                   check: bool = True) -> bool:
@@ -395,7 +402,6 @@ class _LensSums:
             # the pixels a frame's flags keep off (saturated, not finite) into the block's spill cell n
             np.copyto(at, n, where=excluded.reshape(-1))
         m = n + 2
-        count = np.bincount(at, minlength=m)
         w = wide[:size]
         np.copyto(w, value.reshape(-1))
         s0 = np.bincount(at, weights=w, minlength=m)
@@ -411,13 +417,16 @@ class _LensSums:
         s3 = np.bincount(at, weights=w, minlength=m)
         cells = slice(first, first + n)
         total = self.bands[band]
-        total.count[cells] += count[:n]
+        checked = self.checked[band]
+        if excluded is not None:
+            # the pixels counted on their cells (or by the check) that the frame's flags keep off
+            off = np.bincount(index.reshape(-1)[excluded.reshape(-1)], minlength=m)
+            total.count[cells] -= off[:n]
+            checked[0] -= int(off[n + 1])
         total.sums[0, cells] += s0[:n]
         total.sums[1, cells] += s1[:n]
         total.sums[2, cells] += s2[:n]
         total.sums[3, cells] += s3[:n]
-        checked = self.checked[band]
-        checked[0] += int(count[:n].sum() + count[n + 1])
         checked[1] += float(s0[:n].sum() + s0[n + 1])
         checked[2] += float(s2[:n].sum() + s2[n + 1])
         return True
@@ -533,20 +542,23 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
 
 
 def _pixel_directions(maps, lenses, zenith_lens, grid_deg, block_rows, pixels):
-    """The sphere cells of every band pixel per block ([lens][band]: :func:`~pipeline.calibration.sphere_blocks`)
+    """The sphere cells of every band pixel per block ([lens][band]: :func:`~pipeline.calibration.sphere_blocks`),
+    the pixels of each cell and of the negative-mean check ([lens][band]: :func:`~pipeline.calibration.sphere_counts`)
     and, with ``pixels``, the zenith and azimuth maps.
 
     ``maps`` the bundle's maps at the medium ((lens, band, y, x)): its ``sphere_cell_in_block`` and
     ``sphere_block_*`` when made for this grid, zenith lens and block size, else the cells from
     ``theta_deg`` and ``phi_deg`` (which the zenith and azimuth maps need too) and ``pixel_flag``.
     """
-    cells, zen, azi = [], None, None
+    cells, counts, zen, azi = [], [], None, None
     stored = "sphere_cell_in_block" in maps
+    n_cells = int(np.prod(grid_shape(grid_deg)))
     if pixels:
         # written straight into the output maps
         zen, azi = (np.empty(maps["theta_deg"].shape, np.float32) for _ in range(2))
     for i, lens in enumerate(lenses):
         cells.append([])
+        counts.append([])
         for j in range(len(BANDS)):
             if pixels or not stored:
                 z, a = sphere_coordinates(maps["theta_deg"][i, j], maps["phi_deg"][i, j], lens == zenith_lens,
@@ -554,11 +566,13 @@ def _pixel_directions(maps, lenses, zenith_lens, grid_deg, block_rows, pixels):
             if stored:
                 cells[i].append(tuple(maps[name][i, j] for name in ("sphere_cell_in_block", "sphere_block_first_cell",
                                                                      "sphere_block_n_cells", "sphere_block_columns")))
+                counts[i].append((maps["sphere_cell_count"][i, j], int(maps["sphere_checked_count"][i, j])))
             else:
                 flags = maps["pixel_flag"][i, j]
                 cell = np.where((flags & STATIC_OFF_GRID) != 0, -1, sphere_cells(z, a, grid_deg))
                 cells[i].append(sphere_blocks(cell, flags, block_rows))
-    return cells, zen, azi
+                counts[i].append(sphere_counts(cell, flags, n_cells))
+    return cells, counts, zen, azi
 
 
 def _attrs(long_name, units, **extra):
@@ -632,18 +646,24 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         flags = pixels or "bias_drift" in effects or not stored_cells
         names = ["pixel_factor", "pixel_systematic_relative_variance"] + (["pixel_flag"] if flags else []) \
             + [n for n in ("pixel_random_relative_variance",) if n in on_disk] \
-            + (["sphere_cell_in_block", "sphere_block_first_cell", "sphere_block_n_cells", "sphere_block_columns"]
-               if stored_cells else []) \
+            + (["sphere_cell_in_block", "sphere_block_first_cell", "sphere_block_n_cells", "sphere_block_columns",
+                "sphere_cell_count", "sphere_checked_count"] if stored_cells else []) \
             + (["theta_deg", "phi_deg"] if geometry or not stored_cells else []) \
             + (["solid_angle_sr"] if geometry else [])
         at = {"medium": list(on_disk["medium"].values).index(medium)}
+        # the per-pixel maps memory-mapped where stored contiguous (the chain touches the page cache's pages;
+        # no copy into fresh memory), the others read through NetCDF
+        mapped = mapped_maps(bundle_path, on_disk, [n for n in names if on_disk[n].dims[-2:] == ("y", "x")
+                                                    or n == "sphere_cell_count"])
         maps = {}
         for name in names:
             var = on_disk[name].variable
+            if name in mapped:
+                var = xr.Variable(var.dims, mapped[name])
             var = var.isel({d: k for d, k in at.items() if d in var.dims})
             maps[name] = var.transpose("lens", "band", *(d for d in var.dims if d not in ("lens", "band"))).values
         # the small variables (parameters, scalars, per-band tables) loaded whole, at this medium
-        bundle = on_disk.drop_vars([n for n, v in on_disk.data_vars.items() if "y" in v.dims or "block" in v.dims]).sel(
+        bundle = on_disk.drop_vars([n for n, v in on_disk.data_vars.items() if {"y", "block", "sphere_cell"} & set(v.dims)]).sel(
             medium=[medium]).load()
     n_z, n_a = grid_shape(grid_deg)
     # the cell of every band pixel, once per lens and band (not per frame), beside the first frame's chain
@@ -658,7 +678,7 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
     out_maps = None if not pixels else {
         "radiance": np.empty(shape, np.float32), "random": np.empty(shape, np.float32),
         "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
-    cells, zen, azi = directions.result()
+    cells, counts, zen, azi = directions.result()
     # what does not depend on the frame, once per call for every frame: each block's cells, the unlit corners
     negative_sigma = float(cfg["negative_mean_sigma"])
     corners = {lens: "bias_drift" in effects and lens not in rectilinear for lens in lenses}
@@ -669,7 +689,7 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         decoding = pool.submit(read_raw, raw_paths[f + 1], checksums=False) if f + 1 < len(raw_paths) else None
         check_frame(raw, bundle, effects)
         frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
-        sums = [_LensSums(n_z * n_a, len(BANDS)) for _ in lenses]
+        sums = [_LensSums(n_z * n_a, counts[i]) for i in range(len(lenses))]
         # the lenses side by side (numpy releases the GIL in its array operations), each binning its own sums
         jobs = [pool.submit(_lens_radiance, raw, bundle, lens, medium, effects, frame, negative_sigma, plans[i],
                             block_rows, sums[i], None if out_maps is None else {k: v[f, i] for k, v in out_maps.items()},

@@ -71,9 +71,10 @@ from pipeline.errors import ArtefactError
 #: principal point's nuisance columns ``x_centre_1``, ``x_centre_2``, rows of kind ``centre_prior`` holding their
 #: prior, and the spots' gradients of theta in the centre (``theta_centre_grad_*``, ``theta_sigma_deg``);
 #: calibration 11: the bundle's ``theta_deg_sigma`` and field-angle variance from the jackknife covariance,
-#: beside version 10's second spill cell.
+#: beside version 10's second spill cell; calibration 12: ``sphere_cell_count`` and ``sphere_checked_count``, the
+#: pixels of each sphere cell and of apply's negative-mean check per lens, medium and band (apply counts none).
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 4, "rolloff": 4, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 11, "field": 3, "closure": 3}
+                     "absolute": 3, "immersion": 2, "calibration": 12, "field": 3, "closure": 3}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -11,7 +11,7 @@ covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``, version 10; 2: the per-pixel
+versioned artefact (``artefact = calibration``, version 12; 2: the per-pixel
 maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
 flat field's uncertainty; 5: theta_deg_sigma, the absolute budget's new lamp
 term, and what depends only on lens, medium and band precomputed per pixel:
@@ -23,7 +23,8 @@ chain takes them: 1 / (F g) with the flat field folded in, one relative variance
 terms, the flags with the hot-pixel mask folded in, the flat field's random relative variance, and
 the sphere cell -1 where a frame-independent flag keeps the pixel off the grid; 10: the block's
 second spill index for the pixels inside the image circle, not hot, beyond the calibrated field
-angle, which the negative-mean check counts and the grid does not; older files are
+angle, which the negative-mean check counts and the grid does not; 12: the pixels of each sphere cell
+and of the negative-mean check per lens, medium and band, so that apply counts none; older files are
 refused with a line asking to rebuild) carrying the sha256 of every artefact it came from,
 the model's effects and the camera's make, model and serial number.
 
@@ -56,12 +57,13 @@ from pipeline.effects.optics import AZIMUTH_THETA_REF_DEG
 from pipeline.entry import exit_on_input_error, setup_log
 from pipeline.errors import InputError
 from pipeline.frames import SITES_PER_BAND_PIXEL
-from pipeline.geometry.sphere import ZENITH_LENS, sphere_cells, sphere_coordinates
+from pipeline.geometry.sphere import ZENITH_LENS, grid_shape, sphere_cells, sphere_coordinates
 from pipeline.radiometry import measurement as mm
 
 __all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "STATIC_OFF_GRID", "FACTOR_EFFECTS", "factor_effects",
-           "sphere_blocks", "build_bundle", "read_bundle", "band_parameters",
-           "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script"]
+           "sphere_blocks", "sphere_counts", "build_bundle", "read_bundle", "band_parameters",
+           "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script",
+           "mapped_maps"]
 
 #: stages a bundle is gathered from (in the order of the calibration chain) and those it cannot lack
 BUNDLE_STAGES, REQUIRED_STAGES = BUNDLE_STAGES, BUNDLE_REQUIRED_STAGES
@@ -300,6 +302,22 @@ def sphere_blocks(cells: np.ndarray, flags: np.ndarray, block_rows: int):
     return index, first, n_cells, columns
 
 
+def sphere_counts(cells: np.ndarray, flags: np.ndarray, n_cells: int) -> tuple[np.ndarray, int]:
+    """The pixels of a band image on each sphere cell (int32, ``n_cells``) and those the negative-mean check takes.
+
+    ``cells`` the cell of every pixel (-1 off the grid), ``flags`` its frame-independent flags. The check's
+    pixels are those on the grid and those inside the image circle, not hot, off the grid (beyond the
+    calibrated field angle): :func:`sphere_blocks`'s cells and its second spill. What a frame's flags
+    (saturation, a value that is not finite) keep off, ``apply`` takes away from these.
+    """
+    cells = np.asarray(cells).ravel()
+    on = cells >= 0
+    count = np.bincount(cells[on], minlength=n_cells).astype(np.int32)
+    spill = (np.asarray(flags).ravel() & (mm.FLAG_OUTSIDE_IMAGE_CIRCLE | mm.FLAG_HOT)) == 0
+    spill &= ~on
+    return count, int(np.count_nonzero(on)) + int(np.count_nonzero(spill))
+
+
 def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float, block_rows: int) -> xr.Dataset:
     """What depends only on lens, medium and band, per band pixel, in the compact form the chain uses.
 
@@ -328,6 +346,9 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float, block_rows: int
     rel = np.empty(shape, np.float32)
     flags = np.empty(shape, np.uint8)
     blocks = {}
+    n_grid = int(np.prod(grid_shape(grid_deg)))
+    counts = np.zeros((len(lenses), len(media), len(BANDS), n_grid), np.int32)
+    checked = np.zeros((len(lenses), len(media), len(BANDS)), np.int64)
     flat = "prnu" in effects and "flat_field" in bundle
     random_rel = np.empty(per_band, np.float32) if flat else None
     frame = mm.FrameSettings(exposure_s=1.0, iso=float(bundle["dark_iso"].values.min()))
@@ -359,6 +380,7 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float, block_rows: int
                 zen, azi = sphere_coordinates(g["theta_deg"].values, phi, lens == zenith_lens)
                 cells = np.where((f.flags & STATIC_OFF_GRID) != 0, -1, sphere_cells(zen, azi, grid_deg))
                 blocks[i, k, j] = index, sphere_blocks(cells, f.flags, block_rows)
+                counts[i, k, j], checked[i, k, j] = sphere_counts(cells, f.flags, n_grid)
     # one index type for all (uint16 unless a block spans 65,535 cells or more)
     dtype = np.result_type(*(b[1][0].dtype for b in blocks.values()))
     cell_index = np.empty(shape, dtype)
@@ -395,6 +417,14 @@ def _pixel_factors(bundle: xr.Dataset, effects, grid_deg: float, block_rows: int
             "long_name": "first sphere cell of each block of block_rows rows", "units": "1"}),
         "sphere_block_n_cells": (block_dims, per_block["n_cells"], {
             "long_name": "sphere cells a block spans (also its spill index: pixels off the grid)", "units": "1"}),
+        "sphere_cell_count": (("lens", "medium", "band", "sphere_cell"), counts, {
+            "long_name": "band pixels on each sphere cell (row-major zenith, azimuth) before a frame's flags "
+                         "(saturation) keep some off", "units": "1", "grid_deg": float(grid_deg),
+            "zenith_lens": zenith_lens}),
+        "sphere_checked_count": (("lens", "medium", "band"), checked, {
+            "long_name": "band pixels the negative-mean check takes before a frame's flags keep some off: on the "
+                         "grid, or inside the image circle, not hot, beyond the calibrated field angle",
+            "units": "1"}),
         "sphere_block_columns": (block_dims + ("bound",), per_block["columns"], {
             "long_name": "columns of each block that reach inside the image circle, [start, stop)",
             "units": "pixel"}),
@@ -541,7 +571,7 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
     # the per-pixel maps uncompressed and contiguous: apply reads one lens, band and medium of them
     # as one block, where decompressing them cost it seconds at the full resolution
     maps = {name: {"zlib": False, "contiguous": True} for name, var in bundle.data_vars.items()
-            if var.dims[-2:] == ("y", "x")}
+            if var.dims[-2:] == ("y", "x") or name == "sphere_cell_count"}
     write_artefact(bundle, out_path, stage="calibration", inputs=inputs,
                    config_subset=stage_params(config, "calibration"), effects=list(effects), encoding=maps)
     return bundle
@@ -554,6 +584,48 @@ def read_bundle(path: str | Path, *, load: bool = True) -> xr.Dataset:
     selected; the caller closes the Dataset).
     """
     return read_artefact(path, "calibration", load=load)
+
+
+def mapped_maps(path: str | Path, bundle: xr.Dataset, names) -> dict[str, np.ndarray]:
+    """The bundle's per-pixel maps ``names`` memory-mapped from the file, read-only, in their dims on disk.
+
+    A map is mapped only where its bytes on disk are its values: stored contiguous and uncompressed
+    (:func:`build_bundle` writes them so), allocated, and decoded by xarray as stored (no scale or
+    offset; no fill value, or NaN for a float map, so that masking changes nothing); the others are
+    left out (the caller reads them through NetCDF). ``bundle`` is the file opened lazily
+    (:func:`read_bundle` with ``load=False``), for the decoding. Mapping instead of reading saves
+    copying the maps into fresh memory: ``apply`` then touches the page cache's pages where its
+    chain uses them (179 MB of the full-resolution bundle with ``--no-pixels``).
+    """
+    try:
+        import h5py
+    except ImportError:  # an install without it reads the maps through NetCDF
+        return {}
+    out = {}
+    try:
+        with h5py.File(path, "r") as f:
+            if f.userblock_size:
+                return {}
+            for name in names:
+                var = bundle[name].variable
+                d = f.get(name)
+                if d is None or not isinstance(d, h5py.Dataset) or d.chunks is not None or d.compression is not None \
+                        or d.id.get_create_plist().get_nfilters() or d.dtype != var.dtype or d.shape != var.shape \
+                        or d.dtype.kind not in "fiu":
+                    continue
+                enc = var.encoding
+                if any(k in enc or k in var.attrs for k in ("scale_factor", "add_offset")):
+                    continue
+                fills = [enc.get(k, var.attrs.get(k)) for k in ("_FillValue", "missing_value")]
+                if any(v is not None and not (d.dtype.kind == "f" and np.all(np.isnan(v))) for v in fills):
+                    continue
+                offset = d.id.get_offset()
+                if offset is None or d.size == 0:
+                    continue
+                out[name] = np.memmap(path, dtype=d.dtype, mode="r", offset=offset, shape=d.shape).view(np.ndarray)
+    except OSError:
+        return {}
+    return out
 
 
 def build_bundle_script(smk) -> None:
