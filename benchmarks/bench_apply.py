@@ -1,6 +1,6 @@
 """Time ``apply`` on one full-resolution frame against the decode of the same frame, in the same run.
 
-    python benchmarks/bench_apply.py [--repeat 5] [--warmup 1] [--work /tmp/bench-apply] [--seed 1]
+    python benchmarks/bench_apply.py [--repeat 5] [--warmup 1] [--work /tmp/bench-apply] [--seed 1] [--time-bundle]
 
 The decode floor is what every stage pays per frame: ``pipeline.rawio.read_raw``
 (rawpy decode and tags) of the DNG plus ``pipeline.bands.split_bands`` of each
@@ -143,12 +143,40 @@ def build(work: Path, seed: int) -> tuple[Path, Path]:
             run_stage("absolute", full, cfg, art["full"]["absolute"],
                       {n: art["full"][n] for n in spec.upstream + spec.optional_upstream if n in art["full"]})
         art["full"]["rolloff"] = art["small"]["rolloff"]
-        meta = yaml.safe_load((full / "dataset.yaml").read_text())
-        build_bundle(art["full"], bundle, meta["camera"], meta["lenses"], cfg)
+        artefacts, meta = kept_artefacts(work)
+        build_bundle(artefacts, bundle, meta["camera"], meta["lenses"], cfg)
         print(f"stages and bundle in {time.perf_counter() - t0:.0f} s", flush=True)
     frames = [line.split(",") for line in (full / "absolute" / "frames.csv").read_text().splitlines()[1:]]
     frame = full / "absolute" / next(f for f, _, kind in frames if kind == "signal")
     return bundle, frame
+
+
+def kept_artefacts(work: Path) -> tuple[dict, dict]:
+    """The stage artefacts the bundle is gathered from (made by :func:`build` in ``work``/results: dark,
+    linearity and absolute of the full-resolution frames, the true geometry at full resolution, roll-off and
+    spectral of the small scale) and the full dataset's dataset.yaml."""
+    import yaml
+
+    results = work / "results"
+    tags = {"geometry": "full", "dark": "full", "linearity": "full", "absolute": "full", "spectral": "small",
+            "rolloff": "small"}
+    artefacts = {stage: {lens: results / f"{stage}-{tag}" / f"{lens}.nc" for lens in LENSES}
+                 for stage, tag in tags.items()}
+    return artefacts, yaml.safe_load((work / "dataset-full-reduced" / "dataset.yaml").read_text())
+
+
+def bundle_child(work: str, out: str) -> None:
+    """Gather the bundle from the kept stage artefacts into ``out`` in this fresh process (what the workflow's
+    ``calibration`` rule runs); prints wall, CPU and peak RSS as JSON."""
+    from pipeline.calibration import build_bundle
+    from pipeline.config import load_config
+
+    artefacts, meta = kept_artefacts(Path(work))
+    cfg = load_config()
+    t0, c0 = time.perf_counter(), time.process_time()
+    build_bundle(artefacts, Path(out), meta["camera"], meta["lenses"], cfg)
+    print(json.dumps({"wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
+                      "peak_rss_mib": _peak_rss_mib(), "size_mb": Path(out).stat().st_size / 1e6}))
 
 
 def child(what: str, frame: str, bundle: str, out: str) -> None:
@@ -187,6 +215,24 @@ def _peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def time_bundle(work: Path, repeat: int) -> None:
+    """The bundle gathered ``repeat`` times from the kept stage artefacts, each in a fresh process."""
+    out = work / "bundle-timed.nc"
+    for k in range(repeat):
+        out.unlink(missing_ok=True)
+        os.sync()
+        load_start = os.getloadavg()[0]
+        proc = subprocess.run([sys.executable, __file__, "--bundle-child", str(work), str(out)], capture_output=True,
+                              text=True)
+        if proc.returncode != 0:
+            sys.exit(f"gathering the bundle failed:\n{proc.stderr[-2000:]}")
+        r = json.loads(proc.stdout.strip().splitlines()[-1])
+        print(f"bundle gathered (run {k + 1}): {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, peak "
+              f"{r['peak_rss_mib']:.0f} MiB, {r['size_mb']:.0f} MB written (load {load_start:.1f} -> "
+              f"{os.getloadavg()[0]:.1f})", flush=True)
+    out.unlink(missing_ok=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeat", type=int, default=5)
@@ -194,13 +240,23 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--warmup", type=int, default=1, help="untimed rounds first (the bundle and the frame into "
                                                            "the page cache)")
+    ap.add_argument("--time-bundle", action="store_true",
+                    help="also gather the bundle again from the kept stage artefacts, --repeat times, each in a "
+                         "fresh process (the calibration rule's cost at the full resolution), into a temporary "
+                         "file in --work")
+    ap.add_argument("--bundle-child", nargs=2, metavar=("WORK", "OUT"), help=argparse.SUPPRESS)
     ap.add_argument("--child", nargs=4, metavar=("WHAT", "FRAME", "BUNDLE", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         child(*args.child)
         return
+    if args.bundle_child:
+        bundle_child(*args.bundle_child)
+        return
     work = Path(args.work)
     bundle, frame = build(work, args.seed)
+    if args.time_bundle:
+        time_bundle(work, args.repeat)
     out = work / "apply-out.nc"
     print(f"frame {frame} ({frame.stat().st_size / 1e6:.0f} MB), bundle {bundle} ({bundle.stat().st_size / 1e6:.0f} MB)")
     runs = {"decode": [], "apply": [], "apply-maps": [], "apply-grid": []}
