@@ -72,8 +72,11 @@ from pipeline.errors import ArtefactError
 #: prior, and the spots' gradients of theta in the centre (``theta_centre_grad_*``, ``theta_sigma_deg``);
 #: calibration 11: the bundle's ``theta_deg_sigma`` and field-angle variance from the jackknife covariance,
 #: beside version 10's second spill cell.
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 4, "rolloff": 4, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 11, "field": 3, "closure": 3}
+#: geometry 5: the image circle (``circle_*``, hence ``half_fov_deg``) fitted to the edge of the lit region of the
+#: frames' maximum (``geometry.image_circle_lit_fraction``), no longer to its strongest edge (the boards' white
+#: squares: radius up to 9.7 of 29 band px short on the tiny scale); calibration 12: that geometry.
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 5, "rolloff": 4, "spectral": 2,
+                     "absolute": 3, "immersion": 2, "calibration": 12, "field": 3, "closure": 3}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
