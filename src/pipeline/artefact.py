@@ -74,8 +74,10 @@ from pipeline.errors import ArtefactError
 #: beside version 10's second spill cell.
 #: geometry 5: the image circle (``circle_*``, hence ``half_fov_deg``) fitted to the edge of the lit region of the
 #: frames' maximum (``geometry.image_circle_lit_fraction``), no longer to its strongest edge (the boards' white
-#: squares: radius up to 9.7 of 29 band px short on the tiny scale); calibration 12: that geometry.
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 5, "rolloff": 4, "spectral": 2,
+#: squares: radius up to 9.7 of 29 band px short on the tiny scale); calibration 12: that geometry;
+#: rolloff 5: settings whose port spot cannot be measured (no light above the noise, the port beyond the lit field's edge)
+#: dropped, counted in ``n_settings_dropped`` with their reasons.
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 5, "rolloff": 5, "spectral": 2,
                      "absolute": 3, "immersion": 2, "calibration": 12, "field": 3, "closure": 3}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
