@@ -125,3 +125,65 @@ def test_spot_search_in_a_window_finds_the_whole_image_spot():
         lit = np.hypot(xx[:240, :300] - 150, yy[:240, :300] - 120) <= rng.uniform(60, 200)
         want = np.unravel_index(np.argmax(ndimage.uniform_filter(np.where(lit, img, 0.0), 3)), img.shape)
         assert _peak_pixel(_lit_image(img, np.zeros(img.shape), lit)) == tuple(int(v) for v in want)
+
+
+def test_a_spot_without_light_or_beyond_the_field_is_dropped_not_fitted(config):
+    """The roll-off guard (stages.rolloff._setting_masks, check_settings). A lit field that holds no light above
+    the noise (the port beyond a too-short image circle: the spot outside the lit mask, whose dark-subtracted
+    pixels are only noise; with all of them below the dark the 3 x 3 mean's rounding, 4e-15 DN, crashed the peak
+    search, seeds 12 and 15) must give a reason, not a crash; a port beyond the field's edge, whose wing inside the
+    field is all the stage would find (seed 16: 14-20 DN against 8,000), gives a reason; a spot inside, also one
+    whose disc touches the edge, gives its pixels. The
+    stage stops with one line naming frames.csv when a lens and medium keeps fewer than rolloff.min_settings.
+
+    Numbers: noise sigma 3 DN per pixel, so a 3 x 3 mean's noise is 1 DN; rolloff.min_spot_snr 10 puts the bar at
+    10 DN. Port 400 DN at its centre (a dim but real spot; its 3 x 3 mean about 250 sigma of that mean); the no-light case's brightest 3 x 3 mean of
+    pure noise inside a 64 x 64 field is about 3.5 DN, below the bar by a factor 3."""
+    from pipeline.errors import InputError
+    from pipeline.stages.rolloff import _setting_masks, check_settings
+
+    cfg = config["rolloff"]
+    rng = np.random.default_rng(7)
+    n, sigma = 64, 3.0
+    yy, xx = np.indices((n, n))
+    lit = np.hypot(xx - 31.5, yy - 31.5) <= 20.0            # a short field: radius 20 of the true 29 px
+    darks = {b: np.zeros((n, n)) for b in ("R", "G", "B")}
+
+    def frame(cx, cy):
+        # a port blurred into a cone of radius 3 px, 400 DN at its centre
+        port = np.clip(1.0 - np.hypot(xx - cx, yy - cy) / 3.0, 0.0, None)
+        return {b: rng.normal(0.0, sigma, (n, n)) + 400.0 * port for b in ("R", "G", "B")}
+
+    noise_3x3 = sigma / 3.0
+    masks, reason = _setting_masks(frame(31.5 + 26.0, 31.5), darks, lit, 1.0, 3.0, cfg, noise_3x3)
+    assert masks is None and reason.startswith("no light above the noise"), reason
+    # every lit pixel below the dark (0 to -10 DN): the 3 x 3 means' rounding is the only "light" (this image
+    # crashed the peak search with "zero-size array" before the guard)
+    below = -np.round(np.random.default_rng(0).uniform(0.0, 10.0, (n, n)), 3)
+    masks, reason = _setting_masks({b: below for b in ("R", "G", "B")}, darks, lit, 1.0, 3.0, cfg, noise_3x3)
+    assert masks is None and reason.startswith("no light above the noise"), reason
+    # a port centred 1 px beyond the field's edge (lit to x = 51): the field holds its wing, 200 DN at x = 51
+    # against 333 DN at x = 52 outside
+    masks, reason = _setting_masks(frame(31.5 + 21.0, 31.5), darks, lit, 1.0, 3.0, cfg, noise_3x3)
+    assert masks is None and reason.startswith("port beyond the edge of the lit field"), reason
+    # a port centred 1 px inside the edge is measured, although its spot touches the edge (333 DN at x = 50
+    # inside, 200 DN at x = 52 outside)
+    masks, reason = _setting_masks(frame(31.5 + 19.0, 31.5), darks, lit, 1.0, 3.0, cfg, noise_3x3)
+    assert reason == "" and masks is not None, reason
+    masks, reason = _setting_masks(frame(31.5 + 10.0, 31.5 - 4.0), darks, lit, 1.0, 3.0, cfg, noise_3x3)
+    assert reason == "" and masks is not None
+    cx, cy = masks[4]
+    # the port's centre: its spot (above half its peak) is the 12 pixels within 1.6 px of it, symmetric about it;
+    # the noise (3 DN on about 250 DN over 12 pixels) moves the centroid by about 0.01 px
+    assert abs(cx - 41.5) < 0.1 and abs(cy - 27.5) < 0.1, (cx, cy)
+
+    # the count check: one lens and medium with 3 measured settings and 2 dropped stops the stage in one line
+    reduced = {"static": {("far", "air"): {}}, "masks": {("far", "air", 0.0, float(a)): masks for a in range(3)},
+               "dropped": {("far", "air", 0.0, 80.0): "no light above the noise in the lit field (...)",
+                           ("far", "air", 0.0, 75.0): "no light above the noise in the lit field (...)"}}
+    with pytest.raises(InputError, match=r"frames\.csv.*lens far, air: only 3 roll-off settings with a measurable "
+                                         r"spot \(need rolloff\.min_settings = 10\); 2 dropped") as err:
+        check_settings(reduced, config, "dataset/rolloff/frames.csv")
+    assert "\n" not in str(err.value)
+    reduced["masks"].update({("far", "air", 0.0, float(a)): masks for a in range(3, 10)})
+    check_settings(reduced, config, "dataset/rolloff/frames.csv")      # 10 kept: enough

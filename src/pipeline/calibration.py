@@ -11,7 +11,8 @@ covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``, version 12; 2: the per-pixel
+versioned artefact (``artefact = calibration``, version 13: the geometry's image circle fitted to the lit
+region's edge; 12: the stored per-cell counts; 2: the per-pixel
 maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
 flat field's uncertainty; 5: theta_deg_sigma, the absolute budget's new lamp
 term, and what depends only on lens, medium and band precomputed per pixel:

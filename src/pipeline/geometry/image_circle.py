@@ -2,12 +2,27 @@
 
 Method (after Section 3.2 of Larouche et al. 2024, which used Canny edges and
 a circular Hough transform from scikit-image): block-average the image down
-to about ``coarse_size`` pixels, Canny edges, circular Hough transform for a
-first centre and radius; then, at full resolution, the edge is located along
-many radial profiles as the sub-pixel crossing of the level half-way between
-the inside and the outside, and a least-squares (algebraic, then geometric)
-circle fit of those points gives the centre and radius. The half FOV is the
-model's theta at that radius, averaged over azimuths.
+to about ``coarse_size`` pixels, keep the lit pixels (above ``lit_fraction``
+of the way from the dark to the bright level, 1st and 99th percentiles),
+Canny edges of that lit mask, circular Hough transform for a first centre and
+radius; then, at full resolution, the edge is located along many radial
+profiles as the outermost lit sample, refined to the sub-pixel crossing of
+the level half-way between the lit pixels just inside it and the dark
+outside, and a least-squares (algebraic, then geometric) circle fit of those
+points gives the centre and radius. The half FOV is the model's theta at that
+radius, averaged over azimuths.
+
+Why the lit mask and the local level: the image is often the maximum over
+chessboard frames, where the union of the white squares (reflectance 0.9) is
+a far stronger edge than the rim of the image circle, seen there on the grey
+wall (0.35) dimmed by the roll-off. Canny edges of the image itself gave the
+Hough transform that union (tiny-scale seeds: radius up to 9.7 px short of
+29 px), and a half level taken from the median 2 to 3 px inside the coarse
+circle sat above the dim rim. Over the tiny scale's geometry maxima (30 seeds,
+all lab effects) the dimmest rim pixel is 0.165 of the 1st-to-99th percentile
+range above the dark level, the brightest pixel outside 0.014 (hot pixels,
+stray light): the default ``lit_fraction`` 0.05 is about their geometric mean,
+a factor 3 from each.
 """
 
 from __future__ import annotations
@@ -24,6 +39,11 @@ from .scaramuzza import FisheyeModel
 COARSE_SIZE_PX = 128
 #: Number of radial profiles used to locate the edge at full resolution.
 N_PROFILES = 360
+#: A pixel is lit above this fraction of the way from the dark (1st percentile) to the bright
+#: (99th percentile) level (module docstring; the geometry stage passes ``geometry.image_circle_lit_fraction``).
+LIT_FRACTION = 0.05
+#: The local inside level of a profile: median of its samples this far (pixels) inside its outermost lit sample.
+INSIDE_BAND_PX = (1.0, 3.0)
 
 
 @dataclass
@@ -42,15 +62,15 @@ def _block_mean(img, k):
     return img[:h, :w].reshape(h // k, k, w // k, k).mean(axis=(1, 3))
 
 
-def _coarse_circle(img):
+def _coarse_circle(img, lit_fraction: float = LIT_FRACTION):
     from skimage.feature import canny
     from skimage.transform import hough_circle
 
     k = max(1, int(min(img.shape) // COARSE_SIZE_PX))
     small = _block_mean(img, k)
     lo, hi = np.percentile(small, [1, 99])
-    small = (small - lo) / max(hi - lo, 1e-12)
-    edges = canny(small, sigma=1.5)
+    lit = (small - lo) > lit_fraction * max(hi - lo, 1e-12)
+    edges = canny(lit.astype(float), sigma=1.0)
     if edges.sum() < 10:
         raise ValueError("no edges found: is the image bright inside the circle?")
     rmin = int(0.2 * min(small.shape))
@@ -81,35 +101,42 @@ def _fit_circle(x, y):
     return float(sol.x[0]), float(sol.x[1]), float(sol.x[2]), rms
 
 
-def find_image_circle(image, *, n_profiles: int = N_PROFILES, window_frac: float = 0.08) -> ImageCircle:
+def find_image_circle(image, *, n_profiles: int = N_PROFILES, window_frac: float = 0.08,
+                      lit_fraction: float = LIT_FRACTION) -> ImageCircle:
     """Centre and radius (pixels) of the bright image circle in a band image.
 
     ``image`` may be one frame or the maximum over frames. ``window_frac``
     is the half-length of each radial profile as a fraction of the coarse
-    radius.
+    radius; ``lit_fraction`` the lit level (module docstring).
     """
     img = np.asarray(image, dtype=float)
-    cx, cy, r0, k = _coarse_circle(img)
-    half = max(3.0 * k, window_frac * r0)
-    s = np.linspace(r0 - half, r0 + half, int(4 * 2 * half) + 1)  # 0.25 px steps
+    cx, cy, r0, k = _coarse_circle(img, lit_fraction)
+    lo, hi = np.percentile(img, [1, 99])
+    lit_step = lit_fraction * max(hi - lo, 1e-12)
+    half = max(3.0 * k, window_frac * r0) + INSIDE_BAND_PX[1]
+    step = 0.25
+    s = np.arange(r0 - half, r0 + half + step / 2, step)  # 0.25 px steps
     az = np.linspace(0, 2 * np.pi, n_profiles, endpoint=False)
     xs = cx + np.cos(az)[:, None] * s[None, :]
     ys = cy + np.sin(az)[:, None] * s[None, :]
     prof = map_coordinates(img, [ys, xs], order=1, mode="nearest")
-    inside = np.median(prof[:, : len(s) // 8], axis=1)
     outside = np.median(prof[:, -len(s) // 8:], axis=1)
-    level = 0.5 * (inside + outside)
+    lit = prof - outside[:, None] > lit_step
+    inner = int(round(INSIDE_BAND_PX[0] / step)), int(round(INSIDE_BAND_PX[1] / step))
     pts_x, pts_y = [], []
     for i in range(n_profiles):
-        if inside[i] - outside[i] <= 0.2 * np.median(inside - outside):
+        idx = np.nonzero(lit[i])[0]
+        if idx.size == 0 or idx[-1] < inner[1] or idx[-1] >= len(s) - len(s) // 8:
+            continue  # no lit sample, or the edge too near an end of the profile to tell inside from outside
+        last = idx[-1]
+        inside = float(np.median(prof[i, last - inner[1]:last - inner[0] + 1]))
+        level = 0.5 * (inside + outside[i])
+        above = prof[i, last - inner[1]:] >= level
+        cross = np.nonzero(above[:-1] & ~above[1:])[0]
+        if inside - outside[i] <= lit_step or cross.size == 0:
             continue
-        above = prof[i] >= level[i]
-        # Last sample (going outwards) above the level, then linear interpolation.
-        idx = np.nonzero(above[:-1] & ~above[1:])[0]
-        if idx.size == 0:
-            continue
-        j = idx[-1]
-        f0, f1 = prof[i, j] - level[i], prof[i, j + 1] - level[i]
+        j = last - inner[1] + cross[-1]
+        f0, f1 = prof[i, j] - level, prof[i, j + 1] - level
         rr = s[j] + (s[j + 1] - s[j]) * f0 / (f0 - f1)
         pts_x.append(cx + np.cos(az[i]) * rr)
         pts_y.append(cy + np.sin(az[i]) * rr)

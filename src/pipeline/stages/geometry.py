@@ -12,7 +12,9 @@ Streams the ``geometry/`` frames once. Per frame, for the lens in its
   searched coarse to fine. Only the corner lists are kept.
 * image circle: a running maximum of every band image per lens and medium (the
   lit wall around the board makes each frame bright inside the circle and
-  dark outside); after the stream :func:`find_image_circle` fits it.
+  dark outside); after the stream :func:`find_image_circle` fits it to the edge of
+  the lit region (``geometry.image_circle_lit_fraction``), not to the strongest
+  edge of that maximum (the union of the boards' white squares).
 * frames where the board is not found keep a small block-mean thumbnail, so
   that the reason can be told once the circle is known: a board cut by the
   rim of the image circle, no board visible, or a board that is visible but
@@ -214,7 +216,8 @@ def analyse_geometry(reduced: dict, config: dict, dataset_root: Path) -> dict[st
             centre = None
             for band in ("G", "R", "B"):
                 tb = tm[tm["band"] == band].sort_values("frame")
-                circle = find_image_circle(reduced["maxima"][(lens, medium, band)])
+                circle = find_image_circle(reduced["maxima"][(lens, medium, band)],
+                                           lit_fraction=cfg["image_circle_lit_fraction"])
                 circles[(medium, band)] = circle
                 reasons = {}
                 for _, r in tb.iterrows():

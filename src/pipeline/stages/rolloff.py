@@ -5,7 +5,12 @@ Streams the roll-off frames once (dark frames first, then the port images):
 * dark subtraction with the per-pixel mean of the experiment's dark frames of
   the same medium;
 * the port spot: the brightest pixel of the smoothed G image, the connected
-  pixels above half its level, their flux-weighted centroid;
+  pixels above half its level, their flux-weighted centroid; a setting whose
+  spot carries no light above the noise in the lit field
+  (``rolloff.min_spot_snr``) or whose light rises beyond the field's edge
+  (the wing of a port outside it) is dropped with its
+  reason (logged, counted in ``n_settings_dropped``), and the stage stops when
+  a lens and medium keeps fewer than ``rolloff.min_settings``;
 * the mean in a circle of ``rolloff.spot_radius_deg`` around it, in band
   pixels through the angular size of a pixel near the axis (from the geometry
   artefact's theta map), at least 1 px; the
@@ -142,6 +147,9 @@ def _peak_pixel(a: np.ndarray) -> tuple[int, int]:
             continue
         # the bound, lowered by far more than the filter's rounding so that no candidate is missed
         ys, xs = np.nonzero(a >= best * (1.0 - 1e-9))
+        if not ys.size:                    # best is the filter's rounding of an unlit window: no bound either
+            win = (slice(0, a.shape[0]), slice(0, a.shape[1]))
+            continue
         need = _bounding_window(a.shape, ys, xs, 1)
         if _contains(win, need):
             break
@@ -188,14 +196,30 @@ def _find_spot(band: np.ndarray, dark: np.ndarray, lit: np.ndarray, level: float
 
 
 def _setting_masks(bands: dict[str, np.ndarray], darks: dict[str, np.ndarray], lit: np.ndarray, r_avg: float,
-                   sigma_psf: float, cfg: dict):
+                   sigma_psf: float, cfg: dict, noise_3x3_dn: float):
     """One setting's pixels in its first frame's ``bands`` minus the ``darks``, as flat indices of the
     band image: the averaging circle of radius ``r_avg`` around the G spot's centroid, the halo annulus,
     the port's own pixels in every band, the halo weights of those pixels, and the centroid. Computed in
-    a window that holds the circle, the port and the annulus: the same pixels as over the whole image."""
+    a window that holds the circle, the port and the annulus: the same pixels as over the whole image.
+
+    Returns (those, "") or, for a spot that cannot be measured, (None, the reason): no light above the
+    noise in the lit field (the brightest 3 x 3 mean of the lit G image at most ``rolloff.min_spot_snr``
+    times ``noise_3x3_dn``, the noise of such a mean in one dark-subtracted frame), or a G spot whose light
+    rises beyond the lit field's edge (:func:`_peak_beside_field`: the wing of a port outside the field)."""
     shape = bands["G"].shape
-    peaks = {b: _peak_pixel(_lit_image(bands[b], darks[b], lit)) for b in BANDS}
-    cx, cy, _ = _find_spot(bands["G"], darks["G"], lit, cfg["spot_threshold_fraction"], peaks["G"])
+    lit_g = _lit_image(bands["G"], darks["G"], lit)
+    peak_g = _peak_pixel(lit_g)
+    light = _window_mean(lit_g, peak_g)
+    if not light > cfg["min_spot_snr"] * noise_3x3_dn:
+        return None, (f"no light above the noise in the lit field (best 3 x 3 mean {light:.3g} DN above dark, "
+                      f"rolloff.min_spot_snr {cfg['min_spot_snr']:g} x {noise_3x3_dn:.3g} DN)")
+    peaks = {b: _peak_pixel(_lit_image(bands[b], darks[b], lit)) if b != "G" else peak_g for b in BANDS}
+    cx, cy, (gy, gx) = _find_spot(bands["G"], darks["G"], lit, cfg["spot_threshold_fraction"], peaks["G"])
+    inside, outside = _peak_beside_field(bands["G"], darks["G"], lit, gy, gx)
+    if outside > inside:
+        return None, (f"port beyond the edge of the lit field (near x {cx:.1f}, y {cy:.1f} its light rises outside "
+                      f"the field, to {outside:.3g} DN against {inside:.3g} DN inside): is the geometry's image "
+                      f"circle short?")
     # the port's own pixels in every band: the R and B sites sit a quarter band pixel off the
     # G sites, so at the disc's edge R or B pixels are lit where G is not; the halo column must
     # convolve all of each band's flux, not only the part inside the G spot
@@ -220,7 +244,31 @@ def _setting_masks(bands: dict[str, np.ndarray], darks: dict[str, np.ndarray], l
         return (my + win[0].start) * shape[1] + (mx + win[1].start)
 
     # pixel indices, not images: a setting keeps a few hundred numbers, never a frame
-    return flat(circle), flat(annulus), flat(spot), _halo_weights(spot, annulus, sigma_psf), (cx, cy)
+    return (flat(circle), flat(annulus), flat(spot), _halo_weights(spot, annulus, sigma_psf), (cx, cy)), ""
+
+
+def _window_mean(a: np.ndarray, px: tuple[int, int]) -> float:
+    """Mean of ``a`` over the 3 x 3 pixels around ``px`` (fewer at the image's edge)."""
+    iy, ix = px
+    return float(a[max(iy - 1, 0):iy + 2, max(ix - 1, 0):ix + 2].mean())
+
+
+def _peak_beside_field(band: np.ndarray, dark: np.ndarray, lit: np.ndarray, ys: np.ndarray,
+                       xs: np.ndarray) -> tuple[float, float]:
+    """The spot's peak (largest ``band`` minus ``dark`` over its pixels ``ys``, ``xs``) and the largest over the
+    pixels outside ``lit`` next to them (8-neighbours; -inf when the spot does not touch the field's edge),
+    computed in the spot's bounding window only.
+
+    A spot whose light rises beyond the edge is the wing of a port outside the lit field (a short image circle),
+    not a port: its pixels hold a few DN of the port's light (seed 16 of the tiny scale: 14-20 DN against the
+    port's 8,000)."""
+    win = _bounding_window(band.shape, ys, xs, 1)
+    img = band[win].astype(float) - dark[win]
+    spot = np.zeros(img.shape, bool)
+    spot[ys - win[0].start, xs - win[1].start] = True
+    near = ndimage.binary_dilation(spot, np.ones((3, 3), bool)) & ~lit[win]
+    outside = float(img[near].max()) if near.any() else -np.inf
+    return float(img[spot].max()), outside
 
 
 def _deg_per_px(theta: np.ndarray) -> float:
@@ -238,6 +286,7 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
     dark = defaultdict(RunningMoments)          # (lens, medium, band) -> moments
     inputs = {}
     setting_masks = {}                          # (lens, medium, az, angle) -> (circle, annulus, spot, centre)
+    dropped = {}                                # (lens, medium, az, angle) -> why its spot cannot be measured
     acc = defaultdict(list)                     # (lens, medium, az, angle, band) -> per-frame dicts
     static = {}
     for dec in iter_frames(dataset, STAGE, order, progress=progress):
@@ -288,10 +337,19 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
                 raise InputError(dataset.root / STAGE / "frames.csv", f"needs at least two dark frames in {medium}")
         st = static[(lens, medium)]
         key = (lens, medium, float(row["azimuth_deg"]), float(row["angle_deg"]))
-        if key not in setting_masks:
+        if key not in setting_masks and key not in dropped:
             # the first frame of a setting finds its pixels
-            setting_masks[key] = _setting_masks(images.bands, st["dark"], st["lit"], st["r_avg"],
-                                                cfg["stray_light_psf_sigma_fraction"] * st["circle_px"], cfg)
+            masks, reason = _setting_masks(images.bands, st["dark"], st["lit"], st["r_avg"],
+                                           cfg["stray_light_psf_sigma_fraction"] * st["circle_px"], cfg,
+                                           np.sqrt(st["dark_var"]["G"]) / 3.0)
+            if masks is None:
+                dropped[key] = reason
+                log.warning("rolloff %s %s azimuth %g deg, angle %g deg (%s): setting dropped: %s",
+                            lens, medium, key[2], key[3], row["file"], reason)
+            else:
+                setting_masks[key] = masks
+        if key in dropped:
+            continue
         circle, annulus, spot, weights, (_cx, _cy) = setting_masks[key]
         for band in BANDS:
             # dark-subtracted at the setting's pixels only (the same values as the whole image's there)
@@ -306,7 +364,8 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
             })
     water_file = dataset.root / "immersion" / "water.yaml"
     water = read_water(dataset) if water_file.exists() else None
-    return {"acc": acc, "masks": setting_masks, "static": static, "inputs": inputs, "water": water}
+    return {"acc": acc, "masks": setting_masks, "static": static, "inputs": inputs, "water": water,
+            "dropped": dropped}
 
 
 def _centre_geometry(geo: xr.Dataset, medium: str) -> dict | None:
@@ -638,11 +697,28 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str
             effect_params[name] = val
 
     lenses = sorted({key[0] for key in reduced["static"]})
-    return {lens: _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise, config)
+    return {lens: _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise, config,
+                                reduced.get("dropped", {}))
             for lens in lenses}
 
 
-def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise, config) -> xr.Dataset:
+def check_settings(reduced: dict, config: dict, frames_csv) -> None:
+    """Stop with one line when a lens and medium keeps fewer than ``rolloff.min_settings`` measured settings
+    after the settings whose spot cannot be measured were dropped (:func:`_setting_masks`)."""
+    need = int(config[STAGE]["min_settings"])
+    dropped = reduced.get("dropped", {})
+    for lens, medium in sorted(reduced["static"]):
+        kept = sum(1 for k in reduced["masks"] if k[:2] == (lens, medium))
+        gone = [k for k in dropped if k[:2] == (lens, medium)]
+        if kept < need:
+            first = dropped[gone[0]] if gone else "none dropped"
+            raise InputError(frames_csv, f"lens {lens}, {medium}: only {kept} roll-off settings with a measurable "
+                                         f"spot (need rolloff.min_settings = {need}); {len(gone)} dropped, the first "
+                                         f"because: {first}")
+
+
+def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise, config,
+                  dropped: dict | None = None) -> xr.Dataset:
     n_coef = len(ROLLOFF_POWERS)
     coef = np.full((len(MEDIA), len(BANDS), n_coef), np.nan)
     cov = np.full((len(MEDIA), len(BANDS), n_coef, n_coef), np.nan)
@@ -673,6 +749,13 @@ def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise
         "rms_z": ((), float(np.sqrt(np.nanmean(z**2))) if np.isfinite(z).any() else np.nan,
                   {"long_name": "RMS of the noise-normalised residuals of the roll-off model", "units": "1"}),
     }
+    gone = {m: sorted(k for k in (dropped or {}) if k[:2] == (lens, m)) for m in MEDIA}
+    data["n_settings_dropped"] = (("medium",), np.array([len(gone[m]) for m in MEDIA], float), {
+        "long_name": "settings whose port spot could not be measured (no light above the noise in the lit field, "
+                     "or the port beyond its edge), neither fitted nor in obs_setting",
+        "units": "1",
+        "reasons": "; ".join(f"{m} azimuth {k[2]:g} deg angle {k[3]:g} deg: {dropped[k]}" for m in MEDIA
+                             for k in gone[m]) or "none"})
     for name, (c, cv) in effect_params.items():
         se = np.sqrt(np.clip(np.diag(cv), 0, None))
         units = get_effect(name).amplitude_units
@@ -700,6 +783,7 @@ def compute(ctx) -> xr.Dataset:
     geometry = {ctx.lens: ctx.upstream["geometry"]}
     reduced = reduce_rolloff(ctx.dataset, geometry, ctx.config, progress=ctx.progress)
     ctx.record_frames(reduced["inputs"])
+    check_settings(reduced, ctx.config, ctx.dataset.root / STAGE / "frames.csv")
     arts = analyse_rolloff(reduced, ctx.config, ctx.effects)
     if ctx.lens not in arts:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no roll-off frames for lens {ctx.lens}")
