@@ -49,34 +49,10 @@ from pipeline.block_bootstrap import BlockTestPart, block_bootstrap_reference, b
 from pipeline.diagnostics import Observations, blocks_of, candidate_significance
 from pipeline.effects import get as get_effect
 from pipeline.fitting import base_design, block_gls_drop, wls
+from pipeline.simulate.setting_tables import synthetic_linearity_settings
 
-EXPOSURES_S = (0.00833, 0.01667, 0.03333, 0.06667, 0.1, 0.2, 0.5)
-ISOS = (100.0, 200.0, 400.0, 800.0, 1600.0, 3200.0)
-#: DN per second at ISO 100 in the linearity mask, per band (the tiny camera, seed 101)
-RATES_DN_PER_S = {"R": 30500.0, "G": 32400.0, "B": 10900.0}
 #: block noise (relative sigma, offset sigma in DN) of the null cases
 NULL_CASES = ((0.003, 0.5), (0.006, 0.5), (0.0, 2.0))
-
-
-def synthetic_linearity_settings(rng, rel_sigma: float, offset_dn: float, gain_deficit: float = 0.0) -> pd.DataFrame:
-    """A linearity setting table: one block per setting, noise common to a block (a relative change of
-    ``rel_sigma`` and an offset of ``offset_dn``), the analogue gain (ISO/100)^(1 - ``gain_deficit``)."""
-    settings = [("exposure", t, 100.0) for t in EXPOSURES_S] + [("gain", EXPOSURES_S[0], iso) for iso in ISOS]
-    rows = []
-    for s, (sweep, t, iso) in enumerate(settings):
-        rel, off = rel_sigma * rng.standard_normal(), offset_dn * rng.standard_normal()
-        for lens in ("far", "close"):
-            for band, rate in RATES_DN_PER_S.items():
-                linear = rate * t * iso / 100.0
-                true = linear * (iso / 100.0) ** (-gain_deficit)
-                sigma = 0.1 * np.sqrt(true * iso / 100.0) + 1.0
-                rows.append({"lens": lens, "band": band, "sweep": sweep, "setting": s, "iso": iso, "exposure_s": t,
-                             "gain": iso / 100.0, "x_rate": t * iso / 100.0, "pred_linear_dn": linear,
-                             "full_scale_dn": 15576.0, "sigma_dn": sigma,
-                             "value_dn": true * (1 + rel) + off + sigma * rng.standard_normal()})
-    table = pd.DataFrame(rows)
-    table["group"] = table["lens"] + "/" + table["band"] + "/" + table["sweep"]
-    return table
 
 
 def iso_block_test(table: pd.DataFrame, cfg: dict):

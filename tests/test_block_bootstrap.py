@@ -2,9 +2,9 @@
 deterministic, nominal under the null, and more powerful than F(k, G - 1) where one block fixes each tested
 parameter (the ISO gain factors).
 
-The tables are linearity setting tables shaped as the tiny camera's (as benchmarks/bench_block_reference.py
-draws them): 7 exposure settings at ISO 100 and 6 gain settings at 8.33 ms, 2 lenses x 3 bands each, 13 blocks
-of 6 rows; row noise 0.1 sqrt(DN x ISO/100) + 1 DN; per setting a relative change and an offset common to its
+The tables are linearity setting tables shaped as the tiny camera's (pipeline.simulate.setting_tables, as
+benchmarks/bench_block_reference.py draws them): 7 exposure settings at ISO 100 and 6 gain settings at
+8.33 ms, 2 lenses x 3 bands each, 13 blocks of 6 rows; row noise 0.1 sqrt(DN x ISO/100) + 1 DN; per setting a relative change and an offset common to its
 rows (the block noise). ``iso_gain`` is tested (k = 5, each factor fixed by one gain setting).
 """
 
@@ -20,30 +20,7 @@ from pipeline.block_bootstrap import (BlockTestPart, block_bootstrap_reference, 
 from pipeline.diagnostics import Observations, blocks_of, candidate_significance
 from pipeline.effects import get as get_effect
 from pipeline.fitting import base_design, block_gls_drop, wls
-
-EXPOSURES_S = (0.00833, 0.01667, 0.03333, 0.06667, 0.1, 0.2, 0.5)
-ISOS = (100.0, 200.0, 400.0, 800.0, 1600.0, 3200.0)
-RATES_DN_PER_S = {"R": 30500.0, "G": 32400.0, "B": 10900.0}
-
-
-def setting_table(rng, rel_sigma: float, offset_dn: float, gain_deficit: float = 0.0) -> pd.DataFrame:
-    """One synthetic linearity setting table; the analogue gain (ISO/100)^(1 - ``gain_deficit``)."""
-    settings = [("exposure", t, 100.0) for t in EXPOSURES_S] + [("gain", EXPOSURES_S[0], iso) for iso in ISOS]
-    rows = []
-    for s, (sweep, t, iso) in enumerate(settings):
-        rel, off = rel_sigma * rng.standard_normal(), offset_dn * rng.standard_normal()
-        for lens in ("far", "close"):
-            for band, rate in RATES_DN_PER_S.items():
-                linear = rate * t * iso / 100.0
-                true = linear * (iso / 100.0) ** (-gain_deficit)
-                sigma = 0.1 * np.sqrt(true * iso / 100.0) + 1.0
-                rows.append({"lens": lens, "band": band, "sweep": sweep, "setting": s, "iso": iso, "exposure_s": t,
-                             "gain": iso / 100.0, "x_rate": t * iso / 100.0, "pred_linear_dn": linear,
-                             "full_scale_dn": 15576.0, "sigma_dn": sigma,
-                             "value_dn": true * (1 + rel) + off + sigma * rng.standard_normal()})
-    table = pd.DataFrame(rows)
-    table["group"] = table["lens"] + "/" + table["band"] + "/" + table["sweep"]
-    return table
+from pipeline.simulate.setting_tables import synthetic_linearity_settings
 
 
 def iso_gain_test(table: pd.DataFrame, cfg: dict):
@@ -62,7 +39,7 @@ def test_the_draws_compute_the_block_tests_statistic(config):
     """The bootstrap's vectorised route (Woodbury per block, unit columns) on the observed table gives the drop
     and chi-square of block_gls_drop (Cholesky per block), to 1e-6 of the chi-square: one statistic."""
     cfg = config["diagnostics"]
-    part, g, _ = iso_gain_test(setting_table(np.random.default_rng(3), 0.003, 0.5), cfg)
+    part, g, _ = iso_gain_test(synthetic_linearity_settings(np.random.default_rng(3), 0.003, 0.5), cfg)
     null = block_gls_null_draws(part.sigma, part.X0, part.X1, part.blocks, part.fit1, part.forms, draws=0)
     np.testing.assert_allclose(null.tau2_hat, g.tau2)
     assert abs(null.delta_chi2[0] - g.delta_chi2) < 1e-6 * g.chi2
@@ -71,7 +48,7 @@ def test_the_draws_compute_the_block_tests_statistic(config):
 
 def test_the_reference_is_deterministic(config):
     cfg = config["diagnostics"]
-    part, _, _ = iso_gain_test(setting_table(np.random.default_rng(4), 0.006, 0.5), cfg)
+    part, _, _ = iso_gain_test(synthetic_linearity_settings(np.random.default_rng(4), 0.006, 0.5), cfg)
     a, b = (block_bootstrap_reference([part], 200, 5) for _ in range(2))
     assert a == b
     assert block_bootstrap_reference([part], 200, 6) != a
@@ -92,7 +69,7 @@ def test_the_bootstrap_reference_is_nominal_under_the_null(config):
     rng = np.random.default_rng(2026)
     p_boot, p_f = [], []
     for i in range(N_NULL_TABLES):
-        table = setting_table(rng, *((0.006, 0.5) if i % 2 else (0.0, 2.0)))
+        table = synthetic_linearity_settings(rng, *((0.006, 0.5) if i % 2 else (0.0, 2.0)))
         part, g, f = iso_gain_test(table, cfg)
         ref = block_bootstrap_reference([part], NULL_DRAWS, 1000 + i)
         p_boot.append(stats.f.sf(f, g.k, ref.nu_propagated))
@@ -114,7 +91,7 @@ def test_the_bootstrap_finds_a_gain_ladder_that_f_misses(config):
     rng = np.random.default_rng(77)
     found = {"bootstrap": 0, "f": 0}
     for _ in range(8):
-        obs = [Observations("linearity", "setting", setting_table(rng, 0.0, 0.0, gain_deficit=0.01))]
+        obs = [Observations("linearity", "setting", synthetic_linearity_settings(rng, 0.0, 0.0, gain_deficit=0.01))]
         r_boot = candidate_significance("iso_gain", obs, [], config, 13)
         r_f = candidate_significance("iso_gain", obs, [], f_config, 13)
         assert r_boot["block_reference"] == "bootstrap F(k, nu)" and r_f["block_reference"] == "F(k, G - 1)"
@@ -129,7 +106,7 @@ def test_the_bootstrap_is_drawn_only_where_it_can_change_the_verdict(config):
     """Where the rows' F test is not below the level the candidate is not significant whatever the block
     reference: F(k, G - 1) is reported and nothing is drawn."""
     cfg = config["diagnostics"]
-    part, g, f = iso_gain_test(setting_table(np.random.default_rng(5), 0.003, 0.5), cfg)
+    part, g, f = iso_gain_test(synthetic_linearity_settings(np.random.default_rng(5), 0.003, 0.5), cfg)
     p, label, nu = block_test_p_value(f, g.k, g.n_blocks, [part], 0.5, 0.01, cfg)
     assert (label, nu) == ("F(k, G - 1)", g.n_blocks - 1) and p == pytest.approx(stats.f.sf(f, g.k, g.n_blocks - 1))
     with pytest.raises(ValueError, match="block_reference"):
