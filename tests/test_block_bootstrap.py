@@ -4,8 +4,8 @@ parameter (the ISO gain factors).
 
 The tables are linearity setting tables shaped as the tiny camera's (pipeline.simulate.setting_tables, as
 benchmarks/bench_block_reference.py draws them): 7 exposure settings at ISO 100 and 6 gain settings at
-8.33 ms, 2 lenses x 3 bands each, 13 blocks of 6 rows; row noise 0.1 sqrt(DN x ISO/100) + 1 DN; per setting a relative change and an offset common to its
-rows (the block noise). ``iso_gain`` is tested (k = 5, each factor fixed by one gain setting).
+8.33 ms, 2 lenses x 3 bands each, 13 blocks of 6 rows; row noise 0.1 sqrt(DN x ISO/100) + 1 DN; per setting
+a relative change and an offset common to its rows (the block noise). ``iso_gain`` is tested (k = 5, each factor fixed by one gain setting).
 """
 
 from __future__ import annotations
