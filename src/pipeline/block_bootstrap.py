@@ -190,26 +190,29 @@ class BlockReference:
     nu_propagated: float    # each draw at the variances one draw at the estimate estimated
 
 
-def block_bootstrap_reference(parts: list[BlockTestPart], draws: int, seed: int) -> BlockReference:
+def block_bootstrap_reference(parts: list[BlockTestPart], draws: int, seed: int,
+                              propagated: bool = True) -> BlockReference:
     """The null distribution of the block test's F = (sum of drops / k) / (sum of chi2 / sum of dof) over
     ``parts`` (the tables a candidate touches, drawn independently, the draws of one index combined), summarised
     as F(k, nu): at the block-noise variances estimated from each table (plug-in), and with each draw at the
     variances estimated by a first draw at the estimate (propagated: the estimate's own sampling spread carried
     into the reference). 2 x ``draws`` tables are simulated per part, from the seeds ``seed + j`` and
-    ``seed + j + 7919`` for part j."""
+    ``seed + j + 7919`` for part j; with ``propagated`` False only the first ``draws`` (``nu_propagated`` NaN)."""
     k, dof = 0, 0
     drop_plug, chi_plug, drop_prop, chi_prop = 0.0, 0.0, 0.0, 0.0
     for j, p in enumerate(parts):
         first = block_gls_null_draws(p.sigma, p.X0, p.X1, p.blocks, p.fit1, p.forms, draws=draws, seed=seed + j)
-        second = block_gls_null_draws(p.sigma, p.X0, p.X1, p.blocks, p.fit1, p.forms, draws=draws,
-                                      seed=seed + j + 7919, tau2=first.tau2)
         drop_plug, chi_plug = drop_plug + first.delta_chi2, chi_plug + first.chi2
-        drop_prop, chi_prop = drop_prop + second.delta_chi2, chi_prop + second.chi2
+        if propagated:
+            second = block_gls_null_draws(p.sigma, p.X0, p.X1, p.blocks, p.fit1, p.forms, draws=draws,
+                                          seed=seed + j + 7919, tau2=first.tau2)
+            drop_prop, chi_prop = drop_prop + second.delta_chi2, chi_prop + second.chi2
         k += _rank(p.sigma, p.X1) - _rank(p.sigma, p.X0)
         dof += len(p.sigma) - _rank(p.sigma, p.X1)
     k = max(k, 1)
-    nu = [f_reference_dof(d / k / (c / max(dof, 1)), dof) for d, c in ((drop_plug, chi_plug), (drop_prop, chi_prop))]
-    return BlockReference(k=k, dof=dof, nu_plug_in=nu[0], nu_propagated=nu[1])
+    nu_plug_in = f_reference_dof(drop_plug / k / (chi_plug / max(dof, 1)), dof)
+    nu_propagated = f_reference_dof(drop_prop / k / (chi_prop / max(dof, 1)), dof) if propagated else float("nan")
+    return BlockReference(k=k, dof=dof, nu_plug_in=nu_plug_in, nu_propagated=nu_propagated)
 
 
 def _rank(sigma: np.ndarray, X: np.ndarray) -> int:
@@ -261,6 +264,6 @@ def block_test_p_value(f_stat: float, k: int, n_blocks: int, parts: list[BlockTe
     if method == "f" or not p_rows < alpha or not all(columns_within_blocks(p) for p in parts):
         return float(stats.f.sf(f_stat, k, n_blocks - 1)), "F(k, G - 1)", float(n_blocks - 1)
     ref = block_bootstrap_reference(parts, int(cfg["block_bootstrap_draws"]),
-                                    table_seed(parts, int(cfg["block_bootstrap_seed"])))
+                                    table_seed(parts, int(cfg["block_bootstrap_seed"])), propagated=method == "bootstrap")
     nu = ref.nu_propagated if method == "bootstrap" else ref.nu_plug_in
     return float(stats.f.sf(f_stat, k, nu)), f"{method} F(k, nu)", nu
