@@ -59,8 +59,8 @@ from pipeline.moments import corner_mask
 from pipeline.radiometry import measurement as mm
 from pipeline.rawio import read_raw
 
-__all__ = ["apply_calibration", "band_radiance", "check_frame", "sphere_coordinates", "bin_on_sphere", "add_apply_parser",
-           "apply_command"]
+__all__ = ["apply_calibration", "band_radiance", "check_frame", "sphere_coordinates", "sphere_directions", "bin_on_sphere",
+           "add_apply_parser", "apply_command"]
 
 #: flags that keep a pixel out of the sphere grid
 EXCLUDED_FROM_GRID = mm.FLAG_SATURATED | STATIC_OFF_GRID
@@ -541,28 +541,23 @@ def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     return mean.reshape(shape), spread.reshape(shape), count.reshape(shape)
 
 
-def _pixel_directions(maps, lenses, zenith_lens, grid_deg, block_rows, pixels):
-    """The sphere cells of every band pixel per block ([lens][band]: :func:`~pipeline.calibration.sphere_blocks`),
-    the pixels of each cell and of the negative-mean check ([lens][band]: :func:`~pipeline.calibration.sphere_counts`)
-    and, with ``pixels``, the zenith and azimuth maps.
+def _pixel_directions(maps, lenses, zenith_lens, grid_deg, block_rows):
+    """The sphere cells of every band pixel per block ([lens][band]: :func:`~pipeline.calibration.sphere_blocks`)
+    and the pixels of each cell and of the negative-mean check ([lens][band]: :func:`~pipeline.calibration.sphere_counts`).
 
     ``maps`` the bundle's maps at the medium ((lens, band, y, x)): its ``sphere_cell_in_block`` and
     ``sphere_block_*`` when made for this grid, zenith lens and block size, else the cells from
-    ``theta_deg`` and ``phi_deg`` (which the zenith and azimuth maps need too) and ``pixel_flag``.
+    ``theta_deg`` and ``phi_deg`` and ``pixel_flag``.
     """
-    cells, counts, zen, azi = [], [], None, None
+    cells, counts = [], []
     stored = "sphere_cell_in_block" in maps
     n_cells = int(np.prod(grid_shape(grid_deg)))
-    if pixels:
-        # written straight into the output maps
-        zen, azi = (np.empty(maps["theta_deg"].shape, np.float32) for _ in range(2))
     for i, lens in enumerate(lenses):
         cells.append([])
         counts.append([])
         for j in range(len(BANDS)):
-            if pixels or not stored:
-                z, a = sphere_coordinates(maps["theta_deg"][i, j], maps["phi_deg"][i, j], lens == zenith_lens,
-                                          out=(zen[i, j], azi[i, j]) if pixels else None)
+            if not stored:
+                z, a = sphere_coordinates(maps["theta_deg"][i, j], maps["phi_deg"][i, j], lens == zenith_lens)
             if stored:
                 cells[i].append(tuple(maps[name][i, j] for name in ("sphere_cell_in_block", "sphere_block_first_cell",
                                                                      "sphere_block_n_cells", "sphere_block_columns")))
@@ -572,7 +567,30 @@ def _pixel_directions(maps, lenses, zenith_lens, grid_deg, block_rows, pixels):
                 cell = np.where((flags & STATIC_OFF_GRID) != 0, -1, sphere_cells(z, a, grid_deg))
                 cells[i].append(sphere_blocks(cell, flags, block_rows))
                 counts[i].append(sphere_counts(cell, flags, n_cells))
-    return cells, counts, zen, azi
+    return cells, counts
+
+
+def sphere_directions(ds: xr.Dataset) -> tuple[xr.DataArray, xr.DataArray]:
+    """Zenith angle and azimuth (deg) of every band pixel of an ``apply`` output with its pixel geometry.
+
+    From its ``theta_deg`` and ``phi_deg`` by its ``sphere_convention`` (the lens ``zenith_lens`` looks at the
+    zenith; :func:`~pipeline.geometry.sphere.sphere_coordinates`), float32 as the maps, dims (lens, band, y, x).
+    """
+    if "theta_deg" not in ds:
+        raise InputError(ds.encoding.get("source"), "has no theta_deg: written without the pixel geometry")
+    zenith_lens = str(ds.attrs["zenith_lens"])
+    zen, azi = [], []
+    for lens in ds["lens"].values:
+        z, a = sphere_coordinates(ds["theta_deg"].sel(lens=lens).values, ds["phi_deg"].sel(lens=lens).values,
+                                  str(lens) == zenith_lens)
+        zen.append(np.array(z, copy=True))
+        azi.append(np.asarray(a))
+    dims, coords = ds["theta_deg"].dims, ds["theta_deg"].coords
+    convention = ds.attrs["sphere_convention"]
+    return (xr.DataArray(np.stack(zen), coords, dims, "zenith_deg",
+                         _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
+            xr.DataArray(np.stack(azi), coords, dims, "azimuth_deg",
+                         _attrs("azimuth of the pixel's direction on the sphere", "degree", convention=convention)))
 
 
 def _attrs(long_name, units, **extra):
@@ -667,7 +685,7 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
             medium=[medium]).load()
     n_z, n_a = grid_shape(grid_deg)
     # the cell of every band pixel, once per lens and band (not per frame), beside the first frame's chain
-    directions = pool.submit(_pixel_directions, maps, lenses, zenith_lens, grid_deg, block_rows, geometry)
+    directions = pool.submit(_pixel_directions, maps, lenses, zenith_lens, grid_deg, block_rows)
     grid = {k: np.full((len(raw_paths), len(BANDS), n_z, n_a), np.nan) for k in ("mean", "spread", "random", "systematic")}
     count = np.zeros((len(raw_paths), len(BANDS), n_z, n_a), np.int32)
     meta = []
@@ -678,7 +696,7 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
     out_maps = None if not pixels else {
         "radiance": np.empty(shape, np.float32), "random": np.empty(shape, np.float32),
         "systematic": np.empty(shape, np.float32), "flags": np.empty(shape, np.uint8)}
-    cells, counts, zen, azi = directions.result()
+    cells, counts = directions.result()
     # what does not depend on the frame, once per call for every frame: each block's cells, the unlit corners
     negative_sigma = float(cfg["negative_mean_sigma"])
     corners = {lens: "bias_drift" in effects and lens not in rectilinear for lens in lenses}
@@ -738,10 +756,6 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
                             _attrs("azimuth of the viewing direction about the lens's axis", "degree")),
                 "solid_angle_sr": (("lens", "band", "y", "x"), maps["solid_angle_sr"].astype(np.float32, copy=False),
                                    _attrs("solid angle seen by the band pixel", "sr")),
-                "zenith_deg": (("lens", "band", "y", "x"), zen,
-                               _attrs("zenith angle of the pixel's direction on the sphere", "degree", convention=convention)),
-                "azimuth_deg": (("lens", "band", "y", "x"), azi,
-                                _attrs("azimuth of the pixel's direction on the sphere", "degree", convention=convention)),
             })
         del out_maps
     ds = xr.Dataset(
@@ -768,7 +782,8 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         },
         attrs={
             "Conventions": "CF-1.10", "title": "spectral radiance from raw frames (Larouche et al. 2024, inverse of Eq. 4)",
-            "medium": medium, "grid_deg": grid_deg, "sphere_convention": convention, "pixel_maps": int(pixels),
+            "medium": medium, "grid_deg": grid_deg, "sphere_convention": convention, "zenith_lens": zenith_lens,
+            "pixel_maps": int(pixels),
             "calibration_bundle": str(bundle_path), "calibration_created": bundle.attrs.get("created", ""),
             "camera_serial": bundle.attrs.get("camera_serial", ""), "model_effects": ",".join(effects),
             "uncertainty": "random: shot, read and dark noise of each pixel and frame, and the flat field's noise "
@@ -776,6 +791,11 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
                            "nonlinearity, roll-off (and its azimuthal term), immersion factor and R^-1, common to a band",
         },
     )
+    if pixels and geometry:
+        # zenith and azimuth are theta and phi by the convention (one subtraction and sign): not written twice
+        ds.attrs["sphere_directions"] = (
+            "zenith and azimuth of each band pixel follow from theta_deg and phi_deg by sphere_convention "
+            "(pipeline.apply.sphere_directions(ds)); not stored, as they hold no more than theta and phi")
     if pixels and not geometry:
         # the geometry maps stay in the bundle: named there, with the hashes of the artefacts they came from
         ds.attrs["pixel_geometry"] = (
@@ -803,9 +823,25 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
     # the per-pixel maps uncompressed: compressing them (zlib level 1) was most of apply's time at the full
     # scale (9 of 22 s) for a file half the size (benchmarks/bench_apply.py; --no-pixels when size matters)
     big.update({name: {"zlib": False, "contiguous": True} for name, var in ds.data_vars.items() if "y" in var.dims})
-    ds.to_netcdf(tmp, engine="netcdf4", encoding=big)
+    _write_unfilled(ds, tmp, big)
     os.replace(tmp, out_path)
     return out_path
+
+
+def _write_unfilled(ds: xr.Dataset, path: Path, encoding: dict) -> None:
+    """``ds.to_netcdf(path, engine="netcdf4", encoding=encoding)`` with the NetCDF fill mode off.
+
+    In fill mode (the library's default, which ``to_netcdf`` keeps) the HDF5 layer writes the fill value
+    into every contiguous variable when it is created and the data over it after: every byte of the pixel
+    maps went into the page cache twice (1,196 MB for a 598 MB file at the full resolution). Every variable
+    here is written whole, so no fill is needed; the file and what xarray reads from it are the same.
+    """
+    store = xr.backends.NetCDF4DataStore.open(str(path), mode="w", format="NETCDF4")
+    try:
+        store.ds.set_fill_off()
+        ds.dump_to_store(store, encoding=encoding)
+    finally:
+        store.close()
 
 
 # --------------------------------------------------------------------------- command line
