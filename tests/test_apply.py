@@ -242,9 +242,13 @@ def _check_grid_is_the_binning_of_the_pixel_maps(ds, grid_deg):
     flags = ds["quality_flag"].values[0]
     n_z, n_a = ds.sizes["zenith"], ds.sizes["azimuth"]
     checked = 0
+    # each pixel's direction on the sphere from theta and phi by the stated convention, here in float64
+    up = (ds["lens"].values == ds.attrs["zenith_lens"])[:, None, None]
     for j in range(ds.sizes["band"]):
-        zen = ds["zenith_deg"].values[:, j].astype(float)
-        azi = ds["azimuth_deg"].values[:, j].astype(float)
+        theta = ds["theta_deg"].values[:, j].astype(float)
+        phi = ds["phi_deg"].values[:, j].astype(float)
+        zen = np.where(up, theta, 180.0 - theta)
+        azi = np.mod(np.where(up, phi, -phi), 360.0)
         on = (flags[:, j] == 0) & np.isfinite(ds["radiance"].values[0][:, j])
         cell = (np.minimum((zen[on] / grid_deg).astype(int), n_z - 1) * n_a
                 + np.minimum((azi[on] / grid_deg).astype(int), n_a - 1))
@@ -326,6 +330,30 @@ def test_saturated_pixels_leave_the_stored_cell_counts(calibrated, applied, tmp_
             cell = (index + g["sphere_block_first_cell"].values[block][:, None])[on]
             np.testing.assert_array_equal(g["sphere_cell_count"].values, np.bincount(cell, minlength=180 * 360))
             assert int(g["sphere_checked_count"]) == on.sum() + (index == n + 1).sum()
+
+
+def test_zenith_and_azimuth_follow_from_theta_and_phi_and_are_not_stored(applied):
+    """The output stores theta and phi once; sphere_directions gives each pixel's zenith angle and azimuth:
+    the zenith lens's theta and phi mod 360, the other's 180 - theta and -phi mod 360 (float32 rounding:
+    one ulp of 360, 3e-5 degree)."""
+    from pipeline.apply import sphere_directions
+
+    ds = applied["far"]
+    assert "zenith_deg" not in ds and "azimuth_deg" not in ds and "theta_deg" in ds
+    assert "sphere_convention" in ds.attrs["sphere_directions"]
+    zen, azi = sphere_directions(ds)
+    assert zen.dims == ds["theta_deg"].dims and zen.attrs["units"] == azi.attrs["units"] == "degree"
+    for lens in ds["lens"].values:
+        theta = ds["theta_deg"].sel(lens=lens).values.astype(float)
+        phi = ds["phi_deg"].sel(lens=lens).values.astype(float)
+        up = lens == ds.attrs["zenith_lens"]
+        np.testing.assert_allclose(zen.sel(lens=lens).values, theta if up else 180.0 - theta, atol=3e-5, rtol=0)
+        want = np.mod(phi if up else -phi, 360.0)
+        diff = np.abs(azi.sel(lens=lens).values - want)
+        np.testing.assert_array_less(np.where(np.isnan(want), 0.0, np.minimum(diff, 360.0 - diff)), 3e-5)
+        assert np.array_equal(np.isnan(azi.sel(lens=lens).values), np.isnan(want))
+    # both lenses: the upper and the lower hemisphere
+    assert float(zen.min()) < 90.0 < float(zen.max())
 
 
 def test_pixel_maps_without_their_geometry_name_the_bundles(calibrated, applied, tmp_path):

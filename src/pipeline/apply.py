@@ -606,11 +606,13 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
     always written; the per-pixel maps (radiance, uncertainties, flags and
     the geometry of every band pixel of both lenses) only with ``pixels``;
     ``pixel_geometry=False`` leaves the geometry maps (theta, phi, solid
-    angle, zenith, azimuth) out: the output then names them in the bundle
+    angle) out: the output then names them in the bundle
     (attribute ``pixel_geometry``, with the sha256 of the geometry artefacts
     they came from, ``geometry_sha256``).
     The output is written to a temporary name and renamed; an existing
-    ``out_path`` is replaced only with ``overwrite``.
+    ``out_path`` is replaced only with ``overwrite``. Each pixel's zenith
+    angle and azimuth on the sphere are not stored (theta and phi by the
+    output's ``sphere_convention``): :func:`sphere_directions` gives them.
     """
     out_path = Path(out_path)
     if out_path.exists() and not overwrite:
@@ -861,9 +863,9 @@ def add_apply_parser(subparsers) -> argparse.ArgumentParser:
                    help="write the per-pixel maps of both lenses besides the sphere grid (default); "
                         "--no-pixels writes the sphere grid only")
     p.add_argument("--pixel-geometry", action=argparse.BooleanOptionalAction, default=True,
-                   help="with the pixel maps also write each band pixel's theta, phi, solid angle, zenith and "
-                        "azimuth (default); --no-pixel-geometry leaves them in the calibration bundle and names "
-                        "them there (360 MB less per file at the full resolution)")
+                   help="with the pixel maps also write each band pixel's theta, phi and solid angle (default); "
+                        "--no-pixel-geometry leaves them in the calibration bundle and names them there "
+                        "(216 MB less per file at the full resolution)")
     return p
 
 
