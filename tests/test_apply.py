@@ -340,7 +340,7 @@ def test_zenith_and_azimuth_follow_from_theta_and_phi_and_are_not_stored(applied
 
     ds = applied["far"]
     assert "zenith_deg" not in ds and "azimuth_deg" not in ds and "theta_deg" in ds
-    assert "sphere_convention" in ds.attrs["sphere_directions"]
+    assert "sphere_convention" in ds.attrs["sphere_directions"] and "float32" in ds.attrs["pixel_map_precision"]
     zen, azi = sphere_directions(ds)
     assert zen.dims == ds["theta_deg"].dims and zen.attrs["units"] == azi.attrs["units"] == "degree"
     for lens in ds["lens"].values:

@@ -793,6 +793,11 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
                            "nonlinearity, roll-off (and its azimuthal term), immersion factor and R^-1, common to a band",
         },
     )
+    if pixels:
+        ds.attrs["pixel_map_precision"] = (
+            "radiance and its sigmas float32 (the chain runs in float32; against float64 on the full-resolution "
+            "benchmark frame the radiance differs by at most 2.4e-5 of its random sigma); geometry float32 as "
+            "in the calibration bundle; the sphere grid float64")
     if pixels and geometry:
         # zenith and azimuth are theta and phi by the convention (one subtraction and sign): not written twice
         ds.attrs["sphere_directions"] = (
