@@ -206,7 +206,7 @@ def block_means(z: np.ndarray, values: pd.Series, blocks: np.ndarray | None) -> 
     rows, would find the shared noise of the blocks as a difference between its groups, against a
     within-group scatter that leaves it out. Measured on the clean tiny datasets with the lab noise (README,
     "Detection benchmark"): the logged temperature of the dark setting table, one value per setting, at p
-    8.7e-17 over its 78 rows; over its 13 setting means, the scan's test of independent values, not small.
+    8.7e-17 over its 78 rows (seed 311), at 0.058 over its 13 setting means.
     A covariate that varies within blocks (the lens, the band, the signal level) is tested over the rows.
     """
     values = values.reset_index(drop=True)
