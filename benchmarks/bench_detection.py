@@ -24,7 +24,9 @@ p-value) and a summary: top-1 accuracy (clear and near-limit apart), the false-a
 and how often the error falls back to the floor; for the clean datasets also the tables the residual tests
 report as structured (false alarms of those tests), the covariate scan's smallest p and how often it names
 the signal level. ``--effects`` takes catalogue names and form names; ``--magnitudes clear`` runs one magnitude;
-``--pairs ''`` and ``--clean 0`` skip those parts. Each case is simulated with its own seed, in a
+``--pairs ''`` and ``--clean 0`` skip those parts; ``--clean-seeds 311,303`` runs those clean seeds instead of
+``--clean N``'s 300 to 300 + N - 1, and ``--lab-noise bias_dn_per_room_c=0`` changes the named sizes of the
+lab noise (:class:`pipeline.simulate.lab_noise.LabNoise`) from their defaults. Each case is simulated with its own seed, in a
 temporary folder removed after it (``--work`` to keep them elsewhere). A benchmark, not a test: nothing
 here is asserted.
 """
@@ -36,6 +38,7 @@ import shutil
 import sys
 import tempfile
 import time
+from dataclasses import fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -49,6 +52,7 @@ from pipeline.config import load_config  # noqa: E402
 from pipeline.dataset import open_dataset  # noqa: E402
 from pipeline.diagnostics import error_figures, observations_from_artefacts, rank_missing_effects  # noqa: E402
 from pipeline.simulate import simulate_dataset, truth_dir_for  # noqa: E402
+from pipeline.simulate.lab_noise import LabNoise  # noqa: E402
 from pipeline.stages.dark import analyse_dark, reduce_dark  # noqa: E402
 from pipeline.stages.linearity import analyse_linearity, reduce_linearity  # noqa: E402
 from pipeline.stages.rolloff import analyse_rolloff, reduce_rolloff  # noqa: E402
@@ -166,6 +170,10 @@ def main() -> None:
     ap.add_argument("--magnitudes", default="clear,limit", help="clear, limit or both")
     ap.add_argument("--pairs", default=",".join(DEFAULT_PAIRS), help="a+b pairs, comma-separated ('' for none)")
     ap.add_argument("--clean", type=int, default=20, help="clean datasets with the realistic lab noise")
+    ap.add_argument("--clean-seeds", default=None,
+                    help="seeds of the clean datasets, comma-separated (instead of --clean's 300 on)")
+    ap.add_argument("--lab-noise", default="",
+                    help="lab-noise sizes of the clean datasets, name=value comma-separated (default: LabNoise's)")
     ap.add_argument("--seed", type=int, default=500, help="first seed of the effect cases (clean: 300 on)")
     ap.add_argument("--work", default=None, help="folder for the simulated datasets (default: a temporary one)")
     args = ap.parse_args()
@@ -181,6 +189,17 @@ def main() -> None:
     lab = [e for e in MAGNITUDES if e not in ROLLOFF_EFFECTS]
     if any(len(p) != 2 or any(e not in lab for e in p) for p in pairs):
         sys.exit(f"error: --pairs takes a+b with names of {', '.join(lab)}")
+
+    try:
+        sizes = {k.strip(): float(v) for k, v in (item.split("=") for item in args.lab_noise.split(",") if item)}
+        lab_noise = replace(LabNoise(), **sizes)
+    except (ValueError, TypeError) as exc:
+        sys.exit(f"error: --lab-noise takes name=value pairs of {', '.join(f.name for f in fields(LabNoise))}: {exc}")
+    try:
+        clean_seeds = ([int(s) for s in args.clean_seeds.split(",") if s] if args.clean_seeds is not None
+                       else list(range(300, 300 + args.clean)))
+    except ValueError:
+        sys.exit(f"error: --clean-seeds takes comma-separated integers, got {args.clean_seeds!r}")
 
     config = load_config()
     tmp = None
@@ -243,11 +262,11 @@ def main() -> None:
         rows.append(row)
         show(f"{a}+{b}", "clear", row, injected_amplitude(a, MAGNITUDES[a][0], row["truth"]))
     clean = []
-    for i in range(args.clean):
-        row = run_case(work, config, 300 + i, [], lab_noise=True, base_model=("bias_drift",))
-        row.update(case=f"clean seed {300 + i}", kind="clean", level="-", top1=False, ranked_first=False)
+    for clean_seed in clean_seeds:
+        row = run_case(work, config, clean_seed, [], lab_noise=lab_noise, base_model=("bias_drift",))
+        row.update(case=f"clean seed {clean_seed}", kind="clean", level="-", top1=False, ranked_first=False)
         clean.append(row)
-        show(f"clean seed {300 + i} (lab noise)", "-", row, np.nan)
+        show(f"clean seed {clean_seed} (lab noise)", "-", row, np.nan)
 
     print()
     print("summary (tiny scale; dark and linearity experiments, roll-off for its effects)")

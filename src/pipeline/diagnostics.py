@@ -413,7 +413,7 @@ def residual_tests(observations: list[Observations], model_effects: list[str], r
         t0 = residual_chi2_test(fit0.z, X0, sigma, blocks, fit0.dof)
         t1 = residual_chi2_test(fit1.z, X1, sigma, blocks, fit1.dof)
         here = [e for e in accepted if get_effect(e).columns(obs.experiment, obs.level, obs.table) is not None]
-        covariate, p_cov, share, n_cov = where_structure_sits(obs.table, fit1.z, cfg["covariate_bins"])
+        covariate, p_cov, share, n_cov = where_structure_sits(obs.table, fit1.z, cfg["covariate_bins"], blocks)
         significant = bool(t1.p_value < level)
         if here:        # beside a candidate: the excess must also follow a covariate (residual_structure)
             significant = significant and p_cov < level / max(n_cov, 1)
