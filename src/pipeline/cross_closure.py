@@ -32,8 +32,8 @@ chi-square against its degrees of freedom, the closure table, ``diagnose``'s sen
   (``diagnostics.closure_source_level_rel_sigma``, default 0: the quiet lab): each experiment takes one
   lens's frames and then the other's, so a slow drift of the source moves each lens's rows of a source by
   its own factor, which each lens's fit takes as its level and no stage's error holds (on the simulator's
-  lab noise, drift 0.2 % amplitude, it is what lifts the table to chi2 about 31 for 13 dof; 0.001 brings it
-  back to its dof). A diagonal term, though the drift is common to a source and lens's three bands: the
+  lab noise, drift 0.2 % amplitude, it is what lifts the table to chi2 18 to 33 for 13 dof; 0.001 to 0.0015
+  brings it back to about its dof). A diagonal term, though the drift is common to a source and lens's three bands: the
   rows are tested one block each (below), and the stated size is the lab's, not fitted. The table is tested by
   its chi-square tail, one block per row: the three bands of one source and lens share frames, but
   with eight source-lens blocks a block test cannot tell a source whose level moved between the
