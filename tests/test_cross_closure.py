@@ -7,6 +7,9 @@ injected cases rewrite copies of one or two of its experiment folders and rerun 
 * Clean data stays clean: the two closure tables and the lens-interaction tests are not significant at
   the diagnostics' own levels (Bonferroni over the tables tried here, stricter than the workflow's run,
   which divides by every table of every stage).
+* The quiet lab's responsivity chi-square lies in its dof's two-sided 99 % range (the stages' errors are its
+  whole noise); with the lab's source stability stated (``closure_source_level_rel_sigma`` 0.001) the lamp
+  case below is still found.
 * A lamp that was not at its stated level for one lens: the far lens's absolute signal frames get 2 %
   more light (the photo-signal above black times 1.02, rewritten in the raw files here, a form the
   package has no model of). Each lens's absolute fit is at its noise floor (it cannot see it: its R^-1
@@ -29,12 +32,14 @@ injected cases rewrite copies of one or two of its experiment folders and rerun 
 
 from __future__ import annotations
 
+import copy
 import shutil
 
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from scipy import stats
 
 from effect_forms import FORMS
 from pipeline.artefact import read_artefact
@@ -117,6 +122,18 @@ def test_clean_closure_tables_stay_clean(clean, config):
     assert not lens["significant"].any(), lens[["effect", "values", "p_value"]]
 
 
+def test_clean_responsivity_chi2_within_its_dof_range(clean, config):
+    """The quiet lab (no lab noise, no effect): the stages' standard errors are the rows' whole noise, so the
+    responsivity table's chi-square lies inside its dof's two-sided 99 % range (13 dof: 3.6 to 29.8). A noise
+    understated or overstated by a factor 1.6 (chi2 scaled by 2.6 either way) leaves it (measured on seeds 1 to 8
+    of ``simulate --scale tiny``: 6.1 to 19.6)."""
+    loaded, _ = clean
+    obs, tests = _closure_tests(loaded, config, list(config["model"]["effects"]))
+    chi2, dof = float(tests.loc["responsivity", "chi2"]), int(tests.loc["responsivity", "dof"])
+    assert dof == 13
+    assert stats.chi2.ppf(0.005, dof) < chi2 < stats.chi2.ppf(0.995, dof), chi2
+
+
 @pytest.fixture(scope="module")
 def lamp_off_for_one_lens(calibrated, config, tmp_path_factory):
     root, _, _, artefacts, _, _ = calibrated
@@ -146,6 +163,23 @@ def test_lamp_off_for_one_lens_found_by_the_responsivity_closure(lamp_off_for_on
     assert not own["significant"].any(), own[["level", "chi2", "dof"]]
     obs, tests = _closure_tests(loaded, config, effects)
     assert tests.loc["responsivity", "significant"], tests.loc["responsivity"]
+    message = describe_closure(unexplained_structure(tests.reset_index()), obs, effects)
+    text = " ".join(message.loc[message["level"] == "responsivity", "message"])
+    assert "largest departure is absolute" in text, text
+
+
+def test_stated_source_stability_does_not_hide_a_lamp_off_for_one_lens(lamp_off_for_one_lens, config):
+    """With the source's level between the lenses' sessions stated at 0.1 % (what the simulator's lab noise,
+    drift 0.2 % amplitude, needs), the lamp 2 % off for one lens is still found: each absolute row departs by
+    about 1 % against sqrt(0.08^2 + 0.1^2) = 0.13 %, some 8 sigma; and the stated term widens every row by it."""
+    stated = copy.deepcopy(config)
+    stated["diagnostics"]["closure_source_level_rel_sigma"] = 0.001
+    loaded = _loaded(lamp_off_for_one_lens)
+    effects = list(config["model"]["effects"])
+    obs, tests = _closure_tests(loaded, stated, effects)
+    assert tests.loc["responsivity", "significant"], tests.loc["responsivity"]
+    resp = next(o for o in obs if o.level == "responsivity").table
+    assert (resp["sigma_dn"] >= 0.001).all()
     message = describe_closure(unexplained_structure(tests.reset_index()), obs, effects)
     text = " ".join(message.loc[message["level"] == "responsivity", "message"])
     assert "largest departure is absolute" in text, text

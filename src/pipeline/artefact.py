@@ -73,13 +73,15 @@ from pipeline.errors import ArtefactError
 #: calibration 11: the bundle's ``theta_deg_sigma`` and field-angle variance from the jackknife covariance,
 #: beside version 10's second spill cell; calibration 12: ``sphere_cell_count`` and ``sphere_checked_count``, the
 #: pixels of each sphere cell and of apply's negative-mean check per lens, medium and band (apply counts none).
+#: closure 4: the recorded diagnostics config gains ``closure_source_level_rel_sigma`` (the source's level between
+#: the lenses' sessions, in quadrature on every responsivity row; default 0 leaves the rows as in version 3).
 #: geometry 5: the image circle (``circle_*``, hence ``half_fov_deg``) fitted to the edge of the lit region of the
 #: frames' maximum (``geometry.image_circle_lit_fraction``), no longer to its strongest edge (the boards' white
 #: squares: radius up to 9.7 of 29 band px short on the tiny scale); calibration 13: that geometry;
 #: rolloff 5: settings whose port spot cannot be measured (no light above the noise, the port beyond the lit field's edge)
 #: dropped, counted in ``n_settings_dropped`` with their reasons.
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 5, "rolloff": 5, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 13, "field": 3, "closure": 3}
+                     "absolute": 3, "immersion": 2, "calibration": 13, "field": 3, "closure": 4}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
