@@ -415,7 +415,9 @@ def residual_tests(observations: list[Observations], model_effects: list[str], r
         here = [e for e in accepted if get_effect(e).columns(obs.experiment, obs.level, obs.table) is not None]
         covariate, p_cov, share, n_cov = where_structure_sits(obs.table, fit1.z, cfg["covariate_bins"], blocks)
         significant = bool(t1.p_value < level)
-        if here:        # beside a candidate: the excess must also follow a covariate (residual_structure)
+        if any(get_effect(e).columns_carry_noise for e in here):
+            # beside a candidate whose columns carry noise sigma leaves out, the excess must also follow a
+            # covariate (residual_structure)
             significant = significant and p_cov < level / max(n_cov, 1)
         pattern = image_plane_pattern(obs.table, fit1.z, cfg["image_plane_cells"])
         rows.append({
@@ -446,6 +448,9 @@ def unexplained_structure(tests: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for _, t in tests[tests["significant"].astype(bool)].iterrows():
         where = f"they follow {covariate_label(str(t['covariate']))} most closely"
+        p_cov = float(t.get("covariate_p_value", float("nan")))
+        if np.isfinite(p_cov):
+            where += f" (F test of the grouping, p {p_cov:.2g})"
         if t["image_plane"]:
             where += f"; on the image plane they depart most at {t['image_plane']}"
         stat = f"chi2 {t['chi2']:.1f} for {int(t['dof'])} dof, p {t['p_value']:.2g}"

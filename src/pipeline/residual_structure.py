@@ -30,9 +30,13 @@ as for the candidate effects), and structure is called significant below the fam
 candidates the ranking accepted, the excess chi-square alone is no evidence of more structure: a
 candidate's linearised columns leave its own measurement noise out of ``sigma_dn`` (``bias_drift``'s
 unlit-corner offsets are measured with the corners' noise, which the stage adds to sigma when the effect
-is in the model, the diagnostics' column cannot), so structure remaining beside a candidate must also
-follow a covariate (its F test below the level over the tables and the covariates scanned; the F test
-uses the residuals' own scatter and so ignores a mis-scaled noise). A per-experiment
+is in the model, the diagnostics' column cannot), so structure remaining beside such a candidate
+(``Effect.columns_carry_noise``) must also follow a covariate (its F test below the level over the tables
+and the covariates scanned; the F test uses the residuals' own scatter and so ignores a mis-scaled noise).
+Beside any other candidate the table's p-value alone counts: with a covariate of one value per block
+scanned over the block means, a ramp of the black level left beside ``temperature`` (chi2 507 for 64 dof,
+block p 3e-14) follows no covariate of the 13 setting means below the level (smallest p 0.40), and would
+otherwise go unreported. A per-experiment
 pooled rms_z would dilute a setting-level effect with the frame-level rows of the same experiment; one
 test per table does not.
 

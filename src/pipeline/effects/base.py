@@ -81,6 +81,10 @@ class Effect:
     #: True when the stage applies the effect by correcting the data (masking,
     #: offset removal) rather than by fitting columns of its linear model
     corrects_data: ClassVar[bool] = False
+    #: True when the effect's model columns are measured quantities with noise of their own that the
+    #: table's ``sigma_dn`` leaves out (the unlit corners' offsets of ``bias_drift``): the excess
+    #: chi-square beside such a candidate is no evidence of more structure unless it follows a covariate
+    columns_carry_noise: ClassVar[bool] = False
 
     def __init__(self, **params):
         unknown = set(params) - set(self.truth_defaults)

@@ -204,6 +204,7 @@ class BiasDrift(Effect):
     amplitude_name = "bias_drift_sigma_dn"
     amplitude_units = "DN"
     corrects_data = True
+    columns_carry_noise = True
 
     def frame_offset_dn(self, rng):
         return float(self.params["sigma_dn"] * rng.standard_normal())
