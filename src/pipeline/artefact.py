@@ -80,8 +80,11 @@ from pipeline.errors import ArtefactError
 #: squares: radius up to 9.7 of 29 band px short on the tiny scale); calibration 13: that geometry;
 #: rolloff 5: settings whose port spot cannot be measured (no light above the noise, the port beyond the lit field's edge)
 #: dropped, counted in ``n_settings_dropped`` with their reasons.
+#: closure 5: the field-angle table (level ``field_angle``, pipeline.field_angle_closure: the geometry against
+#: the roll-off's rotation stage) among its rows, its prior rows of kind ``geometry_prior``; the recorded
+#: diagnostics config gains ``closure_spot_centroid_sigma_px``.
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 5, "rolloff": 5, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 13, "field": 3, "closure": 4}
+                     "absolute": 3, "immersion": 2, "calibration": 13, "field": 3, "closure": 5}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -54,6 +54,10 @@ chi-square against its degrees of freedom, the closure table, ``diagnose``'s sen
   the model says the rows are independent (the corners of the three bands are different pixels), so
   each row is its own block (the frame is named by ``frame_index``); with it, the frames' black-level
   spread is common to a frame's rows, and the frame (``file_index``) is the block.
+* ``closure/field_angle``: the geometric calibration against the roll-off's rotation stage, the lens
+  model's field angle of each port spot in the rotation plane against the stage's logged angle, with the
+  model's covariance as whitened nuisance columns and their prior rows
+  (:mod:`pipeline.field_angle_closure`).
 
 Per-lens parameters (:func:`lens_interaction_tests`): the two lenses are two sensors, so dark
 current, shutter offset and the ISO gain factors may differ between them. Every stage fits each lens
@@ -86,6 +90,9 @@ from pipeline.block_bootstrap import BlockTestPart, block_test_p_value
 from pipeline.diagnostics import Observations, _fit, blocks_of, model_design
 from pipeline.effects import available
 from pipeline.effects import get as get_effect
+from pipeline.field_angle_closure import LEVEL as FIELD_ANGLE_LEVEL
+from pipeline.field_angle_closure import PRIOR_KIND as FIELD_ANGLE_PRIOR_KIND
+from pipeline.field_angle_closure import field_angle_table
 from pipeline.fitting import base_design, block_gls_drop, wls
 from pipeline.observations import dataset_to_table
 from pipeline.radiometry.rolloff import evaluate_rolloff
@@ -269,6 +276,9 @@ def closure_observations(loaded: dict[str, list[xr.Dataset]], config: dict) -> l
     dark = dark_corner_table(loaded, config)
     if len(dark):
         out.append(Observations(EXPERIMENT, "dark_corners", dark, "DN"))
+    angles = field_angle_table(loaded, config)
+    if len(angles):
+        out.append(Observations(EXPERIMENT, FIELD_ANGLE_LEVEL, angles, "degree"))
     return out
 
 
@@ -277,13 +287,25 @@ MEANING = {
     "responsivity": "the DN per second on the axis that different experiments saw disagree (the band ratios of "
                     "the sphere's sources, or the ratio of the two lenses' responsivities)",
     "dark_corners": "the dark model mispredicts the unlit corners of the lit linearity frames",
+    FIELD_ANGLE_LEVEL: "the geometric calibration's field angle of the roll-off's port spots disagrees with the "
+                       "rotation stage's angle",
 }
 
 
 def _largest_departure(obs: Observations, model_effects: list[str]) -> str:
     fit = _fit(obs, model_design(obs, model_effects))
-    i = int(np.nanargmax(np.abs(fit.z)))
+    z = np.abs(fit.z)
+    if "kind" in obs.table:     # a prior's pseudo-measurement is not a departure of the data
+        z = np.where(obs.table["kind"].astype(str) == FIELD_ANGLE_PRIOR_KIND, np.nan, z)
+    i = int(np.nanargmax(z))
     r = obs.table.iloc[i]
+    if obs.level == FIELD_ANGLE_LEVEL:
+        prior = (obs.table["kind"].astype(str) == FIELD_ANGLE_PRIOR_KIND).to_numpy()
+        return (f"the largest departure is the {r['lens']} lens in {r['medium']}, azimuth plane "
+                f"{float(r['azimuth_deg']):g} deg, stage at {float(r['angle_deg']):+g} deg: "
+                f"{r['value_dn'] - fit.pred[i]:+.2f} deg ({fit.z[i]:+.1f} sigma); to follow the stage the lens "
+                f"models move by chi2 {float(np.sum(fit.z[prior] ** 2)):.1f} over their stated covariance "
+                f"({int(prior.sum())} directions, p {stats.chi2.sf(float(np.sum(fit.z[prior] ** 2)), max(int(prior.sum()), 1)):.2g})")
     if obs.level == "responsivity":
         return (f"the largest departure is {r['source']} ({r['lens']} lens, {r['band']}): "
                 f"{100.0 * np.expm1(r['value_dn'] - fit.pred[i]):+.2g} % ({fit.z[i]:+.1f} sigma)")
