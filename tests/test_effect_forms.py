@@ -218,14 +218,17 @@ def test_tanh_misfit_follows_the_signal_level(analysed):
     """Once ``nonlinearity`` (quadratic in the signal) is in the model, what the tanh form leaves in the
     linearity setting table is its cubic misfit along the signal level: the residual scan names the signal
     level (``signal_fraction``, the predicted signal above black over the raw range to the white level, on a
-    log scale) as the covariate the residuals follow, below 0.05 / (covariates scanned), the 5 % family-wise
-    level under which no covariate of a table at its noise floor is named.
+    log scale) as the covariate the residuals follow most closely, before the exposure time and the gain.
 
-    Measured (seed 101, rewrite seed 7): signal_fraction p 0.0044 (mean z by sextile of the signal level
-    -0.28, -0.58, -0.68, -0.54, +0.38, +0.77), against 0.05 / 7 = 0.0071; next exposure_s 0.040, gain 0.32;
-    on a linear scale the fraction's line would give 0.015 only. The table itself is not reported as
-    structured there (chi2 126.3 for 62 dof, p 0.08: the block test). Costs nothing beyond the form's
-    analysis that test_form_error_falls_or_is_reported already made (about 10 s of CPU when run alone)."""
+    Measured (seed 101, rewrite seed 7): signal_fraction p 0.079, its test with the noise a setting's rows
+    share as a random effect (pipeline.residual_structure.block_gls_covariate_test); over the rows as if
+    independent it was 0.0044 (mean z by sextile of the signal level -0.28, -0.58, -0.68, -0.54, +0.38,
+    +0.77), but that test follows a setting's shared noise along any covariate whose setting means differ
+    (tests/test_residual_structure.py: 68 % false alarms at 0.05 under block noise). Most of the misfit is
+    common to a setting's six rows, which a block-noise model cannot tell from a setting's shared noise, so
+    the scan names the level without calling it significant. The table itself is not reported as structured
+    there (chi2 126.3 for 62 dof, p 0.08: the block test). Costs nothing beyond the form's analysis that
+    test_form_error_falls_or_is_reported already made (about 10 s of CPU when run alone)."""
     from pipeline.residual_structure import covariate_label, covariates_of
 
     _, lin, _, _, _ = analysed("nonlinearity_tanh", ["nonlinearity"])
@@ -233,7 +236,6 @@ def test_tanh_misfit_follows_the_signal_level(analysed):
     row = tests.set_index(["experiment", "level"]).loc[("linearity", "setting")]
     table = observations_from_artefacts({"linearity": list(lin.values())})
     table = next(o.table for o in table if o.level == "setting")
-    n_cov = sum(int(v.nunique() > 1) for _, v in covariates_of(table).items())
+    assert sum(int(v.nunique() > 1) for _, v in covariates_of(table).items()) > 2     # the level had rivals
     assert row["covariate"] == "signal_fraction", tests.to_string()
-    assert row["covariate_p_value"] < 0.05 / n_cov, (row["covariate_p_value"], n_cov)
     assert covariate_label(row["covariate"]) == "the signal level as a fraction of full scale (signal_fraction)"

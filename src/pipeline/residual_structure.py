@@ -223,18 +223,95 @@ def block_means(z: np.ndarray, values: pd.Series, blocks: np.ndarray | None) -> 
     return grouped["z"].mean().to_numpy(float), grouped["value"].first().reset_index(drop=True)
 
 
+def block_noise_ratio(z: np.ndarray, codes: np.ndarray, n_blocks: int) -> float:
+    """The variance of a noise common to a block's rows over the rows' own, tau^2 / sigma^2, from the
+    one-way analysis of variance of ``z`` by block (method of moments, unbalanced blocks; 0 when the block
+    means scatter no more than the rows would make them)."""
+    n = len(z)
+    count = np.bincount(codes, minlength=n_blocks).astype(float)
+    if n_blocks < 2 or n - n_blocks < 1:
+        return 0.0
+    means = np.bincount(codes, weights=z, minlength=n_blocks) / count
+    msw = float(np.sum((z - means[codes]) ** 2)) / (n - n_blocks)
+    msb = float(np.sum(count * (means - z.mean()) ** 2)) / (n_blocks - 1)
+    m0 = (n - float(np.sum(count**2)) / n) / (n_blocks - 1)
+    return max(0.0, (msb - msw) / m0) / msw if msw > 0 else 0.0
+
+
+def block_gls_covariate_test(z: np.ndarray, values: pd.Series, blocks: np.ndarray, bins: int) -> tuple[float, float]:
+    """A covariate that varies inside the blocks, tested with the noise common to a block's rows as a
+    random effect: the block-noise ratio r of :func:`block_noise_ratio`, the rows of block g whitened by
+    (1 + m_g r)^(-1/2) along their mean (x - c_g mean_g(x), c_g = 1 - (1 + m_g r)^(-1/2), the intercept too),
+    then the F test of the covariate's columns (a straight line and ``bins`` quantile bins of a numeric
+    covariate with more distinct values than bins, the levels otherwise) after the intercept, n - 1 - k
+    degrees of freedom; the smaller p of the line and the bins, as :func:`covariate_tests` takes it. With
+    r = 0 it is the test over the rows; as r grows it leaves the block means to the blocks' own scatter.
+    Returns (p-value, variance share)."""
+    codes, uniques = pd.factorize(pd.Series(np.asarray(blocks)).astype(str))
+    g = len(uniques)
+    z = np.asarray(z, float)
+    n = len(z)
+    count = np.bincount(codes, minlength=g).astype(float)
+    c = (1.0 - 1.0 / np.sqrt(1.0 + count * block_noise_ratio(z, codes, g)))[codes]
+
+    def whiten(a):
+        means = np.stack([np.bincount(codes, weights=col, minlength=g) for col in a.T], axis=1) / count[:, None]
+        return a - c[:, None] * means[codes]
+
+    designs = []
+    if values.dtype.kind in "fi" and values.nunique() > bins:
+        x = values.to_numpy(float)
+        designs.append(x[:, None])
+        q = np.asarray(pd.qcut(x, bins, labels=False, duplicates="drop"))
+        designs.append((q[:, None] == np.unique(q)[None, 1:]).astype(float))
+    else:
+        levels = values.astype(str).to_numpy()
+        designs.append((levels[:, None] == np.unique(levels)[None, 1:]).astype(float))
+    zw = whiten(z[:, None])[:, 0]
+    one = whiten(np.ones((n, 1)))
+    base = zw - one @ np.linalg.lstsq(one, zw, rcond=None)[0]
+    total = float(base @ base)
+    out = []
+    for X in designs:
+        A = np.hstack([one, whiten(X)])
+        k = int(np.linalg.matrix_rank(A)) - 1
+        dof = n - 1 - k
+        if k < 1 or dof < 1 or total <= 0.0:
+            continue
+        rest = zw - A @ np.linalg.lstsq(A, zw, rcond=None)[0]
+        rss = max(float(rest @ rest), 1e-300)
+        p = float(stats.f.sf(((total - rss) / k) / (rss / dof), k, dof))
+        out.append((p, max(0.0, 1.0 - (rss / total) * (n - 1) / dof)))
+    return min(out) if out else (1.0, 0.0)
+
+
+def _varies_within_blocks(values: pd.Series, blocks: np.ndarray | None) -> bool:
+    if blocks is None or len(blocks) != len(values):
+        return False
+    keys = pd.Series(np.asarray(blocks)).astype(str)
+    return keys.nunique() < len(keys) and bool((values.reset_index(drop=True).groupby(keys).nunique(dropna=False)
+                                                 > 1).any())
+
+
 def where_structure_sits(table: pd.DataFrame, z: np.ndarray, bins: int,
                          blocks: np.ndarray | None = None) -> tuple[str, float, float, int]:
     """The covariate whose grouping of ``z`` is most significant: (name, p-value, variance share, number of
     covariates scanned). With ``blocks`` (the rows sharing a raw frame or setting), a covariate with one
-    value per block is tested on the blocks' mean z (:func:`block_means`)."""
+    value per block is tested on the blocks' mean z (:func:`block_means`); one that varies inside the blocks
+    over the rows with the noise a block's rows share as a random effect (:func:`block_gls_covariate_test`):
+    over the rows as if independent, that noise would follow any covariate whose block means differ (the
+    signal level of frames at different exposures)."""
     best, best_p, best_share, n = "no single covariate", 1.0, 0.0, 0
     for name, values in covariates_of(table).items():
         if values.nunique() < 2:
             continue
         n += 1
-        z_scan, values_scan = block_means(z, values, blocks)
-        p, share = covariate_tests(z_scan, scan_values(name, values_scan), bins)
+        values = values.reset_index(drop=True)
+        if _varies_within_blocks(values, blocks):
+            p, share = block_gls_covariate_test(z, scan_values(name, values), blocks, bins)
+        else:
+            z_scan, values_scan = block_means(z, values, blocks)
+            p, share = covariate_tests(z_scan, scan_values(name, values_scan), bins)
         if p < best_p:
             best, best_p, best_share = name, p, share
     return best, best_p, best_share, n
