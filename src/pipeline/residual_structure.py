@@ -44,7 +44,8 @@ Where the residuals sit: the covariate whose grouping of z is most significant (
 numeric covariates also as a straight line and in quantile bins; the signal level ``signal_fraction``, the
 predicted signal above black over the raw range between the black level and the white level, on a log scale,
 where a response whose form the model lacks bends: measured in README "Detection benchmark"; a covariate with
-one value per block of rows sharing a frame or setting on the blocks' mean z, :func:`block_means`), and, where
+one value per block of rows sharing a frame or setting on the blocks' mean z, :func:`block_means`; one that
+varies inside the blocks with their shared noise as a random effect, :func:`block_gls_covariate_test`), and, where
 the table has the pixel
 position of each measurement, the cell of a coarse grid over the image plane whose mean z departs most.
 Nothing here reads a simulator's truth.
@@ -211,7 +212,8 @@ def block_means(z: np.ndarray, values: pd.Series, blocks: np.ndarray | None) -> 
     within-group scatter that leaves it out. Measured on the clean tiny datasets with the lab noise (README,
     "Detection benchmark"): the logged temperature of the dark setting table, one value per setting, at p
     8.7e-17 over its 78 rows (seed 311), at 0.058 over its 13 setting means.
-    A covariate that varies within blocks (the lens, the band, the signal level) is tested over the rows.
+    A covariate that varies within blocks (the lens, the band, the signal level) is left to
+    :func:`block_gls_covariate_test`.
     """
     values = values.reset_index(drop=True)
     if blocks is None or len(blocks) != len(values):
