@@ -80,7 +80,10 @@ from pipeline.errors import ArtefactError
 #: squares: radius up to 9.7 of 29 band px short on the tiny scale); calibration 13: that geometry;
 #: rolloff 5: settings whose port spot cannot be measured (no light above the noise, the port beyond the lit field's edge)
 #: dropped, counted in ``n_settings_dropped`` with their reasons.
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 5, "rolloff": 5, "spectral": 2,
+#: linearity 7: ``obs_corner``, each lit frame's unlit-corner mean against the dark model's prediction there
+#: with its noise and the frame's time stamp (pipeline.radiometry.unlit_corners; the same values as ``obs_frame``'s
+#: ``corner_dn``, ``dark_corner_dn``, ``sigma_corner_dn``), for the dark-corner closure over every lit stage.
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 7, "geometry": 5, "rolloff": 5, "spectral": 2,
                      "absolute": 3, "immersion": 2, "calibration": 13, "field": 3, "closure": 4}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
