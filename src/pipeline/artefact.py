@@ -83,8 +83,12 @@ from pipeline.errors import ArtefactError
 #: linearity 7: ``obs_corner``, each lit frame's unlit-corner mean against the dark model's prediction there
 #: with its noise and the frame's time stamp (pipeline.radiometry.unlit_corners; the same values as ``obs_frame``'s
 #: ``corner_dn``, ``dark_corner_dn``, ``sigma_corner_dn``), for the dark-corner closure over every lit stage.
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 7, "geometry": 5, "rolloff": 5, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 13, "field": 3, "closure": 4}
+#: rolloff 6, spectral 3, absolute 4, immersion 3: ``obs_corner``, the same per-frame record of each lit (signal)
+#: frame's unlit corners against the dark model, with the stage's own keys (rolloff: ``medium``, ``azimuth_deg``,
+#: ``angle_deg``; spectral: ``wavelength_nm``; immersion: ``medium``, ``water_height_cm``), when the stage is given
+#: the dark artefact.
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 7, "geometry": 5, "rolloff": 6, "spectral": 3,
+                     "absolute": 4, "immersion": 3, "calibration": 13, "field": 3, "closure": 4}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -19,6 +19,7 @@ closure compares measurement and prediction over all experiments (:mod:`pipeline
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from datetime import datetime, timezone
 
 import numpy as np
@@ -30,7 +31,7 @@ from pipeline.moments import unlit_mask
 from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
 from pipeline.rawio import RawFrame
 
-__all__ = ["CORNER_COLUMNS", "corner_mean_dn", "corner_noise_dn", "corner_pattern_dn", "corner_pixels",
+__all__ = ["CORNER_COLUMNS", "FrameCorners", "corner_mean_dn", "corner_noise_dn", "corner_pattern_dn", "corner_pixels",
            "frame_corner_records", "frame_time_s", "predicted_corner_dn"]
 
 #: columns of a per-frame corner record (and of the stages' ``obs_corner`` tables, with the stage's own keys)
@@ -122,3 +123,30 @@ def frame_corner_records(lens: str, images: LensImages, raw: RawFrame, dark: xr.
                     "dark_corner_dn": predicted_corner_dn(dark, band, iso, exposure_s, corners, temperature_c),
                     "sigma_corner_dn": corner_noise_dn(dark, band, iso, sites)})
     return out
+
+
+class FrameCorners:
+    """The corner records of a stage's lit frames, as the frames are decoded (each frame read once, by the
+    stage's own reduction): each lens's corner pixels found at its first frame, from ``projection(lens)``
+    (the dataset's declared projection of the lens region) and ``min_radius_fraction``
+    (``bias.corner_min_radius_fraction``). A lens without a dark artefact in ``dark`` records nothing."""
+
+    def __init__(self, dark: dict[str, xr.Dataset] | None, projection: Callable[[str], str],
+                 min_radius_fraction: float):
+        self.dark = dict(dark or {})
+        self.projection = projection
+        self.min_radius_fraction = float(min_radius_fraction)
+        self.corners: dict[str, np.ndarray] = {}
+        self.records: list[dict] = []
+
+    def add(self, lens: str, images: LensImages, raw: RawFrame, temperature_c: float = np.nan, **keys) -> None:
+        """Record one frame of ``lens``; ``keys`` (the stage's own: ``file_index``, ``medium``...) go on each row."""
+        if lens not in self.dark:
+            return
+        if lens not in self.corners:
+            self.corners[lens] = corner_pixels(images.bands["G"].shape, self.projection(lens), self.min_radius_fraction)
+        for record in frame_corner_records(lens, images, raw, self.dark[lens], self.corners[lens], temperature_c):
+            self.records.append({**record, **keys})
+
+    def of_lens(self, lens: str) -> list[dict]:
+        return [r for r in self.records if r["lens"] == lens]
