@@ -86,9 +86,10 @@ from pipeline.errors import ArtefactError
 #: rolloff 6, spectral 3, absolute 4, immersion 3: ``obs_corner``, the same per-frame record of each lit (signal)
 #: frame's unlit corners against the dark model, with the stage's own keys (rolloff: ``medium``, ``azimuth_deg``,
 #: ``angle_deg``; spectral: ``wavelength_nm``; immersion: ``medium``, ``water_height_cm``), when the stage is given
-#: the dark artefact.
+#: the dark artefact; closure 5: ``closure/dark_corners`` holds the rows of every lit experiment (covariate
+#: ``experiment``), not the linearity's alone.
 ARTEFACT_VERSIONS = {"dark": 3, "linearity": 7, "geometry": 5, "rolloff": 6, "spectral": 3,
-                     "absolute": 4, "immersion": 3, "calibration": 13, "field": 3, "closure": 4}
+                     "absolute": 4, "immersion": 3, "calibration": 13, "field": 3, "closure": 5}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")
