@@ -80,11 +80,19 @@ from pipeline.errors import ArtefactError
 #: squares: radius up to 9.7 of 29 band px short on the tiny scale); calibration 13: that geometry;
 #: rolloff 5: settings whose port spot cannot be measured (no light above the noise, the port beyond the lit field's edge)
 #: dropped, counted in ``n_settings_dropped`` with their reasons.
-#: closure 5: the field-angle table (level ``field_angle``, pipeline.field_angle_closure: the geometry against
-#: the roll-off's rotation stage) among its rows, its prior rows of kind ``geometry_prior``; the recorded
-#: diagnostics config gains ``closure_spot_centroid_sigma_px``.
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 6, "geometry": 5, "rolloff": 5, "spectral": 2,
-                     "absolute": 3, "immersion": 2, "calibration": 13, "field": 3, "closure": 5}
+#: linearity 7: ``obs_corner``, each lit frame's unlit-corner mean against the dark model's prediction there
+#: with its noise and the frame's time stamp (pipeline.radiometry.unlit_corners; the same values as ``obs_frame``'s
+#: ``corner_dn``, ``dark_corner_dn``, ``sigma_corner_dn``), for the dark-corner closure over every lit stage.
+#: rolloff 6, spectral 3, absolute 4, immersion 3: ``obs_corner``, the same per-frame record of each lit (signal)
+#: frame's unlit corners against the dark model, with the stage's own keys (rolloff: ``medium``, ``azimuth_deg``,
+#: ``angle_deg``; spectral: ``wavelength_nm``; immersion: ``medium``, ``water_height_cm``), when the stage is given
+#: the dark artefact; closure 5: ``closure/dark_corners`` holds the rows of every lit experiment (covariate
+#: ``experiment``), not the linearity's alone.
+#: closure 5 also: the field-angle table (level ``field_angle``, pipeline.field_angle_closure: the geometry
+#: against the roll-off's rotation stage) among its rows, its prior rows of kind ``geometry_prior``; the
+#: recorded diagnostics config gains ``closure_spot_centroid_sigma_px``.
+ARTEFACT_VERSIONS = {"dark": 3, "linearity": 7, "geometry": 5, "rolloff": 6, "spectral": 3,
+                     "absolute": 4, "immersion": 3, "calibration": 13, "field": 3, "closure": 5}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -146,10 +146,10 @@ STAGE_SECTIONS = {
     "dark": ("model", "bias", "dark", "performance"),
     "linearity": ("model", "bias", "linearity", "performance"),
     "geometry": ("model", "bias", "geometry", "performance"),
-    "rolloff": ("model", "rolloff", "performance"),
+    "rolloff": ("model", "bias", "rolloff", "performance"),
     "spectral": ("model", "bias", "spectral", "performance"),
     "absolute": ("model", "bias", "absolute", "performance"),
-    "immersion": ("model", "immersion", "performance"),
+    "immersion": ("model", "bias", "immersion", "performance"),
     "diagnostics": ("model", "diagnostics"),
     # apply: the bundle stores every pixel's cell on the default sphere grid (apply.grid_deg)
     "calibration": ("model", "calibration", "apply"),

@@ -41,19 +41,27 @@ chi-square against its degrees of freedom, the closure table, ``diagnose``'s sen
   stages' standard errors hold the frames' common fluctuations as far as their noise models do.
 * ``closure/dark_corners``: the dark model (bias, bias per gain, dark current and temperature term
   of the dark stage, and its fixed-pattern map over the same corner pixels) against the unlit
-  corners of every lit frame. The linearity stage records each frame's unlit-corner mean and the
-  dark model's prediction there (``corner_dn``, ``dark_corner_dn``, ``sigma_corner_dn`` in its
-  ``obs_frame``); the other lit stages do not, so the linearity frames are the ones tested. The
+  corners of every lit frame. Every lit stage records each signal frame's unlit-corner mean and the
+  dark model's prediction there (``corner_dn``, ``dark_corner_dn``, ``sigma_corner_dn``: the linearity
+  in its ``obs_frame``, the roll-off, spectral, absolute and immersion stages in their ``obs_corner``,
+  :mod:`pipeline.radiometry.unlit_corners`), and the table holds the rows of all of them
+  (:data:`CORNER_EXPERIMENTS`), each named by the covariate ``experiment``. The
   value is the measured minus the predicted mean, its noise the corners' read noise over their
-  pixel count (and, with ``bias_drift`` in the model, the frames' fitted black-level spread). One
-  free level per lens, band and ISO: the dark model has one fixed-pattern map for all ISOs, and
+  pixel count (and, with ``bias_drift`` in the model, the lens's fitted frame-to-frame black-level
+  spread from its linearity artefact, for every experiment's frames). One free level per lens, band
+  and ISO, shared by the experiments: the dark model has one fixed-pattern map for all ISOs, and
   its mean over a small image's few hundred corner pixels departs at another ISO by a few tenths
   of the corners' noise (measured on the tiny simulated camera: per-setting means of z up to 0.6);
-  the table tests how the corners follow exposure time, temperature and the frame sequence, which
-  a missing dark current, a temperature term or a frame's bias offset change. Without ``bias_drift``
+  the table tests how the corners follow the experiment, exposure time, temperature and the frame
+  sequence, which a dark model wrong for one experiment's frames (their black level off), a missing
+  dark current, a temperature term or a frame's bias offset change. A level per experiment would take
+  up the first of these, so there is none. Without ``bias_drift``
   the model says the rows are independent (the corners of the three bands are different pixels), so
-  each row is its own block (the frame is named by ``frame_index``); with it, the frames' black-level
-  spread is common to a frame's rows, and the frame (``file_index``) is the block.
+  each row is its own block (the frame is named by ``frame_index``, counted within its experiment);
+  with it, the frames' black-level spread is common to a frame's rows, and the frame (``file_index``,
+  the experiments' frame numbers made distinct) is the block. The table carries the covariates every
+  experiment's record has (ISO, gain, exposure, temperature, the linearity's ``sweep``, '' elsewhere);
+  the stages' own keys (medium, azimuth, wavelength, water height) stay in their artefacts.
 * ``closure/field_angle``: the geometric calibration against the roll-off's rotation stage, the lens
   model's field angle of each port spot in the rotation plane against the stage's logged angle, with the
   model's covariance as whitened nuisance columns and their prior rows
@@ -94,7 +102,8 @@ from pipeline.field_angle_closure import LEVEL as FIELD_ANGLE_LEVEL
 from pipeline.field_angle_closure import PRIOR_KIND as FIELD_ANGLE_PRIOR_KIND
 from pipeline.field_angle_closure import field_angle_table
 from pipeline.fitting import base_design, block_gls_drop, wls
-from pipeline.observations import dataset_to_table
+from pipeline.observations import CORNER_PREFIX, dataset_to_table
+from pipeline.radiometry.exposure import gain_from_iso
 from pipeline.radiometry.rolloff import evaluate_rolloff
 
 __all__ = ["EXPERIMENT", "LENS_TEST_COLUMNS", "closure_observations", "dark_corner_table", "describe_closure", "lens_findings",
@@ -104,6 +113,11 @@ __all__ = ["EXPERIMENT", "LENS_TEST_COLUMNS", "closure_observations", "dark_corn
 EXPERIMENT = "closure"
 #: sources of the responsivity closure: the linearity's two sweeps, the roll-off in air, the absolute port
 SOURCES = ("linearity_exposure", "linearity_gain", "rolloff_air", "absolute")
+#: experiments whose lit frames record their unlit corners against the dark model, in the table's row order
+CORNER_EXPERIMENTS = ("linearity", "rolloff", "spectral", "absolute", "immersion")
+#: the lit stages' own keys of a corner record (``obs_corner``) that tell its settings apart (the closure table
+#: carries only the columns every experiment has: ISO, gain, exposure, temperature, the frame)
+STAGE_CORNER_KEYS = ("medium", "azimuth_deg", "angle_deg", "wavelength_nm", "water_height_cm")
 #: columns of ``lens_tests.csv``, one row per effect and table tested
 LENS_TEST_COLUMNS = ("effect", "experiment", "level", "in_model", "lenses", "values", "lows", "highs", "units",
                      "amplitude_name", "shared", "chi2_shared", "chi2_split", "dof_split", "n_params", "p_value",
@@ -242,29 +256,95 @@ def responsivity_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.
     return tab
 
 
+def _drift_dn(ds: xr.Dataset) -> float:
+    """The frames' fitted black-level spread of a linearity artefact (0 without ``bias_drift`` in its model)."""
+    if "bias_drift" in str(ds.attrs.get("model_effects", "")).split(",") and "bias_drift_dn" in ds:
+        return float(ds["bias_drift_dn"])
+    return 0.0
+
+
+def _linearity_corners(ds: xr.Dataset, blocked: bool) -> pd.DataFrame:
+    """The linearity frames' corner rows, from its ``obs_frame`` (the values its ``obs_corner`` also holds)."""
+    t = dataset_to_table(ds, "obs_frame")
+    if not {"corner_dn", "dark_corner_dn", "sigma_corner_dn"} <= set(t.columns) or not len(t):
+        return pd.DataFrame()
+    t = t[np.isfinite(t["corner_dn"].astype(float)) & ~t["saturated"].astype(bool)].reset_index(drop=True)
+    out = t[[c for c in ("lens", "band", "sweep", "iso", "exposure_s", "gain", "temperature_c") if c in t]].copy()
+    out["frame_index"] = t["file_index"].to_numpy()
+    if blocked:
+        out["file_index"] = t["file_index"].to_numpy()
+        out["setting"] = t["setting"].to_numpy()
+    for col in ("corner_dn", "dark_corner_dn", "sigma_corner_dn"):
+        out[col] = t[col].astype(float).to_numpy()
+    return out
+
+
+def _stage_corners(ds: xr.Dataset, blocked: bool) -> pd.DataFrame:
+    """A lit stage's corner rows, from its ``obs_corner`` (:mod:`pipeline.radiometry.unlit_corners`)."""
+    t = dataset_to_table(ds, CORNER_PREFIX)
+    if not {"corner_dn", "dark_corner_dn", "sigma_corner_dn"} <= set(t.columns) or not len(t):
+        return pd.DataFrame()
+    ok = np.isfinite(t["corner_dn"].astype(float)) & np.isfinite(t["dark_corner_dn"].astype(float))
+    if "saturated" in t:
+        ok &= ~t["saturated"].astype(bool)
+    t = t[ok].reset_index(drop=True)
+    out = t[["lens", "band", "iso", "exposure_s"]].copy()
+    out["gain"] = gain_from_iso(out["iso"].astype(float))
+    if "temperature_c" in t and np.isfinite(t["temperature_c"].astype(float)).any():
+        out["temperature_c"] = t["temperature_c"].astype(float).to_numpy()
+    out["frame_index"] = t["file_index"].to_numpy()
+    if blocked:
+        out["file_index"] = t["file_index"].to_numpy()
+        # the frames of one setting: the same ISO and exposure and the stage's own keys (medium, wavelength...)
+        keys = [c for c in STAGE_CORNER_KEYS if c in t]
+        out["setting"] = t.groupby(["iso", "exposure_s", *keys], sort=True, dropna=False).ngroup().to_numpy()
+    for col in ("corner_dn", "dark_corner_dn", "sigma_corner_dn"):
+        out[col] = t[col].astype(float).to_numpy()
+    return out
+
+
 def dark_corner_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.DataFrame:
-    """``closure/dark_corners`` (module docstring): each lit linearity frame's unlit-corner mean against
-    the dark model's prediction there, one row per frame, lens and band."""
+    """``closure/dark_corners`` (module docstring): each lit frame's unlit-corner mean against the dark model's
+    prediction there, one row per frame, lens and band, of every experiment that recorded them
+    (:data:`CORNER_EXPERIMENTS`), named in the covariate ``experiment``."""
+    drift = {lens: _drift_dn(ds) for lens, ds in _by_lens(loaded.get("linearity", [])).items()}
+    # the frames' fitted black-level offsets are common to a frame's rows: then one block each
+    blocked = any(d > 0 for d in drift.values())
     parts = []
-    for ds in loaded.get("linearity", []):
-        t = dataset_to_table(ds, "obs_frame")
-        if not {"corner_dn", "dark_corner_dn", "sigma_corner_dn"} <= set(t.columns) or not len(t):
-            continue
-        t = t[np.isfinite(t["corner_dn"].astype(float)) & ~t["saturated"].astype(bool)].reset_index(drop=True)
-        drift = float(ds["bias_drift_dn"]) if "bias_drift" in str(ds.attrs.get("model_effects", "")).split(",") \
-            and "bias_drift_dn" in ds else 0.0
-        out = t[[c for c in ("lens", "band", "sweep", "iso", "exposure_s", "gain", "temperature_c") if c in t]].copy()
-        out["frame_index"] = t["file_index"].to_numpy()
-        if drift > 0:       # the frames' fitted black-level offsets are common to a frame's rows: one block each
-            out["file_index"] = t["file_index"].to_numpy()
-            out["setting"] = t["setting"].to_numpy()
-        out["value_dn"] = t["corner_dn"].astype(float) - t["dark_corner_dn"].astype(float)
-        out["sigma_dn"] = np.hypot(t["sigma_corner_dn"].astype(float), np.nan_to_num(drift))
-        out["group"] = out["lens"].astype(str) + "/" + out["band"].astype(str) + "/iso" + \
-            out["iso"].astype(float).round().astype(int).astype(str)
-        out["x_level"] = 1.0
-        parts.append(out)
-    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+    for experiment in CORNER_EXPERIMENTS:
+        for ds in loaded.get(experiment, []):
+            lens = _lens_of(ds) or (str(ds[f"{CORNER_PREFIX}__lens"].values[0])
+                                    if f"{CORNER_PREFIX}__lens" in ds and ds[f"{CORNER_PREFIX}__lens"].size else None)
+            d = drift.get(lens, 0.0) if experiment != "linearity" else _drift_dn(ds)
+            t = _linearity_corners(ds, blocked) if experiment == "linearity" else _stage_corners(ds, blocked)
+            if not len(t):
+                continue
+            t.insert(0, "experiment", experiment)
+            t["value_dn"] = t["corner_dn"] - t["dark_corner_dn"]
+            t["sigma_dn"] = np.hypot(t["sigma_corner_dn"], np.nan_to_num(d))
+            parts.append(t.drop(columns=["corner_dn", "dark_corner_dn", "sigma_corner_dn"]))
+    if not parts:
+        return pd.DataFrame()
+    out = pd.concat(parts, ignore_index=True)
+    if "sweep" in out:      # the linearity's sweeps; the other experiments' frames belong to none
+        out["sweep"] = out["sweep"].fillna("").astype(str)
+    if "file_index" in out:
+        # with bias_drift the frame is the block: the experiments' frame numbers made distinct (each experiment's
+        # frames after the previous one's), their settings likewise
+        for col in ("file_index", "setting"):
+            base = 0
+            values = out[col].astype(float).to_numpy().copy()
+            for experiment in out["experiment"].unique():
+                sel = (out["experiment"] == experiment).to_numpy()
+                values[sel] += base
+                base = float(np.nanmax(values[sel])) + 1.0
+            out[col] = values.astype(int)
+    # one free level per lens, band and ISO, shared by the experiments: a dark-model failure in one experiment's
+    # frames is left in its rows' residuals (covariate ``experiment``)
+    out["group"] = out["lens"].astype(str) + "/" + out["band"].astype(str) + "/iso" + \
+        out["iso"].astype(float).round().astype(int).astype(str)
+    out["x_level"] = 1.0
+    return out
 
 
 def closure_observations(loaded: dict[str, list[xr.Dataset]], config: dict) -> list[Observations]:
@@ -286,10 +366,20 @@ def closure_observations(loaded: dict[str, list[xr.Dataset]], config: dict) -> l
 MEANING = {
     "responsivity": "the DN per second on the axis that different experiments saw disagree (the band ratios of "
                     "the sphere's sources, or the ratio of the two lenses' responsivities)",
-    "dark_corners": "the dark model mispredicts the unlit corners of the lit linearity frames",
+    "dark_corners": "the dark model mispredicts the unlit corners of the lit {experiments} frames",
     FIELD_ANGLE_LEVEL: "the geometric calibration's field angle of the roll-off's port spots disagrees with the "
                        "rotation stage's angle",
 }
+
+
+def _meaning(obs: Observations) -> str:
+    """What a structured closure table means, with the experiments whose rows it holds."""
+    text = MEANING.get(obs.level, "a cross-experiment closure fails")
+    if "{experiments}" in text:
+        present = [e for e in CORNER_EXPERIMENTS if "experiment" in obs.table and (obs.table["experiment"] == e).any()]
+        named = ", ".join(present[:-1]) + f" and {present[-1]}" if len(present) > 1 else "".join(present)
+        text = text.format(experiments=named)
+    return text
 
 
 def _largest_departure(obs: Observations, model_effects: list[str]) -> str:
@@ -310,8 +400,9 @@ def _largest_departure(obs: Observations, model_effects: list[str]) -> str:
         return (f"the largest departure is {r['source']} ({r['lens']} lens, {r['band']}): "
                 f"{100.0 * np.expm1(r['value_dn'] - fit.pred[i]):+.2g} % ({fit.z[i]:+.1f} sigma)")
     frame = f"frame {int(r['frame_index'])}, " if "frame_index" in r and np.isfinite(float(r["frame_index"])) else ""
+    where = f" ({r['experiment']})" if "experiment" in r else ""
     return (f"the largest departure is {frame}{r['lens']} lens, {r['band']}, ISO {float(r['iso']):.0f}, "
-            f"{float(r['exposure_s']):.4g} s: {r['value_dn'] - fit.pred[i]:+.3g} DN ({fit.z[i]:+.1f} sigma)")
+            f"{float(r['exposure_s']):.4g} s{where}: {r['value_dn'] - fit.pred[i]:+.3g} DN ({fit.z[i]:+.1f} sigma)")
 
 
 def describe_closure(unexplained: pd.DataFrame, observations: list[Observations],
@@ -324,7 +415,7 @@ def describe_closure(unexplained: pd.DataFrame, observations: list[Observations]
         if row["experiment"] != EXPERIMENT or row["level"] not in by_level:
             continue
         obs = by_level[row["level"]]
-        out.loc[i, "message"] = (f"{MEANING.get(obs.level, 'a cross-experiment closure fails')}: {row['message']}; "
+        out.loc[i, "message"] = (f"{_meaning(obs)}: {row['message']}; "
                                  f"{_largest_departure(obs, model_effects)}")
     return out
 

@@ -12,6 +12,10 @@ without knowing the stage.
 :func:`fit_with_effects` is the effect-aware weighted fit that every stage
 uses: the base columns plus the signature columns of each effect of the model
 that is fitted (rather than corrected in the data) at that level.
+
+:func:`corner_table_dataset` stores a lit stage's per-frame unlit-corner records
+(:mod:`pipeline.radiometry.unlit_corners`) as its ``obs_corner`` table: a descriptive
+table (no ``value_dn``), which the closure reads across the stages.
 """
 
 from __future__ import annotations
@@ -22,8 +26,13 @@ import xarray as xr
 
 from pipeline.effects import get as get_effect
 from pipeline.fitting import Fit, base_design, wls
+from pipeline.radiometry.unlit_corners import CORNER_COLUMNS
 
-__all__ = ["dataset_to_table", "effect_coefficients", "fit_with_effects", "table_to_dataset"]
+__all__ = ["CORNER_PREFIX", "corner_table_dataset", "dataset_to_table", "effect_coefficients", "fit_with_effects",
+           "table_to_dataset"]
+
+#: the prefix of the per-frame unlit-corner table in a lit stage's artefact
+CORNER_PREFIX = "obs_corner"
 
 
 def table_to_dataset(table: pd.DataFrame, prefix: str) -> xr.Dataset:
@@ -35,6 +44,21 @@ def table_to_dataset(table: pd.DataFrame, prefix: str) -> xr.Dataset:
             values = table[col].astype(str).to_numpy().astype(str)
         data[f"{prefix}__{col}"] = (prefix, values)
     return xr.Dataset(data)
+
+
+def corner_table_dataset(records: list[dict] | pd.DataFrame) -> xr.Dataset:
+    """A lit stage's unlit-corner records (one row per frame, lens and band) as its ``obs_corner`` table, each
+    column of :data:`pipeline.radiometry.unlit_corners.CORNER_COLUMNS` with its long name and units; the
+    stage's own keys (``file_index``, ``kind``, ``medium``...) as they are."""
+    table = pd.DataFrame(records).reset_index(drop=True)
+    ds = table_to_dataset(table, CORNER_PREFIX)
+    for col, (long_name, units) in CORNER_COLUMNS.items():
+        name = f"{CORNER_PREFIX}__{col}"
+        if name in ds:
+            ds[name].attrs["long_name"] = long_name
+            if units:
+                ds[name].attrs["units"] = units
+    return ds
 
 
 def dataset_to_table(ds: xr.Dataset, prefix: str) -> pd.DataFrame:

@@ -59,8 +59,9 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-#: covariates scanned to say where structure sits (``frame_in_setting`` is derived, see :func:`covariates_of`)
-COVARIATES = ("exposure_s", "gain", "lens", "band", "sweep", "temperature_c", "frame", "frame_in_setting",
+#: covariates scanned to say where structure sits (``frame_in_setting`` is derived, see :func:`covariates_of`;
+#: ``experiment`` names the stage of each row of a table that pools several, the closure's dark corners)
+COVARIATES = ("experiment", "exposure_s", "gain", "lens", "band", "sweep", "temperature_c", "frame", "frame_in_setting",
               "file_index", "time_s", "theta_deg", "azimuth_deg", "water_height_cm", "wavelength_nm",
               "signal_fraction")
 #: covariates scanned on a logarithmic scale (their straight-line test; the quantile bins do not depend on it):

@@ -62,7 +62,8 @@ from pipeline.observations import table_to_dataset
 from pipeline.radiometry.measurement import FrameSettings
 from pipeline.radiometry.response import flat_field_at, response_corrected, response_effects
 from pipeline.radiometry.source import scale_to_reference
-from pipeline.stages.spectral import central_masks, dark_levels, frame_table, reduce_central
+from pipeline.radiometry.unlit_corners import FrameCorners
+from pipeline.stages.spectral import central_masks, dark_levels, frame_table, reduce_central, with_corner_table
 
 STAGE = "absolute"
 TERMS = ("lamp_calibration", "reference", "spectrometer_noise", "extra", "image", "response")
@@ -253,11 +254,12 @@ def compute(ctx) -> xr.Dataset:
     reference = reference_reading(read_source_reference(ctx.dataset), root / STAGE / "source_reference.csv",
                                   cfg["reference_wavelength_nm"])
     masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"], cfg["mask_min_pixels"])
-    reduced = reduce_central(ctx.dataset, STAGE, masks, progress=ctx.progress)
-    ctx.record_frames(reduced["inputs"])
     dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
+    corners = FrameCorners(dark, ctx.dataset.projection, ctx.config["bias"]["corner_min_radius_fraction"])
+    reduced = reduce_central(ctx.dataset, STAGE, masks, progress=ctx.progress, corners=corners)
+    ctx.record_frames(reduced["inputs"])
     darks = dark_levels(reduced, dark, root / STAGE / "frames.csv")
     linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else {}
     arts = analyse_absolute(reduced, darks, {ctx.lens: ctx.upstream["spectral"]}, spectrum,
                             root / STAGE / "source_spectrum.csv", reference, ctx.config, linearity)
-    return arts[ctx.lens]
+    return with_corner_table(arts[ctx.lens], corners, ctx.lens)

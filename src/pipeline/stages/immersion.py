@@ -31,7 +31,8 @@ from pipeline.radiometry.response import response_corrected, response_effects
 from pipeline.radiometry.immersion import (fit_immersion_factor, n_squared_law_factor,
                                            window_index_from_immersion_factor)
 from pipeline.radiometry.water import refractive_index_water
-from pipeline.observations import table_to_dataset
+from pipeline.observations import corner_table_dataset, table_to_dataset
+from pipeline.radiometry.unlit_corners import FrameCorners
 
 STAGE = "immersion"
 NOMINAL_WAVELENGTH_NM = {"R": 600.0, "G": 540.0, "B": 480.0}
@@ -52,7 +53,10 @@ def _mask(theta: np.ndarray, half: float, min_pixels: int) -> np.ndarray:
     return m
 
 
-def reduce_immersion(dataset, geometry: dict[str, xr.Dataset], config: dict, progress=False) -> dict:
+def reduce_immersion(dataset, geometry: dict[str, xr.Dataset], config: dict, progress=False,
+                     corners: FrameCorners | None = None) -> dict:
+    """Stream the immersion frames once (dark frames first); ``corners``, when given, records each signal frame's
+    unlit corners against the dark model (:class:`pipeline.radiometry.unlit_corners.FrameCorners`)."""
     half = config[STAGE]["mask_half_angle_deg"]
     frames = dataset.frames(STAGE)
     order = pd.concat([frames[frames["kind"] == "dark"], frames[frames["kind"] == "signal"]])
@@ -62,11 +66,15 @@ def reduce_immersion(dataset, geometry: dict[str, xr.Dataset], config: dict, pro
     dark_mean = {}
     inputs, rows = {}, []
     masks = {}
-    for dec in iter_frames(dataset, STAGE, order, progress=progress):
+    for file_index, dec in enumerate(iter_frames(dataset, STAGE, order, progress=progress)):
         row = dec.row
         inputs[row["file"]] = dec.raw.sha256
         lenses = list(dataset.lenses) if row["lens"] == "both" else [row["lens"]]
         for lens in lenses:
+            if corners is not None and row["kind"] != "dark":
+                corners.add(lens, dec.lenses[lens], dec.raw, row.get("temperature_c", np.nan), file_index=file_index,
+                            medium="water" if row["condition"] == "water" else "air",
+                            water_height_cm=float(row["water_height_cm"]) if row["condition"] == "water" else 0.0)
             for band in BANDS:
                 img = dec.lenses[lens].bands[band]
                 if row["kind"] == "dark":
@@ -192,11 +200,16 @@ def compute(ctx) -> xr.Dataset:
     The water's refractive index and t_aw are taken at this lens's effective
     wavelengths (its spectral artefact) when the spectral stage has run.
     """
-    reduced = reduce_immersion(ctx.dataset, {ctx.lens: ctx.upstream["geometry"]}, ctx.config, progress=ctx.progress)
+    corners = FrameCorners({ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else None,
+                           ctx.dataset.projection, ctx.config["bias"]["corner_min_radius_fraction"])
+    reduced = reduce_immersion(ctx.dataset, {ctx.lens: ctx.upstream["geometry"]}, ctx.config, progress=ctx.progress,
+                               corners=corners)
     ctx.record_frames(reduced["inputs"])
     linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else None
     arts = analyse_immersion(reduced, read_water(ctx.dataset), effective_wavelengths(ctx.upstream.get("spectral")),
                              linearity)
     if ctx.lens not in arts:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no immersion frames for lens {ctx.lens}")
-    return arts[ctx.lens]
+    rows = corners.of_lens(ctx.lens)
+    # the signal frames' unlit corners against the dark model, for the closure (pipeline.cross_closure)
+    return arts[ctx.lens].merge(corner_table_dataset(rows)) if rows else arts[ctx.lens]

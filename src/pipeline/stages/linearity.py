@@ -43,12 +43,14 @@ from pipeline.errors import ImpossibleResult, InputError
 from pipeline.fitting import base_design, ols_line, wls
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.geometry.image_circle import find_image_circle, outside_lit_fraction
-from pipeline.moments import RunningMoments, RunningPearson, radius_map, unlit_mask
-from pipeline.observations import effect_coefficients, fit_with_effects, table_to_dataset
+from pipeline.moments import RunningMoments, RunningPearson, radius_map
+from pipeline.observations import corner_table_dataset, effect_coefficients, fit_with_effects, table_to_dataset
 from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
 from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso
 from pipeline.radiometry.response import linear_signal
 from pipeline.radiometry.saturation import saturated_settings, signal_fraction
+from pipeline.radiometry.unlit_corners import (corner_mean_dn, corner_noise_dn, corner_pixels, frame_time_s,
+                                               predicted_corner_dn)
 from pipeline.stages.flatfield import flatfield
 
 STAGE = "linearity"
@@ -148,6 +150,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
     pearson = defaultdict(RunningPearson)     # (lens, band, sweep) -> per-pixel r
     first_of_setting = set()
     frame_rows, inputs, circles, angle_source, projection = [], {}, {}, {}, {}
+    times = {}                                # file_index -> the frame's time stamp (s), for obs_corner
     paths = []                                # file_index -> the frame's path, for messages only
     max_raw = 0.0
     white = None
@@ -156,6 +159,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
         row = dec.row
         inputs[row["file"]] = dec.raw.sha256
         paths.append(str(row["path"]))
+        times[i] = frame_time_s(dec.raw)
         white = dec.raw.white_level
         lenses = list(dataset.lenses) if row["lens"] == "both" else [row["lens"]]
         key = (float(dec.raw.iso), round(float(dec.raw.exposure_s), 9))
@@ -180,7 +184,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     masks[lens][band] = m
                     # the mask's pixels within the photon-transfer region, to split its moments
                     ptc[lens][band] = (p, m[p])
-                corners[lens] = unlit_mask(g.shape, projection[lens], corner_fraction)
+                corners[lens] = corner_pixels(g.shape, projection[lens], corner_fraction)
             max_raw = max(max_raw, float(dec.raw.cfa.max()))
             first = (lens, sweep, key) not in first_of_setting
             first_of_setting.add((lens, sweep, key))
@@ -194,13 +198,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     pearson[(lens, band, sweep)].add(x, img, ~images.saturated[band])
                 # the frame's black-level reference: its unlit corners (fisheye), else the
                 # sensor's optically black pixels when the DNG declares them, else none (NaN)
-                if corners[lens].any():
-                    corner_dn, corner_sites = float(img[corners[lens]].mean()), \
-                        SITES_PER_BAND_PIXEL[band] * int(corners[lens].sum())
-                elif dec.raw.optical_black_dn is not None:
-                    corner_dn, corner_sites = dec.raw.optical_black_dn, dec.raw.optical_black_count
-                else:
-                    corner_dn, corner_sites = np.nan, 0
+                corner_dn, corner_sites = corner_mean_dn(img, corners[lens], band, dec.raw)
                 frame_rows.append({
                     "lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
                     "file_index": i, "mask_mean_dn": float(img[m].mean()),
@@ -211,7 +209,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                 })
     return {"moments": moments, "pearson": pearson, "frames": pd.DataFrame(frame_rows), "masks": masks,
             "corners": corners, "geometry": circles, "angle_source": angle_source, "projection": projection, "ptc": ptc, "inputs": inputs,
-            "paths": paths, "max_raw_dn": max_raw,
+            "paths": paths, "times": times, "max_raw_dn": max_raw,
             "white_level_dn": white}
 
 
@@ -282,18 +280,14 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     testable = bool(fr["corner_dn"].notna().all())
     use_drift = "bias_drift" in effects and testable
 
-    # ----- dark correction of every frame value (dark model of the dark stage)
+    # ----- dark correction of every frame value (dark model of the dark stage); the corners' prediction is
+    # radiometry.unlit_corners' (the temperature term is added below, to the mask's and the corners' alike)
     def dark_pred(row, what):
         d = dark[row["lens"]]
+        if what == "corner":
+            return predicted_corner_dn(d, row["band"], row["iso"], row["exposure_s"], reduced["corners"][row["lens"]])
         level = dark_level_dn(d, row["band"], row["iso"], row["exposure_s"])
-        if what == "mask":
-            fpn = d["fpn_map_dn"].sel(band=row["band"]).values[reduced["masks"][row["lens"]][row["band"]]]
-        elif reduced["corners"][row["lens"]].any():
-            fpn = d["fpn_map_dn"].sel(band=row["band"]).values[reduced["corners"][row["lens"]]]
-        elif "optical_black_offset_dn" in d:   # the optically black pixels' level in the dark frames
-            return level + float(d["optical_black_offset_dn"].sel(band=row["band"]))
-        else:
-            return np.nan
+        fpn = d["fpn_map_dn"].sel(band=row["band"]).values[reduced["masks"][row["lens"]][row["band"]]]
         return level + float(fpn.mean())
 
     keys = fr[["lens", "band", "iso", "exposure_s"]].drop_duplicates()
@@ -329,10 +323,9 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     fr = fr.merge(var, on=["lens", "band", "sweep", "iso", "exposure_s"])
     # temporal noise of an unlit raw pixel: the dark stage's read noise at that ISO, averaged over the
     # reference's sites (a band pixel of the corners averages SITES_PER_BAND_PIXEL of them)
-    read_dn = fr.apply(lambda r: float(dark[r["lens"]]["read_noise_dn"].sel(band=r["band"]).sel(
-        iso=r["iso"], method="nearest")), axis=1)
     if testable:
-        fr["sigma_corner_dn"] = read_dn / np.sqrt(fr["n_corner_sites"])
+        fr["sigma_corner_dn"] = [corner_noise_dn(dark[r.lens], r.band, r.iso, r.n_corner_sites)
+                                 for r in fr[["lens", "band", "iso", "n_corner_sites"]].itertuples()]
     else:
         fr = fr.drop(columns=["corner_dn"])
     drift = drift_sigma(fr) if use_drift else ((0.0, 0.0, 0.0) if testable else (np.nan, np.nan, np.nan))
@@ -634,6 +627,8 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
     ds.attrs["projection"] = reduced.get("projection", {}).get(lens, "fisheye")
     ds.attrs["field_angles_from"] = reduced["angle_source"][lens]
     ds.attrs["bias_drift_testable"] = int("corner_dn" in fr_l)
+    if "corner_dn" in fr_l:     # each frame's unlit corners against the dark model, for the closure
+        ds = ds.merge(corner_table_dataset(corner_records(fr_l, reduced["times"])))
     if "corner_dn" not in fr_l:
         ds.attrs["bias_drift_note"] = ("bias_drift not testable: the frames have neither unlit corners nor "
                                        "optically black pixels declared in the DNG")
@@ -648,6 +643,16 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
                                   {"long_name": "standard uncertainty of flat_field (noise of the sweep frames and "
                                                 "of the dark offset map)", "units": "1"})
     return ds
+
+
+def corner_records(fr_l: pd.DataFrame, times: dict[int, float]) -> pd.DataFrame:
+    """One lens's ``obs_corner`` rows (:mod:`pipeline.radiometry.unlit_corners`): every frame's unlit-corner
+    mean with the dark model's prediction (its temperature term as the frames' correction has it) and noise."""
+    keys = ["lens", "band", "sweep", "file_index", "iso", "exposure_s", "temperature_c"]
+    out = fr_l[keys + ["corner_dn", "n_corner_sites", "dark_corner_dn", "sigma_corner_dn"]].copy()
+    out["time_s"] = out["file_index"].map(times).astype(float)
+    out["saturated"] = fr_l["saturated"].astype(int)
+    return out.sort_values(["file_index", "band"], kind="stable").reset_index(drop=True)
 
 
 def compute(ctx) -> xr.Dataset:

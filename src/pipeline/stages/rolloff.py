@@ -70,10 +70,11 @@ from pipeline.errors import InputError
 from pipeline.frames import iter_frames
 from pipeline.geometry.centre_shift import centre_columns, centre_root, centre_theta_gradient, centre_variance
 from pipeline.moments import RunningMoments
-from pipeline.observations import table_to_dataset
+from pipeline.observations import corner_table_dataset, table_to_dataset
 from pipeline.radiometry.immersion_rolloff import water_rolloff_factor
 from pipeline.radiometry.rolloff import (ROLLOFF_POWERS, evaluate_rolloff, fit_rolloff, normalise_rolloff,
                                          rolloff_design_matrix, rolloff_slope)
+from pipeline.radiometry.unlit_corners import FrameCorners
 from pipeline.radiometry.water import refractive_index_water
 from pipeline.stages.geometry_maps import model_from_dataset
 from pipeline.stages.immersion import NOMINAL_WAVELENGTH_NM
@@ -279,7 +280,9 @@ def _deg_per_px(theta: np.ndarray) -> float:
 
 
 def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: dict,
-                   progress: bool = False) -> dict:
+                   progress: bool = False, corners: FrameCorners | None = None) -> dict:
+    """Stream the roll-off frames once (dark frames first); ``corners``, when given, records each signal frame's
+    unlit corners against the dark model (:class:`pipeline.radiometry.unlit_corners.FrameCorners`)."""
     cfg = config[STAGE]
     frames = dataset.frames(STAGE)
     order = pd.concat([frames[frames["kind"] == "dark"], frames[frames["kind"] == "signal"]])
@@ -289,7 +292,8 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
     dropped = {}                                # (lens, medium, az, angle) -> why its spot cannot be measured
     acc = defaultdict(list)                     # (lens, medium, az, angle, band) -> per-frame dicts
     static = {}
-    for dec in iter_frames(dataset, STAGE, order, progress=progress):
+    corners = corners if corners is not None else FrameCorners(None, dataset.projection, 1.0)
+    for file_index, dec in enumerate(iter_frames(dataset, STAGE, order, progress=progress)):
         row = dec.row
         inputs[row["file"]] = dec.raw.sha256
         medium = row["medium"]
@@ -301,6 +305,8 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
             continue
         lens = row["lens"]
         images = dec.lenses[lens]
+        corners.add(lens, images, dec.raw, row.get("temperature_c", np.nan), file_index=file_index, medium=medium,
+                    azimuth_deg=float(row["azimuth_deg"]), angle_deg=float(row["angle_deg"]))
         if (lens, medium) not in static:
             geo = geometry[lens].sel(medium=medium)
             theta = geo["theta_deg"].sel(band="G").values.astype(float)
@@ -781,10 +787,14 @@ def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise
 def compute(ctx) -> xr.Dataset:
     """The roll-off artefact of one lens (the stage runner's contract)."""
     geometry = {ctx.lens: ctx.upstream["geometry"]}
-    reduced = reduce_rolloff(ctx.dataset, geometry, ctx.config, progress=ctx.progress)
+    corners = FrameCorners({ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else None,
+                           ctx.dataset.projection, ctx.config["bias"]["corner_min_radius_fraction"])
+    reduced = reduce_rolloff(ctx.dataset, geometry, ctx.config, progress=ctx.progress, corners=corners)
     ctx.record_frames(reduced["inputs"])
     check_settings(reduced, ctx.config, ctx.dataset.root / STAGE / "frames.csv")
     arts = analyse_rolloff(reduced, ctx.config, ctx.effects)
     if ctx.lens not in arts:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no roll-off frames for lens {ctx.lens}")
-    return arts[ctx.lens]
+    corner_rows = corners.of_lens(ctx.lens)
+    # the signal frames' unlit corners against the dark model, for the closure (pipeline.cross_closure)
+    return arts[ctx.lens].merge(corner_table_dataset(corner_rows)) if corner_rows else arts[ctx.lens]

@@ -59,11 +59,12 @@ from pipeline.errors import InputError
 from pipeline.fitting import base_design, wls
 from pipeline.frames import iter_frames
 from pipeline.moments import RunningMoments
-from pipeline.observations import table_to_dataset
+from pipeline.observations import corner_table_dataset, table_to_dataset
 from pipeline.radiometry.dark import dark_level_dn
 from pipeline.radiometry.measurement import FrameSettings
 from pipeline.radiometry.response import flat_field_at, response_corrected, response_effects
 from pipeline.radiometry.spectral import band_statistics, peak_normalise_response
+from pipeline.radiometry.unlit_corners import FrameCorners
 
 STAGE = "spectral"
 #: medium of the lab experiments (the geometry artefact's in-air maps)
@@ -107,11 +108,14 @@ def _wavelength_key(row) -> float:
 
 
 def reduce_central(dataset: Dataset, experiment: str, masks: dict[tuple[str, str], np.ndarray],
-                   saturation_margin_dn: float = 1.0, progress: bool = False) -> dict:
+                   saturation_margin_dn: float = 1.0, progress: bool = False,
+                   corners: FrameCorners | None = None) -> dict:
     """Stream an experiment's frames once: running moments of the mask pixels per setting.
 
     Setting key: (lens, band, kind, wavelength_nm or NO_WAVELENGTH, iso, exposure_s).
-    Returns ``moments``, per-frame ``frames`` table, ``inputs`` (file -> sha256).
+    Returns ``moments``, per-frame ``frames`` table, ``inputs`` (file -> sha256). ``corners``, when given,
+    records each signal frame's unlit corners against the dark model
+    (:class:`pipeline.radiometry.unlit_corners.FrameCorners`).
     """
     frames = dataset.frames(experiment)
     lenses = sorted({lens for lens, _ in masks})
@@ -130,6 +134,9 @@ def reduce_central(dataset: Dataset, experiment: str, masks: dict[tuple[str, str
         for lens in (lenses if row["lens"] == "both" else [row["lens"]]):
             if lens not in dec.lenses or (lens, BANDS[0]) not in masks:
                 continue
+            if corners is not None and kind == "signal":
+                corners.add(lens, dec.lenses[lens], dec.raw, row.get("temperature_c", np.nan), file_index=i,
+                            wavelength_nm=wl if wl != NO_WAVELENGTH else np.nan)
             for band in BANDS:
                 img = dec.lenses[lens].bands[band]
                 mask = masks[(lens, band)]
@@ -356,11 +363,19 @@ def compute(ctx) -> xr.Dataset:
     cfg = ctx.params
     photodiode = read_photodiode(ctx.dataset)      # bad sidecar input fails before any frame is decoded
     masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"], cfg["mask_min_pixels"])
-    reduced = reduce_central(ctx.dataset, STAGE, masks, progress=ctx.progress)
-    ctx.record_frames(reduced["inputs"])
     dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
+    corners = FrameCorners(dark, ctx.dataset.projection, ctx.config["bias"]["corner_min_radius_fraction"])
+    reduced = reduce_central(ctx.dataset, STAGE, masks, progress=ctx.progress, corners=corners)
+    ctx.record_frames(reduced["inputs"])
     darks = dark_levels(reduced, dark, ctx.dataset.root / STAGE / "frames.csv")
     linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else {}
     arts = analyse_spectral(reduced, darks, photodiode, ctx.dataset.root / STAGE / "photodiode.csv", ctx.config,
                             linearity)
-    return arts[ctx.lens]
+    return with_corner_table(arts[ctx.lens], corners, ctx.lens)
+
+
+def with_corner_table(art: xr.Dataset, corners: FrameCorners, lens: str) -> xr.Dataset:
+    """``art`` with the lens's lit frames' unlit corners against the dark model (``obs_corner``, for the closure,
+    pipeline.cross_closure), as it is when no dark artefact was given."""
+    rows = corners.of_lens(lens)
+    return art.merge(corner_table_dataset(rows)) if rows else art

@@ -1,0 +1,152 @@
+"""The dark model against the unlit corners of a lit frame (Larouche et al. 2024, Sections 2.8 and 3.7).
+
+A fisheye's image circle fits inside its square lens region, so the region's corners are never lit
+(:func:`pipeline.moments.unlit_mask`, beyond ``bias.corner_min_radius_fraction`` of the half side); a
+rectilinear region has none, and the sensor's optically black pixels stand in for them when the DNG
+declares them. The mean of a lit frame there measures that frame's black level, which the dark model
+predicts at the frame's ISO, exposure time and logged temperature:
+
+    corner_dn = b0 + b1 (g - 1) + D g t  [+ (dB/dT + dD/dT g t) (T - T_ref)]  + mean of the fixed pattern
+
+(:mod:`pipeline.radiometry.dark`; the fixed pattern is the dark artefact's ``fpn_map_dn`` averaged over the
+same corner pixels, or its ``optical_black_offset_dn``). The noise of the measured mean is the dark stage's
+read noise at the frame's ISO over the square root of the raw sites averaged (a G band pixel averages two):
+1.6 DN over sqrt(868) sites is 0.054 DN. The linearity stage corrects each frame's black level with it
+(``bias_drift``); every lit stage records it per frame (its artefact's ``obs_corner`` table), and the
+closure compares measurement and prediction over all experiments (:mod:`pipeline.cross_closure`,
+``closure/dark_corners``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from datetime import datetime, timezone
+
+import numpy as np
+import xarray as xr
+
+from pipeline.bands import BANDS
+from pipeline.frames import SITES_PER_BAND_PIXEL, LensImages
+from pipeline.moments import unlit_mask
+from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
+from pipeline.rawio import RawFrame
+
+__all__ = ["CORNER_COLUMNS", "FrameCorners", "corner_mean_dn", "corner_noise_dn", "corner_pattern_dn", "corner_pixels",
+           "frame_corner_records", "frame_time_s", "predicted_corner_dn"]
+
+#: columns of a per-frame corner record (and of the stages' ``obs_corner`` tables, with the stage's own keys)
+CORNER_COLUMNS = {"lens": ("lens region", None), "band": ("band", None),
+                  "iso": ("ISO of the frame", "1"), "exposure_s": ("exposure time of the frame", "s"),
+                  "temperature_c": ("logged temperature of the frame (NaN when not logged)", "degree_Celsius"),
+                  "time_s": ("frame time stamp, seconds since 1970-01-01 on the camera clock read as UTC "
+                             "(NaN when the frame has none)", "s"),
+                  "corner_dn": ("mean raw DN of the frame's unlit corner pixels (or optically black pixels)", "DN"),
+                  "n_corner_sites": ("raw sites averaged in corner_dn", "1"),
+                  "dark_corner_dn": ("the dark model's prediction of corner_dn at the frame's ISO, exposure and "
+                                     "temperature", "DN"),
+                  "sigma_corner_dn": ("noise of corner_dn: read noise at the frame's ISO over sqrt(n_corner_sites)",
+                                      "DN")}
+
+
+def corner_pixels(shape: tuple[int, int], projection: str, min_radius_fraction: float) -> np.ndarray:
+    """The band pixels of a lens region that are never lit (:func:`pipeline.moments.unlit_mask`)."""
+    return unlit_mask(shape, projection, min_radius_fraction)
+
+
+def corner_mean_dn(band_image: np.ndarray, corners: np.ndarray, band: str, raw: RawFrame) -> tuple[float, int]:
+    """A frame's black-level reference in one band: (mean DN, raw sites averaged).
+
+    Its unlit corners (fisheye), else the sensor's optically black pixels when the DNG declares them,
+    else none (NaN, 0)."""
+    if corners.any():
+        return float(band_image[corners].mean()), SITES_PER_BAND_PIXEL[band] * int(corners.sum())
+    if raw.optical_black_dn is not None:
+        return raw.optical_black_dn, raw.optical_black_count
+    return np.nan, 0
+
+
+def corner_pattern_dn(dark: xr.Dataset, band: str, corners: np.ndarray) -> float:
+    """The dark model's fixed pattern where :func:`corner_mean_dn` measures: its offset map averaged over the
+    corner pixels, or the optically black pixels' offset in the dark frames, NaN without either."""
+    if corners.any():
+        return float(dark["fpn_map_dn"].sel(band=band).values[corners].mean())
+    if "optical_black_offset_dn" in dark:
+        return float(dark["optical_black_offset_dn"].sel(band=band))
+    return np.nan
+
+
+def predicted_corner_dn(dark: xr.Dataset, band: str, iso: float, exposure_s: float, corners: np.ndarray,
+                        temperature_c: float | None = None, pattern_dn: float | None = None) -> float:
+    """The dark model's prediction of :func:`corner_mean_dn` (module docstring), DN.
+
+    The temperature term is added when the dark model has one and ``temperature_c`` is logged (finite);
+    ``pattern_dn`` is :func:`corner_pattern_dn` when the caller has it already."""
+    pattern = corner_pattern_dn(dark, band, corners) if pattern_dn is None else pattern_dn
+    value = dark_level_dn(dark, band, iso, exposure_s) + pattern
+    if temperature_c is not None and np.isfinite(temperature_c):
+        value += float(temperature_shift_dn(dark, iso, exposure_s, temperature_c))
+    return value
+
+
+def corner_noise_dn(dark: xr.Dataset, band: str, iso: float, n_sites: int) -> float:
+    """Noise of a corner mean of ``n_sites`` raw sites: the dark stage's read noise of the band at the nearest
+    ISO over sqrt(n_sites) (NaN without sites)."""
+    if not n_sites > 0:
+        return np.nan
+    read_dn = float(dark["read_noise_dn"].sel(band=band).sel(iso=iso, method="nearest"))
+    return read_dn / np.sqrt(n_sites)
+
+
+def frame_time_s(raw: RawFrame) -> float:
+    """The frame's time stamp in seconds since 1970-01-01, a stamp without time zone read as UTC; NaN without one."""
+    stamp: datetime | None = raw.time
+    if stamp is None:
+        return np.nan
+    if stamp.tzinfo is None:
+        stamp = stamp.replace(tzinfo=timezone.utc)
+    return stamp.timestamp()
+
+
+def frame_corner_records(lens: str, images: LensImages, raw: RawFrame, dark: xr.Dataset, corners: np.ndarray,
+                         temperature_c: float = np.nan) -> list[dict]:
+    """One decoded frame's corner records, one per band (columns :data:`CORNER_COLUMNS`): the measured mean
+    of the lens's unlit pixels ``corners`` (:func:`corner_pixels` of its projection), the dark model's
+    prediction there at the frame's ISO, exposure time and temperature, and the noise of the mean."""
+    iso, exposure_s = float(raw.iso), round(float(raw.exposure_s), 9)
+    time_s = frame_time_s(raw)
+    out = []
+    for band in BANDS:
+        corner_dn, sites = corner_mean_dn(images.bands[band], corners, band, raw)
+        out.append({"lens": lens, "band": band, "iso": iso, "exposure_s": exposure_s,
+                    "temperature_c": float(temperature_c), "time_s": time_s,
+                    "corner_dn": corner_dn, "n_corner_sites": sites,
+                    "dark_corner_dn": predicted_corner_dn(dark, band, iso, exposure_s, corners, temperature_c),
+                    "sigma_corner_dn": corner_noise_dn(dark, band, iso, sites)})
+    return out
+
+
+class FrameCorners:
+    """The corner records of a stage's lit frames, as the frames are decoded (each frame read once, by the
+    stage's own reduction): each lens's corner pixels found at its first frame, from ``projection(lens)``
+    (the dataset's declared projection of the lens region) and ``min_radius_fraction``
+    (``bias.corner_min_radius_fraction``). A lens without a dark artefact in ``dark`` records nothing."""
+
+    def __init__(self, dark: dict[str, xr.Dataset] | None, projection: Callable[[str], str],
+                 min_radius_fraction: float):
+        self.dark = dict(dark or {})
+        self.projection = projection
+        self.min_radius_fraction = float(min_radius_fraction)
+        self.corners: dict[str, np.ndarray] = {}
+        self.records: list[dict] = []
+
+    def add(self, lens: str, images: LensImages, raw: RawFrame, temperature_c: float = np.nan, **keys) -> None:
+        """Record one frame of ``lens``; ``keys`` (the stage's own: ``file_index``, ``medium``...) go on each row."""
+        if lens not in self.dark:
+            return
+        if lens not in self.corners:
+            self.corners[lens] = corner_pixels(images.bands["G"].shape, self.projection(lens), self.min_radius_fraction)
+        for record in frame_corner_records(lens, images, raw, self.dark[lens], self.corners[lens], temperature_c):
+            self.records.append({**record, **keys})
+
+    def of_lens(self, lens: str) -> list[dict]:
+        return [r for r in self.records if r["lens"] == lens]

@@ -1,0 +1,70 @@
+"""Every lit stage records its frames' unlit corners against the dark model (pipeline.radiometry.unlit_corners).
+
+On the session's calibrated tiny camera (tests/conftest.py ``calibrated``: seed 5, no effect, the pipeline's own
+dark and geometry artefacts), each of the roll-off, spectral, absolute and immersion stages is run again for one
+lens with the raw reader counted:
+
+* each raw file is decoded once (the corner mean comes from the frame the stage's own reduction decodes);
+* its artefact's ``obs_corner`` holds one row per signal frame of the lens and band, with the frame's ISO and
+  exposure as its DNG states them, and the corner mean's noise as the dark stage's read noise at that ISO over
+  the square root of the sites averaged (R and B one site per band pixel, G two, so that G's noise is R's over
+  sqrt 2 to rounding);
+* the corners' departures from the dark model's prediction, in their stated noise, average to zero within 5
+  standard errors (5 / sqrt(rows); the clean camera has nothing but read noise in its corners, and with 60 rows
+  or more that is under two thirds of one row's noise).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from pipeline import frames as frames_mod
+from pipeline.observations import CORNER_PREFIX, dataset_to_table
+from pipeline.rawio import read_raw
+from pipeline.workflow import STAGES, run_stage
+
+LENS = "far"
+#: the stage's own keys on each row of its corner record
+STAGE_KEYS = {"rolloff": ("medium", "azimuth_deg", "angle_deg"), "spectral": ("wavelength_nm",),
+              "absolute": (), "immersion": ("medium", "water_height_cm")}
+
+
+@pytest.mark.parametrize("stage", sorted(STAGE_KEYS))
+def test_lit_stage_records_its_frames_corners_from_one_decode(stage, calibrated, config, tmp_path, monkeypatch):
+    root, _, _, artefacts, _, _ = calibrated
+    reads = Counter()
+
+    def counting_read_raw(path):
+        reads[str(path)] += 1
+        return read_raw(path)
+
+    monkeypatch.setattr(frames_mod, "read_raw", counting_read_raw)
+    spec = STAGES[stage]
+    upstream = {name: artefacts[name] for name in spec.upstream + spec.optional_upstream if name in artefacts}
+    assert "dark" in upstream
+    art = run_stage(stage, root, config, {LENS: tmp_path / f"{LENS}.nc"}, upstream)[LENS]
+
+    frames = pd.read_csv(root / spec.experiment / "frames.csv")
+    mine = frames[frames["lens"].isin([LENS, "both"])]
+    assert reads and set(reads.values()) == {1}, reads.most_common(3)
+    assert len(reads) == len(mine)
+
+    table = dataset_to_table(art, CORNER_PREFIX)
+    signal = mine[mine["kind"] == "signal"]
+    assert len(table) == 3 * len(signal)
+    assert set(table["lens"]) == {LENS}
+    assert sorted(table.groupby("file_index")["band"].apply(lambda b: "".join(sorted(b)))) == ["BGR"] * len(signal)
+    for key in STAGE_KEYS[stage]:
+        assert key in table, key
+    # ISO and exposure as the frames' DNGs state them
+    stated = {(float(r.iso), round(float(r.exposure_s), 9)) for r in (read_raw(root / spec.experiment / f)
+                                                                        for f in signal["file"])}
+    assert set(zip(table["iso"].astype(float), table["exposure_s"].astype(float))) == stated
+    noise = table.groupby("band")["sigma_corner_dn"].median()
+    assert noise["G"] == pytest.approx(noise["R"] / np.sqrt(2.0), rel=0.05)
+    z = (table["corner_dn"] - table["dark_corner_dn"]) / table["sigma_corner_dn"]
+    assert abs(float(z.mean())) < 5.0 / np.sqrt(len(z)), float(z.mean())
