@@ -17,10 +17,11 @@ injected cases rewrite copies of one or two of its experiment folders and rerun 
   DN per second with the linearity's and the roll-off's, is structured, with its largest departure in
   an absolute row. Expected size: each absolute row departs by about 1 % (the band's free level takes
   the mean of the two lenses) against a relative noise of about 0.08 %: some 12 sigma per row.
-* A frame's black level off the dark model: 0.6 DN added to every pixel of one ISO 100 frame of the
-  far lens (gain sweep), not in the dark model. Its unlit corners sit 0.6 DN above the dark model
-  against a noise of 1.6 DN / sqrt(868 sites) = 0.055 DN (R, B; G has twice the sites): about
-  11 sigma per band. ``closure/dark_corners`` is structured and its rows beyond 5 sigma are that
+* A frame's black level off the dark model: 1 DN added to every pixel of one ISO 100 frame of the
+  far lens (gain sweep), not in the dark model (the raw values are integers: what an ADC would record
+  of any offset between 0.5 and 1.5 DN). Its unlit corners sit 1 DN above the dark model against a
+  noise of 1.6 DN / sqrt(868 sites) = 0.055 DN (R, B; G has twice the sites): about 18 sigma per
+  band. ``closure/dark_corners`` is structured and its rows beyond 5 sigma are that
   frame's three bands.
 * Every lit experiment's frames in ``closure/dark_corners`` (linearity, roll-off, spectral, absolute,
   immersion): on the clean camera the table's chi-square lies in its dof's two-sided 99 % range. The roll-off's
@@ -62,7 +63,7 @@ LENSES = ("far", "close")
 #: the lamp's excess light on the far lens's absolute frames
 LAMP_EXCESS = 0.02
 #: black-level offset (DN) of the one frame that the dark model does not know
-FRAME_OFFSET_DN = 0.6
+FRAME_OFFSET_DN = 1.0
 #: black-level offset (DN) of the roll-off's lit frames that the dark model does not know
 ROLLOFF_OFFSET_DN = 0.1
 SHUTTER_OFFSET_FAR_S = FORMS["shutter_offset_per_lens"].amplitudes[0]
