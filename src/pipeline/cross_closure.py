@@ -102,7 +102,7 @@ from pipeline.field_angle_closure import LEVEL as FIELD_ANGLE_LEVEL
 from pipeline.field_angle_closure import PRIOR_KIND as FIELD_ANGLE_PRIOR_KIND
 from pipeline.field_angle_closure import field_angle_table
 from pipeline.fitting import base_design, block_gls_drop, wls
-from pipeline.observations import CORNER_PREFIX, dataset_to_table
+from pipeline.observations import CORNER_PREFIX, dataset_to_table, datasets_by_lens, lens_of
 from pipeline.radiometry.exposure import gain_from_iso
 from pipeline.radiometry.rolloff import evaluate_rolloff
 
@@ -122,17 +122,6 @@ STAGE_CORNER_KEYS = ("medium", "azimuth_deg", "angle_deg", "wavelength_nm", "wat
 LENS_TEST_COLUMNS = ("effect", "experiment", "level", "in_model", "lenses", "values", "lows", "highs", "units",
                      "amplitude_name", "shared", "chi2_shared", "chi2_split", "dof_split", "n_params", "p_value",
                      "p_value_model", "p_value_block", "n_blocks", "significant", "message")
-
-
-def _lens_of(ds: xr.Dataset) -> str | None:
-    for prefix in ("obs_setting__lens", "obs_frame__lens"):
-        if prefix in ds and ds[prefix].size:
-            return str(ds[prefix].values[0])
-    return None
-
-
-def _by_lens(datasets: list[xr.Dataset]) -> dict[str, xr.Dataset]:
-    return {lens: ds for ds in datasets if (lens := _lens_of(ds)) is not None}
 
 
 def _stage_setting(ds: xr.Dataset, stage: str, key: str, default: float) -> float:
@@ -188,9 +177,9 @@ def _rolloff_axis(ds: xr.Dataset) -> pd.DataFrame:
 
 def responsivity_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.DataFrame:
     """``closure/responsivity`` (module docstring): ln DN/s at ISO 100 on the axis per source, lens and band."""
-    lin = _by_lens(loaded.get("linearity", []))
-    roll = _by_lens(loaded.get("rolloff", []))
-    absolute = _by_lens(loaded.get("absolute", []))
+    lin = datasets_by_lens(loaded.get("linearity", []))
+    roll = datasets_by_lens(loaded.get("rolloff", []))
+    absolute = datasets_by_lens(loaded.get("absolute", []))
     shared = set(config["diagnostics"]["closure_shared_spectrum_sources"])
     rows = []
 
@@ -307,13 +296,13 @@ def dark_corner_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.D
     """``closure/dark_corners`` (module docstring): each lit frame's unlit-corner mean against the dark model's
     prediction there, one row per frame, lens and band, of every experiment that recorded them
     (:data:`CORNER_EXPERIMENTS`), named in the covariate ``experiment``."""
-    drift = {lens: _drift_dn(ds) for lens, ds in _by_lens(loaded.get("linearity", [])).items()}
+    drift = {lens: _drift_dn(ds) for lens, ds in datasets_by_lens(loaded.get("linearity", [])).items()}
     # the frames' fitted black-level offsets are common to a frame's rows: then one block each
     blocked = any(d > 0 for d in drift.values())
     parts = []
     for experiment in CORNER_EXPERIMENTS:
         for ds in loaded.get(experiment, []):
-            lens = _lens_of(ds) or (str(ds[f"{CORNER_PREFIX}__lens"].values[0])
+            lens = lens_of(ds) or (str(ds[f"{CORNER_PREFIX}__lens"].values[0])
                                     if f"{CORNER_PREFIX}__lens" in ds and ds[f"{CORNER_PREFIX}__lens"].size else None)
             d = drift.get(lens, 0.0) if experiment != "linearity" else _drift_dn(ds)
             t = _linearity_corners(ds, blocked) if experiment == "linearity" else _stage_corners(ds, blocked)
@@ -391,11 +380,12 @@ def _largest_departure(obs: Observations, model_effects: list[str]) -> str:
     r = obs.table.iloc[i]
     if obs.level == FIELD_ANGLE_LEVEL:
         prior = (obs.table["kind"].astype(str) == FIELD_ANGLE_PRIOR_KIND).to_numpy()
+        pulled, n_prior = float(np.sum(fit.z[prior] ** 2)), int(prior.sum())
         return (f"the largest departure is the {r['lens']} lens in {r['medium']}, azimuth plane "
                 f"{float(r['azimuth_deg']):g} deg, stage at {float(r['angle_deg']):+g} deg: "
                 f"{r['value_dn'] - fit.pred[i]:+.2f} deg ({fit.z[i]:+.1f} sigma); to follow the stage the lens "
-                f"models move by chi2 {float(np.sum(fit.z[prior] ** 2)):.1f} over their stated covariance "
-                f"({int(prior.sum())} directions, p {stats.chi2.sf(float(np.sum(fit.z[prior] ** 2)), max(int(prior.sum()), 1)):.2g})")
+                f"models move by chi2 {pulled:.1f} over their stated covariance "
+                f"({n_prior} directions, p {stats.chi2.sf(pulled, max(n_prior, 1)):.2g})")
     if obs.level == "responsivity":
         return (f"the largest departure is {r['source']} ({r['lens']} lens, {r['band']}): "
                 f"{100.0 * np.expm1(r['value_dn'] - fit.pred[i]):+.2g} % ({fit.z[i]:+.1f} sigma)")

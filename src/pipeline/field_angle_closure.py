@@ -35,14 +35,13 @@ noise does not hold as a bias (README, "Closure and diagnostics"). Nothing here 
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 import pandas as pd
 import xarray as xr
 
 from pipeline.geometry.scaramuzza import FisheyeModel
-from pipeline.observations import dataset_to_table
+from pipeline.geometry.theta_uncertainty import shifted_model
+from pipeline.observations import dataset_to_table, datasets_by_lens
 from pipeline.stages.geometry_maps import model_from_dataset
 
 __all__ = ["LEVEL", "PRIOR_KIND", "field_angle_table", "in_plane_angle_deg", "in_plane_gradient"]
@@ -65,21 +64,6 @@ def in_plane_angle_deg(model: FisheyeModel, u, v, azimuth_deg) -> np.ndarray:
     return np.degrees(np.arctan2(ray[..., 0] * np.cos(az) + ray[..., 1] * np.sin(az), ray[..., 2]))
 
 
-def _shifted(model: FisheyeModel, name: str, h: float) -> FisheyeModel:
-    if name in ("xc_px", "yc_px"):
-        return replace(model, **{name[:2]: getattr(model, name[:2]) + h})
-    if name == "stretch_d_and_e":
-        return replace(model, d=model.d + h, e=model.e + h)
-    if name.startswith("stretch_"):
-        key = name[len("stretch_"):]
-        return replace(model, **{key: getattr(model, key) + h})
-    if name.startswith("a") and name[1:].isdigit():
-        poly = list(model.poly) + [0.0] * max(0, int(name[1:]) + 1 - len(model.poly))
-        poly[int(name[1:])] += h
-        return replace(model, poly=tuple(poly))
-    raise ValueError(f"unknown geometric parameter {name!r}")
-
-
 def _step(model: FisheyeModel, name: str) -> float:
     if name.startswith("a") and name[1:].isdigit():
         k = int(name[1:])
@@ -93,8 +77,8 @@ def in_plane_gradient(model: FisheyeModel, names, u, v, azimuth_deg) -> np.ndarr
     out = np.empty((len(names), np.size(u)))
     for i, name in enumerate(names):
         h = _step(model, name)
-        out[i] = (np.ravel(in_plane_angle_deg(_shifted(model, name, h), u, v, azimuth_deg))
-                  - np.ravel(in_plane_angle_deg(_shifted(model, name, -h), u, v, azimuth_deg))) / (2 * h)
+        out[i] = (np.ravel(in_plane_angle_deg(shifted_model(model, name, h), u, v, azimuth_deg))
+                  - np.ravel(in_plane_angle_deg(shifted_model(model, name, -h), u, v, azimuth_deg))) / (2 * h)
     return out
 
 
@@ -153,7 +137,7 @@ def _lens_rows(lens: str, geo: xr.Dataset, roll: xr.Dataset, centroid_sigma_px: 
 def field_angle_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.DataFrame:
     """``closure/field_angle`` (module docstring): the geometry's in-plane angle of each roll-off spot
     against the rotation stage's angle, per lens and medium, with the geometry's error as nuisance columns."""
-    geometry, rolloff = _by_lens_attribute(loaded.get("geometry", [])), _by_lens_attribute(loaded.get("rolloff", []))
+    geometry, rolloff = datasets_by_lens(loaded.get("geometry", [])), datasets_by_lens(loaded.get("rolloff", []))
     sigma_px = float(config["diagnostics"]["closure_spot_centroid_sigma_px"])
     parts = [p for lens in sorted(set(geometry) & set(rolloff))
              for p in _lens_rows(lens, geometry[lens], rolloff[lens], sigma_px)]
@@ -162,15 +146,4 @@ def field_angle_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.D
     out = pd.concat(parts, ignore_index=True)
     x_cols = [c for c in out.columns if c.startswith("x_")]
     out[x_cols] = out[x_cols].fillna(0.0)
-    return out
-
-
-def _by_lens_attribute(datasets: list[xr.Dataset]) -> dict[str, xr.Dataset]:
-    """Stage artefacts by lens: their ``lens`` attribute, else the lens of their setting table's rows."""
-    out = {}
-    for ds in datasets:
-        if "lens" in ds.attrs:
-            out[str(ds.attrs["lens"])] = ds
-        elif "obs_setting__lens" in ds and ds["obs_setting__lens"].size:
-            out[str(ds["obs_setting__lens"].values[0])] = ds
     return out

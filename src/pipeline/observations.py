@@ -28,7 +28,8 @@ from pipeline.effects import get as get_effect
 from pipeline.fitting import Fit, base_design, wls
 from pipeline.radiometry.unlit_corners import CORNER_COLUMNS
 
-__all__ = ["CORNER_PREFIX", "corner_table_dataset", "dataset_to_table", "effect_coefficients", "fit_with_effects",
+__all__ = ["CORNER_PREFIX", "corner_table_dataset", "dataset_to_table", "datasets_by_lens", "lens_of",
+           "with_corner_table", "effect_coefficients", "fit_with_effects",
            "table_to_dataset"]
 
 #: the prefix of the per-frame unlit-corner table in a lit stage's artefact
@@ -44,6 +45,28 @@ def table_to_dataset(table: pd.DataFrame, prefix: str) -> xr.Dataset:
             values = table[col].astype(str).to_numpy().astype(str)
         data[f"{prefix}__{col}"] = (prefix, values)
     return xr.Dataset(data)
+
+
+def lens_of(ds: xr.Dataset) -> str | None:
+    """The lens a stage artefact is of: its ``lens`` attribute, else the lens of its setting or frame table's
+    rows; None when it names none."""
+    if "lens" in ds.attrs:
+        return str(ds.attrs["lens"])
+    for name in ("obs_setting__lens", "obs_frame__lens"):
+        if name in ds and ds[name].size:
+            return str(ds[name].values[0])
+    return None
+
+
+def datasets_by_lens(datasets: list[xr.Dataset]) -> dict[str, xr.Dataset]:
+    """Stage artefacts keyed by :func:`lens_of` (those that name no lens left out)."""
+    return {lens: ds for ds in datasets if (lens := lens_of(ds)) is not None}
+
+
+def with_corner_table(art: xr.Dataset, records: list[dict]) -> xr.Dataset:
+    """A lit stage's artefact with its frames' unlit-corner records as ``obs_corner`` (for the closure,
+    pipeline.cross_closure); as it is when there are none (no dark artefact given)."""
+    return art.merge(corner_table_dataset(records)) if records else art
 
 
 def corner_table_dataset(records: list[dict] | pd.DataFrame) -> xr.Dataset:

@@ -47,7 +47,13 @@ def parameter_names(stretch: str, degree: int) -> tuple[str, ...]:
     return ("xc_px", "yc_px", *head, "a0", *(f"a{k}" for k in range(2, degree + 1)))
 
 
-def _shifted(model: FisheyeModel, name: str, h: float) -> FisheyeModel:
+def shifted_model(model: FisheyeModel, name: str, h: float) -> FisheyeModel:
+    """``model`` with parameter ``name`` (of :func:`parameter_names`) moved by ``h``."""
+    if name.startswith("a") and name[1:].isdigit():
+        k = int(name[1:])
+        poly = list(model.poly) + [0.0] * max(0, k + 1 - len(model.poly))
+        poly[k] += h
+        return replace(model, poly=tuple(poly))
     if name == "xc_px":
         return replace(model, xc=model.xc + h)
     if name == "yc_px":
@@ -83,8 +89,8 @@ def theta_gradient(model: FisheyeModel, names, u, v) -> np.ndarray:
             out[i] = dtheta_drho * (x * dx + y * dy) / np.where(rho > 0, rho, np.inf)
             continue
         h = _STRETCH_STEP
-        rp = np.hypot(*_shifted(model, name, h)._sensor_xy(u, v))
-        rm = np.hypot(*_shifted(model, name, -h)._sensor_xy(u, v))
+        rp = np.hypot(*shifted_model(model, name, h)._sensor_xy(u, v))
+        rm = np.hypot(*shifted_model(model, name, -h)._sensor_xy(u, v))
         out[i] = dtheta_drho * (rp - rm) / (2 * h)
     return np.degrees(out)
 

@@ -139,6 +139,13 @@ class FrameCorners:
         self.corners: dict[str, np.ndarray] = {}
         self.records: list[dict] = []
 
+    @classmethod
+    def of_upstream(cls, lens: str, upstream: dict, projection: Callable[[str], str], bias_config: dict):
+        """A stage's recorder for ``lens``: its dark artefact from the stage's ``upstream`` (none: nothing
+        recorded), the corners by ``bias.corner_min_radius_fraction``."""
+        return cls({lens: upstream["dark"]} if "dark" in upstream else None, projection,
+                   bias_config["corner_min_radius_fraction"])
+
     def add(self, lens: str, images: LensImages, raw: RawFrame, temperature_c: float = np.nan, **keys) -> None:
         """Record one frame of ``lens``; ``keys`` (the stage's own: ``file_index``, ``medium``...) go on each row."""
         if lens not in self.dark:

@@ -58,12 +58,12 @@ from pipeline.dataset import read_source_reference, read_source_spectrum
 from pipeline.errors import InputError
 from pipeline.radiometry.absolute import (absolute_calibration_budget, lamp_calibration_relative_sigma,
                                           lamp_colour_temperature_shape_nm)
-from pipeline.observations import table_to_dataset
+from pipeline.observations import table_to_dataset, with_corner_table
 from pipeline.radiometry.measurement import FrameSettings
 from pipeline.radiometry.response import flat_field_at, response_corrected, response_effects
 from pipeline.radiometry.source import scale_to_reference
 from pipeline.radiometry.unlit_corners import FrameCorners
-from pipeline.stages.spectral import central_masks, dark_levels, frame_table, reduce_central, with_corner_table
+from pipeline.stages.spectral import central_masks, dark_levels, frame_table, reduce_central
 
 STAGE = "absolute"
 TERMS = ("lamp_calibration", "reference", "spectrometer_noise", "extra", "image", "response")
@@ -255,11 +255,11 @@ def compute(ctx) -> xr.Dataset:
                                   cfg["reference_wavelength_nm"])
     masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"], cfg["mask_min_pixels"])
     dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
-    corners = FrameCorners(dark, ctx.dataset.projection, ctx.config["bias"]["corner_min_radius_fraction"])
+    corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
     reduced = reduce_central(ctx.dataset, STAGE, masks, progress=ctx.progress, corners=corners)
     ctx.record_frames(reduced["inputs"])
     darks = dark_levels(reduced, dark, root / STAGE / "frames.csv")
     linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else {}
     arts = analyse_absolute(reduced, darks, {ctx.lens: ctx.upstream["spectral"]}, spectrum,
                             root / STAGE / "source_spectrum.csv", reference, ctx.config, linearity)
-    return with_corner_table(arts[ctx.lens], corners, ctx.lens)
+    return with_corner_table(arts[ctx.lens], corners.of_lens(ctx.lens))

@@ -31,7 +31,7 @@ from pipeline.radiometry.response import response_corrected, response_effects
 from pipeline.radiometry.immersion import (fit_immersion_factor, n_squared_law_factor,
                                            window_index_from_immersion_factor)
 from pipeline.radiometry.water import refractive_index_water
-from pipeline.observations import corner_table_dataset, table_to_dataset
+from pipeline.observations import table_to_dataset, with_corner_table
 from pipeline.radiometry.unlit_corners import FrameCorners
 
 STAGE = "immersion"
@@ -200,8 +200,7 @@ def compute(ctx) -> xr.Dataset:
     The water's refractive index and t_aw are taken at this lens's effective
     wavelengths (its spectral artefact) when the spectral stage has run.
     """
-    corners = FrameCorners({ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else None,
-                           ctx.dataset.projection, ctx.config["bias"]["corner_min_radius_fraction"])
+    corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
     reduced = reduce_immersion(ctx.dataset, {ctx.lens: ctx.upstream["geometry"]}, ctx.config, progress=ctx.progress,
                                corners=corners)
     ctx.record_frames(reduced["inputs"])
@@ -210,6 +209,5 @@ def compute(ctx) -> xr.Dataset:
                              linearity)
     if ctx.lens not in arts:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no immersion frames for lens {ctx.lens}")
-    rows = corners.of_lens(ctx.lens)
     # the signal frames' unlit corners against the dark model, for the closure (pipeline.cross_closure)
-    return arts[ctx.lens].merge(corner_table_dataset(rows)) if rows else arts[ctx.lens]
+    return with_corner_table(arts[ctx.lens], corners.of_lens(ctx.lens))

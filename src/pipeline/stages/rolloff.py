@@ -70,7 +70,7 @@ from pipeline.errors import InputError
 from pipeline.frames import iter_frames
 from pipeline.geometry.centre_shift import centre_columns, centre_root, centre_theta_gradient, centre_variance
 from pipeline.moments import RunningMoments
-from pipeline.observations import corner_table_dataset, table_to_dataset
+from pipeline.observations import table_to_dataset, with_corner_table
 from pipeline.radiometry.immersion_rolloff import water_rolloff_factor
 from pipeline.radiometry.rolloff import (ROLLOFF_POWERS, evaluate_rolloff, fit_rolloff, normalise_rolloff,
                                          rolloff_design_matrix, rolloff_slope)
@@ -787,14 +787,12 @@ def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise
 def compute(ctx) -> xr.Dataset:
     """The roll-off artefact of one lens (the stage runner's contract)."""
     geometry = {ctx.lens: ctx.upstream["geometry"]}
-    corners = FrameCorners({ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else None,
-                           ctx.dataset.projection, ctx.config["bias"]["corner_min_radius_fraction"])
+    corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
     reduced = reduce_rolloff(ctx.dataset, geometry, ctx.config, progress=ctx.progress, corners=corners)
     ctx.record_frames(reduced["inputs"])
     check_settings(reduced, ctx.config, ctx.dataset.root / STAGE / "frames.csv")
     arts = analyse_rolloff(reduced, ctx.config, ctx.effects)
     if ctx.lens not in arts:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no roll-off frames for lens {ctx.lens}")
-    corner_rows = corners.of_lens(ctx.lens)
     # the signal frames' unlit corners against the dark model, for the closure (pipeline.cross_closure)
-    return arts[ctx.lens].merge(corner_table_dataset(corner_rows)) if corner_rows else arts[ctx.lens]
+    return with_corner_table(arts[ctx.lens], corners.of_lens(ctx.lens))

@@ -59,7 +59,7 @@ from pipeline.errors import InputError
 from pipeline.fitting import base_design, wls
 from pipeline.frames import iter_frames
 from pipeline.moments import RunningMoments
-from pipeline.observations import corner_table_dataset, table_to_dataset
+from pipeline.observations import table_to_dataset, with_corner_table
 from pipeline.radiometry.dark import dark_level_dn
 from pipeline.radiometry.measurement import FrameSettings
 from pipeline.radiometry.response import flat_field_at, response_corrected, response_effects
@@ -364,18 +364,11 @@ def compute(ctx) -> xr.Dataset:
     photodiode = read_photodiode(ctx.dataset)      # bad sidecar input fails before any frame is decoded
     masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"], cfg["mask_min_pixels"])
     dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
-    corners = FrameCorners(dark, ctx.dataset.projection, ctx.config["bias"]["corner_min_radius_fraction"])
+    corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
     reduced = reduce_central(ctx.dataset, STAGE, masks, progress=ctx.progress, corners=corners)
     ctx.record_frames(reduced["inputs"])
     darks = dark_levels(reduced, dark, ctx.dataset.root / STAGE / "frames.csv")
     linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else {}
     arts = analyse_spectral(reduced, darks, photodiode, ctx.dataset.root / STAGE / "photodiode.csv", ctx.config,
                             linearity)
-    return with_corner_table(arts[ctx.lens], corners, ctx.lens)
-
-
-def with_corner_table(art: xr.Dataset, corners: FrameCorners, lens: str) -> xr.Dataset:
-    """``art`` with the lens's lit frames' unlit corners against the dark model (``obs_corner``, for the closure,
-    pipeline.cross_closure), as it is when no dark artefact was given."""
-    rows = corners.of_lens(lens)
-    return art.merge(corner_table_dataset(rows)) if rows else art
+    return with_corner_table(arts[ctx.lens], corners.of_lens(ctx.lens))
