@@ -53,10 +53,10 @@ from pipeline.cross_closure import closure_observations, describe_closure, lens_
 from pipeline.config import stage_params
 from pipeline.dataset import write_md5sums
 from pipeline.diagnosis import diagnosis_lines
-from pipeline.diagnostics import (_fit, model_design, observations_from_artefacts, residual_tests,
-                                  unexplained_structure)
+from pipeline.diagnostics import (SOURCE_EXPERIMENT, _fit, closure_table, model_design, observations_from_artefacts,
+                                  residual_tests, unexplained_structure)
 from pipeline.rawio import read_raw, write_dng
-from pipeline.report.sections._closure import lens_tests_table
+from pipeline.report.sections._closure import closure_figures, lens_tests_table
 from pipeline.workflow import run_stage
 
 LENSES = ("far", "close")
@@ -210,6 +210,19 @@ def test_black_offset_of_one_experiment_found_in_the_dark_corner_closure(clean, 
     assert text.startswith("the dark model mispredicts the unlit corners of the lit linearity, rolloff, spectral, "
                            "absolute and immersion frames"), text
     assert "they follow experiment most closely" in text, text
+    # the closure table names each dark-corner row's experiment, and the report's "where it fails" figure of the
+    # closure rows plots z against it (the covariate the residual test names). The ISO 100 levels take the offset
+    # in proportion to the roll-off's share of their rows (2496 of 3844), so its rows keep 0.035 DN of it: a mean z
+    # of about 0.64 (0.035 / 0.055), against a spread of 1/sqrt(2496) = 0.02 for a clean table
+    closure = closure_table(obs, effects, config)
+    rows = closure.where(closure["level"] == "dark_corners", drop=True)
+    assert set(rows[SOURCE_EXPERIMENT].values.astype(str)) == {"linearity", "rolloff", "spectral", "absolute",
+                                                                "immersion"}
+    roll = rows["z"].values[rows[SOURCE_EXPERIMENT].values.astype(str) == "rolloff"]
+    assert len(roll) == int((table["experiment"] == "rolloff").sum()) and roll.mean() > 0.3, roll.mean()
+    figures = closure_figures(closure, tests.reset_index().assign(experiment="closure"), 8, 8)
+    caption = next(f.caption for f in figures if f.name == "closure_z_closure")
+    assert "the experiment whose frames the measurement is of" in caption, caption
 
 
 @pytest.fixture(scope="module")

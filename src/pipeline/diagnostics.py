@@ -529,6 +529,10 @@ CLOSURE_COVARIATES = {"exposure_s": "s", "iso": "1", "gain": "1", "temperature_c
                       "spot_x_px": "pixel", "spot_y_px": "pixel", "water_height_cm": "cm",
                       "wavelength_nm": "nm", "signal_fraction": "1"}
 CLOSURE_TEXT = ("lens", "band", "sweep", "medium", "kind")
+#: the closure table's column naming the experiment whose frames a row measures: the row's own experiment, or
+#: for a cross-experiment closure table that pools several (``closure/dark_corners``) the one its covariate
+#: ``experiment`` names, which the table's ``experiment`` column (``closure``) cannot hold
+SOURCE_EXPERIMENT = "source_experiment"
 
 
 def closure_table(observations: list[Observations], model_effects: list[str], config: dict) -> xr.Dataset:
@@ -556,12 +560,13 @@ def closure_table(observations: list[Observations], model_effects: list[str], co
             "z": fit.z})
         for name in CLOSURE_TEXT:
             part[name] = t[name].astype(str).to_numpy() if name in t else ""
+        part[SOURCE_EXPERIMENT] = t["experiment"].astype(str).to_numpy() if "experiment" in t else obs.experiment
         for name in CLOSURE_COVARIATES:
             source = covs[name] if name in covs else (t[name] if name in t else None)
             part[name] = pd.to_numeric(source, errors="coerce").to_numpy(float) if source is not None else np.nan
         parts.append(part)
     columns = ["experiment", "level", "value_units", "group", "block", "value", "prediction", "residual", "sigma",
-               "z", *CLOSURE_TEXT, *CLOSURE_COVARIATES]
+               "z", *CLOSURE_TEXT, SOURCE_EXPERIMENT, *CLOSURE_COVARIATES]
     table = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=columns)
     table = table[columns]
     described = {
@@ -575,6 +580,8 @@ def closure_table(observations: list[Observations], model_effects: list[str], co
         "residual": ("value minus prediction (units in value_units)", None),
         "sigma": ("expected noise of value (shot, read, quantisation, reference...; units in value_units)", None),
         "z": ("noise-normalised residual of the weighted fit", "1"),
+        SOURCE_EXPERIMENT: ("experiment whose frames the row measures (its own experiment, or for a closure "
+                            "table pooling several the one the covariate experiment names)", None),
     }
     data = {}
     for name in columns:

@@ -69,7 +69,8 @@ COVARIATES = ("experiment", "exposure_s", "gain", "lens", "band", "sweep", "temp
 LOG_SCALE_COVARIATES = ("signal_fraction",)
 #: plain words for a covariate where its column name is not plain enough
 COVARIATE_LABELS = {"signal_fraction": "the signal level as a fraction of full scale",
-                    "frame_in_setting": "the frame's order within its setting"}
+                    "frame_in_setting": "the frame's order within its setting",
+                    "source_experiment": "the experiment whose frames the measurement is of"}
 #: pixel position columns (band pixels of the lens image) of tables that know where each measurement sits
 IMAGE_PLANE_COLUMNS = ("spot_x_px", "spot_y_px")
 

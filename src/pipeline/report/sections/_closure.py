@@ -14,6 +14,7 @@ import pandas as pd  # noqa: E402
 import xarray as xr  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
+from pipeline.diagnostics import SOURCE_EXPERIMENT  # noqa: E402
 from pipeline.report.content import Figure, Table, draw  # noqa: E402
 from pipeline.report.formatting import finite, fmt_value, units_text  # noqa: E402
 from pipeline.report.palette import DIVERGING_MAP, OKABE_ITO  # noqa: E402
@@ -32,7 +33,10 @@ __all__ = ["is_structured", "lens_tests_table", "residual_tests_table", "closure
 #: |z| beyond this is piled at the edge of the z-against-covariate plots
 Z_PLOT_LIMIT = 6.0
 #: the text covariates of the closure table (categorical axes)
-TEXT_COVARIATES = ("lens", "band", "sweep", "medium", "kind")
+TEXT_COVARIATES = ("lens", "band", "sweep", "medium", "kind", SOURCE_EXPERIMENT)
+#: the closure table's column of a covariate a residual test names, where the two differ: ``experiment``, the
+#: stage whose frames a row of a pooling closure table measures, is the table's ``source_experiment``
+CLOSURE_COLUMN_OF = {"experiment": SOURCE_EXPERIMENT}
 
 
 def is_structured(row) -> bool:
@@ -117,6 +121,7 @@ def plotted_covariate(rows: pd.DataFrame, tests: pd.DataFrame, bins: int) -> str
             if structured_first and not is_structured(r):
                 continue
             name = _text(r.get("covariate"))
+            name = CLOSURE_COLUMN_OF.get(name, name)
             if name in rows and rows[name].nunique(dropna=True) > 1:
                 return name
     best, best_p = None, np.inf
