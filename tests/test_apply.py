@@ -397,6 +397,10 @@ def test_a_dark_level_too_high_stops_apply_with_the_mean_over_the_image_circle(c
     frame = _signal_frame(root, "far")
     with pytest.raises(ImpossibleResult) as err:
         apply_calibration(bad, [frame], "air", tmp_path / "out.nc", pixels=False)
+    # with the pixel maps (written band by band as the chain makes them) the same stop, and nothing left behind
+    with pytest.raises(ImpossibleResult, match="standard errors below zero"):
+        apply_calibration(bad, [frame], "air", tmp_path / "out.nc")
+    assert not (tmp_path / "out.nc").exists() and not list(tmp_path.glob(".*.tmp"))
     found = re.search(r"lens (\w+), band (\w): mean radiance (\S+) W sr-1 m-2 nm-1 over the image circle is "
                       r"(\S+) standard errors below zero", str(err.value))
     assert found, str(err.value)
@@ -439,6 +443,8 @@ def test_frames_the_bundle_does_not_calibrate_are_refused(calibrated, tmp_path):
         with pytest.raises(InputError, match=words) as err:
             apply_calibration(bundle_path, [path], "air", tmp_path / "out.nc")
         assert str(path) in str(err.value)
+        # nothing half-written: neither the output nor its temporary file (made before the frame is read)
+        assert not (tmp_path / "out.nc").exists() and not list(tmp_path.glob(".*.tmp"))
     # a bundle without the immersion stage has no water
     air_only = {s: p for s, p in artefacts.items() if s != "immersion"}
     air_bundle = out / "calibration" / "air-only.nc"
@@ -514,6 +520,26 @@ def test_wrap_degrees_is_numpys_remainder_bit_for_bit(dtype):
         np.testing.assert_array_equal(got, want)
     buffer = np.empty_like(x)
     assert wrap_degrees(x, out=buffer) is buffer
+
+
+def test_several_frames_in_one_call_are_each_frames_own_maps(calibrated, applied, tmp_path):
+    """Frames are written one after another (one frame's maps in memory at a time): frame k of a call with
+    two frames is, variable by variable, what a call with that frame alone writes, the sphere grid too;
+    the geometry maps once, without a frame dimension; in one file that opens in xarray."""
+    root, _, _, _, bundle_path, _ = calibrated
+    path = apply_calibration(bundle_path, [_signal_frame(root, "far"), _signal_frame(root, "close")], "air",
+                             tmp_path / "two.nc")
+    with xr.open_dataset(path) as ds:
+        assert ds.sizes["frame"] == 2 and ds["theta_deg"].dims == ("lens", "band", "y", "x")
+        for k, lens in enumerate(LENSES):
+            one = applied[lens]
+            assert ds["frame_file"].values[k] == one["frame_file"].values[0]
+            for name in ("radiance", "radiance_random_sigma", "radiance_systematic_sigma", "quality_flag",
+                         "sphere_radiance", "sphere_count"):
+                np.testing.assert_array_equal(ds[name].isel(frame=k).values, one[name].isel(frame=0).values,
+                                              err_msg=f"{name}, frame {k}")
+        np.testing.assert_array_equal(ds["theta_deg"].values, applied["far"]["theta_deg"].values)
+    assert not list(tmp_path.glob(".*.tmp"))
 
 
 def test_command_line(calibrated, tmp_path, capsys):
