@@ -91,9 +91,11 @@ from pipeline.errors import ArtefactError
 #: closure 5 also: the field-angle table (level ``field_angle``, pipeline.field_angle_closure: the geometry
 #: against the roll-off's rotation stage) among its rows, its prior rows of kind ``geometry_prior``; the
 #: recorded diagnostics config gains ``closure_spot_centroid_sigma_px``.
+#: dark 4: with ``bias_drift`` a setting's sigma leaves out the corners' noise that each frame's correction adds to
+#: the frame (the corners' deviations from their setting mean sum to zero over its frames).
 #: closure 6: ``source_experiment``, the experiment whose frames each row measures (a dark-corner row's lit
 #: experiment, which ``experiment``, ``closure`` on those rows, cannot hold).
-ARTEFACT_VERSIONS = {"dark": 3, "linearity": 7, "geometry": 5, "rolloff": 6, "spectral": 3,
+ARTEFACT_VERSIONS = {"dark": 4, "linearity": 7, "geometry": 5, "rolloff": 6, "spectral": 3,
                      "absolute": 4, "immersion": 3, "calibration": 13, "field": 3, "closure": 6}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain

@@ -300,8 +300,10 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     # A frame's value scatters by the temporal noise of its pixels; the drift that the
     # model removed (or that is left in, without the effect) is not part of this noise.
     fr["sigma_dn"] = np.sqrt(np.maximum(fr["pixel_var_dn2"] - np.nan_to_num(drift[0]) ** 2, 1e-12) / fr["n_used"])
+    pixel_sigma = fr["sigma_dn"].copy()
     if use_drift and testable:
-        # the corner correction adds the corners' own noise to each frame
+        # the corner correction adds the corners' own noise to each frame (not to a setting's mean: the
+        # corners' deviations from their setting mean sum to zero over its frames)
         fr["sigma_dn"] = np.hypot(fr["sigma_dn"], fr["sigma_corner_dn"])
     fr["group"] = fr["lens"] + "/" + fr["band"] + "/" + fr["setting"].astype(str)
     fr["frame"] = fr.groupby(["lens", "band", "setting"]).cumcount()
@@ -313,9 +315,9 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     fr["z"] = ffit.z
 
     # ----- setting level: the dark model
-    agg = fr.groupby(["lens", "band", "setting"]).agg(value_dn=("value_dn", "mean"),
-                                                      frame_sigma=("sigma_dn", "mean"),
-                                                      temperature_c=("temperature_c", "mean")).reset_index()
+    agg = fr.assign(pixel_sigma_dn=pixel_sigma).groupby(["lens", "band", "setting"]).agg(
+        value_dn=("value_dn", "mean"), frame_sigma=("pixel_sigma_dn", "mean"),
+        temperature_c=("temperature_c", "mean")).reset_index()
     st = st.merge(agg, on=["lens", "band", "setting"])
     st["sigma_dn"] = np.sqrt(st["frame_sigma"] ** 2 / st["n_frames"] + np.nan_to_num(drift[0]) ** 2 / st["n_frames"])
     st["x_b0"] = 1.0
