@@ -791,7 +791,6 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         # the small variables (parameters, scalars, per-band tables) loaded whole, at this medium
         bundle = on_disk.drop_vars([n for n, v in on_disk.data_vars.items() if {"y", "block", "sphere_cell"} & set(v.dims)]).sel(
             medium=[medium]).load()
-    n_z, n_a = grid_shape(grid_deg)
     # the cell of every band pixel, once per lens and band (not per frame), beside the first frame's chain
     directions = pool.submit(_pixel_directions, maps, lenses, zenith_lens, grid_deg, block_rows)
     tmp = out_path.with_name(f".{out_path.name}.tmp")
@@ -799,7 +798,7 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
     try:
         if pixels:
             # the per-pixel maps' file made now: the geometry maps go into it while the first frame decodes
-            # (_frames_into), each frame's maps lens by lens as they are made
+            # (_frames_into), each frame's maps band by band as the chains make them
             pixel_file = _PixelMapFile(tmp, len(raw_paths), lenses, maps["pixel_factor"].shape[-2:], geometry)
         return _frames_into(pool, decoding, raw_paths, bundle, bundle_path, maps, lenses, medium, effects, cfg,
                             grid_deg, zenith_lens, block_rows, directions, pixel_file, geometry, out_path, tmp)
