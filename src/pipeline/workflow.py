@@ -27,6 +27,7 @@ import json
 import logging
 import os
 import sys
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -235,24 +236,29 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
         out_path = Path(out_path)
         results_root = out_path.parent.parent
         artefacts, inputs = {}, dict(fixed)
-        for name in spec.upstream + spec.optional_upstream:
-            path = upstream.get(name, {}).get(lens)
-            if path is None:
-                if name in spec.upstream:
-                    raise InputError(None, f"{stage} stage of lens '{lens}' needs the {name} artefact; "
-                                           f"run the '{name}' stage first")
-                continue
-            artefacts[name] = read_artefact(path, name)
-            inputs[_relative(path, results_root)] = sha256_file(path)
-        if calibration is not None:
-            inputs[_relative(bundle, results_root)] = sha256_file(bundle)
-        ctx = StageContext(stage=stage, lens=lens, dataset=lens_view(ds, lens), config=config,
-                           effects=effects, upstream=artefacts, progress=progress, bundle=calibration)
-        with decode_ahead(decode_ahead_frames(config)):
-            art = module.compute(ctx)
-        inputs.update(ctx.inputs)
-        write_artefact(art, out_path, stage=stage, inputs=inputs, config_subset=stage_params(config, stage),
-                       effects=effects)
+        with ExitStack() as opened:
+            for name in spec.upstream + spec.optional_upstream:
+                path = upstream.get(name, {}).get(lens)
+                if path is None:
+                    if name in spec.upstream:
+                        raise InputError(None, f"{stage} stage of lens '{lens}' needs the {name} artefact; "
+                                               f"run the '{name}' stage first")
+                    continue
+                # opened lazily, closed once this lens's artefact is written: a stage reads of its upstream
+                # only what it uses (at the full resolution the geometry artefact is 128 MB, of which the
+                # absolute and spectral stages read the theta map in air)
+                artefacts[name] = opened.enter_context(read_artefact(path, name, load=False))
+                inputs[_relative(path, results_root)] = sha256_file(path)
+            if calibration is not None:
+                inputs[_relative(bundle, results_root)] = sha256_file(bundle)
+            ctx = StageContext(stage=stage, lens=lens, dataset=lens_view(ds, lens), config=config,
+                               effects=effects, upstream=artefacts, progress=progress, bundle=calibration)
+            with decode_ahead(decode_ahead_frames(config)):
+                art = module.compute(ctx)
+            inputs.update(ctx.inputs)
+            write_artefact(art, out_path, stage=stage, inputs=inputs, config_subset=stage_params(config, stage),
+                           effects=effects)
+            art = art.load()
         log.info("%s %s: wrote %s (%d inputs hashed)", stage, lens, out_path, len(inputs))
         out[lens] = art
     return out
