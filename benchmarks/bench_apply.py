@@ -14,10 +14,12 @@ maps, which stay in the bundle). Each is run ``--repeat`` times, each run in a f
 alternating, after ``--warmup`` untimed rounds (1: the bundle and the frame
 into the page cache); before each run the output of the one before is deleted
 and the file system synced, untimed (so that no run pays for freeing the
-598 MB written by the run before, or shares the cores with its writeback);
+455 MB written by the run before, or shares the cores with its writeback);
 the script prints the minimum and median wall time,
 the median CPU time (all threads, user and system, and each apart: the
-system time is mostly the kernel's page faults and page-cache copies), the peak
+system time is mostly the kernel's page faults and page-cache copies; on a virtual machine that hands
+freed memory back to its host, free page reporting, a page not recently used costs about ten times a
+reused one, README "Performance"), the peak
 resident memory of each process (``VmHWM``) and the ratios apply / decode
 of the medians.
 
