@@ -36,29 +36,22 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
+sys.path.insert(0, str(HERE))   # bench_full's children and helpers
 EXPERIMENTS = ("rolloff", "dark", "geometry", "spectral", "immersion", "linearity", "absolute", "field")
 LENSES = ("far", "close")
 
 
-def _bench_full() -> list[str]:
-    return [sys.executable, str(HERE / "bench_full.py")]
-
-
 def simulate_parts(work: Path, scale: str, seed: int) -> None:
-    """Each experiment into its own dataset folder, two processes at a time (the longest first)."""
+    """Each experiment into its own dataset folder (``bench_full.simulate``), two processes at a time, the
+    longest first."""
+    from bench_full import simulate
+
     parts = work / "parts"
     parts.mkdir(parents=True, exist_ok=True)
 
     def one(experiment: str) -> str:
-        out = parts / experiment
-        if out.exists():
-            return f"{experiment}: reused"
-        t0 = time.perf_counter()
-        proc = subprocess.run(_bench_full() + ["--simulate", str(out), experiment, scale, str(seed)],
-                              capture_output=True, text=True)
-        if proc.returncode != 0:
-            sys.exit(f"simulating {experiment} failed:\n{proc.stderr[-3000:]}")
-        return f"{experiment}: simulated in {time.perf_counter() - t0:.0f} s"
+        took = simulate(parts / experiment, experiment, scale, seed)
+        return f"{experiment}: reused" if took is None else f"{experiment}: simulated in {took:.0f} s"
 
     with ThreadPoolExecutor(max_workers=2) as pool:
         for line in pool.map(one, EXPERIMENTS):
@@ -120,20 +113,14 @@ def job_benchmarks(run: Path) -> dict[tuple[str, str], dict]:
 
 
 def floors(dataset: Path, stages) -> dict[tuple[str, str], dict]:
-    """The decode floor of each (experiment, lens) job, the two lenses side by side."""
-    import json
+    """The decode floor of each (experiment, lens) job (``bench_full.decode_floor``), the two lenses side by side."""
+    from bench_full import _result, decode_floor
 
     out = {}
     for experiment, lenses in stages:
-        procs = {lens: subprocess.Popen(_bench_full() + ["--floor", str(dataset), experiment, lens],
-                                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                        env={**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"})
-                 for lens in lenses}
+        procs = {lens: decode_floor(dataset, experiment, lens) for lens in lenses}
         for lens, proc in procs.items():
-            stdout, stderr = proc.communicate()
-            if proc.returncode != 0:
-                sys.exit(f"the decode floor of {experiment}/{lens} failed:\n{stderr[-2000:]}")
-            out[(experiment, lens)] = json.loads(stdout.strip().splitlines()[-1])
+            out[(experiment, lens)] = _result(proc)
     return out
 
 
@@ -145,7 +132,6 @@ def main() -> None:
                     help="every K-th rotation angle of the roll-off experiment (its dark frames all)")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args()
-    sys.path.insert(0, str(HERE))
     from bench_full import frames_and_mb, scale_spec, stage_lenses
 
     work = Path(args.work)
