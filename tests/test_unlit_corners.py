@@ -68,3 +68,25 @@ def test_lit_stage_records_its_frames_corners_from_one_decode(stage, calibrated,
     assert noise["G"] == pytest.approx(noise["R"] / np.sqrt(2.0), rel=0.05)
     z = (table["corner_dn"] - table["dark_corner_dn"]) / table["sigma_corner_dn"]
     assert abs(float(z.mean())) < 5.0 / np.sqrt(len(z)), float(z.mean())
+
+
+def test_corner_pattern_from_the_dark_artefacts_average_only_at_its_corner_fraction():
+    """The dark stage stores the offset map averaged over the unlit corners with the corner fraction it used
+    (``fpn_corner_mean_dn``); a lit stage takes that value only when its own corners come from the same
+    fraction, and otherwise averages the map over its own corners. A synthetic dark model whose stored value
+    (5 DN) differs from the map's corner mean (the map is 2 DN in the corners, 0 elsewhere) tells which was read."""
+    import xarray as xr
+
+    from pipeline.radiometry.unlit_corners import corner_pattern_dn, corner_pixels
+
+    shape = (40, 40)
+    corners = corner_pixels(shape, "fisheye", 1.0)
+    fpn = np.where(corners, 2.0, 0.0).astype(np.float32)
+    dark = xr.Dataset({"fpn_map_dn": (("band", "y", "x"), np.stack([fpn] * 3)),
+                       "fpn_corner_mean_dn": ("band", [5.0, 5.0, np.nan], {"corner_min_radius_fraction": 1.0})},
+                      coords={"band": ["R", "G", "B"]})
+    assert corner_pattern_dn(dark, "G", corners, 1.0) == 5.0
+    assert corner_pattern_dn(dark, "G", corners, 1.1) == 2.0     # another fraction: the map over these corners
+    assert corner_pattern_dn(dark, "G", corners) == 2.0          # fraction not given: the map
+    assert corner_pattern_dn(dark, "B", corners, 1.0) == 2.0     # nothing stored for the band: the map
+    assert corner_pattern_dn(dark.drop_vars("fpn_corner_mean_dn"), "R", corners, 1.0) == 2.0

@@ -95,7 +95,9 @@ from pipeline.errors import ArtefactError
 #: the frame (the corners' deviations from their setting mean sum to zero over its frames).
 #: closure 6: ``source_experiment``, the experiment whose frames each row measures (a dark-corner row's lit
 #: experiment, which ``experiment``, ``closure`` on those rows, cannot hold).
-ARTEFACT_VERSIONS = {"dark": 4, "linearity": 7, "geometry": 5, "rolloff": 6, "spectral": 3,
+#: dark 5: ``fpn_corner_mean_dn``, the offset map averaged over the unlit corners (with the corner fraction it
+#: was made with), so that a lit stage's corner prediction does not decompress the whole map.
+ARTEFACT_VERSIONS = {"dark": 5, "linearity": 7, "geometry": 5, "rolloff": 6, "spectral": 3,
                      "absolute": 4, "immersion": 3, "calibration": 13, "field": 3, "closure": 6}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
@@ -147,11 +149,14 @@ def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict
     return path
 
 
-def read_artefact(path: str | Path, stage: str, *, load: bool = True) -> xr.Dataset:
+def read_artefact(path: str | Path, stage: str, *, load: bool = True, load_below_bytes: int = 0) -> xr.Dataset:
     """Open a stage's artefact, refusing an unknown stage or version.
 
     Loaded into memory (and the file closed) by default; with ``load=False``
-    the variables stay on disk until read and the caller closes the Dataset.
+    the variables stay on disk until read and the caller closes the Dataset,
+    except those of at most ``load_below_bytes`` bytes, read at once (the
+    model parameters and tables a stage reads again at every frame; a
+    variable left on disk is read and decompressed again at each access).
     """
     path = Path(path)
     if not path.exists():
@@ -168,11 +173,15 @@ def read_artefact(path: str | Path, stage: str, *, load: bool = True) -> xr.Data
         if version != ARTEFACT_VERSIONS[stage]:
             raise ArtefactError(path, f"{stage} artefact version {version} is not the supported version "
                                       f"{ARTEFACT_VERSIONS[stage]}; rerun the '{stage}' stage")
-        if load:
-            try:
+        try:
+            if load:
                 ds.load()
-            except (OSError, ValueError, RuntimeError) as exc:
-                raise ArtefactError(path, f"not a readable NetCDF artefact ({exc.__class__.__name__})") from None
+            else:
+                for var in ds.variables.values():
+                    if var.nbytes <= load_below_bytes:
+                        var.load()
+        except (OSError, ValueError, RuntimeError) as exc:
+            raise ArtefactError(path, f"not a readable NetCDF artefact ({exc.__class__.__name__})") from None
     except BaseException:
         ds.close()
         raise

@@ -105,7 +105,8 @@ class RunningPearson:
 
 def radius_map(shape: tuple[int, int], centre_xy: tuple[float, float]) -> np.ndarray:
     """Distance (pixels) of every pixel centre from ``centre_xy`` (x = column, y = row)."""
-    y, x = np.indices(shape, dtype=np.float64)
+    y = np.arange(shape[0], dtype=np.float64)[:, None]
+    x = np.arange(shape[1], dtype=np.float64)[None, :]
     return np.hypot(x - centre_xy[0], y - centre_xy[1])
 
 

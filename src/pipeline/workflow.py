@@ -201,6 +201,11 @@ def decode_ahead_frames(config: dict) -> int:
     return (config.get("performance") or defaults()["performance"])["decode_ahead_frames"]
 
 
+#: upstream variables up to this size are read when a stage opens the artefact (the model parameters and the
+#: tables, which a stage may read at every frame); larger ones, the per-pixel maps, stay on disk until read
+UPSTREAM_IN_MEMORY_BYTES = 4 * 2**20
+
+
 def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: dict[str, str | Path],
               upstream: dict[str, dict[str, str | Path]] | None = None,
               progress: bool = False, bundle: str | Path | None = None) -> dict[str, xr.Dataset]:
@@ -247,7 +252,8 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
                 # opened lazily, closed once this lens's artefact is written: a stage reads of its upstream
                 # only what it uses (at the full resolution the geometry artefact is 128 MB, of which the
                 # absolute and spectral stages read the theta map in air)
-                artefacts[name] = opened.enter_context(read_artefact(path, name, load=False))
+                artefacts[name] = opened.enter_context(read_artefact(path, name, load=False,
+                                                                     load_below_bytes=UPSTREAM_IN_MEMORY_BYTES))
                 inputs[_relative(path, results_root)] = sha256_file(path)
             if calibration is not None:
                 inputs[_relative(bundle, results_root)] = sha256_file(bundle)

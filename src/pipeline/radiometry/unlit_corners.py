@@ -65,9 +65,18 @@ def corner_mean_dn(band_image: np.ndarray, corners: np.ndarray, band: str, raw: 
     return np.nan, 0
 
 
-def corner_pattern_dn(dark: xr.Dataset, band: str, corners: np.ndarray) -> float:
+def corner_pattern_dn(dark: xr.Dataset, band: str, corners: np.ndarray, min_radius_fraction: float | None = None) -> float:
     """The dark model's fixed pattern where :func:`corner_mean_dn` measures: its offset map averaged over the
-    corner pixels, or the optically black pixels' offset in the dark frames, NaN without either."""
+    corner pixels, or the optically black pixels' offset in the dark frames, NaN without either.
+
+    With the ``min_radius_fraction`` that made ``corners``, the dark stage's own average over the same pixels
+    (``fpn_corner_mean_dn``, when it was made with that fraction) is read instead of the whole offset map
+    (decompressing the map of one band at the full resolution costs about 0.1 s)."""
+    stored = dark.get("fpn_corner_mean_dn")
+    if (corners.any() and min_radius_fraction is not None and stored is not None
+            and stored.attrs.get("corner_min_radius_fraction") == float(min_radius_fraction)
+            and np.isfinite(float(stored.sel(band=band)))):
+        return float(stored.sel(band=band))
     if corners.any():
         return float(dark["fpn_map_dn"].sel(band=band).values[corners].mean())
     if "optical_black_offset_dn" in dark:
@@ -108,19 +117,22 @@ def frame_time_s(raw: RawFrame) -> float:
 
 
 def frame_corner_records(lens: str, images: LensImages, raw: RawFrame, dark: xr.Dataset, corners: np.ndarray,
-                         temperature_c: float = np.nan) -> list[dict]:
+                         temperature_c: float = np.nan, pattern_dn: dict[str, float] | None = None) -> list[dict]:
     """One decoded frame's corner records, one per band (columns :data:`CORNER_COLUMNS`): the measured mean
     of the lens's unlit pixels ``corners`` (:func:`corner_pixels` of its projection), the dark model's
-    prediction there at the frame's ISO, exposure time and temperature, and the noise of the mean."""
+    prediction there at the frame's ISO, exposure time and temperature, and the noise of the mean.
+    ``pattern_dn``: :func:`corner_pattern_dn` of each band when the caller has it already."""
     iso, exposure_s = float(raw.iso), round(float(raw.exposure_s), 9)
     time_s = frame_time_s(raw)
     out = []
     for band in BANDS:
         corner_dn, sites = corner_mean_dn(images.bands[band], corners, band, raw)
+        pattern = None if pattern_dn is None else pattern_dn[band]
         out.append({"lens": lens, "band": band, "iso": iso, "exposure_s": exposure_s,
                     "temperature_c": float(temperature_c), "time_s": time_s,
                     "corner_dn": corner_dn, "n_corner_sites": sites,
-                    "dark_corner_dn": predicted_corner_dn(dark, band, iso, exposure_s, corners, temperature_c),
+                    "dark_corner_dn": predicted_corner_dn(dark, band, iso, exposure_s, corners, temperature_c,
+                                                          pattern_dn=pattern),
                     "sigma_corner_dn": corner_noise_dn(dark, band, iso, sites)})
     return out
 
@@ -137,7 +149,9 @@ class FrameCorners:
         self.projection = projection
         self.min_radius_fraction = float(min_radius_fraction)
         self.corners: dict[str, np.ndarray] = {}
-        self.records: list[dict] = []
+        self.pattern_dn: dict[str, dict[str, float]] = {}   # per lens and band, read once: the dark artefact's
+        self.records: list[dict] = []                        # offset map stays on disk (the upstream artefacts
+        #                                                      are opened lazily; 36 MB at the full resolution)
 
     @classmethod
     def of_upstream(cls, lens: str, upstream: dict, projection: Callable[[str], str], bias_config: dict):
@@ -152,7 +166,10 @@ class FrameCorners:
             return
         if lens not in self.corners:
             self.corners[lens] = corner_pixels(images.bands["G"].shape, self.projection(lens), self.min_radius_fraction)
-        for record in frame_corner_records(lens, images, raw, self.dark[lens], self.corners[lens], temperature_c):
+            self.pattern_dn[lens] = {band: corner_pattern_dn(self.dark[lens], band, self.corners[lens],
+                                                             self.min_radius_fraction) for band in BANDS}
+        for record in frame_corner_records(lens, images, raw, self.dark[lens], self.corners[lens], temperature_c,
+                                           self.pattern_dn[lens]):
             self.records.append({**record, **keys})
 
     def of_lens(self, lens: str) -> list[dict]:

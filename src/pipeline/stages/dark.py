@@ -393,6 +393,7 @@ def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, 
     shape = reduced["hot"][(lens, BANDS[0])].shape
     fpn = np.zeros((len(BANDS),) + shape, dtype=np.float32)
     hot = np.zeros((len(BANDS),) + shape, dtype=np.uint8)
+    fpn_corner = np.full(len(BANDS), np.nan)
     b0 = np.zeros((len(BANDS), 2))
     b1 = np.zeros((len(BANDS), 2))
     for bi, band in enumerate(BANDS):
@@ -409,6 +410,8 @@ def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, 
         used = ~cm & ~hot_map if pixels == "nonhot" else ~cm
         m0 = reduced["base"][(lens, band)].mean()
         fpn[bi] = (m0 - m0[used].mean()).astype(np.float32)
+        if cm.any():
+            fpn_corner[bi] = float(fpn[bi][cm].mean())
         hot[bi] = hot_map.astype(np.uint8)
         b0[bi] = params[f"{lens}/{band}:b0"]
         b1[bi] = params[f"{lens}/{band}:b1"]
@@ -455,6 +458,11 @@ def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, 
             "bias_drift_dn_high": ((), drift[2], {"long_name": "upper 95 % bound of bias_drift_dn", "units": "DN"}),
             "fpn_map_dn": (("band", "y", "x"), fpn,
                            {"long_name": "offset fixed pattern at the shortest exposure and lowest ISO, mean removed", "units": "DN"}),
+            "fpn_corner_mean_dn": ("band", fpn_corner,
+                                   {"long_name": "fpn_map_dn averaged over the unlit corner pixels (NaN without "
+                                                 "any), which every lit stage's black-level reference needs",
+                                    "units": "DN",
+                                    "corner_min_radius_fraction": float(config["bias"]["corner_min_radius_fraction"])}),
             "hot_pixel_mask": (("band", "y", "x"), hot, {"long_name": "hot pixel (1) flagged in the longest exposures", "units": "1"}),
             "hot_pixel_count": ("band", hot.reshape(len(BANDS), -1).sum(axis=1), {"long_name": "number of hot band pixels", "units": "1"}),
             "rms_z": ((), np.sqrt((fit.chi2 + ffit.chi2) / max(fit.dof + ffit.dof, 1)),

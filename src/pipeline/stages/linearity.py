@@ -49,8 +49,8 @@ from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
 from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso
 from pipeline.radiometry.response import linear_signal
 from pipeline.radiometry.saturation import saturated_settings, signal_fraction
-from pipeline.radiometry.unlit_corners import (corner_mean_dn, corner_noise_dn, corner_pixels, frame_time_s,
-                                               predicted_corner_dn)
+from pipeline.radiometry.unlit_corners import (corner_mean_dn, corner_noise_dn, corner_pattern_dn, corner_pixels,
+                                               frame_time_s, predicted_corner_dn)
 from pipeline.stages.flatfield import flatfield
 
 STAGE = "linearity"
@@ -282,13 +282,20 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
 
     # ----- dark correction of every frame value (dark model of the dark stage); the corners' prediction is
     # radiometry.unlit_corners' (the temperature term is added below, to the mask's and the corners' alike)
+    # the offset map's means over the mask and the corners, once per lens and band (the map stays on disk)
+    pattern = {}
+    for lens, band in fr[["lens", "band"]].drop_duplicates().itertuples(index=False):
+        fpn = dark[lens]["fpn_map_dn"].sel(band=band).values
+        pattern[lens, band] = (float(fpn[reduced["masks"][lens][band]].mean()),
+                               corner_pattern_dn(dark[lens], band, reduced["corners"][lens]))
+
     def dark_pred(row, what):
         d = dark[row["lens"]]
+        mask_dn, corner_dn = pattern[row["lens"], row["band"]]
         if what == "corner":
-            return predicted_corner_dn(d, row["band"], row["iso"], row["exposure_s"], reduced["corners"][row["lens"]])
-        level = dark_level_dn(d, row["band"], row["iso"], row["exposure_s"])
-        fpn = d["fpn_map_dn"].sel(band=row["band"]).values[reduced["masks"][row["lens"]][row["band"]]]
-        return level + float(fpn.mean())
+            return predicted_corner_dn(d, row["band"], row["iso"], row["exposure_s"], reduced["corners"][row["lens"]],
+                                       pattern_dn=corner_dn)
+        return dark_level_dn(d, row["band"], row["iso"], row["exposure_s"]) + mask_dn
 
     keys = fr[["lens", "band", "iso", "exposure_s"]].drop_duplicates()
     keys["dark_mask_dn"] = keys.apply(dark_pred, axis=1, what="mask")
