@@ -91,9 +91,12 @@ def test_bundle_pixel_factors_are_the_rolloff_polynomial_and_the_grid_cells(cali
                 assert ((flag & mm.FLAG_OUTSIDE_IMAGE_CIRCLE) != 0).tolist() == (~inside).tolist()
                 beyond = inside & (theta > float(g["calibrated_field_angle_deg"]))
                 assert ((flag & mm.FLAG_BEYOND_CALIBRATED_ANGLE) != 0).tolist() == beyond.tolist()
-                # the cell: zenith theta (close lens, at the zenith) or 180 - theta, azimuth phi or -phi
-                phi = g["phi_deg"].values.astype(float)
-                zen, azi = (theta, phi % 360) if lens == "close" else (180 - theta, -phi % 360)
+                # the cell: zenith theta (close lens, at the zenith) or 180 - theta, azimuth phi or -phi, in the
+                # maps' float32 (a direction within a float32 rounding of a cell edge falls on the side float32 puts it)
+                theta32, phi32 = g["theta_deg"].values, g["phi_deg"].values
+                assert theta32.dtype == phi32.dtype == np.float32
+                zen, azi = ((theta32, phi32 % 360) if lens == "close"
+                            else (np.float32(180) - theta32, -phi32 % np.float32(360)))
                 cell = np.minimum(zen.astype(int), n_z - 1) * n_a + np.minimum(azi.astype(int), n_a - 1)
                 # stored per block of rows: the cell less the block's first, the block's cell count off the grid,
                 # one more where off the grid but inside the circle (beyond the calibrated angle: the

@@ -22,10 +22,20 @@ from pipeline.simulate.sensor import draw_static_pattern, expose
 
 
 def lens_geometry(lens: str, medium: str, lens_px: int) -> LensGeometry:
-    """True viewing directions of the raw pixels of one lens region (default model at raw resolution)."""
+    """True viewing directions of the raw pixels of one lens region: each raw site through the optics of
+    its band (:func:`pipeline.simulate.geometry.true_raw_models`: the lens's lateral chromatic aberration,
+    a centre offset and magnification of R and B), the same optics the chessboards of the geometry
+    experiment are rendered through, so that every experiment sees one camera."""
+    from pipeline.simulate.geometry import true_raw_models
+
     shape = (lens_px, lens_px)
-    model = default_model(lens, medium, band_shape=shape)
-    theta, phi = theta_phi_maps(model, shape)
+    band_index = band_index_map(lens_px)
+    theta = np.empty(shape)
+    phi = np.empty(shape)
+    for b, model in enumerate(true_raw_models(lens, medium, lens_px)[band] for band in BANDS):
+        t, f = theta_phi_maps(model, shape)
+        sites = band_index == b
+        theta[sites], phi[sites] = t[sites], f[sites]
     theta = np.where(np.isfinite(theta), theta, 180.0)
     return LensGeometry(theta, phi, theta <= HALF_FOV_DEG[medium])
 

@@ -11,8 +11,6 @@ frames with the same settings are taken in each medium.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 
 from pipeline.bands import BANDS
@@ -106,21 +104,20 @@ def plan_rolloff(ctx: SimContext) -> ExperimentPlan:
     return ExperimentPlan(frames, truth=truth)
 
 
-#: offset (band pixels) of each band's CFA site from the band-pixel centre (RGGB: R at raw (0, 0), B at (1, 1))
-SITE_SHIFT_PX = {"R": 0.25, "G": 0.0, "B": -0.25}
-
-
 def true_band_models(lens: str, band_px: int) -> dict[tuple[str, str], FisheyeModel]:
     """The simulator's true optics at each band's CFA site: (medium, band) -> band-image model.
 
-    The R and B band pixels are single sites a quarter band pixel from the
-    band-pixel centre (the G pixel averages two sites around it), so their
-    true models are the default model shifted by that amount: what a per-band
-    geometry calibration finds.
+    Each band's raw-pixel optics (:func:`pipeline.simulate.geometry.true_raw_models`, with the lens's
+    lateral chromatic aberration), through which every experiment is rendered, seen from the band image:
+    the R and B band pixels are single sites a quarter band pixel from the band-pixel centre (the G pixel
+    averages two sites around it), :func:`pipeline.simulate.geometry.band_model`. What a per-band geometry
+    calibration finds.
     """
+    from pipeline.simulate.geometry import band_model, true_raw_models
+
     models = {}
     for medium in MEDIA:
-        base = default_model(lens, medium, (band_px, band_px))
+        raw = true_raw_models(lens, medium, 2 * band_px)
         for b in BANDS:
-            models[(medium, b)] = replace(base, xc=base.xc + SITE_SHIFT_PX[b], yc=base.yc + SITE_SHIFT_PX[b])
+            models[(medium, b)] = band_model(raw[b], b)
     return models
