@@ -16,6 +16,7 @@ from pipeline.bands import BANDS
 from pipeline.geometry.maps import theta_phi_maps
 from pipeline.radiometry.rolloff import evaluate_rolloff
 from pipeline.simulate.camera import Camera
+from pipeline.simulate.geometry import true_raw_models
 from pipeline.simulate.lens import HALF_FOV_DEG, default_model, default_rolloff
 from pipeline.simulate.plan import FrameSpec, LensGeometry
 from pipeline.simulate.sensor import draw_static_pattern, expose
@@ -26,8 +27,6 @@ def lens_geometry(lens: str, medium: str, lens_px: int) -> LensGeometry:
     its band (:func:`pipeline.simulate.geometry.true_raw_models`: the lens's lateral chromatic aberration,
     a centre offset and magnification of R and B), the same optics the chessboards of the geometry
     experiment are rendered through, so that every experiment sees one camera."""
-    from pipeline.simulate.geometry import true_raw_models
-
     shape = (lens_px, lens_px)
     band_index = band_index_map(lens_px)
     theta = np.empty(shape)

@@ -15,6 +15,7 @@ import numpy as np
 
 from pipeline.bands import BANDS
 from pipeline.geometry.scaramuzza import FisheyeModel
+from pipeline.simulate.geometry import band_model, true_raw_models
 from pipeline.simulate.immersion import true_immersion_factors
 from pipeline.simulate.lens import HALF_FOV_DEG, RAW_SIZE_PX, default_model, default_rolloff
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
@@ -113,8 +114,6 @@ def true_band_models(lens: str, band_px: int) -> dict[tuple[str, str], FisheyeMo
     averages two sites around it), :func:`pipeline.simulate.geometry.band_model`. What a per-band geometry
     calibration finds.
     """
-    from pipeline.simulate.geometry import band_model, true_raw_models
-
     models = {}
     for medium in MEDIA:
         raw = true_raw_models(lens, medium, 2 * band_px)
