@@ -661,7 +661,8 @@ class _PixelMapFile:
     as soon as its lens's chain is through it, beside the chains: no copy of
     any map (xarray's writer copied the bundle's geometry views, 215 MB at the
     full resolution, whose first touch in numpy's huge pages cost 1.3 to 1.8 s
-    of kernel time), and one frame's maps in memory, not every frame's. Every variable uncompressed and contiguous (compressing them,
+    of kernel time), and one frame's maps in memory, not every frame's. Every
+    variable uncompressed and contiguous (compressing them,
     zlib level 1, was most of apply's time at the full scale, 9 of 22 s, for
     a file half the size; --no-pixels when size matters), the fill mode off
     (each byte written once), the float maps with the ``_FillValue`` NaN that

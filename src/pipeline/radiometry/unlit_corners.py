@@ -149,9 +149,10 @@ class FrameCorners:
         self.projection = projection
         self.min_radius_fraction = float(min_radius_fraction)
         self.corners: dict[str, np.ndarray] = {}
-        self.pattern_dn: dict[str, dict[str, float]] = {}   # per lens and band, read once: the dark artefact's
-        self.records: list[dict] = []                        # offset map stays on disk (the upstream artefacts
-        #                                                      are opened lazily; 36 MB at the full resolution)
+        # per lens and band, :func:`corner_pattern_dn` once at the lens's first frame (the upstream artefacts
+        # are opened lazily: the dark artefact's offset map, 36 MB at the full resolution, stays on disk)
+        self.pattern_dn: dict[str, dict[str, float]] = {}
+        self.records: list[dict] = []
 
     @classmethod
     def of_upstream(cls, lens: str, upstream: dict, projection: Callable[[str], str], bias_config: dict):

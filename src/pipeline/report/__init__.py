@@ -82,44 +82,34 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
     given = {"dark": dark, "linearity": linearity, "geometry": geometry, "rolloff": rolloff, "spectral": spectral,
              "absolute": absolute, "immersion": immersion, "field": field}
     paths = {st: {lens: Path(p) for lens, p in dict(given[st] or {}).items()} for st in REPORT_STAGES}
+    # the artefacts and the calibration bundle opened lazily and closed once the page is rendered: a section
+    # reads only the variables it uses (and keeps those read), so the report does not hold a bundle's
+    # per-pixel maps it never draws (at the full resolution the bundle alone is 989 MB, and loading every
+    # artefact whole made the report's job the largest of the workflow, 2,344 MiB)
     with ExitStack() as opened:
-        return _write_report(out_html, paths, opened, missing_effects, unexplained, run_errors, error_history,
-                             residual_tests, closure, lens_tests, skipped, failed, calibration, dataset, settings,
-                             figures_dir)
+        def lazy(path, stage):
+            return opened.enter_context(read_artefact(path, stage, load=False))
 
-
-def _write_report(out_html, paths, opened, missing_effects, unexplained, run_errors, error_history, residual_tests,
-                  closure, lens_tests, skipped, failed, calibration, dataset, settings, figures_dir) -> Path:
-    """:func:`write_report` with the artefacts open in ``opened`` (an ExitStack that closes them).
-
-    The artefacts and the calibration bundle are opened lazily: a section reads only the variables it
-    uses (and keeps those read), so the report does not hold a bundle's per-pixel maps it never draws (at
-    the full resolution the bundle alone is 989 MB, and loading every artefact whole made the report's job
-    the largest of the workflow, 2,344 MiB).
-    """
-    def lazy(path, stage):
-        return opened.enter_context(read_artefact(path, stage, load=False))
-
-    inputs = ReportInputs(
-        artefacts={st: {lens: lazy(p, st) for lens, p in by_lens.items()} for st, by_lens in paths.items()},
-        paths=paths,
-        missing_effects=read_csv_or_empty(Path(missing_effects)),
-        unexplained=read_csv_or_empty(Path(unexplained)),
-        run_errors=read_csv_or_empty(Path(run_errors)),
-        error_history=read_csv_or_empty(Path(error_history)),
-        residual_tests=read_csv_or_empty(Path(residual_tests)) if residual_tests is not None else pd.DataFrame(),
-        closure=lazy(closure, "closure") if closure is not None and Path(closure).exists() else None,
-        lens_tests=read_csv_or_empty(Path(lens_tests)) if lens_tests is not None else pd.DataFrame(),
-        skipped={**dict(skipped or {}), **failed}, failed=failed,
-        calibration=lazy(calibration, "calibration") if calibration is not None else None,
-        dataset=dict(dataset or {}),
-        settings=dict(settings) if settings is not None else _default_settings())
-    rendered = build_sections(inputs)
-    figures = number_figures(rendered)
-    if figures_dir is not None:
-        write_figures(figures, Path(figures_dir))
-    doc = render_page("Camera calibration report", rendered,
-                      datetime.now(timezone.utc).isoformat(timespec="seconds"), len(figures))
+        inputs = ReportInputs(
+            artefacts={st: {lens: lazy(p, st) for lens, p in by_lens.items()} for st, by_lens in paths.items()},
+            paths=paths,
+            missing_effects=read_csv_or_empty(Path(missing_effects)),
+            unexplained=read_csv_or_empty(Path(unexplained)),
+            run_errors=read_csv_or_empty(Path(run_errors)),
+            error_history=read_csv_or_empty(Path(error_history)),
+            residual_tests=read_csv_or_empty(Path(residual_tests)) if residual_tests is not None else pd.DataFrame(),
+            closure=lazy(closure, "closure") if closure is not None and Path(closure).exists() else None,
+            lens_tests=read_csv_or_empty(Path(lens_tests)) if lens_tests is not None else pd.DataFrame(),
+            skipped={**dict(skipped or {}), **failed}, failed=failed,
+            calibration=lazy(calibration, "calibration") if calibration is not None else None,
+            dataset=dict(dataset or {}),
+            settings=dict(settings) if settings is not None else _default_settings())
+        rendered = build_sections(inputs)
+        figures = number_figures(rendered)
+        if figures_dir is not None:
+            write_figures(figures, Path(figures_dir))
+        doc = render_page("Camera calibration report", rendered,
+                          datetime.now(timezone.utc).isoformat(timespec="seconds"), len(figures))
     out_html.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_html.with_name(f".{out_html.name}.tmp")
     try:
