@@ -136,14 +136,14 @@ def test_mapped_maps_are_the_netcdf_values_and_a_compressed_bundle_gives_the_sam
     """The per-pixel maps apply memory-maps are the values NetCDF reads, for every map of the bundle; a bundle
     whose maps are compressed (not mappable) is read through NetCDF and gives the same output bit for bit,
     with the pixel maps and with the sphere grid only."""
-    from pipeline.calibration import mapped_maps
+    from pipeline.artefact import mapped_variables
 
     root, _, _, _, bundle_path, _ = calibrated
     with read_bundle(bundle_path, load=False) as ds:
         names = [n for n, v in ds.data_vars.items() if v.dims[-2:] == ("y", "x")]
         assert {"pixel_factor", "pixel_systematic_relative_variance", "pixel_flag", "sphere_cell_in_block",
                 "theta_deg", "phi_deg", "solid_angle_sr"} <= set(names)
-        mapped = mapped_maps(bundle_path, ds, names)
+        mapped = mapped_variables(bundle_path, ds, names)
         assert sorted(mapped) == sorted(names)
         for name in names:
             assert not mapped[name].flags.writeable, name
@@ -153,7 +153,7 @@ def test_mapped_maps_are_the_netcdf_values_and_a_compressed_bundle_gives_the_sam
         packed.to_netcdf(tmp_path / "zlib.nc", engine="netcdf4",
                          encoding={n: {"zlib": True, "complevel": 1, "contiguous": False} for n in names})
     with read_bundle(tmp_path / "zlib.nc", load=False) as ds:
-        assert mapped_maps(tmp_path / "zlib.nc", ds, names) == {}
+        assert mapped_variables(tmp_path / "zlib.nc", ds, names) == {}
     frame = _signal_frame(root, "far")
     for pixels in (True, False):
         got = [xr.open_dataset(apply_calibration(b, [frame], "air", tmp_path / f"{k}-{pixels}.nc", pixels=pixels))
@@ -163,6 +163,39 @@ def test_mapped_maps_are_the_netcdf_values_and_a_compressed_bundle_gives_the_sam
             for name in a.data_vars:
                 np.testing.assert_array_equal(a[name].values, b[name].values, err_msg=f"{name} pixels={pixels}")
 
+
+def test_bundle_opened_mapped_is_the_bundle_of_its_lens_without_copying_the_maps(calibrated, tmp_path):
+    """What the field stage gets (``read_artefact_mapped``): of each lens asked for, every variable equal to
+    the bundle read whole; the per-pixel maps read-only views of the file's pages (no copy), also after the
+    file is closed; a bundle whose maps are compressed is read instead, with the same values."""
+    from pipeline.artefact import read_artefact_mapped
+
+    _, _, _, _, bundle_path, _ = calibrated
+    whole = read_bundle(bundle_path)
+    packed = tmp_path / "zlib.nc"
+    maps = [n for n, v in whole.data_vars.items() if v.dims[-2:] == ("y", "x")]
+    whole.to_netcdf(packed, engine="netcdf4", encoding={n: {"zlib": True, "complevel": 1} for n in maps})
+    for lens in LENSES:
+        for path, views in ((bundle_path, True), (packed, False)):
+            got = read_artefact_mapped(path, "calibration", lenses=[lens])
+            want = whole.sel(lens=[lens])
+            assert list(got["lens"].values) == [lens]
+            assert set(got.variables) == set(want.variables)
+            for name in want.variables:
+                np.testing.assert_array_equal(got[name].values, want[name].values, err_msg=f"{name} {path.name}")
+            for name in maps:
+                data = got[name].variable._data
+                assert isinstance(data, np.ndarray), name
+                assert _backed_by_file(data) is views, f"{name} {path.name}"
+                assert (not data.flags.writeable) is views, name        # a mapped page is read-only
+
+
+def _backed_by_file(a: np.ndarray) -> bool:
+    while a is not None:
+        if isinstance(a, np.memmap):
+            return True
+        a = a.base
+    return False
 
 def test_absolute_frame_recovers_the_port_radiance(calibrated, applied):
     _, truth, _, _, _, _ = calibrated

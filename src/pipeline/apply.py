@@ -49,9 +49,9 @@ import numpy as np
 import xarray as xr
 from scipy import sparse
 
-from pipeline.artefact import model_effects
+from pipeline.artefact import mapped_variables, model_effects
 from pipeline.bands import BANDS, band_plane, band_saturation, cut_region
-from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects, mapped_maps,
+from pipeline.calibration import (STATIC_OFF_GRID, band_parameters, calibrated_isos, factor_effects,
                                   outside_image_circle, read_bundle, sphere_blocks, sphere_counts)
 from pipeline.config import defaults
 from pipeline.errors import ImpossibleResult, InputError
@@ -781,7 +781,7 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         at = {"medium": list(on_disk["medium"].values).index(medium)}
         # the per-pixel maps memory-mapped where stored contiguous (the chain touches the page cache's pages;
         # no copy into fresh memory), the others read through NetCDF
-        mapped = mapped_maps(bundle_path, on_disk, [n for n in names if on_disk[n].dims[-2:] == ("y", "x")
+        mapped = mapped_variables(bundle_path, on_disk, [n for n in names if on_disk[n].dims[-2:] == ("y", "x")
                                                     or n == "sphere_cell_count"])
         maps = {}
         for name in names:

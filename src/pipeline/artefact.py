@@ -16,6 +16,7 @@ import os
 from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
 import xarray as xr
 
 from pipeline import __version__
@@ -194,6 +195,74 @@ def read_artefact(path: str | Path, stage: str, *, load: bool = True, load_below
         raise
     if load:
         ds.close()
+    return ds
+
+
+def mapped_variables(path: str | Path, ds: xr.Dataset, names) -> dict[str, np.ndarray]:
+    """An artefact's variables ``names`` memory-mapped from its file, read-only, in their dims on disk.
+
+    A variable is mapped only where its bytes on disk are its values: stored contiguous and
+    uncompressed (the calibration bundle writes its per-pixel maps so), allocated, and decoded by
+    xarray as stored (no scale or offset; no fill value, or NaN for a float variable, so that masking
+    changes nothing); the others are left out (the caller reads them through NetCDF). ``ds`` is the
+    file opened lazily (:func:`read_artefact` with ``load=False``), for the decoding. Mapping instead
+    of reading saves copying the maps into fresh memory: ``apply`` then touches the page cache's pages
+    where its chain uses them (179 MB of the full-resolution bundle with ``--no-pixels``).
+    """
+    try:
+        import h5py
+    except ImportError:  # an install without it reads the maps through NetCDF
+        return {}
+    out = {}
+    try:
+        with h5py.File(path, "r") as f:
+            if f.userblock_size:
+                return {}
+            for name in names:
+                var = ds[name].variable
+                d = f.get(name)
+                if d is None or not isinstance(d, h5py.Dataset) or d.chunks is not None or d.compression is not None \
+                        or d.id.get_create_plist().get_nfilters() or d.dtype != var.dtype or d.shape != var.shape \
+                        or d.dtype.kind not in "fiu":
+                    continue
+                enc = var.encoding
+                if any(k in enc or k in var.attrs for k in ("scale_factor", "add_offset")):
+                    continue
+                fills = [enc.get(k, var.attrs.get(k)) for k in ("_FillValue", "missing_value")]
+                if any(v is not None and not (d.dtype.kind == "f" and np.all(np.isnan(v))) for v in fills):
+                    continue
+                offset = d.id.get_offset()
+                if offset is None or d.size == 0:
+                    continue
+                out[name] = np.memmap(path, dtype=d.dtype, mode="r", offset=offset, shape=d.shape).view(np.ndarray)
+    except OSError:
+        return {}
+    return out
+
+
+def read_artefact_mapped(path: str | Path, stage: str, *, lenses=None) -> xr.Dataset:
+    """An artefact in memory with its file closed, its maps (variables over ``y`` and ``x``) memory-mapped
+    where :func:`mapped_variables` can (their pages read when touched), every other variable read.
+
+    ``lenses`` (default all) keeps those lenses, as a slice of the lens axis when they are adjacent in it
+    (a view of the mapped maps; otherwise the maps are copied). The field stage reads of the calibration
+    bundle's two lenses and media its lens's maps in air, a crop of them at every frame and the whole of
+    them once: reading its lens whole (0.5 GB at the full resolution) cost it more than the crops.
+    """
+    with read_artefact(path, stage, load=False) as on_disk:
+        names = [n for n, v in on_disk.data_vars.items() if v.dims[-2:] == ("y", "x")]
+        mapped = mapped_variables(path, on_disk, names)
+        ds = on_disk.assign({name: xr.Variable(on_disk[name].dims, array, on_disk[name].attrs)
+                             for name, array in mapped.items()})
+        if lenses is not None:
+            present = list(on_disk["lens"].values)
+            at = [present.index(lens) for lens in lenses if lens in present]
+            adjacent = bool(at) and at == list(range(at[0], at[0] + len(at)))
+            ds = ds.isel(lens=slice(at[0], at[0] + len(at)) if adjacent else at)
+        try:
+            ds = ds.load()
+        except (OSError, ValueError, RuntimeError) as exc:
+            raise ArtefactError(path, f"not a readable NetCDF artefact ({exc.__class__.__name__})") from None
     return ds
 
 

@@ -64,7 +64,7 @@ from pipeline.radiometry import measurement as mm
 __all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "STATIC_OFF_GRID", "FACTOR_EFFECTS", "factor_effects",
            "sphere_blocks", "sphere_counts", "build_bundle", "read_bundle", "band_parameters",
            "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script",
-           "mapped_maps"]
+           ]
 
 #: stages a bundle is gathered from (in the order of the calibration chain) and those it cannot lack
 BUNDLE_STAGES, REQUIRED_STAGES = BUNDLE_STAGES, BUNDLE_REQUIRED_STAGES
@@ -588,48 +588,6 @@ def read_bundle(path: str | Path, *, load: bool = True) -> xr.Dataset:
     selected; the caller closes the Dataset).
     """
     return read_artefact(path, "calibration", load=load)
-
-
-def mapped_maps(path: str | Path, bundle: xr.Dataset, names) -> dict[str, np.ndarray]:
-    """The bundle's per-pixel maps ``names`` memory-mapped from the file, read-only, in their dims on disk.
-
-    A map is mapped only where its bytes on disk are its values: stored contiguous and uncompressed
-    (:func:`build_bundle` writes them so), allocated, and decoded by xarray as stored (no scale or
-    offset; no fill value, or NaN for a float map, so that masking changes nothing); the others are
-    left out (the caller reads them through NetCDF). ``bundle`` is the file opened lazily
-    (:func:`read_bundle` with ``load=False``), for the decoding. Mapping instead of reading saves
-    copying the maps into fresh memory: ``apply`` then touches the page cache's pages where its
-    chain uses them (179 MB of the full-resolution bundle with ``--no-pixels``).
-    """
-    try:
-        import h5py
-    except ImportError:  # an install without it reads the maps through NetCDF
-        return {}
-    out = {}
-    try:
-        with h5py.File(path, "r") as f:
-            if f.userblock_size:
-                return {}
-            for name in names:
-                var = bundle[name].variable
-                d = f.get(name)
-                if d is None or not isinstance(d, h5py.Dataset) or d.chunks is not None or d.compression is not None \
-                        or d.id.get_create_plist().get_nfilters() or d.dtype != var.dtype or d.shape != var.shape \
-                        or d.dtype.kind not in "fiu":
-                    continue
-                enc = var.encoding
-                if any(k in enc or k in var.attrs for k in ("scale_factor", "add_offset")):
-                    continue
-                fills = [enc.get(k, var.attrs.get(k)) for k in ("_FillValue", "missing_value")]
-                if any(v is not None and not (d.dtype.kind == "f" and np.all(np.isnan(v))) for v in fills):
-                    continue
-                offset = d.id.get_offset()
-                if offset is None or d.size == 0:
-                    continue
-                out[name] = np.memmap(path, dtype=d.dtype, mode="r", offset=offset, shape=d.shape).view(np.ndarray)
-    except OSError:
-        return {}
-    return out
 
 
 def build_bundle_script(smk) -> None:

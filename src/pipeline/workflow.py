@@ -27,6 +27,7 @@ import json
 import logging
 import os
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,7 +36,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.artefact import BUNDLE_REQUIRED_STAGES, read_artefact, sha256_file, write_artefact
+from pipeline.artefact import BUNDLE_REQUIRED_STAGES, read_artefact, read_artefact_mapped, sha256_file, write_artefact
 from pipeline.config import defaults, stage_params, validate_config
 from pipeline.dataset import Dataset, open_dataset
 from pipeline.effects import available, load_plugins
@@ -232,41 +233,44 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
     if spec.bundle:
         if bundle is None:
             raise InputError(None, f"{stage} stage needs the calibration bundle; run the 'calibration' rule first")
-        # only the lenses of this call (the field: the one at the zenith): the per-pixel maps of the other lens
-        # are half the bundle (about 0.5 GB at the full scale) and the stage never reads them
-        with read_artefact(bundle, "calibration", load=False) as on_disk:
-            calibration = on_disk.sel(lens=[lens for lens in outputs if lens in on_disk["lens"].values]).load()
+        # only the lenses of this call (the field: the one at the zenith), their per-pixel maps memory-mapped:
+        # the stage reads a crop of one medium's maps at each frame (the bundle is about 1 GB at the full scale)
+        calibration = read_artefact_mapped(bundle, "calibration", lenses=list(outputs))
     out = {}
-    for lens, out_path in outputs.items():
-        out_path = Path(out_path)
-        results_root = out_path.parent.parent
-        artefacts, inputs = {}, dict(fixed)
-        with ExitStack() as opened:
-            for name in spec.upstream + spec.optional_upstream:
-                path = upstream.get(name, {}).get(lens)
-                if path is None:
-                    if name in spec.upstream:
-                        raise InputError(None, f"{stage} stage of lens '{lens}' needs the {name} artefact; "
-                                               f"run the '{name}' stage first")
-                    continue
-                # opened lazily, closed once this lens's artefact is written: a stage reads of its upstream
-                # only what it uses (at the full resolution the geometry artefact is 128 MB, of which the
-                # absolute and spectral stages read the theta map in air)
-                artefacts[name] = opened.enter_context(read_artefact(path, name, load=False,
-                                                                     load_below_bytes=UPSTREAM_IN_MEMORY_BYTES))
-                inputs[_relative(path, results_root)] = sha256_file(path)
-            if calibration is not None:
-                inputs[_relative(bundle, results_root)] = sha256_file(bundle)
-            ctx = StageContext(stage=stage, lens=lens, dataset=lens_view(ds, lens), config=config,
-                               effects=effects, upstream=artefacts, progress=progress, bundle=calibration)
-            with decode_ahead(decode_ahead_frames(config)):
-                art = module.compute(ctx)
-            inputs.update(ctx.inputs)
-            write_artefact(art, out_path, stage=stage, inputs=inputs, config_subset=stage_params(config, stage),
-                           effects=effects)
-            art = art.load()
-        log.info("%s %s: wrote %s (%d inputs hashed)", stage, lens, out_path, len(inputs))
-        out[lens] = art
+    # the upstream artefacts' hashes (the bundle's 1 GB about 1 s at the full scale) taken in a thread beside
+    # the stage's work, which leaves a core to it while it waits for the next frame's decode
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="hash") as hashing:
+        bundle_hash = hashing.submit(sha256_file, bundle) if calibration is not None else None
+        for lens, out_path in outputs.items():
+            out_path = Path(out_path)
+            results_root = out_path.parent.parent
+            artefacts, hashes = {}, {}
+            with ExitStack() as opened:
+                for name in spec.upstream + spec.optional_upstream:
+                    path = upstream.get(name, {}).get(lens)
+                    if path is None:
+                        if name in spec.upstream:
+                            raise InputError(None, f"{stage} stage of lens '{lens}' needs the {name} artefact; "
+                                                   f"run the '{name}' stage first")
+                        continue
+                    # opened lazily, closed once this lens's artefact is written: a stage reads of its upstream
+                    # only what it uses (at the full resolution the geometry artefact is 128 MB, of which the
+                    # absolute and spectral stages read the theta map in air)
+                    artefacts[name] = opened.enter_context(read_artefact(path, name, load=False,
+                                                                         load_below_bytes=UPSTREAM_IN_MEMORY_BYTES))
+                    hashes[_relative(path, results_root)] = hashing.submit(sha256_file, path)
+                if bundle_hash is not None:
+                    hashes[_relative(bundle, results_root)] = bundle_hash
+                ctx = StageContext(stage=stage, lens=lens, dataset=lens_view(ds, lens), config=config,
+                                   effects=effects, upstream=artefacts, progress=progress, bundle=calibration)
+                with decode_ahead(decode_ahead_frames(config)):
+                    art = module.compute(ctx)
+                inputs = dict(fixed) | {name: h.result() for name, h in hashes.items()} | ctx.inputs
+                write_artefact(art, out_path, stage=stage, inputs=inputs, config_subset=stage_params(config, stage),
+                               effects=effects)
+                art = art.load()
+                log.info("%s %s: wrote %s (%d inputs hashed)", stage, lens, out_path, len(inputs))
+            out[lens] = art
     return out
 
 
