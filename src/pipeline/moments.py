@@ -50,7 +50,8 @@ class RunningPearson:
     float64 maps): x is one scalar per sample, so each pixel's count and sums of
     x and x^2 follow exactly from the list of x and, per sample, the pixels it
     left out (one bit per pixel, kept only for samples that left any out),
-    added up in the same order as the y sums when ``r`` is asked for.
+    added up in the same order as the y sums when ``r`` is asked for; when no
+    sample left a pixel out they are three numbers, not maps.
     """
 
     def __init__(self):
@@ -58,24 +59,43 @@ class RunningPearson:
         self.left_out: list[np.ndarray | None] = []    # per sample: packed bits of the invalid pixels, or None
         self.shape = None
         self.sy = self.syy = self.sxy = None
+        self._scratch = None                           # one float64 map reused by every sample
 
     def add(self, x: float, y: np.ndarray, valid: np.ndarray | None = None) -> None:
-        y = np.asarray(y, dtype=np.float64)
+        y = np.asarray(y)
         if self.sy is None:
             self.shape = y.shape
-            self.sy, self.syy, self.sxy = (np.zeros_like(y) for _ in range(3))
+            self.sy, self.syy, self.sxy = (np.zeros(y.shape) for _ in range(3))
+            self._scratch = np.empty(y.shape)
+        t = self._scratch
+        x = float(x)
         if valid is None or valid.all():
-            yw, packed = y, None
+            packed = None
+            np.copyto(t, y)                            # y in float64, cast as it is copied
+            self.sy += t
+            self.sxy += np.multiply(y, x, dtype=np.float64)
+            np.multiply(t, t, out=t)
+            self.syy += t
         else:
-            yw, packed = y * valid, np.packbits(~valid, axis=None)
-        self.xs.append(float(x))
+            packed = np.packbits(~valid, axis=None)
+            np.multiply(y, valid, out=t, dtype=np.float64)    # y where valid, else 0
+            self.sy += t
+            self.sxy += np.multiply(t, x)
+            np.multiply(t, y, out=t, dtype=np.float64)
+            self.syy += t
+        self.xs.append(x)
         self.left_out.append(packed)
-        self.sy += yw
-        self.syy += yw * y
-        self.sxy += yw * x
 
-    def _x_sums(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per pixel: count, sum of x and sum of x^2 over the samples it was valid in."""
+    def _x_sums(self):
+        """Per pixel: count, sum of x and sum of x^2 over the samples it was valid in (numbers when every
+        pixel was valid in every sample)."""
+        if all(packed is None for packed in self.left_out):
+            n = sx = sxx = 0.0
+            for x in self.xs:
+                n += 1.0
+                sx += x
+                sxx += x * x
+            return n, sx, sxx
         n, sx, sxx = (np.zeros(self.shape) for _ in range(3))
         size = int(np.prod(self.shape))
         for x, packed in zip(self.xs, self.left_out):
@@ -83,23 +103,31 @@ class RunningPearson:
                 n += 1.0
                 sx += x
                 sxx += x * x
-            else:
-                w = (np.unpackbits(packed, count=size) == 0).reshape(self.shape).astype(np.float64)
-                n += w
-                sx += w * x
-                sxx += w * x * x
+            else:   # added where the sample was valid, in the same order as the y sums
+                keep = (np.unpackbits(packed, count=size) == 0).reshape(self.shape)
+                np.add(n, 1.0, out=n, where=keep)
+                np.add(sx, x, out=sx, where=keep)
+                np.add(sxx, x * x, out=sxx, where=keep)
         return n, sx, sxx
 
-    def r(self) -> np.ndarray:
+    def r(self, dtype=np.float64) -> np.ndarray:
+        """The per-pixel r (NaN where a pixel has fewer than 3 valid samples or no spread), in ``dtype``."""
         count, sx, sxx = self._x_sums()
         n = np.maximum(count, 1)
         cxx = sxx - sx**2 / n
-        cyy = self.syy - self.sy**2 / n
-        cxy = self.sxy - sx * self.sy / n
-        denom = np.sqrt(np.maximum(cxx * cyy, 0.0))
+        t = np.square(self.sy)                         # the y terms in place, one map at a time
+        t /= n
+        cyy = np.subtract(self.syy, t, out=t)
+        cxy = np.multiply(sx, self.sy)
+        cxy /= n
+        np.subtract(self.sxy, cxy, out=cxy)
+        denom = np.multiply(cxx, cyy, out=cyy)
+        np.maximum(denom, 0.0, out=denom)
+        np.sqrt(denom, out=denom)
+        r = np.full(self.shape, np.nan, dtype=dtype)
         with np.errstate(invalid="ignore", divide="ignore"):
-            r = np.where(denom > 0, cxy / denom, np.nan)
-        r[count < 3] = np.nan
+            np.divide(cxy, denom, out=r, where=denom > 0, casting="same_kind")
+        r[np.broadcast_to(count < 3, self.shape)] = np.nan
         return r
 
 

@@ -545,7 +545,7 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
     for si, sweep in enumerate(sweeps):
         for bi, band in enumerate(BANDS):
             if (lens, band, sweep) in reduced["pearson"]:
-                rmap[si, bi] = reduced["pearson"][(lens, band, sweep)].r()
+                rmap[si, bi] = reduced["pearson"][(lens, band, sweep)].r(rmap.dtype)
             sel = st_l[(st_l["band"] == band) & (st_l["sweep"] == sweep) & st_l["used"]]
             if len(sel) >= 3:
                 x = sel["exposure_s"] * 1e3 if sweep == "exposure" else sel["gain"]
