@@ -132,7 +132,8 @@ def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict
 
     Variables larger than 1024 values are stored zlib-compressed (level
     :data:`ARTEFACT_COMPRESSION_LEVEL`) unless ``encoding`` names them
-    (netCDF4 encodings by variable).
+    (netCDF4 encodings by variable) or their own encoding says ``zlib: False``
+    (a stage's map that compresses too little to pay for it).
     """
     path = Path(path)
     ds = ds.copy()
@@ -150,7 +151,7 @@ def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
     default = {name: {"zlib": True, "complevel": ARTEFACT_COMPRESSION_LEVEL} for name, var in ds.data_vars.items()
-               if var.dtype.kind in "fiub" and var.size > 1024}
+               if var.dtype.kind in "fiub" and var.size > 1024 and var.encoding.get("zlib", True) is not False}
     encoding = {**default, **(encoding or {})}
     ds.to_netcdf(tmp, engine="netcdf4", encoding=encoding)
     os.replace(tmp, path)

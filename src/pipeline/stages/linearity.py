@@ -649,6 +649,9 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
         ds["flat_field_sigma"] = (("band", "y", "x"), flat_sigma,
                                   {"long_name": "standard uncertainty of flat_field (noise of the sweep frames and "
                                                 "of the dark offset map)", "units": "1"})
+    # stored uncompressed: noisy values near 1 deflate to 0.6 of their size only, which cost 0.9 s of a
+    # full-resolution job's write (its 72 MB in 0.44 s against 1.33 s for the artefact, 71 MB against 44 MB)
+    ds["pearson_r"].encoding["zlib"] = False
     return ds
 
 
