@@ -33,6 +33,8 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 from scipy.optimize import least_squares
 
+from pipeline.moments import radius_map
+
 from .scaramuzza import FisheyeModel
 
 #: Short side (pixels) of the image the coarse Hough search runs on.
@@ -158,8 +160,7 @@ def outside_lit_fraction(image, circle: ImageCircle, dark_level_dn: float, *, ri
     than ``min_snr`` times the pixel noise outside (robust: 1.4826 MAD), i.e. not at all.
     """
     img = np.asarray(image, dtype=float)
-    y, x = np.indices(img.shape, dtype=float)
-    r = np.hypot(x - circle.xc, y - circle.yc)
+    r = radius_map(img.shape, (circle.xc, circle.yc))
     outside = img[r > (1 + rim_margin) * circle.radius]
     inside = img[r < (1 - rim_margin) * circle.radius]
     if outside.size == 0 or inside.size == 0:

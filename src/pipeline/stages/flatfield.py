@@ -88,6 +88,9 @@ def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float, beta: floa
             projection = reduced.get("projection", {}).get(lens, "fisheye")
             X = _smooth_design(y.astype(float), x.astype(float),
                                rectilinear_degree if projection == "rectilinear" else None)
+            # the least-squares solution of every setting from one pseudo-inverse (the same pixels each time;
+            # singular values below the size times the machine epsilon dropped, as lstsq's default)
+            X_pinv = np.linalg.pinv(X)
             fpn = d["fpn_map_dn"].sel(band=band).values[y, x]
             read = float(d["read_noise_dn"].sel(band=band).sel(iso=iso, method="nearest"))
             n_dark = int(d["obs_setting__n_frames"].values.min()) if "obs_setting__n_frames" in d else 1
@@ -105,8 +108,7 @@ def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float, beta: floa
                                             beta, full_scale_dn)
                 common = max(float(offset_var_dn2.get((lens, band, key), 0.0)), 0.0)
                 var_t = np.maximum(mom.variance()[keep] - common, 0.0) * slope**2
-                coef, *_ = np.linalg.lstsq(X, mean, rcond=None)
-                smooth = X @ coef
+                smooth = X @ (X_pinv @ mean)
                 resid = mean - smooth
                 signal = smooth
                 level = float(np.mean(signal))
