@@ -782,7 +782,7 @@ def _apply_frames(pool, decoding, bundle_path, raw_paths, medium, out_path, grid
         # the per-pixel maps memory-mapped where stored contiguous (the chain touches the page cache's pages;
         # no copy into fresh memory), the others read through NetCDF
         mapped = mapped_variables(bundle_path, on_disk, [n for n in names if on_disk[n].dims[-2:] == ("y", "x")
-                                                    or n == "sphere_cell_count"])
+                                                         or n == "sphere_cell_count"])
         maps = {}
         for name in names:
             var = on_disk[name].variable

@@ -63,8 +63,7 @@ from pipeline.radiometry import measurement as mm
 
 __all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "STATIC_OFF_GRID", "FACTOR_EFFECTS", "factor_effects",
            "sphere_blocks", "sphere_counts", "build_bundle", "read_bundle", "band_parameters",
-           "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script",
-           ]
+           "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script"]
 
 #: stages a bundle is gathered from (in the order of the calibration chain) and those it cannot lack
 BUNDLE_STAGES, REQUIRED_STAGES = BUNDLE_STAGES, BUNDLE_REQUIRED_STAGES
