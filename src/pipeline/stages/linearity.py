@@ -145,7 +145,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
     frames = frames[frames["kind"] == "signal"]
     corner_fraction = config["bias"]["corner_min_radius_fraction"]
     use_hot = "hot_pixels" in effects
-    masks, corners, ptc = {}, {}, {}
+    masks, corners, ptc, taken = {}, {}, {}, {}
     moments = defaultdict(RunningMoments)     # (lens, band, sweep, setting) -> moments of mask pixels
     pearson = defaultdict(RunningPearson)     # (lens, band, sweep) -> per-pixel r
     first_of_setting = set()
@@ -184,15 +184,18 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     masks[lens][band] = m
                     # the mask's pixels within the photon-transfer region, to split its moments
                     ptc[lens][band] = (p, m[p])
+                    # the same pixels as flat indices, taken from each band image (the same values in the same
+                    # order as the boolean masks, without scanning the whole mask at every frame)
+                    taken[lens, band] = (np.flatnonzero(m), np.flatnonzero(p))
                 corners[lens] = corner_pixels(g.shape, projection[lens], corner_fraction)
             max_raw = max(max_raw, float(dec.raw.cfa.max()))
             first = (lens, sweep, key) not in first_of_setting
             first_of_setting.add((lens, sweep, key))
             for band in BANDS:
                 img = images.bands[band]
-                m = masks[lens][band]
-                region, _ = ptc[lens][band]
-                moments[(lens, band, sweep, key)].add(img[region])
+                flat = img.reshape(-1)
+                m_at, region_at = taken[lens, band]
+                moments[(lens, band, sweep, key)].add(flat.take(region_at))
                 if first:
                     x = key[1] if sweep == "exposure" else gain_from_iso(key[0])
                     pearson[(lens, band, sweep)].add(x, img, ~images.saturated[band])
@@ -201,9 +204,9 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                 corner_dn, corner_sites = corner_mean_dn(img, corners[lens], band, dec.raw)
                 frame_rows.append({
                     "lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
-                    "file_index": i, "mask_mean_dn": float(img[m].mean()),
+                    "file_index": i, "mask_mean_dn": float(flat.take(m_at).mean()),
                     "corner_dn": corner_dn, "n_corner_sites": corner_sites,
-                    "saturated": bool(images.saturated[band][m].any()),
+                    "saturated": bool(images.saturated[band].reshape(-1).take(m_at).any()),
                     "temperature_c": float(row.get("temperature_c", np.nan)),
                     "white_level_dn": float(dec.raw.white_level),
                 })
