@@ -49,8 +49,9 @@ _SCRATCH = threading.local()
 
 def _scratch_maps(shape) -> tuple[np.ndarray, np.ndarray]:
     """Two float64 maps of ``shape`` for :meth:`RunningPearson.add`, one pair per thread, kept for the next
-    call: a fresh 24 MB temporary per band image cost its page faults again (about 0.1 s per map on first
-    touch at the full resolution)."""
+    call: a fresh 24 MB temporary per band image cost its page faults again (the profile of a
+    full-resolution linearity job: 0.76 s for the first touch of 18 such maps, 0.04 s each). The pair
+    stays allocated for the thread's life (48 MB at 1728 x 1728)."""
     maps = getattr(_SCRATCH, "maps", None)
     if maps is None or maps[0].shape != tuple(shape):
         maps = _SCRATCH.maps = (np.empty(shape), np.empty(shape))
