@@ -392,6 +392,15 @@ def test_read_reference_radiometer(tmp_path):
     assert str(table["time"].dt.tz) == "UTC"
     assert table["time"].iloc[1] == pd.Timestamp("2021-03-18T10:00:00.166Z")
     assert np.isnan(table["L_443"].iloc[1])
+    assert table["L_555"].tolist() == [0.02, 0.021] and table["L_443"].iloc[0] == 0.01
+    # a cell that is not a finite number: every such cell named with its line (the columns are converted
+    # whole when all cells are valid, cell by cell otherwise)
+    path.write_text("time,L_443,L_555\n2021-03-18T10:00:00Z,0.01,0.02\n2021-03-18T10:00:01Z,abc,0.02\n"
+                    "2021-03-18T10:00:02Z,0.01,inf\n")
+    with pytest.raises(InputError) as bad:
+        read_reference_radiometer(path)
+    assert "line 3, column 'L_443': 'abc' is not a number (and 1 more problem)" in str(bad.value)
+    assert [p.text() for p in bad.value.problems][1].endswith("line 4, column 'L_555': 'inf' is not a finite number")
     path.write_text("time,L_443\nyesterday,0.01\n")
     with pytest.raises(InputError, match=r"line 2, column 'time': 'yesterday' is not an ISO 8601 time"):
         read_reference_radiometer(path)

@@ -23,6 +23,7 @@ from datetime import datetime
 from pathlib import Path, PurePosixPath
 from typing import Any
 
+import numpy as np
 import pandas as pd
 import yaml
 
@@ -754,6 +755,11 @@ def _reference_radiometer(path: Path, problems: list[Problem]) -> pd.DataFrame:
         frame = pd.DataFrame({"time": pd.DatetimeIndex([], tz="UTC")})
         frame.attrs["channels_nm"] = list(channels.values())
         return frame
+    fast = _reference_columns(rows, channels)
+    if fast is not None:
+        frame = pd.DataFrame(fast)
+        frame.attrs["channels_nm"] = list(channels.values())
+        return frame
     times, values = [], {c: [] for c in channels}
     for line, row in rows:
         try:
@@ -772,6 +778,46 @@ def _reference_radiometer(path: Path, problems: list[Problem]) -> pd.DataFrame:
     frame = pd.DataFrame({"time": pd.DatetimeIndex(times), **values})
     frame.attrs["channels_nm"] = list(channels.values())
     return frame
+
+
+def _finite_cells(texts: list[str]) -> np.ndarray | None:
+    """The cells of one column as floats, an empty cell NaN; None when a cell is not a finite number.
+
+    The conversion of each text is Python's ``float`` (the values of :func:`_number`), one call for the
+    column instead of one per cell; None sends the column to the per-cell check, which says which cell.
+    """
+    try:
+        values = np.fromiter(map(float, (t if t else "0" for t in texts)), np.float64, len(texts))
+    except ValueError:
+        return None
+    if not np.isfinite(values).all():
+        return None
+    values[np.fromiter((not t for t in texts), bool, len(texts))] = np.nan
+    return values
+
+
+def _reference_columns(rows: list[tuple[int, dict[str, str]]], channels: dict[str, float]) -> dict | None:
+    """The reference radiometer's columns (``time`` in UTC, one float column per channel) when every
+    cell is valid, converted a column at a time; None when one is not, for the per-row check's messages.
+
+    The same values as the per-row check (a time without a zone is UTC, one with a zone is converted to
+    UTC; numbers as :func:`_number`): 22,000 readings of 19 channels took 1.0 s cell by cell.
+    """
+    if not rows:
+        return None
+    try:
+        times = pd.to_datetime([row["time"] for _, row in rows], format="ISO8601", utc=True)
+    except (ValueError, TypeError, OverflowError):
+        return None
+    if times.isna().any():
+        return None
+    out = {"time": pd.DatetimeIndex(times)}
+    for column in channels:
+        values = _finite_cells([row[column] for _, row in rows])
+        if values is None:
+            return None
+        out[column] = values
+    return out
 
 
 def _site(path: Path, problems: list[Problem]) -> dict:
