@@ -3,7 +3,7 @@
 
 For the lens that ``field/frames.csv`` names (the one at the zenith), each
 frame is decoded once and checked against the bundle (camera, ISO, exposure);
-the measurement chain (:func:`pipeline.apply.band_radiance`) runs on the crop
+the measurement chain (:func:`pipeline.apply.band_radiance`, as one :class:`~pipeline.apply.BandChain` per band) runs on the crop
 of the band images that holds the mask only: theta <= ``field.mask_half_angle_deg``
 on the bundle's in-air theta map, or the ``field.min_mask_pixels`` pixels
 nearest the axis when the mask holds fewer. Pixels flagged saturated, hot or
@@ -91,7 +91,7 @@ import pandas as pd
 import xarray as xr
 from scipy import optimize
 
-from pipeline.apply import EXCLUDED_FROM_GRID, band_radiance, bin_on_sphere, check_frame, sphere_coordinates
+from pipeline.apply import EXCLUDED_FROM_GRID, BandChain, bin_on_sphere, check_frame, sphere_coordinates
 from pipeline.bands import BANDS
 from pipeline.dataset import read_reference_radiometer, read_site
 from pipeline.errors import ImpossibleResult, InputError
@@ -128,7 +128,7 @@ def field_masks(bundle: xr.Dataset, lens: str, half_angle_deg: float, min_pixels
     for band in BANDS:
         g = bundle.sel(lens=lens, medium=MEDIUM, band=band)
         theta = g["theta_deg"].values.astype(float)
-        y, x = np.indices(theta.shape)
+        y, x = np.arange(theta.shape[0])[:, None], np.arange(theta.shape[1])[None, :]
         outside = np.hypot(x - float(g["circle_xc_px"]), y - float(g["circle_yc_px"])) > float(g["circle_radius_px"])
         theta = np.where(outside | ~np.isfinite(theta), np.inf, theta)
         mask = theta <= half_angle_deg
@@ -363,6 +363,8 @@ def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma, around):
     if [list(map(int, region[0])), list(map(int, region[1]))] != [list(map(int, span[0])), list(map(int, span[1]))]:
         raise InputError(ctx.dataset.root / "dataset.yaml", f"lens '{lens}' region {region} differs from the "
                                                              f"calibration bundle's {span.tolist()}")
+    # the bundle's selections and parameter objects of each band made once for all frames
+    chains = {band: BandChain(bundle, lens, band, MEDIUM, ctx.effects) for band in BANDS}
     for i, dec in enumerate(iter_frames(ctx.dataset, STAGE, frames, lenses=[lens], progress=ctx.progress)):
         raw, row = dec.raw, dec.row
         inputs[row["file"]] = raw.sha256
@@ -374,8 +376,7 @@ def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma, around):
                # the sun disc is the one thing near full scale in a sky frame: it is seen when these are many
                "lens_n_bright": _n_bright(images, raw, float(ctx.params["sun_seen_fraction_of_full_scale"]))}
         for band in BANDS:
-            m = band_radiance(images, bundle, lens, band, MEDIUM, ctx.effects, frame, window=window,
-                              negative_sigma=negative_sigma, source=row["path"])
+            m = chains[band](images, frame, window, negative_sigma=negative_sigma, source=row["path"])
             st = mask_statistics(m, masks[band])
             if st["n"] == 0:
                 raise InputError(row["path"], f"band {band}: every pixel of the {ctx.params['mask_half_angle_deg']:g} "
@@ -388,7 +389,7 @@ def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma, around):
             out.update({f"{k}_{band}": v for k, v in st.items()})
             out[f"gradient_{band}"] = sky_gradient(m, *around[band][:3])
         if i == middle:
-            sky = _sky_map(images, bundle, lens, frame, ctx.effects, grid_deg, row["file"], row["path"])
+            sky = _sky_map(images, chains, frame, grid_deg, row["file"], row["path"])
         rows.append(out)
     if not rows:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no frames of lens '{lens}'")
@@ -402,13 +403,12 @@ def _n_bright(images, raw, fraction: float) -> int:
     return int(sum(int(np.count_nonzero(images.bands[b] >= level)) for b in BANDS))
 
 
-def _sky_map(images, bundle, lens, frame, effects, grid_deg, name, source):
-    theta = bundle["theta_deg"].sel(lens=lens, medium=MEDIUM)
-    phi = bundle["phi_deg"].sel(lens=lens, medium=MEDIUM)
+def _sky_map(images, chains, frame, grid_deg, name, source):
     means, counts = [], []
     for band in BANDS:
-        m = band_radiance(images, bundle, lens, band, MEDIUM, effects, frame, source=source)
-        zen, azi = sphere_coordinates(theta.sel(band=band).values, phi.sel(band=band).values, True)
+        chain = chains[band]
+        m = chain(images, frame, source=source)
+        zen, azi = sphere_coordinates(chain.g["theta_deg"].values, chain.g["phi_deg"].values, True)
         val = np.where((m.flags & EXCLUDED_FROM_GRID) == 0, m.value, np.nan)
         mean, _, count = bin_on_sphere(zen, azi, val, grid_deg)
         means.append(mean)
