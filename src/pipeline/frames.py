@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from contextvars import ContextVar
@@ -67,14 +66,17 @@ def decode_ahead(frames: int):
 
 def iter_frames(dataset: Dataset, experiment: str, frames: pd.DataFrame | None = None,
                 lenses: list[str] | None = None, saturation_margin_dn: float = 1.0,
-                progress: bool = False, decode_ahead_frames: int | None = None) -> Iterator[DecodedFrame]:
+                progress: bool = False, decode_ahead_frames: int | None = None) -> "FrameStream":
     """Decode every frame of ``frames`` (default: the experiment's frames.csv) once, in order.
 
     Each file's checksum is compared with MD5SUMS from the bytes that were
     decoded; exposure time, ISO and time stamp must be in the tags. The next
     ``decode_ahead_frames`` frames (default: the setting of :func:`decode_ahead`, else
-    :data:`DECODE_AHEAD_FRAMES`) are decoded in a background thread; a bad frame stops
-    the iteration when its turn comes, with the same message.
+    :data:`DECODE_AHEAD_FRAMES`) are decoded in a background thread, the first of them from
+    this call on (a stage may prepare its masks while the first frame decodes, and iterate
+    later); a bad frame stops the iteration when its turn comes, with the same message.
+    The stream is an iterator; :meth:`FrameStream.close` (or leaving it as a context manager)
+    stops the decoding of frames not yet taken.
     """
     frames = dataset.frames(experiment) if frames is None else frames
     lenses = list(dataset.lenses) if lenses is None else lenses
@@ -92,35 +94,63 @@ def iter_frames(dataset: Dataset, experiment: str, frames: pd.DataFrame | None =
         return DecodedFrame(row=row, raw=raw, lenses=out)
 
     ahead = _decode_ahead_frames.get() if decode_ahead_frames is None else decode_ahead_frames
-    try:
-        for dec in _decoded_in_order(decode, rows, ahead):
-            if bar is not None:
-                bar.update()
-            yield dec
-    finally:
-        if bar is not None:
-            bar.close()
+    return FrameStream(decode, rows, ahead, bar)
 
 
-def _decoded_in_order(decode, rows, ahead_frames: int) -> Iterator[DecodedFrame]:
-    """``decode(row)`` of each row in order, the next ``ahead_frames`` decoded in a background thread."""
-    if ahead_frames < 1:
-        for row in rows:
-            yield decode(row)
-        return
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="decode") as pool:
-        ahead = deque(pool.submit(decode, row) for row in islice(rows, ahead_frames))
+class FrameStream:
+    """``decode(row)`` of each row in order, the next ``ahead_frames`` decoded in a background thread
+    (submitted when the stream is made); what :func:`iter_frames` returns."""
+
+    def __init__(self, decode, rows, ahead_frames: int, bar=None):
+        self._decode, self._rows, self._bar = decode, rows, bar
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="decode") if ahead_frames >= 1 else None
+        self._ahead = deque(self._pool.submit(decode, row) for row in islice(rows, ahead_frames)) \
+            if self._pool is not None else deque()
+
+    def __iter__(self) -> "FrameStream":
+        return self
+
+    def __next__(self) -> DecodedFrame:
         try:
-            while ahead:
-                dec = ahead.popleft().result()
+            if self._pool is None:
+                dec = self._decode(next(self._rows))
+            else:
+                if not self._ahead:
+                    raise StopIteration
+                dec = self._ahead.popleft().result()
                 # the next frame starts decoding while the caller reduces this one
-                nxt = next(rows, None)
+                nxt = next(self._rows, None)
                 if nxt is not None:
-                    ahead.append(pool.submit(decode, nxt))
-                yield dec
-        finally:
-            for future in ahead:
-                future.cancel()
+                    self._ahead.append(self._pool.submit(self._decode, nxt))
+        except BaseException:
+            self.close()
+            raise
+        if self._bar is not None:
+            self._bar.update()
+        return dec
+
+    def close(self) -> None:
+        """Cancel the frames not yet decoding and wait for the one that is."""
+        for future in self._ahead:
+            future.cancel()
+        self._ahead.clear()
+        self._rows = iter(())
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+    def __enter__(self) -> "FrameStream":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        if getattr(self, "_pool", None) is not None:
+            self.close()
 
 
 #: a band pixel is saturated where a CFA site reaches the white level less this (DN)

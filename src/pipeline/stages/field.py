@@ -83,20 +83,20 @@ below zero stops the stage (stray light only adds light).
 
 from __future__ import annotations
 
+import importlib
 import logging
+import threading
 from datetime import timedelta
 
 import numpy as np
 import pandas as pd
 import xarray as xr
-from scipy import optimize
 
 from pipeline.apply import EXCLUDED_FROM_GRID, BandChain, bin_on_sphere, check_frame, sphere_coordinates
 from pipeline.bands import BANDS
 from pipeline.dataset import read_reference_radiometer, read_site
 from pipeline.errors import ImpossibleResult, InputError
 from pipeline.frames import iter_frames
-from pipeline.matchup import BOOTSTRAPPED, STATISTIC_UNITS, matchup_statistics
 from pipeline.observations import fit_with_effects, table_to_dataset
 from pipeline.radiometry import measurement as mm
 from pipeline.radiometry.spectral import band_weights
@@ -123,12 +123,43 @@ def field_masks(bundle: xr.Dataset, lens: str, half_angle_deg: float, min_pixels
     pixel nearest the axis (how far from the zenith the direction the bundle calls the axis may lie;
     0 when the bundle has no uncertainty). The crop holds the masks and the sky around them.
     Returns ({band: mask of the crop}, (row_slice, col_slice), {band: (around, x_deg, y_deg, pointing_deg)}).
+
+    Searched in a square about the image circle's centre, four times the mask's share of the field wide,
+    grown until the masks and the sky around them touch none of its edges (the whole band image is
+    some 3 million pixels at the real camera's resolution; the crop about a sixth of them).
     """
+    g = bundle.sel(lens=lens, medium=MEDIUM, band="G")
+    shape = g["theta_deg"].shape
+    half_fov = float(g["half_fov_deg"]) if np.isfinite(float(g["half_fov_deg"])) else 90.0
+    radius = float(g["circle_radius_px"]) if np.isfinite(float(g["circle_radius_px"])) else max(shape) / 2.0
+    half = max(8, int(np.ceil(4.0 * radius * half_angle_deg / half_fov)))
+    while True:
+        found = _masks_in(bundle, lens, half_angle_deg, min_pixels, _search_window(g, shape, half))
+        if found is not None:
+            return found
+        half *= 2
+
+
+def _search_window(g, shape, half: int) -> tuple[slice, slice]:
+    """The square of half side ``half`` about the image circle's centre (the whole image for a region without one)."""
+    xc, yc = float(g["circle_xc_px"]), float(g["circle_yc_px"])
+    if not (np.isfinite(xc) and np.isfinite(yc)) or 2 * half >= max(shape):
+        return slice(0, shape[0]), slice(0, shape[1])
+    return (slice(max(int(yc) - half, 0), min(int(yc) + half + 1, shape[0])),
+            slice(max(int(xc) - half, 0), min(int(xc) + half + 1, shape[1])))
+
+
+def _masks_in(bundle, lens, half_angle_deg, min_pixels, search):
+    """:func:`field_masks` within the ``search`` window: None when what it finds touches an edge of the window
+    that is not the image's (a larger window is needed)."""
     full, around = {}, {}
+    shape = bundle["theta_deg"].shape[-2:]
+    whole = search == (slice(0, shape[0]), slice(0, shape[1]))
     for band in BANDS:
         g = bundle.sel(lens=lens, medium=MEDIUM, band=band)
-        theta = g["theta_deg"].values.astype(float)
-        y, x = np.arange(theta.shape[0])[:, None], np.arange(theta.shape[1])[None, :]
+        theta = g["theta_deg"].values[search].astype(float)
+        y = np.arange(search[0].start, search[0].stop)[:, None]
+        x = np.arange(search[1].start, search[1].stop)[None, :]
         outside = np.hypot(x - float(g["circle_xc_px"]), y - float(g["circle_yc_px"])) > float(g["circle_radius_px"])
         theta = np.where(outside | ~np.isfinite(theta), np.inf, theta)
         mask = theta <= half_angle_deg
@@ -138,19 +169,30 @@ def field_masks(bundle: xr.Dataset, lens: str, half_angle_deg: float, min_pixels
             mask.flat[order] = True
             mask &= np.isfinite(theta)
         if not mask.any():
+            if not whole:
+                return None
             raise InputError(None, f"lens {lens}, band {band}: the bundle's theta map has no pixel near the axis")
         full[band] = mask
         h = float(theta[mask].max())
-        phi = np.radians(g["phi_deg"].values.astype(float))
         axis = np.unravel_index(np.argmin(theta), theta.shape)
-        pointing = float(g["theta_deg_sigma"].values[axis]) if "theta_deg_sigma" in g else 0.0
-        around[band] = (theta <= h + h * np.sqrt(np.pi / mask.sum()), theta * np.cos(phi), theta * np.sin(phi),
-                        pointing if np.isfinite(pointing) else 0.0)
+        pointing = float(g["theta_deg_sigma"].values[search][axis]) if "theta_deg_sigma" in g else 0.0
+        around[band] = (theta <= h + h * np.sqrt(np.pi / mask.sum()), theta, pointing if np.isfinite(pointing) else 0.0)
     union = np.logical_or.reduce([a[0] for a in around.values()] + list(full.values()))
     rows, cols = np.flatnonzero(union.any(axis=1)), np.flatnonzero(union.any(axis=0))
-    window = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
-    return ({band: m[window] for band, m in full.items()}, window,
-            {band: (a[0][window], a[1][window], a[2][window], a[3]) for band, a in around.items()})
+    edge = (rows[0] == 0 and search[0].start > 0) or (rows[-1] == union.shape[0] - 1 and search[0].stop < shape[0]) \
+        or (cols[0] == 0 and search[1].start > 0) or (cols[-1] == union.shape[1] - 1 and search[1].stop < shape[1])
+    if edge and not whole:
+        return None
+    crop = (slice(int(rows[0]), int(rows[-1]) + 1), slice(int(cols[0]), int(cols[-1]) + 1))
+    window = (slice(search[0].start + crop[0].start, search[0].start + crop[0].stop),
+              slice(search[1].start + crop[1].start, search[1].start + crop[1].stop))
+    out = {}
+    for band, (near, theta, pointing) in around.items():
+        # the direction components on the crop only
+        phi = np.radians(bundle["phi_deg"].sel(lens=lens, medium=MEDIUM, band=band).values[window].astype(float))
+        t = theta[crop]
+        out[band] = (near[crop], t * np.cos(phi), t * np.sin(phi), pointing)
+    return {band: m[crop] for band, m in full.items()}, window, out
 
 
 def mask_statistics(m: mm.Measured, mask: np.ndarray) -> dict:
@@ -332,6 +374,8 @@ def fit_clock_offset(y, sy, series, times_s, width, min_samples, search_s, step_
     if not np.isfinite(curve).any():
         raise InputError(None, "no match-ups at any clock offset within the search range")
     best = float(grid[int(np.nanargmin(curve))])
+    from scipy import optimize
+
     res = optimize.minimize_scalar(reduced, bounds=(best - step_s, best + step_s), method="bounded")
     c = float(res.x) if res.fun <= reduced(best) else best
     pts = c + step_s * np.arange(-2, 3)
@@ -344,6 +388,26 @@ def fit_clock_offset(y, sy, series, times_s, width, min_samples, search_s, step_
 
 
 # --------------------------------------------------------------------------- the stage
+#: modules the stage needs only after its frames (the match-up's statistics, the clock fit's minimiser, the
+#: sun's position): imported in a thread while the first frames decode, off the job's critical path (about
+#: 0.9 s of imports at the start of a job otherwise)
+AFTER_FRAMES_MODULES = ("pipeline.matchup", "scipy.optimize", "pvlib.solarposition")
+
+
+def _import_in_background(names) -> threading.Thread:
+    """Import ``names`` in a daemon thread; a failure is left for the import where the module is used."""
+    def run():
+        for name in names:
+            try:
+                importlib.import_module(name)
+            except Exception:   # noqa: BLE001 (the later import raises it where it matters)
+                pass
+
+    thread = threading.Thread(target=run, name="import", daemon=True)
+    thread.start()
+    return thread
+
+
 def _sun_position(times_utc: pd.DatetimeIndex, site: dict) -> tuple[np.ndarray, np.ndarray]:
     """Solar zenith angle and apparent elevation (deg) by pvlib's SPA."""
     from pvlib.solarposition import get_solarposition
@@ -352,20 +416,24 @@ def _sun_position(times_utc: pd.DatetimeIndex, site: dict) -> tuple[np.ndarray, 
     return pos["zenith"].to_numpy(float), pos["apparent_elevation"].to_numpy(float)
 
 
-def _reduce_frames(ctx, masks, window, grid_deg, negative_sigma, around):
-    """Stream the field frames: per frame and band the mask numbers; the middle frame's sky map."""
-    bundle, lens = ctx.bundle, ctx.lens
-    frames = ctx.dataset.frames(STAGE)
-    middle = len(frames) // 2
-    rows, inputs, sky = [], {}, None
-    span = bundle["lens_region_px"].sel(lens=lens).values
-    region = ctx.dataset.lenses[lens]
+def _check_region(ctx) -> None:
+    """The lens region of dataset.yaml must be the calibration bundle's."""
+    span = ctx.bundle["lens_region_px"].sel(lens=ctx.lens).values
+    region = ctx.dataset.lenses[ctx.lens]
     if [list(map(int, region[0])), list(map(int, region[1]))] != [list(map(int, span[0])), list(map(int, span[1]))]:
-        raise InputError(ctx.dataset.root / "dataset.yaml", f"lens '{lens}' region {region} differs from the "
+        raise InputError(ctx.dataset.root / "dataset.yaml", f"lens '{ctx.lens}' region {region} differs from the "
                                                              f"calibration bundle's {span.tolist()}")
+
+
+def _reduce_frames(ctx, stream, masks, window, grid_deg, negative_sigma, around):
+    """Reduce the field frames of ``stream`` (:func:`pipeline.frames.iter_frames` of the lens): per frame and
+    band the mask numbers; the middle frame's sky map."""
+    bundle, lens = ctx.bundle, ctx.lens
+    middle = len(ctx.dataset.frames(STAGE)) // 2
+    rows, inputs, sky = [], {}, None
     # the bundle's selections and parameter objects of each band made once for all frames
     chains = {band: BandChain(bundle, lens, band, MEDIUM, ctx.effects) for band in BANDS}
-    for i, dec in enumerate(iter_frames(ctx.dataset, STAGE, frames, lenses=[lens], progress=ctx.progress)):
+    for i, dec in enumerate(stream):
         raw, row = dec.raw, dec.row
         inputs[row["file"]] = raw.sha256
         check_frame(raw, bundle, ctx.effects)
@@ -425,17 +493,23 @@ def compute(ctx) -> xr.Dataset:
         raise InputError(None, "the field stage needs the calibration bundle")
     if ctx.lens not in list(bundle["lens"].values):
         raise InputError(None, f"the calibration bundle has no lens '{ctx.lens}'")
-    # sidecars first: bad input fails before any frame is decoded
     site = read_site(ctx.dataset)
-    reference = read_reference_radiometer(ctx.dataset)
-    ref_path = root / STAGE / "reference_radiometer.csv"
-    channels = np.asarray(reference.attrs["channels_nm"], float)
-    if len(reference) < 2:
-        raise InputError(ref_path, "needs at least two readings")
-    masks, window, around = field_masks(bundle, ctx.lens, float(cfg["mask_half_angle_deg"]),
-                                        int(cfg["min_mask_pixels"]))
-    frames, inputs, sky = _reduce_frames(ctx, masks, window, float(cfg["sky_map_grid_deg"]),
-                                         float(ctx.config["apply"]["negative_mean_sigma"]), around)
+    _check_region(ctx)
+    # the first frame decodes (a background thread) while the reference file is read and checked, the masks
+    # are made and the modules needed after the frames are imported; bad input still stops the stage with its
+    # message before any frame's numbers are used, and the decoding with it
+    with iter_frames(ctx.dataset, STAGE, ctx.dataset.frames(STAGE), lenses=[ctx.lens],
+                     progress=ctx.progress) as stream:
+        _import_in_background(AFTER_FRAMES_MODULES)
+        reference = read_reference_radiometer(ctx.dataset)
+        ref_path = root / STAGE / "reference_radiometer.csv"
+        channels = np.asarray(reference.attrs["channels_nm"], float)
+        if len(reference) < 2:
+            raise InputError(ref_path, "needs at least two readings")
+        masks, window, around = field_masks(bundle, ctx.lens, float(cfg["mask_half_angle_deg"]),
+                                            int(cfg["min_mask_pixels"]))
+        frames, inputs, sky = _reduce_frames(ctx, stream, masks, window, float(cfg["sky_map_grid_deg"]),
+                                             float(ctx.config["apply"]["negative_mean_sigma"]), around)
     ctx.record_frames(inputs)
 
     # camera time (local) -> UTC, seconds since the first frame
@@ -513,6 +587,8 @@ def compute(ctx) -> xr.Dataset:
                  clock["offset_se_s"])
 
     # statistics per band and comparison
+    from pipeline.matchup import BOOTSTRAPPED, matchup_statistics
+
     names = list(BOOTSTRAPPED)
     fits = ("ols", "odr")
     fit_keys = ("slope", "slope_low", "slope_high", "slope_se", "intercept", "intercept_low", "intercept_high", "intercept_se")
@@ -659,6 +735,8 @@ def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_referen
                                            _attrs("d reference / dt from a line fitted to the window's samples",
                                                   "W sr-1 m-2 nm-1 s-1"))
     comp_dims = ("band", "comparison")
+    from pipeline.matchup import STATISTIC_UNITS
+
     for name, value in stat.items():
         base = name.rsplit("_", 1)[0] if name.endswith(("_low", "_high")) else name
         if base in STATISTIC_UNITS:
