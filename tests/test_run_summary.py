@@ -62,5 +62,5 @@ def test_stages_not_finished_reads_this_runs_job_logs(tmp_path):
     out = stages_not_finished(results, lenses, since=2000.0)
     assert out["linearity"] == f"failed for lens far: {line} (log: {results / 'logs/linearity/far.log'})"
     assert out["geometry"].startswith("not run: the run stopped at a failed job before it")
-    assert out["rolloff"] == "not run: it needs geometry, which did not finish"
+    assert out["rolloff"] == "not run: it needs geometry, linearity, which did not finish"
     assert "dark" not in out

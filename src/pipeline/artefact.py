@@ -98,7 +98,9 @@ from pipeline.errors import ArtefactError
 #: experiment, which ``experiment``, ``closure`` on those rows, cannot hold).
 #: dark 5: ``fpn_corner_mean_dn``, the offset map averaged over the unlit corners (with the corner fraction it
 #: was made with), so that a lit stage's corner prediction does not decompress the whole map.
-ARTEFACT_VERSIONS = {"dark": 5, "linearity": 7, "geometry": 5, "rolloff": 6, "spectral": 3,
+#: rolloff 7: the spots' pixels through the linearity artefact's fitted nonlinearity and flat field, the
+#: nonlinearity's uncertainty in ``rolloff_covariance`` (``rolloff_nonlinearity_shift``), ``response_corrections``.
+ARTEFACT_VERSIONS = {"dark": 5, "linearity": 7, "geometry": 5, "rolloff": 7, "spectral": 3,
                      "absolute": 4, "immersion": 3, "calibration": 13, "field": 3, "closure": 6}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain

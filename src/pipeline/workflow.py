@@ -85,7 +85,7 @@ STAGES: dict[str, StageSpec] = {spec.name: spec for spec in (
     StageSpec("dark", "dark"),
     StageSpec("linearity", "linearity", upstream=("dark",), optional_upstream=("geometry",)),
     StageSpec("geometry", "geometry", reads_meta=("chessboard",)),
-    StageSpec("rolloff", "rolloff", upstream=("geometry",), optional_upstream=("dark",)),
+    StageSpec("rolloff", "rolloff", upstream=("geometry",), optional_upstream=("dark", "linearity")),
     StageSpec("spectral", "spectral", sidecars=("photodiode.csv",), upstream=("geometry",),
               optional_upstream=("dark", "linearity")),
     StageSpec("absolute", "absolute", sidecars=("source_spectrum.csv", "source_reference.csv"),

@@ -29,7 +29,7 @@ from pipeline.radiometry.measurement import (FrameSettings, Measured, ResponseMo
                                              normalise_exposure)
 
 __all__ = ["RESPONSE_EFFECTS", "response_effects", "response_model", "flat_field_at", "response_corrected",
-           "linear_signal"]
+           "linear_signal", "PixelResponse"]
 
 #: effects of the catalogue that the chain's linearise, normalise_exposure and correct_flat_field steps own
 RESPONSE_EFFECTS = ("shutter_offset", "iso_gain", "nonlinearity", "prnu")
@@ -149,3 +149,43 @@ def response_corrected(signal_dn, linearity: xr.Dataset | None, band: str, frame
                  random_var={"signal": np.broadcast_to(np.square(np.asarray(signal_sigma_dn, float)), value.shape)})
     linear = linearise(m, response, effects)
     return linear, correct_flat_field(normalise_exposure(linear, response, frame, effects), flat_field, effects)
+
+
+class PixelResponse:
+    """The chain's per-pixel response steps, ``linearise`` and ``correct_flat_field``, on pixels taken by
+    flat index from the band images of a stage that measures ratios of signals at one exposure and ISO
+    (the roll-off: each spot against the axis).
+
+    From a linearity artefact (or None: the readings as they are), for one band: the fitted nonlinearity
+    m = s (1 - beta s / F) inverted (:func:`linear_signal`) and the reading divided by the flat field at
+    each pixel where it was measured, each when the artefact fitted it (:func:`response_effects`). ``beta_shift`` (in units of
+    the fitted beta's standard uncertainty) evaluates the inverse at beta + beta_shift sigma_beta: the
+    finite difference by which a stage carries that uncertainty into what it fits.
+    """
+
+    def __init__(self, linearity: xr.Dataset | None, band: str):
+        effects = response_effects(linearity)
+        self.effects = effects
+        self.beta = self.beta_sigma = 0.0
+        self.full_scale_dn = float("nan")
+        if "nonlinearity" in effects:
+            self.beta = _band_value(linearity, "effect_nonlinearity", band, 0.0)
+            self.beta_sigma = _band_value(linearity, "effect_nonlinearity_sigma", band, 0.0)
+            self.full_scale_dn = _band_value(linearity, "nonlinearity_full_scale_dn", band, float("nan"))
+        self.flat = None
+        if "prnu" in effects:
+            # where the linearity stage did not measure the flat field (NaN: outside its photon-transfer
+            # region) the pixel's reading is kept, as the chain's correct_flat_field keeps it
+            flat = linearity["flat_field"].sel(band=band).values.astype(float).ravel()
+            self.flat = np.where(np.isfinite(flat) & (flat > 0), flat, 1.0)
+
+    @property
+    def corrections(self) -> tuple[str, ...]:
+        """The response steps this object applies (the artefact's fitted nonlinearity and flat field)."""
+        return tuple(e for e in ("nonlinearity", "prnu") if e in self.effects)
+
+    def __call__(self, reading_dn, index, beta_shift: float = 0.0) -> np.ndarray:
+        """Readings above dark (DN) of the band pixels at flat ``index``: linear signal over the flat field."""
+        beta = self.beta + beta_shift * self.beta_sigma
+        s = linear_signal(reading_dn, beta, self.full_scale_dn)[0] if beta else np.asarray(reading_dn, float)
+        return s / self.flat[index] if self.flat is not None else s

@@ -74,6 +74,7 @@ from pipeline.observations import table_to_dataset, with_corner_table
 from pipeline.radiometry.immersion_rolloff import water_rolloff_factor
 from pipeline.radiometry.rolloff import (ROLLOFF_POWERS, evaluate_rolloff, fit_rolloff, normalise_rolloff,
                                          rolloff_design_matrix, rolloff_slope)
+from pipeline.radiometry.response import PixelResponse
 from pipeline.radiometry.unlit_corners import FrameCorners
 from pipeline.radiometry.water import refractive_index_water
 from pipeline.stages.geometry_maps import model_from_dataset
@@ -280,9 +281,19 @@ def _deg_per_px(theta: np.ndarray) -> float:
 
 
 def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: dict,
-                   progress: bool = False, corners: FrameCorners | None = None) -> dict:
+                   progress: bool = False, corners: FrameCorners | None = None,
+                   linearity: dict[str, xr.Dataset] | None = None) -> dict:
     """Stream the roll-off frames once (dark frames first); ``corners``, when given, records each signal frame's
-    unlit corners against the dark model (:class:`pipeline.radiometry.unlit_corners.FrameCorners`)."""
+    unlit corners against the dark model (:class:`pipeline.radiometry.unlit_corners.FrameCorners`).
+
+    With a lens's linearity artefact (``linearity``: lens -> artefact) every dark-subtracted pixel the stage
+    measures (the averaging circle, the halo annulus, the port's own pixels) goes through the chain's response
+    steps that artefact fitted, the inverse nonlinearity and the flat field
+    (:class:`pipeline.radiometry.response.PixelResponse`): a roll-off point is the ratio of the light at an
+    angle to that on the axis, and a sensor that bends its bright readings makes that ratio too high (beta
+    0.047 at F = 15,600 DN, the axis at 11,000 DN: g at 55 degrees 0.6 % high); with the nonlinearity the
+    same pixels at beta + sigma_beta are kept as well, for its uncertainty (:func:`compute`).
+    """
     cfg = config[STAGE]
     frames = dataset.frames(STAGE)
     order = pd.concat([frames[frames["kind"] == "dark"], frames[frames["kind"] == "signal"]])
@@ -293,6 +304,9 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
     acc = defaultdict(list)                     # (lens, medium, az, angle, band) -> per-frame dicts
     static = {}
     corners = corners if corners is not None else FrameCorners(None, dataset.projection, 1.0)
+    linearity = linearity or {}
+    response = {(lens, band): PixelResponse(linearity.get(lens), band) for lens in dataset.lenses for band in BANDS}
+    shift = any(r.beta_sigma > 0 for r in response.values())
     for file_index, dec in enumerate(iter_frames(dataset, STAGE, order, progress=progress)):
         row = dec.row
         inputs[row["file"]] = dec.raw.sha256
@@ -358,20 +372,29 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
             continue
         circle, annulus, spot, weights, (_cx, _cy) = setting_masks[key]
         for band in BANDS:
-            # dark-subtracted at the setting's pixels only (the same values as the whole image's there)
+            # dark-subtracted at the setting's pixels only (the same values as the whole image's there), then
+            # the response steps the linearity stage fitted
             img, dk = images.bands[band].ravel(), st["dark"][band].ravel()
-            ann = img[annulus].astype(float) - dk[annulus]
-            acc[key + (band,)].append({
-                "circle": img[circle].astype(float) - dk[circle],
-                "annulus_mean": float(ann.mean()) if annulus.size else np.nan,
-                "halo": float(weights @ (img[spot].astype(float) - dk[spot])) if annulus.size else 0.0,
-                "saturated": bool(images.saturated[band].ravel()[circle].any()),
-                "exposure_s": float(dec.raw.exposure_s), "iso": float(dec.raw.iso),
-            })
+            resp = response[(lens, band)]
+            if resp.flat is not None and resp.flat.size != img.size:
+                raise InputError(dataset.root / STAGE / "frames.csv", f"lens {lens} band {band}: the linearity "
+                                 f"artefact's flat field has {resp.flat.size} pixels, the band image {img.size}")
+            raw_circle = img[circle].astype(float) - dk[circle]
+            raw_ann = img[annulus].astype(float) - dk[annulus]
+            raw_spot = img[spot].astype(float) - dk[spot]
+            entry = {"saturated": bool(images.saturated[band].ravel()[circle].any()),
+                     "exposure_s": float(dec.raw.exposure_s), "iso": float(dec.raw.iso)}
+            for suffix, k in (("", 0.0), ("_beta", 1.0)) if shift else (("", 0.0),):
+                ann = resp(raw_ann, annulus, k)
+                entry["circle" + suffix] = resp(raw_circle, circle, k)
+                entry["annulus_mean" + suffix] = float(ann.mean()) if annulus.size else np.nan
+                entry["halo" + suffix] = float(weights @ resp(raw_spot, spot, k)) if annulus.size else 0.0
+            acc[key + (band,)].append(entry)
     water_file = dataset.root / "immersion" / "water.yaml"
     water = read_water(dataset) if water_file.exists() else None
+    corrections = sorted({e for r in response.values() for e in r.corrections})
     return {"acc": acc, "masks": setting_masks, "static": static, "inputs": inputs, "water": water,
-            "dropped": dropped}
+            "dropped": dropped, "response_corrections": corrections, "beta_shift": shift}
 
 
 def _centre_geometry(geo: xr.Dataset, medium: str) -> dict | None:
@@ -406,7 +429,9 @@ def _halo_weights(spot: np.ndarray, annulus: np.ndarray, sigma_px: float) -> np.
     return kernel.mean(axis=1)
 
 
-def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
+def setting_table(reduced: dict, config: dict, beta_shift: bool = False) -> pd.DataFrame:
+    """One row per setting and band; with ``beta_shift`` the pixels linearised at beta + sigma_beta."""
+    sfx = "_beta" if beta_shift else ""
     rows = []
     for key, frames in reduced["acc"].items():
         lens, medium, az, angle, band = key
@@ -415,7 +440,7 @@ def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
         bi = BANDS.index(band)
         theta = st["theta"][bi].ravel()[circle]
         phi = np.radians(st["phi"][bi].ravel()[circle])
-        stack = np.array([f["circle"] for f in frames])
+        stack = np.array([f["circle" + sfx] for f in frames])
         m = len(frames)
         theta_air = (float(np.mean(st["theta_air"][bi].ravel()[circle])) if st.get("theta_air") is not None
                      else np.nan)
@@ -442,8 +467,8 @@ def setting_table(reduced: dict, config: dict) -> pd.DataFrame:
             "theta_air_centre_grad_x_deg_per_px": grad_air[0], "theta_air_centre_grad_y_deg_per_px": grad_air[1],
             "phi_deg": float(np.degrees(np.arctan2(np.mean(np.sin(phi)), np.mean(np.cos(phi))))),
             "spot_theta_deg": spot_theta, "spot_x_px": cx, "spot_y_px": cy,
-            "annulus_dn": float(np.mean([f["annulus_mean"] for f in frames])),
-            "halo_raw_dn": float(np.mean([f["halo"] for f in frames])),
+            "annulus_dn": float(np.mean([f["annulus_mean" + sfx] for f in frames])),
+            "halo_raw_dn": float(np.mean([f["halo" + sfx] for f in frames])),
             "saturated": any(f["saturated"] for f in frames),
             "dark_var_dn2": st["dark_var"][band], "n_dark": st["n_dark"],
             "deg_per_px": st["deg_per_px"],
@@ -603,8 +628,8 @@ def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max
     return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
 
 
-def analyse_rolloff(reduced: dict, config: dict, effects: list[str]) -> dict[str, xr.Dataset]:
-    tab = setting_table(reduced, config)
+def analyse_rolloff(reduced: dict, config: dict, effects: list[str], beta_shift: bool = False) -> dict[str, xr.Dataset]:
+    tab = setting_table(reduced, config, beta_shift)
     noise = noise_model(tab)
     k = tab["band"].map(lambda b: noise[b][0])
     r = tab["band"].map(lambda b: noise[b][1])
@@ -784,15 +809,36 @@ def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise
 
 
 # ----------------------------------------------------------------------------- the stage
+def add_nonlinearity_covariance(art: xr.Dataset, shifted: xr.Dataset) -> None:
+    """The fitted nonlinearity's uncertainty in the roll-off curves: the whole analysis repeated on the pixels
+    linearised at beta + sigma_beta (``shifted``), the change d of each curve's coefficients added to its
+    covariance as d d^T (first order; common to the points of a curve, so it is a covariance, not a point's noise).
+    The change is kept as ``rolloff_nonlinearity_shift``."""
+    delta = shifted["rolloff_coefficients"].values - art["rolloff_coefficients"].values
+    delta = np.where(np.isfinite(delta), delta, 0.0)
+    art["rolloff_covariance"].values = art["rolloff_covariance"].values + delta[..., :, None] * delta[..., None, :]
+    art["rolloff_covariance"].attrs["nonlinearity"] = ("includes the fitted nonlinearity's uncertainty: d d^T, d the "
+                                                       "change of the coefficients at beta + sigma_beta")
+    art["rolloff_nonlinearity_shift"] = (art["rolloff_coefficients"].dims, delta, {
+        "long_name": "change of rolloff_coefficients with the nonlinearity at beta + sigma_beta (its one-sigma "
+                     "shift, in rolloff_covariance)", "units": art["rolloff_coefficients"].attrs.get("units", "1")})
+
+
 def compute(ctx) -> xr.Dataset:
     """The roll-off artefact of one lens (the stage runner's contract)."""
     geometry = {ctx.lens: ctx.upstream["geometry"]}
     corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
-    reduced = reduce_rolloff(ctx.dataset, geometry, ctx.config, progress=ctx.progress, corners=corners)
+    linearity = {ctx.lens: ctx.upstream["linearity"]} if ctx.upstream.get("linearity") is not None else None
+    reduced = reduce_rolloff(ctx.dataset, geometry, ctx.config, progress=ctx.progress, corners=corners,
+                             linearity=linearity)
     ctx.record_frames(reduced["inputs"])
     check_settings(reduced, ctx.config, ctx.dataset.root / STAGE / "frames.csv")
     arts = analyse_rolloff(reduced, ctx.config, ctx.effects)
     if ctx.lens not in arts:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no roll-off frames for lens {ctx.lens}")
+    if reduced["beta_shift"]:
+        shifted = analyse_rolloff(reduced, ctx.config, ctx.effects, beta_shift=True)
+        add_nonlinearity_covariance(arts[ctx.lens], shifted[ctx.lens])
+    arts[ctx.lens].attrs["response_corrections"] = ",".join(reduced["response_corrections"])
     # the signal frames' unlit corners against the dark model, for the closure (pipeline.cross_closure)
     return with_corner_table(arts[ctx.lens], corners.of_lens(ctx.lens))
