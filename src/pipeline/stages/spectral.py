@@ -107,22 +107,30 @@ def _wavelength_key(row) -> float:
     return round(value, 6) if np.isfinite(value) else NO_WAVELENGTH
 
 
+def central_frames(dataset: Dataset, experiment: str, saturation_margin_dn: float = 1.0, progress: bool = False):
+    """The experiment's frames as :func:`reduce_central` reads them, decoding from this call on: a stage makes
+    its masks and reads its upstream artefacts while the first frame decodes, then hands the stream on."""
+    return iter_frames(dataset, experiment, dataset.frames(experiment), saturation_margin_dn=saturation_margin_dn,
+                       progress=progress)
+
+
 def reduce_central(dataset: Dataset, experiment: str, masks: dict[tuple[str, str], np.ndarray],
                    saturation_margin_dn: float = 1.0, progress: bool = False,
-                   corners: FrameCorners | None = None) -> dict:
+                   corners: FrameCorners | None = None, stream=None) -> dict:
     """Stream an experiment's frames once: running moments of the mask pixels per setting.
 
     Setting key: (lens, band, kind, wavelength_nm or NO_WAVELENGTH, iso, exposure_s).
     Returns ``moments``, per-frame ``frames`` table, ``inputs`` (file -> sha256). ``corners``, when given,
     records each signal frame's unlit corners against the dark model
-    (:class:`pipeline.radiometry.unlit_corners.FrameCorners`).
+    (:class:`pipeline.radiometry.unlit_corners.FrameCorners`). ``stream``: the frames of
+    :func:`central_frames` already decoding (made here otherwise).
     """
-    frames = dataset.frames(experiment)
     lenses = sorted({lens for lens, _ in masks})
     moments = defaultdict(RunningMoments)
     rows, inputs = [], {}
-    for i, dec in enumerate(iter_frames(dataset, experiment, frames, saturation_margin_dn=saturation_margin_dn,
-                                        progress=progress)):
+    if stream is None:
+        stream = central_frames(dataset, experiment, saturation_margin_dn, progress)
+    for i, dec in enumerate(stream):
         row = dec.row
         inputs[row["file"]] = dec.raw.sha256
         wl = _wavelength_key(row)
@@ -362,10 +370,13 @@ def compute(ctx) -> xr.Dataset:
     """
     cfg = ctx.params
     photodiode = read_photodiode(ctx.dataset)      # bad sidecar input fails before any frame is decoded
-    masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"], cfg["mask_min_pixels"])
-    dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
-    corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
-    reduced = reduce_central(ctx.dataset, STAGE, masks, progress=ctx.progress, corners=corners)
+    # the first frame decodes while the mask is made and the dark artefact read
+    with central_frames(ctx.dataset, STAGE, progress=ctx.progress) as stream:
+        masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"],
+                              cfg["mask_min_pixels"])
+        dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
+        corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
+        reduced = reduce_central(ctx.dataset, STAGE, masks, corners=corners, stream=stream)
     ctx.record_frames(reduced["inputs"])
     darks = dark_levels(reduced, dark, ctx.dataset.root / STAGE / "frames.csv")
     linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else {}
