@@ -52,3 +52,20 @@ def test_running_moments_are_the_stack_mean_and_unbiased_variance():
         acc.add(frame)
     np.testing.assert_allclose(acc.mean(), y.mean(axis=0), rtol=1e-12)
     np.testing.assert_allclose(acc.variance(), y.astype(float).var(axis=0, ddof=1), rtol=1e-9)
+
+
+def test_histogram_counts_are_numpys_for_equal_step_edges():
+    """Every value's bin as np.histogram puts it: on each edge, just below and above it, at the last edge
+    (the closed last bin), outside the range (left out), means of integer frames (k / 15) that fall on 0.5-DN
+    edges; and edges of unequal steps (numpy's own search)."""
+    from pipeline.moments import histogram_counts
+
+    rng = np.random.default_rng(4)
+    edges = np.arange(760.3, 900.3 + 1e-9, 0.5)
+    on = np.concatenate([edges, np.nextafter(edges, -np.inf), np.nextafter(edges, np.inf)])
+    frames = 800 + rng.integers(-40, 120, (200_000, 15)).mean(axis=1)
+    values = np.concatenate([on, frames, [700.0, 1000.0, edges[-1]]])
+    assert np.array_equal(histogram_counts(values, edges), np.histogram(values, bins=edges)[0])
+    uneven = np.array([0.0, 1.0, 3.0, 3.5, 10.0])
+    x = rng.uniform(-1, 11, 10_000)
+    assert np.array_equal(histogram_counts(x, uneven), np.histogram(x, bins=uneven)[0])

@@ -165,3 +165,24 @@ def unlit_mask(shape: tuple[int, int], projection: str, min_radius_fraction: flo
     if projection == "rectilinear":
         return np.zeros(shape, dtype=bool)
     return corner_mask(shape, min_radius_fraction)
+
+
+def histogram_counts(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """``np.histogram(values, bins=edges)[0]`` for edges of (nearly) equal steps, without sorting the values.
+
+    Bins [e_i, e_i+1), the last one closed, values outside ignored, as numpy's. numpy sorts the values for
+    edges given as an array (0.12 s for 3 million at the real camera's band-image size); here each value's
+    bin is guessed from the mean step and corrected against the edges themselves (one bin at most, for
+    equal steps to rounding, as ``np.arange`` makes them; other edges go to numpy): about half the time.
+    """
+    edges = np.asarray(edges, dtype=float)
+    n = len(edges) - 1
+    v = np.asarray(values, dtype=float).ravel()
+    v = v[(v >= edges[0]) & (v <= edges[-1])]
+    step = (edges[-1] - edges[0]) / n
+    if not np.allclose(np.diff(edges), step, rtol=1e-9, atol=0.0):
+        return np.histogram(v, bins=edges)[0]     # not equal steps: numpy's search
+    index = np.minimum(((v - edges[0]) / step).astype(np.intp), n - 1)
+    index -= v < edges[index]
+    index += (v >= edges[index + 1]) & (index < n - 1)
+    return np.bincount(index, minlength=n)

@@ -37,7 +37,7 @@ from pipeline.errors import InputError
 from pipeline.fitting import base_design
 from pipeline.observations import fit_with_effects, table_to_dataset
 from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
-from pipeline.moments import RunningMoments, unlit_mask
+from pipeline.moments import RunningMoments, histogram_counts, unlit_mask
 from pipeline.radiometry.exposure import gain_from_iso
 from pipeline.rawio import read_tags
 
@@ -83,7 +83,7 @@ def summarise_setting(mean: np.ndarray, var: np.ndarray, circle: np.ndarray, hot
            "n_hot": int((hot & circle).sum()), "n_pixels": int(circle.sum())}
     for name, used in (("circle", circle), ("nonhot", nonhot)):
         m = mean[used]
-        out[name] = {"hist": np.histogram(m, bins=edges)[0], "centre_dn": float(m.mean()),
+        out[name] = {"hist": histogram_counts(m, edges), "centre_dn": float(m.mean()),
                      "width_dn": float(m.std()), "var_dn2": float(var[used].mean()), "n_used": int(used.sum())}
     return out
 
