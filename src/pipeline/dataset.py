@@ -174,7 +174,7 @@ def _read_yaml(path: Path, problems: list[Problem], what: str) -> tuple[bool, An
 
 
 def _read_csv(path: Path, required, problems: list[Problem], what: str, as_dicts: bool = True
-              ) -> tuple[list[str] | None, list[tuple[int, dict[str, str]]]]:
+              ) -> tuple[list[str] | None, list[tuple[int, dict[str, str] | list[str]]]]:
     """Header and (line number, row dict) pairs; values stripped, blank lines skipped.
 
     Notes a problem for every ragged row (which is left out), for missing

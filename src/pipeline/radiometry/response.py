@@ -169,9 +169,10 @@ class PixelResponse:
         self.beta = self.beta_sigma = 0.0
         self.full_scale_dn = float("nan")
         if "nonlinearity" in effects:
-            self.beta = _band_value(linearity, "effect_nonlinearity", band, 0.0)
-            self.beta_sigma = _band_value(linearity, "effect_nonlinearity_sigma", band, 0.0)
-            self.full_scale_dn = _band_value(linearity, "nonlinearity_full_scale_dn", band, float("nan"))
+            # the one reading of the fitted terms (at ISO 100, where the gain factor is 1 by definition)
+            response = response_model(linearity, band, UNIT_GAIN_ISO)
+            self.beta, self.beta_sigma = response.nonlinearity_beta, response.nonlinearity_beta_sigma
+            self.full_scale_dn = response.full_scale_dn
         self.flat = None
         if "prnu" in effects:
             # where the linearity stage did not measure the flat field (NaN: outside its photon-transfer

@@ -62,8 +62,7 @@ from pipeline.observations import table_to_dataset, with_corner_table
 from pipeline.radiometry.measurement import FrameSettings
 from pipeline.radiometry.response import flat_field_at, response_corrected, response_effects
 from pipeline.radiometry.source import scale_to_reference
-from pipeline.radiometry.unlit_corners import FrameCorners
-from pipeline.stages.spectral import central_frames, central_masks, dark_levels, frame_table, reduce_central
+from pipeline.stages.spectral import frame_table, reduce_lens_central
 
 STAGE = "absolute"
 TERMS = ("lamp_calibration", "reference", "spectrometer_noise", "extra", "image", "response")
@@ -253,15 +252,7 @@ def compute(ctx) -> xr.Dataset:
     spectrum = read_source_spectrum(ctx.dataset)
     reference = reference_reading(read_source_reference(ctx.dataset), root / STAGE / "source_reference.csv",
                                   cfg["reference_wavelength_nm"])
-    # the first frame decodes while the mask is made and the dark artefact read
-    with central_frames(ctx.dataset, STAGE, progress=ctx.progress) as stream:
-        masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"],
-                              cfg["mask_min_pixels"])
-        dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
-        corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
-        reduced = reduce_central(ctx.dataset, STAGE, masks, corners=corners, stream=stream)
-    ctx.record_frames(reduced["inputs"])
-    darks = dark_levels(reduced, dark, root / STAGE / "frames.csv")
+    reduced, darks, corners = reduce_lens_central(ctx, STAGE)
     linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else {}
     arts = analyse_absolute(reduced, darks, {ctx.lens: ctx.upstream["spectral"]}, spectrum,
                             root / STAGE / "source_spectrum.csv", reference, ctx.config, linearity)

@@ -360,6 +360,21 @@ def _lens_dataset(lens, wl, dn, dn_sigma, pd_sig, pd_std, s, s_sigma, cov, stats
 
 
 # ----------------------------------------------------------------------------- the stage
+def reduce_lens_central(ctx, experiment: str):
+    """One lens job's reduction of a central-mask experiment (spectral, absolute): the mask from the lens's
+    in-air theta map, the frames streamed once (the first decoding while the mask is made and the dark
+    artefact read), the frames recorded, the dark level of each setting. Returns (reduced, darks, corners)."""
+    cfg = ctx.params
+    with central_frames(ctx.dataset, experiment, progress=ctx.progress) as stream:
+        masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"],
+                              cfg["mask_min_pixels"])
+        dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
+        corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
+        reduced = reduce_central(ctx.dataset, experiment, masks, corners=corners, stream=stream)
+    ctx.record_frames(reduced["inputs"])
+    return reduced, dark_levels(reduced, dark, ctx.dataset.root / experiment / "frames.csv"), corners
+
+
 def compute(ctx) -> xr.Dataset:
     """The spectral artefact of one lens (the stage runner's contract).
 
@@ -368,17 +383,8 @@ def compute(ctx) -> xr.Dataset:
     the linearity artefact, when given, corrects every setting's signal
     through the measurement chain (``response_corrections`` attribute).
     """
-    cfg = ctx.params
     photodiode = read_photodiode(ctx.dataset)      # bad sidecar input fails before any frame is decoded
-    # the first frame decodes while the mask is made and the dark artefact read
-    with central_frames(ctx.dataset, STAGE, progress=ctx.progress) as stream:
-        masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"],
-                              cfg["mask_min_pixels"])
-        dark = {ctx.lens: ctx.upstream["dark"]} if "dark" in ctx.upstream else {}
-        corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
-        reduced = reduce_central(ctx.dataset, STAGE, masks, corners=corners, stream=stream)
-    ctx.record_frames(reduced["inputs"])
-    darks = dark_levels(reduced, dark, ctx.dataset.root / STAGE / "frames.csv")
+    reduced, darks, corners = reduce_lens_central(ctx, STAGE)
     linearity = {ctx.lens: ctx.upstream["linearity"]} if "linearity" in ctx.upstream else {}
     arts = analyse_spectral(reduced, darks, photodiode, ctx.dataset.root / STAGE / "photodiode.csv", ctx.config,
                             linearity)
