@@ -284,3 +284,63 @@ def test_covariate_varying_within_blocks_is_scanned_with_the_block_noise_as_a_ra
         name, p, _, _ = where_structure_sits(t, z, 6, blocks)
         found += name == "signal_fraction" and p < 2e-4
     assert found >= stats.binom.ppf(0.001, 40, 0.97), found
+
+
+#: the linearity setting table's blocks that get a shared excess, and its size in units of each row's sigma
+SHARED_BLOCKS = (0, 3, 6, 9)
+SHARED_SHIFT_Z = 2.0
+
+
+def _shifted_setting_table(shift_z: float) -> pd.DataFrame:
+    """A synthetic linearity setting table (13 settings of 6 rows, rows with their stated sigma, seed 7)
+    with every row of the settings SHARED_BLOCKS raised by ``shift_z`` of its own sigma."""
+    from pipeline.simulate.setting_tables import synthetic_linearity_settings
+
+    t = synthetic_linearity_settings(np.random.default_rng(7), 0.0, 0.0)
+    shifted = t["setting"].isin(SHARED_BLOCKS)
+    t.loc[shifted, "value_dn"] += shift_z * t.loc[shifted, "sigma_dn"]
+    return t
+
+
+def test_an_excess_shared_by_blocks_is_said_and_never_called_the_noise_floor(config):
+    """A table whose chi-square is far above its dof while the block-robust test does not call it structure
+    (the excess sits in whole settings, as noise common to a setting would) is said so, in
+    ``residual_tests`` (``shared_excess``), by ``diagnose`` and in the report, and never summed up as "at the
+    noise floor". 4 of 13 settings are raised by 2 sigma per row: at most 4 x 6 x 4 = 96 of excess on 66 dof,
+    less what the base model's rate and offsets take up (measured: chi2 126.1, chi-square tail 1.2e-5 against
+    the level 1e-3), which the block-robust test (twice the smaller of the bound, each setting's 6 rows as
+    one, and the t test of the per-setting excess, 4 blocks of 13) leaves at 0.058, far above the level. The
+    same table unshifted is at its floor (chi2 65.5 for 66, no note), and raised by 6 sigma it is structure
+    (block p 2e-16), not a shared excess."""
+    from pipeline.diagnosis import diagnosis_lines
+    from pipeline.diagnostics import Observations, residual_tests, shared_excess_sentences
+    from pipeline.report.sections._closure import residual_tests_table
+
+    cfg = config["diagnostics"]
+
+    def test_of(shift):
+        return residual_tests([Observations("linearity", "setting", _shifted_setting_table(shift))], [],
+                              pd.DataFrame(), cfg)
+
+    clean, shared, strong = test_of(0.0), test_of(SHARED_SHIFT_Z), test_of(6.0)
+    assert not clean.iloc[0]["shared_excess"] and not clean.iloc[0]["significant"]
+    assert not strong.iloc[0]["shared_excess"] and strong.iloc[0]["significant"]
+    row = shared.iloc[0]
+    assert row["shared_excess"] and not row["significant"], row.to_dict()
+    assert row["p_chi2"] < cfg["structure_level"] <= row["p_block"], row.to_dict()
+    text = shared_excess_sentences(shared)
+    assert len(text) == 1 and "not called structure" in text[0] and "each setting (13 blocks" in text[0], text
+    assert shared_excess_sentences(clean) == []
+
+    empty = pd.DataFrame()
+    found = {"model_effects": [], "n_measurements": len(_shifted_setting_table(0.0)), "run_errors": empty,
+             "missing_effects": empty, "unexplained": empty, "error_history": empty, "lens_tests": empty}
+    lines = diagnosis_lines({**found, "residual_tests": shared})
+    findings = lines[lines.index("Findings:") + 1:]
+    assert not any("at the noise floor" in line for line in findings), lines
+    assert any(line.rstrip().endswith("excess shared by blocks") for line in lines), lines
+    assert any(line.startswith("  - Linearity (setting level): chi2") for line in lines), lines
+    clean_lines = diagnosis_lines({**found, "residual_tests": clean})
+    assert any("at the noise floor" in line for line in clean_lines[clean_lines.index("Findings:"):]), clean_lines
+    # the report's residual-test table says it in its "structured" column
+    assert residual_tests_table(shared).rows[0][7] == "no, excess shared by blocks"

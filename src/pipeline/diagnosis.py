@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
+from pipeline.diagnostics import shared_excess_sentences
 from pipeline.effects import CATALOGUE, load_plugins
 from pipeline.effects import get as get_effect
 from pipeline.errors import InputError
@@ -125,7 +126,8 @@ def diagnosis_lines(found: dict, results: str | Path = "results") -> list[str]:
         lines += ["", "Residual chi-square per experiment and level, after the accepted candidates (p: the larger "
                       "of the chi-square tail and its block-robust test):"]
         for _, t in tests.iterrows():
-            mark = "  structured" if _truthy(t["significant"]) else ""
+            mark = ("  structured" if _truthy(t["significant"])
+                    else "  excess shared by blocks" if _truthy(t.get("shared_excess", False)) else "")
             after = t["accounted_by"] if isinstance(t["accounted_by"], str) and t["accounted_by"] else ""
             before = f" (model alone {float(t['chi2_model']):.1f}; with {after})" if after else ""
             lines.append(f"  {t['experiment'] + '/' + t['level']:<20} chi2 {float(t['chi2']):8.1f} for "
@@ -151,12 +153,19 @@ def diagnosis_lines(found: dict, results: str | Path = "results") -> list[str]:
                          f"p {float(t['p_value']):.2g}  {verdict}")
             if _truthy(t["significant"]):
                 findings.append(str(t["message"]))
+    shared = shared_excess_sentences(tests)
     lines += ["", "Findings:"]
-    if not findings:
+    if not findings and not shared:
         lines.append("  none: no candidate effect is significant and every table's residuals are at the noise "
                      "floor for their degrees of freedom")
+    elif not findings:
+        lines.append("  none: no candidate effect is significant and no table's residuals are structured; the "
+                     "tables below are above their noise floor all the same")
     for i, text in enumerate(findings, 1):
         lines.append(f"  {i}. {text[0].upper()}{text[1:]}.")
+    if shared:
+        lines += ["", "Above the stated noise, not called structure (the excess is shared by the rows of a block):"]
+        lines += [f"  - {text[0].upper()}{text[1:]}." for text in shared]
     history = found["error_history"]
     if len(history) and "run_time" in history:
         runs = list(dict.fromkeys(history["run_time"]))[-HISTORY_RUNS:]

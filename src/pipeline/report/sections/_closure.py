@@ -47,6 +47,11 @@ def is_structured(row) -> bool:
     return bool(v) and not (isinstance(v, float) and np.isnan(v))
 
 
+def _shared(row) -> bool:
+    """Whether a residual test's row is above its stated noise with the excess shared by its blocks."""
+    return str(row.get("shared_excess", "")).strip().lower() in ("true", "1")
+
+
 def _text(v) -> str:
     return "" if v is None or (isinstance(v, float) and np.isnan(v)) else str(v)
 
@@ -63,7 +68,8 @@ def residual_tests_table(tests: pd.DataFrame) -> Table:
             cov = f"{covariate_label(cov)} (p {fmt_value(r['covariate_p_value'], 2)})"
         rows.append([_text(r.get("experiment")), _text(r.get("level")), fmt_value(r.get("n_obs"), 6),
                      fmt_value(dof, 6), fmt_value(ratio, 3), fmt_value(r.get("p_chi2"), 2),
-                     fmt_value(r.get("p_block"), 2), "yes" if structured else "no", cov,
+                     fmt_value(r.get("p_block"), 2),
+                     "yes" if structured else "no, excess shared by blocks" if _shared(r) else "no", cov,
                      _text(r.get("image_plane")) or "—"])
         marked.append(structured)
     return Table(["experiment", "level", "n", "dof", "χ²/dof", "p", "block p", "structured",

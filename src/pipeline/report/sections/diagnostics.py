@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
+from pipeline.diagnostics import shared_excess_sentences  # noqa: E402
 from pipeline.observations import dataset_to_table  # noqa: E402
 from pipeline.report.content import Details, Group, Items, Markup, Table, Text, draw  # noqa: E402
 from pipeline.report.formatting import finite, fmt_value  # noqa: E402
@@ -302,6 +303,11 @@ def diagnostics_section(inputs) -> list:
             items.append(Markup("<b>{}</b>: {} <span class='note'>({})</span>").format(
                 r.get("experiment", ""), r.get("message", ""), "; ".join(extra)))
         structure = [Items(items)]
+    shared = shared_excess_sentences(inputs.residual_tests)
+    if shared:
+        structure.append(Text("Above the stated noise, but not called structure: the excess is shared by the rows "
+                              "of a frame or setting, as their common noise would be.", "note"))
+        structure.append(Items([f"{t[0].upper()}{t[1:]}." for t in shared]))
     out.append(Group("Unexplained structure", structure, id="unexplained"))
     history = inputs.error_history
     hist = []
