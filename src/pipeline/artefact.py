@@ -100,8 +100,12 @@ from pipeline.errors import ArtefactError
 #: was made with), so that a lit stage's corner prediction does not decompress the whole map.
 #: rolloff 7: the spots' pixels through the linearity artefact's fitted nonlinearity and flat field, the
 #: nonlinearity's uncertainty in ``rolloff_covariance`` (``rolloff_nonlinearity_shift``), ``response_corrections``.
-ARTEFACT_VERSIONS = {"dark": 5, "linearity": 7, "geometry": 5, "rolloff": 7, "spectral": 3,
-                     "absolute": 4, "immersion": 3, "calibration": 13, "field": 3, "closure": 6}
+#: rolloff 8: ``obs_setting`` gains the G spot centroid's standard uncertainty per axis (``spot_x_sigma_px``,
+#: ``spot_y_sigma_px``: pixel noise, the frames' scatter through the cut, the grid's sampling) and its terms;
+#: closure 7: the field-angle rows' noise is that uncertainty through the lens model's d a / d (u, v), no longer
+#: ``closure_spot_centroid_sigma_px`` (gone from the recorded diagnostics config) times the degrees per pixel.
+ARTEFACT_VERSIONS = {"dark": 5, "linearity": 7, "geometry": 5, "rolloff": 8, "spectral": 3,
+                     "absolute": 4, "immersion": 3, "calibration": 13, "field": 3, "closure": 7}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -13,8 +13,10 @@ The table ``closure/field_angle``, one row per roll-off setting of the green ban
 
 * value: a - angle (degree); one free zero per lens, medium and azimuth plane (``x_zero_az<azimuth>``:
   where the stage reads 0 need not be the optical axis to better than the mount's alignment);
-* noise: the spot centroid's own error, ``diagnostics.closure_spot_centroid_sigma_px`` band pixels times
-  the roll-off's degrees per pixel on the axis, independent from spot to spot; and the geometric model's
+* noise: the spot centroid's own error, the roll-off artefact's ``spot_x_sigma_px`` and ``spot_y_sigma_px``
+  (computed from the data by the roll-off stage: pixel noise, the frames' scatter through the threshold's cut,
+  the pixel grid's sampling; :func:`pipeline.stages.rolloff._add_centroid_sigma`) through the lens model's
+  d a / d u and d a / d v (:func:`in_plane_pixel_gradient`), independent from spot to spot; and the geometric model's
   error, common to every spot of a lens and medium, as what it is: whitened nuisance columns
   (``x_geometry_<k>``, the gradient of a with respect to the model's parameters, by central differences,
   times a square root of the geometry artefact's parameter covariance) with one prior row each (kind
@@ -28,9 +30,12 @@ short all leave structure in angle or medium that the stated noise does not hold
 the spot is found in it, and each band's model maps its own sites (R and B sit a quarter band pixel off).
 A rectilinear region (``projection: rectilinear``) or a geometry without the fisheye model's covariance
 has no rows. The table tests the geometry; it does not correct it: a flux-weighted centroid sits towards the
-axis where the roll-off falls across the port (a few tenths of a degree for the tiny simulated camera's
-6 degree port near 80 degrees, some hundredths for the real 1.8 degree port), which the stated centroid
-noise does not hold as a bias (README, "Closure and diagnostics"). Nothing here reads a simulator's truth: only the geometry and roll-off artefacts.
+axis where the roll-off falls across the port, more so where the threshold cuts the G band's half-lit edge
+pixels on the bright side and not on the dim one (up to half a degree for the tiny simulated camera's
+6 degree port at 60 to 80 degrees, some hundredths at the small scale's 1.8 degree port), which the stated
+centroid noise does not hold as a bias: on the tiny camera the table's chi2 stays some 15 % above its dof
+with a centroid noise that holds the errors about their smooth trend (README, "Closure and diagnostics").
+Nothing here reads a simulator's truth: only the geometry and roll-off artefacts.
 """
 
 from __future__ import annotations
@@ -52,6 +57,8 @@ LEVEL = "field_angle"
 PRIOR_KIND = "geometry_prior"
 #: relative central-difference step of the model's parameters (the angle is smooth in all of them)
 _STEP = 1.0e-6
+#: step (band pixels) of the central differences of the angle in the pixel coordinates
+_PIXEL_STEP_PX = 1.0e-3
 #: eigenvalues of the parameter covariance below this fraction of the largest carry no direction
 _RANK_TOL = 1.0e-12
 
@@ -82,6 +89,14 @@ def in_plane_gradient(model: FisheyeModel, names, u, v, azimuth_deg) -> np.ndarr
     return out
 
 
+def in_plane_pixel_gradient(model: FisheyeModel, u, v, azimuth_deg) -> tuple[np.ndarray, np.ndarray]:
+    """(d a / d u, d a / d v) (degree per band pixel) of :func:`in_plane_angle_deg`, by central differences."""
+    h = _PIXEL_STEP_PX
+    du = (in_plane_angle_deg(model, u + h, v, azimuth_deg) - in_plane_angle_deg(model, u - h, v, azimuth_deg)) / (2 * h)
+    dv = (in_plane_angle_deg(model, u, v + h, azimuth_deg) - in_plane_angle_deg(model, u, v - h, azimuth_deg)) / (2 * h)
+    return np.ravel(du), np.ravel(dv)
+
+
 def _covariance_root(cov: np.ndarray) -> np.ndarray:
     """R with R R^T = cov (p x r), over the directions the covariance holds."""
     w, q = np.linalg.eigh(0.5 * (cov + cov.T))
@@ -89,11 +104,12 @@ def _covariance_root(cov: np.ndarray) -> np.ndarray:
     return q[:, keep] * np.sqrt(w[keep])
 
 
-def _lens_rows(lens: str, geo: xr.Dataset, roll: xr.Dataset, centroid_sigma_px: float) -> list[pd.DataFrame]:
+def _lens_rows(lens: str, geo: xr.Dataset, roll: xr.Dataset) -> list[pd.DataFrame]:
     if geo.attrs.get("projection", "fisheye") != "fisheye" or "geometry_parameter_covariance" not in geo:
         return []
     t = dataset_to_table(roll, "obs_setting")
-    need = {"kind", "band", "medium", "azimuth_deg", "angle_deg", "spot_x_px", "spot_y_px", "deg_per_px"}
+    need = {"kind", "band", "medium", "azimuth_deg", "angle_deg", "spot_x_px", "spot_y_px", "spot_x_sigma_px",
+            "spot_y_sigma_px"}
     if not need <= set(t.columns):
         return []
     t = t[(t["kind"].astype(str) == "spot") & (t["band"].astype(str) == "G")]
@@ -110,13 +126,16 @@ def _lens_rows(lens: str, geo: xr.Dataset, roll: xr.Dataset, centroid_sigma_px: 
         u, v = g["spot_x_px"].to_numpy(float), g["spot_y_px"].to_numpy(float)
         az, angle = g["azimuth_deg"].to_numpy(float), g["angle_deg"].to_numpy(float)
         a = np.ravel(in_plane_angle_deg(model, u, v, az))
+        # the centroid's own standard uncertainty per axis (roll-off artefact) through the model's d a / d (u, v)
+        da_du, da_dv = in_plane_pixel_gradient(model, u, v, az)
+        sigma = np.hypot(da_du * g["spot_x_sigma_px"].to_numpy(float), da_dv * g["spot_y_sigma_px"].to_numpy(float))
         root = _covariance_root(cov[:len(names), :len(names)])
         cols = in_plane_gradient(model, names, u, v, az).T @ root            # (n, r)
         rows = pd.DataFrame({
             "lens": lens, "medium": medium, "band": "G", "kind": "spot", "azimuth_deg": az, "angle_deg": angle,
             "spot_x_px": u, "spot_y_px": v, "geometry_angle_deg": a,
             "value_dn": a - angle,
-            "sigma_dn": centroid_sigma_px * g["deg_per_px"].to_numpy(float),
+            "sigma_dn": sigma,
             "group": f"{lens}/{medium}",
         })
         for plane in np.unique(az):
@@ -138,9 +157,8 @@ def field_angle_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.D
     """``closure/field_angle`` (module docstring): the geometry's in-plane angle of each roll-off spot
     against the rotation stage's angle, per lens and medium, with the geometry's error as nuisance columns."""
     geometry, rolloff = datasets_by_lens(loaded.get("geometry", [])), datasets_by_lens(loaded.get("rolloff", []))
-    sigma_px = float(config["diagnostics"]["closure_spot_centroid_sigma_px"])
     parts = [p for lens in sorted(set(geometry) & set(rolloff))
-             for p in _lens_rows(lens, geometry[lens], rolloff[lens], sigma_px)]
+             for p in _lens_rows(lens, geometry[lens], rolloff[lens])]
     if not parts:
         return pd.DataFrame()
     out = pd.concat(parts, ignore_index=True)

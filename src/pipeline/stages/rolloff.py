@@ -5,7 +5,8 @@ Streams the roll-off frames once (dark frames first, then the port images):
 * dark subtraction with the per-pixel mean of the experiment's dark frames of
   the same medium;
 * the port spot: the brightest pixel of the smoothed G image, the connected
-  pixels above half its level, their flux-weighted centroid; a setting whose
+  pixels above ``rolloff.spot_threshold_fraction`` of its level, their flux-weighted centroid, found on the
+  setting's first frame; a setting whose
   spot carries no light above the noise in the lit field
   (``rolloff.min_spot_snr``) or whose light rises beyond the field's edge
   (the wing of a port outside it) is dropped with its
@@ -20,6 +21,23 @@ Streams the roll-off frames once (dark frames first, then the port images):
 * the noise of each setting mean from the frame-to-frame differences, pooled
   per band into a photon-transfer line var = k S + r (no per-point noisy
   variances);
+* the centroid's uncertainty, per axis (``spot_x_sigma_px``, ``spot_y_sigma_px``,
+  :func:`_add_centroid_sigma`), the sum in quadrature of three terms: the pixels'
+  noise through the flux-weighted centroid (the setting keeps five sums; the noise
+  model above is known only after streaming); the cut's flips, pixels that pass
+  the threshold in one frame and not the next (the scatter of every frame's
+  centroid through the same cut, pooled per lens, medium and azimuth plane, beyond
+  the pixel term: with the G band's edge pixels at half the level, one green site
+  of two lit, this is 20 times the linear term); and the pixel grid's sampling of
+  the sharp-edged spot, 1 / (12 pi n R) for a spot of radius R band pixels and n
+  samples a pixel (2 for G). Against the simulator's true port centres (README,
+  "Closure and diagnostics", ``closure/field_angle``) the three hold the centroid's
+  error at both scales: rms of error over sigma 1.00 (tiny, nine seeds) and 0.96
+  (small, two seeds), the noise terms alone 1.05 and 0.99 of the seed-to-seed
+  scatter; a constant 0.1 px, 0.96 and 0.76. The spread of the centroid over
+  threshold fractions 0.3 to 0.7 was measured and left out: it follows the error
+  only on average (rms of error over it 1.1 to 1.8 in its upper quartiles, 800 in
+  the lowest, where no edge pixel lies between the fractions);
 * the halo: mean excess in an annulus just outside the port's pixels (the
   union over bands of the pixels above ``halo_spot_fraction`` of each band's
   peak: the R and B sites are offset from the G sites), and the model's
@@ -98,6 +116,9 @@ log = logging.getLogger("pipeline.rolloff")
 #: connected pixels lie inside it, up to the whole image. The result does not depend on it (only the time):
 #: the window is searched only where it provably holds what the whole image would give.
 SPOT_WINDOW_HALF_PX = 48
+#: independent samples of the scene in one G band pixel (the mean of the cell's two green sites,
+#: :func:`pipeline.bands.band_plane`): the grid term of the centroid's uncertainty (:func:`_add_centroid_sigma`)
+G_SITES_PER_BAND_PIXEL = 2
 
 
 def _window(shape, iy: int, ix: int, half: int) -> tuple[slice, slice]:
@@ -217,6 +238,8 @@ def _setting_masks(bands: dict[str, np.ndarray], darks: dict[str, np.ndarray], l
                       f"rolloff.min_spot_snr {cfg['min_spot_snr']:g} x {noise_3x3_dn:.3g} DN)")
     peaks = {b: _peak_pixel(_lit_image(bands[b], darks[b], lit)) if b != "G" else peak_g for b in BANDS}
     cx, cy, (gy, gx) = _find_spot(bands["G"], darks["G"], lit, cfg["spot_threshold_fraction"], peaks["G"])
+    centroid = _centroid_sums(bands["G"], darks["G"], gy, gx, cx, cy)
+    centroid["peak_px"] = peaks["G"]
     inside, outside = _peak_beside_field(bands["G"], darks["G"], lit, gy, gx)
     if outside > inside:
         return None, (f"port beyond the edge of the lit field (near x {cx:.1f}, y {cy:.1f} its light rises outside "
@@ -246,7 +269,19 @@ def _setting_masks(bands: dict[str, np.ndarray], darks: dict[str, np.ndarray], l
         return (my + win[0].start) * shape[1] + (mx + win[1].start)
 
     # pixel indices, not images: a setting keeps a few hundred numbers, never a frame
-    return (flat(circle), flat(annulus), flat(spot), _halo_weights(spot, annulus, sigma_psf), (cx, cy)), ""
+    return (flat(circle), flat(annulus), flat(spot), _halo_weights(spot, annulus, sigma_psf), (cx, cy), centroid), ""
+
+
+def _centroid_sums(band: np.ndarray, dark: np.ndarray, ys: np.ndarray, xs: np.ndarray, cx: float,
+                   cy: float) -> dict[str, float]:
+    """The sums over the spot's pixels (``ys``, ``xs``; weights w = ``band`` - ``dark``) that the pixel noise's
+    share of the flux-weighted centroid's variance needs once the noise model is known (:func:`centroid_sigma`):
+    W = sum w, sum dx^2 w, sum dx^2 (and the same in y), dx = x - cx. Five numbers, never an image: the noise
+    model var = k S + r is fitted only after the frames have streamed."""
+    w = band[ys, xs].astype(float) - dark[ys, xs]
+    dx2, dy2 = (xs - cx) ** 2, (ys - cy) ** 2
+    return {"w_sum": float(w.sum()), "dx2_w": float(dx2 @ np.clip(w, 0.0, None)), "dx2": float(dx2.sum()),
+            "dy2_w": float(dy2 @ np.clip(w, 0.0, None)), "dy2": float(dy2.sum()), "n_pix": int(w.size)}
 
 
 def _window_mean(a: np.ndarray, px: tuple[int, int]) -> float:
@@ -370,7 +405,12 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
                 setting_masks[key] = masks
         if key in dropped:
             continue
-        circle, annulus, spot, weights, (_cx, _cy) = setting_masks[key]
+        circle, annulus, spot, weights, first_centroid, centroid = setting_masks[key]
+        # the G spot's centroid in this frame, the same cut around the first frame's peak (the first frame's own
+        # is the setting's): the frames' scatter measures the centroid's noise, the cut's flips included
+        frame_centroid = (first_centroid if key + ("G",) not in acc else
+                          _find_spot(images.bands["G"], st["dark"]["G"], st["lit"], cfg["spot_threshold_fraction"],
+                                     centroid["peak_px"])[:2])
         for band in BANDS:
             # dark-subtracted at the setting's pixels only (the same values as the whole image's there), then
             # the response steps the linearity stage fitted
@@ -384,6 +424,8 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
             raw_spot = img[spot].astype(float) - dk[spot]
             entry = {"saturated": bool(images.saturated[band].ravel()[circle].any()),
                      "exposure_s": float(dec.raw.exposure_s), "iso": float(dec.raw.iso)}
+            if band == "G":
+                entry["spot_centroid_px"] = frame_centroid
             for suffix, k in (("", 0.0), ("_beta", 1.0)) if shift else (("", 0.0),):
                 ann = resp(raw_ann, annulus, k)
                 entry["circle" + suffix] = resp(raw_circle, circle, k)
@@ -436,7 +478,10 @@ def setting_table(reduced: dict, config: dict, beta_shift: bool = False) -> pd.D
     for key, frames in reduced["acc"].items():
         lens, medium, az, angle, band = key
         st = reduced["static"][(lens, medium)]
-        circle, annulus, _, _, (cx, cy) = reduced["masks"][key[:4]]
+        circle, annulus, _, _, (cx, cy), centroid = reduced["masks"][key[:4]]
+        # the G centroid of every frame of the setting, the same cut: its scatter about the setting's mean
+        each = np.array([f["spot_centroid_px"] for f in reduced["acc"][key[:4] + ("G",)]], float).reshape(-1, 2)
+        frame_ss = np.sum((each - each.mean(axis=0)) ** 2, axis=0)
         bi = BANDS.index(band)
         theta = st["theta"][bi].ravel()[circle]
         phi = np.radians(st["phi"][bi].ravel()[circle])
@@ -467,10 +512,14 @@ def setting_table(reduced: dict, config: dict, beta_shift: bool = False) -> pd.D
             "theta_air_centre_grad_x_deg_per_px": grad_air[0], "theta_air_centre_grad_y_deg_per_px": grad_air[1],
             "phi_deg": float(np.degrees(np.arctan2(np.mean(np.sin(phi)), np.mean(np.cos(phi))))),
             "spot_theta_deg": spot_theta, "spot_x_px": cx, "spot_y_px": cy,
+            "spot_weight_sum_dn": centroid["w_sum"], "spot_dx2_weight_dn": centroid["dx2_w"],
+            "spot_dx2_px2": centroid["dx2"], "spot_dy2_weight_dn": centroid["dy2_w"], "spot_dy2_px2": centroid["dy2"],
+            "spot_n_pix": centroid["n_pix"], "spot_n_centroid_frames": len(each),
+            "spot_frames_ss_x_px2": frame_ss[0], "spot_frames_ss_y_px2": frame_ss[1],
             "annulus_dn": float(np.mean([f["annulus_mean" + sfx] for f in frames])),
             "halo_raw_dn": float(np.mean([f["halo" + sfx] for f in frames])),
             "saturated": any(f["saturated"] for f in frames),
-            "dark_var_dn2": st["dark_var"][band], "n_dark": st["n_dark"],
+            "dark_var_dn2": st["dark_var"][band], "n_dark": st["n_dark"], "dark_var_g_dn2": st["dark_var"]["G"],
             "deg_per_px": st["deg_per_px"],
             # the frames' settings (tags): the cross-experiment closure turns the on-axis DN into DN per second
             "exposure_s": float(np.mean([f["exposure_s"] for f in frames])),
@@ -628,6 +677,40 @@ def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max
     return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
 
 
+def _add_centroid_sigma(tab: pd.DataFrame, noise_g: tuple[float, float]) -> None:
+    """The G spot centroid's standard uncertainty per axis, ``spot_x_sigma_px`` and ``spot_y_sigma_px`` (module
+    docstring, "the centroid's uncertainty"), and its three terms per axis (``spot_centroid_<term>_<axis>_px``):
+
+    * ``pixel``: the pixels' noise through the flux-weighted centroid, sum (x_i - cx)^2 var_i / W^2 with
+      var_i = k w_i + r + the dark mean's variance (the G noise model ``noise_g`` = (k, r), known only now:
+      the setting keeps the sums, :func:`_centroid_sums`);
+    * ``cut``: the frames' scatter of the centroid (each frame through the same cut) pooled over the settings
+      of a lens, medium and azimuth plane, beyond the pixel term's mean: the pixels that pass the cut or not
+      with the noise (a pixel at the threshold moves the centroid by its weight times its distance, which the
+      linear pixel term does not hold); 0 with one frame a setting;
+    * ``grid``: the pixel grid's sampling of a sharp-edged spot, 1 / (12 pi n R), R = sqrt(N / pi) the radius
+      (band pixels) of the cut's N pixels, n = :data:`G_SITES_PER_BAND_PIXEL`: the cut's edge falls at a
+      uniform position within each pixel it crosses (variance 1/12 px^2 per unit length of edge), whose first
+      moment about the centre, over the spot's weight, is that variance.
+    """
+    k, r = noise_g
+    var0 = r + tab["dark_var_g_dn2"] / tab["n_dark"]
+    w2 = tab["spot_weight_sum_dn"].clip(lower=1e-12) ** 2
+    grid = 1.0 / (12.0 * np.pi * G_SITES_PER_BAND_PIXEL * np.sqrt(tab["spot_n_pix"].clip(lower=1) / np.pi))
+    g = tab["band"] == "G"
+    plane = [tab["lens"], tab["medium"], tab["azimuth_deg"]]
+    for ax in ("x", "y"):
+        pixel = (k * tab[f"spot_d{ax}2_weight_dn"] + var0 * tab[f"spot_d{ax}2_px2"]) / w2
+        ss = tab[f"spot_frames_ss_{ax}_px2"].where(g, 0.0).groupby(plane).transform("sum")
+        dof = (tab["spot_n_centroid_frames"] - 1).where(g, 0).groupby(plane).transform("sum")
+        mean_pixel = pixel.where(g, 0.0).groupby(plane).transform("sum") / g.groupby(plane).transform("sum")
+        cut = np.where(dof > 0, np.clip(ss / dof.clip(lower=1) - mean_pixel, 0.0, None), 0.0)
+        tab[f"spot_centroid_pixel_{ax}_px"] = np.sqrt(pixel)
+        tab[f"spot_centroid_cut_{ax}_px"] = np.sqrt(cut)
+        tab[f"spot_centroid_grid_{ax}_px"] = np.sqrt(grid)
+        tab[f"spot_{ax}_sigma_px"] = np.sqrt(pixel + cut + grid)
+
+
 def analyse_rolloff(reduced: dict, config: dict, effects: list[str], beta_shift: bool = False) -> dict[str, xr.Dataset]:
     tab = setting_table(reduced, config, beta_shift)
     noise = noise_model(tab)
@@ -638,6 +721,7 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str], beta_shift:
     ann_var = k * tab["annulus_dn"].clip(lower=0) + r
     tab["sigma_annulus_dn"] = np.sqrt(ann_var / (tab["n_annulus"].clip(lower=1) * tab["n_frames"])
                                       + tab["dark_var_dn2"] / (tab["n_annulus"].clip(lower=1) * tab["n_dark"]))
+    _add_centroid_sigma(tab, noise["G"])
     tab["group"] = tab["lens"] + "/" + tab["band"] + "/" + tab["medium"]
     # normalisation: a0 of a first polynomial fit per group (g(0) = 1)
     norm = {}
@@ -801,6 +885,18 @@ def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise
                                   "power_b": list(ROLLOFF_POWERS)})
     store = o.assign(used=o["used"].astype(int), saturated=o["saturated"].astype(int))
     ds = ds.merge(table_to_dataset(store, "obs_setting"))
+    for ax in ("x", "y"):
+        if f"obs_setting__spot_{ax}_sigma_px" in ds:
+            ds[f"obs_setting__spot_{ax}_sigma_px"].attrs.update({
+                "units": "px", "long_name": f"standard uncertainty of the G spot centroid spot_{ax}_px (band pixels)",
+                "description": "sqrt of the sum of spot_centroid_pixel, _cut and _grid squared: the pixels' noise "
+                               "through the flux-weighted centroid (noise model var = k S + r), the frames' scatter "
+                               "of the centroid through the same cut beyond it (pooled per lens, medium and azimuth "
+                               "plane), and the grid's sampling of a sharp-edged spot, 1 / (12 pi n R), R = "
+                               "sqrt(spot_n_pix / pi), n = 2 green sites a band pixel"})
+            for term in ("pixel", "cut", "grid"):
+                ds[f"obs_setting__spot_centroid_{term}_{ax}_px"].attrs.update({
+                    "units": "px", "long_name": f"{term} term of spot_{ax}_sigma_px"})
     if len(water_tab):
         w = water_tab[water_tab["lens"] == lens].reset_index(drop=True)
         w = w.assign(used=w["used"].astype(int), saturated=w["saturated"].astype(int))
