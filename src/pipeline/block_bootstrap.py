@@ -180,14 +180,38 @@ class BlockTestPart:
     forms: tuple = BLOCK_NOISE_FORMS
 
 
+#: batches of the draws left out one at a time for the Monte Carlo error of a bootstrap p-value
+#: (:func:`jackknife_sd`): ten, so that each holds ``diagnostics.block_bootstrap_draws`` / 10 draws
+MC_BATCHES = 10
+
+
 @dataclass
 class BlockReference:
-    """The bootstrap references of a block test: F(k, nu) with nu matched to the draws."""
+    """The bootstrap references of a block test: F(k, nu) with nu matched to the draws, and nu matched again
+    with each of :data:`MC_BATCHES` batches of the draws left out (the jackknife of the Monte Carlo error)."""
 
     k: int
     dof: int
     nu_plug_in: float       # draws at the variances' estimate
     nu_propagated: float    # each draw at the variances one draw at the estimate estimated
+    nu_plug_in_without: tuple = ()       # per batch left out
+    nu_propagated_without: tuple = ()
+
+
+def jackknife_sd(values_without: np.ndarray) -> float:
+    """Standard error of an estimate from its values with each of B batches of the draws left out:
+    sqrt((B - 1) / B sum (v_j - mean v)^2)."""
+    v = np.asarray(values_without, float)
+    v = v[np.isfinite(v)]
+    if v.size < 2:
+        return float("nan")
+    return float(np.sqrt((v.size - 1) / v.size * np.sum((v - v.mean()) ** 2)))
+
+
+def _nu_without_batches(f_draws: np.ndarray, dof_max: float) -> tuple:
+    """nu of :func:`f_reference_dof` with each of :data:`MC_BATCHES` consecutive batches of ``f_draws`` left out."""
+    batches = np.array_split(np.arange(len(f_draws)), MC_BATCHES)
+    return tuple(f_reference_dof(np.delete(f_draws, b), dof_max) for b in batches)
 
 
 def block_bootstrap_reference(parts: list[BlockTestPart], draws: int, seed: int,
@@ -210,9 +234,15 @@ def block_bootstrap_reference(parts: list[BlockTestPart], draws: int, seed: int,
         k += _rank(p.sigma, p.X1) - _rank(p.sigma, p.X0)
         dof += len(p.sigma) - _rank(p.sigma, p.X1)
     k = max(k, 1)
-    nu_plug_in = f_reference_dof(drop_plug / k / (chi_plug / max(dof, 1)), dof)
-    nu_propagated = f_reference_dof(drop_prop / k / (chi_prop / max(dof, 1)), dof) if propagated else float("nan")
-    return BlockReference(k=k, dof=dof, nu_plug_in=nu_plug_in, nu_propagated=nu_propagated)
+    f_plug = drop_plug / k / (chi_plug / max(dof, 1))
+    nu_plug_in = f_reference_dof(f_plug, dof)
+    out = BlockReference(k=k, dof=dof, nu_plug_in=nu_plug_in, nu_propagated=float("nan"),
+                         nu_plug_in_without=_nu_without_batches(f_plug, dof))
+    if propagated:
+        f_prop = drop_prop / k / (chi_prop / max(dof, 1))
+        out.nu_propagated = f_reference_dof(f_prop, dof)
+        out.nu_propagated_without = _nu_without_batches(f_prop, dof)
+    return out
 
 
 def _rank(sigma: np.ndarray, X: np.ndarray) -> int:
@@ -243,9 +273,12 @@ BLOCK_REFERENCES = ("f", "bootstrap", "plug_in")
 
 
 def block_test_p_value(f_stat: float, k: int, n_blocks: int, parts: list[BlockTestPart], p_rows: float,
-                       alpha: float, cfg: dict) -> tuple[float, str, float]:
+                       alpha: float, cfg: dict) -> tuple[float, str, float, float]:
     """p-value of the block test's F on k parameters over tables of at least ``n_blocks`` blocks, with the
-    reference it was read from and that reference's denominator degrees of freedom.
+    reference it was read from, that reference's denominator degrees of freedom, and the Monte Carlo standard
+    error of log10 of the p-value (NaN for F(k, G - 1), which has none): the jackknife over
+    :data:`MC_BATCHES` batches of the draws (:func:`jackknife_sd`), so that a verdict near the level can be
+    seen to rest on the draws.
 
     ``diagnostics.block_reference`` ``f``: F(k, G - 1). ``bootstrap`` (``plug_in``): F(k, nu) matched to the
     propagated (plug-in) draws of :func:`block_bootstrap_reference`, ``diagnostics.block_bootstrap_draws`` of
@@ -262,8 +295,10 @@ def block_test_p_value(f_stat: float, k: int, n_blocks: int, parts: list[BlockTe
     if method not in BLOCK_REFERENCES:
         raise ValueError(f"diagnostics.block_reference: unknown {method!r}; known: {', '.join(BLOCK_REFERENCES)}")
     if method == "f" or not p_rows < alpha or not all(columns_within_blocks(p) for p in parts):
-        return float(stats.f.sf(f_stat, k, n_blocks - 1)), "F(k, G - 1)", float(n_blocks - 1)
+        return float(stats.f.sf(f_stat, k, n_blocks - 1)), "F(k, G - 1)", float(n_blocks - 1), float("nan")
     ref = block_bootstrap_reference(parts, int(cfg["block_bootstrap_draws"]),
                                     table_seed(parts, int(cfg["block_bootstrap_seed"])), propagated=method == "bootstrap")
-    nu = ref.nu_propagated if method == "bootstrap" else ref.nu_plug_in
-    return float(stats.f.sf(f_stat, k, nu)), f"{method} F(k, nu)", nu
+    nu, without = ((ref.nu_propagated, ref.nu_propagated_without) if method == "bootstrap"
+                   else (ref.nu_plug_in, ref.nu_plug_in_without))
+    log_p = np.log10(np.maximum(stats.f.sf(f_stat, k, np.asarray(without, float)), 1e-300))
+    return float(stats.f.sf(f_stat, k, nu)), f"{method} F(k, nu)", nu, jackknife_sd(log_p)

@@ -463,7 +463,7 @@ def lens_interaction_tests(observations: list[Observations], model_effects: list
                 f_block = gls.delta_chi2 / gls.k / (gls.chi2 / max(gls.dof, 1))
                 # the reference of diagnostics.block_reference, drawn where the rows' test is below the level
                 # before the Bonferroni correction (a superset of where it can change the verdict)
-                p_block, _, _ = block_test_p_value(f_block, gls.k, n_blocks,
+                p_block, _, _, _ = block_test_p_value(f_block, gls.k, n_blocks,
                                                    [BlockTestPart(sigma, Xs, Xd, blocks, fit_d, tuple(forms))],
                                                    p_model, cfg["significance_level"], cfg)
             p_value = max(p_model, p_block) if n_blocks else p_model

@@ -204,6 +204,12 @@ def explain_lines(found: dict, name: str) -> list[str]:
         verdict = "significant" if _truthy(row["significant"]) else "not significant"
         reference = row.get("block_reference")
         against = f" against {reference}" if isinstance(reference, str) and reference else ""
+        mc_sd = float(row.get("block_reference_mc_sd_log10", float("nan")))
+        if against and np.isfinite(mc_sd):
+            # the bootstrap reference's own Monte Carlo error: a verdict near the level may rest on the draws
+            against += (f", nu {float(row['block_reference_dof']):.1f}, Monte Carlo error of log10 p "
+                        f"{mc_sd:.2f}, p {10 ** -mc_sd * float(row['p_value_block']):.2g} to "
+                        f"{10 ** mc_sd * float(row['p_value_block']):.2g} within one")
         lines.append(f"  tested on {row['experiment']}{given}: rank {int(row['rank'])}, {verdict} (p {float(row['p_value']):.2g}; "
                      f"F test {float(row['p_value_model']):.2g}, block test {float(row['p_value_block']):.2g}{against} over "
                      f"{int(row['n_blocks'])} blocks), evidence {float(row['evidence']):.1f}, explains "

@@ -43,7 +43,8 @@ summarised as F(k, nu) (:mod:`pipeline.block_bootstrap`), drawn only where the r
 F test is below the level (elsewhere the candidate is not significant whatever the
 block reference, and F(k, G - 1) is reported); ``f``, F(k, G - 1) for G blocks (the
 fewest over the tables the candidate touches). ``block_reference`` and
-``block_reference_dof`` say which was read, with its nu. The scale chi2 / dof is not floored at
+``block_reference_dof`` say which was read, with its nu, and ``block_reference_mc_sd_log10`` the bootstrap's
+Monte Carlo standard error of log10 of the block p-value (jackknife over batches of the draws). The scale chi2 / dof is not floored at
 1 as in the F test of the rows: a stage's sigma may already hold noise common
 to a block (the field's reference-window term is common to the bands of a
 frame), which the random effect then counts twice (the field's glare: F test
@@ -249,7 +250,7 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
     p_model = float(stats.f.sf(f_stat, k, max(dof_1, 1)))
     # the same drop tested at the level of blocks (generalised least squares under the block noise)
     alpha = cfg["significance_level"] / max(n_candidates, 1)
-    p_value, p_block, n_blocks, reference, nu = p_model, float("nan"), 0, "", float("nan")
+    p_value, p_block, n_blocks, reference, nu, mc_sd = p_model, float("nan"), 0, "", float("nan"), float("nan")
     if all(p["gls"] is not None for p in parts):
         n_blocks = min(p["gls"].n_blocks for p in parts)
         k_gls = sum(p["gls"].k for p in parts)
@@ -258,8 +259,8 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         # of the rows (floored) still bounds the p-value from below
         s2_gls = sum(p["gls"].chi2 for p in parts) / max(sum(p["gls"].dof for p in parts), 1)
         f_gls = sum(p["gls"].delta_chi2 for p in parts) / k_gls / s2_gls
-        p_block, reference, nu = block_test_p_value(f_gls, k_gls, n_blocks, [p["test"] for p in parts], p_model,
-                                                    alpha, cfg)
+        p_block, reference, nu, mc_sd = block_test_p_value(f_gls, k_gls, n_blocks, [p["test"] for p in parts],
+                                                           p_model, alpha, cfg)
         p_value = max(p_model, p_block)
     best = max(parts, key=lambda p: p["fit0"].chi2 - p["fit1"].chi2)
     # scale the coefficient covariance by the residual variance when the noise is underestimated;
@@ -297,6 +298,7 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         "n_blocks": n_blocks,
         "block_reference": reference,
         "block_reference_dof": nu,
+        "block_reference_mc_sd_log10": mc_sd,
         "significant": bool(p_value < cfg["significance_level"] / max(n_candidates, 1) and evidence > 0),
         "explained_fraction": float(np.clip(d_chi2 / excess, 0.0, 1.0)) if excess > 0 else 0.0,
         "amplitude": amp, "amplitude_low": lo, "amplitude_high": hi,
