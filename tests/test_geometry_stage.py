@@ -155,7 +155,8 @@ def test_wrong_board_size_stops_clearly(simulated, tmp_path):
     meta["chessboard"]["inner_corners"] = [9, 7]
     (copy / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
     frames = pd.read_csv(copy / "geometry" / "frames.csv")
-    frames[(frames["lens"] == "far") & (frames["medium"] == "air")].head(4).to_csv(
+    # two frames: a board not found costs the corner search about 2 s per frame and band
+    frames[(frames["lens"] == "far") & (frames["medium"] == "air")].head(2).to_csv(
         copy / "geometry" / "frames.csv", index=False)
     write_md5sums(copy)
     cfg = load_config(overrides={"dataset": str(copy)})
