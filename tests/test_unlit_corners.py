@@ -23,6 +23,7 @@ import pandas as pd
 import pytest
 
 from pipeline import frames as frames_mod
+from pipeline.artefact import read_artefact
 from pipeline.observations import CORNER_PREFIX, dataset_to_table
 from pipeline.rawio import read_raw
 from pipeline.workflow import STAGES, run_stage
@@ -90,3 +91,55 @@ def test_corner_pattern_from_the_dark_artefacts_average_only_at_its_corner_fract
     assert corner_pattern_dn(dark, "G", corners) == 2.0          # fraction not given: the map
     assert corner_pattern_dn(dark, "B", corners, 1.0) == 2.0     # nothing stored for the band: the map
     assert corner_pattern_dn(dark.drop_vars("fpn_corner_mean_dn"), "R", corners, 1.0) == 2.0
+
+
+#: hot pixels of the test below: a fraction 40 times the default's, so that the tiny camera's corners hold some
+HOT_FRACTION = 0.02
+
+
+def _corner_slope(art) -> tuple[float, float]:
+    """Slope (DN/s) of the corners' departure from the dark model against exposure over the ISO 100 exposure
+    sweep of a linearity artefact's ``obs_corner``, with its standard error (weighted least squares)."""
+    t = dataset_to_table(art, CORNER_PREFIX)
+    t = t[t["iso"] == 100.0]
+    d = (t["corner_dn"] - t["dark_corner_dn"]).to_numpy(float)
+    w = 1.0 / t["sigma_corner_dn"].to_numpy(float) ** 2
+    X = np.column_stack([np.ones(len(t)), t["exposure_s"].to_numpy(float)])
+    cov = np.linalg.inv(X.T @ (X * w[:, None]))
+    coef = cov @ (X.T @ (w * d))
+    return float(coef[1]), float(np.sqrt(cov[1, 1]))
+
+
+def test_corners_leave_out_the_hot_pixels_the_dark_model_leaves_out(make_dataset, config, tmp_path, monkeypatch):
+    """With ``hot_pixels`` in the model the dark model is the level of the pixels that are not hot, so a lit
+    frame's corner mean must leave out the dark stage's hot pixels too: a hot pixel in a corner adds its own rate
+    times the exposure. Tiny camera, hot pixels at a fraction of 0.02 (about 4 per band in a lens's 200-odd
+    corner pixels, each some 300 DN/s): the corners' departure from the dark model along the linearity's
+    exposure sweep (ISO 100, 8 ms to 0.5 s) has no slope within 4 of its standard errors (the corners hold read
+    noise only; measured -0.05 +- 0.032 DN/s, seed 61); taking every corner pixel instead, as before, the hot
+    ones' mean rate shows as a slope (measured 8.14 +- 0.031 DN/s; asserted above 10 standard errors)."""
+    import pipeline.stages.linearity as linearity_stage
+    from pipeline.radiometry.unlit_corners import corner_pixels, corner_sites
+
+    root, _ = make_dataset([("dark_current", {}), ("hot_pixels", {"fraction": HOT_FRACTION})], seed=61)
+    run_stage("dark", root, config, {LENS: tmp_path / "dark.nc"})
+    dark = read_artefact(tmp_path / "dark.nc", "dark")
+    art = run_stage("linearity", root, config, {LENS: tmp_path / "lin.nc"}, {"dark": {LENS: tmp_path / "dark.nc"}})
+    slope, se = _corner_slope(art[LENS])
+    print(f"corners without the hot pixels: slope {slope:.3g} +- {se:.2g} DN/s")
+    assert abs(slope) < 4 * se, (slope, se)
+    # the hot pixels were left out: fewer sites than the corners hold
+    t = dataset_to_table(art[LENS], CORNER_PREFIX)
+    shape = dark["hot_pixel_mask"].sel(band="G").shape
+    whole = corner_pixels(shape, "fisheye", config["bias"]["corner_min_radius_fraction"])
+    kept = corner_sites(dark, whole)
+    assert int(dark["hot_pixel_mask"].sel(band="G").values[whole].sum()) > 0
+    assert set(t.loc[t["band"] == "G", "n_corner_sites"]) == {2 * int(kept["G"].sum())} != {2 * int(whole.sum())}
+
+    # the same with every corner pixel, hot ones included: the slope the closure flagged
+    monkeypatch.setattr(linearity_stage, "corner_sites", lambda d, corners: {b: corners for b in "RGB"})
+    with_hot = run_stage("linearity", root, config, {LENS: tmp_path / "lin_hot.nc"},
+                         {"dark": {LENS: tmp_path / "dark.nc"}})
+    slope_hot, se_hot = _corner_slope(with_hot[LENS])
+    print(f"every corner pixel: slope {slope_hot:.3g} +- {se_hot:.2g} DN/s")
+    assert slope_hot > 10 * se_hot, (slope_hot, se_hot)

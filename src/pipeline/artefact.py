@@ -104,8 +104,12 @@ from pipeline.errors import ArtefactError
 #: ``spot_y_sigma_px``: pixel noise, the frames' scatter through the cut, the grid's sampling) and its terms;
 #: closure 7: the field-angle rows' noise is that uncertainty through the lens model's d a / d (u, v), no longer
 #: ``closure_spot_centroid_sigma_px`` (gone from the recorded diagnostics config) times the degrees per pixel.
-ARTEFACT_VERSIONS = {"dark": 5, "linearity": 7, "geometry": 5, "rolloff": 8, "spectral": 3,
-                     "absolute": 4, "immersion": 3, "calibration": 13, "field": 3, "closure": 7}
+#: dark 6: with ``hot_pixels`` in the model, ``fpn_corner_mean_dn`` averages the corner pixels that are not hot
+#: (attribute ``hot_pixels_excluded``); linearity 8, rolloff 9, spectral 4, absolute 5, immersion 4: each lit
+#: frame's corner mean (``obs_corner``) leaves out the dark stage's hot pixels where the dark model does, so that
+#: it is the level that model predicts (pipeline.radiometry.unlit_corners.corner_sites).
+ARTEFACT_VERSIONS = {"dark": 6, "linearity": 8, "geometry": 5, "rolloff": 9, "spectral": 4,
+                     "absolute": 5, "immersion": 4, "calibration": 13, "field": 3, "closure": 7}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

@@ -9,7 +9,12 @@ predicts at the frame's ISO, exposure time and logged temperature:
     corner_dn = b0 + b1 (g - 1) + D g t  [+ (dB/dT + dD/dT g t) (T - T_ref)]  + mean of the fixed pattern
 
 (:mod:`pipeline.radiometry.dark`; the fixed pattern is the dark artefact's ``fpn_map_dn`` averaged over the
-same corner pixels, or its ``optical_black_offset_dn``). The noise of the measured mean is the dark stage's
+same corner pixels, or its ``optical_black_offset_dn``). With ``hot_pixels`` in the dark model, its level is that
+of the pixels that are not hot (the dark stage fits those, and the hot ones apart), so the corners' mean leaves
+out the dark stage's hot pixels too (:func:`corner_sites`): a hot pixel in a corner adds its own rate times the
+exposure, which no term of the model above holds (0.15 DN/s on the corners' mean of the default small dataset,
+6.5 sigma at 33 ms in its dark-corner closure before they were left out). ``apply`` leaves them out of its
+corners alike. The noise of the measured mean is the dark stage's
 read noise at the frame's ISO over the square root of the raw sites averaged (a G band pixel averages two):
 1.6 DN over sqrt(868) sites is 0.054 DN. The linearity stage corrects each frame's black level with it
 (``bias_drift``); every lit stage records it per frame (its artefact's ``obs_corner`` table), and the
@@ -32,7 +37,7 @@ from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
 from pipeline.rawio import RawFrame
 
 __all__ = ["CORNER_COLUMNS", "FrameCorners", "corner_mean_dn", "corner_noise_dn", "corner_pattern_dn", "corner_pixels",
-           "frame_corner_records", "frame_time_s", "predicted_corner_dn"]
+           "corner_sites", "frame_corner_records", "frame_time_s", "hot_pixels_left_out", "predicted_corner_dn"]
 
 #: columns of a per-frame corner record (and of the stages' ``obs_corner`` tables, with the stage's own keys)
 CORNER_COLUMNS = {"lens": ("lens region", None), "band": ("band", None),
@@ -53,6 +58,25 @@ def corner_pixels(shape: tuple[int, int], projection: str, min_radius_fraction: 
     return unlit_mask(shape, projection, min_radius_fraction)
 
 
+def hot_pixels_left_out(dark: xr.Dataset) -> bool:
+    """Whether the dark model is the level of the pixels that are not hot (``hot_pixels`` in its model: the
+    dark stage fits those and flags the others in ``hot_pixel_mask``)."""
+    effects = str(dark.attrs.get("model_effects", "")).replace(",", " ").split()
+    return "hot_pixels" in effects and "hot_pixel_mask" in dark
+
+
+def corner_sites(dark: xr.Dataset, corners: np.ndarray) -> dict[str, np.ndarray]:
+    """Per band, the corner pixels whose mean the dark model predicts: ``corners`` less the dark stage's hot
+    pixels when its model leaves them out (:func:`hot_pixels_left_out`), else ``corners`` (module docstring)."""
+    if not corners.any() or not hot_pixels_left_out(dark):
+        return {band: corners for band in BANDS}
+    out = {}
+    for band in BANDS:
+        keep = corners & (dark["hot_pixel_mask"].sel(band=band).values == 0)
+        out[band] = keep if keep.any() else corners
+    return out
+
+
 def corner_mean_dn(band_image: np.ndarray, corners: np.ndarray, band: str, raw: RawFrame) -> tuple[float, int]:
     """A frame's black-level reference in one band: (mean DN, raw sites averaged).
 
@@ -70,11 +94,13 @@ def corner_pattern_dn(dark: xr.Dataset, band: str, corners: np.ndarray, min_radi
     corner pixels, or the optically black pixels' offset in the dark frames, NaN without either.
 
     With the ``min_radius_fraction`` that made ``corners``, the dark stage's own average over the same pixels
-    (``fpn_corner_mean_dn``, when it was made with that fraction) is read instead of the whole offset map
+    (``fpn_corner_mean_dn``, when it was made with that fraction and over the same pixels, :func:`corner_sites`)
+    is read instead of the whole offset map
     (decompressing the map of one band at the full resolution costs about 0.1 s)."""
     stored = dark.get("fpn_corner_mean_dn")
     if (corners.any() and min_radius_fraction is not None and stored is not None
             and stored.attrs.get("corner_min_radius_fraction") == float(min_radius_fraction)
+            and bool(stored.attrs.get("hot_pixels_excluded", 0)) == hot_pixels_left_out(dark)
             and np.isfinite(float(stored.sel(band=band)))):
         return float(stored.sel(band=band))
     if corners.any():
@@ -116,22 +142,23 @@ def frame_time_s(raw: RawFrame) -> float:
     return stamp.timestamp()
 
 
-def frame_corner_records(lens: str, images: LensImages, raw: RawFrame, dark: xr.Dataset, corners: np.ndarray,
-                         temperature_c: float = np.nan, pattern_dn: dict[str, float] | None = None) -> list[dict]:
+def frame_corner_records(lens: str, images: LensImages, raw: RawFrame, dark: xr.Dataset,
+                         corners: dict[str, np.ndarray], temperature_c: float = np.nan,
+                         pattern_dn: dict[str, float] | None = None) -> list[dict]:
     """One decoded frame's corner records, one per band (columns :data:`CORNER_COLUMNS`): the measured mean
-    of the lens's unlit pixels ``corners`` (:func:`corner_pixels` of its projection), the dark model's
-    prediction there at the frame's ISO, exposure time and temperature, and the noise of the mean.
+    of the lens's unlit pixels ``corners`` (per band, :func:`corner_sites` of :func:`corner_pixels`), the dark
+    model's prediction there at the frame's ISO, exposure time and temperature, and the noise of the mean.
     ``pattern_dn``: :func:`corner_pattern_dn` of each band when the caller has it already."""
     iso, exposure_s = float(raw.iso), round(float(raw.exposure_s), 9)
     time_s = frame_time_s(raw)
     out = []
     for band in BANDS:
-        corner_dn, sites = corner_mean_dn(images.bands[band], corners, band, raw)
+        corner_dn, sites = corner_mean_dn(images.bands[band], corners[band], band, raw)
         pattern = None if pattern_dn is None else pattern_dn[band]
         out.append({"lens": lens, "band": band, "iso": iso, "exposure_s": exposure_s,
                     "temperature_c": float(temperature_c), "time_s": time_s,
                     "corner_dn": corner_dn, "n_corner_sites": sites,
-                    "dark_corner_dn": predicted_corner_dn(dark, band, iso, exposure_s, corners, temperature_c,
+                    "dark_corner_dn": predicted_corner_dn(dark, band, iso, exposure_s, corners[band], temperature_c,
                                                           pattern_dn=pattern),
                     "sigma_corner_dn": corner_noise_dn(dark, band, iso, sites)})
     return out
@@ -148,7 +175,7 @@ class FrameCorners:
         self.dark = dict(dark or {})
         self.projection = projection
         self.min_radius_fraction = float(min_radius_fraction)
-        self.corners: dict[str, np.ndarray] = {}
+        self.corners: dict[str, dict[str, np.ndarray]] = {}      # lens -> band -> corner pixels (corner_sites)
         # per lens and band, :func:`corner_pattern_dn` once at the lens's first frame (the upstream artefacts
         # are opened lazily: the dark artefact's offset map, 36 MB at the full resolution, stays on disk)
         self.pattern_dn: dict[str, dict[str, float]] = {}
@@ -166,8 +193,10 @@ class FrameCorners:
         if lens not in self.dark:
             return
         if lens not in self.corners:
-            self.corners[lens] = corner_pixels(images.bands["G"].shape, self.projection(lens), self.min_radius_fraction)
-            self.pattern_dn[lens] = {band: corner_pattern_dn(self.dark[lens], band, self.corners[lens],
+            self.corners[lens] = corner_sites(self.dark[lens], corner_pixels(images.bands["G"].shape,
+                                                                             self.projection(lens),
+                                                                             self.min_radius_fraction))
+            self.pattern_dn[lens] = {band: corner_pattern_dn(self.dark[lens], band, self.corners[lens][band],
                                                              self.min_radius_fraction) for band in BANDS}
         for record in frame_corner_records(lens, images, raw, self.dark[lens], self.corners[lens], temperature_c,
                                            self.pattern_dn[lens]):

@@ -411,7 +411,10 @@ def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, 
         m0 = reduced["base"][(lens, band)].mean()
         fpn[bi] = (m0 - m0[used].mean()).astype(np.float32)
         if cm.any():
-            fpn_corner[bi] = float(fpn[bi][cm].mean())
+            # over the corner pixels the dark model predicts: without the hot ones when it fits the others
+            # (radiometry.unlit_corners.corner_sites)
+            corner_used = cm & ~hot_map if pixels == "nonhot" else cm
+            fpn_corner[bi] = float(fpn[bi][corner_used].mean()) if corner_used.any() else float(fpn[bi][cm].mean())
         hot[bi] = hot_map.astype(np.uint8)
         b0[bi] = params[f"{lens}/{band}:b0"]
         b1[bi] = params[f"{lens}/{band}:b1"]
@@ -460,9 +463,11 @@ def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, 
                            {"long_name": "offset fixed pattern at the shortest exposure and lowest ISO, mean removed", "units": "DN"}),
             "fpn_corner_mean_dn": ("band", fpn_corner,
                                    {"long_name": "fpn_map_dn averaged over the unlit corner pixels (NaN without "
-                                                 "any), which every lit stage's black-level reference needs",
+                                                 "any), which every lit stage's black-level reference needs; "
+                                                 "without the hot pixels when hot_pixels_excluded is 1",
                                     "units": "DN",
-                                    "corner_min_radius_fraction": float(config["bias"]["corner_min_radius_fraction"])}),
+                                    "corner_min_radius_fraction": float(config["bias"]["corner_min_radius_fraction"]),
+                                    "hot_pixels_excluded": int(pixels == "nonhot")}),
             "hot_pixel_mask": (("band", "y", "x"), hot, {"long_name": "hot pixel (1) flagged in the longest exposures", "units": "1"}),
             "hot_pixel_count": ("band", hot.reshape(len(BANDS), -1).sum(axis=1), {"long_name": "number of hot band pixels", "units": "1"}),
             "rms_z": ((), np.sqrt((fit.chi2 + ffit.chi2) / max(fit.dof + ffit.dof, 1)),

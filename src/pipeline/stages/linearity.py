@@ -50,7 +50,7 @@ from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso
 from pipeline.radiometry.response import linear_signal
 from pipeline.radiometry.saturation import saturated_settings, signal_fraction
 from pipeline.radiometry.unlit_corners import (corner_mean_dn, corner_noise_dn, corner_pattern_dn, corner_pixels,
-                                               frame_time_s, predicted_corner_dn)
+                                               corner_sites, frame_time_s, predicted_corner_dn)
 from pipeline.stages.flatfield import flatfield
 
 STAGE = "linearity"
@@ -187,7 +187,8 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     # the same pixels as flat indices, taken from each band image (the same values in the same
                     # order as the boolean masks, without scanning the whole mask at every frame)
                     taken[lens, band] = (np.flatnonzero(m), np.flatnonzero(p))
-                corners[lens] = corner_pixels(g.shape, projection[lens], corner_fraction)
+                # per band: without the dark stage's hot pixels where its model leaves them out (corner_sites)
+                corners[lens] = corner_sites(dark[lens], corner_pixels(g.shape, projection[lens], corner_fraction))
             max_raw = max(max_raw, float(dec.raw.cfa.max()))
             first = (lens, sweep, key) not in first_of_setting
             first_of_setting.add((lens, sweep, key))
@@ -201,11 +202,11 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     pearson[(lens, band, sweep)].add(x, img, ~images.saturated[band])
                 # the frame's black-level reference: its unlit corners (fisheye), else the
                 # sensor's optically black pixels when the DNG declares them, else none (NaN)
-                corner_dn, corner_sites = corner_mean_dn(img, corners[lens], band, dec.raw)
+                corner_dn, n_corner_sites = corner_mean_dn(img, corners[lens][band], band, dec.raw)
                 frame_rows.append({
                     "lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
                     "file_index": i, "mask_mean_dn": float(flat.take(m_at).mean()),
-                    "corner_dn": corner_dn, "n_corner_sites": corner_sites,
+                    "corner_dn": corner_dn, "n_corner_sites": n_corner_sites,
                     "saturated": bool(images.saturated[band].reshape(-1).take(m_at).any()),
                     "temperature_c": float(row.get("temperature_c", np.nan)),
                     "white_level_dn": float(dec.raw.white_level),
@@ -290,13 +291,15 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     for lens, band in fr[["lens", "band"]].drop_duplicates().itertuples(index=False):
         fpn = dark[lens]["fpn_map_dn"].sel(band=band).values
         pattern[lens, band] = (float(fpn[reduced["masks"][lens][band]].mean()),
-                               corner_pattern_dn(dark[lens], band, reduced["corners"][lens]))
+                               corner_pattern_dn(dark[lens], band, reduced["corners"][lens][band],
+                                                 config["bias"]["corner_min_radius_fraction"]))
 
     def dark_pred(row, what):
         d = dark[row["lens"]]
         mask_dn, corner_dn = pattern[row["lens"], row["band"]]
         if what == "corner":
-            return predicted_corner_dn(d, row["band"], row["iso"], row["exposure_s"], reduced["corners"][row["lens"]],
+            return predicted_corner_dn(d, row["band"], row["iso"], row["exposure_s"],
+                                       reduced["corners"][row["lens"]][row["band"]],
                                        pattern_dn=corner_dn)
         return dark_level_dn(d, row["band"], row["iso"], row["exposure_s"]) + mask_dn
 
