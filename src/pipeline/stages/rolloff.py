@@ -677,6 +677,12 @@ def _water_closure(wat: pd.DataFrame, air_fits: dict, n_w: dict, n_g: float, max
     return pd.concat(out, ignore_index=True) if out else pd.DataFrame()
 
 
+#: the per-setting sums of :func:`_centroid_sums` and of the frames' centroids that :func:`_add_centroid_sigma`
+#: turns into the centroid's uncertainty (not kept in the artefact)
+_CENTROID_SUMS = ("spot_weight_sum_dn", "spot_dx2_weight_dn", "spot_dx2_px2", "spot_dy2_weight_dn", "spot_dy2_px2",
+                  "spot_frames_ss_x_px2", "spot_frames_ss_y_px2", "dark_var_g_dn2")
+
+
 def _add_centroid_sigma(tab: pd.DataFrame, noise_g: tuple[float, float]) -> None:
     """The G spot centroid's standard uncertainty per axis, ``spot_x_sigma_px`` and ``spot_y_sigma_px`` (module
     docstring, "the centroid's uncertainty"), and its three terms per axis (``spot_centroid_<term>_<axis>_px``):
@@ -709,6 +715,9 @@ def _add_centroid_sigma(tab: pd.DataFrame, noise_g: tuple[float, float]) -> None
         tab[f"spot_centroid_cut_{ax}_px"] = np.sqrt(cut)
         tab[f"spot_centroid_grid_{ax}_px"] = np.sqrt(grid)
         tab[f"spot_{ax}_sigma_px"] = np.sqrt(pixel + cut + grid)
+    # the sums the terms were made from are not kept: the terms and spot_n_pix (the grid term's N) say it all
+    for column in _CENTROID_SUMS:
+        del tab[column]
 
 
 def analyse_rolloff(reduced: dict, config: dict, effects: list[str], beta_shift: bool = False) -> dict[str, xr.Dataset]:

@@ -39,17 +39,22 @@ TEXT_COVARIATES = ("lens", "band", "sweep", "medium", "kind", SOURCE_EXPERIMENT)
 CLOSURE_COLUMN_OF = {"experiment": SOURCE_EXPERIMENT}
 
 
-def is_structured(row) -> bool:
-    """A residual test's row is structured when its ``significant`` column says so."""
-    v = row.get("significant")
+def _flag(row, column: str) -> bool:
+    """A residual test's yes/no column, as written (bool) or read back from its CSV (text)."""
+    v = row.get(column)
     if isinstance(v, str):
         return v.strip().lower() in ("true", "1", "yes")
     return bool(v) and not (isinstance(v, float) and np.isnan(v))
 
 
+def is_structured(row) -> bool:
+    """A residual test's row is structured when its ``significant`` column says so."""
+    return _flag(row, "significant")
+
+
 def _shared(row) -> bool:
     """Whether a residual test's row is above its stated noise with the excess shared by its blocks."""
-    return str(row.get("shared_excess", "")).strip().lower() in ("true", "1")
+    return _flag(row, "shared_excess")
 
 
 def _text(v) -> str:
