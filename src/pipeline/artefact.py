@@ -108,8 +108,11 @@ from pipeline.errors import ArtefactError
 #: (attribute ``hot_pixels_excluded``); linearity 8, rolloff 9, spectral 4, absolute 5, immersion 4: each lit
 #: frame's corner mean (``obs_corner``) leaves out the dark stage's hot pixels where the dark model does, so that
 #: it is the level that model predicts (pipeline.radiometry.unlit_corners.corner_sites).
+#: absolute 6: the signal frames' setting and level (``exposure_s``, ``iso``, ``signal_dn``), in the bundle (calibration
+#: 14) as ``absolute_exposure_s``, ``absolute_iso``, ``absolute_signal_dn``; field 4: the field scale closure
+#: (``obs_scale``: the camera/reference scale of each band against its prediction and its stated budget).
 ARTEFACT_VERSIONS = {"dark": 6, "linearity": 8, "geometry": 5, "rolloff": 9, "spectral": 4,
-                     "absolute": 5, "immersion": 4, "calibration": 13, "field": 3, "closure": 7}
+                     "absolute": 6, "immersion": 4, "calibration": 14, "field": 4, "closure": 7}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
 BUNDLE_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion")

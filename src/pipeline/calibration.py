@@ -11,7 +11,9 @@ covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``, version 13: the geometry's image circle fitted to the lit
+versioned artefact (``artefact = calibration``, version 14: the absolute experiment's signal
+setting and level (``absolute_exposure_s``, ``absolute_iso``, ``absolute_signal_dn``), which the field
+scale closure evaluates the missing response effects against; 13: the geometry's image circle fitted to the lit
 region's edge; 12: the stored per-cell counts; 2: the per-pixel
 maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
 flat field's uncertainty; 5: theta_deg_sigma, the absolute budget's new lamp
@@ -166,8 +168,10 @@ def _spectral_part(ds: xr.Dataset) -> xr.Dataset:
 
 
 def _absolute_part(ds: xr.Dataset) -> xr.Dataset:
-    out = ds[["inverse_responsivity", "inverse_responsivity_sigma", "relative_sigma", "uncertainty_contribution"]]
-    return out.rename({"relative_sigma": "inverse_responsivity_relative_sigma"})
+    out = ds[["inverse_responsivity", "inverse_responsivity_sigma", "relative_sigma", "uncertainty_contribution",
+              "exposure_s", "iso", "signal_dn"]]
+    return out.rename({"relative_sigma": "inverse_responsivity_relative_sigma", "exposure_s": "absolute_exposure_s",
+                       "iso": "absolute_iso", "signal_dn": "absolute_signal_dn"})
 
 
 def _immersion_part(ds: xr.Dataset) -> xr.Dataset:

@@ -832,6 +832,13 @@ def _reference_columns(header: list[str], records: list[tuple[int, list[str]]],
     return out
 
 
+#: the reference radiometer's stated calibration uncertainty when site.yaml's ``reference.calibration_relative_sigma``
+#: is absent (relative, one standard uncertainty): Larouche et al. 2024, Section 3.5, give their C-OPS "a
+#: conservative uncertainty of 2.5 %", which "also includes possible drifts of the C-OPS in the range of 1-2 % per
+#: year (instrument calibrated 19 months prior)"; the field scale closure (stages.field) counts it in each band's budget
+REFERENCE_CALIBRATION_RELATIVE_SIGMA = 0.025
+
+
 def _site(path: Path, problems: list[Problem]) -> dict:
     what = ("latitude_deg, longitude_deg, camera_clock_utc_offset_h and reference: "
             "{name, channels_nm, fwhm_nm, half_fov_deg}")
@@ -878,6 +885,9 @@ def _site(path: Path, problems: list[Problem]) -> dict:
     if "half_fov_deg" in ref:
         ref["half_fov_deg"] = _check(problems, path, _yaml_number, "reference.half_fov_deg", ref["half_fov_deg"],
                                      low=0.0, high=90.0)
+    ref["calibration_relative_sigma"] = _check(problems, path, _yaml_number, "reference.calibration_relative_sigma",
+                                               ref.get("calibration_relative_sigma",
+                                                       REFERENCE_CALIBRATION_RELATIVE_SIGMA), low=0.0, high=1.0)
     out["reference"] = ref
     return out
 

@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.diagnostics import shared_excess_sentences
+from pipeline.diagnostics import field_scale_sentence, shared_excess_sentences
 from pipeline.effects import CATALOGUE, load_plugins
 from pipeline.effects import get as get_effect
 from pipeline.errors import InputError
@@ -38,9 +38,9 @@ __all__ = ["diagnosis_lines", "explain_lines", "read_diagnostics"]
 FILES = {"missing_effects": "diagnostics/missing_effects.csv", "unexplained": "diagnostics/unexplained.csv",
          "residual_tests": "diagnostics/residual_tests.csv", "run_errors": "diagnostics/run_errors.csv",
          "error_history": "diagnostics/error_history.csv", "closure": "closure/residuals.nc",
-         "lens_tests": "diagnostics/lens_tests.csv"}
+         "lens_tests": "diagnostics/lens_tests.csv", "field_scale": "diagnostics/field_scale.csv"}
 #: files a results folder written before they existed may lack (read as empty tables)
-OPTIONAL = ("lens_tests",)
+OPTIONAL = ("lens_tests", "field_scale")
 #: runs of the error history that ``diagnose`` prints (the latest)
 HISTORY_RUNS = 5
 
@@ -121,6 +121,17 @@ def diagnosis_lines(found: dict, results: str | Path = "results") -> list[str]:
     for _, row in errors.iterrows():
         lines.append(f"  {row['experiment']:<10} rms_z {float(row['rms_z']):5.2f} "
                      f"(chi2 {float(row['chi2']):.1f} for {int(row['dof'])} dof)")
+    scale = found.get("field_scale", pd.DataFrame())
+    if len(scale):
+        lines += ["", "Field scale closure (camera / reference per band against the lab calibration's prediction; "
+                      "stated: the quadrature sum of the fit, the camera calibration, the reference's calibration and "
+                      "the spectral-mismatch prediction):"]
+        for _, r in scale.iterrows():
+            lines.append(f"  {r['lens']} {r['band']}: {float(r['k_b']):.4g} ({float(r['departure_percent']):+.2f} %, "
+                         f"stated {float(r['sigma_percent']):.2f} %, z {float(r['z']):+.1f}); after "
+                         f"{r['explained_by'] if isinstance(r['explained_by'], str) and r['explained_by'] else 'nothing'}"
+                         f": {float(r['remaining_percent']):+.2f} % (z {float(r['z_remaining']):+.1f})")
+        lines.append(f"  {field_scale_sentence(scale, found['missing_effects'])}")
     tests = found["residual_tests"]
     if len(tests):
         lines += ["", "Residual chi-square per experiment and level, after the accepted candidates (p: the larger "

@@ -97,12 +97,25 @@ structure left there is reported where it sits, beside the candidate that explai
 :func:`closure_table` gathers every measurement with its prediction, residual, noise and covariates
 (``results/closure/residuals.nc``).
 
+Tables a candidate is never fitted to (:data:`PREDICTED_TABLES`: the field scale closure, one row per band,
+ln of the camera/reference scale against the lab's prediction). A free parameter there would explain
+any departure of the scale (a gain change of the camera between lab and field would pass for a
+shutter offset), so a candidate's share in them is *predicted* from the parameter another table fits
+(``Effect.predicted_from``, ``Effect.predicted_shift``; the shutter offset from the linearity sweeps, the
+spectral mismatch and the glare from the match-up table): the shift, with its uncertainty (the parameter's
+covariance through the shift's derivative) added to the rows' variance, and the chi-square it removes
+(same weights before and after) joins the candidate's drop, evidence and explained fraction; it adds no
+parameter and no block to the test, so that a candidate without evidence of its own in the table that
+fits it is not made significant by the scale alone. Once accepted, a candidate's shift is taken out of
+those rows before the next round and in the residual tests after the accepted candidates.
+
 Nothing here reads a simulator's truth: only the stage artefacts.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -124,6 +137,8 @@ from pipeline.residual_structure import (
     residual_chi2_test,
     where_structure_sits,
 )
+
+log = logging.getLogger("pipeline.diagnostics")
 
 
 @dataclass
@@ -155,6 +170,67 @@ def observations_from_artefacts(artefacts: dict[str, list]) -> list[Observations
                      if f"obs_{level}__value_dn" in ds}
             units.discard(None)
             out.append(Observations(experiment, level, table, units.pop() if len(units) == 1 else None))
+    return out
+
+
+#: (experiment, level) of the tables whose rows no candidate is fitted to: its share there is predicted from the
+#: table its ``predicted_from`` names (module docstring)
+PREDICTED_TABLES = {("field", "scale")}
+
+
+def is_predicted(obs: Observations) -> bool:
+    return (obs.experiment, obs.level) in PREDICTED_TABLES
+
+
+@dataclass
+class Anchor:
+    """A candidate's coefficients and covariance as fitted on the table its predicted shift is taken from."""
+    effect: str
+    coef: np.ndarray
+    cov: np.ndarray
+    table: pd.DataFrame
+    source: str
+
+
+def predicted_shift(anchor: Anchor, obs: Observations) -> tuple[np.ndarray, np.ndarray] | None:
+    """The shift the anchored candidate predicts in ``obs``'s rows and its variance (the coefficients'
+    covariance through the shift's central-difference derivative); None when it is silent there."""
+    effect = get_effect(anchor.effect)
+    shift = effect.predicted_shift(obs.experiment, obs.level, obs.table, anchor.coef, anchor.table)
+    if shift is None:
+        return None
+    shift = np.asarray(shift, float)
+    jac = np.zeros((len(shift), anchor.coef.size))
+    for i in range(anchor.coef.size):
+        h = max(1e-3 * float(np.sqrt(max(anchor.cov[i, i], 0.0))), 1e-9 * max(abs(float(anchor.coef[i])), 1.0))
+        up, down = anchor.coef.astype(float).copy(), anchor.coef.astype(float).copy()
+        up[i] += h
+        down[i] -= h
+        jac[:, i] = (effect.predicted_shift(obs.experiment, obs.level, obs.table, up, anchor.table)
+                     - effect.predicted_shift(obs.experiment, obs.level, obs.table, down, anchor.table)) / (2 * h)
+    var = np.einsum("ri,ij,rj->r", jac, anchor.cov, jac)
+    return shift, np.clip(var, 0.0, None)
+
+
+def with_predictions(observations: list[Observations], anchors: list[Anchor]) -> list[Observations]:
+    """The observations with the accepted candidates' predicted shifts taken out of the predicted tables' rows
+    (their variances added to the rows' noise); the other tables as they are."""
+    if not anchors:
+        return observations
+    out = []
+    for obs in observations:
+        if not is_predicted(obs):
+            out.append(obs)
+            continue
+        table = obs.table.copy()
+        for anchor in anchors:
+            found = predicted_shift(anchor, obs)
+            if found is None:
+                continue
+            shift, var = found
+            table["value_dn"] = table["value_dn"].to_numpy(float) - shift
+            table["sigma_dn"] = np.sqrt(table["sigma_dn"].to_numpy(float) ** 2 + var)
+        out.append(replace(obs, table=table))
     return out
 
 
@@ -218,6 +294,8 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
     effect = get_effect(name)
     parts = []
     for obs in observations:
+        if is_predicted(obs):
+            continue
         S = effect.columns(obs.experiment, obs.level, obs.table)
         if S is None or not np.any(S):
             continue
@@ -239,12 +317,13 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
                       "test": BlockTestPart(sigma, X, Xf, blocks, fit1, tuple(cfg["block_noise_forms"]))})
     if not parts:
         return None
-    d_chi2 = sum(p["fit0"].chi2 - p["fit1"].chi2 for p in parts)
+    predicted = _predicted_parts(effect, parts, observations, designs)
+    d_chi2 = sum(p["fit0"].chi2 - p["fit1"].chi2 for p in parts) + sum(p["drop"] for p in predicted)
     k = sum(p["k"] for p in parts)
     chi2_1 = sum(p["fit1"].chi2 for p in parts)
     dof_1 = sum(p["fit1"].dof for p in parts)
-    excess = sum(p["fit0"].chi2 - p["fit0"].dof for p in parts)
-    n = sum(len(p["obs"].table) for p in parts)
+    excess = sum(p["fit0"].chi2 - p["fit0"].dof for p in parts) + sum(p["chi2_0"] - p["n"] for p in predicted)
+    n = sum(len(p["obs"].table) for p in parts) + sum(p["n"] for p in predicted)
     s2 = max(chi2_1 / max(dof_1, 1), 1.0)
     f_stat = (d_chi2 / k) / s2
     p_model = float(stats.f.sf(f_stat, k, max(dof_1, 1)))
@@ -263,16 +342,7 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
                                                            p_model, alpha, cfg)
         p_value = max(p_model, p_block)
     best = max(parts, key=lambda p: p["fit0"].chi2 - p["fit1"].chi2)
-    # scale the coefficient covariance by the residual variance when the noise is underestimated;
-    # the block-noise covariance (interval from t(G - 1), not the normal 1.96) when it is wider
-    cov_amp = best["cov"] * max(best["fit1"].chi2 / max(best["fit1"].dof, 1), 1.0)
-    if best["gls"] is not None:
-        g = best["gls"]
-        t_ratio = stats.t.isf(0.025, g.n_blocks - 1) / stats.norm.isf(0.025)
-        cov_block = g.cov * max(g.chi2 / max(g.dof, 1), 1.0) * t_ratio**2
-        d_model, d_block = np.diag(cov_amp), np.diag(cov_block)
-        if d_block.shape == d_model.shape and np.mean(d_block[d_model > 0] / d_model[d_model > 0]) > 1.0:
-            cov_amp = cov_block
+    cov_amp = _amplitude_cov(best)
     amp, lo, hi = effect.amplitude(best["obs"].experiment, best["obs"].level, best["obs"].table,
                                    best["coef"], cov_amp)
     # the smallest amplitude the counted test would call significant: the larger of the rows' test (normal
@@ -286,9 +356,15 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
         detectable = max(detectable, float(np.sqrt(max(var_block, 0.0))) * stats.t.isf(alpha / 2, g.n_blocks - 1))
     evidence = d_chi2 / s2 - k * np.log(max(n, 2))
     amplitude_name, units = effect.amplitude_label(best["obs"].experiment)
+    scale = [p for p in predicted if p["obs"].level == "scale"]
     return {
         "effect": name,
-        "experiment": "+".join(sorted({p["obs"].experiment for p in parts})),
+        "experiment": "+".join(sorted({p["obs"].experiment for p in parts + predicted})),
+        "field_scale_factor": " ".join(f"{b}:{np.exp(v):.4g}" for p in scale
+                                       for b, v in zip(p["obs"].table["band"].astype(str), p["shift"])),
+        "field_scale_explained": (float(sum(p["drop"] for p in scale) / sum(p["chi2_0"] for p in scale))
+                                  if scale and sum(p["chi2_0"] for p in scale) > 0 else float("nan")),
+        "_anchor": predicted[0]["anchor"] if predicted else None,
         "evidence": evidence,
         "delta_chi2": d_chi2,
         "n_params": k,
@@ -308,12 +384,56 @@ def _candidate_stats(name: str, observations: list[Observations], designs: dict,
     }
 
 
+def _amplitude_cov(part: dict) -> np.ndarray:
+    """A part's coefficient covariance scaled by its residual variance when the noise is underestimated; the
+    block-noise covariance (interval from t(G - 1), not the normal 1.96) when that is wider."""
+    cov_amp = part["cov"] * max(part["fit1"].chi2 / max(part["fit1"].dof, 1), 1.0)
+    if part["gls"] is not None:
+        g = part["gls"]
+        t_ratio = stats.t.isf(0.025, g.n_blocks - 1) / stats.norm.isf(0.025)
+        cov_block = g.cov * max(g.chi2 / max(g.dof, 1), 1.0) * t_ratio**2
+        d_model, d_block = np.diag(cov_amp), np.diag(cov_block)
+        if d_block.shape == d_model.shape and np.mean(d_block[d_model > 0] / d_model[d_model > 0]) > 1.0:
+            cov_amp = cov_block
+    return cov_amp
+
+
+def _predicted_parts(effect, parts: list[dict], observations: list[Observations], designs: dict) -> list[dict]:
+    """The candidate's predicted shift in each predicted table, from its coefficients on the table its
+    ``predicted_from`` names (one of ``parts``), and the chi-square it removes there, the rows weighted alike
+    before and after (their noise plus the shift's variance)."""
+    source = [p for p in parts if (p["obs"].experiment, p["obs"].level) == effect.predicted_from]
+    if not source:
+        return []
+    p = source[0]
+    anchor = Anchor(effect.name, np.asarray(p["coef"], float), _amplitude_cov(p), p["obs"].table,
+                    f"{p['obs'].experiment}/{p['obs'].level}")
+    out = []
+    for obs in observations:
+        if not is_predicted(obs):
+            continue
+        found = predicted_shift(anchor, obs)
+        if found is None or not np.all(np.isfinite(found[0])):
+            continue
+        shift, var = found
+        _, fit0 = designs[(obs.experiment, obs.level)]
+        r0 = obs.table["value_dn"].to_numpy(float) - fit0.pred
+        w = 1.0 / (obs.table["sigma_dn"].to_numpy(float) ** 2 + var)
+        chi2_0 = float(np.sum(w * r0**2))
+        out.append({"obs": obs, "anchor": anchor, "shift": shift, "chi2_0": chi2_0, "n": len(r0),
+                    "drop": chi2_0 - float(np.sum(w * (r0 - shift) ** 2))})
+    return out
+
+
 def candidate_significance(name: str, observations: list[Observations], model_effects: list[str], config: dict,
                            n_candidates: int = 1) -> dict | None:
     """Drop in chi-square, significance (model and block tests), evidence and amplitude of one candidate
     effect added to the model, as :func:`rank_missing_effects` computes them for every candidate."""
     designs = _designs(observations, model_effects, [])
-    return _candidate_stats(name, observations, designs, config["diagnostics"], n_candidates)
+    out = _candidate_stats(name, observations, designs, config["diagnostics"], n_candidates)
+    if out is not None:
+        out.pop("_anchor")
+    return out
 
 
 def _designs(observations: list[Observations], model_effects: list[str], selected: list[str]) -> dict:
@@ -330,7 +450,8 @@ def _designs(observations: list[Observations], model_effects: list[str], selecte
 
 
 def rank_missing_effects(observations: list[Observations], model_effects: list[str],
-                         config: dict, *, with_tests: bool = False) -> tuple[pd.DataFrame, ...]:
+                         config: dict, *, with_tests: bool = False, with_scale: bool = False
+                         ) -> tuple[pd.DataFrame, ...]:
     """Rank the effects missing from the model; also report unexplained structure.
 
     Forward selection: the candidate with the most evidence is ranked first; if
@@ -340,21 +461,24 @@ def rank_missing_effects(observations: list[Observations], model_effects: list[s
     accepted when a row was tested. Then every table's residuals are tested against their degrees of
     freedom, after the accepted candidates (:func:`residual_tests`); a candidate that leaves significant
     structure gets a note saying so. Returns (missing_effects, unexplained), and the residual tests third
-    when ``with_tests``.
+    when ``with_tests``; with ``with_scale`` also the field scale closure fourth (:func:`field_scale_table`).
     """
     cfg = config["diagnostics"]
     candidates = [name for name in available() if name not in model_effects]
     m = len(candidates)
     selected: list[str] = []
+    anchors: list[Anchor] = []
     rows = []
     remaining = list(candidates)
     first_round = None
     while remaining:
-        designs = _designs(observations, model_effects, selected)
-        stats_now = [r for r in (_candidate_stats(n, observations, designs, cfg, m) for n in remaining) if r]
+        now = with_predictions(observations, anchors)
+        designs = _designs(now, model_effects, selected)
+        stats_now = [r for r in (_candidate_stats(n, now, designs, cfg, m) for n in remaining) if r]
         if not stats_now:
             break
         stats_now.sort(key=lambda r: r["evidence"], reverse=True)
+        found = {r["effect"]: r.pop("_anchor") for r in stats_now}
         if first_round is None:
             first_round = stats_now
         top = stats_now[0]
@@ -366,6 +490,8 @@ def rank_missing_effects(observations: list[Observations], model_effects: list[s
             break
         rows.append(top)
         selected.append(top["effect"])
+        if found[top["effect"]] is not None:
+            anchors.append(found[top["effect"]])
         remaining.remove(top["effect"])
     table = pd.DataFrame(rows)
     if len(table):
@@ -378,8 +504,11 @@ def rank_missing_effects(observations: list[Observations], model_effects: list[s
                 names = f"{first_round[0]['effect']} and {first_round[1]['effect']}"
                 table.loc[table["effect"].isin([first_round[0]["effect"], first_round[1]["effect"]]), "note"] = (
                     f"{names} explain the residuals equally well; this dataset cannot tell them apart")
-    tests = residual_tests(observations, model_effects, table, cfg)
+    tests = residual_tests(observations, model_effects, table, cfg, anchors)
     _note_remaining_structure(table, tests)
+    if with_scale:
+        scale = field_scale_table(observations, anchors, float(cfg["field_scale_departure_sigma"]))
+        return table, unexplained_structure(tests), tests, scale
     if with_tests:
         return table, unexplained_structure(tests), tests
     return table, unexplained_structure(tests)
@@ -396,25 +525,28 @@ def accepted_effects(ranked: pd.DataFrame) -> list[str]:
 
 
 def residual_tests(observations: list[Observations], model_effects: list[str], ranked: pd.DataFrame,
-                   cfg: dict) -> pd.DataFrame:
+                   cfg: dict, anchors: list[Anchor] | None = None) -> pd.DataFrame:
     """Per experiment and level, the residual chi-square against its dof (:mod:`pipeline.residual_structure`),
     for the model and for the model plus the candidates the ranking accepted; where structure remains,
     the covariate and image-plane cell it follows. One row per table (columns: :data:`RESIDUAL_TEST_COLUMNS`)."""
     accepted = accepted_effects(ranked)
+    shifted = with_predictions(observations, anchors or [])
     before = _designs(observations, model_effects, [])
-    after = _designs(observations, model_effects, accepted)
+    after = _designs(shifted, model_effects, accepted)
     n_tables = max(len(observations), 1)
     level = cfg["structure_level"] / n_tables
     rows = []
-    for obs in observations:
+    for obs, obs_after in zip(observations, shifted):
         key = (obs.experiment, obs.level)
         sigma = obs.table["sigma_dn"].to_numpy(float)
         blocks, block_key = blocks_of(obs.table, cfg["block_keys"])
         X0, fit0 = before[key]
         X1, fit1 = after[key]
         t0 = residual_chi2_test(fit0.z, X0, sigma, blocks, fit0.dof)
-        t1 = residual_chi2_test(fit1.z, X1, sigma, blocks, fit1.dof)
+        t1 = residual_chi2_test(fit1.z, X1, obs_after.table["sigma_dn"].to_numpy(float), blocks, fit1.dof)
         here = [e for e in accepted if get_effect(e).columns(obs.experiment, obs.level, obs.table) is not None]
+        if is_predicted(obs):
+            here = [a.effect for a in anchors or [] if predicted_shift(a, obs) is not None]
         covariate, p_cov, share, n_cov = where_structure_sits(obs.table, fit1.z, cfg["covariate_bins"], blocks)
         significant = bool(t1.p_value < level)
         if any(get_effect(e).columns_carry_noise for e in here):
@@ -503,6 +635,101 @@ def shared_excess_sentences(tests: pd.DataFrame) -> list[str]:
         return []
     marked = tests["shared_excess"].astype(str).str.strip().str.lower().isin(("true", "1"))
     return [shared_excess_sentence(t) for _, t in tests[marked].iterrows()]
+
+
+#: columns of ``field_scale.csv``, one row per lens and band of the field scale closure
+FIELD_SCALE_COLUMNS = ("lens", "band", "reference", "n_matchups", "k_b", "k_predicted", "departure_percent",
+                       "sigma_percent", "z", "departs", "sigma_fit_percent", "sigma_camera_calibration_percent",
+                       "sigma_reference_calibration_percent", "sigma_spectral_mismatch_prediction_percent",
+                       "explained_by", "predicted_factor", "remaining_percent", "remaining_sigma_percent",
+                       "z_remaining", "departs_remaining")
+
+
+def field_scale_table(observations: list[Observations], anchors: list[Anchor], departure_sigma: float) -> pd.DataFrame:
+    """The field scale closure per lens and band (``field_scale.csv``): the camera/reference scale against the lab
+    calibration's prediction, its stated budget (percent), z, and what the accepted candidates predict of it
+    with what remains (module docstring, :data:`PREDICTED_TABLES`)."""
+    rows = []
+    for obs in observations:
+        if (obs.experiment, obs.level) != ("field", "scale"):
+            continue
+        t = obs.table
+        value, sigma = t["value_dn"].to_numpy(float), t["sigma_dn"].to_numpy(float)
+        shift, var, names = np.zeros(len(t)), np.zeros(len(t)), []
+        for anchor in anchors:
+            found = predicted_shift(anchor, obs)
+            if found is not None:
+                shift, var = shift + found[0], var + found[1]
+                names.append(anchor.effect)
+        remaining_sigma = np.sqrt(sigma**2 + var)
+        for i, r in t.reset_index(drop=True).iterrows():
+            z, z_left = value[i] / sigma[i], (value[i] - shift[i]) / remaining_sigma[i]
+            rows.append({
+                "lens": r.get("lens", ""), "band": r["band"], "reference": r.get("reference", ""),
+                "n_matchups": int(r.get("n_matchups", 0)), "k_b": float(r["k_b"]),
+                "k_predicted": float(r.get("k_predicted", 1.0)),
+                "departure_percent": 100.0 * float(np.expm1(value[i])), "sigma_percent": 100.0 * float(sigma[i]),
+                "z": float(z), "departs": bool(abs(z) > departure_sigma),
+                **{f"sigma_{term}_percent": 100.0 * float(r.get(f"sigma_{term}", np.nan))
+                   for term in ("fit", "camera_calibration", "reference_calibration", "spectral_mismatch_prediction")},
+                "explained_by": " ".join(names), "predicted_factor": float(np.exp(shift[i])),
+                "remaining_percent": 100.0 * float(np.expm1(value[i] - shift[i])),
+                "remaining_sigma_percent": 100.0 * float(remaining_sigma[i]), "z_remaining": float(z_left),
+                "departs_remaining": bool(abs(z_left) > departure_sigma)})
+    return pd.DataFrame(rows, columns=list(FIELD_SCALE_COLUMNS))
+
+
+def _truth(value) -> bool:
+    return str(value).strip().lower() in ("true", "1", "1.0", "yes")
+
+
+def field_scale_sentence(scale: pd.DataFrame, ranked: pd.DataFrame | None = None) -> str:
+    """The field verdict's first sentence (``field_scale.csv``): whether the camera/reference scale departs from
+    the lab calibration's prediction, by how much and at how many sigma, what it means, and what the candidates
+    the diagnostics accepted predict of it (each at the value the table its ``predicted_from`` names fits: the
+    rows of ``missing_effects.csv``); '' without a field scale closure."""
+    if not len(scale):
+        return ""
+    bands = "/".join(str(b) for b in scale["band"])
+    ratio = ", ".join(f"{float(v):.3g}" for v in scale["k_b"])
+    percent = ", ".join(f"{float(v):+.3g} %" for v in scale["departure_percent"])
+    stated = ", ".join(f"{float(v):.2g}" for v in scale["sigma_percent"])
+    zs = ", ".join(f"{float(v):+.1f}" for v in scale["z"])
+    head = (f"camera/reference {ratio} ({bands}), {percent} against a stated {stated} % (z {zs})")
+    if not scale["departs"].map(_truth).any():
+        text = f"field scale within its stated uncertainty: {head}"
+    else:
+        worst = scale.loc[scale["z"].abs().idxmax()]
+        text = (f"field scale DEPARTS: {head}: the lab calibration and the reference disagree by "
+                f"{float(worst['departure_percent']):+.3g} % at {abs(float(worst['z'])):.1f} sigma ({worst['band']})")
+    named = [n for n in str(scale["explained_by"].iloc[0]).split() if n != "nan"] \
+        if "explained_by" in scale and pd.notna(scale["explained_by"].iloc[0]) else []
+    if named:
+        parts = []
+        for name in named:
+            row = ranked[ranked["effect"] == name].iloc[0] if ranked is not None and len(ranked) \
+                and (ranked["effect"] == name).any() else None
+            if row is None:
+                parts.append(name)
+                continue
+            source = (get_effect(name).predicted_from or ("", ""))[0]
+            factors = "/".join(f"x{float(v.split(':')[1]):.3g}" for v in str(row.get("field_scale_factor", "")).split())
+            share = float(row.get("field_scale_explained", np.nan))
+            what = (f", {'explaining' if share >= 0 else 'adding'} {abs(100.0 * share):.0f} % of the scale's chi-square"
+                    if np.isfinite(share) else "")
+            parts.append(f"{name} ({row['amplitude']:.3g} {'' if str(row.get('units')) in ('1', 'nan') else row['units']}"
+                         f" as {'the match-up' if source == 'field' else 'the ' + source + ' experiment'} fits it) "
+                         f"{factors}{what}".replace(" )", ")").replace("  ", " "))
+        left = ", ".join(f"{float(r['remaining_percent']):+.2g} % (z {float(r['z_remaining']):+.1f})"
+                         for _, r in scale.iterrows())
+        tail = ("within the stated uncertainty" if not scale["departs_remaining"].map(_truth).any()
+                else "still beyond the stated uncertainty: an effect the catalogue lacks, or a change of the camera "
+                     "or the reference between lab and field")
+        text += f"; predicted by {'; '.join(parts)}; left: {left}, {tail}"
+    elif scale["departs"].map(_truth).any():
+        text += ("; no catalogue effect's lab-fitted value predicts it: a change of the camera or of the reference "
+                 "between the lab and the field, or a calibration term stated too small")
+    return text
 
 
 def _note_remaining_structure(ranked: pd.DataFrame, tests: pd.DataFrame) -> None:
@@ -654,7 +881,7 @@ def write_closure_table(observations: list[Observations], model_effects: list[st
 
 def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, missing_csv, unexplained_csv,
                        errors_csv, ledger_dir, history_csv, residual_tests_csv=None, closure_nc=None,
-                       lens_tests_csv=None) -> pd.DataFrame:
+                       lens_tests_csv=None, field_scale_csv=None) -> pd.DataFrame:
     """Rank missing effects over the stages' artefacts and the cross-experiment closure tables
     (:mod:`pipeline.cross_closure`), test every table's residuals and whether one value shared by the lenses
     is enough, write this run's figures and the error history; ``residual_tests_csv`` and ``lens_tests_csv``
@@ -667,13 +894,19 @@ def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, mis
     effects = list(config["model"]["effects"])
     loaded = {exp: [read_artefact(p, exp) for p in paths] for exp, paths in artefacts.items() if paths}
     obs = observations_from_artefacts(loaded) + closure_observations(loaded, config)
-    ranked, unexplained, tests = rank_missing_effects(obs, effects, config, with_tests=True)
+    ranked, unexplained, tests, scale = rank_missing_effects(obs, effects, config, with_scale=True)
     unexplained = describe_closure(unexplained, obs, effects)
     figures = error_figures(obs, effects)
     residual_tests_csv = residual_tests_csv or Path(unexplained_csv).with_name("residual_tests.csv")
     lens_tests_csv = lens_tests_csv or Path(unexplained_csv).with_name("lens_tests.csv")
+    field_scale_csv = field_scale_csv or Path(unexplained_csv).with_name("field_scale.csv")
+    for _, r in scale.iterrows():
+        log.info("field scale %s %s: %+.1f %% (stated %.1f %%, z %+.1f); after %s: %+.1f %% (z %+.1f)", r["lens"],
+                 r["band"], r["departure_percent"], r["sigma_percent"], r["z"], r["explained_by"] or "nothing",
+                 r["remaining_percent"], r["z_remaining"])
     for path, table in ((missing_csv, ranked), (unexplained_csv, unexplained), (errors_csv, figures),
-                        (residual_tests_csv, tests), (lens_tests_csv, lens_interaction_tests(obs, effects, config))):
+                        (residual_tests_csv, tests), (lens_tests_csv, lens_interaction_tests(obs, effects, config)),
+                        (field_scale_csv, scale)):
         _write_csv_atomic(table, Path(path))
     if closure_nc is not None:
         inputs = {f"{exp}/{Path(p).name}": sha256_file(p) for exp, paths in artefacts.items() for p in paths}

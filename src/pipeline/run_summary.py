@@ -34,7 +34,15 @@ def summarise_run(results: str | Path, model_effects: list[str], skipped: dict[s
                   structured_rms_z: float = 1.5, *, diagnostics: Path | None = None,
                   report: Path | None = None) -> list[str]:
     """The lines to print after a run; ``results`` is the workflow's results folder (``diagnostics``
-    and ``report``: the tables' folder and the report, when not the rules' own)."""
+    and ``report``: the tables' folder and the report, when not the rules' own).
+
+    The field match-up's line begins with its scale closure (``field_scale.csv``: the camera/reference scale
+    against the lab calibration's prediction), the one test of the absolute radiance against an instrument
+    the calibration was not fitted to. The last line gives one ``--config`` that adds every effect the
+    run found, in the order the diagnostics accepted them (following one experiment's suggestion alone
+    would drop the others')."""
+    from pipeline.diagnostics import accepted_effects, field_scale_sentence
+
     results = Path(results)
     diag = diagnostics or results / "diagnostics"
     report = report or results / "report" / "index.html"
@@ -42,17 +50,19 @@ def summarise_run(results: str | Path, model_effects: list[str], skipped: dict[s
     errors = _read(diag / "run_errors.csv")
     ranked = _read(diag / "missing_effects.csv")
     unexplained = _read(diag / "unexplained.csv")
+    scale = _read(diag / "field_scale.csv")
+    found_all = [e for e in accepted_effects(ranked) if e not in model_effects] if len(ranked) else []
     width = max([len(str(e)) for e in errors.get("experiment", [])] + [9])
     for _, row in errors.iterrows():
         exp = str(row["experiment"])
         head = f"  {exp:<{width}}  rms_z {float(row['rms_z']):5.2f}: "
-        found = ranked[(ranked["experiment"].astype(str).str.contains(exp, regex=False))
+        if exp == "field" and len(scale):
+            head += field_scale_sentence(scale, ranked) + ". Match-up: "
+        found = ranked[(ranked["experiment"].astype(str).str.split("+").map(lambda names: exp in names))
                        & ranked["significant"].astype(bool)] if len(ranked) else ranked
         if len(found):
             top = found.sort_values("rank").iloc[0]
-            effects = ", ".join(list(model_effects) + [str(top["effect"])])
-            lines.append(f"{head}{top['effect']} is most likely missing,{_amplitude(top)}; add it with "
-                         f"--config 'model={{effects: [{effects}]}}' (or model.effects in config/config.yaml)")
+            lines.append(f"{head}{top['effect']} is most likely missing,{_amplitude(top)}")
             continue
         left = unexplained[unexplained["experiment"].astype(str) == exp] if len(unexplained) else unexplained
         if len(left):
@@ -62,6 +72,10 @@ def summarise_run(results: str | Path, model_effects: list[str], skipped: dict[s
             lines.append(f"{head}at the noise floor")
         else:
             lines.append(f"{head}above the noise floor, no significant candidate (see the report)")
+    if found_all:
+        effects = ", ".join(list(model_effects) + found_all)
+        lines.append(f"  to add every effect this run found ({', '.join(found_all)}): --config 'model={{effects: "
+                     f"[{effects}]}}' (or model.effects in config/config.yaml)")
     for stage, why in (skipped or {}).items():
         lines.append(f"  skipped: {stage} ({why})")
     return lines

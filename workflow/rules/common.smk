@@ -146,6 +146,7 @@ def report_inputs(wildcards):
             "error_history": "results/diagnostics/error_history.csv",
             "residual_tests": "results/diagnostics/residual_tests.csv",
             "lens_tests": "results/diagnostics/lens_tests.csv",
+            "field_scale": "results/diagnostics/field_scale.csv",
             "closure": "results/closure/residuals.nc",
         }
     )

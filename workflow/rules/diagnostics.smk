@@ -12,6 +12,8 @@ rule diagnostics:
         residual_tests="results/diagnostics/residual_tests.csv",
         # per effect that may differ between the two sensors: one shared value against one per lens
         lens_tests="results/diagnostics/lens_tests.csv",
+        # per band of the field match-up: the camera/reference scale against the lab calibration's prediction
+        field_scale="results/diagnostics/field_scale.csv",
         # rebuilt at every run from the append-only ledger folder (one file per run, never rewritten)
         error_history="results/diagnostics/error_history.csv",
         # every measurement of every experiment: prediction, residual, expected noise, covariates

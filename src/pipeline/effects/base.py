@@ -158,6 +158,17 @@ class Effect:
         """Linearised model columns (n_rows, k) in DN, or None when silent here."""
         return None
 
+    #: the (experiment, level) whose fitted coefficients :meth:`predicted_shift` takes, or None
+    predicted_from: ClassVar[tuple[str, str] | None] = None
+
+    def predicted_shift(self, experiment: str, level: str, table: pd.DataFrame, coef: np.ndarray,
+                        anchor: pd.DataFrame) -> np.ndarray | None:
+        """What the effect, with the coefficients ``coef`` fitted on the table ``anchor`` (of
+        :attr:`predicted_from`), changes in the rows of a table it is never fitted to
+        (:data:`pipeline.diagnostics.PREDICTED_TABLES`: the field scale closure, ln of the camera/reference
+        scale), in that table's units; None when silent there (or when the model already corrects it)."""
+        return None
+
     def amplitude_label(self, experiment: str) -> tuple[str, str]:
         """Name and units of the amplitude that :meth:`amplitude` returns for that experiment."""
         return self.amplitude_name, self.amplitude_units

@@ -13,6 +13,16 @@ import pandas as pd
 
 from pipeline.effects.base import Effect, register
 
+#: the smallest factor a predicted shift takes the logarithm of (a parameter far outside its physical range)
+_TINY = 1e-6
+
+
+def _field_scale(experiment: str, level: str, table: pd.DataFrame, needed: tuple[str, ...]) -> bool:
+    """True on the field scale closure's table when it carries the covariates ``needed`` (the field stage
+    writes them only for the effects the model lacks)."""
+    return experiment == "field" and level == "scale" and all(c in table for c in needed)
+
+
 #: ISO settings a camera offers (ISO 100 doubling to 3200): the per-ISO draws of
 #: ``iso_gain`` are made for these, in this order, so that they do not depend on
 #: which experiments are simulated.
@@ -40,6 +50,16 @@ class DarkCurrent(Effect):
         if experiment != "dark" or level != "setting":
             return None
         return (table["gain"] * table["exposure_s"]).to_numpy()[:, None]
+
+    predicted_from = ("dark", "setting")
+
+    def predicted_shift(self, experiment, level, table, coef, anchor):
+        """Field scale: the dark signal D x ISO/100 x t that a dark model without it leaves in the field
+        frames' mask, over their signal: ln(1 + D (ISO/100 t / S)). The absolute experiment subtracts its own dark
+        frames (DATASET.md), which hold the dark current, so it adds no term of its own."""
+        if not _field_scale(experiment, level, table, ("field_dark_s_per_dn",)):
+            return None
+        return np.log(np.maximum(1.0 + float(coef[0]) * table["field_dark_s_per_dn"].to_numpy(float), _TINY))
 
 
 @register
@@ -116,6 +136,19 @@ class ShutterOffset(Effect):
         is_exposure = (table["sweep"] == "exposure").to_numpy()
         return (table["rate_dn_per_s"] * table["gain"]).to_numpy()[:, None] * is_exposure[:, None]
 
+    predicted_from = ("linearity", "setting")
+
+    def predicted_shift(self, experiment, level, table, coef, anchor):
+        """Field scale: R^-1 was made at the absolute experiment's exposure t_a and the field frames are at t_f;
+        with the true exposure t + dt and the chain dividing by t, the field radiance is off by
+        ln((1 + dt / t_f) / (1 + dt / t_a)) (exact, not linearised: at 1/4000 s a 0.4 ms offset is a factor 2.6)."""
+        if not _field_scale(experiment, level, table, ("inv_field_exposure_per_s", "calibration_exposure_s")):
+            return None
+        dt = float(coef[0])
+        field = 1.0 + dt * table["inv_field_exposure_per_s"].to_numpy(float)
+        lab = 1.0 + dt / table["calibration_exposure_s"].to_numpy(float)
+        return np.log(np.maximum(field, _TINY)) - np.log(np.maximum(lab, _TINY))
+
 
 @register
 class Nonlinearity(Effect):
@@ -138,6 +171,19 @@ class Nonlinearity(Effect):
             return None
         pred = table["pred_linear_dn"].to_numpy()
         return (-pred**2 / table["full_scale_dn"].to_numpy())[:, None]
+
+    predicted_from = ("linearity", "setting")
+
+    def predicted_shift(self, experiment, level, table, coef, anchor):
+        """Field scale: ln((1 - beta S_f / FS) / (1 - beta S_a / FS)), the response's bend at the field
+        frames' level S_f against the absolute experiment's S_a (FS: the linearity table's full scale)."""
+        needed = ("field_signal_dn", "calibration_signal_dn")
+        if not _field_scale(experiment, level, table, needed) or "full_scale_dn" not in anchor:
+            return None
+        beta, full = float(coef[0]), float(np.nanmedian(anchor["full_scale_dn"].to_numpy(float)))
+        field = 1.0 - beta * table["field_signal_dn"].to_numpy(float) / full
+        lab = 1.0 - beta * table["calibration_signal_dn"].to_numpy(float) / full
+        return np.log(np.maximum(field, _TINY)) - np.log(np.maximum(lab, _TINY))
 
 
 @register
@@ -183,6 +229,23 @@ class IsoGain(Effect):
         in_gain = (table["sweep"] == "gain").to_numpy()
         iso = table["iso"].to_numpy(dtype=float)
         return np.column_stack([pred * in_gain * (iso == k) for k in isos])
+
+    predicted_from = ("linearity", "setting")
+
+    def predicted_shift(self, experiment, level, table, coef, anchor):
+        """Field scale: ln(f(ISO_f) / f(ISO_a)), the fitted gain factors (1 at the lowest ISO) at the field
+        frames' ISO and the absolute experiment's; silent when an ISO is neither fitted nor the lowest."""
+        if not _field_scale(experiment, level, table, ("field_iso", "calibration_iso")) or "sweep" not in anchor:
+            return None
+        isos = self.isos_fitted(anchor)
+        lowest = float(anchor.loc[anchor["sweep"] == "gain", "iso"].astype(float).min())
+        factors = {lowest: 1.0, **{iso: 1.0 + float(c) for iso, c in zip(isos, coef)}}
+        out = []
+        for f_iso, a_iso in zip(table["field_iso"].to_numpy(float), table["calibration_iso"].to_numpy(float)):
+            if f_iso not in factors or a_iso not in factors:
+                return None
+            out.append(np.log(max(factors[f_iso], _TINY)) - np.log(max(factors[a_iso], _TINY)))
+        return np.array(out)
 
     def amplitude(self, experiment, level, table, coef, cov):
         i = int(np.argmax(np.abs(coef)))

@@ -83,6 +83,17 @@ class SpectralMismatch(Effect):
         diff = table["ref_convolved"].to_numpy(float) - table["ref_nearest"].to_numpy(float)
         return (diff * band_scale(table))[:, None]
 
+    predicted_from = ("field", "frame")
+
+    def predicted_shift(self, experiment, level, table, coef, anchor):
+        """Field scale against the nearest channel: ln(1 + c (m - 1)), m the band-convolved over the nearest
+        channel's reference over the match-ups, c the match-up table's coefficient (1 when the camera follows
+        the band-convolved reference)."""
+        if experiment != "field" or level != "scale" or "mismatch_factor" not in table:
+            return None
+        m = table["mismatch_factor"].to_numpy(float)
+        return np.log(np.maximum(1.0 + float(coef[0]) * (m - 1.0), 1e-6))
+
 
     def sky_spectral_exponent(self, hours_since_start: float) -> float:
         return float(self.params["exponent_change_per_h"]) * float(hours_since_start)

@@ -171,6 +171,15 @@ class StrayLight(Effect):
             return None
         return table["halo_column_dn"].to_numpy(float)[:, None]
 
+    predicted_from = ("field", "frame")
+
+    def predicted_shift(self, experiment, level, table, coef, anchor):
+        """Field scale: the glare the match-up table's coefficient c (sr-1) puts into the mask, as a share of the
+        camera radiance, ln(1 + c G) with G the mean glare covariate over the mean camera radiance (sr)."""
+        if experiment != "field" or level != "scale" or "glare_share_sr" not in table:
+            return None
+        return np.log(np.maximum(1.0 + float(coef[0]) * table["glare_share_sr"].to_numpy(float), 1e-6))
+
     def amplitude_label(self, experiment):
         if experiment == "field":
             return "stray_light_glare_sr", "sr-1"

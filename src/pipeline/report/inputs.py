@@ -44,6 +44,8 @@ class ReportInputs:
     closure: xr.Dataset | None = None
     #: ``lens_tests.csv``: per effect that may differ between the sensors, one shared value against one per lens
     lens_tests: pd.DataFrame = field(default_factory=pd.DataFrame)
+    #: ``field_scale.csv``: per band, the field camera/reference scale against the lab calibration's prediction
+    field_scale: pd.DataFrame = field(default_factory=pd.DataFrame)
     skipped: dict[str, str] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
     calibration: xr.Dataset | None = None
@@ -53,6 +55,14 @@ class ReportInputs:
     def stage(self, name: str) -> dict[str, xr.Dataset]:
         """The artefacts of one stage by lens (empty when the stage did not run)."""
         return self.artefacts.get(name, {})
+
+    def model_effects(self) -> list[str]:
+        """The model's effects as the artefacts record them (the first artefact's; every stage of one run has
+        the same model)."""
+        for _, _, _, ds in self.all_artefacts():
+            text = str(ds.attrs.get("model_effects", ""))
+            return [e.strip() for e in text.split(",") if e.strip()]
+        return []
 
     def all_artefacts(self):
         """(stage, lens, path, dataset) of every artefact, in the order of the chain."""

@@ -165,6 +165,10 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
                 y_resp_sum += float(mean.systematic_sigma) * mom.n
                 n_tot += mom.n
             y /= n_tot
+            # the signal frames' setting (frame-weighted): where the field scale closure evaluates the response
+            # effects the model lacks against the field frames' (stages.field)
+            t_mean = sum(k[5] * moments[k].n for k in keys) / n_tot
+            iso_mean = sum(k[4] * moments[k].n for k in keys) / n_tot
             y_std = np.sqrt(y_var_std) / n_tot
             y_se = np.sqrt(y_var_se) / n_tot
             y_resp = y_resp_sum / n_tot
@@ -177,6 +181,7 @@ def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset]
                 lamp_reference_correlation=cfg["lamp_reference_correlation"], lamp_model=cfg["lamp_model"],
                 extra_components=extra_components(cfg), response_relative_sigma=y_resp / y)
             rows.append({"band": band, "y": y, "y_sigma": y_sigma, "y_std": y_std, "y_se": y_se, "y_resp": y_resp,
+                         "exposure_s": t_mean, "iso": iso_mean, "signal_dn": y * t_mean * iso_mean / 100.0,
                          "n_mask": n_mask, "n_frames": n_tot, "budget": budget,
                          "dark_dn": darks[(lens, band, keys[0][4], keys[0][5])]["level_dn"],
                          "dark_source": darks[(lens, band, keys[0][4], keys[0][5])]["source"]})
@@ -211,6 +216,11 @@ def _lens_dataset(rows, wl, scaled, ref_value, ref_rel, fr, cfg) -> xr.Dataset:
                                             "units": "DN s-1"}),
             "dn_per_s_sigma": ("band", col("y_sigma"), {"long_name": f"uncertainty of dn_per_s used in the budget ({cfg['image_sigma']})",
                                                         "units": "DN s-1"}),
+            "exposure_s": ("band", col("exposure_s"), {"long_name": "exposure time of the signal frames (frame-weighted "
+                                                                   "mean over their settings)", "units": "s"}),
+            "iso": ("band", col("iso"), {"long_name": "ISO of the signal frames (frame-weighted mean)", "units": "1"}),
+            "signal_dn": ("band", col("signal_dn"), {"long_name": "dark-subtracted DN in the mask at the signal frames' "
+                                                                 "setting (dn_per_s x exposure x ISO / 100)", "units": "DN"}),
             "dn_per_s_region_std": ("band", col("y_std"), {"long_name": "spatial spread of the frame-averaged image in the mask", "units": "DN s-1"}),
             "dn_per_s_standard_error": ("band", col("y_se"),
                                         {"long_name": "standard error of the mask mean (temporal noise and dark level)", "units": "DN s-1"}),

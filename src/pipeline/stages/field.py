@@ -69,6 +69,15 @@ from the curvature of a parabola fitted to the total chi-square at five
 points one grid step apart around the minimum, times sqrt(reduced chi2) when
 that exceeds 1. The reference is then taken at t - c.
 
+Scale closure (``obs_scale``, :mod:`pipeline.radiometry.field_scale`): the band scales k_b are the
+calibration's absolute claim, which the frame table's free scales do not test. One row per band: ln k_b
+against the predicted 0 (k_b = 1 against the reference the model compares with), its noise the relative
+budget of the fit's standard error, the chain's systematic sigma over the mask (R^-1, roll-off, flat
+field, response corrections), the reference radiometer's calibration (site.yaml
+``reference.calibration_relative_sigma``) and, with ``spectral_mismatch``, the convolution's own
+uncertainty; and the covariates with which the diagnostics predict the share of each effect the model
+lacks (the field frames' exposure, ISO and level against the absolute experiment's, from the bundle).
+
 Stray light from the sun (``stray_light``): every frame counts the band
 pixels of the lens near full scale (``field.sun_seen_fraction_of_full_scale``;
 the sun is seen with ``field.sun_seen_min_pixels`` or more) and the match-up
@@ -94,11 +103,12 @@ import xarray as xr
 
 from pipeline.apply import EXCLUDED_FROM_GRID, BandChain, bin_on_sphere, check_frame, sphere_coordinates
 from pipeline.bands import BANDS
-from pipeline.dataset import read_reference_radiometer, read_site
+from pipeline.dataset import REFERENCE_CALIBRATION_RELATIVE_SIGMA, read_reference_radiometer, read_site
 from pipeline.errors import ImpossibleResult, InputError
 from pipeline.frames import iter_frames
 from pipeline.observations import fit_with_effects, table_to_dataset
 from pipeline.radiometry import measurement as mm
+from pipeline.radiometry.field_scale import SCALE_TERMS, mismatch_prediction_relative_sigma, scale_relative_sigma
 from pipeline.radiometry.spectral import band_weights
 from pipeline.radiometry.sun_glare import band_direct_irradiance, sun_glare_covariate
 
@@ -655,6 +665,12 @@ def compute(ctx) -> xr.Dataset:
         log.info("field %s: sun glare %.3g +- %.2g sr-1 at %g degree from the sun", ctx.lens, glare["coef"],
                  glare["se"], float(cfg["stray_light_reference_angle_deg"]))
     scales = np.array([float(np.nanmean((base_pred / table["x_scale"])[table["band"] == b])) for b in BANDS])
+    scale_table = _scale_table(ctx, frames, table, fit, scales, valid, st, predict, channels, channel_mean, lam_eff,
+                               outside, site)
+    for _, r in scale_table.iterrows():
+        log.info("field %s %s: camera / reference %.4g against the predicted 1 (%+.1f %%, %.1f %% stated, z %+.1f)",
+                 ctx.lens, r["band"], r["k_b"], 100.0 * np.expm1(r["value_dn"]), 100.0 * r["sigma_dn"],
+                 r["value_dn"] / r["sigma_dn"])
     out = _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_reference, stat, n_matchups,
                    table, fit, scales, nearest_idx, channels, lam_eff, conv_w, outside, sky, predict, sun_zenith,
                    masks, window)
@@ -683,6 +699,104 @@ def compute(ctx) -> xr.Dataset:
         out["stray_light_glare_sr_sigma"] = ((), glare["se"], _attrs("standard error of stray_light_glare_sr", "sr-1"))
         out["stray_light_mask_glare"] = (("frame", "band"), glare["coef"] * glare_cov,
                                          _attrs("fitted sun glare in the mask's mean radiance", RAD))
+    return out.merge(_scale_dataset(scale_table))
+
+
+def _scale_table(ctx, frames, table, fit, scales, valid, st, predict, channels, channel_mean, lam_eff, outside,
+                 site) -> pd.DataFrame:
+    """The field scale closure's rows, one per band (:mod:`pipeline.radiometry.field_scale`): ln k_b against the
+    predicted 0, its budget, and the covariates of the effects the model lacks that move the scale."""
+    from pipeline.fitting import base_design
+
+    bundle, lens, effects = ctx.bundle, ctx.lens, set(ctx.effects)
+    _, names = base_design(table)
+    rchi2 = max(fit.chi2 / max(fit.dof, 1), 1.0)
+    reference_rel = float(site["reference"].get("calibration_relative_sigma", REFERENCE_CALIBRATION_RELATIVE_SIGMA))
+    rows = []
+    for j, band in enumerate(BANDS):
+        ok = valid[band]
+        i = names.index(f"{band}:scale")
+        camera = frames[f"mean_{band}"].to_numpy(float)[ok]
+        exposure = frames["exposure_s"].to_numpy(float)[ok]
+        iso = frames["iso"].to_numpy(float)[ok]
+        b = bundle.sel(lens=lens, band=band)
+        lam_sigma = float(b["effective_wavelength_nm_sigma"]) if "effective_wavelength_nm_sigma" in b else 0.0
+        slope = np.nanmedian([spectral_slope(channels, channel_mean[f], lam_eff[j]) for f in np.flatnonzero(ok)])
+        terms = {
+            "fit": float(np.sqrt(max(fit.cov[i, i], 0.0) * rchi2)) / scales[j],
+            "camera_calibration": float(np.nanmedian(frames[f"systematic_{band}"].to_numpy(float)[ok] / camera)),
+            "reference_calibration": reference_rel,
+            "spectral_mismatch_prediction": (mismatch_prediction_relative_sigma(slope, lam_eff[j], lam_sigma,
+                                                                                outside[band])
+                                             if predict == "convolved" else 0.0),
+        }
+        row = {"group": band, "band": band, "lens": lens, "value_dn": float(np.log(scales[j])),
+               "sigma_dn": scale_relative_sigma(terms), "k_b": float(scales[j]), "k_predicted": 1.0,
+               "reference": predict, "n_matchups": int(ok.sum()), **{f"sigma_{t}": terms[t] for t in SCALE_TERMS}}
+        # covariates of the effects the model lacks (the chain corrects the others): the field frames' setting and
+        # level against the absolute experiment's, where R^-1 was made (effects' predicted_shift)
+        r_inv = float(b["inverse_responsivity"])
+        signal_dn = float(np.mean(camera / r_inv * exposure * iso / 100.0))
+        if "shutter_offset" not in effects:
+            row["inv_field_exposure_per_s"] = float(np.mean(1.0 / exposure))
+            row["calibration_exposure_s"] = float(b["absolute_exposure_s"])
+        if "nonlinearity" not in effects:
+            row["field_signal_dn"] = signal_dn
+            row["calibration_signal_dn"] = float(b["absolute_signal_dn"])
+        if "iso_gain" not in effects:
+            row["field_iso"] = float(np.median(iso))
+            row["calibration_iso"] = float(b["absolute_iso"])
+        if "dark_current" not in effects:
+            row["field_dark_s_per_dn"] = float(np.mean(iso / 100.0 * exposure) / signal_dn)
+        if "spectral_mismatch" not in effects:
+            near = np.array([st[("nearest", band)]["mean"][f] for f in np.flatnonzero(ok)])
+            conv = np.array([st[("convolved", band)]["mean"][f] for f in np.flatnonzero(ok)])
+            row["mismatch_factor"] = float(np.mean(conv) / np.mean(near))
+        if "stray_light" not in effects:
+            cov = table.loc[table["band"] == band, "sun_glare_covariate"].to_numpy(float)
+            row["glare_share_sr"] = float(np.mean(cov) / np.mean(camera))
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+#: units of the scale table's columns (``obs_scale``)
+SCALE_UNITS = {"value_dn": "1", "sigma_dn": "1", "k_b": "1", "k_predicted": "1", "n_matchups": "1",
+               **{f"sigma_{t}": "1" for t in SCALE_TERMS}, "inv_field_exposure_per_s": "s-1",
+               "calibration_exposure_s": "s", "field_signal_dn": "DN", "calibration_signal_dn": "DN", "field_iso": "1",
+               "calibration_iso": "1", "field_dark_s_per_dn": "s DN-1", "mismatch_factor": "1", "glare_share_sr": "sr"}
+SCALE_LONG_NAMES = {
+    "value_dn": "ln of the band's camera / reference scale k_b over its prediction",
+    "sigma_dn": "relative standard uncertainty of the scale (the quadrature sum of the sigma_ terms)",
+    "k_b": "fitted camera / reference scale of the band (the match-up table's)",
+    "k_predicted": "the scale the lab calibration predicts against the reference the model compares with",
+    "reference": "the reference the model compares with (nearest channel, or band-convolved with spectral_mismatch)",
+    "n_matchups": "match-ups of the band",
+    "sigma_fit": "scale term: standard error of k_b from the match-up fit, relative",
+    "sigma_camera_calibration": "scale term: the chain's systematic sigma over the mask (R^-1, roll-off, flat "
+                                "field, response corrections), relative",
+    "sigma_reference_calibration": "scale term: the reference radiometer's calibration (site.yaml), relative",
+    "sigma_spectral_mismatch_prediction": "scale term: the band-convolved reference as the band radiance "
+                                          "(response position, response outside the channels), relative",
+    "inv_field_exposure_per_s": "shutter_offset covariate: mean of 1 / exposure over the band's match-ups",
+    "calibration_exposure_s": "shutter_offset covariate: exposure of the absolute experiment's signal frames",
+    "field_signal_dn": "nonlinearity covariate: mean dark-subtracted DN in the mask over the match-ups",
+    "calibration_signal_dn": "nonlinearity covariate: dark-subtracted DN in the absolute experiment's mask",
+    "field_iso": "iso_gain covariate: ISO of the field frames (median)",
+    "calibration_iso": "iso_gain covariate: ISO of the absolute experiment's signal frames",
+    "field_dark_s_per_dn": "dark_current covariate: mean ISO/100 x exposure over the mask's DN",
+    "mismatch_factor": "spectral_mismatch covariate: band-convolved over nearest-channel reference, mean over "
+                       "the match-ups",
+    "glare_share_sr": "stray_light covariate: mean sun-glare covariate over the mean camera radiance",
+}
+
+
+def _scale_dataset(scale_table: pd.DataFrame) -> xr.Dataset:
+    out = table_to_dataset(scale_table, "obs_scale")
+    for col in scale_table.columns:
+        attrs = {"long_name": f"field scale closure: {SCALE_LONG_NAMES.get(col, col)}"}
+        if col in SCALE_UNITS:
+            attrs["units"] = SCALE_UNITS[col]
+        out[f"obs_scale__{col}"].attrs.update(attrs)
     return out
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
+from pipeline.diagnostics import accepted_effects, field_scale_sentence
 from pipeline.observations import dataset_to_table
 from pipeline.radiometry.rolloff import evaluate_rolloff, rolloff_slope
 from pipeline.report.content import Markup, Table, Text
@@ -200,6 +201,8 @@ def stage_verdicts(inputs) -> list[list[str]]:
         exp = str(r["experiment"])
         top = _significant_for(inputs.missing_effects, exp)
         structure = unexp[unexp["experiment"].astype(str) == exp] if not unexp.empty and "experiment" in unexp else []
+        scale = (field_scale_sentence(inputs.field_scale, inputs.missing_effects) + ". Match-up: "
+                 if exp == "field" and not inputs.field_scale.empty else "")
         if top is not None:
             verdict = (f"missing effect: {top['effect']} ({amplitude_text(top)}); add it to model.effects "
                        "in config/config.yaml and rerun")
@@ -213,7 +216,7 @@ def stage_verdicts(inputs) -> list[list[str]]:
             verdict = "at the noise floor"
         else:
             verdict = f"above the noise floor (rms z > {limit:g}) and no significant candidate effect"
-        rows.append([exp, fmt_value(r["rms_z"], 3), verdict])
+        rows.append([exp, fmt_value(r["rms_z"], 3), scale + verdict])
     return rows
 
 
@@ -240,6 +243,10 @@ def summary_section(inputs) -> list:
                          "largest measured angle), its uncertainty the curve's and that of the field angle it was "
                          "fitted on, |dg/dθ| times the geometry's stated σθ at that angle.", left=2))
     field = [row for lens, ds in inputs.stage("field").items() for row in field_agreement_rows(lens, ds)]
+    if not inputs.field_scale.empty:
+        departs = inputs.field_scale["departs"].map(as_bool).any()
+        out.append(Text(Markup("<b>{}</b>.").format(field_scale_sentence(inputs.field_scale, inputs.missing_effects)),
+                        "callout" if departs else "ok"))
     if field:
         out.append(Table(["lens", "band", "camera / reference", "MUPD % (nearest channel)", "MUPD % (band-convolved)",
                           "match-ups", "rms z"], field,
@@ -259,6 +266,11 @@ def summary_section(inputs) -> list:
                                "{}). Add it to <code>model.effects</code> in <code>config/config.yaml</code> and "
                                "rerun.").format(top["effect"], top["experiment"], amplitude_text(top),
                                                 evidence_text(top)), "callout"))
+        found = [e for e in accepted_effects(inputs.missing_effects) if e not in inputs.model_effects()]
+        if len(found) > 1:
+            out.append(Text(Markup("Every effect this run found, in the order the diagnostics accepted them: "
+                                   "<code>--config 'model={{effects: [{}]}}'</code>.").format(
+                                       ", ".join(inputs.model_effects() + found)), "callout"))
     elif top is not None:
         out.append(Text(Markup("No significant missing effect. The top-ranked candidate, <b>{}</b>, is not "
                                "significant (p = {}).").format(top["effect"], fmt_value(top.get("p_value"), 3)), "ok"))

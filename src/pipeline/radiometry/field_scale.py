@@ -1,0 +1,53 @@
+"""The field scale closure: each band's camera/reference scale against what the lab calibration predicts
+(Larouche et al. 2024, Sections 2.6, 2.9, 3.5 and 4).
+
+The field match-up is the one comparison of the calibration with an instrument it was not fitted to. Its
+frame table fits one free scale k_b per band (camera = k_b x reference) and tests the shape of the hour
+about it; the scale itself is the calibration's absolute claim. With every effect of the model applied,
+the lab calibration predicts k_b = 1 against the reference the model compares with (the band-convolved
+channels with ``spectral_mismatch`` in the model, the nearest channel otherwise). The closure's row of a
+band is ln(k_b), its noise the relative standard uncertainty of the scale, the quadrature sum of
+:data:`SCALE_TERMS`:
+
+* ``fit``: the scale's standard error from the match-up fit (scaled up by the frame table's rms z when
+  the hour's shape is not at its noise floor);
+* ``camera_calibration``: the bundle's systematic terms over the mask's pixels (R^-1's budget, roll-off
+  and field angle, flat field, the response corrections; the chain's systematic sigma), common to every
+  frame of a band and so absent from the match-up noise;
+* ``reference_calibration``: the reference radiometer's own calibration (site.yaml
+  ``reference.calibration_relative_sigma``); counted as independent of the lab's reference reading of the
+  source, which is conservative when the same instrument served both (Section 2.6 scaled the source to
+  the C-OPS that later stood in the field: its absolute error then cancels in part);
+* ``spectral_mismatch_prediction``: with ``spectral_mismatch`` in the model, how far the band-convolved
+  reference may sit from the band radiance: the response's position (the effective wavelength's
+  uncertainty times the scene's in-band spectral slope, d ln L / d ln lambda) and the part of the response
+  outside the channels' span, which the convolution leaves out (a share f of the response whose radiance
+  is unknown: uniform within +-f, f / sqrt 3).
+
+Effects the model lacks move the scale by what their lab-fitted parameter predicts at the field frames'
+setting against the absolute experiment's (the effects' ``predicted_shift``); the field stage writes the
+covariates they need only for the effects the model lacks (the chain corrects the others).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["SCALE_TERMS", "mismatch_prediction_relative_sigma", "scale_relative_sigma"]
+
+#: the terms of a band's field scale budget, relative standard uncertainties
+SCALE_TERMS = ("fit", "camera_calibration", "reference_calibration", "spectral_mismatch_prediction")
+
+
+def mismatch_prediction_relative_sigma(spectral_slope, wavelength_nm: float, wavelength_sigma_nm: float,
+                                       outside_fraction: float) -> float:
+    """Relative uncertainty of the band-convolved reference as the band radiance (see the module docstring):
+    |d ln L / d ln lambda| x sigma_lambda / lambda in quadrature with outside_fraction / sqrt(3)."""
+    slope = float(np.nan_to_num(spectral_slope))
+    position = abs(slope) * float(np.nan_to_num(wavelength_sigma_nm)) / float(wavelength_nm)
+    return float(np.hypot(position, float(np.nan_to_num(outside_fraction)) / np.sqrt(3.0)))
+
+
+def scale_relative_sigma(terms: dict[str, float]) -> float:
+    """Quadrature sum of a band's :data:`SCALE_TERMS` (relative)."""
+    return float(np.sqrt(sum(float(np.nan_to_num(terms.get(t, 0.0))) ** 2 for t in SCALE_TERMS)))
