@@ -127,6 +127,12 @@ QUANTITIES = {
 }
 
 
+#: CF attributes of the comparison's coordinates (long_name, units; None: text, no units)
+COORDINATE_ATTRS = {"lens": ("lens of the camera", None), "band": ("colour band of the CFA", None),
+                    "medium": ("medium in front of the lens (air or water)", None),
+                    "dark_iso": ("ISO of the dark model", "1"), "term": ("term of the uncertainty budget", None)}
+
+
 def compare_settings(config: dict | None = None) -> dict:
     """The ``compare`` section of the configuration (the schema's defaults without one)."""
     return (config if config is not None else defaults())["compare"]
@@ -413,6 +419,12 @@ def compare_bundles(path_a: str | Path, path_b: str | Path, config: dict | None 
         "long_name": "|z| above which the group is called changed (change_z for one parameter, Sidak-raised for "
                      "the group's number)", "units": "1"})
     out["group_verdict"] = ("group", verdict, {"long_name": "changed, consistent or not compared", "units": "1"})
+    out["group_verdict"].attrs.pop("units")  # text: no units (CF)
+    for name, (long_name, units) in COORDINATE_ATTRS.items():
+        if name in out.coords:
+            out[name].attrs.setdefault("long_name", long_name)
+            if units is not None:
+                out[name].attrs.setdefault("units", units)
     serial_a, serial_b = str(attrs_a.get("camera_serial", "")), str(attrs_b.get("camera_serial", ""))
     out.attrs.update({
         "Conventions": "CF-1.10",
