@@ -46,6 +46,7 @@ use the same chain.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from pathlib import Path
@@ -56,6 +57,7 @@ import xarray as xr
 from pipeline.artefact import BUNDLE_REQUIRED_STAGES, BUNDLE_STAGES, model_effects, read_artefact, sha256_file, write_artefact
 from pipeline.bands import BANDS
 from pipeline.config import defaults, stage_params
+from pipeline.dataset import SIDECARS
 from pipeline.effects.optics import AZIMUTH_THETA_REF_DEG
 from pipeline.entry import exit_on_input_error, setup_log
 from pipeline.errors import InputError
@@ -65,7 +67,7 @@ from pipeline.radiometry import measurement as mm
 
 __all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "STATIC_OFF_GRID", "FACTOR_EFFECTS", "factor_effects",
            "sphere_blocks", "sphere_counts", "build_bundle", "read_bundle", "band_parameters",
-           "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script"]
+           "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script", "lab_inputs"]
 
 #: stages a bundle is gathered from (in the order of the calibration chain) and those it cannot lack
 BUNDLE_STAGES, REQUIRED_STAGES = BUNDLE_STAGES, BUNDLE_REQUIRED_STAGES
@@ -96,6 +98,8 @@ def _dark_part(ds: xr.Dataset) -> xr.Dataset:
             "dark_current_dn_per_s_sigma", "read_noise_dn", "hot_pixel_mask", "temperature_bias_dn_per_c",
             "temperature_dark_dn_per_s_per_c", "temperature_reference_c", "optical_black_offset_dn"]
     out = ds[[v for v in keep if v in ds]].drop_vars(["setting", "hist_bin"], errors="ignore")
+    if "obs_setting__n_used" in ds:
+        out["read_noise_dn_sigma"] = _read_noise_sigma(ds)
     out["offset_pattern_dn"] = ds["fpn_map_dn"].std(("y", "x")).assign_attrs(
         long_name="spatial spread of the pixel offsets about the dark model's level (ISO 100, shortest exposure)",
         units="DN")
@@ -104,6 +108,48 @@ def _dark_part(ds: xr.Dataset) -> xr.Dataset:
     out["calibrated_exposure_s_max"] = ((), float(ds["setting_exposure_s"].max()),
                                         {"long_name": "longest exposure of the dark model", "units": "s"})
     return out.rename({"iso": "dark_iso"})
+
+
+def _read_noise_sigma(ds: xr.Dataset) -> xr.DataArray:
+    """Sampling uncertainty of the dark artefact's read noise (band, iso): the temporal variance of n_used
+    pixels over n_frames frames has n_used (n_frames - 1) degrees of freedom, its square root a relative
+    standard error 1 / sqrt(2 n_used (n_frames - 1)) (Gaussian noise); NaN where a setting has one frame."""
+    read = ds["read_noise_dn"]
+    sigma = np.full(read.shape, np.nan)
+    band = ds["obs_setting__band"].values.astype(str)
+    iso = ds["obs_setting__iso"].values.astype(float)
+    exposure = ds["obs_setting__exposure_s"].values.astype(float)
+    dof = ds["obs_setting__n_used"].values.astype(float) * (ds["obs_setting__n_frames"].values.astype(float) - 1.0)
+    for i, b in enumerate(read["band"].values.astype(str)):
+        for k, value in enumerate(read["iso"].values.astype(float)):
+            rows = np.flatnonzero((band == b) & (iso == value))
+            if rows.size:
+                # read_noise_dn is the temporal noise of the iso's shortest exposure
+                row = rows[np.argmin(exposure[rows])]
+                if dof[row] > 0:
+                    sigma[i, k] = float(read.values[i, k]) / np.sqrt(2.0 * dof[row])
+    return xr.DataArray(sigma, dims=read.dims, coords=read.coords, attrs={
+        "long_name": "standard error of read_noise_dn from its pixels and frames (Gaussian sampling)", "units": "DN"})
+
+
+def lab_inputs(artefact_inputs: list[dict[str, str]]) -> dict[str, str]:
+    """The lab files behind stage artefacts, from their input_sha256 dicts: the dataset's own files and the
+    instrument sidecars by name, and each experiment's raw frames (of all the artefacts) as one digest
+    ``<experiment>/frames``, the sha256 of their sorted ``name sha256`` lines; upstream artefacts (``.nc``)
+    are left out."""
+    sidecars = {f"{experiment}/{name}" for experiment, names in SIDECARS.items() for name in names}
+    out, frames = {}, {}
+    for inputs in artefact_inputs:
+        for name, digest in inputs.items():
+            if name.endswith(".nc"):
+                continue
+            if name in sidecars or "/" not in name:
+                out[name] = digest
+            else:
+                frames.setdefault(name.split("/", 1)[0], set()).add(f"{name} {digest}")
+    for experiment, lines in frames.items():
+        out[f"{experiment}/frames"] = hashlib.sha256("\n".join(sorted(lines)).encode()).hexdigest()
+    return dict(sorted(out.items()))
 
 
 def _linearity_part(ds: xr.Dataset) -> xr.Dataset:
@@ -500,7 +546,7 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
     if missing:
         raise InputError(out_path, f"the calibration bundle needs the {', '.join(missing)} artefact(s)")
     lenses = sorted(artefacts["dark"])
-    effects, first, inputs, geometry_inputs = None, None, {}, {}
+    effects, first, inputs, geometry_inputs, lab = None, None, {}, {}, []
     projection = {lens: "fisheye" for lens in lenses}
     bias_reference = {lens: "unlit corners" for lens in lenses}
     parts: dict[str, dict[str, xr.Dataset]] = {}
@@ -520,6 +566,7 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
                 raise InputError(paths[lens], f"was fitted with the model [{', '.join(found)}], {first} with "
                                               f"[{', '.join(effects)}]: rerun the stages with one model")
             inputs[_relative(paths[lens], results_root)] = sha256_file(paths[lens])
+            lab.append(json.loads(ds.attrs.get("input_sha256", "{}")))
             if stage == "geometry":
                 geometry_inputs[_relative(paths[lens], results_root)] = inputs[_relative(paths[lens], results_root)]
             if stage == "geometry":
@@ -574,6 +621,8 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
         "media": ",".join(media), "stages": ",".join(stages),
         # what names the per-pixel geometry maps (theta, phi, solid angle) in an apply output without them
         "geometry_sha256": json.dumps(geometry_inputs, sort_keys=True),
+        # the lab files the artefacts were made from (pipeline.calibration.lab_inputs): what two bundles share
+        "lab_input_sha256": json.dumps(lab_inputs(lab), sort_keys=True),
     })
     # the per-pixel maps uncompressed and contiguous: apply reads one lens, band and medium of them
     # as one block, where decompressing them cost it seconds at the full resolution

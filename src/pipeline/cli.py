@@ -1,5 +1,5 @@
 """Command line: ``python -m pipeline COMMAND`` (init-dataset, validate, simulate, apply, publish, verify-store,
-diagnose).
+store history, compare, diagnose).
 
 It only parses arguments and calls the package; the workflow itself runs with
 ``snakemake``.
@@ -25,7 +25,8 @@ DESCRIPTION = """\
 Calibrate a RAW camera as a radiometer. These commands lay out a lab's raw
 files as a calibration dataset (../shared/DATASET.md), check it, simulate one,
 turn raw frames into radiance with a calibration bundle, publish bundles
-into an append-only calibration store, or say what a run's diagnostics found;
+into an append-only calibration store, compare two calibrations, or say what a
+run's diagnostics found;
 the calibration itself runs with snakemake."""
 
 EXAMPLES = f"""\
@@ -36,6 +37,8 @@ examples:
   python -m pipeline apply --calibration results/calibration/SIM-0001.nc sky.dng -o sky.nc
   python -m pipeline publish results/calibration/SIM-0001.nc --dataset /data/calib2024 --store /archive/calibrations
   python -m pipeline apply --store /archive/calibrations sky.dng -o sky.nc
+  python -m pipeline compare old/SIM-0001.nc results/calibration/SIM-0001.nc -o compare.nc --html compare.html
+  python -m pipeline store history SIM-0001 --store /archive/calibrations -o history.csv
   python -m pipeline simulate --out data/sim-tiny --scale tiny --seed 1
   python -m pipeline diagnose --results results --explain shutter_offset
 
@@ -89,6 +92,23 @@ examples:
   python -m pipeline publish results/calibration/SIM-0001.nc --valid-from 2024-05-01 --store /archive/calibrations
   python -m pipeline verify-store /archive/calibrations"""
 
+
+COMPARE_EXAMPLES = """\
+Both bundles must be of one camera model and lens layout: the same camera at
+two dates (drift) or two units of the model (unit-to-unit). The difference's
+sigma combines both budgets; a term that comes from a lab input both bundles
+share (same sha256: the reference reading, the source spectrum, the frames) is
+common and cancels. Thresholds: the compare section of config/schema.yaml.
+See docs/compare.md.
+
+examples:
+  python -m pipeline compare calibration-store/SIM-0001/20210310T093000_0123456789abcdef.nc \\
+      results/calibration/SIM-0001.nc -o compare.nc --html compare.html"""
+
+STORE_EXAMPLES = """\
+examples:
+  python -m pipeline store history SIM-0001 --store /archive/calibrations
+  python -m pipeline store history SIM-0001 -o history.csv --figure history.png"""
 
 DIAGNOSE_EXAMPLES = """\
 Reads what the workflow's diagnostics rule wrote (RESULTS/diagnostics/*.csv and the closure
@@ -207,6 +227,26 @@ def build_parser() -> argparse.ArgumentParser:
                          description="List every published file that is missing or changed (sha256) and every "
                                      "file the index does not list; exit 1 if any.", formatter_class=fmt)
     ver.add_argument("store", metavar="STORE", help="store folder")
+    cmp = sub.add_parser("compare", help="compare two calibration bundles parameter by parameter",
+                         description="Every calibrated parameter of bundle B against bundle A: both values, the "
+                                     "difference, its combined standard uncertainty (terms of shared inputs cancel), "
+                                     "z and a verdict per group.", epilog=COMPARE_EXAMPLES, formatter_class=fmt)
+    cmp.add_argument("bundle_a", metavar="BUNDLE_A", help="calibration bundle A (the reference)")
+    cmp.add_argument("bundle_b", metavar="BUNDLE_B", help="calibration bundle B (compared with A)")
+    cmp.add_argument("-o", "--out", metavar="OUT.nc", default=None, help="write the comparison table as NetCDF")
+    cmp.add_argument("--html", metavar="OUT.html", default=None, help="write the comparison as an HTML page")
+    sto = sub.add_parser("store", help="look into a calibration store (store history)",
+                         description="Look into a calibration store.", epilog=STORE_EXAMPLES, formatter_class=fmt)
+    store_sub = sto.add_subparsers(dest="store_command", required=True, title="store commands", metavar="STORE_COMMAND")
+    hist = store_sub.add_parser("history", help="a camera's calibrations in validity order with the drift of R^-1",
+                                description="List the calibrations of camera SERIAL in validity order with R^-1 per "
+                                            "lens and band and its change from the one before (%%, sigma, z).",
+                                epilog=STORE_EXAMPLES, formatter_class=fmt)
+    hist.add_argument("serial", metavar="SERIAL", help="camera serial number (the store's folder name)")
+    hist.add_argument("--store", metavar="DIR", default=None,
+                      help="store folder (default: store.path of config/config.yaml, calibration-store)")
+    hist.add_argument("-o", "--out", metavar="OUT.csv", default=None, help="write the table as CSV")
+    hist.add_argument("--figure", metavar="OUT.png", default=None, help="draw R^-1 against the validity start (PNG)")
     return parser
 
 
@@ -301,6 +341,34 @@ def _verify_store(args) -> int:
     return EXIT_OK
 
 
+def _compare(args) -> int:
+    from pipeline.compare import compare_bundles, render_html, summary_lines, write_comparison
+    from pipeline.config import load_config
+
+    table = compare_bundles(args.bundle_a, args.bundle_b, load_config())
+    print("\n".join(summary_lines(table)))
+    if args.out:
+        print(f"table: {write_comparison(table, args.out)}")
+    if args.html:
+        print(f"page:  {render_html(table, args.html)}")
+    return EXIT_OK
+
+
+def _store(args) -> int:
+    from pipeline.compare import history, history_lines, write_history_csv, write_history_figure
+    from pipeline.config import load_config
+
+    config = load_config()
+    store = args.store if args.store is not None else config["store"]["path"]
+    entries = history(store, args.serial, config)
+    print("\n".join(history_lines(entries, args.serial)))
+    if args.out:
+        print(f"table:  {write_history_csv(entries, args.out)}")
+    if args.figure:
+        print(f"figure: {write_history_figure(entries, args.figure, args.serial)}")
+    return EXIT_OK
+
+
 def _diagnose(args) -> int:
     from pipeline.diagnosis import diagnosis_lines, explain_lines, read_diagnostics
 
@@ -313,7 +381,7 @@ def _diagnose(args) -> int:
 
 
 COMMANDS = {"diagnose": _diagnose, "init-dataset": _init_dataset, "validate": _validate, "simulate": _simulate, "apply": _apply,
-            "publish": _publish, "verify-store": _verify_store}
+            "publish": _publish, "verify-store": _verify_store, "compare": _compare, "store": _store}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -43,7 +43,7 @@ from pipeline.errors import InputError
 from pipeline.rawio import read_tags
 
 __all__ = ["INDEX_NAME", "INDEX_COLUMNS", "publish", "read_index", "verify_store", "select_calibration",
-           "calibrations_for_frames", "lab_data_end", "parse_valid_from", "output_for"]
+           "calibrations_for_frames", "lab_data_end", "parse_valid_from", "output_for", "check_entry"]
 
 INDEX_NAME = "index.csv"
 INDEX_COLUMNS = ("serial", "valid_from", "sha256", "file", "published_utc", "valid_from_source", "source")
@@ -201,7 +201,8 @@ def publish(bundle_path: str | Path, store: str | Path, *, valid_from: datetime 
     return row, True
 
 
-def _check_entry(store: Path, row: dict) -> Path:
+def check_entry(store: Path, row: dict) -> Path:
+    """The store file of index entry ``row``, after checking it is there and unchanged (sha256)."""
     path = store / row["file"]
     if not path.is_file():
         raise InputError(path, f"is in the store's index (published {row['published_utc']}) but missing; "
@@ -220,7 +221,7 @@ def verify_store(store: str | Path) -> list[str]:
     problems = []
     for row in rows:
         try:
-            _check_entry(store, row)
+            check_entry(store, row)
         except InputError as exc:
             problems.append(str(exc))
     listed = {row["file"] for row in rows}
@@ -271,7 +272,7 @@ def calibrations_for_frames(store: str | Path, raw_paths) -> list[tuple[Path, di
                                   "time; give --calibration BUNDLE instead")
         row = select_calibration(store, tags["serial"], tags["time"], raw)
         groups.setdefault(row["sha256"], (row, []))[1].append(str(raw))
-    out = [(_check_entry(store, row), row, frames) for row, frames in groups.values()]
+    out = [(check_entry(store, row), row, frames) for row, frames in groups.values()]
     return sorted(out, key=lambda g: (g[1]["serial"], g[1]["valid_from"]))
 
 

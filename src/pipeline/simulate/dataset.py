@@ -21,7 +21,7 @@ from pipeline.simulate import immersion, rolloff  # noqa: F401  (registers the r
 from pipeline.simulate import absolute, spectral  # noqa: F401  (registers the spectral and absolute planners)
 from pipeline.simulate import geometry  # noqa: F401  (registers the geometry planner)
 from pipeline.simulate import field  # noqa: F401  (registers the field planner)
-from pipeline.simulate.camera import Camera, SensorParams
+from pipeline.simulate.camera import Camera, RadiometricParams, SensorParams
 from pipeline.simulate.lab_errors import draw_lab_errors, no_lab_errors
 from pipeline.simulate.lab_noise import LabNoise, draw_frame_noise, no_lab_noise, room_temperature_offset_c
 from pipeline.simulate.plan import PLANNERS, SimContext
@@ -69,7 +69,7 @@ def truth_dir_for(dataset: str | Path) -> Path:
 def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 0,
                      effects: list[tuple[str, dict]] = (), experiments=EXPERIMENTS,
                      progress: bool = True, sensor: dict | None = None, lab_errors: bool = False,
-                     lab_noise: bool | LabNoise = False) -> Path:
+                     lab_noise: bool | LabNoise = False, sensitivity_factor: float = 1.0) -> Path:
     """Simulate the calibration experiments into ``out`` (which must not exist yet).
 
     The dataset is written to a temporary sibling folder and renamed at the
@@ -85,6 +85,9 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
     :class:`~pipeline.simulate.lab_noise.LabNoise`) the lab's frame-to-frame
     noise is added: source flicker and drift, bias jitter, room-temperature
     drift (:mod:`pipeline.simulate.lab_noise`; sizes in the truth, ``lab_noise``).
+    ``sensitivity_factor`` multiplies the camera's responsivity in every band (DN/s per unit
+    radiance: 1 / 1.03 makes R^-1 3 % larger), as a unit of the same model or an aged camera
+    would differ; the truth records it and the responsivities it gives (``camera.radiometry``).
     """
     out = Path(out)
     truth = truth_dir_for(out)
@@ -98,8 +101,13 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
         raise InputError(None, f"the simulator does not write {', '.join(unknown)} yet; "
                                f"it writes {', '.join(PLANNERS)}")
     sc = scale if isinstance(scale, Scale) else SCALES[scale]
+    if not sensitivity_factor > 0:
+        raise InputError(None, f"sensitivity factor {sensitivity_factor!r} must be positive")
+    nominal = RadiometricParams()
+    radiometry = replace(nominal, responsivity_dn_s_per_radiance={
+        band: value * sensitivity_factor for band, value in nominal.responsivity_dn_s_per_radiance.items()})
     try:
-        camera = Camera(sensor=replace(SensorParams(), **(sensor or {})))
+        camera = Camera(sensor=replace(SensorParams(), **(sensor or {})), radiometry=radiometry)
     except TypeError as exc:
         raise InputError(None, f"unknown sensor parameter in {sorted(sensor or {})} ({exc})") from None
     effect_objs = [get_effect(name, **params) for name, params in effects]
@@ -164,7 +172,7 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
         (tmp / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
         write_md5sums(tmp)
         _write_truth(tmp_truth, camera, sc, seed, effect_objs, experiments,
-                     {exp: p.truth for exp, p in plans.items() if p.truth}, ctx.lab_errors, noise)
+                     {exp: p.truth for exp, p in plans.items() if p.truth}, ctx.lab_errors, noise, sensitivity_factor)
     finally:
         if bar is not None:
             bar.close()
@@ -174,7 +182,7 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
 
 
 def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects, experiments,
-                 experiment_truth: dict, lab_errors: dict, lab_noise: LabNoise) -> None:
+                 experiment_truth: dict, lab_errors: dict, lab_noise: LabNoise, sensitivity_factor: float = 1.0) -> None:
     s = camera.sensor
     k100 = s.conversion_gain_dn_per_e_iso100
     truth = {
@@ -183,6 +191,8 @@ def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects,
         "seed": seed,
         "experiments": list(experiments),
         "camera": camera.to_dict(),
+        # the responsivities of camera.radiometry are the nominal ones times this factor
+        "sensitivity_factor": float(sensitivity_factor),
         "effects": {e.name: e.truth() for e in effects},
         "lab_errors": lab_errors,
         "lab_noise": lab_noise.truth(),
