@@ -13,7 +13,9 @@ wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
 versioned artefact (``artefact = calibration``, version 14: the absolute experiment's signal
 setting and level (``absolute_exposure_s``, ``absolute_iso``, ``absolute_signal_dn``), which the field
-scale closure evaluates the missing response effects against; 13: the geometry's image circle fitted to the lit
+scale closure evaluates the missing response effects against, the sha256 of the lab's input files by
+experiment (``lab_input_sha256``, which ``compare`` reads for the inputs two calibrations share) and the read
+noise's sampling uncertainty (``read_noise_dn_sigma``); 13: the geometry's image circle fitted to the lit
 region's edge; 12: the stored per-cell counts; 2: the per-pixel
 maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
 flat field's uncertainty; 5: theta_deg_sigma, the absolute budget's new lamp
