@@ -1,6 +1,6 @@
 """Render columns of a results CSV (one row per run and band) as a Markdown table for the docs.
 
-    python scripts/csv_to_markdown.py docs/data/field_scale_default.csv band k_b departure_percent z
+    python scripts/csv_to_markdown.py docs/figures-data/field_scale_default.csv band k_b departure_percent z
 """
 
 from __future__ import annotations
