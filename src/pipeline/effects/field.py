@@ -62,6 +62,33 @@ class ClockOffset(Effect):
             return None
         return (-table["dref_dt"].to_numpy(float) * band_scale(table))[:, None]
 
+    def amplitude(self, experiment, level, table, coef, cov):
+        """The offset c (s, camera minus UTC, as the coefficient of :meth:`columns`) and its 95 % interval.
+
+        The signature is nonlinear in c: the linearised column ref(t + c) = ref(t) + c dref/dt holds only for
+        shifts short against the time over which the sky's slope changes (drifting clouds: tens of seconds),
+        so its coefficient is no estimate of a longer offset (a reference shifted by 41 s read -11 s, -15 to
+        -7; 120 s, -16 s with the wrong sign), whereas the field stage, given the effect, fits the shift
+        itself. Where the match-up table carries the stage's profile fit (``clock_profile_offset_s`` and the
+        bounds of its chi-square profile at ``field.confidence_level``, ``clock_profile_offset_low_s`` and
+        ``_high_s``: the same fit the stage applies with the effect in the model, recorded without it) that
+        is the amplitude; where the profile gave no bound, +/-1.96 of its standard error
+        (``clock_profile_offset_se_s``, from the curvature); the linearised coefficient otherwise.
+        """
+        if experiment == "field" and "clock_profile_offset_s" in table and len(table):
+            c = float(table["clock_profile_offset_s"].iloc[0])
+            se = float(table["clock_profile_offset_se_s"].iloc[0]) if "clock_profile_offset_se_s" in table \
+                else float("nan")
+            low = float(table["clock_profile_offset_low_s"].iloc[0]) if "clock_profile_offset_low_s" in table \
+                else float("nan")
+            high = float(table["clock_profile_offset_high_s"].iloc[0]) if "clock_profile_offset_high_s" in table \
+                else float("nan")
+            if np.isfinite(c) and np.isfinite(low) and np.isfinite(high):
+                return c, min(low, c), max(high, c)
+            if np.isfinite(c) and np.isfinite(se):
+                return c, c - 1.96 * se, c + 1.96 * se
+        return super().amplitude(experiment, level, table, coef, cov)
+
 
 
 @register

@@ -67,7 +67,21 @@ are match-ups at that shift (reduced chi-square), refined by a bounded scalar
 minimisation within one grid step; the standard error is sqrt(2 / chi2'')
 from the curvature of a parabola fitted to the total chi-square at five
 points one grid step apart around the minimum, times sqrt(reduced chi2) when
-that exceeds 1. The reference is then taken at t - c.
+that exceeds 1. The reference is then taken at t - c. The profile's interval at
+``field.confidence_level``: scanned outward from c in steps of the reference's
+sample spacing, the last offsets where the chi-square stays within
+chi2_1(level) x the reduced chi-square (when above 1) of its value at c, a
+whole grid step beyond lying above (the curve is jagged at the scale of one
+sample). Without ``clock_offset`` in the model the same profile is computed
+and only recorded, nothing shifted: the curve (``clock_search_reduced_chi2``),
+``clock_profile_offset_s`` and its bounds, and constant ``obs_frame`` columns
+``clock_profile_offset_s``, ``_se_s``, ``_low_s``, ``_high_s`` from which the
+diagnostics' ``clock_offset`` candidate takes its amplitude (its linearised
+signature, -k_b dref/dt, holds only for shifts short against the sky's
+changes; on the tiny camera's hour with the reference 40 s behind, the
+linearised coefficient reads 15 s). On the tiny fixture the profile costs
+about 0.03 s of a 1 s stage (the grid is evaluated in one windowed pass per
+band).
 
 Scale closure (``obs_scale``, :mod:`pipeline.radiometry.field_scale`): the band scales k_b are the
 calibration's absolute claim, which the frame table's free scales do not test. One row per band: ln k_b
@@ -96,6 +110,7 @@ import importlib
 import logging
 import threading
 from datetime import timedelta
+from statistics import NormalDist
 
 import numpy as np
 import pandas as pd
@@ -118,6 +133,16 @@ STAGE = "field"
 MEDIUM = "air"
 COMPARISONS = ("nearest", "convolved")
 RAD = "W sr-1 m-2 nm-1"
+#: the clock-offset profile's columns of ``obs_frame`` without clock_offset in the model (constant over the rows;
+#: read by :meth:`pipeline.effects.field.ClockOffset.amplitude`) -> key of :func:`fit_clock_offset`'s result
+CLOCK_PROFILE_COLUMNS = {"clock_profile_offset_s": "offset_s", "clock_profile_offset_se_s": "offset_se_s",
+                         "clock_profile_offset_low_s": "offset_low_s", "clock_profile_offset_high_s": "offset_high_s"}
+CLOCK_PROFILE_LONG_NAMES = {
+    "clock_profile_offset_s": "camera clock minus UTC at the minimum of the clock-offset profile (not applied)",
+    "clock_profile_offset_se_s": "its standard error (chi-square curvature, times sqrt(reduced chi-square) when > 1)",
+    "clock_profile_offset_low_s": "lower bound of the profile's interval at field.confidence_level (NaN: not found)",
+    "clock_profile_offset_high_s": "upper bound of the profile's interval at field.confidence_level (NaN: not found)",
+}
 #: flags that keep a pixel out of the mask mean
 MASK_EXCLUDED = mm.FLAG_SATURATED | mm.FLAG_HOT | mm.FLAG_OUTSIDE_IMAGE_CIRCLE
 
@@ -372,15 +397,74 @@ def _profile_chi2(y, sy, series: dict, centres, width, min_samples):
     return chi2, n
 
 
-def fit_clock_offset(y, sy, series, times_s, width, min_samples, search_s, step_s) -> dict:
-    """Camera clock minus UTC (s) that makes the shifted reference fit the camera best (see the module docstring)."""
+def _profile_chi2_grid(y, sy, series: dict, times_s, offsets_s, width, min_samples):
+    """:func:`_profile_chi2` at every offset of ``offsets_s`` at once (one windowed pass per band over all
+    the shifted frame times): arrays of chi^2 and of its number of points."""
+    offsets = np.asarray(offsets_s, float)
+    chi2, n = np.zeros(offsets.size), np.zeros(offsets.size, int)
+    for band, ws in series.items():
+        st = ws.stats((np.asarray(times_s, float)[None, :] - offsets[:, None]).ravel(), width)
+        shape = (offsets.size, len(times_s))
+        x = st["mean"].reshape(shape)
+        yb = np.broadcast_to(y[band], shape)
+        ok = (st["count"].reshape(shape) >= min_samples) & np.isfinite(yb) & np.isfinite(x)
+        use = ok.sum(axis=1) >= 2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            ratio = np.nanmedian(np.where(ok, yb / x, np.nan)[use], axis=1)
+            s2 = sy[band] ** 2 + (ratio[:, None] * window_uncertainty(st).reshape(shape)[use]) ** 2
+            w = np.where(ok[use], 1.0 / s2, 0.0)
+            xo, yo = np.where(ok[use], x[use], 0.0), np.where(ok[use], yb[use], 0.0)
+            k = np.sum(w * xo * yo, axis=1) / np.sum(w * xo**2, axis=1)
+            chi2[use] += np.sum(w * (yo - k[:, None] * xo) ** 2, axis=1)
+        n[use] += ok[use].sum(axis=1) - 1
+    return chi2, n
+
+
+def profile_interval(chi2_at, c, chi2_c, threshold, step_s, scan_s, search_s, dof) -> tuple[float, float]:
+    """The offsets on either side of the best ``c`` where the profile's chi-square (``chi2_at(offset)`` ->
+    (chi2, points)) rises ``threshold`` above its value ``chi2_c`` at ``c``: scanned outward from ``c`` in steps of ``scan_s`` (the reference's sample
+    spacing, below which the windows' chi-square does not change), the bound is the last point at or below
+    the threshold once a whole ``step_s`` (one grid step) beyond it lies above (the curve is jagged at the
+    scale of a sample: one point above the threshold does not end the interval). NaN on a side where the
+    scan reaches the search range or the number of match-ups changes (chi-square no longer comparable)."""
+    patience = max(int(np.ceil(step_s / scan_s)), 1)
+    bounds = []
+    for sign in (-1.0, 1.0):
+        last, above, j = c, 0, 0
+        while above < patience:
+            j += 1
+            p = c + sign * j * scan_s
+            if abs(p) > search_s:
+                last = float("nan")
+                break
+            chi2, n = chi2_at(p)
+            if n != dof:
+                last = float("nan")
+                break
+            if chi2 - chi2_c <= threshold:
+                last, above = p, 0
+            else:
+                above += 1
+        bounds.append(last)
+    return bounds[0], bounds[1]
+
+
+def fit_clock_offset(y, sy, series, times_s, width, min_samples, search_s, step_s, level=None) -> dict:
+    """Camera clock minus UTC (s) that makes the shifted reference fit the camera best (see the module docstring).
+
+    With ``level`` also the interval of the profile at that confidence level (``offset_low_s``,
+    ``offset_high_s``, :func:`profile_interval`): where the chi-square rises chi2_1(level) times the reduced
+    chi-square (when above 1) over its value at the fitted offset, with that offset's match-ups.
+    """
     grid = np.arange(-search_s, search_s + 0.5 * step_s, step_s)
 
     def reduced(c):
         chi2, dof = _profile_chi2(y, sy, series, times_s - c, width, min_samples)
         return chi2 / dof if dof > 0 else np.inf
 
-    curve = np.array([reduced(c) for c in grid])
+    chi2_grid, dof_grid = _profile_chi2_grid(y, sy, series, times_s, grid, width, min_samples)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        curve = np.where(dof_grid > 0, chi2_grid / np.maximum(dof_grid, 1), np.inf)
     if not np.isfinite(curve).any():
         raise InputError(None, "no match-ups at any clock offset within the search range")
     best = float(grid[int(np.nanargmin(curve))])
@@ -393,8 +477,18 @@ def fit_clock_offset(y, sy, series, times_s, width, min_samples, search_s, step_
     a2 = np.polyfit(pts - c, chi, 2)[0]
     chi2, dof = _profile_chi2(y, sy, series, times_s - c, width, min_samples)
     se = float(np.sqrt(2.0 / (2.0 * a2))) if a2 > 0 else float("nan")
-    se *= float(np.sqrt(max(chi2 / max(dof, 1), 1.0)))
-    return {"offset_s": c, "offset_se_s": se, "grid_s": grid, "reduced_chi2": curve, "chi2": chi2, "dof": dof}
+    scale = max(chi2 / max(dof, 1), 1.0)
+    se *= float(np.sqrt(scale))
+    out = {"offset_s": c, "offset_se_s": se, "grid_s": grid, "reduced_chi2": curve, "chi2": chi2, "dof": dof}
+    if level is not None:
+        spacing = [float(np.median(np.diff(ws.t))) for ws in series.values() if ws.t.size > 1]
+        scan = min(min(spacing), step_s) if spacing else step_s
+        # chi-square's rise over its value at the fitted offset (points of the jagged curve may dip below it)
+        low_high = profile_interval(lambda p: _profile_chi2(y, sy, series, times_s - p, width, min_samples), c,
+                                    chi2, NormalDist().inv_cdf(0.5 + level / 2.0) ** 2 * scale, step_s, scan,
+                                    search_s, dof)
+        out.update(offset_low_s=low_high[0], offset_high_s=low_high[1], level=float(level))
+    return out
 
 
 # --------------------------------------------------------------------------- the stage
@@ -561,12 +655,20 @@ def compute(ctx) -> xr.Dataset:
                             mask_pointing_sigma(frames[f"gradient_{b}"].to_numpy(float), pointing[b]))
                 if cfg["mask_sampling_term"] else np.zeros(len(frames)) for b in BANDS}
 
+    # the clock offset's profile: fitted and applied with clock_offset in the model; without it only recorded
+    # (obs_frame's clock_profile_ columns, for the diagnostics' candidate amplitude) and nothing shifted
+    clock_args = (y, sy, {b: ws[(predict, b)] for b in BANDS}, t_cam, width, min_n,
+                  float(cfg["clock_offset_search_s"]), float(cfg["clock_offset_grid_s"]))
     clock = None
     shift = 0.0
     if "clock_offset" in ctx.effects:
-        clock = fit_clock_offset(y, sy, {b: ws[(predict, b)] for b in BANDS}, t_cam, width, min_n,
-                                 float(cfg["clock_offset_search_s"]), float(cfg["clock_offset_grid_s"]))
+        clock = fit_clock_offset(*clock_args, level=float(cfg["confidence_level"]))
         shift = clock["offset_s"]
+    else:
+        try:
+            clock = fit_clock_offset(*clock_args, level=float(cfg["confidence_level"]))
+        except InputError as exc:       # no match-ups at any offset: the match-up checks below say what is wrong
+            log.info("field %s: no clock-offset profile (%s)", ctx.lens, exc)
     centres = t_cam - shift
     st = {key: w.stats(centres, width) for key, w in ws.items()}
     channel_st = [WindowedSeries(ref_t, ref_values[:, c]).stats(centres, width) for c in range(channels.size)]
@@ -593,8 +695,8 @@ def compute(ctx) -> xr.Dataset:
                     "match-ups: %s", ctx.lens, int(no_reference.sum()), len(frames), min_n, width,
                     ", ".join(frames["file"][no_reference]))
     if clock is not None:
-        log.info("field %s: camera clock offset %.2f +- %.2f s (camera minus UTC)", ctx.lens, clock["offset_s"],
-                 clock["offset_se_s"])
+        log.info("field %s: camera clock offset %.2f +- %.2f s (camera minus UTC; %s)", ctx.lens, clock["offset_s"],
+                 clock["offset_se_s"], "applied" if "clock_offset" in ctx.effects else "profile only, not applied")
 
     # statistics per band and comparison
     from pipeline.matchup import BOOTSTRAPPED, matchup_statistics
@@ -643,6 +745,11 @@ def compute(ctx) -> xr.Dataset:
     table = pd.DataFrame(rows, columns=["group", "band", "frame", "time_s", "value_dn", "sigma_dn", "x_scale",
                                         "ref_nearest", "ref_convolved", "dref_dt", "spectral_slope", "sun_zenith_deg",
                                         "sun_seen", "sun_glare_covariate"])
+    if "clock_offset" not in ctx.effects and clock is not None:
+        # the clock_offset candidate's amplitude (ClockOffset.amplitude): the profile's fit, valid at any offset
+        # within the search, where the linearised signature (-k_b dref/dt) holds only for short shifts
+        for col in CLOCK_PROFILE_COLUMNS:
+            table[col] = float(clock[CLOCK_PROFILE_COLUMNS[col]])
     few = [b for b in BANDS if valid[b].sum() < 3]
     if few:
         # three points are the fewest a line with an interval (N - 2 degrees of freedom) needs
@@ -886,11 +993,25 @@ def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_referen
     coords = {"frame": np.arange(len(frames)), "band": list(BANDS), "comparison": list(COMPARISONS),
               "channel_nm": ("channel_nm", channels, _attrs("reference channel centre wavelength", "nm"))}
     if clock is not None:
-        data["clock_offset_s_sigma"] = ((), clock["offset_se_s"],
-                                        _attrs("standard error of the fitted clock offset (chi-square curvature)", "s"))
-        data["clock_search_reduced_chi2"] = ("clock_search_s", clock["reduced_chi2"],
-                                             _attrs("reduced chi-square of the base model against the clock offset", "1"))
+        applied = "clock_offset" in ctx.effects
+        if applied:
+            data["clock_offset_s_sigma"] = ((), clock["offset_se_s"],
+                                            _attrs("standard error of the fitted clock offset (chi-square curvature)",
+                                                   "s"))
+        data["clock_search_reduced_chi2"] = ("clock_search_s", clock["reduced_chi2"], _attrs(
+            "reduced chi-square of the base model against the clock offset"
+            + ("" if applied else " (the profile only: clock_offset is not in the model, no offset applied)"), "1"))
         coords["clock_search_s"] = ("clock_search_s", clock["grid_s"], _attrs("trial camera clock offset", "s"))
+        for name, key, what in (("clock_profile_offset_s", "offset_s", "camera clock minus UTC at the profile's minimum"),
+                                ("clock_profile_offset_se_s", "offset_se_s", "standard error of the profile's offset "
+                                 "(chi-square curvature)"),
+                                ("clock_profile_offset_low_s", "offset_low_s", "lower bound of the profile's interval "
+                                 f"(chi-square rise chi2_1({clock['level']:g}) x reduced chi-square; NaN: not found)"),
+                                ("clock_profile_offset_high_s", "offset_high_s", "upper bound of the profile's interval "
+                                 f"(chi-square rise chi2_1({clock['level']:g}) x reduced chi-square; NaN: not found)")):
+            data[name] = ((), float(clock[key]), _attrs(
+                f"{what}; {'applied' if applied else 'not applied: clock_offset is not in the model'}", "s",
+                confidence_level=clock["level"]))
     if sky is not None:
         grid = float(cfg["sky_map_grid_deg"])
         n_z, n_a = sky["mean"].shape[1:]
@@ -911,9 +1032,14 @@ def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_referen
     obs = table_to_dataset(table, "obs_frame")
     units = {"value_dn": RAD, "sigma_dn": RAD, "x_scale": RAD, "pred_dn": RAD, "ref_nearest": RAD, "ref_convolved": RAD,
              "dref_dt": "W sr-1 m-2 nm-1 s-1", "spectral_slope": "1", "sun_zenith_deg": "degree", "time_s": "s",
-             "z": "1", "frame": "1", "sun_seen": "1", "sun_glare_covariate": "W m-2 nm-1"}
+             "z": "1", "frame": "1", "sun_seen": "1", "sun_glare_covariate": "W m-2 nm-1",
+             **{col: "s" for col in CLOCK_PROFILE_COLUMNS}}
     for col, u in units.items():
-        obs[f"obs_frame__{col}"].attrs.update(units=u, long_name=f"match-up table: {col}")
+        if f"obs_frame__{col}" in obs:
+            obs[f"obs_frame__{col}"].attrs.update(units=u, long_name=f"match-up table: {col}")
+    for col in CLOCK_PROFILE_COLUMNS:
+        if f"obs_frame__{col}" in obs:
+            obs[f"obs_frame__{col}"].attrs["long_name"] = f"match-up table: {CLOCK_PROFILE_LONG_NAMES[col]}"
     for col in ("group", "band"):
         obs[f"obs_frame__{col}"].attrs.update(long_name=f"match-up table: {col}")
     return ds.merge(obs)
