@@ -267,7 +267,8 @@ def test_known_clock_offset_is_recovered_and_diagnosed(field):
     assert float(field["arts"]["A"]["rms_z"]) < 1.5
     # without the effect in the model, the diagnostics find it in the field table, with the offset as amplitude
     obs = observations_from_artefacts({"field": [base]})
-    assert [(o.experiment, o.level) for o in obs] == [("field", "frame")]
+    # the match-up table and the scale closure (one row per band, the scale against the lab's prediction)
+    assert [(o.experiment, o.level) for o in obs] == [("field", "frame"), ("field", "scale")]
     ranked, _ = rank_missing_effects(obs, [], field["config"])
     top = ranked.iloc[0]
     assert top["effect"] == "clock_offset" and bool(top["significant"])
