@@ -13,10 +13,15 @@ The matrix {one ISO, several} x {one exposure, several} x {one frame per setting
 stage completes with several frames per setting and gives the parameters the design determines within
 tolerances derived from the injected noise (:func:`_tolerances`), and marks the others not measured; with
 one frame per setting it stops with one line (the temporal noise is a frame-to-frame variance).
+
+The linearity stage's lit frames (an image circle, a source) are not rewritten here: its one-ISO and
+one-exposure designs are the session's simulated tiny dataset with the rows of the other settings
+deleted (:func:`_subset`), which the simulator cannot write itself but a lab that skips a sweep does.
 """
 
 from __future__ import annotations
 
+import shutil
 from datetime import datetime, timedelta
 from pathlib import Path
 
@@ -254,3 +259,58 @@ def test_eight_bit_sensor_finds_its_hot_pixels(config, tmp_path):
     mask = art["hot_pixel_mask"].sel(band="R").values
     assert {(int(y), int(x)) for y, x in zip(*np.nonzero(mask))} == {(r // 2, c // 2) for r, c in HOT_SITES}
     assert int(art["hot_pixel_count"].sel(band=["G", "B"]).sum()) == 0
+
+
+# ---------------------------------------------------------------- the linearity stage on one ISO or one exposure
+def _subset(source: Path, root: Path, keep: dict) -> Path:
+    """A copy of ``source`` with only the frames.csv rows of each experiment that ``keep[experiment](row, tags)``
+    keeps (the other frames deleted, MD5SUMS rewritten): the same frames in a design with fewer settings."""
+    from pipeline.rawio import read_tags
+
+    shutil.copytree(source, root)
+    for experiment, wanted in keep.items():
+        frames = pd.read_csv(root / experiment / "frames.csv", keep_default_na=False)
+        kept = [wanted(row, read_tags(root / experiment / row["file"])) for _, row in frames.iterrows()]
+        for name in frames.loc[[not k for k in kept], "file"]:
+            (root / experiment / name).unlink()
+        frames[kept].to_csv(root / experiment / "frames.csv", index=False)
+    (root / "MD5SUMS").unlink(missing_ok=True)
+    write_md5sums(root)
+    return root
+
+
+def _run_linearity(root: Path, config: dict, out: Path) -> dict[str, xr.Dataset]:
+    lenses = list(yaml.safe_load((root / "dataset.yaml").read_text())["lenses"])
+    dark = {lens: out / "dark" / f"{lens}.nc" for lens in lenses}
+    run_stage("dark", root, config, dark)
+    return run_stage("linearity", root, config, {lens: out / "linearity" / f"{lens}.nc" for lens in lenses},
+                     {"dark": dark})
+
+
+def test_linearity_with_one_iso(make_dataset, config, tmp_path):
+    """The exposure sweep alone (no gain sweep) and dark frames at its ISO only: the photon transfer is
+    measured at that ISO (the simulator's truth 0.8 DN per electron at ISO 100, within 5 stated sigma)."""
+    source, truth = make_dataset()
+    root = _subset(source, tmp_path / "ds", {"linearity": lambda row, tags: row["sweep"] == "exposure",
+                                             "dark": lambda row, tags: float(tags["iso"]) == 100.0})
+    for lens, art in _run_linearity(root, config, tmp_path / "out").items():
+        k, k_sigma = float(art["conversion_gain_dn_per_e"]), float(art["conversion_gain_dn_per_e_sigma"])
+        true_k = float(truth["derived"]["conversion_gain_dn_per_e_iso100"])
+        assert abs(k - true_k) < 5.0 * k_sigma, (lens, k, k_sigma, true_k)
+
+
+def test_linearity_with_one_exposure_says_the_photon_transfer_is_not_measured(make_dataset, config, tmp_path):
+    source, _ = make_dataset()
+    root = _subset(source, tmp_path / "ds", {"linearity": lambda row, tags: row["sweep"] == "gain"})
+    for art in _run_linearity(root, config, tmp_path / "out").values():
+        assert np.isnan(float(art["conversion_gain_dn_per_e"]))
+        assert art["conversion_gain_dn_per_e"].attrs["measured"] == 0
+        assert "exposure sweep" in art["conversion_gain_dn_per_e"].attrs["not_measured"]
+
+
+def test_gain_sweep_on_a_one_iso_dark_model_stops_with_one_line(make_dataset, config, tmp_path):
+    source, _ = make_dataset()
+    root = _subset(source, tmp_path / "ds", {"dark": lambda row, tags: float(tags["iso"]) == 100.0})
+    with pytest.raises(InputError) as err:
+        _run_linearity(root, config, tmp_path / "out")
+    assert "\n" not in str(err.value) and "measured at ISO 100 only" in str(err.value), str(err.value)
