@@ -66,9 +66,10 @@ from pipeline.errors import InputError
 from pipeline.frames import SITES_PER_BAND_PIXEL
 from pipeline.geometry.sphere import ZENITH_LENS, grid_shape, sphere_cells, sphere_coordinates
 from pipeline.radiometry import measurement as mm
+from pipeline.radiometry.dark import check_dark_iso
 
 __all__ = ["BUNDLE_STAGES", "REQUIRED_STAGES", "STATIC_OFF_GRID", "FACTOR_EFFECTS", "factor_effects",
-           "sphere_blocks", "sphere_counts", "build_bundle", "read_bundle", "band_parameters",
+           "sphere_blocks", "sphere_counts", "build_bundle", "read_bundle", "band_parameters", "dark_parameters",
            "calibrated_isos", "outside_image_circle", "noise_equivalent_radiance", "build_bundle_script", "lab_inputs"]
 
 #: stages a bundle is gathered from (in the order of the calibration chain) and those it cannot lack
@@ -239,6 +240,30 @@ def calibrated_isos(bundle: xr.Dataset, effects) -> np.ndarray:
     return isos
 
 
+def dark_parameters(bundle: xr.Dataset, lens: str, band: str, frame: mm.FrameSettings) -> mm.DarkModel:
+    """The dark model of one lens and band at a frame's setting; one line when the bundle's dark model was
+    measured at one ISO (no gain sweep) and the frame is at another."""
+    b = bundle.sel(lens=lens)
+
+    def num(name, default=0.0, **sel):
+        if name not in b:
+            return default
+        value = b[name].sel(**sel) if sel else b[name]
+        return float(value)
+
+    check_dark_iso(b, frame.iso, iso_coord="dark_iso")
+    read = b["read_noise_dn"].sel(band=band).sel(dark_iso=frame.iso, method="nearest")
+    return mm.DarkModel(
+        bias_dn=num("bias_dn", band=band), bias_dn_sigma=num("bias_dn_sigma", band=band),
+        bias_per_gain_dn=num("bias_per_gain_dn", band=band), bias_per_gain_dn_sigma=num("bias_per_gain_dn_sigma", band=band),
+        dark_current_dn_per_s=num("dark_current_dn_per_s"), dark_current_dn_per_s_sigma=num("dark_current_dn_per_s_sigma"),
+        temperature_bias_dn_per_c=num("temperature_bias_dn_per_c"),
+        temperature_dark_dn_per_s_per_c=num("temperature_dark_dn_per_s_per_c"),
+        temperature_reference_c=num("temperature_reference_c", float("nan")),
+        read_noise_dn=float(read), offset_pattern_dn=num("offset_pattern_dn", band=band),
+        sites_per_pixel=SITES_PER_BAND_PIXEL[band])
+
+
 def band_parameters(bundle: xr.Dataset, lens: str, band: str, medium: str, frame: mm.FrameSettings,
                     effects) -> tuple[mm.DarkModel, mm.ResponseModel, mm.BandCalibration]:
     """The measurement chain's parameter objects for one lens, band, medium and frame setting."""
@@ -250,16 +275,7 @@ def band_parameters(bundle: xr.Dataset, lens: str, band: str, medium: str, frame
         value = b[name].sel(**sel) if sel else b[name]
         return float(value)
 
-    read = b["read_noise_dn"].sel(band=band).sel(dark_iso=frame.iso, method="nearest")
-    dark = mm.DarkModel(
-        bias_dn=num("bias_dn", band=band), bias_dn_sigma=num("bias_dn_sigma", band=band),
-        bias_per_gain_dn=num("bias_per_gain_dn", band=band), bias_per_gain_dn_sigma=num("bias_per_gain_dn_sigma", band=band),
-        dark_current_dn_per_s=num("dark_current_dn_per_s"), dark_current_dn_per_s_sigma=num("dark_current_dn_per_s_sigma"),
-        temperature_bias_dn_per_c=num("temperature_bias_dn_per_c"),
-        temperature_dark_dn_per_s_per_c=num("temperature_dark_dn_per_s_per_c"),
-        temperature_reference_c=num("temperature_reference_c", float("nan")),
-        read_noise_dn=float(read), offset_pattern_dn=num("offset_pattern_dn", band=band),
-        sites_per_pixel=SITES_PER_BAND_PIXEL[band])
+    dark = dark_parameters(bundle, lens, band, frame)
     factor, factor_sigma = 1.0, 0.0
     if "iso_gain_factor" in b and float(frame.iso) in set(b["gain_iso"].values.astype(float)):
         factor = num("iso_gain_factor", gain_iso=float(frame.iso))

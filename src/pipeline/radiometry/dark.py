@@ -9,6 +9,11 @@ with, when the ``temperature`` effect is in the model, a linear change of the
 black level and of the dark current with the logged temperature. These
 functions read that model from a dark artefact; every later stage subtracts
 the dark level through them.
+
+Dark frames all at one ISO (a fixed-gain camera, or a lab that locks the ISO) do not
+measure b1: the dark stage fixes it at 0 (attribute ``measured`` = 0 on
+``bias_per_gain_dn``) and b0 is the black level at that ISO, so the model holds at
+that ISO only; :func:`check_dark_iso` refuses any other.
 """
 
 from __future__ import annotations
@@ -16,9 +21,22 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
+from pipeline.errors import InputError
 from pipeline.radiometry.exposure import gain_from_iso
 
-__all__ = ["dark_model_level_dn", "dark_level_dn", "temperature_model_shift_dn", "temperature_shift_dn"]
+__all__ = ["dark_model_level_dn", "dark_level_dn", "temperature_model_shift_dn", "temperature_shift_dn",
+           "check_dark_iso"]
+
+
+def check_dark_iso(ds: xr.Dataset, iso: float, iso_coord: str = "iso") -> None:
+    """Refuse, in one line, an ISO that a dark model without a gain term (b1 not measured: one ISO in
+    the dark frames) was not calibrated at; a dark model with b1 measured passes every ISO."""
+    if "bias_per_gain_dn" not in ds or ds["bias_per_gain_dn"].attrs.get("measured", 1):
+        return
+    isos = np.asarray(ds[iso_coord].values, dtype=float)
+    if not np.any(np.isclose(isos, float(iso))):
+        raise InputError(None, f"ISO {float(iso):g} is not calibrated: the dark model was measured at ISO "
+                               f"{', '.join(f'{i:g}' for i in isos)} only (no gain sweep in the dark frames)")
 
 
 def dark_model_level_dn(bias_dn, bias_per_gain_dn, dark_current_dn_per_s, gain, exposure_s):
@@ -42,6 +60,7 @@ def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
     With the ``temperature`` effect in the dark model and a logged temperature,
     the level follows it.
     """
+    check_dark_iso(ds, iso)
     b = ds.sel(band=band)
     gain = gain_from_iso(iso)
     level = float(dark_model_level_dn(b["bias_dn"], b["bias_per_gain_dn"], ds["dark_current_dn_per_s"], gain,

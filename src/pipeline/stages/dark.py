@@ -63,6 +63,23 @@ def _tag_key(path) -> tuple[float, float]:
     return (float(tags["iso"]), round(float(tags["exposure_s"]), 9))
 
 
+#: frames a setting needs for its temporal (read) noise, a frame-to-frame variance
+MIN_FRAMES_PER_SETTING = 2
+
+
+def check_frames_per_setting(counts: Counter, keys: list, paths: list) -> None:
+    """Stop with one line when a setting has a single dark frame: the temporal noise of a setting (the
+    read noise, and the weight of each setting in the dark model) is a frame-to-frame variance, which
+    one frame cannot give."""
+    single = [k for k in counts if counts[k] < MIN_FRAMES_PER_SETTING]
+    if single:
+        iso, t = single[0]
+        raise InputError(paths[keys.index(single[0])],
+                         f"is the only dark frame at ISO {iso:g}, {t:g} s ({len(single)} of {len(counts)} settings "
+                         f"have one frame): the temporal (read) noise needs at least {MIN_FRAMES_PER_SETTING} "
+                         "frames of each setting")
+
+
 def hot_mask_settings(settings, persistence: int) -> list[tuple[float, float]]:
     """The settings the hot-pixel mask is made from: the shortest and the ``persistence`` longest exposures
     of the lowest ISO (only the shortest when that ISO has too few exposures for the mask)."""
@@ -134,6 +151,7 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
     edges: dict = {}                               # lens -> histogram bin edges (histogram_edges)
     keys = [_tag_key(p) for p in frames["path"]]
     counts = Counter(keys)
+    check_frames_per_setting(counts, keys, list(frames["path"]))
     first_seen = list(dict.fromkeys(keys))
     mask_settings = hot_mask_settings(first_seen, cfg["hot_pixel_persistence"])
     rank = {s: k for k, s in enumerate(mask_settings + [s for s in first_seen if s not in mask_settings])}
@@ -157,8 +175,10 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
         if not hot and all(s in pending for s in mask_settings):
             for lens, band in pending[mask_settings[0]]:
                 means = {s: pending[s][(lens, band)].mean() for s in mask_settings}
-                hot[(lens, band)] = find_hot_pixels(means, None, mask_settings[0][0], cfg["hot_pixel_threshold_sigma"],
-                                                    cfg["hot_pixel_persistence"])
+                n_frames = {s: pending[s][(lens, band)].n for s in mask_settings}
+                hot[(lens, band)] = find_hot_pixels(means, mask_settings[0][0], cfg["hot_pixel_threshold_sigma"],
+                                                    cfg["hot_pixel_persistence"], n_frames,
+                                                    quantisation_var_dn2(cfg["quantisation_step_dn"], band))
                 base[(lens, band)] = pending[mask_settings[0]][(lens, band)]
             for lens in {lens for lens, _ in hot}:
                 b = base[(lens, BANDS[0])]
@@ -221,26 +241,99 @@ def histogram_edges(cfg: dict, level_dn: float | None = None) -> np.ndarray:
     return np.arange(lo, hi + 1e-9, cfg["histogram_bin_dn"])
 
 
-def find_hot_pixels(means: dict[tuple[float, float], np.ndarray], variances, iso: float,
-                    threshold_sigma: float, persistence: int) -> np.ndarray:
+def quantisation_var_dn2(step_dn: float, band: str) -> float:
+    """Variance of the rounding of one band pixel in one frame (DN^2): step^2 / 12 per raw site (a value
+    rounded to a step of ``step_dn`` carries a uniform error over one step), over the sites a band pixel
+    averages (two for G). E.g. 1 DN steps: 1/12 = 0.083 DN^2 for R, 0.042 DN^2 for G."""
+    return step_dn ** 2 / 12.0 / SITES_PER_BAND_PIXEL[band]
+
+
+def find_hot_pixels(means: dict[tuple[float, float], np.ndarray], iso: float, threshold_sigma: float,
+                    persistence: int, n_frames: dict[tuple[float, float], int] | None = None,
+                    quantisation_dn2: float = 0.0) -> np.ndarray:
     """Pixels whose dark rise over the shortest exposure is an outlier in the ``persistence`` longest.
 
-    The outlier test is robust: z = (rise - median) / (1.4826 MAD), so the
-    fixed pattern and the temporal noise set the scale, not the hot pixels.
+    The outlier test is robust: z = (rise - median) / sigma with sigma = 1.4826 MAD, so the
+    fixed pattern and the temporal noise set the scale, not the hot pixels. The spread is
+    floored at the quantisation limit: a rise is the difference of two frame averages of
+    rounded values, each frame's rounding an error of variance ``quantisation_dn2`` (step^2 / 12,
+    :func:`quantisation_var_dn2`), so sigma >= sqrt(quantisation_dn2 (1/n_short + 1/n_long)) with
+    n the frames averaged at each setting. Without the floor, a sensor whose dark noise is below
+    one step (an 8-bit camera at 0.3 DN) has most pixels at the same rounded value in every frame,
+    a MAD of exactly zero, and a rise of one step over a few frames counts as many sigma.
     """
     times = sorted(t for (i, t) in means if i == iso)
     if len(times) < persistence + 1:
         return np.zeros_like(next(iter(means.values())), dtype=bool)
     base = means[(iso, times[0])]
+    count = n_frames or {}
     hot = None
     for t in times[-persistence:]:
         rise = means[(iso, t)] - base
         med = np.median(rise)
         mad = 1.4826 * np.median(np.abs(rise - med))
-        z = (rise - med) / max(mad, 1e-6)
+        frames_inv = 1.0 / count.get((iso, times[0]), 1) + 1.0 / count.get((iso, t), 1)
+        floor = np.sqrt(quantisation_dn2 * frames_inv)
+        z = (rise - med) / max(mad, floor, np.finfo(float).tiny)
         flag = z > threshold_sigma
         hot = flag if hot is None else hot & flag
     return hot
+
+
+def measurable_parameters(settings: list[tuple[float, float]], with_dark_current: bool) -> dict[str, bool]:
+    """Which parameters of the dark model the settings (ISO, exposure) of the dark frames determine.
+
+    ``gain`` (b1, the black level's change with ISO/100): more than one ISO. ``dark_current`` (D):
+    the setting-level design [1, (g - 1), g t] (without g - 1 for one ISO) over the distinct settings
+    has full column rank; one exposure time makes g t a combination of the other columns, so D is
+    not measured then. A parameter the data do not determine is left out of the fit and fixed at 0,
+    never solved for from a rank-deficient design.
+    """
+    gain = len({iso for iso, _ in settings}) > 1
+    g = gain_from_iso(np.array([iso for iso, _ in settings], float))
+    t = np.array([t for _, t in settings], float)
+    columns = [np.ones_like(g)] + ([g - 1.0] if gain else []) + [g * t]
+    design = np.column_stack(columns)
+    dark_current = with_dark_current and int(np.linalg.matrix_rank(design)) == design.shape[1]
+    return {"gain": gain, "dark_current": dark_current}
+
+
+def mark_not_measured(ds: xr.Dataset, design: dict[str, bool], with_dark_current: bool,
+                      settings: list[tuple[float, float]], persistence: int) -> None:
+    """Say in the artefact which of its parameters the dark frames' design left unmeasured (fixed at 0).
+
+    Each of ``bias_per_gain_dn``, ``dark_current_dn_per_s`` and ``hot_pixel_mask`` gets the attribute
+    ``measured`` (1 or 0) and, when 0, a ``not_measured`` reason; with one ISO ``bias_dn`` is the black
+    level at that ISO (its ``reference_iso`` attribute; 100 otherwise, where g - 1 = 0).
+    """
+    isos = sorted({iso for iso, _ in settings})
+    times = sorted({t for iso, t in settings if iso == isos[0]})
+    if design["gain"]:
+        ds["bias_dn"].attrs["reference_iso"] = 100.0
+        ds["bias_per_gain_dn"].attrs["measured"] = 1
+    else:
+        ds["bias_dn"].attrs.update(long_name=f"black level at ISO {isos[0]:g}, the one ISO of the dark frames (b0)",
+                                   reference_iso=float(isos[0]))
+        for name in ("bias_per_gain_dn", "bias_per_gain_dn_sigma"):
+            ds[name].attrs.update(measured=0, not_measured=(f"every dark frame is at ISO {isos[0]:g} (no gain sweep): "
+                                                            "b1 fixed at 0; the dark model holds at that ISO only"))
+        ds["bias_per_gain_dn"].attrs["long_name"] = "not measured (fixed at 0): black level change per unit of ISO/100"
+    if with_dark_current and not design["dark_current"]:
+        for name in ("dark_current_dn_per_s", "dark_current_dn_per_s_sigma"):
+            ds[name].attrs.update(measured=0, not_measured=(
+                "the dark frames' exposure times do not separate D g t from the black level (one exposure time): "
+                "D fixed at 0, its dark signal in b0; the dark model holds at the dark frames' exposure only"))
+        ds["dark_current_dn_per_s"].attrs["long_name"] = "not measured (fixed at 0): dark current at ISO 100 (D)"
+    elif with_dark_current:
+        ds["dark_current_dn_per_s"].attrs["measured"] = 1
+    else:
+        ds["dark_current_dn_per_s"].attrs.update(measured=0, not_measured="dark_current is not in model.effects")
+    if len(times) < persistence + 1:
+        ds["hot_pixel_mask"].attrs.update(measured=0, not_measured=(
+            f"the hot-pixel test needs {persistence + 1} exposure times at ISO {isos[0]:g} (the shortest and "
+            f"dark.hot_pixel_persistence = {persistence} longest), the dark frames have {len(times)}: no pixel flagged"))
+    else:
+        ds["hot_pixel_mask"].attrs["measured"] = 1
 
 
 def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, xr.Dataset]:
@@ -264,11 +357,15 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
                 # pixels, all CFA sites, read noise only) that of one raw pixel of the band
                 corner_var = (d["corner_var_dn2"] if d["n_corner"] > 0
                               else d[pixels]["var_dn2"] * SITES_PER_BAND_PIXEL[band])
+                # a frame's pixel cannot be known better than its rounding: the temporal variance of
+                # rounded values below one step (an 8-bit sensor's 0.3 DN) is floored at step^2 / 12
+                floor = quantisation_var_dn2(config["dark"]["quantisation_step_dn"], band)
                 setting_rows.append({
                     "lens": lens, "band": band, "iso": s[0], "exposure_s": s[1],
                     "n_frames": d["n_frames"],
-                    "pixel_var_dn2": d[pixels]["var_dn2"],
-                    "corner_var_dn2": corner_var,
+                    "pixel_var_dn2": max(d[pixels]["var_dn2"], floor),
+                    "corner_var_dn2": max(corner_var, floor if d["n_corner"] > 0
+                                          else floor * SITES_PER_BAND_PIXEL[band]),
                     "n_used": d[pixels]["n_used"], "n_corner": d["n_corner"],
                     "hot_excess_dn": d["circle"]["centre_dn"] - d["nonhot"]["centre_dn"],
                     "n_hot": d["n_hot"], "n_pixels": d["n_pixels"],
@@ -320,15 +417,21 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
         temperature_c=("temperature_c", "mean")).reset_index()
     st = st.merge(agg, on=["lens", "band", "setting"])
     st["sigma_dn"] = np.sqrt(st["frame_sigma"] ** 2 / st["n_frames"] + np.nan_to_num(drift[0]) ** 2 / st["n_frames"])
+    design = measurable_parameters(settings, "dark_current" in effects)
     st["x_b0"] = 1.0
-    st["x_b1"] = st["gain"] - 1.0
+    if design["gain"]:
+        st["x_b1"] = st["gain"] - 1.0
     if "temperature_ref_c" in fr:
         st["temperature_ref_c"] = fr["temperature_ref_c"].iloc[0]
-    fit, effect_params = fit_with_effects(st, "setting", effects, STAGE)
+    setting_effects = [e for e in effects if e != "dark_current" or design["dark_current"]]
+    fit, effect_params = fit_with_effects(st, "setting", setting_effects, STAGE)
     st["pred_dn"] = fit.pred
     st["z"] = fit.z
     names = base_design(st)[1]
     params = {name: (fit.coef[k], np.sqrt(fit.cov[k, k])) for k, name in enumerate(names)}
+    if not design["gain"]:
+        # b1 is fixed at 0: b0 is the black level at the one ISO of the dark frames
+        params.update({f"{g}:b1": (0.0, 0.0) for g in st["group"].unique()})
     dark_rate = tuple(float(v[0]) for v in effect_params.get("dark_current", ((0.0,), (0.0,))))
     temperature = effect_params.get("temperature")
     if temperature is not None:
@@ -348,6 +451,8 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     out = {lens: _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, drift, fit, ffit,
                                config, settings, ref_iso)
            for lens in lenses}
+    for ds in out.values():
+        mark_not_measured(ds, design, "dark_current" in effects, settings, config["dark"]["hot_pixel_persistence"])
     for lens, ds in out.items():
         reference = reduced.get("bias_reference", {}).get(lens, "unlit corners")
         ds.attrs["projection"] = reduced.get("projections", {}).get(lens, "fisheye")

@@ -637,6 +637,12 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
                                                                            saturated=st_l["saturated"].astype(int))
     fr_store = fr_l.assign(saturated=fr_l["saturated"].astype(int), used=(~fr_l["saturated"]).astype(int))
     ds = ds.merge(table_to_dataset(st_store, "obs_setting")).merge(table_to_dataset(fr_store, "obs_frame"))
+    if "conversion_gain_dn_per_e" not in ptc:
+        # one exposure time (a gain sweep only, or no exposure sweep at all): no photon-transfer curve
+        for name in ("conversion_gain_dn_per_e", "gain_e_per_dn", "read_noise_e"):
+            ds[name].attrs.update(measured=0, not_measured=(
+                "the photon-transfer curve needs an exposure sweep (several exposure times at one ISO); "
+                "the linearity frames have none"))
     ds.attrs["projection"] = reduced.get("projection", {}).get(lens, "fisheye")
     ds.attrs["field_angles_from"] = reduced["angle_source"][lens]
     ds.attrs["bias_drift_testable"] = int("corner_dn" in fr_l)
