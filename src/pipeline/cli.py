@@ -240,7 +240,7 @@ def build_parser() -> argparse.ArgumentParser:
     store_sub = sto.add_subparsers(dest="store_command", required=True, title="store commands", metavar="STORE_COMMAND")
     hist = store_sub.add_parser("history", help="a camera's calibrations in validity order with the drift of R^-1",
                                 description="List the calibrations of camera SERIAL in validity order with R^-1 per "
-                                            "lens and band and its change from the one before (%%, sigma, z).",
+                                            "lens and band and its change from the one before (percent, sigma, z).",
                                 epilog=STORE_EXAMPLES, formatter_class=fmt)
     hist.add_argument("serial", metavar="SERIAL", help="camera serial number (the store's folder name)")
     hist.add_argument("--store", metavar="DIR", default=None,
