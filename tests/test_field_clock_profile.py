@@ -112,8 +112,10 @@ def test_clock_offset_candidate_interval_covers_the_offset_the_stage_then_fits(h
     # ... and both are the injected offset within their stated uncertainty
     assert abs(fitted - offset_s) <= N_SIGMA * fitted_se, (offset_s, fitted, fitted_se)
     assert _within(amp, low, high, offset_s), (offset_s, (amp, low, high))
-    # ranked first (the hour's largest residual structure once the clock is off)
+    # ranked first (the hour's largest residual structure once the clock is off) and significant: its signature is
+    # the secant to the profile's offset, valid at that offset (the tangent, -k_b dref/dt, is not at 120 s)
     assert ranked.iloc[0]["effect"] == "clock_offset", ranked.head(3)
+    assert bool(row["significant"]), (offset_s, row[["p_value", "evidence", "delta_chi2"]])
 
     # the linearised amplitude (the table without the profile) is what the issue reported: at 40 s and beyond it
     # misses the offset by many of its own standard errors

@@ -36,6 +36,17 @@ def band_scale(table: pd.DataFrame) -> np.ndarray:
     return np.where(np.isfinite(k) & (x != 0), k, 1.0)
 
 
+def _profile_excludes_zero(table: pd.DataFrame) -> float | None:
+    """The clock profile's offset (s) when the table carries it and its interval excludes 0, else None."""
+    cols = ("clock_profile_offset_s", "clock_profile_offset_low_s", "clock_profile_offset_high_s")
+    if not all(c in table for c in cols) or not len(table):
+        return None
+    c, low, high = (float(table[col].iloc[0]) for col in cols)
+    if not (np.isfinite(c) and c != 0.0 and ((np.isfinite(low) and low > 0) or (np.isfinite(high) and high < 0))):
+        return None
+    return c
+
+
 def _field_frame(experiment: str, level: str, table: pd.DataFrame, needed: tuple[str, ...]) -> bool:
     return experiment == "field" and level == "frame" and all(c in table for c in needed)
 
@@ -57,10 +68,23 @@ class ClockOffset(Effect):
     def columns(self, experiment, level, table):
         """-k_b dref/dt. A camera clock ahead of UTC by c seconds takes the reference at t + c:
         x = ref(t + c) = ref(t) + c dref/dt, while the camera saw k_b ref(t); so
-        value = pred + c (-k_b dref/dt) and the coefficient is the offset c in seconds."""
+        value = pred + c (-k_b dref/dt) and the coefficient is the offset c in seconds.
+
+        The tangent holds for shifts short against the sky's time scale only. Where the match-up table carries
+        the stage's clock profile and its interval excludes 0 (an offset the profile itself finds), the column
+        is the secant to the profile's offset c*, k_b (ref(t - c*) - ref(t)) / c* (``ref_at_clock_profile``),
+        with the same coefficient, exact at c = c*: a signature valid at the amplitude it is tested at (a
+        120 s offset, against which the tangent points the other way). Rows without the reference at c*
+        keep the tangent."""
         if not _field_frame(experiment, level, table, ("dref_dt",)):
             return None
-        return (-table["dref_dt"].to_numpy(float) * band_scale(table))[:, None]
+        k = band_scale(table)
+        tangent = -table["dref_dt"].to_numpy(float) * k
+        found = _profile_excludes_zero(table)
+        if found is None or "ref_at_clock_profile" not in table:
+            return tangent[:, None]
+        secant = k * (table["ref_at_clock_profile"].to_numpy(float) - table["x_scale"].to_numpy(float)) / found
+        return np.where(np.isfinite(secant), secant, tangent)[:, None]
 
     def amplitude(self, experiment, level, table, coef, cov):
         """The offset c (s, camera minus UTC, as the coefficient of :meth:`columns`) and its 95 % interval.

@@ -142,6 +142,7 @@ CLOCK_PROFILE_LONG_NAMES = {
     "clock_profile_offset_se_s": "its standard error (chi-square curvature, times sqrt(reduced chi-square) when > 1)",
     "clock_profile_offset_low_s": "lower bound of the profile's interval at field.confidence_level (NaN: not found)",
     "clock_profile_offset_high_s": "upper bound of the profile's interval at field.confidence_level (NaN: not found)",
+    "ref_at_clock_profile": "the reference window mean at the profile's offset (the clock_offset candidate's secant)",
 }
 #: flags that keep a pixel out of the mask mean
 MASK_EXCLUDED = mm.FLAG_SATURATED | mm.FLAG_HOT | mm.FLAG_OUTSIDE_IMAGE_CIRCLE
@@ -750,6 +751,9 @@ def compute(ctx) -> xr.Dataset:
         # within the search, where the linearised signature (-k_b dref/dt) holds only for short shifts
         for col in CLOCK_PROFILE_COLUMNS:
             table[col] = float(clock[CLOCK_PROFILE_COLUMNS[col]])
+        # ... and its secant signature: the reference at the profile's offset, each row's own band and frame
+        at_offset = {b: ws[(predict, b)].stats(t_cam - float(clock["offset_s"]), width)["mean"] for b in BANDS}
+        table["ref_at_clock_profile"] = [float(at_offset[b][f]) for b, f in zip(table["band"], table["frame"])]
     few = [b for b in BANDS if valid[b].sum() < 3]
     if few:
         # three points are the fewest a line with an interval (N - 2 degrees of freedom) needs
