@@ -1037,11 +1037,11 @@ def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_referen
     units = {"value_dn": RAD, "sigma_dn": RAD, "x_scale": RAD, "pred_dn": RAD, "ref_nearest": RAD, "ref_convolved": RAD,
              "dref_dt": "W sr-1 m-2 nm-1 s-1", "spectral_slope": "1", "sun_zenith_deg": "degree", "time_s": "s",
              "z": "1", "frame": "1", "sun_seen": "1", "sun_glare_covariate": "W m-2 nm-1",
-             **{col: "s" for col in CLOCK_PROFILE_COLUMNS}}
+             **{col: "s" for col in CLOCK_PROFILE_COLUMNS}, "ref_at_clock_profile": RAD}
     for col, u in units.items():
         if f"obs_frame__{col}" in obs:
             obs[f"obs_frame__{col}"].attrs.update(units=u, long_name=f"match-up table: {col}")
-    for col in CLOCK_PROFILE_COLUMNS:
+    for col in (*CLOCK_PROFILE_COLUMNS, "ref_at_clock_profile"):
         if f"obs_frame__{col}" in obs:
             obs[f"obs_frame__{col}"].attrs["long_name"] = f"match-up table: {CLOCK_PROFILE_LONG_NAMES[col]}"
     for col in ("group", "band"):
