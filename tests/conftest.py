@@ -57,6 +57,7 @@ def calibrated(make_dataset, config, tmp_path_factory):
 #: with ``--dist loadfile`` each file goes whole to one worker in the order collected, so the long ones first
 #: and the short ones filling in after is what keeps both workers busy to the end (longest-first scheduling)
 LONGEST_FIRST = ("test_workflow.py", "test_workflow_default.py", "test_workflow_radiometric.py",
+                 "test_field_scale_coverage.py", "test_compare.py",
                  "test_geometry_stage.py", "test_geometry_theta_accuracy.py", "test_coverage_over_seeds.py",
                  "test_report.py", "test_apply_truth_sky.py", "test_apply.py", "test_geometry_calibrate.py",
                  "test_effect_forms.py")
