@@ -240,16 +240,21 @@ def calibrated_isos(bundle: xr.Dataset, effects) -> np.ndarray:
     return isos
 
 
+def _number(b: xr.Dataset, name: str, default: float = 0.0, **sel) -> float:
+    """A scalar of the bundle's lens selection ``b`` (at ``sel``), or ``default`` when the bundle has none."""
+    if name not in b:
+        return default
+    value = b[name].sel(**sel) if sel else b[name]
+    return float(value)
+
+
 def dark_parameters(bundle: xr.Dataset, lens: str, band: str, frame: mm.FrameSettings) -> mm.DarkModel:
     """The dark model of one lens and band at a frame's setting; one line when the bundle's dark model was
     measured at one ISO (no gain sweep) and the frame is at another."""
     b = bundle.sel(lens=lens)
 
     def num(name, default=0.0, **sel):
-        if name not in b:
-            return default
-        value = b[name].sel(**sel) if sel else b[name]
-        return float(value)
+        return _number(b, name, default, **sel)
 
     check_dark_iso(b, frame.iso, iso_coord="dark_iso")
     read = b["read_noise_dn"].sel(band=band).sel(dark_iso=frame.iso, method="nearest")
@@ -270,10 +275,7 @@ def band_parameters(bundle: xr.Dataset, lens: str, band: str, medium: str, frame
     b = bundle.sel(lens=lens)
 
     def num(name, default=0.0, **sel):
-        if name not in b:
-            return default
-        value = b[name].sel(**sel) if sel else b[name]
-        return float(value)
+        return _number(b, name, default, **sel)
 
     dark = dark_parameters(bundle, lens, band, frame)
     factor, factor_sigma = 1.0, 0.0
