@@ -45,7 +45,7 @@ from pipeline.radiometry.rolloff import evaluate_rolloff
 
 __all__ = ["Check", "COLUMNS", "STATUSES", "judge", "window_index_checks", "conversion_gain_checks",
            "quantum_efficiency_checks", "rolloff_checks", "dark_current_checks", "check_artefacts",
-           "findings", "finding_sentence", "range_reason", "plausibility_settings"]
+           "findings", "finding_sentence", "range_reason", "range_text", "summary_lines", "plausibility_settings"]
 
 #: the verdicts, from good to bad: inside the range (or within the margin of it), outside what any real
 #: lens or sensor has, outside what physics allows
@@ -366,3 +366,21 @@ def finding_sentence(row, with_reason: bool = False) -> str:
             f"{'within' if str(row['status']) == 'plausible' else 'outside'} "
             f"{range_text(row['low'], row['high'])} (plausibility.{row['range_key']}){beyond}: {row['status']} "
             f"({row['derivation']})" + (f". {row['reason']}" if with_reason else ""))
+
+
+def summary_lines(table: pd.DataFrame) -> list[str]:
+    """One line per checked quantity of a :func:`check_artefacts` table: how many values, their span, the
+    range and the config key, how many fall outside it (the findings themselves: :func:`finding_sentence`)."""
+    if table is None or table.empty or "quantity" not in table:
+        return []
+    out = []
+    for quantity, rows in table.groupby("quantity", sort=False):
+        values = rows["value"].astype(float)
+        finite = values[np.isfinite(values)]
+        span = (f"{_number(finite.min())} to {_number(finite.max())}" if len(finite) else "none finite")
+        units = "" if str(rows["units"].iloc[0]) in ("1", "", "nan") else f" {rows['units'].iloc[0]}"
+        bad = int((rows["status"].astype(str) != "plausible").sum())
+        out.append(f"{LABELS.get(str(quantity), str(quantity))}: {len(rows)} value(s), {span}{units}; range "
+                   f"{range_text(rows['low'].iloc[0], rows['high'].iloc[0])} (plausibility.{rows['range_key'].iloc[0]}); "
+                   + (f"{bad} outside" if bad else "all within"))
+    return out
