@@ -224,3 +224,32 @@ def test_clean_calibration_has_no_finding(calibrated, config, tmp_path):
     assert set(table["quantity"]) >= {"window_index", "conversion_gain_dn_per_e", "rolloff", "dark_current_dn_per_s"}
     assert findings(table).empty, findings(table).apply(finding_sentence, axis=1).tolist()
     assert len(pd.read_csv(tmp_path / "plausibility.csv")) == len(table)
+
+
+def test_report_summary_states_each_finding_with_value_and_range(settings):
+    """The report's summary: a callout and a marked row per value outside its range, with the value, the range
+    and its config key; one 'ok' line when every value is within."""
+    from pipeline.report.content import Table, Text
+    from pipeline.report.inputs import ReportInputs
+    from pipeline.report.sections.summary import summary_section
+
+    far = xr.Dataset({"immersion_factor": ("band", authors_factors("far")), "n_w": ("band", authors_water_index("far"))},
+                     coords={"band": list(BANDS)})
+    empty = pd.DataFrame()
+
+    def summary(table):
+        inputs = ReportInputs(artefacts={}, paths={}, missing_effects=empty, unexplained=empty, run_errors=empty,
+                              error_history=empty, plausibility=table, settings={"rolloff_summary_angles_deg": []})
+        return summary_section(inputs)
+
+    blocks = summary(check_artefacts({"immersion": {"far": far}}))
+    callouts = [b for b in blocks if isinstance(b, Text) and "outside their physical range" in str(b.text)]
+    assert len(callouts) == 1 and callouts[0].kind == "callout"
+    (table,) = [b for b in blocks if isinstance(b, Table) and "outer-window index" in " ".join(map(str, b.rows[0]))]
+    assert len(table.rows) == 3 and all(table.marked)
+    for row, value in zip(table.rows, window_index_checks(authors_factors("far"), authors_water_index("far"),
+                                                          settings=settings)):
+        assert row[3] == "implausible" and row[4] == f"{value.value:.4g}"
+        assert row[5] == "1.3 to 2 (plausibility.window_index_range)"
+    fine = summary(check_artefacts({"dark": {"close": _dark(0.7, 0.001)}}))
+    assert any(isinstance(b, Text) and b.kind == "ok" and "within it" in str(b.text) for b in fine)

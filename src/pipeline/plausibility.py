@@ -354,7 +354,7 @@ def finding_sentence(row, with_reason: bool = False) -> str:
     ``with_reason`` the range's reason after it."""
     units = "" if str(row["units"]) in ("1", "", "nan") else f" {row['units']}"
     sigma = float(row["sigma"])
-    value = _number(row["value"]) + (f" ± {_number(sigma)}" if np.isfinite(sigma) else "") + units
+    value = _number(row["value"]) + (f" ± {float(sigma):.2g}" if np.isfinite(sigma) else "") + units
     if not np.isfinite(float(row["value"])):
         value = "none"
     where = ", ".join(str(p) for p in (row["band"], row["at"]) if isinstance(p, str) and p and p != "nan")
