@@ -150,7 +150,7 @@ STAGE_SECTIONS = {
     "spectral": ("model", "bias", "spectral", "performance"),
     "absolute": ("model", "bias", "absolute", "performance"),
     "immersion": ("model", "bias", "immersion", "performance"),
-    "diagnostics": ("model", "diagnostics"),
+    "diagnostics": ("model", "diagnostics", "plausibility"),
     # apply: the bundle stores every pixel's cell on the default sphere grid (apply.grid_deg)
     "calibration": ("model", "calibration", "apply"),
     "field": ("model", "apply", "field", "performance"),

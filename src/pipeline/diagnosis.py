@@ -13,6 +13,9 @@ table ``results/closure/residuals.nc``); it recomputes nothing. Findings:
   what they compare and their largest departure;
 * each effect whose value differs between the two lenses (``lens_tests.csv``: one value shared by the
   sensors against one per lens), with both values and their intervals.
+* each fitted quantity outside its physical range (``plausibility.csv``, :mod:`pipeline.plausibility`): an
+  immersion factor whose implied outer-window index no lens material has, a conversion gain at or below 0,
+  a roll-off above its on-axis value, a negative dark current, with the value and the range.
 
 ``--explain EFFECT`` prints the effect's physics and signature, whether the model has it, and how it
 fared in this run's ranking (p-values, evidence, amplitude, the smallest amplitude the data could show).
@@ -31,6 +34,8 @@ from pipeline.diagnostics import field_scale_sentence, shared_excess_sentences
 from pipeline.effects import CATALOGUE, load_plugins
 from pipeline.effects import get as get_effect
 from pipeline.errors import InputError
+from pipeline.plausibility import finding_sentence, summary_lines
+from pipeline.plausibility import findings as plausibility_findings
 
 __all__ = ["diagnosis_lines", "explain_lines", "read_diagnostics"]
 
@@ -38,9 +43,10 @@ __all__ = ["diagnosis_lines", "explain_lines", "read_diagnostics"]
 FILES = {"missing_effects": "diagnostics/missing_effects.csv", "unexplained": "diagnostics/unexplained.csv",
          "residual_tests": "diagnostics/residual_tests.csv", "run_errors": "diagnostics/run_errors.csv",
          "error_history": "diagnostics/error_history.csv", "closure": "closure/residuals.nc",
-         "lens_tests": "diagnostics/lens_tests.csv", "field_scale": "diagnostics/field_scale.csv"}
+         "lens_tests": "diagnostics/lens_tests.csv", "field_scale": "diagnostics/field_scale.csv",
+         "plausibility": "diagnostics/plausibility.csv"}
 #: files a results folder written before they existed may lack (read as empty tables)
-OPTIONAL = ("lens_tests", "field_scale")
+OPTIONAL = ("lens_tests", "field_scale", "plausibility")
 #: runs of the error history that ``diagnose`` prints (the latest)
 HISTORY_RUNS = 5
 
@@ -164,6 +170,12 @@ def diagnosis_lines(found: dict, results: str | Path = "results") -> list[str]:
                          f"p {float(t['p_value']):.2g}  {verdict}")
             if _truthy(t["significant"]):
                 findings.append(str(t["message"]))
+    plausibility = found.get("plausibility", pd.DataFrame())
+    if len(plausibility):
+        lines += ["", "Plausibility of the fitted physics (each value with a physical range against it, beyond "
+                      "plausibility.margin_sigma of its stated uncertainty):"]
+        lines += [f"  {text}" for text in summary_lines(plausibility)]
+        findings += [finding_sentence(row) for _, row in plausibility_findings(plausibility).iterrows()]
     shared = shared_excess_sentences(tests)
     lines += ["", "Findings:"]
     if not findings and not shared:

@@ -879,14 +879,30 @@ def write_closure_table(observations: list[Observations], model_effects: list[st
                           effects=model_effects)
 
 
+def write_plausibility(artefacts: dict[str, list[str | Path]], loaded: dict[str, list[xr.Dataset]], config: dict,
+                       path) -> pd.DataFrame:
+    """Every fitted quantity with a physical range checked against it (:func:`pipeline.plausibility.check_artefacts`:
+    the lens of an artefact is its file's stem, ``results/<stage>/<lens>.nc``), each finding logged, the table
+    written to ``path``."""
+    from pipeline.plausibility import check_artefacts, finding_sentence, findings
+
+    by_lens = {exp: {Path(p).stem: ds for p, ds in zip(artefacts[exp], loaded[exp])} for exp in loaded}
+    checks = check_artefacts(by_lens, config)
+    for _, row in findings(checks).iterrows():
+        log.warning("plausibility: %s", finding_sentence(row))
+    _write_csv_atomic(checks, Path(path))
+    return checks
+
+
 def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, missing_csv, unexplained_csv,
                        errors_csv, ledger_dir, history_csv, residual_tests_csv=None, closure_nc=None,
-                       lens_tests_csv=None, field_scale_csv=None) -> pd.DataFrame:
+                       lens_tests_csv=None, field_scale_csv=None, plausibility_csv=None) -> pd.DataFrame:
     """Rank missing effects over the stages' artefacts and the cross-experiment closure tables
     (:mod:`pipeline.cross_closure`), test every table's residuals and whether one value shared by the lenses
     is enough, write this run's figures and the error history; ``residual_tests_csv`` and ``lens_tests_csv``
     default to ``residual_tests.csv`` and ``lens_tests.csv`` beside ``unexplained_csv``; the closure table
-    is written to ``closure_nc`` when given."""
+    is written to ``closure_nc`` when given; the plausibility of the fitted physics
+    (:func:`write_plausibility`) to ``plausibility_csv``, by default ``plausibility.csv`` beside them."""
     from pipeline.artefact import read_artefact, sha256_file
     from pipeline.cross_closure import closure_observations, describe_closure, lens_interaction_tests
 
@@ -908,6 +924,7 @@ def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, mis
                         (residual_tests_csv, tests), (lens_tests_csv, lens_interaction_tests(obs, effects, config)),
                         (field_scale_csv, scale)):
         _write_csv_atomic(table, Path(path))
+    write_plausibility(artefacts, loaded, config, plausibility_csv or Path(unexplained_csv).with_name("plausibility.csv"))
     if closure_nc is not None:
         inputs = {f"{exp}/{Path(p).name}": sha256_file(p) for exp, paths in artefacts.items() for p in paths}
         write_closure_table(obs, effects, config, closure_nc, inputs)

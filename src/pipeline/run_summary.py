@@ -76,9 +76,18 @@ def summarise_run(results: str | Path, model_effects: list[str], skipped: dict[s
         effects = ", ".join(list(model_effects) + found_all)
         lines.append(f"  to add every effect this run found ({', '.join(found_all)}): --config 'model={{effects: "
                      f"[{effects}]}}' (or model.effects in config/config.yaml)")
+    lines += plausibility_summary(diag / "plausibility.csv")
     for stage, why in (skipped or {}).items():
         lines.append(f"  skipped: {stage} ({why})")
     return lines
+
+
+def plausibility_summary(path: Path) -> list[str]:
+    """One line per fitted quantity outside its physical range (``plausibility.csv``), with the value and
+    the range (:func:`pipeline.plausibility.finding_sentence`)."""
+    from pipeline.plausibility import finding_sentence, findings
+
+    return [f"  {row['status']}: {finding_sentence(row)}" for _, row in findings(_read(path)).iterrows()]
 
 
 # --------------------------------------------------------------------------- a run with failed jobs
@@ -183,6 +192,7 @@ def report_after_failure(results: str | Path, stage_lenses: dict[str, list[str]]
                      run_errors=diag / "run_errors.csv", error_history=diag / "error_history.csv",
                      residual_tests=diag / "residual_tests.csv", closure=diag / "residuals.nc",
                      lens_tests=diag / "lens_tests.csv",
+                     plausibility=diag / "plausibility.csv",
                      out_html=diag / "index.html", skipped=skipped, failed=not_finished,
                      calibration=calibration[0] if calibration else None, settings=report_settings(config))
     except InputError as exc:

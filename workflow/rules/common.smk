@@ -147,6 +147,7 @@ def report_inputs(wildcards):
             "residual_tests": "results/diagnostics/residual_tests.csv",
             "lens_tests": "results/diagnostics/lens_tests.csv",
             "field_scale": "results/diagnostics/field_scale.csv",
+            "plausibility": "results/diagnostics/plausibility.csv",
             "closure": "results/closure/residuals.nc",
         }
     )

@@ -14,6 +14,8 @@ rule diagnostics:
         lens_tests="results/diagnostics/lens_tests.csv",
         # per band of the field match-up: the camera/reference scale against the lab calibration's prediction
         field_scale="results/diagnostics/field_scale.csv",
+        # per fitted quantity with a physical range (window index, conversion gain, roll-off, dark current): value, range, verdict
+        plausibility="results/diagnostics/plausibility.csv",
         # rebuilt at every run from the append-only ledger folder (one file per run, never rewritten)
         error_history="results/diagnostics/error_history.csv",
         # every measurement of every experiment: prediction, residual, expected noise, covariates

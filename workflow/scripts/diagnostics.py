@@ -8,4 +8,4 @@ setup_log(smk.log[0])
 exit_on_input_error(diagnose_artefacts, {stage: list(paths) for stage, paths in smk.input.items()},
                     smk.params.config, smk.output.missing_effects, smk.output.unexplained, smk.output.run_errors,
                     smk.params.ledger, smk.output.error_history, smk.output.residual_tests, smk.output.closure,
-                    smk.output.lens_tests, smk.output.field_scale)
+                    smk.output.lens_tests, smk.output.field_scale, plausibility_csv=smk.output.plausibility)

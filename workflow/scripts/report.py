@@ -14,4 +14,5 @@ exit_on_input_error(build_report, **artefacts, missing_effects=smk.input.missing
                     closure=smk.input.closure if "closure" in smk.input.keys() else None,
                     lens_tests=smk.input.lens_tests if "lens_tests" in smk.input.keys() else None,
                     field_scale=smk.input.field_scale if "field_scale" in smk.input.keys() else None,
+                    plausibility=smk.input.plausibility if "plausibility" in smk.input.keys() else None,
                     figures_dir=smk.output.figures, dataset=smk.params.dataset, settings=smk.params.settings)

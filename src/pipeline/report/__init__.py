@@ -61,14 +61,16 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                  field: dict[str, Path] | None = None, failed: dict[str, str] | None = None,
                  dataset: dict | None = None, settings: dict | None = None,
                  residual_tests: Path | None = None, closure: Path | None = None,
-                 lens_tests: Path | None = None, field_scale: Path | None = None) -> Path:
+                 lens_tests: Path | None = None, field_scale: Path | None = None,
+                 plausibility: Path | None = None) -> Path:
     """Write the calibration report as one self-contained HTML file and return its path.
 
     Each stage argument maps lens name to that stage's artefact; a stage given as None or empty gets a
     section saying it was not run, with its reason from ``skipped`` (stage -> reason). The four CSVs come
     from the diagnostics stage, and so do ``residual_tests`` (``residual_tests.csv``) and ``closure`` (the
     closure table ``residuals.nc``) and ``lens_tests`` (``lens_tests.csv``: one value shared by the lenses
-    against one per lens) and ``field_scale`` (``field_scale.csv``: the field scale closure), all optional:
+    against one per lens) and ``field_scale`` (``field_scale.csv``: the field scale closure) and ``plausibility``
+    (``plausibility.csv``: each fitted quantity with a physical range against it), all optional:
     absent, the diagnostics section says so. ``calibration``
     (optional) is the calibration bundle (noise floor). ``failed`` (after a run with failed jobs) maps a
     stage that did not finish to its error line: the summary names them first. ``dataset`` (optional):
@@ -102,6 +104,7 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
             closure=lazy(closure, "closure") if closure is not None and Path(closure).exists() else None,
             lens_tests=read_csv_or_empty(Path(lens_tests)) if lens_tests is not None else pd.DataFrame(),
             field_scale=read_csv_or_empty(Path(field_scale)) if field_scale is not None else pd.DataFrame(),
+            plausibility=read_csv_or_empty(Path(plausibility)) if plausibility is not None else pd.DataFrame(),
             skipped={**dict(skipped or {}), **failed}, failed=failed,
             calibration=lazy(calibration, "calibration") if calibration is not None else None,
             dataset=dict(dataset or {}),

@@ -46,6 +46,8 @@ class ReportInputs:
     lens_tests: pd.DataFrame = field(default_factory=pd.DataFrame)
     #: ``field_scale.csv``: per band, the field camera/reference scale against the lab calibration's prediction
     field_scale: pd.DataFrame = field(default_factory=pd.DataFrame)
+    #: ``plausibility.csv``: per fitted quantity with a physical range, the value, the range and the verdict
+    plausibility: pd.DataFrame = field(default_factory=pd.DataFrame)
     skipped: dict[str, str] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
     calibration: xr.Dataset | None = None

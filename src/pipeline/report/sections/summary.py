@@ -4,7 +4,9 @@ The camera and dataset; what did not run and why (at the top when an experiment 
 the calibration per lens and band: R⁻¹ with its relative uncertainty and largest budget term,
 effective wavelength and half bandwidth, immersion factor, half field of view, roll-off at the
 configured field angles, noise-equivalent radiance and limit of detection; the field agreement;
-and one verdict per experiment: at the noise floor, or which effect is missing.
+and one verdict per experiment: at the noise floor, or which effect is missing; each fitted
+quantity outside its physical range (an implied window index, a conversion gain, a roll-off above 1, a
+negative dark current), with the value and the range.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pipeline.report.formatting import media as media_list
 from pipeline.report.registry import section
 from pipeline.report.sections.diagnostics import amplitude_text, as_bool, top_effect
 from pipeline.report.sections.field import field_agreement_rows
+from pipeline.report.sections._plausibility import plausibility_blocks
 from pipeline.report.sections.noise_floor import RADIANCE_UNITS, operating_point
 
 __all__ = ["calibration_rows", "stage_verdicts"]
@@ -242,6 +245,7 @@ def summary_section(inputs) -> list:
                          "of Eq. (13) at report.rolloff_summary_angles_deg per medium (not extrapolated beyond the "
                          "largest measured angle), its uncertainty the curve's and that of the field angle it was "
                          "fitted on, |dg/dθ| times the geometry's stated σθ at that angle.", left=2))
+    out += plausibility_blocks(inputs)
     field = [row for lens, ds in inputs.stage("field").items() for row in field_agreement_rows(lens, ds)]
     if not inputs.field_scale.empty:
         departs = inputs.field_scale["departs"].map(as_bool).any()
