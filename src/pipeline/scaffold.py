@@ -22,6 +22,12 @@ a temporary sibling folder and renamed at the end, so a failure never leaves a
 half-written dataset.  The dataset is then validated: what it still lacks is
 what the user has to fill in.
 
+A measurement in the EMVA1288 file format (a descriptor ``EMVA1288_Data.txt``
+listing 16-bit PNG frames by exposure, as the EMVA1288 reference sets are
+published) is first wrapped as DNG files and a lab log by
+:func:`emva1288_raw_folder`; :func:`init_emva1288_dataset` then lays it out
+with :func:`init_dataset` like any other lab's raw folder.
+
 It uses the io layer and the geometry package's image-circle fit; only the
 command line imports it.
 """
@@ -33,6 +39,7 @@ import os
 import shutil
 from collections import Counter
 from dataclasses import dataclass, field
+from datetime import datetime, timedelta
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -43,10 +50,11 @@ from pipeline.bands import cut_region, split_bands
 from pipeline.dataset import (COMMON_COLUMNS, EXPERIMENT_COLUMNS, EXPERIMENTS, LAYOUT_VERSION, OPTIONAL_COLUMNS,
                               SIDECARS, TAG_COLUMNS, TYPO_SIMILARITY, read_csv_table, write_md5sums)
 from pipeline.errors import InputError, Problem
-from pipeline.rawio import read_raw, read_tags
+from pipeline.rawio import read_raw, read_tags, write_dng
 
 __all__ = ["RAW_SUFFIXES", "LensProposal", "RawEntry", "ScaffoldPlan", "InitResult", "plan_dataset",
-           "propose_lens_regions", "find_lens_circles", "write_dataset", "init_dataset", "describe_result"]
+           "propose_lens_regions", "find_lens_circles", "write_dataset", "init_dataset", "describe_result",
+           "Emva1288Frame", "read_emva1288_descriptor", "emva1288_raw_folder", "init_emva1288_dataset"]
 
 #: raw files the layout holds (DATASET.md: DNG 1.4), compared case-insensitively
 RAW_SUFFIXES = (".dng",)
@@ -614,3 +622,127 @@ def describe_result(result: InitResult) -> str:
     else:
         lines.append("the dataset validates; run: snakemake --cores 2 --config dataset=" + str(result.out.resolve()))
     return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------
+# EMVA1288 measurements (descriptor and PNG frames) as DNG files and a lab log
+
+#: the DNG's ISO for a camera with one gain: ISO 100 is gain 1 (radiometry.exposure.gain_from_iso), so the dark
+#: model's per-ISO-100 figures (dark current in DN/s) are the camera's own
+EMVA1288_ISO = 100
+#: acquisition times written to the DNGs: the descriptor gives none, so the frames get this start and one
+#: second per frame in descriptor order (init-dataset orders frames by time: the descriptor's order is kept)
+EMVA1288_START = datetime(2011, 1, 1, 0, 0, 0)
+#: the lab-log name written beside the DNGs
+EMVA1288_LAB_LOG = "lab_log.csv"
+
+
+@dataclass(frozen=True)
+class Emva1288Frame:
+    """One image of an EMVA1288 descriptor: bright (b) or dark (d), its exposure and photons per pixel."""
+
+    image: Path                   # the PNG file
+    kind: str                     # "signal" (a ``b`` block) or "dark" (a ``d`` block)
+    exposure_s: float
+    photons_per_pixel: float      # the descriptor's photon count of a bright block; NaN for a dark one
+    step: int                     # index of the block among its kind, in descriptor order
+
+
+def read_emva1288_descriptor(path) -> tuple[int, tuple[int, int], list[Emva1288Frame]]:
+    """The bits, (height, width) and frames of an EMVA1288 descriptor (``EMVA1288_Data.txt``).
+
+    The format: ``n BITS WIDTH HEIGHT``, then blocks ``b EXPOSURE_NS PHOTONS`` (bright) and ``d EXPOSURE_NS``
+    (dark), each followed by its images ``i RELATIVE_PATH`` (Windows separators allowed); ``#`` comments and
+    the ``v`` version line are skipped.  A malformed line stops with one InputError naming it.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "EMVA1288 descriptor not found")
+    bits, shape, frames, block = None, None, [], None
+    steps = Counter()
+    for number, line in enumerate(path.read_text(encoding="latin-1").splitlines(), start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#") or fields[0] == "v":
+            continue
+        try:
+            if fields[0] == "n":
+                bits, shape = int(fields[1]), (int(fields[3]), int(fields[2]))
+            elif fields[0] in ("b", "d"):
+                kind = "signal" if fields[0] == "b" else "dark"
+                photons = float(fields[2]) if kind == "signal" else float("nan")
+                block = (kind, float(fields[1]) * 1e-9, photons, steps[kind])
+                steps[kind] += 1
+            elif fields[0] == "i":
+                if block is None:
+                    raise ValueError("an image before any b or d block")
+                image = path.parent / PurePosixPath(line.split(None, 1)[1].strip().replace("\\", "/"))
+                frames.append(Emva1288Frame(image, block[0], block[1], block[2], block[3]))
+            else:
+                raise ValueError(f"unknown line type {fields[0]!r}")
+        except (IndexError, ValueError) as exc:
+            raise InputError(path, f"line {number} is not EMVA1288 descriptor syntax ({exc}): {line.strip()!r}") \
+                from None
+    if bits is None or not frames:
+        raise InputError(path, "no 'n BITS WIDTH HEIGHT' line or no images: not an EMVA1288 descriptor")
+    return bits, shape, frames
+
+
+def emva1288_raw_folder(descriptor, raw_dir, *, make: str, model: str, serial: str,
+                        crop_px: tuple[int, int] | None = None) -> Path:
+    """Wrap an EMVA1288 measurement as a lab's raw folder: DNG files under ``dark/`` and ``linearity/`` and a lab
+    log; returns the lab log's path (for :func:`init_dataset`).
+
+    Each PNG becomes one DNG (:func:`pipeline.rawio.write_dng`) holding its values unchanged: ExposureTime from
+    the descriptor, ISO ``EMVA1288_ISO`` (one gain), the acquisition time ``EMVA1288_START`` plus one second per
+    frame in descriptor order (the descriptor gives none), BlackLevel 0 (the files carry none: the dark stage
+    measures it), WhiteLevel 2^bits - 1 and an RGGB CFA tag over the monochrome data (each band is a quarter
+    or, for G, half of the same sensor's pixels: the per-pixel statistics are the sensor's).  Dark blocks go to
+    ``dark/``, bright ones to ``linearity/`` as an exposure sweep of the one lens region ``main``.  ``crop_px``
+    (rows, cols), even, keeps the centre of each frame.  ``make``, ``model`` and ``serial`` name the camera
+    (the descriptor does not) in the DNG tags and so in dataset.yaml.  The lab log also holds the descriptor's photons per
+    pixel and block index (``photons_per_pixel``, ``emva1288_step``), which frames.csv leaves out.
+    """
+    import cv2
+
+    raw_dir = Path(raw_dir)
+    if raw_dir.exists():
+        raise InputError(raw_dir, "already exists; the EMVA1288 wrapper never writes into an existing folder")
+    bits, (height, width), frames = read_emva1288_descriptor(descriptor)
+    rows, cols = crop_px if crop_px is not None else (height, width)
+    if rows % 2 or cols % 2 or not (0 < rows <= height and 0 < cols <= width):
+        raise InputError(None, f"crop {rows} x {cols} must be even and within the {height} x {width} frames")
+    top, left = (height - rows) // 4 * 2, (width - cols) // 4 * 2        # on the CFA grid
+    white = 2 ** bits - 1
+    log_rows = []
+    for k, frame in enumerate(frames):
+        values = cv2.imread(str(frame.image), cv2.IMREAD_UNCHANGED)
+        if values is None:
+            raise InputError(frame.image, "cannot be read as an image")
+        if values.shape != (height, width) or values.dtype != np.uint16:
+            raise InputError(frame.image, f"is {values.shape} {values.dtype}, the descriptor says {height} x {width} "
+                                          f"{bits}-bit (16-bit PNG)")
+        if int(values.max()) > white:
+            raise InputError(frame.image, f"holds {int(values.max())}, above the {bits}-bit range")
+        experiment = "dark" if frame.kind == "dark" else "linearity"
+        name = f"{experiment}/{frame.image.stem}.dng"
+        target = raw_dir / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        write_dng(target, values[top:top + rows, left:left + cols], exposure_s=frame.exposure_s,
+                  iso=EMVA1288_ISO, time=EMVA1288_START + timedelta(seconds=k), black_level=0, white_level=white,
+                  cfa_pattern="RGGB", make=make, model=model, serial=serial)
+        log_rows.append({LOG_FILE_COLUMN: name, LOG_EXPERIMENT_COLUMN: experiment,
+                         "lens": SINGLE_LENS if experiment == "linearity" else "both", "kind": frame.kind,
+                         "sweep": "exposure" if experiment == "linearity" else "",
+                         "photons_per_pixel": frame.photons_per_pixel, "emva1288_step": frame.step})
+    log = raw_dir / EMVA1288_LAB_LOG
+    pd.DataFrame(log_rows).to_csv(log, index=False)
+    return log
+
+
+def init_emva1288_dataset(descriptor, raw_dir, out, *, make: str, model: str, serial: str,
+                          crop_px: tuple[int, int] | None = None) -> InitResult:
+    """An EMVA1288 measurement as a dataset: :func:`emva1288_raw_folder` into ``raw_dir``, then
+    :func:`init_dataset` into ``out`` with its lab log (the DNGs linked).  The one lens region is lit to its
+    corners in the bright frames, so init-dataset proposes it ``projection: rectilinear``."""
+    log = emva1288_raw_folder(descriptor, raw_dir, make=make, model=model, serial=serial, crop_px=crop_px)
+    return init_dataset(raw_dir, out, lab_log=log)

@@ -16,8 +16,11 @@ reduces them to:
   the flagged pixels out of the means; ``bias_drift`` removes each frame's
   offset measured on its unlit pixels: the corners outside a fisheye's image
   circle, or, for a rectilinear region (lit to its edges), the sensor's
-  optically black pixels when the DNG declares them; without either the
-  drift is not testable and the artefact says so);
+  optically black pixels when the DNG declares them, or else, since every
+  pixel of a dark frame is dark, half of the region's own pixels: a fixed
+  random half of each row of band pixels measures each frame's level, the
+  other half is the value (:func:`dark_reference_mask`); the lit stages have no such
+  reference then, and the artefact's ``bias_reference`` says "none" for them);
 * the observation tables with the model's predictions and the residuals
   normalised by the expected noise, for closure and the diagnostics.
 """
@@ -49,10 +52,45 @@ def _setting_key(raw) -> tuple[float, float]:
 
 
 def bias_reference(projection: str, has_optical_black: bool) -> str:
-    """What measures each frame's black level: the unlit corners, the optically black pixels, or nothing."""
+    """What measures each lit frame's black level: the unlit corners, the optically black pixels, or nothing."""
     if projection != "rectilinear":
         return "unlit corners"
     return "optically black pixels" if has_optical_black else "none"
+
+
+#: what measures each dark frame's black level in a rectilinear region without optically black pixels
+DARK_HALF_REFERENCE = "half the region's pixels (a fixed random half of each row of band pixels, dark frames only)"
+#: seed of that half: any fixed value (the same pixels in every frame and every run)
+DARK_HALF_SEED = 1288
+
+
+def dark_bias_reference(projection: str, has_optical_black: bool) -> str:
+    """What measures each dark frame's black level: as in the lit frames (:func:`bias_reference`), or, where
+    they have nothing, half of the region itself (:func:`dark_reference_mask`)."""
+    reference = bias_reference(projection, has_optical_black)
+    return DARK_HALF_REFERENCE if reference == "none" else reference
+
+
+def dark_reference_mask(shape: tuple[int, int], projection: str, min_radius_fraction: float,
+                        has_optical_black: bool) -> np.ndarray:
+    """The band pixels that measure a dark frame's own black level, left out of the dark model's pixels.
+
+    A fisheye's unlit corners (:func:`pipeline.moments.unlit_mask`); none for a rectilinear region whose DNG
+    declares optically black pixels (they are the reference); else, in each row of band pixels, a fixed random
+    half of its pixels (seed ``DARK_HALF_SEED``).  In a dark frame every pixel is dark, so one half measures the
+    frame's level and the other half, the value, is tested against it: a bias common to the frame moves both
+    alike, and the frame-level residual is the two halves' own noise.  Each row holds both halves in equal
+    numbers, so a row's offset (a readout's line noise) is common to both; the random choice inside the row
+    shares no period with a readout pattern that repeats every few pixels (interference on the pixel clock,
+    alternating column channels), which a regular split (a checkerboard of band pixels) would align with and
+    see as a difference of the halves: the EMVA1288 reference CCD has such a pattern, repeating every 4 sites
+    along the rows and down the columns, and its checkerboard halves differ by 14 to 19 times their noise
+    (docs/real-sensor-emva1288.md).
+    """
+    if projection != "rectilinear" or has_optical_black:
+        return unlit_mask(shape, projection, min_radius_fraction)
+    draws = np.random.default_rng(DARK_HALF_SEED).random(shape)
+    return np.argsort(draws, axis=1, kind="stable") < shape[1] // 2
 
 
 def _tag_key(path) -> tuple[float, float]:
@@ -168,6 +206,7 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
     frame_rows = []
     inputs = {}
     optical_black = []
+    dark_reference = {}                            # lens -> what measures each dark frame's black level
 
     def finish(key):
         pending[key] = {lb: _Pending(m) for lb, m in open_moments.items()}
@@ -206,7 +245,10 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
             for band in BANDS:
                 img = images.bands[band]
                 if (lens, band) not in corners:
-                    corners[(lens, band)] = unlit_mask(img.shape, projections[lens], corner_fraction)
+                    corners[(lens, band)] = dark_reference_mask(img.shape, projections[lens], corner_fraction,
+                                                                dec.raw.optical_black_dn is not None)
+                    dark_reference.setdefault(lens, dark_bias_reference(projections[lens],
+                                                                        dec.raw.optical_black_dn is not None))
                     circles[(lens, band)] = ~corners[(lens, band)]
                 cm = corners[(lens, band)]
                 open_moments.setdefault((lens, band), RunningMoments()).add(img)
@@ -229,7 +271,8 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
     has_ob = bool(optical_black) and all(optical_black)
     return {"stats": stats, "settings": sorted(counts), "hot": hot, "base": base, "frames": table,
             "corners": corners, "inputs": inputs, "lenses": lenses, "edges": edges, "projections": projections,
-            "bias_reference": {lens: bias_reference(p, has_ob) for lens, p in projections.items()}}
+            "bias_reference": {lens: bias_reference(p, has_ob) for lens, p in projections.items()},
+            "dark_bias_reference": dark_reference}
 
 
 def histogram_edges(cfg: dict, level_dn: float | None = None) -> np.ndarray:
@@ -457,10 +500,15 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
         reference = reduced.get("bias_reference", {}).get(lens, "unlit corners")
         ds.attrs["projection"] = reduced.get("projections", {}).get(lens, "fisheye")
         ds.attrs["bias_reference"] = reference
-        ds.attrs["bias_drift_testable"] = int(reference != "none")
-        if reference == "none":
+        ds.attrs["dark_bias_reference"] = reduced.get("dark_bias_reference", {}).get(lens, reference)
+        ds.attrs["bias_drift_testable"] = int(testable)
+        if not testable:
             ds.attrs["bias_drift_note"] = ("bias_drift not testable: a rectilinear region has no unlit corners and "
                                            "the DNG declares no optically black pixels (ActiveArea/MaskedAreas)")
+        elif reference == "none":
+            ds.attrs["bias_drift_note"] = (
+                f"bias_drift measured in the dark frames on {DARK_HALF_REFERENCE}; the lit frames have no unlit "
+                "corners and no optically black pixels (ActiveArea/MaskedAreas): their drift cannot be removed")
         if reference == "optically black pixels":
             # the black-level reference of the later stages: optically black mean less the
             # region's dark level, at the shortest exposure of the lowest ISO (no dark current)
@@ -515,7 +563,7 @@ def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, 
         used = ~cm & ~hot_map if pixels == "nonhot" else ~cm
         m0 = reduced["base"][(lens, band)].mean()
         fpn[bi] = (m0 - m0[used].mean()).astype(np.float32)
-        if cm.any():
+        if cm.any() and reduced.get("dark_bias_reference", {}).get(lens) != DARK_HALF_REFERENCE:
             # over the corner pixels the dark model predicts: without the hot ones when it fits the others
             # (radiometry.unlit_corners.corner_sites)
             corner_used = cm & ~hot_map if pixels == "nonhot" else cm
@@ -568,7 +616,8 @@ def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, 
                            {"long_name": "offset fixed pattern at the shortest exposure and lowest ISO, mean removed", "units": "DN"}),
             "fpn_corner_mean_dn": ("band", fpn_corner,
                                    {"long_name": "fpn_map_dn averaged over the unlit corner pixels (NaN without "
-                                                 "any), which every lit stage's black-level reference needs; "
+                                                 "any: a rectilinear region's dark reference is lit in lit "
+                                                 "frames), which every lit stage's black-level reference needs; "
                                                  "without the hot pixels when hot_pixels_excluded is 1",
                                     "units": "DN",
                                     "corner_min_radius_fraction": float(config["bias"]["corner_min_radius_fraction"]),

@@ -1,0 +1,96 @@
+"""The EMVA1288 Reference Set 001 through the dark and linearity stages: its figures against the reference, as CSV.
+
+    PYTHONPATH=src python scripts/emva1288_figures.py ../shared/realdata/emva1288-set001/EMVA1288_Data.txt \\
+        docs/figures-data/emva1288_set001.csv
+
+Lays the set out in a temporary folder (pipeline.scaffold.init_emva1288_dataset), runs the dark stage with the
+default model and with bias_drift added, and the linearity stage with bias_drift, and writes one row per
+figure (reference values of the set's SOURCES.md) with the machine, date, commit and command.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+from collections import Counter
+from datetime import date
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from pipeline.config import load_config
+from pipeline.scaffold import init_emva1288_dataset, read_emva1288_descriptor
+from pipeline.workflow import run_stage
+
+LENS = "main"
+CAMERA = {"make": "Basler", "model": "EMVA1288 Reference Set 001", "serial": "EMVA1288-SET001"}
+MODEL = ["dark_current", "hot_pixels"]
+REF_K = 0.280769
+
+
+def _machine() -> str:
+    mem_gb = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    return f"{os.cpu_count()} cores, {mem_gb:.0f} GB"
+
+
+def _stages(descriptor: Path, work: Path) -> dict[str, xr.Dataset]:
+    result = init_emva1288_dataset(descriptor, work / "raw", work / "dataset", **CAMERA)
+    config, out = load_config(), {}
+    for name, effects in (("dark", MODEL), ("dark_drift", MODEL + ["bias_drift"])):
+        cfg = {**config, "model": {**config["model"], "effects": effects}}
+        out[name] = run_stage("dark", result.out, cfg, {LENS: work / f"{name}.nc"})[LENS]
+    out["linearity"] = run_stage("linearity", result.out, cfg, {LENS: work / "linearity.nc"},
+                                 {"dark": {LENS: work / "dark_drift.nc"}})[LENS]
+    return out
+
+
+def figures(descriptor: Path) -> list[dict]:
+    with tempfile.TemporaryDirectory() as tmp:
+        a = _stages(descriptor, Path(tmp))
+        lin, dark, drift = a["linearity"], a["dark"], a["dark_drift"]
+        read = drift["read_noise_dn"].sel(band=["R", "G", "B"]).values[:, 0]
+        per_site = float(np.sqrt((read[0] ** 2 + 2 * read[1] ** 2 + read[2] ** 2) / 4))
+        st = lin["obs_setting__exposure_s"].values[lin["obs_setting__saturated"].values == 1]
+        # the bright steps' exposures (blocks of two frames; the 50-frame stack is not a step)
+        blocks = Counter((f.step, round(f.exposure_s, 9)) for f in read_emva1288_descriptor(descriptor)[2]
+                         if f.kind == "signal")
+        steps = np.array(sorted(t for (_, t), n in blocks.items() if n == 2))
+        first_saturated = int(np.searchsorted(steps, round(float(st.min()), 9))) if st.size else -1
+        effects = " ".join(MODEL + ["bias_drift"])
+        rows = [
+            ("conversion gain", "DN/e-", REF_K, float(lin["conversion_gain_dn_per_e"]),
+             float(lin["conversion_gain_dn_per_e_sigma"]), 3.0, effects),
+            ("read noise", "e-", 10.9, float(lin["read_noise_e"]), float(lin["read_noise_e_sigma"]), 5.0, effects),
+            ("temporal dark noise (raw sites of R, G, G, B)", "DN", 3.07342, per_site, np.nan, 5.0, effects),
+            ("last unsaturated step (counted from 0)", "step", 36, first_saturated - 1, np.nan, 0.0, effects),
+            ("dark current", "DN/s", 28.41 * REF_K, float(drift["dark_current_dn_per_s"]),
+             float(drift["dark_current_dn_per_s_sigma"]), np.nan, effects),
+            ("dark current", "DN/s", 28.41 * REF_K, float(dark["dark_current_dn_per_s"]),
+             float(dark["dark_current_dn_per_s_sigma"]), np.nan, " ".join(MODEL)),
+            ("bias drift (frame-to-frame black-level spread per band)", "DN", np.nan, float(drift["bias_drift_dn"]),
+             np.nan, np.nan, effects),
+            ("dark table rms z", "1", 1.0, float(drift["rms_z"]), np.nan, np.nan, effects),
+            ("dark table rms z", "1", 1.0, float(dark["rms_z"]), np.nan, np.nan, " ".join(MODEL)),
+            ("linearity table rms z", "1", 1.0, float(lin["rms_z"]), np.nan, np.nan, effects),
+        ]
+    out = []
+    for quantity, unit, ref, value, sigma, tol, model in rows:
+        diff = 100.0 * (value / ref - 1.0) if unit not in ("step", "1") and np.isfinite(ref) else np.nan
+        out.append({"quantity": quantity, "unit": unit, "reference": ref, "measured": value, "measured_sigma": sigma,
+                    "difference_percent": diff, "tolerance_percent": tol, "model_effects": model})
+    return out
+
+
+def main(descriptor: str, csv_path: str) -> None:
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    command = "PYTHONPATH=src python scripts/emva1288_figures.py " + " ".join(sys.argv[1:])
+    meta = {"machine": _machine(), "date": date.today().isoformat(), "commit": commit, "command": command}
+    pd.DataFrame([{**meta, **row} for row in figures(Path(descriptor))]).to_csv(csv_path, index=False)
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:3])
