@@ -15,8 +15,11 @@ Steps, as in Scaramuzza et al. (2006) and the OCamCalib toolbox:
    centre, the stretch and the polynomial, minimising reprojection error in
    pixels. Frames with too few corners, a failed initialisation or wild
    errors are dropped and reported.
-4. Covariance of the model parameters from the Jacobian at the solution: by
-   default a leave-one-board-out jackknife (:func:`jackknife_covariance`),
+4. Covariance of the model parameters: by default a leave-one-board-out
+   jackknife, each leave-one-out fit redone in full
+   (:func:`jackknife_refit_covariance`) up to a number of boards, one
+   Gauss-Newton step from the Jacobian at the solution beyond
+   (:func:`jackknife_covariance`),
    or the cluster-robust sandwich over the boards, or scaled by the reduced
    chi-square of the corner residuals (:func:`intrinsic_covariance`); its
    block of the centre, stretch and polynomial is that of the poses
@@ -26,17 +29,19 @@ Internally the polynomial is written in rho / r_norm (r_norm = half the
 image's short side) so that all coefficients are of similar size.
 
 Stretch: A = [[c, d], [e, 1]]. Its antisymmetric part is a rotation about the
-optical axis, which the board poses absorb; ``stretch="symmetric"`` (the
-default) therefore fits c and d with e = d; ``"full"`` frees e as well (the
-rotation gauge is then fixed only weakly by the solver); ``"none"`` keeps
-the identity.
+optical axis, which the board poses absorb; ``stretch="symmetric"`` therefore
+fits c and d with e = d; ``"full"`` frees e as well (the rotation gauge is
+then fixed only weakly by the solver); ``"none"`` keeps the identity;
+``"auto"`` (the default) keeps "symmetric" only when a test over the boards
+shows a stretch, else fits "none" on the same corners (:func:`select_stretch`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy import stats
 from scipy.optimize import least_squares
 
 from .scaramuzza import FisheyeModel
@@ -44,6 +49,12 @@ from .theta_uncertainty import parameter_names
 
 #: estimates of the model parameters' covariance (:func:`calibrate`'s ``covariance``)
 COVARIANCE_ESTIMATES = ("board_jackknife", "board_clustered", "reduced_chi2")
+#: stretch models a fit can use
+STRETCH_MODELS = ("symmetric", "full", "none")
+#: :func:`calibrate`'s ``stretch``: a model, or "auto" (chosen by :func:`select_stretch`)
+STRETCH_CHOICES = ("auto",) + STRETCH_MODELS
+#: the candidates of stretch "auto", nested, the most general last (:func:`select_stretch` says why not "full")
+AUTO_STRETCH_CANDIDATES = ("none", "symmetric")
 #: Penalty (pixels) for a point the model cannot project (outside its domain).
 _UNPROJECTABLE_PX = 1.0e3
 
@@ -73,6 +84,13 @@ class CalibrationResult:
     #: sum of squared corner residuals over the degrees of freedom (px^2): the corner noise the covariance assumes
     reduced_chi2_px2: float = float("nan")
     n_dof: int = 0
+    #: per input frame the indices of its corners the final fit used (None for a dropped frame)
+    corners_used: list = field(default_factory=list)
+    #: how the stretch model was chosen: {"criterion", "values" (candidate -> criterion), "chosen"}
+    stretch_selection: dict = field(default_factory=dict)
+    #: the covariance estimate used: "board_jackknife_refit", "board_jackknife_one_step", "board_clustered",
+    #: "reduced_chi2" or "not computed"
+    covariance_method: str = ""
 
     def residuals_vs_radius(self, n_bins: int = 10):
         """Mean residual norm in radial bins: (bin centres px, mean px, counts)."""
@@ -271,7 +289,7 @@ def _unpack(x, n_frames, degree, r_norm, shape, stretch):
     return model, pose, i
 
 
-def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev):
+def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev, with_jacobian=True):
     shape = model0.shape
     b0 = _poly_to_b(model0.poly, degree, r_norm)
     head = [model0.xc, model0.yc]
@@ -323,7 +341,7 @@ def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev):
     model, pose, _ = _unpack(sol.x, n_f, degree, r_norm, shape, stretch)
     res = sol.fun.reshape(-1, 2)
     poses = [(_rodrigues(p[:3])[0], p[3:].copy()) for p in pose]
-    return model, poses, res, frame_of_pt, sol, jacobian(sol.x), n_intr
+    return model, poses, res, frame_of_pt, sol, jacobian(sol.x) if with_jacobian else None, n_intr
 
 
 def intrinsic_covariance(J: np.ndarray, residuals: np.ndarray, n_intrinsic: int,
@@ -424,6 +442,44 @@ def jackknife_covariance(J: np.ndarray, residuals: np.ndarray, n_intrinsic: int,
     return (labels.size - 1) / labels.size * dev.T @ dev
 
 
+def _intrinsic_vector(model: FisheyeModel, stretch: str, degree: int, r_norm: float) -> np.ndarray:
+    """The fitted parameters of a model in the refinement's units: centre, stretch terms, b0, b2..bN."""
+    head = {"symmetric": [model.c, model.d], "full": [model.c, model.d, model.e], "none": []}[stretch]
+    return np.concatenate([[model.xc, model.yc], head, _poly_to_b(model.poly, degree, r_norm)])
+
+
+def jackknife_refit_covariance(image_points, object_points, image_shape, used_frames, centre, *, stretch: str,
+                               **options) -> np.ndarray:
+    """Leave-one-board-out jackknife covariance of the intrinsic parameters, the whole fit redone per board.
+
+    Each of the G boards the fit used (``used_frames``, indices into ``image_points``) is left out in turn
+    and the calibration is run again on the other boards' detected corners: frame and corner outlier rules
+    included (which corners a fit rejects is part of the estimate), initialised at ``centre`` (the full
+    fit's principal point) instead of the centre grid search. The covariance is (G - 1) / G sum_g
+    (p_g - mean)(p_g - mean)^T over the G refitted parameter vectors p_g, in the refinement's units (centre,
+    stretch, b0, b2..bN; :func:`_to_model_units` converts). :func:`jackknife_covariance` takes one
+    Gauss-Newton step from the full fit instead, with its corners: it misses the spread of the rejection
+    and of fits that move beyond the linear range (measured on the paper's close lens, 11 boards, stretch
+    "symmetric": the one-step sigma of the centre's column 0.54 times this one's;
+    docs/geometry-real-corners.md). ValueError with fewer than three boards.
+    """
+    used = list(used_frames)
+    if len(used) < 3:
+        raise ValueError("a jackknife over the boards needs at least three boards")
+    r_norm = 0.5 * min(int(n) for n in image_shape)
+    estimates = []
+    for g in used:
+        without = [None if k == g else uv for k, uv in enumerate(image_points)]
+        fit = _calibrate_fixed(without, object_points, image_shape, stretch=stretch,
+                               **{**options, "centre_guess": centre, "covariance": None,
+                                  "min_frames": options["min_frames"] - 1})
+        estimates.append(_intrinsic_vector(fit.model, stretch, options["degree"], r_norm))
+    estimates = np.array(estimates)
+    n = len(used)
+    dev = estimates - estimates.mean(axis=0)
+    return (n - 1) / n * dev.T @ dev
+
+
 def _to_model_units(cov_x: np.ndarray, n_head: int, degree: int, r_norm: float) -> np.ndarray:
     """Covariance of (centre, stretch, b0, b2..bN) converted to the coefficients a_k = b_k r_norm^(1-k)."""
     powers = [0] + list(range(2, degree + 1))
@@ -432,13 +488,14 @@ def _to_model_units(cov_x: np.ndarray, n_head: int, degree: int, r_norm: float) 
 
 
 def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
-              stretch: str = "symmetric", min_corners: int = 6, min_frames: int = 5,
+              stretch: str = "auto", min_corners: int = 6, min_frames: int = 5,
               outlier_factor: float = 5.0, max_frame_rms_px: float | None = None,
               point_outlier_factor: float = 5.0,
               centre_half_width_frac: float = 0.1, max_nfev: int = 200,
               half_fov_deg: float | None = None,
               centre_guess: tuple[float, float] | None = None,
-              covariance: str = "board_jackknife") -> CalibrationResult:
+              covariance: str = "board_jackknife", jackknife_refit_max_boards: int = 40,
+              stretch_significance: float = 0.05) -> CalibrationResult:
     """Calibrate a Scaramuzza model from chessboard corners seen in many frames.
 
     Parameters
@@ -450,7 +507,11 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         by all frames, or a list with one array per frame.
     image_shape : (rows, cols) of the images.
     degree : polynomial degree N of f(rho) (a1 = 0).
-    stretch : "symmetric" (fit c, d with e = d), "full" or "none".
+    stretch : "symmetric" (fit c, d with e = d), "full", "none", or "auto":
+        "symmetric" when a Wald test over the boards rejects no stretch at
+        ``stretch_significance``, else "none" on the same corners
+        (:func:`select_stretch`); the result's ``stretch_selection`` holds
+        the test's values.
     min_corners : frames with fewer detected corners are dropped.
     min_frames : ValueError when fewer good frames remain.
     outlier_factor : a frame whose RMS error exceeds outlier_factor times
@@ -465,21 +526,97 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         linear initialisation is made at this centre (the nonlinear
         refinement still frees it).
     covariance : how the parameter covariance is estimated:
-        ``"board_jackknife"`` (:func:`jackknife_covariance`, leave one board
-        out), ``"board_clustered"`` (:func:`intrinsic_covariance` with the
-        boards as clusters: the corners of one board may share errors, boards
-        are independent) or ``"reduced_chi2"`` (every corner coordinate
-        independent). The reduced chi-square is returned either way.
+        ``"board_jackknife"`` (leave one board out: every leave-one-out fit
+        redone in full, :func:`jackknife_refit_covariance`, up to
+        ``jackknife_refit_max_boards`` boards; beyond, one Gauss-Newton step
+        each, :func:`jackknife_covariance`), ``"board_clustered"``
+        (:func:`intrinsic_covariance` with the boards as clusters: the
+        corners of one board may share errors, boards are independent) or
+        ``"reduced_chi2"`` (every corner coordinate independent). The
+        reduced chi-square is returned either way; the result's
+        ``covariance_method`` says which was used.
     """
     if covariance not in COVARIANCE_ESTIMATES:
         raise ValueError(f"covariance must be one of {COVARIANCE_ESTIMATES}, got {covariance!r}")
-    if stretch not in ("symmetric", "full", "none"):
-        raise ValueError(f"stretch must be 'symmetric', 'full' or 'none', got {stretch!r}")
+    if stretch not in STRETCH_CHOICES:
+        raise ValueError(f"stretch must be one of {STRETCH_CHOICES}, got {stretch!r}")
+    options = dict(degree=degree, min_corners=min_corners, min_frames=min_frames, outlier_factor=outlier_factor,
+                   max_frame_rms_px=max_frame_rms_px, point_outlier_factor=point_outlier_factor,
+                   centre_half_width_frac=centre_half_width_frac, max_nfev=max_nfev, half_fov_deg=half_fov_deg,
+                   centre_guess=centre_guess, covariance=covariance,
+                   jackknife_refit_max_boards=jackknife_refit_max_boards)
+    if stretch == "auto":
+        return select_stretch(image_points, object_points, image_shape, stretch_significance=stretch_significance,
+                              **options)
+    return _calibrate_fixed(image_points, object_points, image_shape, stretch=stretch, **options)
+
+
+def stretch_test(result: CalibrationResult) -> dict:
+    """Evidence for a stretch in a fit with stretch "symmetric": a Wald test of c = 1, d = e = 0.
+
+    W = delta^T C^-1 delta with delta = (c - 1, d) and C their block of the fit's parameter covariance. With
+    a covariance over the boards (jackknife or clustered) C has G - 1 degrees of freedom (G boards) and
+    W (G - p) / (p (G - 1)) follows F(p, G - p) under no stretch (Hotelling's T^2, p = 2); with the reduced
+    chi-square W follows chi-square(p). The boards, not the corners, are the independent units: a corner
+    criterion (BIC on the corner residuals as independent Gaussian) counts each board's shared error 48
+    times and is carried by a few corners of the heavy tails (docs/geometry-real-corners.md).
+    Returns {"wald_statistic", "p_value", "n_boards", "reference"}.
+    """
+    names = list(result.parameter_names)
+    at = [names.index("stretch_c"), names.index("stretch_d_and_e")]
+    delta = np.array([result.model.c - 1.0, result.model.d])
+    cov = result.parameter_covariance[np.ix_(at, at)]
+    wald = float(delta @ np.linalg.solve(cov, delta))
+    p, g = len(delta), len(result.used_frames)
+    if result.covariance_method == "reduced_chi2":
+        p_value, reference = float(stats.chi2.sf(wald, p)), f"chi-square({p})"
+    else:
+        p_value = float(stats.f.sf(wald * (g - p) / (p * (g - 1)), p, g - p))
+        reference = f"Hotelling T^2 with F({p}, {g - p})"
+    return {"wald_statistic": wald, "p_value": p_value, "n_boards": g, "reference": reference}
+
+
+def select_stretch(image_points, object_points, image_shape, *, stretch_significance: float,
+                   **options) -> CalibrationResult:
+    """Calibrate with stretch "symmetric" kept only when the boards show it, else "none" on the same corners.
+
+    The symmetric fit comes first, with the frame and corner outlier rules and the configured covariance;
+    :func:`stretch_test` tests its stretch against the identity. Below ``stretch_significance`` the
+    symmetric fit is returned; otherwise the fit is redone with stretch "none" (the same rules, initialised
+    at the symmetric fit's centre) and returned, its covariance over the symmetric fit's parameter names
+    (the fixed stretch terms with zero variance), so that every fit of a geometry artefact has the same
+    parameters.
+    ``stretch_selection`` holds the test, its values and the chosen model. "full" is no candidate: it adds
+    to "symmetric" only a roll about the optical axis that the board poses absorb (the same reprojection,
+    one parameter more, and a singular normal matrix).
+    """
+    general = AUTO_STRETCH_CANDIDATES[-1]
+    first = _calibrate_fixed(image_points, object_points, image_shape, stretch=general, **options)
+    test = stretch_test(first)
+    selection = {"criterion": f"Wald test of no stretch ({test['reference']}, boards as the independent units)",
+                 **test, "significance": float(stretch_significance)}
+    if test["p_value"] < stretch_significance:
+        return replace(first, stretch_selection={**selection, "chosen": general})
+    chosen = AUTO_STRETCH_CANDIDATES[0]
+    final = _calibrate_fixed(image_points, object_points, image_shape, stretch=chosen,
+                             **{**options, "centre_guess": (first.model.xc, first.model.yc)})
+    names = first.parameter_names
+    cov = np.zeros((len(names), len(names)))
+    at = [names.index(n) for n in final.parameter_names]
+    cov[np.ix_(at, at)] = final.parameter_covariance
+    return replace(final, parameter_names=names, parameter_covariance=cov, linear_centre=first.linear_centre,
+                   stretch_selection={**selection, "chosen": chosen})
+
+
+def _calibrate_fixed(image_points, object_points, image_shape, *, degree, stretch, min_corners, min_frames,
+                     outlier_factor, max_frame_rms_px, point_outlier_factor, centre_half_width_frac, max_nfev,
+                     half_fov_deg, centre_guess, covariance, jackknife_refit_max_boards) -> CalibrationResult:
+    """:func:`calibrate` with one stretch model; ``covariance=None`` skips the covariance (left None)."""
     n_in = len(image_points)
     if isinstance(object_points, np.ndarray) and object_points.ndim == 2:
         object_points = [object_points] * n_in
     dropped = {}
-    frames, idx = [], []
+    frames, idx, kept = [], [], []
     allpts = [np.asarray(o, float) for o in object_points if o is not None]
     L = float(np.median(np.abs(np.concatenate(allpts)[:, :2]))) or 1.0  # board unit, mm
     for i, (uv, obj) in enumerate(zip(image_points, object_points)):
@@ -496,6 +633,7 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
             raise ValueError("object_points must be planar with z = 0")
         frames.append((uv[good], obj[good, :2] / L))
         idx.append(i)
+        kept.append(np.flatnonzero(good))
     if len(frames) < min_frames:
         raise ValueError(f"only {len(frames)} usable frames (< min_frames={min_frames}); "
                          f"dropped: {dropped}")
@@ -516,7 +654,8 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
     n_points_dropped = 0
     while True:
         model, poses, res, frame_of_pt, ls, jac, n_intr = _refine(frames, L, model, poses, degree,
-                                                     r_norm, stretch, max_nfev)
+                                                                  r_norm, stretch, max_nfev,
+                                                                  with_jacobian=covariance is not None)
         err = np.linalg.norm(res, axis=1)
         rms = np.array([np.sqrt(np.mean(err[frame_of_pt == k] ** 2)) for k in range(len(frames))])
         limit = outlier_factor * np.median(rms)
@@ -532,12 +671,13 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
             for k, (uv, XY) in enumerate(frames):
                 keep = ~bad_pts[offsets[k]:offsets[k + 1]]
                 new_frames.append((uv[keep], XY[keep]))
+                kept[k] = kept[k][keep]
             n_points_dropped += int(bad_pts.sum())
             frames = new_frames
             continue
         worst = int(bad[np.argmax(rms[bad])])  # drop one frame at a time
         dropped[idx[worst]] = f"reprojection RMS {rms[worst]:.2f} px > {limit:.2f} px"
-        del frames[worst], idx[worst], poses[worst]
+        del frames[worst], idx[worst], poses[worst], kept[worst]
         if len(frames) < min_frames:
             raise ValueError(f"only {len(frames)} good frames (< min_frames={min_frames}) "
                              f"after dropping outliers; dropped: {dropped}")
@@ -547,17 +687,33 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
                              shape=shape, half_fov_deg=half_fov_deg)
     out_poses = [None] * n_in
     frame_rms = np.full(n_in, np.nan)
+    corners_used = [None] * n_in
     for k, i in enumerate(idx):
         R, t = poses[k]
         out_poses[i] = (_rotvec(R), t * L)
         frame_rms[i] = rms[k]
+        corners_used[i] = kept[k]
     names = parameter_names(stretch, degree)
-    groups = np.repeat(frame_of_pt, 2) if covariance == "board_clustered" else None
-    cov_x, s2, dof = intrinsic_covariance(jac, ls.fun, n_intr, groups)
-    if covariance == "board_jackknife":
-        cov_x = jackknife_covariance(jac, ls.fun, n_intr, np.repeat(frame_of_pt, 2),
-                                     np.repeat(np.arange(len(frames)), 6))
-    cov = _to_model_units(cov_x, n_intr - degree, degree, r_norm)
+    s2 = float(ls.fun @ ls.fun) / max(len(ls.fun) - len(ls.x), 1)
+    dof = len(ls.fun) - len(ls.x)
+    cov, method = None, "not computed"
+    if covariance is not None:
+        groups = np.repeat(frame_of_pt, 2) if covariance == "board_clustered" else None
+        cov_x, s2, dof = intrinsic_covariance(jac, ls.fun, n_intr, groups)
+        method = covariance
+        if covariance == "board_jackknife" and len(frames) <= jackknife_refit_max_boards:
+            options = dict(degree=degree, min_corners=min_corners, min_frames=min_frames,
+                           outlier_factor=outlier_factor, max_frame_rms_px=max_frame_rms_px,
+                           point_outlier_factor=point_outlier_factor, centre_half_width_frac=centre_half_width_frac,
+                           max_nfev=max_nfev, half_fov_deg=None, jackknife_refit_max_boards=jackknife_refit_max_boards)
+            cov_x = jackknife_refit_covariance(image_points, object_points, image_shape, idx, (model.xc, model.yc),
+                                               stretch=stretch, **options)
+            method = "board_jackknife_refit"
+        elif covariance == "board_jackknife":
+            cov_x = jackknife_covariance(jac, ls.fun, n_intr, np.repeat(frame_of_pt, 2),
+                                         np.repeat(np.arange(len(frames)), 6))
+            method = "board_jackknife_one_step"
+        cov = _to_model_units(cov_x, n_intr - degree, degree, r_norm)
     uv_used = np.concatenate([uv for uv, _ in frames])
     x, y = model._sensor_xy(uv_used[:, 0], uv_used[:, 1])
     return CalibrationResult(
@@ -567,4 +723,6 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         dropped=dropped, linear_centre=tuple(centre), n_points_dropped=n_points_dropped,
         success=bool(ls.success),
         message=str(ls.message), parameter_names=names, parameter_covariance=cov, reduced_chi2_px2=s2,
-        n_dof=int(dof))
+        n_dof=int(dof), corners_used=corners_used, stretch_selection={"criterion": "none (configured)",
+                                                                       "values": {}, "chosen": stretch},
+        covariance_method=method)

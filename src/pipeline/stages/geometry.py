@@ -235,7 +235,8 @@ def analyse_geometry(reduced: dict, config: dict, dataset_root: Path) -> dict[st
                                     degree=cfg["polynomial_degree"], stretch=cfg["stretch"],
                                     min_frames=cfg["min_frames"], outlier_factor=cfg["frame_outlier_factor"],
                                     point_outlier_factor=cfg["corner_outlier_factor"], centre_guess=centre,
-                                    covariance=cfg["covariance"])
+                                    covariance=cfg["covariance"], stretch_significance=cfg["stretch_significance"],
+                                    jackknife_refit_max_boards=cfg["jackknife_refit_max_boards"])
                 except ValueError as exc:
                     raise InputError(folder, f"lens {lens}, {medium}, band {band}: calibration failed ({exc})") from None
                 if res.mean_error_px > cfg["max_mean_error_px"]:
@@ -403,12 +404,19 @@ def _theta_uncertainty(models, results, media, band_shape, cfg) -> xr.Dataset:
     summary_deg = np.asarray(cfg["theta_sigma_summary_deg"], float)
     cov = np.full((nm, nb, n_p, n_p), np.nan)
     chi2 = np.full((nm, nb), np.nan)
+    stretch_model = np.full((nm, nb), "", dtype=object)
+    wald, p_value = np.full((nm, nb), np.nan), np.full((nm, nb), np.nan)
+    methods = set()
     sigma = np.full((nm, nb) + tuple(band_shape), np.nan, dtype=np.float32)
     summary = np.full((nm, nb, summary_deg.size), np.nan)
     for (medium, band), model in models.items():
         i, j = media.index(medium), BANDS.index(band)
         res = results[(medium, band)]
         cov[i, j], chi2[i, j] = res.parameter_covariance, res.reduced_chi2_px2
+        stretch_model[i, j] = res.stretch_selection["chosen"]
+        wald[i, j] = res.stretch_selection.get("wald_statistic", np.nan)
+        p_value[i, j] = res.stretch_selection.get("p_value", np.nan)
+        methods.add(res.covariance_method)
         sigma[i, j] = theta_sigma_map(model, names, res.parameter_covariance, band_shape)
         summary[i, j] = theta_sigma_at_field_angles(model, names, res.parameter_covariance, summary_deg)
     how = {"board_jackknife": "leave-one-board-out jackknife", "board_clustered": "cluster-robust over the boards",
@@ -423,8 +431,19 @@ def _theta_uncertainty(models, results, media, band_shape, cfg) -> xr.Dataset:
                           "(NaN beyond the half field of view)", "units": "degree"}),
          "geometry_parameter_covariance": (("medium", "band", "geometry_parameter", "geometry_parameter_b"), cov, {
              "long_name": "covariance of the fitted model parameters, board poses profiled out",
-             "estimate": cfg["covariance"],
+             "estimate": ", ".join(sorted(methods)),
              "units": "geometry_parameter_units x geometry_parameter_units (per element)"}),
+         "stretch_model": (("medium", "band"), stretch_model.astype(str), {
+             "long_name": "stretch matrix model of the fit (geometry.stretch; with auto the test's choice)",
+             "configured": cfg["stretch"]}),
+         "stretch_test_wald_statistic": (("medium", "band"), wald, {
+             "long_name": "Wald statistic of no stretch (c = 1, d = e = 0) from the symmetric fit's covariance "
+                          "(geometry.stretch auto; NaN when a model was configured)", "units": "1"}),
+         "stretch_test_p_value": (("medium", "band"), p_value, {
+             "long_name": "p-value of that statistic (Hotelling T^2 over the boards, F(2, boards - 2); "
+                          "chi-square(2) with covariance reduced_chi2); the stretch is kept below "
+                          "geometry.stretch_significance", "units": "1",
+             "significance": float(cfg["stretch_significance"])}),
          "corner_residual_reduced_chi2_px2": (("medium", "band"), chi2, {
              "long_name": "squared corner reprojection residual per degree of freedom (the corner noise variance "
                           "the covariance assumes)", "units": "pixel^2"})},

@@ -1,0 +1,118 @@
+"""Figures of docs/geometry-real-corners.md: the geometry fit on the authors' Insta360 ONE corners.
+
+    PYTHONPATH=src python scripts/geometry_real_corners.py [REALDATA] > docs/figures-data/geometry_real_corners.csv
+
+REALDATA holds ``insta360-larouche/`` (default ``../shared/realdata`` beside the repository). Per lens: the
+fit with the configuration's defaults (:func:`pipeline.geometry.calibrate.calibrate`, as the geometry stage
+calls it) against the authors' solution, the stretch test, the stated sigma of the centre against a full
+leave-one-board-out refit (the whole fit redone from the corners without each board, centre grid search
+included) and against the one-step jackknife, and the symmetric stretch's fit for comparison. Writes CSV
+to stdout, one row per lens, with date, commit, machine and command columns.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import load_config
+from pipeline.geometry.calibrate import _project, _rodrigues, calibrate
+from pipeline.geometry.matlab_fisheye import read_fisheye_params
+
+FILES = {"close": "FishParamsClose_01_05_2019.mat", "far": "FishParamsFar_01_05_2019.mat"}
+#: field angles (degree) at which the fitted projection is compared with the authors'
+THETA_DEG = np.linspace(1.0, 85.0, 85)
+
+
+def centre_sigma(res):
+    names = list(res.parameter_names)
+    return np.sqrt(np.diag(res.parameter_covariance))[[names.index("xc_px"), names.index("yc_px")]]
+
+
+def all_corner_mean_error(res, authors):
+    errors = []
+    for k, uv in enumerate(authors["corners"]):
+        if res.poses[k] is not None:
+            rvec, t = res.poses[k]
+            errors.append(np.linalg.norm(_project(res.model, _rodrigues(rvec[None])[0], t, authors["board_mm"]) - uv,
+                                         axis=1))
+    return float(np.mean(np.concatenate(errors)))
+
+
+def main() -> None:
+    root = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+    cfg = load_config()["geometry"]
+    options = dict(degree=cfg["polynomial_degree"], stretch=cfg["stretch"], min_frames=cfg["min_frames"],
+                   outlier_factor=cfg["frame_outlier_factor"], point_outlier_factor=cfg["corner_outlier_factor"],
+                   covariance=cfg["covariance"], stretch_significance=cfg["stretch_significance"],
+                   jackknife_refit_max_boards=cfg["jackknife_refit_max_boards"])
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                            cwd=Path(__file__).parent).stdout.strip()
+    meta = {"date": datetime.date.today().isoformat(), "commit": commit,
+            "machine": f"{platform.node()} {platform.machine()} {platform.processor() or ''}".strip(),
+            "command": "PYTHONPATH=src python scripts/geometry_real_corners.py"}
+    writer = None
+    for lens, name in FILES.items():
+        authors = read_fisheye_params(root / "insta360-larouche" / name)
+        shape = authors["image_shape"]
+        t0 = time.perf_counter()
+        res = calibrate(authors["corners"], authors["board_mm"], shape, **options)
+        seconds = time.perf_counter() - t0
+        sig = centre_sigma(res)
+        one_step = calibrate(authors["corners"], authors["board_mm"], shape,
+                             **{**options, "stretch": res.stretch_selection["chosen"], "jackknife_refit_max_boards": 0})
+        sym = calibrate(authors["corners"], authors["board_mm"], shape, **{**options, "stretch": "symmetric"})
+        sym_one_step = calibrate(authors["corners"], authors["board_mm"], shape,
+                                 **{**options, "stretch": "symmetric", "jackknife_refit_max_boards": 0})
+        centres = []
+        for g in res.used_frames:
+            without = [None if k == g else uv for k, uv in enumerate(authors["corners"])]
+            fit = calibrate(without, authors["board_mm"], shape, **{**options, "stretch": res.stretch_selection["chosen"],
+                                                                     "covariance": "reduced_chi2"})
+            centres.append((fit.model.xc, fit.model.yc))
+        centres = np.array(centres)
+        n = len(centres)
+        refit = np.sqrt((n - 1) / n * np.sum((centres - centres.mean(axis=0)) ** 2, axis=0))
+        a = authors["model"]
+        rho = a.rho_of_theta(np.radians(THETA_DEG))
+        dtheta = np.degrees(res.model.theta_of_rho(rho)) - THETA_DEG
+        sym_sig = centre_sigma(sym)
+        row = {
+            "lens": lens, "boards": len(authors["corners"]), "boards_used": len(res.used_frames),
+            "corners_dropped": res.n_points_dropped, "stretch_chosen": res.stretch_selection["chosen"],
+            "stretch_wald": round(res.stretch_selection["wald_statistic"], 3),
+            "stretch_p_value": round(res.stretch_selection["p_value"], 3),
+            "covariance_method": res.covariance_method,
+            "authors_xc_px": round(a.xc, 2), "authors_yc_px": round(a.yc, 2),
+            "fit_xc_px": round(res.model.xc, 2), "fit_yc_px": round(res.model.yc, 2),
+            "sigma_xc_px": round(sig[0], 2), "sigma_yc_px": round(sig[1], 2),
+            "offset_xc_sigma": round((res.model.xc - a.xc) / sig[0], 2),
+            "offset_yc_sigma": round((res.model.yc - a.yc) / sig[1], 2),
+            "max_abs_dtheta_to_85_deg": round(float(np.max(np.abs(dtheta))), 4),
+            "mean_error_px": round(res.mean_error_px, 3), "mean_error_all_corners_px": round(all_corner_mean_error(res, authors), 3),
+            "authors_mean_error_px": round(authors["mean_error_px"], 3),
+            "refit_sigma_xc_px": round(refit[0], 2), "refit_sigma_yc_px": round(refit[1], 2),
+            "stated_over_refit_xc": round(sig[0] / refit[0], 2), "stated_over_refit_yc": round(sig[1] / refit[1], 2),
+            "one_step_over_refit_xc": round(centre_sigma(one_step)[0] / refit[0], 2),
+            "one_step_over_refit_yc": round(centre_sigma(one_step)[1] / refit[1], 2),
+            "symmetric_xc_px": round(sym.model.xc, 2), "symmetric_yc_px": round(sym.model.yc, 2),
+            "symmetric_offset_xc_sigma": round((sym.model.xc - a.xc) / sym_sig[0], 2),
+            "symmetric_offset_yc_sigma": round((sym.model.yc - a.yc) / sym_sig[1], 2),
+            "symmetric_one_step_over_refit_sigma_xc": round(centre_sigma(sym_one_step)[0] / sym_sig[0], 2),
+            "fit_seconds": round(seconds, 1), **meta}
+        if writer is None:
+            writer = csv.DictWriter(sys.stdout, fieldnames=list(row))
+            writer.writeheader()
+        writer.writerow(row)
+        sys.stdout.flush()
+
+
+if __name__ == "__main__":
+    main()
