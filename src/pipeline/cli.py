@@ -259,9 +259,13 @@ def _init_dataset(args) -> int:
 
 
 def _validate(args) -> int:
-    from pipeline.validation import format_problems, inspect_dataset, ok_line, unlisted_files, warning_lines
+    from pipeline.validation import (format_problems, grouped_warning_lines, inspect_dataset, ok_line,
+                                     unlisted_files, warning_lines)
 
-    dataset, problems = inspect_dataset(args.dataset, checksums=args.checksums)
+    warnings = []
+    dataset, problems = inspect_dataset(args.dataset, checksums=args.checksums, warnings=warnings)
+    for line in grouped_warning_lines(warnings, args.dataset):
+        print(line)
     if problems:
         print(format_problems(problems, args.dataset))
         print(f"\nfix them and run: python -m pipeline validate {args.dataset}")
