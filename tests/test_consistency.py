@@ -212,12 +212,15 @@ def test_suspicion_is_a_warning_naming_what_it_saw(case, clean, tmp_path, capsys
 
 def test_wrong_longitude_says_what_pvlib_computed(clean, tmp_path, capsys):
     """The warning gives the sun's computed depression, the UTC time and the site, and what the flipped
-    sign would give (the simulated site: Quebec, 16:00 local on 18 March, longitude -71.2754)."""
+    sign would give (the simulated site: Quebec, 16:00 local on 18 March, longitude -71.2754); the
+    workflow's start-up check prints the same warning and goes on."""
     root = _copy(clean, tmp_path, _site(longitude_deg=71.2754))
     main(["validate", str(root)])
     warned = [line for line in capsys.readouterr().out.splitlines() if line.startswith("warning: ")]
     assert "deg below at 2021-03-18T20:" in warned[0] and "longitude_deg 71.2754" in warned[0], warned
     assert "with longitude_deg -71.2754 it would be" in warned[0], warned
+    DatasetIndex(root).load()                      # the workflow's start-up check: the same line, on stderr
+    assert capsys.readouterr().err.splitlines() == warned
 
 
 def test_clean_dataset_has_neither(clean, capsys):
