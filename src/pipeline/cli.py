@@ -67,7 +67,11 @@ examples:
 VALIDATE_EXAMPLES = """\
 Lists every problem at once, grouped by file (line, column, what is wrong,
 how to fix it), and exits 1 when there is any; prints one 'ok: ...' line and
-exits 0 otherwise. The workflow runs the same checks before any stage.
+exits 0 otherwise. The parts are checked against each other too (every frame's
+camera, CFA pattern and levels against the others and dataset.yaml, the lens
+regions, the field sidecars); what can only be suspected (a time stamp in the
+future or out of order, the sun below the horizon at the field site) is a
+'warning: ...' line. The workflow runs the same checks before any stage.
 
 examples:
   python -m pipeline validate /data/calib2024

@@ -1,4 +1,4 @@
-"""Every problem of a dataset at once: layout, the tags of every frame, sidecars.
+"""Every problem of a dataset at once: layout, the tags of every frame, sidecars, and their consistency.
 
 ``validate_dataset(root)`` returns a list of :class:`pipeline.errors.Problem`
 (file, line, column, what is wrong, how to fix it), empty when the dataset is
