@@ -67,7 +67,11 @@ examples:
 VALIDATE_EXAMPLES = """\
 Lists every problem at once, grouped by file (line, column, what is wrong,
 how to fix it), and exits 1 when there is any; prints one 'ok: ...' line and
-exits 0 otherwise. The workflow runs the same checks before any stage.
+exits 0 otherwise. The parts are checked against each other too (every frame's
+camera, CFA pattern and levels against the others and dataset.yaml, the lens
+regions, the field sidecars); what can only be suspected (a time stamp in the
+future or out of order, the sun below the horizon at the field site) is a
+'warning: ...' line. The workflow runs the same checks before any stage.
 
 examples:
   python -m pipeline validate /data/calib2024
@@ -259,9 +263,13 @@ def _init_dataset(args) -> int:
 
 
 def _validate(args) -> int:
-    from pipeline.validation import format_problems, inspect_dataset, ok_line, unlisted_files, warning_lines
+    from pipeline.validation import (format_problems, grouped_warning_lines, inspect_dataset, ok_line,
+                                     unlisted_files, warning_lines)
 
-    dataset, problems = inspect_dataset(args.dataset, checksums=args.checksums)
+    warnings = []
+    dataset, problems = inspect_dataset(args.dataset, checksums=args.checksums, warnings=warnings)
+    for line in grouped_warning_lines(warnings, args.dataset):
+        print(line)
     if problems:
         print(format_problems(problems, args.dataset))
         print(f"\nfix them and run: python -m pipeline validate {args.dataset}")

@@ -1,4 +1,4 @@
-"""Every problem of a dataset at once: layout, the tags of every frame, sidecars.
+"""Every problem of a dataset at once: layout, the tags of every frame, sidecars, and their consistency.
 
 ``validate_dataset(root)`` returns a list of :class:`pipeline.errors.Problem`
 (file, line, column, what is wrong, how to fix it), empty when the dataset is
@@ -16,12 +16,13 @@ from collections import Counter
 from datetime import datetime
 from pathlib import Path
 
+from pipeline.consistency import FrameTags, check_consistency
 from pipeline.dataset import SIDECARS, Dataset, LayoutCheck, check_checksums, check_sidecars, inspect_layout
 from pipeline.errors import InputError, Problem
 from pipeline.rawio import TAG_NAMES, read_tags, tag_problem
 
 __all__ = ["REQUIRED_TAGS", "validate_dataset", "inspect_dataset", "check_tags", "format_problems", "ok_line",
-           "unlisted_files", "warning_lines"]
+           "unlisted_files", "warning_lines", "grouped_warning_lines"]
 
 #: tags every calibration frame needs (RawFrame field -> tag name); frames.csv never replaces them
 REQUIRED_TAGS = {key: TAG_NAMES[key] for key in ("exposure_s", "iso", "time")}
@@ -77,8 +78,11 @@ def _copy_problems(csv_path: Path, line: int, row: dict, tags: dict) -> list[Pro
     return out
 
 
-def _frame_problems(check: LayoutCheck) -> list[Problem]:
-    """Tags of every frame frames.csv lists, its tag copies, and the frame size against the lenses."""
+def _frame_problems(check: LayoutCheck, read: list[FrameTags] | None = None) -> list[Problem]:
+    """Tags of every frame frames.csv lists, its tag copies, and the frame size against the lenses.
+
+    ``read``, when given, receives each readable frame with its tags (for ``pipeline.consistency``).
+    """
     problems: list[Problem] = []
     shapes: dict[tuple[int, int], list[Path]] = {}
     for experiment, (table, lines) in check.tables.items():
@@ -92,6 +96,8 @@ def _frame_problems(check: LayoutCheck) -> list[Problem]:
             if tags is None:
                 continue
             problems += _copy_problems(csv_path, line, row.to_dict(), tags)
+            if read is not None:
+                read.append(FrameTags(experiment, str(row["file"]), line, str(row.get("kind")), Path(path), tags))
             if tags.get("shape"):
                 shapes.setdefault(tags["shape"], []).append(Path(path))
     if not shapes:
@@ -134,14 +140,19 @@ def _chessboard_problems(check: LayoutCheck) -> list[Problem]:
             for m in used if m not in squares]
 
 
-def inspect_dataset(root, *, checksums: bool = False) -> tuple[Dataset | None, list[Problem]]:
+def inspect_dataset(root, *, checksums: bool = False,
+                    warnings: list[Problem] | None = None) -> tuple[Dataset | None, list[Problem]]:
     """The dataset (None unless it is fine) and every problem found.
 
     Checks dataset.yaml, MD5SUMS, every frames.csv, the tags every frame needs
     (and the copies of them a frames.csv may hold), the frame size against the
-    lens regions, the chessboard when geometry/ is present, and the sidecar
-    files.  ``checksums`` also reads every file and compares its MD5 with
-    MD5SUMS (slow: the stages compare them anyway while they decode).
+    lens regions, the chessboard when geometry/ is present, the sidecar files,
+    and the parts against each other (``pipeline.consistency``: the frames'
+    camera, CFA pattern and levels, the lens regions, the field sidecars).
+    ``checksums`` also reads every file and compares its MD5 with MD5SUMS
+    (slow: the stages compare them anyway while they decode).  ``warnings``,
+    when given, receives what can only be suspected (time stamps, the sun
+    below the horizon at the field site): the caller prints them.
     """
     check = inspect_layout(root)
     if not check.root.is_dir():
@@ -149,7 +160,12 @@ def inspect_dataset(root, *, checksums: bool = False) -> tuple[Dataset | None, l
     problems = list(check.problems)
     problems += _chessboard_problems(check)
     problems += check_sidecars(check.root, check.experiments())
-    problems += _frame_problems(check)
+    frames: list[FrameTags] = []
+    problems += _frame_problems(check, frames)
+    found, suspected = check_consistency(check.root, check.meta, check.lenses, frames, check.experiments())
+    problems += found
+    if warnings is not None:
+        warnings += suspected
     if checksums and check.md5sums:
         problems += check_checksums(check.root, check.md5sums)
     if problems:
@@ -187,6 +203,19 @@ def unlisted_files(dataset: Dataset) -> list[Problem]:
 def warning_lines(warnings: list[Problem]) -> list[str]:
     """``warning: <file>: <problem>`` per warning."""
     return [f"warning: {w}" for w in warnings]
+
+
+def grouped_warning_lines(warnings: list[Problem], root=None) -> list[str]:
+    """``warning: <file>: <what was seen>; fix: <how>`` per kind of warning and file, those of one kind
+    in many files of a folder merged (``warning: linearity/raw/: ...: a.dng, b.dng [2 files]``)."""
+    if root is not None:
+        root = Path(root).resolve() if Path(root).exists() else Path(root)
+    out = []
+    for header, entries in _group(warnings, root).items():
+        for entry in entries:
+            fix = f"; fix: {entry['fix']}" if entry["fix"] else ""
+            out.append(f"warning: {header}: {_entry_text(entry)}{fix}")
+    return out
 
 
 def ok_line(dataset: Dataset) -> str:

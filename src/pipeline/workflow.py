@@ -43,7 +43,8 @@ from pipeline.effects import available, load_plugins
 from pipeline.entry import exit_on_input_error, setup_log
 from pipeline.errors import InputError
 from pipeline.frames import decode_ahead
-from pipeline.validation import format_problems, inspect_dataset, unlisted_files, warning_lines
+from pipeline.validation import (format_problems, grouped_warning_lines, inspect_dataset, unlisted_files,
+                                 warning_lines)
 
 log = logging.getLogger("pipeline.workflow")
 
@@ -354,7 +355,10 @@ class DatasetIndex:
     def load(self) -> "DatasetIndex":
         """Validate once (``pipeline.validation``); on problems print them grouped and raise InputError."""
         if self.dataset is None:
-            dataset, problems = inspect_dataset(self.root)
+            warnings = []
+            dataset, problems = inspect_dataset(self.root, warnings=warnings)
+            for line in grouped_warning_lines(warnings, self.root):
+                print(line, file=sys.stderr)
             if problems:
                 print(format_problems(problems, self.root), file=sys.stderr)
                 raise InputError.from_problems(problems, "listed above")
