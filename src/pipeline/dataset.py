@@ -526,6 +526,10 @@ def _check_frames(root: Path, experiment: str, lenses, md5sums: dict[str, str] |
                              known=OPTIONAL_COLUMNS + TAG_COLUMNS)
     if header is None:
         return pd.DataFrame(columns=list(COMMON_COLUMNS + specific) + ["path"]), []
+    if "path" in header:
+        _note(problems, path, "column 'path' is the pipeline's own (each frame's absolute path)",
+              "rename the column (e.g. lab_path)")
+        return pd.DataFrame(columns=list(COMMON_COLUMNS + specific) + ["path"]), []
     lens_names = tuple(lenses) + ("both",) if lenses is not None else None
     meaning = dict(COLUMN_MEANINGS)
     meaning["lens"] = meaning["lens"].format(lenses=", ".join(lenses) if lenses else "dataset.yaml's lenses")
@@ -597,6 +601,8 @@ def _check_frames(root: Path, experiment: str, lenses, md5sums: dict[str, str] |
         if md5sums is not None and key not in md5sums:
             bad(line, "file", f"{key} is not listed in MD5SUMS", "add its '<md5>  <path>' line to MD5SUMS")
     frame = pd.DataFrame.from_records(records, columns=header + ["path"])
+    # object, None where a row has no file (pandas would infer text with NaN when no row has one)
+    frame["path"] = pd.Series([rec["path"] for rec in records], index=frame.index, dtype=object)
     for column in _NUMERIC + _TAG_NUMBERS:
         if column in frame:
             frame[column] = frame[column].astype(float)
