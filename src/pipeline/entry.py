@@ -8,7 +8,10 @@ from pathlib import Path
 
 from pipeline.errors import InputError
 
-__all__ = ["exit_on_input_error", "setup_log"]
+__all__ = ["EXIT_INTERRUPTED", "exit_on_input_error", "setup_log"]
+
+#: a job's exit status after Ctrl-C (128 + SIGINT, as shells report it)
+EXIT_INTERRUPTED = 130
 
 
 def setup_log(path: str | None) -> None:
@@ -28,6 +31,10 @@ def exit_on_input_error(function, *args, **kwargs):
         logging.getLogger("pipeline").error("%s", exc)
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(1)
+    except KeyboardInterrupt:
+        # Ctrl-C reaches the jobs too (the terminal's process group): one line, no traceback
+        logging.getLogger("pipeline").error("interrupted")
+        sys.exit(EXIT_INTERRUPTED)
     except Exception as exc:
         # one line into the job's log too (the traceback follows on stderr), where the report of a
         # failed run reads each job's error
