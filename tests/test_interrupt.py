@@ -1,5 +1,6 @@
 """Ctrl-C during ``snakemake --cores 2`` ends the run as an interrupt: exit 130, one line, no traceback,
-no failed-run report and no entry in the error history; the same command then resumes the run."""
+no failed-run report and no entry in the error history; the same command then resumes the run. SIGTERM
+(a scheduler's, to Snakemake alone) alike with 143, once the running jobs have finished."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ import signal
 import subprocess
 import time
 from pathlib import Path
+
+import pytest
 
 from workflow_runs import REPO, SNAKEMAKE
 
@@ -27,7 +30,9 @@ def _ledger(workdir: Path) -> list[Path]:
     return sorted((workdir / "results" / "diagnostics" / "ledger").glob("*"))
 
 
-def test_ctrl_c_ends_the_run_as_an_interrupt_and_the_rerun_resumes(make_dataset, tmp_path):
+@pytest.mark.parametrize("signum, to_group", [(signal.SIGINT, True), (signal.SIGTERM, False)],
+                         ids=["Ctrl-C", "SIGTERM"])
+def test_ctrl_c_ends_the_run_as_an_interrupt_and_the_rerun_resumes(make_dataset, tmp_path, signum, to_group):
     dataset, _ = make_dataset()
     workdir = tmp_path / "work"
     workdir.mkdir()
@@ -40,11 +45,11 @@ def test_ctrl_c_ends_the_run_as_an_interrupt_and_the_rerun_resumes(make_dataset,
     while not any(logs.glob("*/*.log")) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.1)
     assert proc.poll() is None, f"the run ended before a job started:\n{proc.communicate()[1][-3000:]}"
-    os.killpg(proc.pid, signal.SIGINT)
+    (os.killpg if to_group else os.kill)(proc.pid, signum)
     out, err = proc.communicate(timeout=STOP_TIMEOUT_S)
-    assert proc.returncode == 128 + signal.SIGINT, err[-3000:]
+    assert proc.returncode == 128 + signum, err[-3000:]
     assert "Traceback" not in out + err, err[-3000:]
-    ours = [line for line in err.splitlines() if line.startswith("interrupted (SIGINT)")]
+    ours = [line for line in err.splitlines() if line.startswith(f"interrupted ({signal.Signals(signum).name})")]
     assert len(ours) == 1, err[-3000:]
     assert "Jobs failed" not in err and not (workdir / "results" / "failed_run").exists()
     assert _ledger(workdir) == ledger_before
