@@ -3,6 +3,7 @@
 # artefact per lens; diagnostics and the report come last.
 
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -53,6 +54,10 @@ rule all:
     default_target: True
     input:
         "results/report/index.html",
+
+
+onstart:
+    SIGNALS.watch(signal.SIGTERM)
 
 
 onsuccess:

@@ -150,7 +150,9 @@ def test_bad_dataset_is_named_in_one_line(case, clean, tmp_path, capsys):
     ({"model": {"effects": ["dark_current", "hot_pixel"]}}, "model.effects: unknown effect 'hot_pixel'"),
     # a misspelt key would leave its default in force without a word
     ({"rolloff": {"spot_radius_degs": 2.0}}, "config rolloff.spot_radius_degs: unknown key; known there: "),
-    ({"performance": {"decode_ahead_frames": -1}}, "config performance.decode_ahead_frames: -1 is less than the minimum of 0"),
+    ({"performance": {"decode_ahead_frames": -1}}, "config performance.decode_ahead_frames: -1 is outside its range [0, 64]"),
+    # a sign lost: the dark job died in numpy (arange: cannot compute length) before the schema had the range
+    ({"dark": {"hot_pixel_threshold_sigma": -6}}, "config dark.hot_pixel_threshold_sigma: -6 is outside its range [1, 100]"),
     ({"performance": {"decode_ahead_frames": 1.5}}, "config performance.decode_ahead_frames: 1.5 is not of type 'integer'"),
     ({"model": {"effects": ["dark_current"], "plugins": ["lab_effects_not_installed"]}},
      "model.plugins: cannot import 'lab_effects_not_installed' (ModuleNotFoundError"),

@@ -354,7 +354,8 @@ def test_read_photodiode(ds_root):
     path.write_text("wavelength_nm,signal\n450,1\n")
     with pytest.raises(InputError) as err:
         read_photodiode(path)
-    assert str(err.value) == f"{path}: missing column 'signal_std' (required: wavelength_nm, signal, signal_std)"
+    assert str(err.value) == (f"{path}: missing column 'signal_std' (required: wavelength_nm, signal, signal_std; "
+                              "the header has: wavelength_nm, signal)")
     path.write_text("wavelength_nm,signal,signal_std\n450,1,-0.5\n")
     with pytest.raises(InputError, match=r"line 2, column 'signal_std': -0.5 must not be negative"):
         read_photodiode(path)

@@ -95,6 +95,22 @@ def values_from_text(config, schema: dict):
     return config
 
 
+_RANGE_KEYWORDS = ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum")
+
+
+def range_text(schema: dict) -> str:
+    """A number's range as the schema gives it, in interval notation: ``[1, 100]``, ``(0, 90]``, ``[0, inf)``."""
+    if "exclusiveMinimum" in schema:
+        low = f"({schema['exclusiveMinimum']}"
+    else:
+        low = f"[{schema['minimum']}" if "minimum" in schema else "(-inf"
+    if "exclusiveMaximum" in schema:
+        high = f"{schema['exclusiveMaximum']})"
+    else:
+        high = f"{schema['maximum']}]" if "maximum" in schema else "inf)"
+    return f"{low}, {high}"
+
+
 def validate_config(config: dict, schema_path: str | Path = SCHEMA_PATH) -> dict:
     """Validate ``config`` in place, filling defaults; InputError with the first problem (a key the
     schema does not know included: see :func:`unknown_keys`). Numbers, booleans and nulls given as text
@@ -114,7 +130,10 @@ def validate_config(config: dict, schema_path: str | Path = SCHEMA_PATH) -> dict
         if errors:
             err = errors[0]
             where = ".".join(str(p) for p in err.path) or "(top level)"
-            raise InputError(schema_path, f"config {where}: {err.message}")
+            message = err.message
+            if err.validator in _RANGE_KEYWORDS and isinstance(err.schema, dict):
+                message = f"{err.instance!r} is outside its range {range_text(err.schema)}"
+            raise InputError(schema_path, f"config {where}: {message}")
     return config
 
 

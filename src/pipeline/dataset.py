@@ -12,6 +12,7 @@ need the raw files' tags.
 
 from __future__ import annotations
 
+import codecs
 import csv
 import difflib
 import hashlib
@@ -28,6 +29,7 @@ import pandas as pd
 import yaml
 
 from pipeline.errors import InputError, Problem
+from pipeline.yamlio import KEYS, DuplicateKey, load_yaml
 
 __all__ = [
     "EXPERIMENTS", "COMMON_COLUMNS", "EXPERIMENT_COLUMNS", "OPTIONAL_COLUMNS", "TAG_COLUMNS", "SIDECARS",
@@ -96,6 +98,8 @@ _MD5_LINE = re.compile(r"^([0-9a-fA-F]{32}) [ *](.+)$")
 #: a folder whose name is at least this similar to an experiment's (difflib ratio)
 #: is taken for a misspelt experiment ("Dark", "linearty"), not for a lab's own folder
 TYPO_SIMILARITY = 0.8
+#: characters of a header shown in the missing-column problem (a long header is cut there)
+_HEADER_SHOWN = 120
 _MORE_HINT = "python -m pipeline validate {root} lists them all"
 
 
@@ -157,13 +161,21 @@ def _read_text(path: Path, problems: list[Problem], what: str, encoding: str = "
     return None
 
 
-def _read_yaml(path: Path, problems: list[Problem], what: str) -> tuple[bool, Any]:
-    """(True, data) when the file parses; (False, None) with a problem noted otherwise."""
-    text = _read_text(path, problems, what)
+def _read_yaml(path: Path, problems: list[Problem], what: str, text_paths=()) -> tuple[bool, Any]:
+    """(True, data) when the file parses; (False, None) with a problem noted otherwise.
+
+    Two equal keys in a mapping are refused (PyYAML would keep the last); the plain values at
+    ``text_paths`` (see :func:`pipeline.yamlio.load_yaml`) are read as the text written.
+    """
+    text = _read_text(path, problems, what, encoding="utf-8-sig")
     if text is None:
         return False, None
     try:
-        return True, yaml.safe_load(text)
+        return True, load_yaml(text, text_paths)
+    except DuplicateKey as dup:
+        _note(problems, path, f"key {dup.key!r} appears twice (first on line {dup.first_line})",
+              "keep one of the two lines (YAML would silently use the last)", line=dup.line)
+        return False, None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}: " if mark is not None else ""
@@ -173,7 +185,63 @@ def _read_yaml(path: Path, problems: list[Problem], what: str) -> tuple[bool, An
         return False, None
 
 
-def _read_csv(path: Path, required, problems: list[Problem], what: str, as_dicts: bool = True
+#: field separators a table may use: a spreadsheet saves ';' where the decimal mark is a comma, and tabs
+#: as "text"; the one of the header line (the most frequent there outside quotes) separates every line
+_DELIMITERS = (",", ";", "\t")
+_DELIMITER_NAMES = {",": "','", ";": "';'", "\t": "tabs"}
+#: a number written with a decimal comma (0,5 or -1,25e3), as a regional spreadsheet saves it
+_DECIMAL_COMMA = re.compile(r"[+-]?\d*,\d+(?:[eE][+-]?\d+)?")
+_TABLE_FIX = "save the table as CSV UTF-8 (comma-separated, '.' as the decimal mark)"
+
+
+def _table_text(path: Path, problems: list[Problem], what: str) -> str | None:
+    """A table's text: UTF-8 (with or without its byte order mark) or UTF-16 with one; a problem noted
+    and None for any other encoding, or text that holds NUL characters (a binary file)."""
+    if not path.is_file():
+        _note(problems, path, "file not found", f"write {what}")
+        return None
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        _note(problems, path, f"cannot read file ({exc.strerror or exc})", "check the file's permissions")
+        return None
+    encoding = "utf-16" if raw[:2] in (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE) else "utf-8-sig"
+    try:
+        text = raw.decode(encoding)
+    except UnicodeDecodeError as exc:
+        line = raw[:exc.start].count(b"\n") + 1
+        _note(problems, path, f"not UTF-8 text (byte 0x{raw[exc.start]:02x} cannot be read; a Latin-1 or "
+                              "Windows-1252 file?)", _TABLE_FIX, line=line)
+        return None
+    if "\0" in text:
+        _note(problems, path, "holds NUL characters: a binary file, or UTF-16 text without its byte order mark",
+              _TABLE_FIX, line=text[:text.index("\0")].count("\n") + 1)
+        return None
+    return text
+
+
+def _delimiter(text: str) -> str:
+    """The field separator of a table: the one of _DELIMITERS most frequent on its first non-blank line
+    outside quotes (',' when it has none: a table of one column)."""
+    first = next((line for line in text.splitlines() if line.strip()), "")
+    outside = "".join(part for i, part in enumerate(first.split('"')) if i % 2 == 0)
+    counts = {d: outside.count(d) for d in _DELIMITERS}
+    best = max(_DELIMITERS, key=lambda d: counts[d])
+    return best if counts[best] else ","
+
+
+def _canonical_names(header: list[str], known, rename) -> list[str]:
+    """Header names matched to ``known`` without regard to case; ``rename`` (when given) spells the others."""
+    by_fold = {name.casefold(): name for name in known}
+    out = []
+    for name in header:
+        name = by_fold.get(name.casefold(), name)
+        out.append(rename(name) if rename is not None else name)
+    return out
+
+
+def _read_csv(path: Path, required, problems: list[Problem], what: str, as_dicts: bool = True,
+              known=(), rename=None
               ) -> tuple[list[str] | None, list[tuple[int, dict[str, str] | list[str]]]]:
     """Header and (line number, row dict) pairs; values stripped, blank lines skipped.
 
@@ -181,11 +249,17 @@ def _read_csv(path: Path, required, problems: list[Problem], what: str, as_dicts
     ``required`` columns and for a table without rows.  The header is None when
     the file cannot be read as a table at all. With ``as_dicts=False`` each row is
     the list of its values in the header's order (a long table read by column).
+
+    The separator is the header line's (``,``, ``;`` or tab: :func:`_delimiter`); a table separated by
+    ``;`` or tabs whose numbers have decimal commas is refused at the first of them. Header names are
+    stripped and matched to ``required`` and ``known`` without regard to case (``File `` is ``file``);
+    ``rename`` spells the other names (a pattern's canonical case).
     """
-    text = _read_text(path, problems, what, encoding="utf-8-sig")
+    text = _table_text(path, problems, what)
     if text is None:
         return None, []
-    reader = csv.reader(io.StringIO(text))
+    delimiter = _delimiter(text)
+    reader = csv.reader(io.StringIO(text), delimiter=delimiter)
     header: list[str] | None = None
     rows: list[tuple[int, dict[str, str]]] = []
     n_records = 0
@@ -195,7 +269,7 @@ def _read_csv(path: Path, required, problems: list[Problem], what: str, as_dicts
             if not record or all(not f.strip() for f in record):
                 continue
             if header is None:
-                header = [h.strip() for h in record]
+                header = _canonical_names([h.strip() for h in record], tuple(required) + tuple(known), rename)
                 if any(not h for h in header):
                     _note(problems, path, "empty column name in header", "name every column of the first line",
                           line=reader.line_num)
@@ -212,6 +286,13 @@ def _read_csv(path: Path, required, problems: list[Problem], what: str, as_dicts
                       line=reader.line_num)
                 continue
             values = [v.strip() for v in record]
+            if delimiter != ",":
+                comma = next((i for i, v in enumerate(values) if _DECIMAL_COMMA.fullmatch(v)), None)
+                if comma is not None:
+                    _note(problems, path, f"{values[comma]!r} has a decimal comma (fields separated by "
+                                          f"{_DELIMITER_NAMES[delimiter]}: a spreadsheet's regional CSV)",
+                          _TABLE_FIX, line=reader.line_num, column=header[comma])
+                    return None, []
             rows.append((reader.line_num, dict(zip(header, values)) if as_dicts else values))
     except csv.Error as exc:
         _note(problems, path, f"malformed CSV ({exc})", "check the quotes on that line", line=reader.line_num)
@@ -221,8 +302,10 @@ def _read_csv(path: Path, required, problems: list[Problem], what: str, as_dicts
         return None, []
     missing = [c for c in required if c not in header]
     if missing:
+        shown = ", ".join(header)
         _note(problems, path, f"missing column {', '.join(repr(c) for c in missing)} "
-                              f"(required: {', '.join(required)})",
+                              f"(required: {', '.join(required)}; the header has: "
+                              f"{shown if len(shown) <= _HEADER_SHOWN else shown[:_HEADER_SHOWN] + '...'})",
               f"add the column{'s' if len(missing) > 1 else ''} to the header line (DATASET.md says what "
               "each holds)")
     if not n_records:
@@ -267,8 +350,14 @@ def _choice(value: str, allowed) -> str:
 
 def _yaml_number(where: str, value: Any, *, low: float | None = None,
                  high: float | None = None, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise _Bad(f"{where} must be a number, got {value!r}")
+    try:
+        finite = math.isfinite(value)
+    except OverflowError:          # an integer beyond a float's range
+        finite = False
+    if not finite:
+        raise _Bad(f"{where} must be a finite number, got {value if isinstance(value, float) else 'a huge integer'}")
     if positive and value <= 0:
         raise _Bad(f"{where} must be positive, got {value!r}")
     if (low is not None and value < low) or (high is not None and value > high):
@@ -287,6 +376,9 @@ def _md5_file(path: Path) -> str:
 # ---------------------------------------------------------------------------
 # dataset.yaml and MD5SUMS
 
+#: dataset.yaml's values that are text (DATASET.md): read as written, so that ``serial: 0123`` is '0123'
+#: and not the octal 83, ``model: no`` the word and not False, a lens named ``1`` the name '1'
+_META_TEXT = (("camera", "make"), ("camera", "model"), ("camera", "serial"), ("description",), ("lenses", KEYS))
 _LENSES_FIX = "give each lens as name: {rows: [start, stop], cols: [start, stop]} in raw pixels"
 
 
@@ -430,8 +522,13 @@ def _check_frames(root: Path, experiment: str, lenses, md5sums: dict[str, str] |
     specific = EXPERIMENT_COLUMNS[experiment]
     header, rows = _read_csv(path, COMMON_COLUMNS + specific, problems,
                              f"{experiment}/frames.csv: one row per raw frame with the columns "
-                             f"{', '.join(COMMON_COLUMNS + specific)} (python -m pipeline init-dataset writes it)")
+                             f"{', '.join(COMMON_COLUMNS + specific)} (python -m pipeline init-dataset writes it)",
+                             known=OPTIONAL_COLUMNS + TAG_COLUMNS)
     if header is None:
+        return pd.DataFrame(columns=list(COMMON_COLUMNS + specific) + ["path"]), []
+    if "path" in header:
+        _note(problems, path, "column 'path' is the pipeline's own (each frame's absolute path)",
+              "rename the column (e.g. lab_path)")
         return pd.DataFrame(columns=list(COMMON_COLUMNS + specific) + ["path"]), []
     lens_names = tuple(lenses) + ("both",) if lenses is not None else None
     meaning = dict(COLUMN_MEANINGS)
@@ -504,6 +601,8 @@ def _check_frames(root: Path, experiment: str, lenses, md5sums: dict[str, str] |
         if md5sums is not None and key not in md5sums:
             bad(line, "file", f"{key} is not listed in MD5SUMS", "add its '<md5>  <path>' line to MD5SUMS")
     frame = pd.DataFrame.from_records(records, columns=header + ["path"])
+    # object, None where a row has no file (pandas would infer text with NaN when no row has one)
+    frame["path"] = pd.Series([rec["path"] for rec in records], index=frame.index, dtype=object)
     for column in _NUMERIC + _TAG_NUMBERS:
         if column in frame:
             frame[column] = frame[column].astype(float)
@@ -597,7 +696,7 @@ def inspect_layout(root, check_frames: bool = True) -> LayoutCheck:
     meta_path = root / "dataset.yaml"
     parsed, check.meta = _read_yaml(meta_path, problems, "dataset.yaml: camera, lens regions and targets as "
                                                          "DATASET.md says (python -m pipeline init-dataset "
-                                                         "writes it)")
+                                                         "writes it)", _META_TEXT)
     if parsed:
         check.lenses = _check_meta(meta_path, check.meta, problems)
     md5_lines: dict[str, int] = {}
@@ -608,7 +707,8 @@ def inspect_layout(root, check_frames: bool = True) -> LayoutCheck:
     for experiment in check.experiments():
         table, lines = _check_frames(root, experiment, check.lenses, check.md5sums, problems)
         check.tables[experiment] = (table, lines)
-        referenced.update(f"{experiment}/{rel}" for rel in table["file"])
+        if "file" in table:
+            referenced.update(f"{experiment}/{rel}" for rel in table["file"])
     if check.md5sums is not None:
         for rel in check.md5sums:
             if rel not in referenced and not (root / rel).is_file():
@@ -718,8 +818,9 @@ def _source_reference(path: Path, problems: list[Problem]) -> pd.DataFrame:
                           positive=("wavelength_nm", "radiance_W_sr_m2_nm"), nonnegative=("uncertainty_rel",))
 
 
-def _yaml_mapping(path: Path, problems: list[Problem], what: str, mapping_message: str) -> dict | None:
-    parsed, data = _read_yaml(path, problems, what)
+def _yaml_mapping(path: Path, problems: list[Problem], what: str, mapping_message: str,
+                  text_paths=()) -> dict | None:
+    parsed, data = _read_yaml(path, problems, what, text_paths)
     if not parsed:
         return None
     if not isinstance(data, dict):
@@ -742,12 +843,21 @@ def _water(path: Path, problems: list[Problem]) -> dict:
     return out
 
 
+#: a radiance column of the reference radiometer: L_<wavelength in nm>
+_CHANNEL = re.compile(r"L_(\d+(?:\.\d+)?)")
+
+
+def _channel_name(name: str) -> str:
+    """``l_443`` spelt ``L_443`` (a radiance column's name matched without regard to case)."""
+    return "L" + name[1:] if _CHANNEL.fullmatch("L" + name[1:]) and name[:1] in "lL" else name
+
+
 def _reference_radiometer(path: Path, problems: list[Problem]) -> pd.DataFrame:
     what = "the reference radiometer's readings: time (ISO 8601, UTC) and one L_<nm> column per channel"
-    header, records = _read_csv(path, ("time",), problems, what, as_dicts=False)
+    header, records = _read_csv(path, ("time",), problems, what, as_dicts=False, rename=_channel_name)
     channels = {}
     for column in header or ():
-        match = re.fullmatch(r"L_(\d+(?:\.\d+)?)", column)
+        match = _CHANNEL.fullmatch(column)
         if match:
             channels[column] = float(match.group(1))
     if header is not None and not channels:
@@ -842,7 +952,7 @@ REFERENCE_CALIBRATION_RELATIVE_SIGMA = 0.025
 def _site(path: Path, problems: list[Problem]) -> dict:
     what = ("latitude_deg, longitude_deg, camera_clock_utc_offset_h and reference: "
             "{name, channels_nm, fwhm_nm, half_fov_deg}")
-    data = _yaml_mapping(path, problems, what, "must be a YAML mapping")
+    data = _yaml_mapping(path, problems, what, "must be a YAML mapping", [("reference", "name")])
     if data is None:
         return {}
     out = dict(data)

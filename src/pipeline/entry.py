@@ -3,12 +3,33 @@
 from __future__ import annotations
 
 import logging
+import os
+import signal
 import sys
 from pathlib import Path
 
 from pipeline.errors import InputError
 
-__all__ = ["exit_on_input_error", "setup_log"]
+__all__ = ["EXIT_INTERRUPTED", "exit_on_input_error", "setup_log", "stop_quietly_on_interrupt"]
+
+#: a job's exit status after Ctrl-C (128 + SIGINT, as shells report it)
+EXIT_INTERRUPTED = 130
+
+
+def _interrupted(signum, frame) -> None:
+    sys.stderr.flush()
+    os._exit(EXIT_INTERRUPTED)
+
+
+def stop_quietly_on_interrupt() -> None:
+    """A job's first call: Ctrl-C (the terminal sends SIGINT to every job of the run) ends it at once with
+    130 and no traceback, also while its heavy imports load; the run's own line says it was interrupted.
+
+    The job ends without the interpreter's clean-up: an exit after an interrupt in the middle of an import
+    or a library call could hang there (seen with a job interrupted while starting), and Snakemake waits
+    for every job before it ends the run. The artefact is written under a temporary name, so none is left
+    half written."""
+    signal.signal(signal.SIGINT, _interrupted)
 
 
 def setup_log(path: str | None) -> None:
@@ -28,6 +49,10 @@ def exit_on_input_error(function, *args, **kwargs):
         logging.getLogger("pipeline").error("%s", exc)
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(1)
+    except KeyboardInterrupt:
+        # a job that did not call stop_quietly_on_interrupt: one line, no traceback, no clean-up
+        logging.getLogger("pipeline").error("interrupted")
+        _interrupted(signal.SIGINT, None)
     except Exception as exc:
         # one line into the job's log too (the traceback follows on stderr), where the report of a
         # failed run reads each job's error

@@ -89,7 +89,7 @@ def _frame_problems(check: LayoutCheck, read: list[FrameTags] | None = None) -> 
         csv_path = check.root / experiment / "frames.csv"
         for (_, row), line in zip(table.iterrows(), lines):
             path = row["path"]
-            if path is None or not Path(path).is_file():
+            if not isinstance(path, Path) or not path.is_file():     # None (or pandas' NaN): no file
                 continue
             tags, found = check_tags(path)
             problems += found

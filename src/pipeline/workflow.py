@@ -26,6 +26,7 @@ import importlib
 import json
 import logging
 import os
+import signal
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
@@ -469,3 +470,46 @@ def dataset_to_simulate(config: dict) -> bool:
         return True
     raise InputError(path, "dataset folder not found (check the path; to simulate a dataset into it, "
                            "add --config simulate=true)")
+
+
+# --------------------------------------------------------------------------- an interrupted run
+class SignalWatch:
+    """Notes the signal that interrupts a run (Ctrl-C's SIGINT, a scheduler's SIGTERM), then lets the
+    handler that was there act on it: Snakemake's own (a KeyboardInterrupt for SIGINT that cancels the
+    running jobs; for SIGTERM, the scheduler's "exit after finishing the running jobs").
+
+    Snakemake calls the workflow's ``onerror`` for an interrupted run as for one whose job failed; the
+    handler asks :meth:`exit_if_interrupted` first, so that an interrupt ends the run with 128 + the
+    signal's number and one line, without the failed-run report or an entry in the error history.
+    """
+
+    def __init__(self):
+        self.signals: list[int] = []
+
+    def watch(self, *signums: int) -> None:
+        """Note each of ``signums`` from now on, before the handler installed so far acts (Snakemake's
+        scheduler installs its SIGTERM handler when it starts: watch SIGTERM from ``onstart``)."""
+        for signum in signums:
+            previous = signal.getsignal(signum)
+
+            def handler(number, frame, previous=previous):
+                self.signals.append(number)
+                if callable(previous):
+                    return previous(number, frame)
+                if previous == signal.SIG_IGN:
+                    return None
+                raise SystemExit(128 + number)      # SIG_DFL: end as the signal would
+
+            try:
+                signal.signal(signum, handler)
+            except ValueError:      # not the main thread (a job run inside the scheduler's process)
+                pass
+
+    def exit_if_interrupted(self) -> None:
+        """After a failed run: when a watched signal came, one line and exit 128 + its number."""
+        if not self.signals:
+            return
+        number = self.signals[0]
+        print(f"interrupted ({signal.Signals(number).name}): the run stopped; the jobs that did not finish left "
+              "no artefact; the same command resumes the run", file=sys.stderr)
+        sys.exit(128 + number)

@@ -1,5 +1,6 @@
 # Shared input functions and helpers. Logic lives in the `pipeline` package.
 
+import signal
 import sys
 import time
 from pathlib import Path
@@ -8,6 +9,7 @@ from pipeline.errors import InputError
 from pipeline.workflow import (
     STAGES,
     DatasetIndex,
+    SignalWatch,
     dataset_to_simulate,
     stage_code_sha256,
     stage_params,
@@ -20,6 +22,10 @@ from pipeline.artefact import BUNDLE_REQUIRED_STAGES as CALIBRATION_REQUIRED
 
 # the run's start: a failed run's report reads only the job logs written after it
 RUN_START = time.time()
+# Ctrl-C (SIGINT) from here on, SIGTERM from onstart (Snakemake's scheduler installs its handler first):
+# an interrupted run ends with 128 + the signal, not with the failed-run report (report_failed_run)
+SIGNALS = SignalWatch()
+SIGNALS.watch(signal.SIGINT)
 DATASET = Path(config["dataset"])
 try:
     # simulate only the configured default dataset (or with --config simulate=true), never a path a user gave
@@ -213,6 +219,8 @@ def report_failed_run():
     """
     from pipeline.run_summary import report_after_failure
 
+    # Snakemake calls onerror for an interrupted run too: an interrupt is no failure to report
+    SIGNALS.exit_if_interrupted()
     index = _ready()
     stage_lenses = {
         stage: sorted(index.stage_lenses(stage))

@@ -1,5 +1,9 @@
 """Rule 'dark': one lens; unpack the snakemake object and call the package."""
 
-from pipeline.workflow import run_stage_script
+from pipeline.entry import stop_quietly_on_interrupt
+
+stop_quietly_on_interrupt()  # first: Ctrl-C ends the job quietly, also during the imports below
+
+from pipeline.workflow import run_stage_script  # noqa: E402 (after the interrupt handler)
 
 run_stage_script(snakemake, "dark")  # noqa: F821 (snakemake injects this object)

@@ -1,7 +1,11 @@
 """Rule 'diagnostics': unpack the snakemake object and call the package."""
 
-from pipeline.diagnostics import diagnose_artefacts
-from pipeline.workflow import exit_on_input_error, setup_log
+from pipeline.entry import stop_quietly_on_interrupt
+
+stop_quietly_on_interrupt()  # first: Ctrl-C ends the job quietly, also during the imports below
+
+from pipeline.diagnostics import diagnose_artefacts  # noqa: E402 (after the interrupt handler)
+from pipeline.workflow import exit_on_input_error, setup_log  # noqa: E402 (after the interrupt handler)
 
 smk = snakemake  # noqa: F821 (snakemake injects this object)
 setup_log(smk.log[0])
