@@ -5,7 +5,7 @@ raw frame with :func:`pipeline.rawio.read_raw`, changes the CFA mosaic by its ow
 it back with :func:`pipeline.rawio.write_dng`, keeping every tag (exposure, ISO, time, black and white
 levels, pattern, make, model, serial); ``MD5SUMS`` is rewritten after. None of these shapes is the
 simulator's or the pipeline's own (``pipeline.effects.catalogue``): a signature that finds them is not
-just recognising its own forward code (DESIGN.md, "Tests that can be trusted").
+just recognising its own forward code (docs/design.md, "Closure and diagnostics").
 
 A form is called as ``FORMS[name].inject(root, amplitude, conversion_gain_dn_per_e_iso100, seed)``;
 ``amplitude`` is the form's own parameter (documented on each), ``FORMS[name].amplitudes`` gives two

@@ -458,7 +458,7 @@ def test_rolloff_immersion_geometry_columns(ds_root):
 
 
 def test_projection_declared_per_lens(ds_root):
-    """DATASET.md: a lens region may declare ``projection: rectilinear``; without the key it is a fisheye."""
+    """docs/dataset-format.md: a lens region may declare ``projection: rectilinear``; without the key it is a fisheye."""
     meta = yaml.safe_load((ds_root / "dataset.yaml").read_text())
     meta["lenses"]["far"]["projection"] = "rectilinear"
     (ds_root / "dataset.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))

@@ -113,7 +113,7 @@ def test_budget_uses_eq9():
 
 # ----------------------------------------------------------------------------- Eq. (11), n-squared law
 def test_n_squared_law_worked_example():
-    # DESIGN.md, "Immersion": 0.9797 x 1.3317^2 = 1.737 at 600 nm (Table 2); the printed t_aw n_w would be 1.305
+    # docs/design.md, "Immersion": 0.9797 x 1.3317^2 = 1.737 at 600 nm (Table 2); the printed t_aw n_w would be 1.305
     assert float(n_squared_law_factor(0.9797, 1.3317)) == pytest.approx(1.737, abs=5e-4)
 
 
@@ -149,7 +149,7 @@ def test_immersion_stage_normalises_by_eq2_and_uses_n_squared(monkeypatch):
     monkeypatch.setattr(immersion, "refractive_index_water",
                         lambda wl, t, s: 1.3317 if wl == 600.0 else refractive_index_water(wl, t, s))
     art = immersion.analyse_immersion({"frames": pd.DataFrame(rows)}, water, lam)["far"]
-    assert float(art["n2_factor"].sel(band="R")) == pytest.approx(1.737, abs=5e-4)   # DESIGN.md, Table 2
+    assert float(art["n2_factor"].sel(band="R")) == pytest.approx(1.737, abs=5e-4)   # Larouche et al. 2024, Table 2
     assert np.allclose(art["n2_factor"], art["t_aw"] * art["n_w"] ** 2, rtol=1e-15)
     assert np.allclose(art["dn_air"], dn_air_per_s, rtol=1e-6)
     assert np.allclose(art["immersion_factor"], [true_i[b] for b in art["band"].values], rtol=1e-5)

@@ -2,7 +2,7 @@
 :mod:`pipeline.field_angle_closure`).
 
 The simulator puts the sphere port at field angle |angle_deg| in the logged azimuth plane
-(DATASET.md, roll-off); the geometry stage fits its own lens model to chessboards. On the tiny camera of
+(docs/dataset-format.md, rolloff); the geometry stage fits its own lens model to chessboards. On the tiny camera of
 seed 5 (the shared ``calibrated`` fixture) the model's field angles sit 0.2 to 1.5 deg below the truth
 (more towards the rim, where the boards do not reach), inside the geometry's stated covariance; the table
 must hold that. A rotation stage whose logged angles are long by 4 % (the lab's gearing misread; the

@@ -1,4 +1,4 @@
-"""A lens region's projection (DATASET.md: fisheye, the default, or rectilinear) decides where the
+"""A lens region's projection (docs/dataset-format.md: fisheye, the default, or rectilinear) decides where the
 linearity stage looks for the optical axis; a fisheye region without an image circle stops the stage."""
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ def test_dark_fisheye_region_stops_too(config):
 
 
 def test_fisheye_circle_is_found_and_passes(config):
-    """Positive control: a lit disc of radius 26 band px (unlit outside, as DATASET.md says of a fisheye)
+    """Positive control: a lit disc of radius 26 band px (unlit outside, as docs/dataset-format.md says of a fisheye)
     passes the check, its radius within 0.5 px (the edge is located to sub-pixel on 360 profiles at
     SNR ~ 1000 per pixel)."""
     y, x = np.indices((64, 64), dtype=float)

@@ -20,7 +20,7 @@ from pipeline.simulate.absolute import default_source_radiance
 from pipeline.simulate.spectral import default_spectral_response
 
 GRID_NM = np.arange(400.0, 700.0 + 1e-9, 10.0)
-# DESIGN.md / Larouche et al. 2024 Section 3.4: lambda_eff +/- Lambda/2
+# Larouche et al. 2024 Section 3.4: lambda_eff +/- Lambda/2
 PUBLISHED_BANDS = {"R": (600.0, 38.0), "G": (540.0, 60.0), "B": (480.0, 49.0)}
 PUBLISHED_PEAKS = {"R": 600.0, "G": 520.0, "B": 460.0}
 

@@ -45,7 +45,7 @@ def test_nothing_saturates_below_the_well():
 
 
 def test_a_nonlinearity_is_not_taken_for_saturation():
-    # the response bends by 24 % at the top of the sweep (DESIGN.md: the published camera at ISO 100)
+    # the response bends by 24 % at the top of the sweep (docs/design.md: the published camera at ISO 100)
     t, s, v = _sweep(full_well_dn=None, rate=20000.0, nonlinearity=0.24 * 30000.0 / 10000.0)
     assert s[-1] / (20000.0 * t[-1]) < 0.8
     assert not saturated_settings(t, s, v, 0.5, 0.5).any()

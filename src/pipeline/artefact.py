@@ -3,7 +3,7 @@
 Every artefact carries, as global attributes, the stage name, the schema
 version of that stage's output, the pipeline version, the creation time, the
 sha256 of the configuration subset the stage used and of every input file, and
-the effects of the model it was fitted with (DESIGN.md). Files are written to
+the effects of the model it was fitted with (docs/design.md). Files are written to
 a temporary name and renamed, so a failed stage never leaves a half-written
 artefact.
 """

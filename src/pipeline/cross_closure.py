@@ -1,4 +1,4 @@
-"""Closure across experiments, and per-lens parameters (DESIGN.md, "Closure and diagnostics"; issue 10).
+"""Closure across experiments, and per-lens parameters (docs/design.md, "Closure and diagnostics"; issue 10).
 
 Each stage predicts its own measurements; here the calibration predicts measurements of one
 experiment from the fitted parameters of another, as observation tables of the experiment
@@ -7,7 +7,7 @@ chi-square against its degrees of freedom, the closure table, ``diagnose``'s sen
 
 * ``closure/responsivity``: the DN per second at ISO 100 on the optical axis that each experiment
   saw, ln of it, one row per source, lens and band. The sources are not the same: the linearity
-  sweeps and the roll-off look at the integrating sphere (DATASET.md), at levels the lab does not
+  sweeps and the roll-off look at the integrating sphere (docs/dataset-format.md), at levels the lab does not
   log (the gain sweep's is dimmer so that ISO 3200 does not saturate); the absolute experiment looks
   at a port whose spectrum it measures (``source_spectrum.csv``), which no other experiment states.
   What can honestly be compared is therefore (i) the band ratios of the sources that share the

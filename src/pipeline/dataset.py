@@ -1,4 +1,4 @@
-"""Reader and validator for the calibration dataset layout (DATASET.md, layout 1).
+"""Reader and validator for the calibration dataset layout (docs/dataset-format.md, layout 1).
 
 ``open_dataset`` checks dataset.yaml, MD5SUMS and every present frames.csv and
 returns a :class:`Dataset`.  Sidecar readers (``read_photodiode`` ...) validate
@@ -41,13 +41,13 @@ __all__ = [
 ]
 
 LAYOUT_VERSION = 1
-#: projections a lens region may declare (DATASET.md, dataset.yaml): the first is the default.
+#: projections a lens region may declare (docs/dataset-format.md, dataset.yaml): the first is the default.
 #: fisheye: an image circle inside the region, unlit corners around it; rectilinear: an
 #: ordinary (pinhole-like) camera whose whole region is lit.
 PROJECTIONS = ("fisheye", "rectilinear")
 EXPERIMENTS = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion", "field")
 COMMON_COLUMNS = ("file", "lens", "kind")
-# Required columns per experiment beyond COMMON_COLUMNS (DATASET.md, frames.csv).
+# Required columns per experiment beyond COMMON_COLUMNS (docs/dataset-format.md, frames.csv).
 EXPERIMENT_COLUMNS: dict[str, tuple[str, ...]] = {
     "dark": (),
     "linearity": ("sweep",),
@@ -64,14 +64,14 @@ OPTIONAL_COLUMNS = ("temperature_c",)
 # that a lab can tell its frames apart); the tags stay the truth, and a copy that
 # disagrees with its tag is a problem.
 TAG_COLUMNS = ("exposure_s", "iso", "time")
-# Instrument files of each experiment (DATASET.md, Sidecars).
+# Instrument files of each experiment (docs/dataset-format.md, sidecar files).
 SIDECARS: dict[str, tuple[str, ...]] = {
     "spectral": ("photodiode.csv",),
     "absolute": ("source_spectrum.csv", "source_reference.csv"),
     "immersion": ("water.yaml",),
     "field": ("reference_radiometer.csv", "site.yaml"),
 }
-# What each frames.csv column holds (DATASET.md): the "how to fix it" of its problems.
+# What each frames.csv column holds (docs/dataset-format.md): the "how to fix it" of its problems.
 COLUMN_MEANINGS = {
     "file": "a path inside the experiment folder, e.g. raw/IMG_0001.dng",
     "lens": "the lens that faces the source or target ({lenses}), or both",
@@ -306,7 +306,7 @@ def _read_csv(path: Path, required, problems: list[Problem], what: str, as_dicts
         _note(problems, path, f"missing column {', '.join(repr(c) for c in missing)} "
                               f"(required: {', '.join(required)}; the header has: "
                               f"{shown if len(shown) <= _HEADER_SHOWN else shown[:_HEADER_SHOWN] + '...'})",
-              f"add the column{'s' if len(missing) > 1 else ''} to the header line (DATASET.md says what "
+              f"add the column{'s' if len(missing) > 1 else ''} to the header line (docs/dataset-format.md says what "
               "each holds)")
     if not n_records:
         _note(problems, path, "no data rows", "add one row per frame or reading")
@@ -376,7 +376,7 @@ def _md5_file(path: Path) -> str:
 # ---------------------------------------------------------------------------
 # dataset.yaml and MD5SUMS
 
-#: dataset.yaml's values that are text (DATASET.md): read as written, so that ``serial: 0123`` is '0123'
+#: dataset.yaml's values that are text (docs/dataset-format.md): read as written, so that ``serial: 0123`` is '0123'
 #: and not the octal 83, ``model: no`` the word and not False, a lens named ``1`` the name '1'
 _META_TEXT = (("camera", "make"), ("camera", "model"), ("camera", "serial"), ("description",), ("lenses", KEYS))
 _LENSES_FIX = "give each lens as name: {rows: [start, stop], cols: [start, stop]} in raw pixels"
@@ -400,13 +400,13 @@ def _check_meta(path: Path, meta: Any, problems: list[Problem]
     """Check dataset.yaml; returns the lens regions (None when they are unusable)."""
     if not isinstance(meta, dict):
         _note(problems, path, "must be a YAML mapping (layout, camera, lenses, ...)",
-              "write the keys of DATASET.md: layout, camera, lenses (python -m pipeline init-dataset does)")
+              "write the keys of docs/dataset-format.md: layout, camera, lenses (python -m pipeline init-dataset does)")
         return None
     if "layout" not in meta:
         _note(problems, path, "missing key 'layout'", f"add 'layout: {LAYOUT_VERSION}'")
     elif meta["layout"] != LAYOUT_VERSION or isinstance(meta["layout"], bool):
         _note(problems, path, f"layout is {meta['layout']!r}; this pipeline reads layout {LAYOUT_VERSION}",
-              f"lay the dataset out as DATASET.md version {LAYOUT_VERSION} says, then set 'layout: "
+              f"lay the dataset out as docs/dataset-format.md version {LAYOUT_VERSION} says, then set 'layout: "
               f"{LAYOUT_VERSION}'")
     camera = meta.get("camera")
     camera_fix = "write camera: {make: ..., model: ..., serial: ...} as the Make and Model tags of the raw files say"
@@ -678,7 +678,7 @@ def _check_folders(root: Path, problems: list[Problem]) -> None:
             continue
         close = difflib.get_close_matches(child.name.lower(), EXPERIMENTS, n=1, cutoff=TYPO_SIMILARITY)
         if close:
-            _note(problems, child, f"folder {child.name!r} is not an experiment of DATASET.md",
+            _note(problems, child, f"folder {child.name!r} is not an experiment of docs/dataset-format.md",
                   f"rename it {close[0]!r} (experiment folders: {', '.join(EXPERIMENTS)})")
 
 
@@ -695,7 +695,7 @@ def inspect_layout(root, check_frames: bool = True) -> LayoutCheck:
     _check_folders(root, problems)
     meta_path = root / "dataset.yaml"
     parsed, check.meta = _read_yaml(meta_path, problems, "dataset.yaml: camera, lens regions and targets as "
-                                                         "DATASET.md says (python -m pipeline init-dataset "
+                                                         "docs/dataset-format.md says (python -m pipeline init-dataset "
                                                          "writes it)", _META_TEXT)
     if parsed:
         check.lenses = _check_meta(meta_path, check.meta, problems)

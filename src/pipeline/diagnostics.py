@@ -1,4 +1,4 @@
-"""Closure and missing-effect diagnostics (DESIGN.md, "Closure and diagnostics").
+"""Closure and missing-effect diagnostics (docs/design.md, "Closure and diagnostics").
 
 Each stage stores its observation tables: one row per independent
 measurement (a setting, or a frame), the measured value, the expected noise

@@ -1,7 +1,7 @@
 """Is anything left in the residuals? The chi-square of one table against its degrees of freedom.
 
 A model that holds leaves noise-normalised residuals z whose sum of squares is chi-square distributed
-with dof = n - rank(X) degrees of freedom (DESIGN.md, "Use known noise"). For every observation table
+with dof = n - rank(X) degrees of freedom (docs/design.md, "Closure and diagnostics"). For every observation table
 (one experiment at one level: frames, settings, heights...) two tests of that sum are made:
 
 * the chi-square tail, P(chi2_dof > sum z^2), exact for independent rows with the stated noise;

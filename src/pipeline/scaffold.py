@@ -1,9 +1,9 @@
-"""Lay out a folder of raw files as a calibration dataset (DATASET.md): ``init-dataset``.
+"""Lay out a folder of raw files as a calibration dataset (docs/dataset-format.md): ``init-dataset``.
 
 A lab has folders of raw files and a lab notebook, not our layout.  From a
 folder with one sub-folder per experiment (``dark/``, ``linearity/``, ...),
 or one folder plus a CSV lab log whose ``experiment`` column names the
-experiment of each file, :func:`init_dataset` writes the layout of DATASET.md:
+experiment of each file, :func:`init_dataset` writes the layout of docs/dataset-format.md:
 
 - ``dataset.yaml``: make, model and serial from the tags; lens regions proposed
   from the frame size (a dual-fisheye frame of H x W with H = 2W holds two
@@ -56,12 +56,12 @@ __all__ = ["RAW_SUFFIXES", "LensProposal", "RawEntry", "ScaffoldPlan", "InitResu
            "propose_lens_regions", "find_lens_circles", "write_dataset", "init_dataset", "describe_result",
            "Emva1288Frame", "read_emva1288_descriptor", "emva1288_raw_folder", "init_emva1288_dataset"]
 
-#: raw files the layout holds (DATASET.md: DNG 1.4), compared case-insensitively
+#: raw files the layout holds (docs/dataset-format.md: DNG), compared case-insensitively
 RAW_SUFFIXES = (".dng",)
 #: lab-log columns: the raw file (path relative to RAW_DIR, or its name when unique) and its experiment
 LOG_FILE_COLUMN, LOG_EXPERIMENT_COLUMN = "file", "experiment"
 #: lens names of a frame holding two square regions stacked (H = 2W): the dual-fisheye
-#: camera of DATASET.md's example writes the far lens above the close one
+#: camera of docs/dataset-format.md's example writes the far lens above the close one
 STACKED_LENSES = ("far", "close")
 #: lens names of a frame holding two square regions side by side (W = 2H)
 SIDE_BY_SIDE_LENSES = ("left", "right")
@@ -449,7 +449,7 @@ def plan_dataset(raw_dir, lab_log=None, *, find_circles: bool = True) -> Scaffol
     notes = []
     if unused_columns:
         notes.append(f"lab log columns left out: {', '.join(unused_columns)} (frames.csv holds only the columns "
-                     "of DATASET.md; the tags give exposure, ISO and time)")
+                     "of docs/dataset-format.md; the tags give exposure, ISO and time)")
     camera, shape = _camera_and_shape(ordered, notes)
     lenses = propose_lens_regions(*shape) if shape else []
     if find_circles and lenses:
@@ -506,7 +506,7 @@ def _dataset_yaml(plan: ScaffoldPlan) -> str:
                                    **({"projection": lens.projection} if lens.projection != "fisheye" else {})}
                        for lens in plan.lenses},
             "description": ""}
-    head = ("# Laid out by `python -m pipeline init-dataset` from the raw files' tags (DATASET.md).\n"
+    head = ("# Laid out by `python -m pipeline init-dataset` from the raw files' tags (docs/dataset-format.md).\n"
             "# Confirm the lens regions ([start, stop) raw pixel rows and columns) and write a description.\n")
     return head + yaml.safe_dump(meta, sort_keys=False, default_flow_style=None)
 

@@ -30,7 +30,7 @@ from pipeline.errors import InputError
 
 _REGISTRY: dict[str, type["Effect"]] = {}
 
-#: The catalogue of DESIGN.md: name -> (physics, signature). The names are fixed.
+#: The catalogue of docs/design.md: name -> (physics, signature). The names are fixed.
 CATALOGUE: dict[str, tuple[str, str]] = {
     "dark_current": ("thermal signal proportional to exposure time and gain",
                      "dark and low-signal residuals grow with exposure time"),

@@ -1,7 +1,7 @@
 """Built-in effects of the dark and linearity experiments.
 
 Each class holds the simulator's physics and the pipeline's linearised term
-for one catalogue entry (DESIGN.md). Coefficients of :meth:`columns` are the
+for one catalogue entry (docs/design.md). Coefficients of :meth:`columns` are the
 physical parameters themselves, so a fitted coefficient compares directly
 with the simulator's truth.
 """
@@ -56,7 +56,7 @@ class DarkCurrent(Effect):
     def predicted_shift(self, experiment, level, table, coef, anchor):
         """Field scale: the dark signal D x ISO/100 x t that a dark model without it leaves in the field
         frames' mask, over their signal: ln(1 + D (ISO/100 t / S)). The absolute experiment subtracts its own dark
-        frames (DATASET.md), which hold the dark current, so it adds no term of its own."""
+        frames (docs/dataset-format.md), which hold the dark current, so it adds no term of its own."""
         if not _field_scale(experiment, level, table, ("field_dark_s_per_dn",)):
             return None
         return np.log(np.maximum(1.0 + float(coef[0]) * table["field_dark_s_per_dn"].to_numpy(float), _TINY))

@@ -1,4 +1,4 @@
-"""Optical effects of the roll-off and immersion experiments (DESIGN.md catalogue).
+"""Optical effects of the roll-off and immersion experiments (docs/design.md catalogue).
 
 * ``rolloff_azimuth``: decentred or tilted optics. The relative illumination
   gains a term odd in the field direction,

@@ -154,7 +154,7 @@ def outside_lit_fraction(image, circle: ImageCircle, dark_level_dn: float, *, ri
 
     Median of the band pixels farther than (1 + ``rim_margin``) radius from the centre,
     less ``dark_level_dn``, over the median of those within (1 - ``rim_margin``) radius,
-    less the same. A fisheye's corners are never lit (DATASET.md): about 0. A frame
+    less the same. A fisheye's corners are never lit (docs/dataset-format.md): about 0. A frame
     lit everywhere (an ordinary camera, or a circle fitted to noise) gives about 1;
     NaN when the circle leaves no pixel outside it, or when the inside is lit by less
     than ``min_snr`` times the pixel noise outside (robust: 1.4826 MAD), i.e. not at all.

@@ -8,7 +8,7 @@ n-squared law
     over n^2 is conserved across a flat interface, less the Fresnel loss).
     Eq. (11) is printed with t_aw n_w, but the text, Table 2 and the worked
     value 0.9797 x 1.3317^2 = 1.737 at 600 nm use t_aw n_w^2 (see
-    /work/shared/DESIGN.md, "Immersion"), which is what is implemented.
+    docs/design.md, "Immersion"), which is what is implemented.
 
 Experimental immersion factor (Eq. 11, Zibordi 2006 procedure)
     I = y_DN(0+) / y_DN(0-) * t_aw n_w^2

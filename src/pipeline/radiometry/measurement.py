@@ -21,7 +21,7 @@ Each step applies only the effects of ``model.effects`` that it owns
 immersion and responsivity are the base model. The nonlinearity bends the
 dark-corrected signal in DN (the linearity stage fits it there), so its
 inverse is taken before the division by exposure and gain; that is the
-exposure-and-gain step of DESIGN.md's chain written in DN.
+exposure-and-gain step of docs/design.md's chain written in DN.
 
 Uncertainty goes forward with the value, to first order, in two parts kept as
 named variances (in the units of the current value):

@@ -13,7 +13,7 @@ A setting is saturated when its signal rose by less than
 ``plateau_fraction`` of the rise proportional to exposure since the last
 unsaturated setting, or its variance fell below ``variance_drop`` times the
 largest variance of the unsaturated settings below it; every setting above a
-saturated one is saturated too. A nonlinearity (DESIGN.md: about 24 % for the
+saturated one is saturated too. A nonlinearity (docs/design.md: about 24 % for the
 published camera) bends the rise but does not flatten it, and leaves the
 variance growing, so it is not taken for saturation.
 """

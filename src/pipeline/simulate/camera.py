@@ -1,6 +1,6 @@
 """The simulator's default camera: facts from the papers in one place.
 
-Numbers come from ``DESIGN.md`` ("Facts for the simulator's default camera")
+Numbers come from ``docs/design.md`` ("The simulator's default camera")
 and from Larouche et al. (2024): Section 3.7 for the dark frames (black level
 800.2 to 801.9 ADU from 1/4000 s to 2 s at ISO 100; 801.0 to 823.4 ADU between
 ISO 100 and 3200 at 1 s), Section 3.1 for the linearity sweeps and the

@@ -1,4 +1,4 @@
-"""Write a simulated calibration dataset (DATASET.md layout) and its truth folder."""
+"""Write a simulated calibration dataset (docs/dataset-format.md layout) and its truth folder."""
 
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ in 0.5 cm steps (5 frames each). The radiance reaching the lens in water is
 
     L_air * t_aw n_w^2 * exp(-(a + b) z)
 
-(n-squared law with the Fresnel transmission of the surface, DESIGN.md
+(n-squared law with the Fresnel transmission of the surface, docs/design.md
 "Immersion"), and the camera's in-water response is the in-air one divided
 by the immersion factor I of an external surface of index n_g, Eq. (10).
 The external-surface indices are the paper's retrieved values (Section 3.6:
@@ -28,7 +28,7 @@ from pipeline.radiometry.immersion import immersion_factor_flat_window, n_square
 from pipeline.radiometry.water import refractive_index_water
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
-#: nominal effective wavelengths of the bands (DESIGN.md spectral facts)
+#: nominal effective wavelengths of the bands (docs/design.md, the simulator's default camera)
 BAND_WAVELENGTH_NM = {"R": 600.0, "G": 540.0, "B": 480.0}
 WINDOW_INDEX = {"R": 1.60, "G": 1.63, "B": 1.58}
 ABSORPTION_PER_M = {"R": 0.2224, "G": 0.0409, "B": 0.0145}

@@ -1,6 +1,6 @@
 """The default camera's lenses: published geometry and roll-off, in air and in water.
 
-Facts from ``DESIGN.md`` ("Facts for the simulator's default camera") and
+Facts from ``docs/design.md`` ("The simulator's default camera") and
 Larouche et al. (2024):
 
 * geometry (Sections 2.3 and 3.2): OCamCalib fits
@@ -93,7 +93,7 @@ def default_model(lens: str = "close", medium: str = "air",
     return replace(model, meta={"lens": lens, "medium": medium})
 
 
-#: Close lens, air, red band (supplement Table S2 of Larouche et al. 2024, via DESIGN.md).
+#: Close lens, air, red band (supplement Table S2 of Larouche et al. 2024).
 PUBLISHED_RED_AIR_CLOSE_LENS = np.array([0.99726, -7.806e-5, 4.074e-9, -4.884e-13, 2.406e-17])
 
 #: largest departure of the stored in-water polynomial from the physics it is fitted to (0 to 76 deg)

@@ -1,7 +1,7 @@
 """A rectilinear smartphone-like RAW camera and its lab experiments (any RAW camera, issue 14).
 
 The camera, after the smartphone RAW radiometry of Burggraaff et al. (2022):
-one lens region covering the whole active area (DATASET.md ``projection:
+one lens region covering the whole active area (docs/dataset-format.md ``projection:
 rectilinear``: no image circle, no unlit corners), a 12-bit ADC, a GRBG colour
 filter array, optically black margins outside the DNG ActiveArea, and a gain
 table that is not proportional to ISO (Section 2.3 of the paper: the ISO

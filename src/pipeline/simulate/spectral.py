@@ -58,7 +58,7 @@ _FINE_NM = np.arange(380.0, 720.0 + 1e-9, 0.1)
 #: A1 = 1, stored as (A2, m1_nm, s1_nm, m2_nm, s2_nm).  Tuned (by least
 #: squares, then rounded) so that on the 400-700 nm, 10 nm grid the
 #: effective wavelength and half bandwidth are R 600.3 / 37.9, G 539.7 /
-#: 60.0, B 480.0 / 49.0 nm against DESIGN.md's 600 / 38, 540 / 60,
+#: 60.0, B 480.0 / 49.0 nm against the published 600 / 38, 540 / 60,
 #: 480 / 49; peaks at 596, 527 and 465 nm (published: near 600, 520, 460).
 DEFAULT_RESPONSE_PARAMETERS = {
     "R": (0.155, 594.0, 27.0, 639.0, 30.0),
