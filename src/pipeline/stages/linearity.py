@@ -7,9 +7,15 @@ Streams the exposure-time and gain sweeps once and reduces them to:
 * the mean dark-corrected DN in a small mask around the optical axis against
   exposure time and gain, with ordinary regressions and 95 % intervals
   (Fig. 3) and the nonlinearity residuals in percent;
-* the saturation level, found in the data (plateau of the mean or collapse of the variance,
-  radiometry.saturation: full well or ADC, whichever comes first); saturated settings are
-  left out of every fit and counted, and "not reached" is said when nothing saturated;
+* the saturation level, found in the data (plateau of the mean, stall or collapse of the
+  variance, radiometry.saturation: full well or ADC, whichever comes first); saturated settings
+  are left out of every fit and counted, and "not reached" is said when nothing saturated;
+* settings whose mean leaves the sweep's rise with exposure (taken under other light), found
+  before the saturation (:func:`sweep_settings`): each named in one line in the log and the
+  artefact (``n_other_light_settings``) and left out of every fit; when more than
+  ``linearity.non_monotonic_max_fraction`` of a sweep's settings do, the sweep has no one light
+  and the stage stops with one line (a few stray series are a lab's slip and the rest of the
+  sweep still measures the sensor; most of it is no sweep);
 * the photon-transfer curve: temporal variance against mean signal gives the
   conversion gain (DN per electron, and electrons per DN) and the read noise
   in electrons;
