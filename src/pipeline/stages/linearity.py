@@ -7,9 +7,15 @@ Streams the exposure-time and gain sweeps once and reduces them to:
 * the mean dark-corrected DN in a small mask around the optical axis against
   exposure time and gain, with ordinary regressions and 95 % intervals
   (Fig. 3) and the nonlinearity residuals in percent;
-* the saturation level, found in the data (plateau of the mean or collapse of the variance,
-  radiometry.saturation: full well or ADC, whichever comes first); saturated settings are
-  left out of every fit and counted, and "not reached" is said when nothing saturated;
+* the saturation level, found in the data (plateau of the mean, stall or collapse of the
+  variance, radiometry.saturation: full well or ADC, whichever comes first); saturated settings
+  are left out of every fit and counted, and "not reached" is said when nothing saturated;
+* settings whose mean leaves the sweep's rise with exposure (taken under other light), found
+  before the saturation (:func:`sweep_settings`): each named in one line in the log and the
+  artefact (``n_other_light_settings``) and left out of every fit; when more than
+  ``linearity.non_monotonic_max_fraction`` of a sweep's settings do, the sweep has no one light
+  and the stage stops with one line (a few stray series are a lab's slip and the rest of the
+  sweep still measures the sensor; most of it is no sweep);
 * the photon-transfer curve: temporal variance against mean signal gives the
   conversion gain (DN per electron, and electrons per DN) and the read noise
   in electrons;
@@ -29,6 +35,7 @@ attributes say which was used.
 
 from __future__ import annotations
 
+import logging
 from collections import defaultdict
 
 import numpy as np
@@ -48,12 +55,14 @@ from pipeline.observations import corner_table_dataset, effect_coefficients, fit
 from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
 from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso
 from pipeline.radiometry.response import linear_signal
-from pipeline.radiometry.saturation import saturated_settings, signal_fraction
+from pipeline.radiometry.saturation import (expected_between_neighbours, non_monotonic_settings, saturated_settings,
+                                            signal_fraction)
 from pipeline.radiometry.unlit_corners import (corner_mean_dn, corner_noise_dn, corner_pattern_dn, corner_pixels,
                                                corner_sites, frame_time_s, predicted_corner_dn)
 from pipeline.stages.flatfield import flatfield
 
 STAGE = "linearity"
+log = logging.getLogger("pipeline.linearity")
 #: linear-model effects this stage fits as columns (others correct the data)
 COLUMN_EFFECTS = ("shutter_offset", "nonlinearity", "iso_gain")
 
@@ -276,6 +285,83 @@ def _stop_on_unlit_frames(fr: pd.DataFrame, reduced: dict, dark: dict[str, xr.Da
                                        "or the lens capped? Retake it, or list it as kind dark")
 
 
+def sweep_settings(fr: pd.DataFrame, cfg: dict) -> pd.DataFrame:
+    """One row per (lens, band, sweep, setting) with ``other_light`` (the mean leaves the sweep's rise with
+    exposure: :func:`~pipeline.radiometry.saturation.non_monotonic_settings`, among the settings not clipped
+    at the white level) and ``saturated_in_data`` (plateau, variance stall or collapse among the others).
+
+    A setting mean's standard error is the larger of its frames' scatter over sqrt(frames) (flicker, drift)
+    and the pixel noise over sqrt(mask pixels x frames); a setting variance's relative standard error is
+    sqrt(2 / (N (n - 1))) over the photon-transfer region's N pixels and n frames (the variance the
+    saturation test and the photon-transfer fit read).
+    """
+    per = fr.groupby(["lens", "band", "sweep", "setting"]).agg(
+        iso=("iso", "first"), exposure_s=("exposure_s", "first"), value_dn=("value_dn", "mean"),
+        value_sd_dn=("value_dn", "std"), n_rows=("value_dn", "size"), pixel_var_dn2=("pixel_var_dn2", "first"),
+        ptc_var_dn2=("ptc_var_dn2", "first"), n_mask=("n_mask", "first"), n_ptc=("n_ptc", "first"),
+        n_frames=("n_frames", "first"), clipped=("saturated", "any")).reset_index()
+    pixel_se = np.sqrt(np.maximum(per["pixel_var_dn2"], 0.0) / (per["n_mask"] * per["n_frames"]))
+    frame_se = (per["value_sd_dn"] / np.sqrt(per["n_rows"])).fillna(0.0)
+    per["value_se_dn"] = np.maximum(pixel_se, frame_se)
+    frames_less_one = (per["n_frames"] - 1).to_numpy(float)
+    with np.errstate(divide="ignore"):
+        per["variance_rel_se"] = np.where(frames_less_one > 0,
+                                          np.sqrt(2.0 / (per["n_ptc"] * np.maximum(frames_less_one, 1.0))), np.inf)
+    per["saturated_in_data"] = False
+    per["other_light"] = False
+    per["expected_dn"] = np.nan
+    for _, g in per.groupby(["lens", "band", "sweep"]):
+        x = exposure_gain_s(g["exposure_s"], g["iso"]).to_numpy(float)
+        clipped = g["clipped"].to_numpy(bool)
+        stray = np.zeros(len(g), dtype=bool)
+        stray[~clipped] = non_monotonic_settings(x[~clipped], g["value_dn"].to_numpy()[~clipped],
+                                                 g["value_se_dn"].to_numpy()[~clipped], cfg["saturation_noise_sigma"])
+        rest = ~stray
+        saturated = np.zeros(len(g), dtype=bool)
+        saturated[rest] = saturated_settings(
+            x[rest], g["value_dn"].to_numpy()[rest], g["ptc_var_dn2"].to_numpy()[rest],
+            cfg["saturation_plateau_fraction"], cfg["saturation_variance_drop"], clipped=clipped[rest],
+            stall_fraction=cfg["saturation_variance_stall_fraction"],
+            variance_rel_se=g["variance_rel_se"].to_numpy()[rest], noise_sigma=cfg["saturation_noise_sigma"])
+        per.loc[g.index, "saturated_in_data"] = saturated
+        per.loc[g.index, "other_light"] = stray
+        per.loc[g.index[stray], "expected_dn"] = [expected_between_neighbours(x, g["value_dn"], i, stray | saturated)
+                                                  for i in np.flatnonzero(stray)]
+    return per
+
+
+def other_light_lines(stray: pd.DataFrame, fr: pd.DataFrame, paths: list[str]) -> list[tuple[str, str]]:
+    """One (lens, line) per setting whose mean leaves its sweep's rise: its frames, its settings, and the
+    signal its neighbours give against the one measured (the band that departs most)."""
+    out = []
+    for (lens, sweep, setting), rows in stray.groupby(["lens", "sweep", "setting"], sort=True):
+        worst = rows.loc[(rows["value_dn"] - rows["expected_dn"]).abs().idxmax()]
+        files = sorted({paths[int(i)] for i in fr.loc[(fr["lens"] == lens) & (fr["sweep"] == sweep)
+                                                      & (fr["setting"] == setting), "file_index"]})
+        named = files[0] + (f" and {len(files) - 1} more" if len(files) > 1 else "")
+        out.append((lens, f"linearity {sweep} sweep, lens {lens}: setting ISO {worst['iso']:g}, "
+                          f"{worst['exposure_s']:g} s ({named}) leaves the sweep's rise with exposure: its "
+                          f"neighbours give {worst['expected_dn']:.4g} DN, it measured {worst['value_dn']:.4g} DN "
+                          f"(band {worst['band']}, {len(rows)} band(s) beyond linearity.saturation_noise_sigma); "
+                          "taken under other light? Left out of the fits"))
+    return out
+
+
+def _stop_on_stray_sweeps(per: pd.DataFrame, fr: pd.DataFrame, notes: list[tuple[str, str]],
+                          max_fraction: float) -> None:
+    """Stop with one line when more than ``max_fraction`` of a sweep's settings leave its rise: the
+    sweep has no light of its own to hold the others to (a few stray settings are named and left out)."""
+    for (lens, sweep), rows in per.groupby(["lens", "sweep"]):
+        n_settings = rows["setting"].nunique()
+        stray = rows.loc[rows["other_light"], "setting"].nunique()
+        if stray > max_fraction * n_settings:
+            first = next(line for lens_, line in notes if lens_ == lens and f" {sweep} sweep" in line)
+            raise InputError(None, f"linearity {sweep} sweep, lens {lens}: {stray} of {n_settings} settings leave "
+                                   f"the sweep's rise with exposure, more than linearity.non_monotonic_max_fraction "
+                                   f"= {max_fraction:g}, so the sweep has no one light to fit; the first: "
+                                   f"{first.split(': ', 1)[1].split('; taken')[0]}")
+
+
 def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
                       effects: list[str]) -> dict[str, xr.Dataset]:
     moments = reduced["moments"]
@@ -329,7 +415,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         in_mask = reduced["ptc"][lens][band][1]
         v = mom.variance()
         var_rows.append({"lens": lens, "band": band, "sweep": sweep, "iso": key[0], "exposure_s": key[1],
-                         "n_frames": mom.n, "n_mask": int(in_mask.sum()),
+                         "n_frames": mom.n, "n_mask": int(in_mask.sum()), "n_ptc": int(v.size),
                          "pixel_var_dn2": float(v[in_mask].mean()),
                          "ptc_var_dn2": float(v.mean()), "ptc_mean_dn": float(mom.mean().mean())})
     var = pd.DataFrame(var_rows)
@@ -357,23 +443,25 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     fr["gain"] = gain_from_iso(fr["iso"])
     fr["group"] = fr["lens"] + "/" + fr["band"] + "/" + fr["sweep"] + "/" + fr["setting"].astype(str)
     fr["x_level"] = 1.0
-    # ----- saturation from the data: the plateau of the mean or the collapse of the variance,
-    # whichever comes first (full well or ADC); a setting above a saturated one is saturated too
+    # ----- settings taken under other light (the mean leaves the sweep's rise), then saturation from the data:
+    # the plateau of the mean, the stall or collapse of the variance (full well or ADC), whichever comes first;
+    # a setting above a saturated one is saturated too
     cfg = config[STAGE]
     fr["clipped_at_white_level"] = fr["saturated"]
-    per = fr.groupby(["lens", "band", "sweep", "setting"]).agg(
-        iso=("iso", "first"), exposure_s=("exposure_s", "first"), value_dn=("value_dn", "mean"),
-        pixel_var_dn2=("pixel_var_dn2", "first"), clipped=("saturated", "any")).reset_index()
-    per["saturated_in_data"] = False
-    for _, g in per.groupby(["lens", "band", "sweep"]):
-        per.loc[g.index, "saturated_in_data"] = saturated_settings(
-            exposure_gain_s(g["exposure_s"], g["iso"]), g["value_dn"], g["pixel_var_dn2"],
-            cfg["saturation_plateau_fraction"], cfg["saturation_variance_drop"], clipped=g["clipped"])
-    fr = fr.merge(per[["lens", "band", "sweep", "setting", "saturated_in_data"]],
+    per = sweep_settings(fr, cfg)
+    stray = per[per["other_light"]]
+    fr = fr.merge(per[["lens", "band", "sweep", "setting", "saturated_in_data", "other_light"]],
                   on=["lens", "band", "sweep", "setting"])
+    # a setting under other light in one band is left out in all (the light is the setting's)
+    fr["other_light"] = fr.groupby(["lens", "sweep", "setting"])["other_light"].transform("any")
+    notes = other_light_lines(stray, fr, reduced["paths"])
+    _stop_on_stray_sweeps(per, fr, notes, cfg["non_monotonic_max_fraction"])
+    for _, line in notes:
+        log.warning(line)
+    reduced["other_light"] = notes
     fr["saturated"] = fr["saturated"] | fr["saturated_in_data"]
     # saturated frames carry no information on drift or noise: left out of the frame-level fit
-    ok = ~fr["saturated"].to_numpy()
+    ok = ~(fr["saturated"] | fr["other_light"]).to_numpy()
     ffit = wls(fr["value_dn"].to_numpy()[ok], fr["sigma_dn"].to_numpy()[ok], base_design(fr[ok])[0])
     fr["pred_dn"] = np.nan
     fr["z"] = np.nan
@@ -387,7 +475,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         value_dn=("value_dn", "mean"), frame_sigma=("sigma_dn", "mean"), n_frames=("n_frames", "first"),
         pixel_var_dn2=("pixel_var_dn2", "first"), ptc_var_dn2=("ptc_var_dn2", "first"),
         ptc_mean_dn=("ptc_mean_dn", "first"), offset_var_dn2=("offset_var_dn2", "first"), saturated=("saturated", "any"),
-        clipped_at_white_level=("clipped_at_white_level", "any"),
+        clipped_at_white_level=("clipped_at_white_level", "any"), other_light=("other_light", "any"),
         dark_mask_dn=("dark_mask_dn", "mean"), temperature_c=("temperature_c", "mean"),
         white_level_dn=("white_level_dn", "min")).reset_index()
     st["gain"] = gain_from_iso(st["iso"])
@@ -395,7 +483,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     # unlit corners, so no drift is left in the setting mean; without it the drift is
     # unmodelled and not part of the expected noise
     st["sigma_dn"] = st["frame_sigma"] / np.sqrt(st["n_frames"])
-    st["used"] = ~st["saturated"]
+    st["used"] = ~(st["saturated"] | st["other_light"])
     st["group"] = st["lens"] + "/" + st["band"] + "/" + st["sweep"]
     st["x_rate"] = exposure_gain_s(st["exposure_s"], st["iso"])
     saturation = saturation_levels(st, reduced)
@@ -541,6 +629,7 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
     st_l = st[st["lens"] == lens].reset_index(drop=True)
     fr_l = fr[fr["lens"] == lens].reset_index(drop=True)
     cx, cy, radius, r_mask = reduced["geometry"][lens]
+    other_light = [line for lens_, line in reduced.get("other_light", []) if lens_ == lens]
     sweeps = ("exposure", "gain")
     shape = reduced["masks"][lens]["G"].shape
     rmap = np.full((len(sweeps), len(BANDS)) + shape, np.nan, dtype=np.float32)
@@ -604,6 +693,11 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
                                        "units": "DN"}),
         "n_saturated_settings": ((), saturation["n_saturated_settings"],
                                  {"long_name": "settings (lens, band, sweep) left out of every fit as saturated", "units": "1"}),
+        "n_other_light_settings": ((), len(other_light),
+                                   {"long_name": "settings whose mean signal leaves the sweep's rise with exposure "
+                                                 "(taken under other light), named in the attribute settings and "
+                                                 "left out of every fit", "units": "1",
+                                    "settings": " | ".join(other_light)}),
         "conversion_gain_dn_per_e": ((), ptc.get("conversion_gain_dn_per_e", nan2)[0],
                                      {"long_name": "photon-transfer conversion gain at the exposure-sweep ISO", "units": "DN/electron"}),
         "conversion_gain_dn_per_e_sigma": ((), ptc.get("conversion_gain_dn_per_e", nan2)[1], {"units": "DN/electron"}),
@@ -633,9 +727,11 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
                                                           {"long_name": "conversion gain at each ISO of the gain sweep", "units": "DN/electron"})
         data["ptc_iso"] = ("ptc_iso", np.array(isos), {"units": "1"})
     ds = xr.Dataset(data, coords={"sweep": list(sweeps), "band": list(BANDS)})
-    st_store = st_l.drop(columns=[c for c in ("used",) if c in st_l]).assign(used=st_l["used"].astype(int),
-                                                                           saturated=st_l["saturated"].astype(int))
-    fr_store = fr_l.assign(saturated=fr_l["saturated"].astype(int), used=(~fr_l["saturated"]).astype(int))
+    st_store = st_l.drop(columns=[c for c in ("used",) if c in st_l]).assign(
+        used=st_l["used"].astype(int), saturated=st_l["saturated"].astype(int),
+        other_light=st_l["other_light"].astype(int))
+    fr_store = fr_l.assign(saturated=fr_l["saturated"].astype(int), other_light=fr_l["other_light"].astype(int),
+                           used=(~(fr_l["saturated"] | fr_l["other_light"])).astype(int))
     ds = ds.merge(table_to_dataset(st_store, "obs_setting")).merge(table_to_dataset(fr_store, "obs_frame"))
     if "conversion_gain_dn_per_e" not in ptc:
         # one exposure time (a gain sweep only, or no exposure sweep at all): no photon-transfer curve
