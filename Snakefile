@@ -22,7 +22,7 @@ configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 report: "workflow/report/workflow.rst"
 
 
-# config/schema.yaml (filling its defaults), model.plugins and model.effects: one line and no job on a mistake
+# src/pipeline/schema.yaml (filling its defaults), model.plugins and model.effects: one line and no job on a mistake
 try:
     check_config(config, os.path.join(workflow.basedir, "config", "config.yaml"))
 except InputError as exc:

@@ -91,7 +91,7 @@ def _within(value, low, high, target, n_sigma=N_SIGMA):
 def test_clock_offset_candidate_interval_covers_the_offset_the_stage_then_fits(hour, config, offset_s):
     base, clean, bundle = hour
     search_s = float(config["field"]["clock_offset_search_s"])
-    # the default search range (config/schema.yaml, 300 s) reaches the largest offset with room to spare
+    # the default search range (src/pipeline/schema.yaml, 300 s) reaches the largest offset with room to spare
     assert search_s > max(OFFSETS_S) + 2.0 * float(config["field"]["reference_window_s"])
     root = _reference_behind(clean, base / f"behind-{offset_s:g}", offset_s)
     missing = run_stage("field", root, _config(config), {"close": base / f"missing-{offset_s:g}.nc"},

@@ -102,7 +102,7 @@ Both bundles must be of one camera model and lens layout: the same camera at
 two dates (drift) or two units of the model (unit-to-unit). The difference's
 sigma combines both budgets; a term that comes from a lab input both bundles
 share (same sha256: the reference reading, the source spectrum, the frames) is
-common and cancels. Thresholds: the compare section of config/schema.yaml.
+common and cancels. Thresholds: the compare section of src/pipeline/schema.yaml.
 See docs/compare.md.
 
 examples:

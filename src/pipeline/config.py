@@ -1,9 +1,10 @@
-"""Configuration: the JSON schema in ``config/schema.yaml`` validates and fills defaults."""
+"""Configuration: the JSON schema ``schema.yaml`` of this package validates and fills defaults."""
 
 from __future__ import annotations
 
 import copy
 from functools import lru_cache
+from importlib.resources import files
 from pathlib import Path
 
 import yaml
@@ -11,9 +12,25 @@ from jsonschema import Draft202012Validator, validators
 
 from pipeline.errors import InputError
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-SCHEMA_PATH = REPO_ROOT / "config" / "schema.yaml"
-CONFIG_PATH = REPO_ROOT / "config" / "config.yaml"
+#: the configuration's JSON schema: package data (src/pipeline/schema.yaml), so that an installed package
+#: has it too; a package installed from a wheel lies in files on disk, for which importlib.resources gives
+#: a pathlib.Path (its modification time keys the cached defaults, its path names the schema in errors)
+SCHEMA_PATH: Path = files(__package__).joinpath("schema.yaml")
+
+
+def _source_checkout() -> Path | None:
+    """The source checkout this package is imported from (its ``src/pipeline``), None for an installed package."""
+    package = Path(__file__).resolve().parent
+    root = package.parents[1]
+    return root if package.parent.name == "src" and (root / "pyproject.toml").is_file() else None
+
+
+REPO_ROOT = _source_checkout()
+#: the workflow's configuration, which the commands that read settings (compare, store, publish, the
+#: report) use too; None for an installed package, which has no checkout: the schema's defaults then
+CONFIG_PATH = REPO_ROOT / "config" / "config.yaml" if REPO_ROOT is not None else None
+#: the configuration of no dataset (the one key the schema requires): what the schema's defaults fill
+_NO_DATASET = {"dataset": "unused"}
 
 
 def _with_defaults(cls):
@@ -137,9 +154,12 @@ def validate_config(config: dict, schema_path: str | Path = SCHEMA_PATH) -> dict
     return config
 
 
-def load_config(path: str | Path = CONFIG_PATH, overrides: dict | None = None) -> dict:
-    """Read a config file, apply ``overrides`` (nested dicts merge), validate, fill defaults."""
-    config = _read_yaml(path) or {}
+def load_config(path: str | Path | None = CONFIG_PATH, overrides: dict | None = None) -> dict:
+    """Read a config file, apply ``overrides`` (nested dicts merge), validate, fill defaults.
+
+    ``path`` None (the default of an installed package, which has no config/config.yaml): the schema's
+    defaults alone, with the overrides."""
+    config = (_read_yaml(path) or {}) if path is not None else dict(_NO_DATASET)
     for key, value in (overrides or {}).items():
         if isinstance(value, dict) and isinstance(config.get(key), dict):
             config[key] = {**config[key], **value}
@@ -156,7 +176,7 @@ def defaults() -> dict:
 @lru_cache(maxsize=1)
 def _defaults(schema_mtime_ns: int) -> dict:
     """The validated defaults, once per version of the schema file (its modification time)."""
-    return validate_config({"dataset": "unused"})
+    return validate_config(dict(_NO_DATASET))
 
 
 #: config sections each rule depends on (its params rerun trigger); ``performance`` (how many frames are

@@ -4,7 +4,7 @@ A fit can be precise and still impossible: a lab's mistake (a dark level taken a
 normalised to the wrong spot, an immersion factor from a tank whose water height was misread) leaves a value
 that fits its own data to the noise and that no lens or sensor can have. Each check here takes a fitted
 value, its stated standard uncertainty and a range from the ``plausibility`` section of
-``config/schema.yaml`` (where each range has its default and its reason), and says whether the value lies
+``src/pipeline/schema.yaml`` (where each range has its default and its reason), and says whether the value lies
 outside the range by more than ``plausibility.margin_sigma`` of that uncertainty:
 
 * ``window_index``: the index n_g of the lens's outer surface implied by the fitted immersion factor,

@@ -48,7 +48,7 @@ def main() -> None:
                          experiments=tuple(DATASET["experiments"]), progress=False)
         _, bundle, _ = calibrate(root, load_config(), Path(tmp) / "results")
         values = key_results(bundle)
-    doc = {"dataset": DATASET, "config": "the defaults (config/config.yaml, config/schema.yaml)",
+    doc = {"dataset": DATASET, "config": "the defaults (config/config.yaml, src/pipeline/schema.yaml)",
            "tolerance": {"relative": RELATIVE_TOLERANCE, "sigma_fraction": SIGMA_FRACTION, "note": TOLERANCE_NOTE}, "values": values}
     OUT.write_text(json.dumps(doc, indent=1) + "\n")
     print(f"wrote {OUT}: {len(values)} values")

@@ -42,7 +42,7 @@ def plausibility_blocks(inputs) -> list:
                         "reported as fitted.").format(len(bad), ", ".join(sorted(set(bad["status"].astype(str))))),
                  "callout"),
             Table(["lens", "band / where", "quantity", "verdict", "value", "range", "beyond (σ)", "derived from"],
-                  rows, "Fitted quantities outside their physical range (config/schema.yaml, plausibility: a value "
+                  rows, "Fitted quantities outside their physical range (src/pipeline/schema.yaml, plausibility: a value "
                         "beyond the range by more than plausibility.margin_sigma of its stated standard "
                         "uncertainty). Why each range: " + " ".join(f"{key}: {why}" for key, why in reasons.items())
                   + f" Checked: {checked}.", left=4, marked=[True] * len(rows))]
