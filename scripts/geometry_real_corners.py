@@ -49,7 +49,7 @@ def all_corner_mean_error(res, authors):
 def main() -> None:
     root = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
     cfg = load_config()["geometry"]
-    options = dict(degree=cfg["polynomial_degree"], stretch=cfg["stretch"], min_frames=cfg["min_frames"],
+    options = dict(degree=cfg["polynomial_degree"], stretch="auto", min_frames=cfg["min_frames"],
                    outlier_factor=cfg["frame_outlier_factor"], point_outlier_factor=cfg["corner_outlier_factor"],
                    covariance=cfg["covariance"], stretch_significance=cfg["stretch_significance"],
                    jackknife_refit_max_boards=cfg["jackknife_refit_max_boards"])

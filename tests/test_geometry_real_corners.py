@@ -63,9 +63,10 @@ def load_authors(lens: str) -> dict:
 
 
 def fit_options() -> dict:
-    """The calibrate options the geometry stage passes, from the configuration's defaults."""
+    """The calibrate options the geometry stage passes, from the configuration's defaults, with the stretch chosen
+    by evidence (geometry.stretch auto; the default stays symmetric, see src/pipeline/schema.yaml)."""
     cfg = load_config()["geometry"]
-    return dict(degree=cfg["polynomial_degree"], stretch=cfg["stretch"], min_frames=cfg["min_frames"],
+    return dict(degree=cfg["polynomial_degree"], stretch="auto", min_frames=cfg["min_frames"],
                 outlier_factor=cfg["frame_outlier_factor"], point_outlier_factor=cfg["corner_outlier_factor"],
                 covariance=cfg["covariance"], stretch_significance=cfg["stretch_significance"],
                 jackknife_refit_max_boards=cfg["jackknife_refit_max_boards"])
