@@ -1,6 +1,6 @@
 """The EMVA1288 Reference Set 001 through the dark and linearity stages: its figures against the reference, as CSV.
 
-    PYTHONPATH=src python scripts/emva1288_figures.py ../shared/realdata/emva1288-set001/EMVA1288_Data.txt \\
+    PYTHONPATH=src python scripts/emva1288_figures.py $PIPELINE_REALDATA/emva1288-set001/EMVA1288_Data.txt \\
         docs/figures-data/emva1288_set001.csv
 
 Lays the set out in a temporary folder (pipeline.scaffold.init_emva1288_dataset), runs the dark stage with the

@@ -2,7 +2,7 @@
 
     PYTHONPATH=src python scripts/geometry_real_corners.py [REALDATA] > docs/figures-data/geometry_real_corners.csv
 
-REALDATA holds ``insta360-larouche/`` (default ``../shared/realdata`` beside the repository). Per lens: the
+REALDATA holds ``insta360-larouche/`` (default: ``$PIPELINE_REALDATA``). Per lens: the
 fit with the configuration's defaults (:func:`pipeline.geometry.calibrate.calibrate`, as the geometry stage
 calls it) against the authors' solution, the stretch test, the stated sigma of the centre against a full
 leave-one-board-out refit (the whole fit redone from the corners without each board, centre grid search
@@ -16,6 +16,7 @@ import csv
 import datetime
 import platform
 import subprocess
+import os
 import sys
 import time
 from pathlib import Path
@@ -47,7 +48,9 @@ def all_corner_mean_error(res, authors):
 
 
 def main() -> None:
-    root = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[1].parent / "shared" / "realdata"
+    if len(sys.argv) < 2 and not os.environ.get("PIPELINE_REALDATA"):
+        sys.exit("usage: geometry_real_corners.py REALDATA (or set PIPELINE_REALDATA): the folder holding insta360-larouche/")
+    root = Path(sys.argv[1] if len(sys.argv) > 1 else os.environ["PIPELINE_REALDATA"])
     cfg = load_config()["geometry"]
     options = dict(degree=cfg["polynomial_degree"], stretch="auto", min_frames=cfg["min_frames"],
                    outlier_factor=cfg["frame_outlier_factor"], point_outlier_factor=cfg["corner_outlier_factor"],

@@ -1,7 +1,7 @@
 """The repository is self-contained: no tracked file sends a reader to notes outside it.
 
-Only the real data beside the repository (``../shared/realdata``), which some tests, scripts and docs read and skip
-without, may be named; the dataset format and the design are in docs/.
+Only the tests may name the real data's default folder beside the repository (they read it and skip
+without); docs and scripts name the folder by ``$PIPELINE_REALDATA``. The dataset format and the design are in docs/.
 """
 
 from __future__ import annotations
@@ -16,6 +16,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 #: what a tracked file must not mention: the team's notes, or anything beside the repository but its real data
 FORBIDDEN = re.compile(r"DESIGN\.md|DATASET\.md|\.\./shared/(?!realdata\b)|/work/shared\b")
+#: outside tests/ not even the real data's default folder: docs and scripts name it by $PIPELINE_REALDATA
+OUTSIDE = re.compile(r"\.\./shared\b")
 
 
 def _tracked() -> list[Path]:
@@ -31,12 +33,13 @@ def test_no_tracked_file_points_outside_the_repository():
     for path in _tracked():
         if path.resolve() == me or not path.is_file():
             continue
+        in_tests = path.relative_to(ROOT).parts[0] == "tests"
         try:
             text = path.read_text(encoding="utf-8")
         except (UnicodeDecodeError, OSError):
             continue
         for number, line in enumerate(text.splitlines(), start=1):
-            if FORBIDDEN.search(line):
+            if FORBIDDEN.search(line) or (not in_tests and OUTSIDE.search(line)):
                 hits.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()[:120]}")
     assert not hits, "cite docs/dataset-format.md or docs/design.md instead:\n" + "\n".join(hits)
 
