@@ -4,7 +4,7 @@ Every case plants one mistake in a copy of the tiny simulated dataset (or the co
 what the user sees: ``python -m pipeline validate`` exits 1 and names the file and the problem,
 the workflow's start-up check (the code the Snakefile runs before any job) stops with one line
 naming the same file and problem, and nothing in the dataset is written. The cases already
-tested elsewhere are listed in the README's "Bad input" table with their tests.
+tested elsewhere are listed in the the "Bad input" section of docs/bad-input.md table with their tests.
 """
 
 from __future__ import annotations

@@ -64,7 +64,7 @@ def test_the_bootstrap_reference_is_nominal_under_the_null(config):
     the plug-in bootstrap gave 90 and 27), half the tables each: the count of the reference's own p-value below
     0.05 (drawn on every table, whatever the rows' test) lies within the binomial 99.9 % interval of
     N_NULL_TABLES tables at 0.05, [0, 15] for 120. Measured: 7 (F(k, G - 1) on the same tables 7); with draws
-    of 200 the reference's guard of two standard errors is wider than the diagnostics' 400 give (README)."""
+    of 200 the reference's guard of two standard errors is wider than the diagnostics' 400 give (docs/effects-and-diagnostics.md)."""
     cfg = config["diagnostics"]
     rng = np.random.default_rng(2026)
     p_boot, p_f = [], []
@@ -124,7 +124,7 @@ def test_the_stated_monte_carlo_error_of_the_p_value_is_its_spread_over_seeds(co
     seeds. One table with 2 DN block offsets (the first of seed 5 whose block F exceeds 4.5: F 4.8 on k = 5,
     p about 5e-3 against the bootstrap), 12 seeds: measured, spread 0.29 in log10 p, jackknife rms 0.22,
     median 0.20 (on six such tables the rms is 0.84 to 0.94 of the spread, the median about 0.75: the rare
-    large draws that move nu are seldom in a batch, so the jackknife is on the low side, README). Bounds:
+    large draws that move nu are seldom in a batch, so the jackknife is on the low side, docs/effects-and-diagnostics.md). Bounds:
     the rms of the 12 stated errors within 0.5 to 1.5 of the spread over the 12 seeds, whose own relative
     error with 11 dof is about 21 %: a factor of two either way fails, as does an error that ignored the
     draws (zero) or counted each of them as a table."""

@@ -1,6 +1,6 @@
 """One function per equation of Larouche et al. (2024), each against a value worked by hand or printed in the paper.
 
-The README's table "Equations and the functions that implement them" lists
+The table "Equations and the functions that implement them" of docs/equations.md lists
 the same functions; the stages call these and keep no second copy.
 """
 

@@ -145,7 +145,7 @@ def test_theta_uncertainty_is_honest(medium_dataset, fitted, lens):
     chi-square of the residuals does not see. The board-clustered covariance (68.7 for 48,
     p = 0.03) is close to honest; what it still misses (about 1.3 times in variance, from a
     20-board estimate that is itself noisy, and from errors common to every board, such as
-    the corner detector's bias on distorted boards) the README states.
+    the corner detector's bias on distorted boards) docs/stages.md states.
     """
     truth = _truth(medium_dataset)
     art = fitted(lens)

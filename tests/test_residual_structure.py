@@ -217,7 +217,7 @@ def test_block_residual_test_nominal_with_correlated_rows_and_finds_structure_in
 
 def test_covariate_with_one_value_per_block_is_scanned_over_the_block_means():
     """The clean dark setting tables with the lab noise named their logged temperature (one value per
-    setting) at p 8.7e-17 over the rows (README, "Detection benchmark"): the rows of a setting share its
+    setting) at p 8.7e-17 over the rows (docs/effects-and-diagnostics.md, "Detection benchmark"): the rows of a setting share its
     black-level jitter. Here 13 blocks of 6 rows correlated 0.8, the covariate a warm-up ramp (22 to 29
     degC, one value per block) and the band varying within blocks. Null (400 tables): the scan's p below
     0.01 within the binomial 0.999 quantile at the rate 0.02 (the smaller of its line and 6-bin tests,

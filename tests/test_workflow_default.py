@@ -55,7 +55,7 @@ def test_the_default_runs_geometry_is_within_a_band_pixel_of_the_truth(default_r
 HONESTY_FALSE_ALARM = 0.002
 #: field angles (degree) and azimuths of the points compared per air fit: near the axis to inside the
 #: boards' reach (the air boards' centres reach 55 deg; the water boards' 35, where 55-70 deg is extrapolation
-#: that a first-order covariance does not state, README "Uncertainty of the field angle")
+#: that a first-order covariance does not state, docs/stages.md, "Uncertainty of the field angle")
 HONESTY_THETA_DEG, HONESTY_PHI_DEG = (5.0, 30.0, 55.0, 70.0), (0.0, 90.0, 180.0, 270.0)
 
 

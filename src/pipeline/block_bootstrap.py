@@ -15,7 +15,7 @@ the reference is too liberal where they are underestimated by chance (large bloc
 :func:`block_bootstrap_reference` therefore also carries the estimate's own uncertainty into the draws: a first
 set of draws at the estimate gives each draw's estimated variances, and a second set is drawn each at one of
 those (``propagated``). :func:`block_test_p_value` reads the p-value off the reference that
-``diagnostics.block_reference`` names (README, "Closure and diagnostics", for the false-alarm rates and the power
+``diagnostics.block_reference`` names (docs/effects-and-diagnostics.md, "Closure and diagnostics", for the false-alarm rates and the power
 of each, measured by ``benchmarks/bench_block_reference.py``).
 
 Deterministic: every draw comes from ``numpy.random.default_rng(seed)``.
@@ -268,7 +268,7 @@ def table_seed(parts: list[BlockTestPart], seed: int) -> int:
 
 
 #: values of ``diagnostics.block_reference``: F(k, G - 1); the bootstrap with the variances' uncertainty carried
-#: into the draws (the default, README "Closure and diagnostics"); the bootstrap at the variances' estimate
+#: into the draws (the default, docs/effects-and-diagnostics.md, "Closure and diagnostics"); the bootstrap at the variances' estimate
 BLOCK_REFERENCES = ("f", "bootstrap", "plug_in")
 
 

@@ -13,7 +13,7 @@ import sys
 from pipeline import __version__
 from pipeline.errors import InputError
 
-#: exit codes (documented in --help and the README)
+#: exit codes (documented in --help and docs/running-your-data.md)
 EXIT_OK = 0
 EXIT_BAD_INPUT = 1       # the dataset has problems, a file cannot be read, OUT already exists
 EXIT_USAGE = 2           # unknown command or option, missing argument (argparse's own code)

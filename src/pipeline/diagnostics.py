@@ -89,7 +89,7 @@ each tested parameter is fixed by one block and the relative block noise is abou
 the gain ladders the bootstrap finds; the bootstrap at the variances' estimate (plug-in) is too liberal with
 large offsets, underestimated by chance; carrying the estimate's uncertainty into the draws keeps the false
 alarms within their binomial interval in the three null cases measured (``benchmarks/bench_block_reference.py``,
-README "Closure and diagnostics", for the counts).
+docs/effects-and-diagnostics.md, "Closure and diagnostics", for the counts).
 
 Then every table (experiment and level) has its residual chi-square tested against its degrees of
 freedom, after the accepted candidates (:func:`residual_tests`, :mod:`pipeline.residual_structure`):
@@ -572,7 +572,7 @@ def residual_tests(observations: list[Observations], model_effects: list[str], r
     return pd.DataFrame(rows, columns=list(RESIDUAL_TEST_COLUMNS))
 
 
-#: columns of ``residual_tests.csv``, one row per experiment and level (README, "Diagnostics")
+#: columns of ``residual_tests.csv``, one row per experiment and level (docs/effects-and-diagnostics.md, "Diagnostics")
 RESIDUAL_TEST_COLUMNS = ("experiment", "level", "n_obs", "chi2", "dof", "rms_z", "p_chi2", "p_block", "n_blocks",
                          "block_key", "p_value", "test_level", "significant", "shared_excess", "accounted_by",
                          "chi2_model", "p_value_model",

@@ -34,7 +34,7 @@ axis where the roll-off falls across the port, more so where the threshold cuts 
 pixels on the bright side and not on the dim one (up to half a degree for the tiny simulated camera's
 6 degree port at 60 to 80 degrees, some hundredths at the small scale's 1.8 degree port), which the stated
 centroid noise does not hold as a bias: on the tiny camera the table's chi2 stays some 15 % above its dof
-with a centroid noise that holds the errors about their smooth trend (README, "Closure and diagnostics").
+with a centroid noise that holds the errors about their smooth trend (docs/effects-and-diagnostics.md, "Closure and diagnostics").
 Nothing here reads a simulator's truth: only the geometry and roll-off artefacts.
 """
 

@@ -43,7 +43,7 @@ test per table does not.
 Where the residuals sit: the covariate whose grouping of z is most significant (F test of group means;
 numeric covariates also as a straight line and in quantile bins; the signal level ``signal_fraction``, the
 predicted signal above black over the raw range between the black level and the white level, on a log scale,
-where a response whose form the model lacks bends: measured in README "Detection benchmark"; a covariate with
+where a response whose form the model lacks bends: measured in docs/effects-and-diagnostics.md, "Detection benchmark"; a covariate with
 one value per block of rows sharing a frame or setting on the blocks' mean z, :func:`block_means`; one that
 varies inside the blocks with their shared noise as a random effect, :func:`block_gls_covariate_test`), and, where
 the table has the pixel
@@ -211,7 +211,7 @@ def block_means(z: np.ndarray, values: pd.Series, blocks: np.ndarray | None) -> 
     The rows of a block share the block's noise (one raw frame's or one setting's black-level jitter and
     flicker, :func:`pipeline.diagnostics.blocks_of`): a covariate with one value per block, tested over the
     rows, would find the shared noise of the blocks as a difference between its groups, against a
-    within-group scatter that leaves it out. Measured on the clean tiny datasets with the lab noise (README,
+    within-group scatter that leaves it out. Measured on the clean tiny datasets with the lab noise (docs/effects-and-diagnostics.md,
     "Detection benchmark"): the logged temperature of the dark setting table, one value per setting, at p
     8.7e-17 over its 78 rows (seed 311), at 0.058 over its 13 setting means.
     A covariate that varies within blocks (the lens, the band, the signal level) is left to

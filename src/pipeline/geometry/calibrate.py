@@ -409,7 +409,7 @@ def jackknife_covariance(J: np.ndarray, residuals: np.ndarray, n_intrinsic: int,
     that carries much of the information about a parameter (a rim board, the only one near some azimuth)
     moves the fit far more when it is left out than its score under B^-1 says (its leverage; the sandwich is
     then low, as the CR3 correction of the sandwich also states). Measured on the tiny scale's 12 boards
-    (README, "Uncertainty of the field angle"): the fitted centres' chi-square against the simulator's truth
+    (docs/stages.md, "Uncertainty of the field angle"): the fitted centres' chi-square against the simulator's truth
     42.8 for 24 (sandwich) against 24.2 (this one, refitted in full; the one-step form here 23.9).
 
     ``groups`` labels the residual rows, ``nuisance_group`` the columns beyond ``n_intrinsic`` (the board

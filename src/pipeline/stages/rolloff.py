@@ -30,7 +30,7 @@ Streams the roll-off frames once (dark frames first, then the port images):
   the pixel term: with the G band's edge pixels at half the level, one green site
   of two lit, this is 20 times the linear term); and the pixel grid's sampling of
   the sharp-edged spot, 1 / (12 pi n R) for a spot of radius R band pixels and n
-  samples a pixel (2 for G). Against the simulator's true port centres (README,
+  samples a pixel (2 for G). Against the simulator's true port centres (docs/stages.md,
   "Closure and diagnostics", ``closure/field_angle``) the three hold the centroid's
   error at both scales: rms of error over sigma 1.00 (tiny, nine seeds) and 0.96
   (small, two seeds), the noise terms alone 1.05 and 0.99 of the seed-to-seed
@@ -747,7 +747,7 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str], beta_shift:
     # (_centre_terms, _centre_prior_rows). The spots keep rolloff.field_angle_sigma_px as an independent term
     # beside it, through dg/dtheta: without it the rim spots (the steepest slope) weigh more and the published
     # curve moved at the rim of the in-water field (the truth-sky test's random spread, water/close/G 1.04 ->
-    # 1.17); the centre's share is so counted twice, on the safe side (README, "Uncertainty of the field angle")
+    # 1.17); the centre's share is so counted twice, on the safe side (docs/stages.md, "Uncertainty of the field angle")
     centre_cols, centre_var = _centre_terms(tab, slope / a0, reduced["static"], "centre",
                                             ("theta_centre_grad_x_deg_per_px", "theta_centre_grad_y_deg_per_px"))
     has_centre = np.isfinite(centre_var)
