@@ -212,6 +212,18 @@ def predicted_shift(anchor: Anchor, obs: Observations) -> tuple[np.ndarray, np.n
     return shift, np.clip(var, 0.0, None)
 
 
+def predicted_total(obs: Observations, anchors: list[Anchor]) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """The summed shift the anchored candidates predict in ``obs``'s rows, its variance, and the candidates
+    that predict one there."""
+    shift, var, names = np.zeros(len(obs.table)), np.zeros(len(obs.table)), []
+    for anchor in anchors:
+        found = predicted_shift(anchor, obs)
+        if found is not None:
+            shift, var = shift + found[0], var + found[1]
+            names.append(anchor.effect)
+    return shift, var, names
+
+
 def with_predictions(observations: list[Observations], anchors: list[Anchor]) -> list[Observations]:
     """The observations with the accepted candidates' predicted shifts taken out of the predicted tables' rows
     (their variances added to the rows' noise); the other tables as they are."""
@@ -222,14 +234,10 @@ def with_predictions(observations: list[Observations], anchors: list[Anchor]) ->
         if not is_predicted(obs):
             out.append(obs)
             continue
+        shift, var, _ = predicted_total(obs, anchors)
         table = obs.table.copy()
-        for anchor in anchors:
-            found = predicted_shift(anchor, obs)
-            if found is None:
-                continue
-            shift, var = found
-            table["value_dn"] = table["value_dn"].to_numpy(float) - shift
-            table["sigma_dn"] = np.sqrt(table["sigma_dn"].to_numpy(float) ** 2 + var)
+        table["value_dn"] = table["value_dn"].to_numpy(float) - shift
+        table["sigma_dn"] = np.sqrt(table["sigma_dn"].to_numpy(float) ** 2 + var)
         out.append(replace(obs, table=table))
     return out
 
@@ -546,7 +554,7 @@ def residual_tests(observations: list[Observations], model_effects: list[str], r
         t1 = residual_chi2_test(fit1.z, X1, obs_after.table["sigma_dn"].to_numpy(float), blocks, fit1.dof)
         here = [e for e in accepted if get_effect(e).columns(obs.experiment, obs.level, obs.table) is not None]
         if is_predicted(obs):
-            here = [a.effect for a in anchors or [] if predicted_shift(a, obs) is not None]
+            here = predicted_total(obs, anchors or [])[2]
         covariate, p_cov, share, n_cov = where_structure_sits(obs.table, fit1.z, cfg["covariate_bins"], blocks)
         significant = bool(t1.p_value < level)
         if any(get_effect(e).columns_carry_noise for e in here):
@@ -655,12 +663,7 @@ def field_scale_table(observations: list[Observations], anchors: list[Anchor], d
             continue
         t = obs.table
         value, sigma = t["value_dn"].to_numpy(float), t["sigma_dn"].to_numpy(float)
-        shift, var, names = np.zeros(len(t)), np.zeros(len(t)), []
-        for anchor in anchors:
-            found = predicted_shift(anchor, obs)
-            if found is not None:
-                shift, var = shift + found[0], var + found[1]
-                names.append(anchor.effect)
+        shift, var, names = predicted_total(obs, anchors)
         remaining_sigma = np.sqrt(sigma**2 + var)
         for i, r in t.reset_index(drop=True).iterrows():
             z, z_left = value[i] / sigma[i], (value[i] - shift[i]) / remaining_sigma[i]

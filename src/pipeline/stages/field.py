@@ -120,6 +120,7 @@ from pipeline.apply import EXCLUDED_FROM_GRID, BandChain, bin_on_sphere, check_f
 from pipeline.bands import BANDS
 from pipeline.dataset import REFERENCE_CALIBRATION_RELATIVE_SIGMA, read_reference_radiometer, read_site
 from pipeline.errors import ImpossibleResult, InputError
+from pipeline.fitting import base_design
 from pipeline.frames import iter_frames
 from pipeline.observations import fit_with_effects, table_to_dataset
 from pipeline.radiometry import measurement as mm
@@ -817,8 +818,6 @@ def _scale_table(ctx, frames, table, fit, scales, valid, st, predict, channels, 
                  site) -> pd.DataFrame:
     """The field scale closure's rows, one per band (:mod:`pipeline.radiometry.field_scale`): ln k_b against the
     predicted 0, its budget, and the covariates of the effects the model lacks that move the scale."""
-    from pipeline.fitting import base_design
-
     bundle, lens, effects = ctx.bundle, ctx.lens, set(ctx.effects)
     _, names = base_design(table)
     rchi2 = max(fit.chi2 / max(fit.dof, 1), 1.0)
