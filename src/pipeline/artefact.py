@@ -111,7 +111,11 @@ from pipeline.errors import ArtefactError
 #: absolute 6: the signal frames' setting and level (``exposure_s``, ``iso``, ``signal_dn``), in the bundle (calibration
 #: 14) as ``absolute_exposure_s``, ``absolute_iso``, ``absolute_signal_dn``; field 4: the field scale closure
 #: (``obs_scale``: the camera/reference scale of each band against its prediction and its stated budget).
-ARTEFACT_VERSIONS = {"dark": 6, "linearity": 8, "geometry": 5, "rolloff": 9, "spectral": 4,
+#: linearity 9: the EMVA1288 figures per band (temporal_dark_noise_dn, saturation_signal_dn, saturation_capacity_e,
+#: dynamic_range and its dB and bits, snr_max, linearity_error_min_pct/max_pct, and with frames.csv's
+#: photons_per_pixel responsivity_dn_per_photon and quantum_efficiency); lit frames without any dark reference
+#: state the dark frames' bias drift in their noise (obs_frame ``unremoved_drift_dn``).
+ARTEFACT_VERSIONS = {"dark": 6, "linearity": 9, "geometry": 5, "rolloff": 9, "spectral": 4,
                      "absolute": 6, "immersion": 4, "calibration": 14, "field": 4, "closure": 7}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain
