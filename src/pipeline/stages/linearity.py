@@ -736,7 +736,10 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
         "bias_drift_dn": ((), drift[0], {"long_name": "frame-to-frame black-level spread (0 when not in the model, "
                                                           "NaN when not testable)", "units": "DN"}),
         "rms_z": ((), np.sqrt((np.nansum(st["z"] ** 2) + ffit.chi2 + flat_chi2) / max(fit.dof + ffit.dof + flat_dof, 1)),
-                  {"long_name": "RMS of the noise-normalised residuals of the linearity model (1 at the noise floor)", "units": "1"}),
+                  {"long_name": "RMS of the noise-normalised residuals of the linearity model (1 at the noise floor)", "units": "1",
+                   # each table's own share (chi2 over its degrees of freedom): where the residual structure sits
+                   "setting_table": _rms(float(np.nansum(st["z"] ** 2)), fit.dof),
+                   "frame_table": _rms(ffit.chi2, ffit.dof), "flat_table": _rms(flat_chi2, flat_dof)}),
     }
     data.update(emva)
     for name, (coef, se) in effect_params.items():
@@ -873,6 +876,11 @@ def emva1288_figures(st_l: pd.DataFrame, dark_ds: xr.Dataset, ptc: dict, reached
                 attrs.update(measured=0, not_measured=why)
         data[name] = ("band", out[name], attrs)
     return data
+
+
+def _rms(chi2: float, dof: int) -> float:
+    """sqrt(chi2 / dof), NaN without degrees of freedom."""
+    return float(np.sqrt(chi2 / dof)) if dof > 0 else float("nan")
 
 
 def corner_records(fr_l: pd.DataFrame, times: dict[int, float]) -> pd.DataFrame:

@@ -217,7 +217,11 @@ def _linearity_section(lens: str, ds: xr.Dataset, inputs) -> list:
         rows.append(["lens projection; mask field angles from",
                      f"{ds.attrs['projection']}; {ds.attrs.get('field_angles_from', 'n/a')}"])
     if "rms_z" in ds:
-        rows.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
+        parts = [f"{what} table {fmt_value(float(ds['rms_z'].attrs[f'{what}_table']), 3)}"
+                 for what in ("setting", "frame", "flat") if f"{what}_table" in ds["rms_z"].attrs
+                 and np.isfinite(float(ds["rms_z"].attrs[f"{what}_table"]))]
+        rows.append(["rms of normalised residuals (1 = noise floor)",
+                     fmt_value(float(ds["rms_z"]), 3) + (f" ({', '.join(parts)})" if parts else "")])
     out.append(Text("Fitted linearity and noise parameters:"))
     out.append(Table(["quantity", "value"], rows))
 
