@@ -155,7 +155,9 @@ def main(descriptor: str, csv_path: str) -> None:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
     command = "PYTHONPATH=src python scripts/emva1288_figures.py " + " ".join(sys.argv[1:])
     meta = {"machine": _machine(), "date": date.today().isoformat(), "commit": commit, "command": command}
-    pd.DataFrame([{**meta, **row} for row in figures(Path(descriptor))]).to_csv(csv_path, index=False)
+    # the descriptor may be given as written in the docs, with $PIPELINE_REALDATA unexpanded
+    rows = figures(Path(os.path.expandvars(descriptor)))
+    pd.DataFrame([{**meta, **row} for row in rows]).to_csv(csv_path, index=False)
 
 
 if __name__ == "__main__":
