@@ -115,7 +115,9 @@ from pipeline.errors import ArtefactError
 #: dynamic_range and its dB and bits, snr_max, linearity_error_min_pct/max_pct, and with frames.csv's
 #: photons_per_pixel responsivity_dn_per_photon and quantum_efficiency); lit frames without any dark reference
 #: state the dark frames' bias drift in their noise (obs_frame ``unremoved_drift_dn``).
-ARTEFACT_VERSIONS = {"dark": 6, "linearity": 9, "geometry": 5, "rolloff": 9, "spectral": 4,
+#: dark 7: DSNU1288 per band from the setting with the most frames (``dsnu1288_dn``, ``dark_spatial_var_dn2``);
+#: linearity 9 adds PRNU1288 from its own (``prnu1288_pct``).
+ARTEFACT_VERSIONS = {"dark": 7, "linearity": 9, "geometry": 5, "rolloff": 9, "spectral": 4,
                      "absolute": 6, "immersion": 4, "calibration": 14, "field": 4, "closure": 7}
 
 #: stages a calibration bundle is gathered from, in the order of the calibration chain

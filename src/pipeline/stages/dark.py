@@ -628,8 +628,35 @@ def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, 
                       {"long_name": "RMS of the noise-normalised residuals of the dark model (1 at the noise floor)", "units": "1"}),
         },
     )
+    ds = ds.merge(dsnu_dataset(reduced, lens, settings))
     ds = ds.merge(table_to_dataset(st_l, "obs_setting")).merge(table_to_dataset(fr_l, "obs_frame"))
     return ds
+
+
+def dsnu_dataset(reduced: dict, lens: str, settings: list) -> xr.Dataset:
+    """DSNU1288 per band (EMVA1288 release 3.0, :func:`pipeline.radiometry.emva1288.spatial_nonuniformity`'s dark
+    half) from the setting with the most frames (a dark stack): the spatial variance of its frame-averaged image
+    over every pixel of the region the dark model reads (hot pixels included, as the standard has it; a
+    rectilinear region without optically black pixels: the half that is not its black-level reference), less
+    the part its temporal noise leaves there (mean temporal variance over the frames); NaN below 2 frames or
+    when the temporal part exceeds the spatial variance. Of a band pixel: the G band averages two raw sites."""
+    stack = max(settings, key=lambda s: reduced["stats"][(lens, BANDS[0], s)]["n_frames"])
+    n = int(reduced["stats"][(lens, BANDS[0], stack)]["n_frames"])
+    s2 = np.full(len(BANDS), np.nan)
+    for bi, band in enumerate(BANDS):
+        d = reduced["stats"][(lens, band, stack)]["circle"]
+        if n >= 2 and d["n_used"] >= 2:
+            s2[bi] = d["width_dn"] ** 2 * d["n_used"] / (d["n_used"] - 1) - d["var_dn2"] / n
+    attrs = {"setting_iso": float(stack[0]), "setting_exposure_s": float(stack[1]), "n_frames": n}
+    dsnu = np.where(s2 >= 0, np.sqrt(np.maximum(s2, 0.0)), np.nan)
+    return xr.Dataset({
+        "dark_spatial_var_dn2": ("band", s2, {"long_name": "spatial variance of the dark stack's frame-averaged "
+                                                           "image less its temporal part (s^2_y.dark)",
+                                              "units": "DN2", **attrs}),
+        "dsnu1288_dn": ("band", dsnu, {"long_name": "dark signal non-uniformity DSNU1288 of a band pixel (sqrt of "
+                                                     "dark_spatial_var_dn2; NaN when it is negative or fewer than 2 "
+                                                     "frames)", "units": "DN", **attrs}),
+    }, coords={"band": list(BANDS)})
 
 
 def compute(ctx) -> xr.Dataset:

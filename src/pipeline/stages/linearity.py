@@ -688,6 +688,7 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
                                          "saturated and left out: check the sweep (signal level, saturation) and "
                                          "linearity.saturation_* in the config")
     emva = emva1288_figures(st_l, dark_ds, ptc, saturation["reached"])
+    emva.update(prnu_figures(st_l, reduced["moments"], lens, dark_ds))
     flat, flat_maps, flat_fit = reduced["flat"]
     flat_chi2 = flat_fit.chi2 if flat_fit is not None else 0.0
     flat_dof = flat_fit.dof if flat_fit is not None else 0
@@ -881,6 +882,38 @@ def emva1288_figures(st_l: pd.DataFrame, dark_ds: xr.Dataset, ptc: dict, reached
 def _rms(chi2: float, dof: int) -> float:
     """sqrt(chi2 / dof), NaN without degrees of freedom."""
     return float(np.sqrt(chi2 / dof)) if dof > 0 else float("nan")
+
+
+def prnu_figures(st_l: pd.DataFrame, moments: dict, lens: str, dark_ds: xr.Dataset) -> dict:
+    """PRNU1288 per band (EMVA1288 release 3.0) from the exposure sweep's used setting with the most frames (a
+    bright stack): over the photon-transfer region, the spatial variance of its frame-averaged image less the
+    part its temporal noise leaves there and less the dark stack's (the dark artefact's
+    ``dark_spatial_var_dn2``, 0 without it), over the mean dark-corrected signal, in per cent. Of a band pixel (the
+    G band averages two raw sites); the region is the photon-transfer region's pixels without the hot ones,
+    nothing smooth removed (the flat field's ``prnu`` is the pattern left after a smooth surface)."""
+    prnu = np.full(len(BANDS), np.nan)
+    attrs: dict = {"long_name": "photo response non-uniformity PRNU1288 of a band pixel over the photon-transfer "
+                                "region", "units": "%"}
+    sweep = st_l[(st_l["sweep"] == "exposure") & st_l["used"]]
+    if not len(sweep) or int(sweep["n_frames"].max()) < 2:
+        attrs.update(measured=0, not_measured="no setting of the exposure sweep has two frames or more")
+        return {"prnu1288_pct": ("band", prnu, attrs)}
+    top = sweep.loc[sweep["n_frames"].idxmax()]
+    key = (float(top["iso"]), float(top["exposure_s"]))
+    attrs.update(setting_iso=key[0], setting_exposure_s=key[1], n_frames=int(top["n_frames"]))
+    for bi, band in enumerate(BANDS):
+        mom = moments.get((lens, band, "exposure", key))
+        row = sweep[(sweep["band"] == band) & np.isclose(sweep["exposure_s"], key[1]) & (sweep["iso"] == key[0])]
+        if mom is None or mom.n < 2 or not len(row):
+            continue
+        mean, var = mom.mean(), mom.variance()
+        s2_bright = float(np.var(mean, ddof=1) - var.mean() / mom.n)
+        s2_dark = float(dark_ds["dark_spatial_var_dn2"].sel(band=band)) if "dark_spatial_var_dn2" in dark_ds else 0.0
+        signal = float(row["ptc_mean_dn"].iloc[0] - row["dark_mask_dn"].iloc[0])
+        excess = s2_bright - (s2_dark if np.isfinite(s2_dark) else 0.0)
+        if excess >= 0 and signal > 0:
+            prnu[bi] = 100.0 * np.sqrt(excess) / signal
+    return {"prnu1288_pct": ("band", prnu, attrs)}
 
 
 def corner_records(fr_l: pd.DataFrame, times: dict[int, float]) -> pd.DataFrame:

@@ -263,7 +263,8 @@ EMVA1288_SHOWN = {"temporal_dark_noise_dn": "temporal dark noise sigma_y,dark",
                   "linearity_error_min_pct": "linearity error LE_min",
                   "linearity_error_max_pct": "linearity error LE_max",
                   "responsivity_dn_per_photon": "responsivity R",
-                  "quantum_efficiency": "quantum efficiency eta"}
+                  "quantum_efficiency": "quantum efficiency eta",
+                  "prnu1288_pct": "PRNU1288 (photon-transfer region, the setting with the most frames)"}
 
 
 def _emva1288_table(ds: xr.Dataset, bands: list[str]) -> Table | None:
