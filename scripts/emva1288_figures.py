@@ -6,7 +6,8 @@
 Lays the set out in a temporary folder (pipeline.scaffold.init_emva1288_dataset), runs the dark stage with the
 default model and with bias_drift added, and the linearity stage with bias_drift (and once more with the bend of
 the response, a shutter offset and the pixel response pattern modelled: nonlinearity, shutter_offset, prnu), takes
-DSNU1288 and PRNU1288 from the 50-frame stacks (pipeline.radiometry.emva1288.spatial_nonuniformity on the DNGs),
+DSNU1288 and PRNU1288 from the 50-frame stacks (pipeline.radiometry.emva1288.spatial_nonuniformity on the DNGs, and
+the stages' own),
 and writes one row per figure (reference values of the set's SOURCES.md) with the machine, date, commit and
 command. Per-band figures are averaged over the raw sites (R, G, G, B), as the temporal dark noise is.
 """
@@ -137,6 +138,10 @@ def figures(descriptor: Path) -> list[dict]:
              band["linearity_error_max_pct"], np.nan, np.nan, effects),
             ("DSNU1288 (50-frame dark stack, radiometry function)", "DN", 0.155, a["spatial"].dsnu_dn, np.nan, 1.0,
              "none (the stacks' raw values)"),
+            ("DSNU1288 (dark stage, mean of the raw sites' bands)", "DN", 0.155,
+             _sites(drift["dsnu1288_dn"].sel(band=["R", "G", "B"]).values), np.nan, 15.0, effects),
+            ("PRNU1288 (linearity stage, photon-transfer region, R and B bands' mean)", "%", 0.433,
+             float(lin["prnu1288_pct"].sel(band=["R", "B"]).mean()), np.nan, np.nan, effects),
             ("PRNU1288 (50-frame stacks, radiometry function)", "%", 0.433, a["spatial"].prnu_pct, np.nan, 1.0,
              "none (the stacks' raw values)"),
         ]
