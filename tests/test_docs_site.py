@@ -98,6 +98,20 @@ def test_changelog_has_every_current_artefact_version():
             f"docs/changelog.md: the {stage} artefact is at version {version}, its newest entry is {listed[:1]}"
 
 
+def test_performance_tables_are_rendered_from_the_benchmark_results():
+    """No timing typed by hand into a table of docs/performance.md: each is its CSV's rows."""
+    spec = importlib.util.spec_from_file_location("bench_tables", ROOT / "scripts" / "bench_tables.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    text = (DOCS / "performance.md").read_text(encoding="utf-8")
+    blocks = module.BLOCK.findall(text)
+    assert len(blocks) > 20
+    # every Markdown table of the page lies inside a rendered block
+    outside = module.BLOCK.sub("", text)
+    assert not re.search(r"^\|.*\|$", outside, re.M), "a table typed by hand in docs/performance.md"
+    assert module.render(text) == text, "python scripts/bench_tables.py --write"
+
+
 def test_readme_docs_table_points_at_pages():
     readme = (ROOT / "README.md").read_text(encoding="utf-8")
     linked = re.findall(r"\]\((docs/[^)#]+\.md)", readme)
