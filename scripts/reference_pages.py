@@ -54,12 +54,23 @@ def _yaml_inline(value) -> str:
     return yaml.safe_dump(value, default_flow_style=True, width=10**6).strip().removesuffix("...").strip()
 
 
-def key_units(name: str) -> str:
-    """The unit a key's name states by its suffix, longest suffix first ('' when the name states none)."""
+def _suffix_unit(name: str) -> str:
     for suffix in sorted(UNIT_SUFFIXES, key=len, reverse=True):
         if name.endswith(suffix):
             return UNIT_SUFFIXES[suffix]
     return ""
+
+
+def key_units(name: str) -> str:
+    """The unit a key's name states by its suffix, longest suffix first ('' when the name states none);
+    ``a_dn_per_s_per_c`` is DN s-1 degree_C-1, and a ``_per_`` whose parts are not all units states none."""
+    first, *per = name.split("_per_")
+    if not per:
+        return _suffix_unit(name)
+    units = [_suffix_unit("_" + first)] + [UNIT_SUFFIXES.get(f"_{part}", "") for part in per]
+    if not all(units[1:]):
+        return ""
+    return " ".join(([units[0]] if units[0] else []) + [f"{u}-1" for u in units[1:]])
 
 
 # ------------------------------------------------------------------------------------------------ configuration
@@ -250,7 +261,10 @@ def artefact_page(results: Path) -> str:
            "one per camera; the closure table one per run), with its dimensions, its `units` attribute and its "
            "meaning (`long_name`, else `description`; blank where the file states none, as in the tables of "
            "observations whose columns carry their units in their names). Dimension sizes depend on the "
-           "camera and the dataset and are left out. Global attributes common to every artefact (provenance) "
+           "camera and the dataset and are left out. A variable `obs_<table>__<column>` is a column of one of the "
+           "stage's observation tables (dimension `obs_<table>`: one row per frame, setting, ...), which the "
+           "diagnostics read back; where it has no `units` attribute, the unit its name ends with is given "
+           "(`_dn`, `_s`, `_deg`, ...). Global attributes common to every artefact (provenance) "
            "are listed once below; what each stage computes: [Stages](../stages.md); the history of each "
            "artefact's version: [Changelog](../changelog.md).\n\n",
            f"{VERSIONS_LINE}{versions}.\n\n",
@@ -279,7 +293,10 @@ def artefact_page(results: Path) -> str:
                 meaning = var.attrs.get("long_name", var.attrs.get("description", ""))
                 label = f"`{name}` (coordinate)" if name in coords else f"`{name}`"
                 dims = ", ".join(var.dims) if var.dims else "scalar"
-                out.append(f"| {label} | {_cell(dims)} | {_cell(var.attrs.get('units', ''))} | {_cell(meaning)} |\n")
+                units = var.attrs.get("units", "")
+                if not units and key_units(name):
+                    units = f"{key_units(name)} (by its name)"
+                out.append(f"| {label} | {_cell(dims)} | {_cell(units)} | {_cell(meaning)} |\n")
     return "".join(out)
 
 
