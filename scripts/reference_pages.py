@@ -20,7 +20,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import pkgutil
 import re
 import sys
@@ -180,9 +179,8 @@ def _parser_section(parser: argparse.ArgumentParser, title: str, level: int) -> 
             for group in parser._mutually_exclusive_groups:
                 if a in group._group_actions and group.required:
                     required = "one of " + ", ".join(f"`{b.option_strings[-1]}`" for b in group._group_actions)
-            choices = f" (one of {', '.join(map(str, a.choices))})" if a.choices and a.option_strings else ""
             help_text = (a.help or "").replace("%(prog)s", parser.prog)
-            out.append(f"| {_option_name(a)} | {default} | {_cell(required)} | {_cell(help_text + choices)} |\n")
+            out.append(f"| {_option_name(a)} | {default} | {_cell(required)} | {_cell(help_text)} |\n")
     if parser.epilog:
         out.append("\n```text\n" + parser.epilog.rstrip() + "\n```\n")
     for a in parser._actions:
@@ -309,7 +307,6 @@ def artefact_page_versions(text: str) -> dict[str, int]:
 # ---------------------------------------------------------------------------------------------------------- main
 def pages() -> dict[Path, str]:
     """The pages generated from the code alone (schema, parsers, modules)."""
-    os.environ["COLUMNS"] = "100"   # argparse wraps nothing here, but keep its width fixed anyway
     return {REFERENCE / "configuration-keys.md": configuration_page(), REFERENCE / "cli.md": cli_page(),
             REFERENCE / "api.md": api_page()}
 
