@@ -46,4 +46,4 @@ bench: $(VENV)/.installed
 	$(BIN)/python benchmarks/bench_stages.py
 
 clean:
-	rm -rf results .snakemake
+	rm -rf results .snakemake docs/_build

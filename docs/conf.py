@@ -26,14 +26,14 @@ extensions = [
     "myst_parser",
     "sphinx.ext.autodoc",
     "sphinx.ext.napoleon",
-    "sphinx.ext.mathjax",
 ]
 source_suffix = {".md": "markdown", ".rst": "restructuredtext"}
 root_doc = "index"
 exclude_patterns = ["_build", "figures-data/*.md", "Thumbs.db", ".DS_Store"]
 
-# MyST: heading anchors so that [text](page.md#a-heading) links resolve; $...$ maths
-myst_enable_extensions = ["dollarmath", "colon_fence", "deflist"]
+# MyST: CommonMark and tables as GitHub shows the same pages (no extension that would read a page's $ or :
+# as markup); heading anchors so that [text](page.md#a-heading) links resolve
+myst_enable_extensions: list[str] = []
 myst_heading_anchors = 4
 
 # numpydoc docstrings (Parameters, Returns, ...) through napoleon
