@@ -65,45 +65,45 @@ def read_attitude(path) -> pd.DataFrame:
     try:
         table = pd.read_csv(path)
     except (OSError, ValueError, pd.errors.ParserError) as exc:
-        raise InputError(f"{path}: cannot read the attitude log as CSV ({exc.__class__.__name__}: {exc})") from None
+        raise InputError(path, f"cannot read the attitude log as CSV ({exc.__class__.__name__}: {exc})") from None
     missing = [c for c in ATTITUDE_COLUMNS if c not in table.columns]
     if missing:
-        raise InputError(f"{path}: attitude log lacks the column(s) {', '.join(missing)} "
+        raise InputError(path, f"attitude log lacks the column(s) {', '.join(missing)} "
                          f"(needs {', '.join(ATTITUDE_COLUMNS)})")
     if table.empty:
-        raise InputError(f"{path}: attitude log has no rows")
+        raise InputError(path, "attitude log has no rows")
     try:
         times = pd.to_datetime(table["time_utc"], utc=True, format="ISO8601")
     except (ValueError, TypeError) as exc:
-        raise InputError(f"{path}: column 'time_utc' is not ISO 8601 date and time ({exc})") from None
+        raise InputError(path, f"column 'time_utc' is not ISO 8601 date and time ({exc})") from None
     values = table[list(ATTITUDE_COLUMNS[1:])].apply(pd.to_numeric, errors="coerce")
     bad = values.isna().any(axis=1) | ~np.isfinite(values).all(axis=1)
     if bad.any():
         line = int(np.flatnonzero(bad.to_numpy())[0]) + 2
-        raise InputError(f"{path}: line {line}: roll, pitch, heading and their sigmas must be numbers")
+        raise InputError(path, f"line {line}: roll, pitch, heading and their sigmas must be numbers")
     sigmas = values[["roll_sigma_deg", "pitch_sigma_deg", "heading_sigma_deg"]]
     if (sigmas < 0).any(axis=None):
         line = int(np.flatnonzero((sigmas < 0).any(axis=1).to_numpy())[0]) + 2
-        raise InputError(f"{path}: line {line}: a standard uncertainty is negative")
+        raise InputError(path, f"line {line}: a standard uncertainty is negative")
     out = values.set_index(pd.DatetimeIndex(times, name="time_utc")).sort_index()
     if out.index.has_duplicates:
-        raise InputError(f"{path}: attitude log has two rows at the same time {out.index[out.index.duplicated()][0]}")
+        raise InputError(path, f"attitude log has two rows at the same time {out.index[out.index.duplicated()][0]}")
     out.attrs["path"] = str(path)
     return out
 
 
 def attitude_at(log: pd.DataFrame, times_utc: pd.DatetimeIndex, frame_names=None) -> list[Attitude]:
     """Each frame's attitude, linearly interpolated in time (heading unwrapped); outside the log: one line."""
-    t = log.index.asi8.astype(float)
+    t = log.index.as_unit("ns").asi8.astype(float)
     first, last = log.index[0], log.index[-1]
     names = list(frame_names) if frame_names is not None else [str(x) for x in times_utc]
     out = []
     heading = np.degrees(np.unwrap(np.radians(log["heading_deg"].to_numpy())))
     for name, when in zip(names, times_utc):
         if when < first or when > last:
-            raise InputError(f"{log.attrs.get('path', 'attitude log')}: frame {name} at {when.isoformat()} is outside "
+            raise InputError(log.attrs.get('path', 'attitude log'), f"frame {name} at {when.isoformat()} is outside "
                              f"the attitude log ({first.isoformat()} to {last.isoformat()})")
-        x = float(when.value)
+        x = float(pd.Timestamp(when).as_unit("ns").value)
 
         def at(values, x=x):
             return float(np.interp(x, t, values))

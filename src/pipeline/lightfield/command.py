@@ -68,11 +68,11 @@ def _frame_times_utc(grids, offset_h: float, needed_for: str) -> pd.DatetimeInde
     times = []
     for name, text in zip(grids.frame_names, grids.frame_times):
         if not text:
-            raise InputError(f"{name}: the grid gives no frame_time, which {needed_for} needs")
+            raise InputError(name, f"the grid gives no frame_time, which {needed_for} needs")
         try:
             stamp = pd.Timestamp(text)
         except ValueError:
-            raise InputError(f"{name}: frame_time {text!r} is not an ISO 8601 date and time") from None
+            raise InputError(name, f"frame_time {text!r} is not an ISO 8601 date and time") from None
         stamp = stamp.tz_convert("UTC") if stamp.tzinfo is not None else \
             (stamp - pd.Timedelta(hours=offset_h)).tz_localize("UTC")
         times.append(stamp)
@@ -106,13 +106,16 @@ def compute_light_field(grid_paths, medium: str | None = None, attitude_path=Non
     earth_flag = np.zeros((n_f, n_b, n_z, n_a), np.int8)
     fallback = np.zeros((n_f, n_b), np.int32)
     earth_centres = cell_centre_directions(edges)
+    cells = {}
     for f in range(n_f):
-        # each earth cell's centre in the camera grid: the camera cell it falls in
-        cam = earth_to_camera_directions(attitudes[f], earth_centres)
-        cz = np.degrees(np.arccos(np.clip(cam[..., 2], -1, 1)))
-        ca = np.degrees(np.arctan2(cam[..., 1], cam[..., 0])) % 360.0
-        iz = np.clip((cz / (180.0 / n_z)).astype(int), 0, n_z - 1)
-        ia = np.clip((ca / (360.0 / n_a)).astype(int), 0, n_a - 1)
+        # each earth cell's centre in the camera grid: the camera cell it falls in (once per attitude)
+        if attitudes[f] not in cells:
+            cam = earth_to_camera_directions(attitudes[f], earth_centres)
+            cz = np.degrees(np.arccos(np.clip(cam[..., 2], -1, 1)))
+            ca = np.degrees(np.arctan2(cam[..., 1], cam[..., 0])) % 360.0
+            cells[attitudes[f]] = (np.clip((cz / (180.0 / n_z)).astype(int), 0, n_z - 1),
+                                   np.clip((ca / (360.0 / n_a)).astype(int), 0, n_a - 1))
+        iz, ia = cells[attitudes[f]]
         for b in range(n_b):
             filled = fill_between_lenses(grids.radiance[f, b], grids.random_sigma[f, b], grids.systematic_sigma[f, b],
                                          grids.zenith_deg, float(cfg["fill_fit_span_deg"]))
@@ -235,7 +238,7 @@ def write_light_field(ds: xr.Dataset, out_path, overwrite: bool = False) -> Path
     """Write the light field as NetCDF (atomically); an existing file only with ``overwrite``."""
     out = Path(out_path)
     if out.exists() and not overwrite:
-        raise InputError(f"{out}: exists (give --overwrite to replace it)")
+        raise InputError(out, "exists (give --overwrite to replace it)")
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".part")
     ds.to_netcdf(tmp)

@@ -60,12 +60,12 @@ def _radiance_scale(units: str, path: Path, name: str) -> float:
     try:
         unit = cf_units.Unit(units)
     except ValueError:
-        raise InputError(f"{path}: variable {name!r} has units {units!r}, which are not units "
+        raise InputError(path, f"variable {name!r} has units {units!r}, which are not units "
                          f"(needs spectral radiance, e.g. {RADIANCE_UNITS})") from None
     target = cf_units.Unit(RADIANCE_UNITS)
     # udunits takes the steradian as dimensionless: a radiance must name it (sr-1) to be one
     if not unit.is_convertible(target) or "sr" not in units:
-        raise InputError(f"{path}: variable {name!r} has units {units!r}, not spectral radiance "
+        raise InputError(path, f"variable {name!r} has units {units!r}, not spectral radiance "
                          f"(needs units convertible to {RADIANCE_UNITS})")
     return float(unit.convert(1.0, target))
 
@@ -75,7 +75,7 @@ def _centres(values, n_span: float, path: Path, name: str) -> np.ndarray:
     n = v.size
     expected = (np.arange(n) + 0.5) * n_span / max(n, 1)
     if n < 2 or not np.allclose(v, expected, rtol=0, atol=1e-6 * n_span / n):
-        raise InputError(f"{path}: coordinate {name!r} is not the cell centres of a regular grid from 0 to "
+        raise InputError(path, f"coordinate {name!r} is not the cell centres of a regular grid from 0 to "
                          f"{n_span:g} degrees ((i + 0.5) * {n_span:g} / n)")
     return v
 
@@ -84,25 +84,25 @@ def _one(path: Path) -> tuple[xr.Dataset, dict]:
     try:
         ds = xr.open_dataset(path)
     except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
+        raise InputError(path, "no such file") from None
     except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: cannot read as NetCDF ({exc.__class__.__name__})") from None
+        raise InputError(path, f"cannot read as NetCDF ({exc.__class__.__name__})") from None
     if "sphere_radiance" not in ds:
-        raise InputError(f"{path}: lacks the variable 'sphere_radiance' (radiance on the zenith/azimuth grid, "
+        raise InputError(path, "lacks the variable 'sphere_radiance' (radiance on the zenith/azimuth grid, "
                          "dims (frame, band, zenith, azimuth))")
     rad = ds["sphere_radiance"]
     extra = set(rad.dims) - {"frame", "band", "zenith", "azimuth"}
     if not {"zenith", "azimuth"} <= set(rad.dims) or extra:
-        raise InputError(f"{path}: 'sphere_radiance' has dims {rad.dims}; needs (frame, band, zenith, azimuth), "
+        raise InputError(path, f"'sphere_radiance' has dims {rad.dims}; needs (frame, band, zenith, azimuth), "
                          "frame and band optional")
     for coord in ("zenith", "azimuth"):
         if coord not in ds.coords:
-            raise InputError(f"{path}: lacks the coordinate {coord!r} (cell centres, degree)")
+            raise InputError(path, f"lacks the coordinate {coord!r} (cell centres, degree)")
         units = str(ds[coord].attrs.get("units", ""))
         if units not in ("degree", "degrees", "deg") and units != "":
-            raise InputError(f"{path}: coordinate {coord!r} has units {units!r}; needs degree")
+            raise InputError(path, f"coordinate {coord!r} has units {units!r}; needs degree")
         if units == "":
-            raise InputError(f"{path}: coordinate {coord!r} has no units; needs units = 'degree'")
+            raise InputError(path, f"coordinate {coord!r} has no units; needs units = 'degree'")
     info = {"zenith": _centres(ds["zenith"].values, 180.0, path, "zenith"),
             "azimuth": _centres(ds["azimuth"].values, 360.0, path, "azimuth")}
     return ds, info
@@ -113,16 +113,16 @@ def _array(ds: xr.Dataset, name: str, path: Path) -> np.ndarray | None:
         return None
     var = ds[name]
     if set(var.dims) != set(ds["sphere_radiance"].dims):
-        raise InputError(f"{path}: variable {name!r} has dims {var.dims}, not those of 'sphere_radiance'")
+        raise InputError(path, f"variable {name!r} has dims {var.dims}, not those of 'sphere_radiance'")
     if "units" not in var.attrs:
-        raise InputError(f"{path}: variable {name!r} has no units (needs spectral radiance, e.g. {RADIANCE_UNITS})")
+        raise InputError(path, f"variable {name!r} has no units (needs spectral radiance, e.g. {RADIANCE_UNITS})")
     scale = _radiance_scale(str(var.attrs["units"]), path, name)
     for dim in ("frame", "band"):
         if dim not in var.dims:
             var = var.expand_dims(dim)
     values = var.transpose("frame", "band", "zenith", "azimuth").values.astype(float) * scale
     if np.isinf(values).any():
-        raise InputError(f"{path}: variable {name!r} holds infinite values")
+        raise InputError(path, f"variable {name!r} holds infinite values")
     return values
 
 
@@ -144,22 +144,22 @@ def read_sphere_grids(paths, medium: str | None = None) -> SphereGrids:
             grid_medium = str(ds.attrs["medium"]) if "medium" in ds.attrs else None
             cell_values = str(ds.attrs.get("cell_values", "mean" if "sphere_count" in ds else "centre"))
         if cell_values not in ("mean", "centre"):
-            raise InputError(f"{path}: attribute cell_values = {cell_values!r}; needs mean or centre")
+            raise InputError(path, f"attribute cell_values = {cell_values!r}; needs mean or centre")
         if grid_medium is not None and grid_medium not in ("air", "water"):
-            raise InputError(f"{path}: attribute medium = {grid_medium!r}; needs air or water")
+            raise InputError(path, f"attribute medium = {grid_medium!r}; needs air or water")
         if medium is not None and grid_medium is not None and grid_medium != medium:
-            raise InputError(f"{path}: the grid is for medium {grid_medium!r}, but --medium {medium} was given")
+            raise InputError(path, f"the grid is for medium {grid_medium!r}, but --medium {medium} was given")
         parts.append((path, info, arrays, bands, files, times, grid_medium, cell_values == "centre"))
     first = parts[0]
     for path, info, _, bands, *_ in parts[1:]:
         if info["zenith"].size != first[1]["zenith"].size or info["azimuth"].size != first[1]["azimuth"].size:
-            raise InputError(f"{path}: its grid ({info['zenith'].size} x {info['azimuth'].size} cells) differs from "
+            raise InputError(path, f"its grid ({info['zenith'].size} x {info['azimuth'].size} cells) differs from "
                              f"{first[0]}'s ({first[1]['zenith'].size} x {first[1]['azimuth'].size})")
         if bands != first[3]:
-            raise InputError(f"{path}: its bands {bands} differ from {first[0]}'s {first[3]}")
+            raise InputError(path, f"its bands {bands} differ from {first[0]}'s {first[3]}")
     media = {p[6] for p in parts if p[6] is not None}
     if len(media) > 1:
-        raise InputError(f"{parts[-1][0]}: grids of different media ({', '.join(sorted(media))}) given together")
+        raise InputError(parts[-1][0], f"grids of different media ({', '.join(sorted(media))}) given together")
     absent = sorted({name for p in parts for name in GRID_VARIABLES[1:] if p[2][name] is None})
 
     def stack(name):

@@ -185,9 +185,21 @@ def coarsen(values: np.ndarray, omega: np.ndarray) -> np.ndarray:
     return total / weight
 
 
+#: 12-point Gauss-Legendre nodes and weights on [-1, 1] (exact for the moments' smooth integrands)
+_GAUSS = np.polynomial.legendre.leggauss(12)
+_MOMENTS_CACHE: dict = {}
+
+
 def _zenith_moments(edges: GridEdges) -> tuple[np.ndarray, np.ndarray]:
     """Per row, the solid-angle means of (z - z_c) and (z - z_c)^2 over the cell (rad, rad^2)."""
-    nodes, w = np.polynomial.legendre.leggauss(12)
+    if edges.key not in _MOMENTS_CACHE:
+        _MOMENTS_CACHE.clear()
+        _MOMENTS_CACHE[edges.key] = _moments(edges)
+    return _MOMENTS_CACHE[edges.key]
+
+
+def _moments(edges: GridEdges) -> tuple[np.ndarray, np.ndarray]:
+    nodes, w = _GAUSS
     z0, z1 = edges.zenith[:-1, None], edges.zenith[1:, None]
     zc = 0.5 * (z0 + z1)
     z = zc + 0.5 * (z1 - z0) * nodes[None, :]

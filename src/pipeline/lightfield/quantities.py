@@ -153,9 +153,11 @@ def light_field_quantities(filled: Filled, edges: GridEdges, attitude: Attitude,
     Weff = _effective(W, filled)
     sr2 = np.nan_to_num(filled.random_sigma.ravel()) ** 2
     measured = filled.flag.ravel() == 0
-    ss = np.where(measured, np.nan_to_num(filled.systematic_sigma.ravel()), 0.0)
     Cr = (Weff * np.where(measured, sr2, 0.0)) @ Weff.T
-    s = Weff @ ss
+    # the systematic deviation is one field over the grid (filled cells: their edges' through the same weights),
+    # summed with the weights as the radiance is: W @ fill(sigma_s) = W_eff @ sigma_s
+    ss_grid = cell_means_from_centres(filled.systematic_sigma, edges) if centre_samples else filled.systematic_sigma
+    s = W @ np.nan_to_num(ss_grid.ravel())
     is_filled = filled.flag.ravel() == FLAG_FILLED
     m = W[:, is_filled] @ np.nan_to_num(filled.model_sigma.ravel()[is_filled])
     out = {"value": value,
