@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -22,6 +23,7 @@ import pandas as pd
 import xarray as xr
 
 from pipeline import __version__
+from pipeline.apply import apply_calibration
 from pipeline.config import defaults
 from pipeline.errors import InputError
 from pipeline.lightfield.attitude import (LEVEL, attitude_at, earth_to_camera_directions, earth_up_in_camera,
@@ -31,7 +33,8 @@ from pipeline.lightfield.grid import RADIANCE_UNITS, read_sphere_grids
 from pipeline.lightfield.quadrature import GridEdges, cell_centre_directions
 from pipeline.lightfield.quantities import COMPONENTS, INTEGRALS, QUANTITIES, WeightCache, light_field_quantities
 
-__all__ = ["compute_light_field", "add_lightfield_parser", "lightfield_command", "QUANTITY_ATTRS"]
+__all__ = ["compute_light_field", "light_field_from_raw", "write_light_field", "add_lightfield_parser",
+           "lightfield_command", "QUANTITY_ATTRS"]
 
 _IRRADIANCE = "W m-2 nm-1"
 #: per quantity: long name, units, CF standard name in air and in sea water (None: the table has none)
@@ -142,10 +145,8 @@ def _dataset(grids, medium, attitudes, times, site, attitude_path, results, eart
     data = {
         "sphere_radiance": (dims4, earth["radiance"], _attrs(
             "spectral radiance in the earth frame (measured and filled cells)", RADIANCE_UNITS,
-            standard_name="downwelling_spectral_radiance_in_sea_water" if medium == "water" else
-            "downwelling_spectral_radiance_in_air",
-            comment="upper hemisphere downwelling, lower upwelling radiance; each earth cell takes the camera cell "
-                    "its centre falls in")),
+            comment="upper hemisphere downwelling, lower upwelling radiance (no one CF standard name covers both); "
+                    "each earth cell takes the camera cell its centre falls in")),
         "sphere_radiance_random_sigma": (dims4, earth["random"], _attrs("random standard uncertainty", RADIANCE_UNITS)),
         "sphere_radiance_systematic_sigma": (dims4, earth["systematic"],
                                              _attrs("systematic standard uncertainty (common to the band)",
@@ -246,6 +247,21 @@ def write_light_field(ds: xr.Dataset, out_path, overwrite: bool = False) -> Path
     return out
 
 
+def light_field_from_raw(bundle_path, raw_paths, medium: str | None = None, attitude_path=None, site=None,
+                         camera_utc_offset_h: float = 0.0, grid_deg: float | None = None,
+                         config: dict | None = None) -> xr.Dataset:
+    """The light field of raw frames: ``apply`` with the calibration bundle makes their sphere grid (in a
+    temporary file, without the per-pixel maps), then :func:`compute_light_field`."""
+    with tempfile.TemporaryDirectory(prefix="lightfield-") as tmp:
+        grid = apply_calibration(bundle_path, raw_paths, medium or "air", Path(tmp) / "grid.nc", grid_deg,
+                                 pixels=False)
+        ds = compute_light_field([grid], medium, attitude_path, site, camera_utc_offset_h, config)
+        ds.load()
+    ds.attrs["grid_files"] = f"made by apply from {len(raw_paths)} raw frame(s) with the calibration {bundle_path}"
+    ds.attrs["calibration_bundle"] = str(bundle_path)
+    return ds
+
+
 def _site(text: str) -> tuple:
     try:
         values = tuple(float(v) for v in text.split(","))
@@ -257,13 +273,18 @@ def _site(text: str) -> tuple:
 
 
 def add_lightfield_parser(subparsers) -> argparse.ArgumentParser:
-    """``lightfield [--medium air|water] [--attitude FILE] [--site LAT,LON] GRID.nc... -o OUT.nc``."""
+    """``lightfield [--calibration BUNDLE] [--medium air|water] [--attitude FILE] [--site LAT,LON] GRID.nc... -o OUT.nc``."""
     p = subparsers.add_parser(
         "lightfield", help="radiance sphere grids to irradiances, average cosines and radiances",
         description="E_d, E_u, E_0d, E_0u, E_0, mu_d, mu_u, mu, L_d, L_u and Q per frame and band, with their "
                     "random, systematic, fill-model, attitude and quadrature uncertainty, from radiance sphere "
                     "grids (apply's output, or any grid in the format of docs/light-field.md).")
-    p.add_argument("grids", nargs="+", metavar="GRID.nc", help="radiance sphere grid files")
+    p.add_argument("grids", nargs="+", metavar="GRID.nc", help="radiance sphere grid files (with --calibration: "
+                                                                "raw DNG frames)")
+    p.add_argument("--calibration", metavar="BUNDLE", default=None,
+                   help="calibration bundle: the inputs are raw frames, which apply turns into a sphere grid first")
+    p.add_argument("--grid-deg", type=float, default=None,
+                   help="with --calibration: zenith/azimuth cell size of the grid (default: apply.grid_deg)")
     p.add_argument("-o", "--out", required=True, help="NetCDF file to write")
     p.add_argument("--medium", choices=("air", "water"), default=None,
                    help="medium of the grids (default: their 'medium' attribute, else air)")
@@ -281,7 +302,15 @@ def add_lightfield_parser(subparsers) -> argparse.ArgumentParser:
 def lightfield_command(args) -> int:
     """Run ``lightfield`` from parsed arguments; bad input prints one line and returns 1."""
     try:
-        ds = compute_light_field(args.grids, args.medium, args.attitude, args.site, args.camera_utc_offset_h)
+        if Path(args.out).exists() and not args.overwrite:
+            raise InputError(args.out, "exists (give --overwrite to replace it)")
+        if args.grid_deg is not None and args.calibration is None:
+            raise InputError(None, "--grid-deg applies to raw frames (--calibration); a grid file keeps its own cells")
+        if args.calibration is not None:
+            ds = light_field_from_raw(args.calibration, args.grids, args.medium, args.attitude, args.site,
+                                      args.camera_utc_offset_h, args.grid_deg)
+        else:
+            ds = compute_light_field(args.grids, args.medium, args.attitude, args.site, args.camera_utc_offset_h)
         out = write_light_field(ds, args.out, overwrite=args.overwrite)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
