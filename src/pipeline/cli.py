@@ -24,7 +24,8 @@ HELP_COLUMN = 28
 DESCRIPTION = """\
 Calibrate a RAW camera as a radiometer. These commands lay out a lab's raw
 files as a calibration dataset (docs/dataset-format.md), check it, simulate one,
-turn raw frames into radiance with a calibration bundle, publish bundles
+turn raw frames into radiance with a calibration bundle, integrate radiance
+sphere grids into the light field (irradiances, average cosines), publish bundles
 into an append-only calibration store, compare two calibrations, or say what a
 run's diagnostics found;
 the calibration itself runs with snakemake."""
