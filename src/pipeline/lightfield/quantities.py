@@ -101,13 +101,11 @@ def _sums(W: np.ndarray, values: np.ndarray) -> np.ndarray:
 
 def _effective(W: np.ndarray, filled: Filled) -> np.ndarray:
     """The weights moved from the filled cells onto the two measured cells each is interpolated from."""
-    n_a = filled.flag.shape[1]
     cells = np.flatnonzero(filled.flag.ravel() == FLAG_FILLED)
     Weff = W.copy()
     if cells.size:
-        col = cells % n_a
-        a = filled.above.ravel()[cells] * n_a + col
-        b = filled.below.ravel()[cells] * n_a + col
+        a = filled.above.ravel()[cells]
+        b = filled.below.ravel()[cells]
         t = filled.t.ravel()[cells]
         moved = W[:, cells]
         Weff[:, cells] = 0.0
