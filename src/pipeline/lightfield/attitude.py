@@ -102,7 +102,8 @@ def attitude_at(log: pd.DataFrame, times_utc: pd.DatetimeIndex, frame_names=None
     for name, when in zip(names, times_utc):
         if when < first or when > last:
             raise InputError(log.attrs.get('path', 'attitude log'), f"frame {name} at {when.isoformat()} is outside "
-                             f"the attitude log ({first.isoformat()} to {last.isoformat()})")
+                             f"the attitude log ({first.isoformat()} to {last.isoformat()}; a frame time without an "
+                             "offset is the camera clock less --camera-utc-offset-h)")
         x = float(pd.Timestamp(when).as_unit("ns").value)
 
         def at(values, x=x):
