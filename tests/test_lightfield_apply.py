@@ -21,7 +21,6 @@ from __future__ import annotations
 from datetime import datetime
 
 import numpy as np
-import pytest
 import xarray as xr
 
 from pipeline.bands import BANDS
