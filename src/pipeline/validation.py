@@ -159,10 +159,12 @@ def inspect_dataset(root, *, checksums: bool = False,
         return None, list(check.problems)
     problems = list(check.problems)
     problems += _chessboard_problems(check)
-    problems += check_sidecars(check.root, check.experiments())
+    sidecars: dict = {}
+    problems += check_sidecars(check.root, check.experiments(), sidecars)
     frames: list[FrameTags] = []
     problems += _frame_problems(check, frames)
-    found, suspected = check_consistency(check.root, check.meta, check.lenses, frames, check.experiments())
+    found, suspected = check_consistency(check.root, check.meta, check.lenses, frames, check.experiments(),
+                                         sidecars=sidecars)
     problems += found
     if warnings is not None:
         warnings += suspected
