@@ -488,7 +488,7 @@ def _reference_time_checks(folder: Path, frames: list[FrameTags], reference) -> 
                 "2021-03-18T20:02:00Z or the zone, +hh:mm), or use the reference file of the frames' day")], []
     missed = np.flatnonzero(far > half_window_s)
     return [], [Problem(sky[k].path, message=(
-        f"no reference reading within {half_window_s:g} s of its UTC time {_iso(utc[k])} "
+        f"no reference reading within {half_window_s:g} s of its UTC time {utc[k].isoformat(sep=' ', timespec='seconds')} "
         f"(field/reference_radiometer.csv covers {_iso(first)} to {_iso(last)} UTC; {sky[k].where()}): "
         f"not a match-up"),
         fix="the field stage leaves it out; add the reference's readings of that time, or delete the row")
