@@ -133,6 +133,14 @@ def _resized(experiment: str, row: int):
     return plant
 
 
+def _regional(relative: str):
+    """The table saved by a spreadsheet set to a comma-decimal region: ';' between fields, decimal commas."""
+    def plant(root):
+        path = root / relative
+        path.write_text(path.read_text().replace(",", ";").replace(".", ","))
+    return plant
+
+
 #: the tiny dataset's frames are 256 x 128 pixels: far rows [0, 128), close rows [128, 256), cols [0, 128)
 # case -> (plant the mistake, the file named: a frame (experiment, row) or a path in the dataset, the phrase)
 PROBLEMS = {
@@ -201,6 +209,11 @@ PROBLEMS = {
         _reference_times(lambda t: (t - timedelta(hours=4)).isoformat(timespec="milliseconds")),
         "field/reference_radiometer.csv",
         "with camera_clock_utc_offset_h 0 every frame would have readings (times -4 h)"),
+    # 6. a regional spreadsheet's CSV: its own line only (its header read with ',' listed no channel of site.yaml)
+    "reference radiometer from a regional spreadsheet": (
+        _regional("field/reference_radiometer.csv"), "field/reference_radiometer.csv",
+        "line 2, column 'L_380': '3,743970e-02' has a decimal comma (fields separated by ';': a spreadsheet's "
+        "regional CSV)"),
     "reference file of another day": (
         _reference_times(lambda t: (t + timedelta(days=1)).isoformat(timespec="milliseconds") + "Z"),
         "field/reference_radiometer.csv", "miss every field sky frame"),
@@ -213,6 +226,12 @@ def _sorted_rows(experiment: str, by: list[str]):
         pd.read_csv(path).sort_values(by, kind="stable").to_csv(path, index=False)
     return plant
 
+
+#: cases whose mistake is the dataset's only problem (no other check is set off by it)
+ALONE = {"an unquoted serial of another body", "a field frame cropped by other software", "a 10-bit field frame",
+         "a field frame GBRG", "one region inside the other", "camera clock offset two hours off",
+         "clock offset off by twelve hours", "reference logged in local time without a zone",
+         "reference radiometer from a regional spreadsheet", "reference file of another day"}
 
 # case -> (plant, the file named, the phrase of the warning)
 WARNINGS = {
@@ -258,6 +277,8 @@ def test_inconsistency_stops_validate_naming_the_file(case, clean, tmp_path, cap
     assert "Traceback" not in out
     block = out.split(f"\n{file.relative_to(root)} (", 1)
     assert len(block) == 2 and phrase in block[1].split("\n\n")[0], out
+    if case in ALONE:
+        assert any(line.startswith("1 problem in 1 file ") for line in out.splitlines()), out
     with pytest.raises(InputError) as err:
         DatasetIndex(root).load()
     assert phrase in str(err.value) or any(phrase in p.message or phrase in p.text() for p in err.value.problems)

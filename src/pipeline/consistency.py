@@ -93,10 +93,13 @@ def check_consistency(root: Path, meta, lenses, frames: list[FrameTags], experim
     warnings += _time_warnings(frames, now_utc if now_utc is not None
                               else datetime.now(timezone.utc).replace(tzinfo=None))
     if "field" in experiments:
-        problems += _channel_problems(root / "field")
+        reference = (sidecars or {}).get("field/reference_radiometer.csv")
+        if sidecars is None:
+            problems += _channel_problems(root / "field", _reference_header(root / "field" / "reference_radiometer.csv"))
+        elif reference is not None:         # a file with problems of its own (a regional CSV) has them named
+            problems += _channel_problems(root / "field", [str(c) for c in reference.columns])
         field_frames = [f for f in frames if f.experiment == "field"]
         warnings += _sun_warnings(root / "field", field_frames)
-        reference = (sidecars or {}).get("field/reference_radiometer.csv")
         if reference is not None:
             found, suspected = _reference_time_checks(root / "field", field_frames, reference)
             problems += found
@@ -361,10 +364,10 @@ def _reference_header(path: Path) -> list[str] | None:
     return None
 
 
-def _channel_problems(folder: Path) -> list[Problem]:
-    """The L_<nm> columns of reference_radiometer.csv are the channels site.yaml's reference lists."""
+def _channel_problems(folder: Path, header: list[str] | None) -> list[Problem]:
+    """The L_<nm> columns of reference_radiometer.csv (``header``, its column names) are the channels
+    site.yaml's reference lists."""
     site = _site(folder)
-    header = _reference_header(folder / "reference_radiometer.csv")
     if not site or header is None:
         return []
     listed = site.get("reference", {}).get("channels_nm")
