@@ -46,3 +46,13 @@ def test_a_configfile_with_a_key_twice_stops_the_workflow(tmp_path):
         f"error: {lab}: line 4: key 'dark' appears twice (first on line 1); keep one of the two (YAML would "
         "silently use the last)"], proc.stderr[-2000:]
     assert "Traceback" not in proc.stderr and not (tmp_path / "results").exists()
+
+
+def test_an_angle_outside_its_range_is_refused_at_start_up():
+    """Another instance of the schema's ranges: the field mask's half angle past 90 deg (a full width
+    written for the half) names the key, the value and the range."""
+    config = load_config()
+    config["field"] = {**config["field"], "mask_half_angle_deg": 120.0}
+    with pytest.raises(InputError) as err:
+        check_config(config, "config/config.yaml")
+    assert str(err.value) == "config/config.yaml: config field.mask_half_angle_deg: 120.0 is outside its range (0, 90]"

@@ -399,3 +399,20 @@ def test_dark_stage_names_a_black_level_tag_far_from_the_data(clean, tmp_path, c
     note = art.attrs["black_level_tag_note"]
     assert note.startswith("ISO 100: dark level 800.") and "but the BlackLevel tag says 0 DN" in note, note
     assert note.count("ISO ") == 6 and "dark.black_level_tag_max_fraction = 0.01" in note, note
+
+
+def test_a_lens_named_no_is_a_lens_named_no(clean, tmp_path, capsys):
+    """YAML 1.1 reads an unquoted ``no:`` as False: a lens named ``no`` in dataset.yaml (and frames.csv)
+    stays the lens 'no' (every frames.csv row names a lens dataset.yaml has), and validate passes."""
+    def plant(root):
+        path = root / "dataset.yaml"
+        path.write_text(path.read_text().replace("  close:\n", "  no:\n"))
+        for experiment in ("dark", "linearity", "field"):
+            table = pd.read_csv(root / experiment / "frames.csv")
+            table["lens"] = table["lens"].replace("close", "no")
+            table.to_csv(root / experiment / "frames.csv", index=False)
+
+    root = _copy(clean, tmp_path, plant)
+    capsys.readouterr()
+    assert main(["validate", str(root)]) == 0, capsys.readouterr().out
+    assert DatasetIndex(root).lenses() == ["far", "no"]
