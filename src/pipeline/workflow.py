@@ -217,32 +217,53 @@ UPSTREAM_IN_MEMORY_BYTES = 4 * 2**20
 #: dataset folder -> (its files' fingerprint, the dataset) of the last check in this process that found no
 #: problem: a stage run again on the unchanged folder (the stages of one calibration in a script) is not
 #: checked again
-_CHECKED: dict[Path, tuple[tuple, Dataset]] = {}
+_CHECKED: dict[tuple, tuple[tuple, Dataset]] = {}
 
 
-def _fingerprint(root: Path) -> tuple:
-    """(path, size, modification time) of every file of the dataset folder: any edit changes it."""
+def _fingerprint(root: Path, experiments=None) -> tuple:
+    """(path, size, modification time) of every file the check reads: those at the dataset's top
+    (dataset.yaml, MD5SUMS), every frames.csv, and every file of the checked experiments' folders (all
+    folders when ``experiments`` is None): any edit of them changes it."""
     out = []
-    for path in sorted(root.rglob("*")):
-        stat = path.stat()
-        if path.is_file():
-            out.append((path.relative_to(root).as_posix(), stat.st_size, stat.st_mtime_ns))
+    for path in sorted(root.iterdir()):
+        if path.is_dir() and (experiments is None or path.name in experiments):
+            files = sorted(p for p in path.rglob("*") if p.is_file())
+        else:
+            files = [path / "frames.csv"] if path.is_dir() else [path]
+        for file in files:
+            try:
+                stat = file.stat()
+            except OSError:          # no frames.csv: the layout check names it
+                continue
+            out.append((file.relative_to(root).as_posix(), stat.st_size, stat.st_mtime_ns))
     return tuple(out)
 
 
-def checked_dataset(root: str | Path) -> Dataset:
-    """The dataset at ``root`` after every check ``python -m pipeline validate`` makes (the layout, the
-    tags of every frame, the sidecars, their consistency: ``pipeline.validation.inspect_dataset``); an
-    InputError naming the first problem (and counting the others) when there is one, the suspicions
-    logged as warnings. The result is kept while no file of the folder changes."""
+def check_experiments(stage: str) -> tuple[str, ...]:
+    """The experiments whose frames a stage run on its own is checked with: its own and those of the
+    stages it needs (their artefacts are made from them); the field's calibration bundle was checked with
+    the lab's frames when it was made, so the field checks its own."""
+    spec = STAGES[stage]
+    out = [spec.experiment]
+    for name in spec.upstream:
+        out += [e for e in check_experiments(name) if e not in out]
+    return tuple(out)
+
+
+def checked_dataset(root: str | Path, experiments=None) -> Dataset:
+    """The dataset at ``root`` after the checks ``python -m pipeline validate`` makes (the layout, the
+    tags of every frame, the sidecars, their consistency: ``pipeline.validation.inspect_dataset``), the
+    frames and sidecars of ``experiments`` only when given; an InputError naming the first problem (and
+    counting the others) when there is one, the suspicions logged as warnings. The result is kept while
+    no file of the folder changes."""
     root = Path(root)
-    key = root.resolve()
-    fingerprint = _fingerprint(key) if key.is_dir() else ()
+    key = (root.resolve(), None if experiments is None else tuple(sorted(experiments)))
+    fingerprint = _fingerprint(key[0], experiments) if key[0].is_dir() else ()
     kept = _CHECKED.get(key)
     if kept is not None and kept[0] == fingerprint:
         return kept[1]
     warnings: list = []
-    dataset, problems = inspect_dataset(root, warnings=warnings)
+    dataset, problems = inspect_dataset(root, warnings=warnings, experiments=experiments)
     for line in grouped_warning_lines(warnings, root):
         log.warning("%s", line.removeprefix("warning: "))
     if problems:
@@ -261,9 +282,10 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
     upstream artefact that is missing stops the stage with a clear message.
     ``bundle`` is the calibration bundle that a stage with ``bundle`` applies.
     A dataset folder is first checked as ``validate`` checks it (:func:`checked_dataset`: the frames' tags
-    against each other and dataset.yaml, the sidecars against each other and the frames), so a stage run
-    directly never uses what validate refuses; ``checked`` says that this was done already (the workflow's
-    jobs: its start-up check ran it on the same folder before any job), and then only the layout is read.
+    against each other and dataset.yaml, the sidecars against each other and the frames), on the
+    experiments of :func:`check_experiments`, so a stage run directly never uses what validate refuses;
+    ``checked`` says that this was done already (the workflow's jobs: its start-up check ran it on the
+    whole folder before any job), and then only the layout is read.
     """
     spec = STAGES[stage]
     module = spec.module()
@@ -271,9 +293,9 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
     if isinstance(dataset, Dataset):
         ds = dataset
         if not checked:
-            checked_dataset(dataset.root)
+            checked_dataset(dataset.root, check_experiments(stage))
     else:
-        ds = open_dataset(dataset) if checked else checked_dataset(dataset)
+        ds = open_dataset(dataset) if checked else checked_dataset(dataset, check_experiments(stage))
     if spec.experiment not in ds.experiments():
         raise InputError(ds.root / spec.experiment, "experiment folder is absent")
     upstream = {name: dict(paths) for name, paths in (upstream or {}).items() if paths}
