@@ -416,3 +416,22 @@ def test_a_lens_named_no_is_a_lens_named_no(clean, tmp_path, capsys):
     capsys.readouterr()
     assert main(["validate", str(root)]) == 0, capsys.readouterr().out
     assert DatasetIndex(root).lenses() == ["far", "no"]
+
+
+def test_the_runs_clock_search_decides_what_no_match_up_means(clean, tmp_path):
+    """The camera clock offset two hours off (frames 22:00 to 23:00 UTC, readings up to 21:01): with the
+    schema's field.clock_offset_search_s (300 s) no match-up is possible, a problem; a run whose config
+    searches 3 hours (the workflow's start-up check reads the run's field section) could shift the frames
+    onto the readings, so the check only warns about the frames without a reading in their window."""
+    from pipeline.validation import inspect_dataset
+
+    root = _copy(clean, tmp_path, _site(camera_clock_utc_offset_h=-6.0))
+    _, problems = inspect_dataset(root)
+    assert [p.path.name for p in problems] == ["reference_radiometer.csv"], problems
+    warnings = []
+    _, problems = inspect_dataset(root, warnings=warnings, field_settings={"clock_offset_search_s": 10800.0})
+    assert problems == []
+    missed = [w for w in warnings if w.message.startswith("no reference reading within 5 s")]
+    assert len(missed) == 31, warnings
+    index = DatasetIndex(root, {"field": {"clock_offset_search_s": 10800.0, "reference_window_s": 10.0}})
+    assert index.lenses() == ["far", "close"]

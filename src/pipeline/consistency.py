@@ -71,15 +71,17 @@ class FrameTags:
 
 
 def check_consistency(root: Path, meta, lenses, frames: list[FrameTags], experiments,
-                      now_utc: datetime | None = None,
-                      sidecars: dict | None = None) -> tuple[list[Problem], list[Problem]]:
+                      now_utc: datetime | None = None, sidecars: dict | None = None,
+                      field_settings: dict | None = None) -> tuple[list[Problem], list[Problem]]:
     """(problems, warnings) of the frames' tags against each other and dataset.yaml, the lens regions
     against each other, and the field sidecars against each other and the frames' times.
 
     ``meta`` is dataset.yaml as parsed (None when unreadable), ``lenses`` its regions (None when
     unusable); ``now_utc`` (naive UTC, default the clock) is when "the future" starts; ``sidecars`` what
     ``pipeline.dataset.check_sidecars`` read (path relative to the dataset -> value), of which the
-    reference radiometer's times are compared with the field frames' (not read again here).
+    reference radiometer's times are compared with the field frames' (not read again here), with the
+    match-up's window and clock-offset search of ``field_settings`` (the run's ``field`` config section;
+    default the schema's).
     """
     root = Path(root)
     problems: list[Problem] = []
@@ -101,7 +103,7 @@ def check_consistency(root: Path, meta, lenses, frames: list[FrameTags], experim
         field_frames = [f for f in frames if f.experiment == "field"]
         warnings += _sun_warnings(root / "field", field_frames)
         if reference is not None:
-            found, suspected = _reference_time_checks(root / "field", field_frames, reference)
+            found, suspected = _reference_time_checks(root / "field", field_frames, reference, field_settings)
             problems += found
             warnings += suspected
     warnings += _row_order_warnings(frames)
@@ -439,15 +441,17 @@ def _iso(t: datetime) -> str:
 _SHIFTS_H = sorted({k / 4 for k in range(-28 * 4, 28 * 4 + 1)}, key=lambda h: (h % 1 != 0, h % 0.5 != 0, abs(h)))
 
 
-def _reference_time_checks(folder: Path, frames: list[FrameTags], reference) -> tuple[list[Problem], list[Problem]]:
+def _reference_time_checks(folder: Path, frames: list[FrameTags], reference,
+                           settings: dict | None = None) -> tuple[list[Problem], list[Problem]]:
     """The field sky frames' UTC times against the reference radiometer's readings: none of them within the
     reach of the stage's match-up (its window and the clock offset it searches) is a problem, since no
     match-up is possible: a time zone or daylight-saving mistake in camera_clock_utc_offset_h, the
     reference's local times written without a zone, or a file of another day; some frames without a reading
     in their window is a warning naming them (the stage counts them and leaves them out).
 
-    The window and the search are the schema's defaults of ``field.reference_window_s`` and
-    ``field.clock_offset_search_s`` (``validate`` runs without a config)."""
+    The window and the search are ``field.reference_window_s`` and ``field.clock_offset_search_s`` of
+    ``settings`` (the workflow's config), the schema's defaults without it (``validate`` runs without a
+    config)."""
     import numpy as np
     import pandas as pd
 
@@ -458,7 +462,7 @@ def _reference_time_checks(folder: Path, frames: list[FrameTags], reference) -> 
     times = pd.DatetimeIndex(reference["time"]) if "time" in reference else pd.DatetimeIndex([])
     if not sky or not site or site.get("camera_clock_utc_offset_h") is None or len(times) == 0:
         return [], []
-    field = defaults()["field"]
+    field = {**defaults()["field"], **(settings or {})}
     half_window_s = float(field["reference_window_s"]) / 2.0
     reach_s = half_window_s + float(field["clock_offset_search_s"])
     offset = float(site["camera_clock_utc_offset_h"])

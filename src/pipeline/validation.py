@@ -163,7 +163,7 @@ def _chessboard_problems(check: LayoutCheck) -> list[Problem]:
 
 
 def inspect_dataset(root, *, checksums: bool = False, warnings: list[Problem] | None = None,
-                    experiments=None) -> tuple[Dataset | None, list[Problem]]:
+                    experiments=None, field_settings: dict | None = None) -> tuple[Dataset | None, list[Problem]]:
     """The dataset (None unless it is fine) and every problem found.
 
     Checks dataset.yaml, MD5SUMS, every frames.csv, the tags every frame needs
@@ -177,6 +177,8 @@ def inspect_dataset(root, *, checksums: bool = False, warnings: list[Problem] | 
     below the horizon at the field site): the caller prints them.  ``experiments``, when given, limits
     the frames, sidecars and their consistency to those experiments (a stage run on its own reads no
     other frames); dataset.yaml, MD5SUMS and every frames.csv are checked in any case.
+    ``field_settings`` is the run's ``field`` config section (the reference's match-up window and clock
+    search; default the schema's).
     """
     check = inspect_layout(root)
     if not check.root.is_dir():
@@ -189,7 +191,8 @@ def inspect_dataset(root, *, checksums: bool = False, warnings: list[Problem] | 
     problems += check_sidecars(check.root, present, sidecars)
     frames: list[FrameTags] = []
     problems += _frame_problems(check, frames, present)
-    found, suspected = check_consistency(check.root, check.meta, check.lenses, frames, present, sidecars=sidecars)
+    found, suspected = check_consistency(check.root, check.meta, check.lenses, frames, present, sidecars=sidecars,
+                                         field_settings=field_settings)
     problems += found
     if warnings is not None:
         warnings += suspected

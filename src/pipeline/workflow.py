@@ -250,20 +250,22 @@ def check_experiments(stage: str) -> tuple[str, ...]:
     return tuple(out)
 
 
-def checked_dataset(root: str | Path, experiments=None) -> Dataset:
+def checked_dataset(root: str | Path, experiments=None, field_settings: dict | None = None) -> Dataset:
     """The dataset at ``root`` after the checks ``python -m pipeline validate`` makes (the layout, the
     tags of every frame, the sidecars, their consistency: ``pipeline.validation.inspect_dataset``), the
     frames and sidecars of ``experiments`` only when given; an InputError naming the first problem (and
     counting the others) when there is one, the suspicions logged as warnings. The result is kept while
     no file of the folder changes."""
     root = Path(root)
-    key = (root.resolve(), None if experiments is None else tuple(sorted(experiments)))
+    key = (root.resolve(), None if experiments is None else tuple(sorted(experiments)),
+           json.dumps(field_settings, sort_keys=True, default=str))
     fingerprint = _fingerprint(key[0], experiments) if key[0].is_dir() else ()
     kept = _CHECKED.get(key)
     if kept is not None and kept[0] == fingerprint:
         return kept[1]
     warnings: list = []
-    dataset, problems = inspect_dataset(root, warnings=warnings, experiments=experiments)
+    dataset, problems = inspect_dataset(root, warnings=warnings, experiments=experiments,
+                                        field_settings=field_settings)
     for line in grouped_warning_lines(warnings, root):
         log.warning("%s", line.removeprefix("warning: "))
     if problems:
@@ -293,9 +295,10 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
     if isinstance(dataset, Dataset):
         ds = dataset
         if not checked:
-            checked_dataset(dataset.root, check_experiments(stage))
+            checked_dataset(dataset.root, check_experiments(stage), config.get("field"))
     else:
-        ds = open_dataset(dataset) if checked else checked_dataset(dataset, check_experiments(stage))
+        ds = open_dataset(dataset) if checked else checked_dataset(dataset, check_experiments(stage),
+                                                                   config.get("field"))
     if spec.experiment not in ds.experiments():
         raise InputError(ds.root / spec.experiment, "experiment folder is absent")
     upstream = {name: dict(paths) for name, paths in (upstream or {}).items() if paths}
@@ -423,15 +426,17 @@ def stage_code_sha256(stage: str) -> str:
 class DatasetIndex:
     """A dataset validated once per workflow run: layout, checksums list, frames.csv and tags."""
 
-    def __init__(self, root: str | Path):
+    def __init__(self, root: str | Path, config: dict | None = None):
         self.root = Path(root)
         self.dataset: Dataset | None = None
+        #: the run's field section (the reference's match-up window and clock search the check uses)
+        self.field_settings = (config or {}).get("field")
 
     def load(self) -> "DatasetIndex":
         """Validate once (``pipeline.validation``); on problems print them grouped and raise InputError."""
         if self.dataset is None:
             warnings = []
-            dataset, problems = inspect_dataset(self.root, warnings=warnings)
+            dataset, problems = inspect_dataset(self.root, warnings=warnings, field_settings=self.field_settings)
             for line in grouped_warning_lines(warnings, self.root):
                 print(line, file=sys.stderr)
             if problems:
