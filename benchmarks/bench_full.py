@@ -336,6 +336,8 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 
 
 def main() -> None:
+    from record import append_rows
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--experiments", default="dark,linearity,geometry,rolloff,spectral,absolute,immersion")
     ap.add_argument("--work", default=str(HERE / "out" / "full"), help="datasets, artefacts and the CSV go here")
@@ -414,6 +416,7 @@ def main() -> None:
         if not args.keep:
             remove_dataset(source)
         write_csv(work / f"bench_scaling-{exp}.csv", rows)
+        append_rows("bench_scaling", rows)
         return
     results = work / "results"
     for exp in args.experiments.split(","):
@@ -430,6 +433,7 @@ def main() -> None:
         if not args.keep:
             remove_dataset(dataset)
         write_csv(work / f"bench_full-{args.experiments.replace(',', '-')}.csv", rows)
+    append_rows("bench_full", rows)
 
 
 if __name__ == "__main__":

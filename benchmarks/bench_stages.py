@@ -7,7 +7,8 @@ Simulates the dataset once (kept in benchmarks/out/), then runs every stage,
 one lens at a time (one workflow job), in a fresh Python process, --repeat times, and prints the minimum, median and
 maximum wall time, the median CPU time and the peak resident memory of the stage's process. Each
 job gets one BLAS/OpenMP thread, as Snakemake gives a rule of ``threads: 1``.
-Results go to benchmarks/out/<scale>.csv as well.
+Results go to benchmarks/out/<scale>.csv as well, and are appended to benchmarks/results/bench_stages.csv
+(benchmarks/record.py: date, commit, machine, command).
 """
 
 from __future__ import annotations
@@ -109,6 +110,9 @@ def main() -> None:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
+    from record import append_rows
+
+    append_rows("bench_stages", rows)
 
 
 if __name__ == "__main__":
