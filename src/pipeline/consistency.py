@@ -92,8 +92,10 @@ def check_consistency(root: Path, meta, lenses, frames: list[FrameTags], experim
     problems += _camera_problems(root, camera if isinstance(camera, dict) else {}, frames)
     problems += _cfa_problems(frames)
     problems += _level_problems(frames)
-    warnings += _time_warnings(frames, now_utc if now_utc is not None
-                              else datetime.now(timezone.utc).replace(tzinfo=None))
+    timed = _time_warnings(frames, now_utc if now_utc is not None else datetime.now(timezone.utc).replace(tzinfo=None))
+    warnings += timed
+    # a frame whose time stamp is already suspect (in the future, far from the others) is named once, for that
+    suspect = {w.path for w in timed if "is out of order" not in w.message}
     if "field" in experiments:
         reference = (sidecars or {}).get("field/reference_radiometer.csv")
         if sidecars is None:
@@ -103,7 +105,8 @@ def check_consistency(root: Path, meta, lenses, frames: list[FrameTags], experim
         field_frames = [f for f in frames if f.experiment == "field"]
         warnings += _sun_warnings(root / "field", field_frames)
         if reference is not None:
-            found, suspected = _reference_time_checks(root / "field", field_frames, reference, field_settings)
+            found, suspected = _reference_time_checks(root / "field", [f for f in field_frames if f.path not in suspect],
+                                                      reference, field_settings)
             problems += found
             warnings += suspected
     warnings += _row_order_warnings(frames)
