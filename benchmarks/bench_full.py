@@ -95,7 +95,8 @@ def job_child(stage: str, dataset: str, results: str, lens: str, bundle: str = "
     upstream = {name: {lens: res / f"{name}/{lens}.nc"} for name in spec.upstream + spec.optional_upstream
                 if (res / f"{name}/{lens}.nc").exists()}
     t0, c0 = time.perf_counter(), time.process_time()
-    run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream, bundle=bundle or None)
+    # as a workflow job runs it: the workflow's start-up check validated the folder before any job
+    run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream, bundle=bundle or None, checked=True)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_mib()}))
 

@@ -1020,13 +1020,21 @@ _SIDECAR_READERS = {
 assert set(_SIDECAR_READERS) == {f"{exp}/{name}" for exp, names in SIDECARS.items() for name in names}
 
 
-def check_sidecars(root, experiments) -> list[Problem]:
-    """Every problem of the sidecar files of the given (present) experiments."""
+def check_sidecars(root, experiments, values: dict | None = None) -> list[Problem]:
+    """Every problem of the sidecar files of the given (present) experiments.
+
+    ``values``, when given, receives what each sidecar read (its path relative to the dataset -> the
+    reader's value) when that file has no problem: the consistency checks compare them without reading
+    the files again."""
     root = Path(root)
     problems: list[Problem] = []
     for experiment in experiments:
         for name in SIDECARS.get(experiment, ()):
-            _SIDECAR_READERS[f"{experiment}/{name}"](root / experiment / name, problems)
+            found: list[Problem] = []
+            value = _SIDECAR_READERS[f"{experiment}/{name}"](root / experiment / name, found)
+            if values is not None and not found:
+                values[f"{experiment}/{name}"] = value
+            problems += found
     return problems
 
 

@@ -27,7 +27,9 @@ reduces them to:
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -45,6 +47,7 @@ from pipeline.radiometry.exposure import gain_from_iso
 from pipeline.rawio import read_tags
 
 STAGE = "dark"
+log = logging.getLogger("pipeline.stages.dark")
 
 
 def _setting_key(raw) -> tuple[float, float]:
@@ -204,6 +207,7 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
     corners = {}
     circles = {}
     frame_rows = []
+    tag_levels: dict[int, tuple[float, float]] = {}   # file_index -> (BlackLevel, WhiteLevel) tags
     inputs = {}
     optical_black = []
     dark_reference = {}                            # lens -> what measures each dark frame's black level
@@ -258,6 +262,7 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
                     corner_dn, n_ob = dec.raw.optical_black_dn, dec.raw.optical_black_count
                 else:
                     corner_dn, n_ob = np.nan, 0
+                tag_levels[i] = (float(dec.raw.black_level), float(dec.raw.white_level))
                 frame_rows.append({
                     "lens": lens, "band": band, "iso": key[0], "exposure_s": key[1], "file_index": i,
                     "circle_mean_dn": float(img[circles[(lens, band)]].mean()), "corner_dn": corner_dn,
@@ -271,6 +276,7 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
     has_ob = bool(optical_black) and all(optical_black)
     return {"stats": stats, "settings": sorted(counts), "hot": hot, "base": base, "frames": table,
             "corners": corners, "inputs": inputs, "lenses": lenses, "edges": edges, "projections": projections,
+            "tag_levels": tag_levels, "paths": list(frames["path"]),
             "bias_reference": {lens: bias_reference(p, has_ob) for lens, p in projections.items()},
             "dark_bias_reference": dark_reference}
 
@@ -377,6 +383,34 @@ def mark_not_measured(ds: xr.Dataset, design: dict[str, bool], with_dark_current
             f"dark.hot_pixel_persistence = {persistence} longest), the dark frames have {len(times)}: no pixel flagged"))
     else:
         ds["hot_pixel_mask"].attrs["measured"] = 1
+
+
+def black_level_tag_note(fr: pd.DataFrame, reduced: dict, max_fraction: float) -> str:
+    """The ISOs whose dark level, measured at their shortest exposure (the image circle's mean of each frame
+    and band, their median: dark current and hot pixels negligible there), sits more than ``max_fraction``
+    of the white level from the median BlackLevel tag of those frames; empty when none does. The stages
+    subtract the measured dark level, but the tag sets the full scale (saturation margins, the sun seen in a
+    field frame): a tag far from the data is another raw mode's, or light reached the sensor."""
+    levels = reduced.get("tag_levels") or {}
+    paths = reduced.get("paths") or []
+    found = []
+    for iso, rows in fr.groupby("iso", sort=True):
+        shortest = rows[rows["exposure_s"] == rows["exposure_s"].min()]
+        tags = [levels[i] for i in sorted(set(shortest["file_index"].astype(int))) if i in levels]
+        if not tags:
+            continue
+        tag = float(np.median([b for b, _ in tags]))
+        white = float(np.median([w for _, w in tags]))
+        measured = float(np.median(shortest["circle_mean_dn"]))
+        if abs(measured - tag) > max_fraction * white:
+            first = int(shortest["file_index"].min())
+            name = Path(paths[first]).name if first < len(paths) else f"frame {first}"
+            found.append(f"ISO {iso:g}: dark level {measured:.1f} DN at {float(shortest['exposure_s'].iloc[0]):g} s "
+                         f"but the BlackLevel tag says {tag:g} DN ({name} and {len(tags) - 1} more)")
+    if not found:
+        return ""
+    return ("; ".join(found) + f": more than dark.black_level_tag_max_fraction = {max_fraction:g} of the white level "
+            "apart (a tag of another raw mode or converter, or light reaching the sensor through the cap)")
 
 
 def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, xr.Dataset]:
@@ -497,6 +531,10 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     for ds in out.values():
         mark_not_measured(ds, design, "dark_current" in effects, settings, config["dark"]["hot_pixel_persistence"])
     for lens, ds in out.items():
+        note = black_level_tag_note(fr[fr["lens"] == lens], reduced, config["dark"]["black_level_tag_max_fraction"])
+        if note:
+            log.warning("dark %s: %s", lens, note)
+            ds.attrs["black_level_tag_note"] = note
         reference = reduced.get("bias_reference", {}).get(lens, "unlit corners")
         ds.attrs["projection"] = reduced.get("projections", {}).get(lens, "fisheye")
         ds.attrs["bias_reference"] = reference
