@@ -32,10 +32,11 @@ lint: $(VENV)/.installed
 	$(BIN)/snakefmt --check Snakefile workflow/rules
 
 # --dist loadfile: the tests of one file run on one worker, so a module's fixture (a simulated and
-# calibrated dataset) is built once; --durations: the slowest tests and fixtures of every run are
+# calibrated dataset) is built once; --no-loadscope-reorder: the files go out in the order tests/conftest.py
+# gives them (the longest first), not sorted by their number of tests; --durations: the slowest tests and fixtures of every run are
 # printed at the end, so the suite's cost is on record where it is paid
 test: lint
-	$(BIN)/python -m pytest -n $(CORES) --dist loadfile -q --durations=25
+	$(BIN)/python -m pytest -n $(CORES) --dist loadfile --no-loadscope-reorder -q --durations=25
 
 # the documentation site (docs/conf.py): every warning is an error (-q: only they are printed, so that the
 # test run's summary stays the last lines of .ci/run); the pages open at docs/_build/html/index.html

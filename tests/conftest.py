@@ -101,8 +101,10 @@ def calibrated(make_dataset, config, tmp_path_factory):
 
 
 #: the test files that take longest (wall seconds on 2 workers, measured from `pytest --durations`), run first:
-#: with ``--dist loadfile`` each file goes whole to one worker in the order collected, so the long ones first
-#: and the short ones filling in after is what keeps both workers busy to the end (longest-first scheduling)
+#: with ``--dist loadfile --no-loadscope-reorder`` each file goes whole to one worker in the order collected
+#: (without ``--no-loadscope-reorder`` the files would go out sorted by their number of tests, the few-test
+#: long ones last), so the long ones first and the short ones filling in after is what keeps both workers
+#: busy to the end (longest-first scheduling)
 LONGEST_FIRST = ("test_workflow.py", "test_workflow_default.py", "test_workflow_radiometric.py",
                  "test_field_scale_coverage.py", "test_compare.py",
                  "test_geometry_stage.py", "test_geometry_theta_accuracy.py", "test_coverage_over_seeds.py",
