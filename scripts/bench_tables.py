@@ -67,18 +67,10 @@ def render(text: str) -> str:
 
 
 def main(argv: list[str]) -> int:
-    text = DOC.read_text(encoding="utf-8")
-    new = render(text)
-    if argv == ["--check"]:
-        if new != text:
-            print(f"{DOC} is stale: run python scripts/bench_tables.py --write", file=sys.stderr)
-            return 1
-        return 0
-    if argv == ["--write"]:
-        DOC.write_text(new, encoding="utf-8")
-        return 0
-    print(__doc__)
-    return 2
+    from generated_page import check_or_write   # beside this script (run as a script, its folder is on the path)
+
+    new = render(DOC.read_text(encoding="utf-8"))
+    return check_or_write(argv, DOC, new, "python scripts/bench_tables.py --write", __doc__)
 
 
 if __name__ == "__main__":
