@@ -326,7 +326,7 @@ def test_new_dark_frames_rerun_only_what_depends_on_them(run):
 
 
 def test_missing_file_stops_with_one_line(make_dataset, tmp_path):
-    src, _ = make_dataset([], seed=32)
+    src, _ = make_dataset()   # the session's default tiny dataset, copied before it is damaged
     dataset = tmp_path / "dataset"
     shutil.copytree(src, dataset)
     frames = pd.read_csv(dataset / "linearity/frames.csv")
@@ -340,7 +340,7 @@ def test_missing_file_stops_with_one_line(make_dataset, tmp_path):
 
 
 def test_corrupt_frame_stops_the_stage_cleanly(make_dataset, tmp_path):
-    src, _ = make_dataset([], seed=33)
+    src, _ = make_dataset()   # the session's default tiny dataset, copied before it is damaged
     dataset = tmp_path / "dataset"
     shutil.copytree(src, dataset)
     frames = pd.read_csv(dataset / "dark/frames.csv")
@@ -356,7 +356,7 @@ def test_corrupt_frame_stops_the_stage_cleanly(make_dataset, tmp_path):
 
 
 def test_absent_experiment_is_skipped_and_reported(make_dataset, tmp_path):
-    src, _ = make_dataset([], seed=34)
+    src, _ = make_dataset()   # the session's default tiny dataset, copied before it is damaged
     dataset = tmp_path / "dataset"
     shutil.copytree(src, dataset, ignore=shutil.ignore_patterns("linearity"))
     lines = [line for line in (dataset / "MD5SUMS").read_text().splitlines() if "linearity/" not in line]
