@@ -208,3 +208,38 @@ def test_unlisted_file_is_a_warning(dataset, cli, capsys):
     assert len(lines) == 2 and lines[1].startswith("ok: ")
     DatasetIndex(dataset).load()                                   # the workflow's start-up check: on stderr
     assert capsys.readouterr().err.splitlines() == [lines[0]]
+
+
+def test_the_tag_cache_spares_a_second_start_and_reads_an_edited_frame_again(make_dataset, tmp_path, monkeypatch):
+    """A second check of the same dataset in a new process (the process's own cache emptied) reads no frame's
+    tags; a frame written again (same bytes, new change time) is read again, alone; ``off`` reads them all."""
+    import pipeline.validation as validation
+
+    src, _ = make_dataset()
+    root = tmp_path / "dataset"
+    shutil.copytree(src, root)
+    monkeypatch.setenv(validation.TAG_CACHE_ENV, str(tmp_path / "cache"))
+    reads = []
+
+    def counting(path):
+        reads.append(path)
+        return read_tags(path)
+
+    read_tags = validation.read_tags
+    monkeypatch.setattr(validation, "read_tags", counting)
+
+    def start():
+        validation._TAGS_SEEN.clear()
+        reads.clear()
+        dataset, problems = inspect_dataset(root)
+        assert problems == [] and dataset is not None
+        return len(reads)
+
+    n_frames = start()
+    assert n_frames > 100 and validation.tag_cache_file(root).is_file()
+    assert start() == 0
+    frame = sorted((root / "dark" / "raw").glob("*.dng"))[0]
+    frame.write_bytes(frame.read_bytes())
+    assert start() == 1 and reads[0].name == frame.name
+    monkeypatch.setenv(validation.TAG_CACHE_ENV, "off")
+    assert start() == n_frames

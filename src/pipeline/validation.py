@@ -10,7 +10,10 @@ problems of many raw files merged per folder).  The command line's
 
 from __future__ import annotations
 
+import hashlib
 import math
+import os
+import pickle
 import re
 from collections import Counter
 from datetime import datetime
@@ -19,6 +22,7 @@ from pathlib import Path
 from pipeline.consistency import FrameTags, check_consistency
 from pipeline.dataset import SIDECARS, Dataset, LayoutCheck, check_checksums, check_sidecars, inspect_layout
 from pipeline.errors import InputError, Problem
+from pipeline import rawio
 from pipeline.rawio import TAG_NAMES, read_tags, tag_problem
 
 __all__ = ["REQUIRED_TAGS", "validate_dataset", "inspect_dataset", "check_tags", "format_problems", "ok_line",
@@ -58,6 +62,66 @@ def _tags_seen(raw_path: Path) -> dict:
             _TAGS_SEEN.clear()
         tags = _TAGS_SEEN[key] = read_tags(raw_path)
     return {**tags, "path": Path(raw_path)}
+
+
+#: environment variable naming the folder of the tag cache (``off``: no cache, every start reads every file)
+TAG_CACHE_ENV = "PIPELINE_CACHE_DIR"
+
+
+def tag_cache_file(root) -> Path | None:
+    """The file that keeps the tags of the frames under dataset folder ``root`` between processes.
+
+    A workflow run checks the whole dataset at every start, a dry run included, and reading the tags of
+    thousands of frames is most of that check. The file lies in ``$PIPELINE_CACHE_DIR`` or the user's cache
+    folder (``$XDG_CACHE_HOME``, else ``~/.cache``), under ``camera-radiometer-pipeline/tags/``, one per
+    dataset folder; an entry is used only for a file of the same path, size, modification and change times
+    and inode (an edited or replaced frame is read again), and only by the reader that wrote it (the key
+    holds a hash of ``pipeline.rawio``'s source). None when the variable is ``off``.
+    """
+    where = os.environ.get(TAG_CACHE_ENV, "")
+    if where.lower() == "off":
+        return None
+    base = Path(where) if where else Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / \
+        "camera-radiometer-pipeline"
+    name = hashlib.sha256(str(Path(root).resolve()).encode()).hexdigest()[:24]
+    return base / "tags" / f"{name}.pickle"
+
+
+def _reader_version() -> str:
+    return hashlib.sha256(Path(rawio.__file__).read_bytes()).hexdigest()
+
+
+def _load_tag_cache(root) -> int:
+    """The cached tags of ``root``'s frames into the process's own cache; the number of entries found."""
+    path = tag_cache_file(root)
+    if path is None or not path.is_file():
+        return 0
+    try:
+        version, entries = pickle.loads(path.read_bytes())
+    except Exception:  # noqa: BLE001 - a cache that cannot be read costs only the time of reading the frames
+        return 0
+    if version != _reader_version() or not isinstance(entries, dict):
+        return 0
+    for key, tags in entries.items():
+        _TAGS_SEEN.setdefault(key, tags)
+    return len(entries)
+
+
+def _save_tag_cache(root) -> None:
+    """The tags read of ``root``'s frames, written atomically (a process reading it meanwhile sees the old
+    file whole); a cache folder that cannot be written costs only time."""
+    path = tag_cache_file(root)
+    if path is None:
+        return
+    prefix = str(Path(root).resolve()) + os.sep
+    entries = {key: tags for key, tags in _TAGS_SEEN.items() if key[0].startswith(prefix)}
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        part = path.with_name(f"{path.name}.{os.getpid()}.part")
+        part.write_bytes(pickle.dumps((_reader_version(), entries), protocol=pickle.HIGHEST_PROTOCOL))
+        os.replace(part, path)
+    except OSError:
+        pass
 
 
 def check_tags(raw_path: Path) -> tuple[dict | None, list[Problem]]:
@@ -190,7 +254,11 @@ def inspect_dataset(root, *, checksums: bool = False, warnings: list[Problem] | 
     sidecars: dict = {}
     problems += check_sidecars(check.root, present, sidecars)
     frames: list[FrameTags] = []
+    cached = _load_tag_cache(check.root)
+    seen_before = len(_TAGS_SEEN)
     problems += _frame_problems(check, frames, present)
+    if len(_TAGS_SEEN) != seen_before or not cached:
+        _save_tag_cache(check.root)
     found, suspected = check_consistency(check.root, check.meta, check.lenses, frames, present, sidecars=sidecars,
                                          field_settings=field_settings)
     problems += found
