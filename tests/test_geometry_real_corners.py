@@ -63,10 +63,11 @@ def load_authors(lens: str) -> dict:
 
 
 def fit_options() -> dict:
-    """The calibrate options the geometry stage passes, from the configuration's defaults, with the stretch chosen
-    by evidence (geometry.stretch auto; the default stays symmetric, see src/pipeline/schema.yaml)."""
+    """The calibrate options the geometry stage passes, from the configuration's defaults (geometry.stretch auto:
+    the stretch chosen by evidence)."""
     cfg = load_config()["geometry"]
-    return dict(degree=cfg["polynomial_degree"], stretch="auto", min_frames=cfg["min_frames"],
+    assert cfg["stretch"] == "auto"
+    return dict(degree=cfg["polynomial_degree"], stretch=cfg["stretch"], min_frames=cfg["min_frames"],
                 outlier_factor=cfg["frame_outlier_factor"], point_outlier_factor=cfg["corner_outlier_factor"],
                 covariance=cfg["covariance"], stretch_significance=cfg["stretch_significance"],
                 jackknife_refit_max_boards=cfg["jackknife_refit_max_boards"])
