@@ -106,7 +106,7 @@ def main() -> None:
             fit = calibrate(without, authors["board_mm"], shape, **{**options, "stretch": chosen,
                                                                      "covariance": "reduced_chi2"})
             centres.append((fit.model.xc, fit.model.yc))
-            thetas.append(np.degrees(fit.model.theta_phi(u, v)[0]))
+            thetas.append(fit.model.theta_phi(u, v)[0])
         refit, refit_theta = jackknife_sd(centres), jackknife_sd(thetas)
         stated_theta, one_step_theta = theta_sigma(res, u, v), theta_sigma(one_step, u, v)
         plain = {**options, **NO_REJECTION, "stretch": chosen}
