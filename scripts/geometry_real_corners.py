@@ -6,7 +6,9 @@ REALDATA holds ``insta360-larouche/`` (default: ``$PIPELINE_REALDATA``). Per len
 fit with the configuration's defaults (:func:`pipeline.geometry.calibrate.calibrate`, as the geometry stage
 calls it) against the authors' solution, the stretch test, the stated sigma of the centre against a full
 leave-one-board-out refit (the whole fit redone from the corners without each board, centre grid search
-included) and against the one-step jackknife, and the symmetric stretch's fit for comparison. Writes CSV
+included) and against the one-step jackknife, the same for the field angle at 30, 60 and 80 degrees, the
+one-step jackknife against the refit with no outlier rejection, and the symmetric stretch's fit for
+comparison. Writes CSV
 to stdout, one row per lens, with date, commit, machine and command columns.
 """
 
@@ -26,15 +28,37 @@ import numpy as np
 from pipeline.config import load_config
 from pipeline.geometry.calibrate import _project, _rodrigues, calibrate
 from pipeline.geometry.matlab_fisheye import read_fisheye_params
+from pipeline.geometry.theta_uncertainty import theta_covariance
 
 FILES = {"close": "FishParamsClose_01_05_2019.mat", "far": "FishParamsFar_01_05_2019.mat"}
 #: field angles (degree) at which the fitted projection is compared with the authors'
 THETA_DEG = np.linspace(1.0, 85.0, 85)
+#: field angles (degree) at which the stated sigma of theta is compared with the refit's (pixels on the +u axis)
+SIGMA_THETA_DEG = (30.0, 60.0, 80.0)
+#: outlier factors that reject nothing (the one-step jackknife against the refit without rejection)
+NO_REJECTION = {"outlier_factor": 1.0e3, "point_outlier_factor": 1.0e3}
 
 
 def centre_sigma(res):
     names = list(res.parameter_names)
     return np.sqrt(np.diag(res.parameter_covariance))[[names.index("xc_px"), names.index("yc_px")]]
+
+
+def theta_pixels(model):
+    """Pixels (u, v) on the +u axis of ``model`` at SIGMA_THETA_DEG."""
+    rho = model.rho_of_theta(np.radians(SIGMA_THETA_DEG))
+    return model.xc + rho, model.yc + 0.0 * rho
+
+
+def theta_sigma(res, u, v):
+    """Stated sigma (degree) of theta at pixels (u, v)."""
+    return np.sqrt(np.diag(theta_covariance(res.model, list(res.parameter_names), res.parameter_covariance, u, v)))
+
+
+def jackknife_sd(values):
+    values = np.asarray(values, float)
+    n = len(values)
+    return np.sqrt((n - 1) / n * np.sum((values - values.mean(axis=0)) ** 2, axis=0))
 
 
 def all_corner_mean_error(res, authors):
@@ -69,20 +93,27 @@ def main() -> None:
         res = calibrate(authors["corners"], authors["board_mm"], shape, **options)
         seconds = time.perf_counter() - t0
         sig = centre_sigma(res)
+        chosen = res.stretch_selection["chosen"]
         one_step = calibrate(authors["corners"], authors["board_mm"], shape,
-                             **{**options, "stretch": res.stretch_selection["chosen"], "jackknife_refit_max_boards": 0})
+                             **{**options, "stretch": chosen, "jackknife_refit_max_boards": 0})
         sym = calibrate(authors["corners"], authors["board_mm"], shape, **{**options, "stretch": "symmetric"})
-        sym_one_step = calibrate(authors["corners"], authors["board_mm"], shape,
-                                 **{**options, "stretch": "symmetric", "jackknife_refit_max_boards": 0})
-        centres = []
+        sym_refit = calibrate(authors["corners"], authors["board_mm"], shape,
+                              **{**options, "stretch": "symmetric", "jackknife_refit_max_boards": 1000})
+        u, v = theta_pixels(res.model)
+        centres, thetas = [], []
         for g in res.used_frames:
             without = [None if k == g else uv for k, uv in enumerate(authors["corners"])]
-            fit = calibrate(without, authors["board_mm"], shape, **{**options, "stretch": res.stretch_selection["chosen"],
+            fit = calibrate(without, authors["board_mm"], shape, **{**options, "stretch": chosen,
                                                                      "covariance": "reduced_chi2"})
             centres.append((fit.model.xc, fit.model.yc))
-        centres = np.array(centres)
-        n = len(centres)
-        refit = np.sqrt((n - 1) / n * np.sum((centres - centres.mean(axis=0)) ** 2, axis=0))
+            thetas.append(fit.model.theta_phi(u, v)[0])
+        refit, refit_theta = jackknife_sd(centres), jackknife_sd(thetas)
+        stated_theta, one_step_theta = theta_sigma(res, u, v), theta_sigma(one_step, u, v)
+        plain = {**options, **NO_REJECTION, "stretch": chosen}
+        plain_one_step = centre_sigma(calibrate(authors["corners"], authors["board_mm"], shape,
+                                                **{**plain, "jackknife_refit_max_boards": 0}))
+        plain_refit = centre_sigma(calibrate(authors["corners"], authors["board_mm"], shape,
+                                             **{**plain, "jackknife_refit_max_boards": 1000}))
         a = authors["model"]
         rho = a.rho_of_theta(np.radians(THETA_DEG))
         dtheta = np.degrees(res.model.theta_of_rho(rho)) - THETA_DEG
@@ -105,10 +136,19 @@ def main() -> None:
             "stated_over_refit_xc": round(sig[0] / refit[0], 2), "stated_over_refit_yc": round(sig[1] / refit[1], 2),
             "one_step_over_refit_xc": round(centre_sigma(one_step)[0] / refit[0], 2),
             "one_step_over_refit_yc": round(centre_sigma(one_step)[1] / refit[1], 2),
+            **{f"refit_sigma_theta_{t:.0f}_deg": round(float(x), 3) for t, x in zip(SIGMA_THETA_DEG, refit_theta)},
+            **{f"stated_over_refit_theta_{t:.0f}": round(float(x), 2)
+               for t, x in zip(SIGMA_THETA_DEG, stated_theta / refit_theta)},
+            **{f"one_step_over_refit_theta_{t:.0f}": round(float(x), 2)
+               for t, x in zip(SIGMA_THETA_DEG, one_step_theta / refit_theta)},
+            "no_rejection_one_step_over_refit_xc": round(plain_one_step[0] / plain_refit[0], 2),
+            "no_rejection_one_step_over_refit_yc": round(plain_one_step[1] / plain_refit[1], 2),
             "symmetric_xc_px": round(sym.model.xc, 2), "symmetric_yc_px": round(sym.model.yc, 2),
             "symmetric_offset_xc_sigma": round((sym.model.xc - a.xc) / sym_sig[0], 2),
             "symmetric_offset_yc_sigma": round((sym.model.yc - a.yc) / sym_sig[1], 2),
-            "symmetric_one_step_over_refit_sigma_xc": round(centre_sigma(sym_one_step)[0] / sym_sig[0], 2),
+            "symmetric_sigma_xc_px": round(sym_sig[0], 2), "symmetric_sigma_yc_px": round(sym_sig[1], 2),
+            "symmetric_one_step_over_refit_sigma_xc": round(sym_sig[0] / centre_sigma(sym_refit)[0], 2),
+            "symmetric_one_step_over_refit_sigma_yc": round(sym_sig[1] / centre_sigma(sym_refit)[1], 2),
             "fit_seconds": round(seconds, 1), **meta}
         if writer is None:
             writer = csv.DictWriter(sys.stdout, fieldnames=list(row))

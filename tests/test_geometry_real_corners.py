@@ -13,11 +13,12 @@ distortion centre, no stretch (``EstimateAlignment`` 0). The project's fit
 it) is compared with that solution: nothing is compared with the pipeline itself.
 
 Measured (docs/geometry-real-corners.md; 2-core machine): stretch auto keeps no stretch on both lenses
-(p = 0.88 close, 0.24 far); centre 0.76 and 0.36 sigma (close), 0.32 and 0.24 sigma (far) from the
-authors'; field angle within 0.063 (close) and 0.076 (far) degree of theirs up to 85 degrees; mean error
-on all corners 0.596 and 0.924 px against their 0.600 and 0.951; the stated sigma of the centre 1.00 times
-the full leave-one-board-out refit's (the former one-step jackknife's 0.83-0.97 times). One to two
-minutes per lens on a shared machine (11 and 14 boards, a refit per board, twice).
+(p = 0.71 close, 0.14 far) and states the symmetric fit's one-step jackknife; centre 0.59 and 0.30 sigma
+(close), 0.40 and 0.18 sigma (far) from the authors'; field angle within 0.063 (close) and 0.076 (far)
+degree of theirs up to 85 degrees; mean error on all corners 0.596 and 0.924 px against their 0.600 and
+0.951; the stated sigma of the centre 1.29 and 1.20 (close), 0.79 and 1.29 (far) times the full
+leave-one-board-out refit's. About a minute per lens on a shared machine (11 and 14 boards, a refit per
+board).
 """
 
 from __future__ import annotations
@@ -63,10 +64,11 @@ def load_authors(lens: str) -> dict:
 
 
 def fit_options() -> dict:
-    """The calibrate options the geometry stage passes, from the configuration's defaults, with the stretch chosen
-    by evidence (geometry.stretch auto; the default stays symmetric, see src/pipeline/schema.yaml)."""
+    """The calibrate options the geometry stage passes, from the configuration's defaults (geometry.stretch auto:
+    the stretch chosen by evidence)."""
     cfg = load_config()["geometry"]
-    return dict(degree=cfg["polynomial_degree"], stretch="auto", min_frames=cfg["min_frames"],
+    assert cfg["stretch"] == "auto"
+    return dict(degree=cfg["polynomial_degree"], stretch=cfg["stretch"], min_frames=cfg["min_frames"],
                 outlier_factor=cfg["frame_outlier_factor"], point_outlier_factor=cfg["corner_outlier_factor"],
                 covariance=cfg["covariance"], stretch_significance=cfg["stretch_significance"],
                 jackknife_refit_max_boards=cfg["jackknife_refit_max_boards"])

@@ -434,7 +434,8 @@ def _theta_uncertainty(models, results, media, band_shape, cfg) -> xr.Dataset:
              "estimate": ", ".join(sorted(methods)),
              "units": "geometry_parameter_units x geometry_parameter_units (per element)"}),
          "stretch_model": (("medium", "band"), stretch_model.astype(str), {
-             "long_name": "stretch matrix model of the fit (geometry.stretch; with auto the test's choice)",
+             "long_name": "stretch matrix model of the fit (geometry.stretch; with auto the test's choice, "
+                          "the covariance then the symmetric fit's)",
              "configured": cfg["stretch"]}),
          "stretch_test_wald_statistic": (("medium", "band"), wald, {
              "long_name": "Wald statistic of no stretch (c = 1, d = e = 0) from the symmetric fit's covariance "
