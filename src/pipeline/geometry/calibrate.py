@@ -496,7 +496,7 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
               centre_half_width_frac: float = 0.1, max_nfev: int = 200,
               half_fov_deg: float | None = None,
               centre_guess: tuple[float, float] | None = None,
-              covariance: str = "board_jackknife", jackknife_refit_max_boards: int = 40,
+              covariance: str = "board_jackknife", jackknife_refit_max_boards: int = 0,
               stretch_significance: float = 0.05) -> CalibrationResult:
     """Calibrate a Scaramuzza model from chessboard corners seen in many frames.
 
@@ -531,7 +531,8 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         ``"board_jackknife"`` (leave one board out: every leave-one-out fit
         redone in full, :func:`jackknife_refit_covariance`, up to
         ``jackknife_refit_max_boards`` boards; beyond, one Gauss-Newton step
-        each, :func:`jackknife_covariance`), ``"board_clustered"``
+        each, :func:`jackknife_covariance`; the default 0 is the schema's,
+        so a caller gets what the geometry stage does), ``"board_clustered"``
         (:func:`intrinsic_covariance` with the boards as clusters: the
         corners of one board may share errors, boards are independent) or
         ``"reduced_chi2"`` (every corner coordinate independent). The
