@@ -191,19 +191,19 @@ def _linear_init(frames, centre, degree, r_norm):
             if best is None or key < best[0]:
                 best = (key, sgn, rows, t3col, rhs)
         parts.append((up, vp, X, Y, H, best[1] * r31, best[1] * r32, best[2], best[3], best[4]))
-    # Joint system: shared polynomial, one t3 per frame.
+    # Joint system: shared polynomial, one t3 per frame. A frame's t3 column is nonzero only in its own
+    # rows, so it is eliminated frame by frame (each frame's rows projected off its t3 column): the
+    # polynomial is the least-squares solution of the projected rows, and each t3 follows from it; the same
+    # solution as the whole block system's, at the cost of a system with the polynomial's columns alone.
     n_p = len(powers)
-    nf = len(parts)
-    blocks, rhs_all = [], []
-    for i, (*_, rows, t3col, rhs) in enumerate(parts):
-        B = np.zeros((len(rhs), n_p + nf))
-        B[:, :n_p] = rows
-        B[:, n_p + i] = t3col
-        blocks.append(B)
-        rhs_all.append(rhs)
-    M = np.concatenate(blocks)
-    rhs = np.concatenate(rhs_all)
-    sol, *_ = np.linalg.lstsq(M, rhs, rcond=None)
+    projected, projected_rhs = [], []
+    for *_, rows, t3col, rhs in parts:
+        tt = t3col @ t3col
+        projected.append(rows - np.outer(t3col, t3col @ rows) / tt)
+        projected_rhs.append(rhs - t3col * ((t3col @ rhs) / tt))
+    b_sol, *_ = np.linalg.lstsq(np.concatenate(projected), np.concatenate(projected_rhs), rcond=None)
+    t3 = [(t3col @ (rhs - rows @ b_sol)) / (t3col @ t3col) for *_, rows, t3col, rhs in parts]
+    sol = np.concatenate([b_sol, t3])
     b = sol[:n_p]
     if not np.all(np.isfinite(sol)) or b[0] <= 0:
         return None
