@@ -24,16 +24,17 @@ import xarray as xr
 from pipeline.errors import InputError
 from pipeline.radiometry.exposure import gain_from_iso
 
-__all__ = ["dark_model_level_dn", "dark_level_dn", "temperature_model_shift_dn", "temperature_shift_dn",
+__all__ = ["band_value", "dark_model_level_dn", "dark_level_dn", "temperature_model_shift_dn", "temperature_shift_dn",
            "check_dark_iso"]
 
 
 def check_dark_iso(ds: xr.Dataset, iso: float, iso_coord: str = "iso") -> None:
     """Refuse, in one line, an ISO that a dark model without a gain term (b1 not measured: one ISO in
     the dark frames) was not calibrated at; a dark model with b1 measured passes every ISO."""
-    if "bias_per_gain_dn" not in ds or ds["bias_per_gain_dn"].attrs.get("measured", 1):
+    per_gain = ds.variables.get("bias_per_gain_dn")
+    if per_gain is None or per_gain.attrs.get("measured", 1):
         return
-    isos = np.asarray(ds[iso_coord].values, dtype=float)
+    isos = np.asarray(ds.variables[iso_coord].values, dtype=float)
     if not np.any(np.isclose(isos, float(iso))):
         raise InputError(None, f"ISO {float(iso):g} is not calibrated: the dark model was measured at ISO "
                                f"{', '.join(f'{i:g}' for i in isos)} only (no gain sweep in the dark frames)")
@@ -53,6 +54,18 @@ def temperature_model_shift_dn(bias_dn_per_c, dark_dn_per_s_per_c, reference_c, 
     dt = np.asarray(temperature_c, dtype=float) - reference_c
     return (bias_dn_per_c + dark_dn_per_s_per_c * gain * np.asarray(exposure_s, dtype=float)) * dt
 
+
+def band_value(ds: xr.Dataset, name: str, band: str) -> np.ndarray:
+    """``ds[name]`` at ``band`` (all of it when it has no band axis) as a numpy array: what
+    ``ds.sel(band=band)[name]`` holds, read from the variable itself (selecting on a dark artefact's some seventy
+    variables, or making a DataArray of one of them, costs far more than the arithmetic it feeds, once per frame
+    and band in every stage that predicts a dark level)."""
+    var = ds.variables[name]
+    if "band" in var.dims:
+        var = var.isel(band=ds.indexes["band"].get_loc(band))
+    return var.values
+
+
 def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
                   temperature_c: float | None = None) -> float:
     """Mean dark level predicted by the fitted dark model for one band and setting (DN).
@@ -61,10 +74,9 @@ def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
     the level follows it.
     """
     check_dark_iso(ds, iso)
-    b = ds.sel(band=band)
     gain = gain_from_iso(iso)
-    level = float(dark_model_level_dn(b["bias_dn"], b["bias_per_gain_dn"], ds["dark_current_dn_per_s"], gain,
-                                      exposure_s))
+    level = float(dark_model_level_dn(band_value(ds, "bias_dn", band), band_value(ds, "bias_per_gain_dn", band),
+                                      band_value(ds, "dark_current_dn_per_s", band), gain, exposure_s))
     if temperature_c is not None and np.isfinite(temperature_c):
         level += float(temperature_shift_dn(ds, iso, exposure_s, temperature_c))
     return level

@@ -24,6 +24,7 @@ import xarray as xr
 
 from pipeline.artefact import model_effects
 from pipeline.errors import ArtefactError, InputError
+from pipeline.radiometry.dark import band_value
 from pipeline.radiometry.exposure import UNIT_GAIN_ISO
 from pipeline.radiometry.measurement import (FrameSettings, Measured, ResponseModel, correct_flat_field, linearise,
                                              normalise_exposure)
@@ -73,10 +74,8 @@ def _band_value(ds: xr.Dataset, name: str, band: str, default: float) -> float:
     """A scalar of the artefact, taken at ``band`` when it has a band dimension; ``default`` when absent."""
     if name not in ds:
         return default
-    value = ds[name]
-    if "band" in value.dims:
-        value = value.sel(band=band)
-    return float(value.values.ravel()[0]) if value.ndim else float(value)
+    value = band_value(ds, name, band)
+    return float(value.ravel()[0]) if value.ndim else float(value)
 
 
 def _iso_gain_factor(linearity: xr.Dataset, iso: float) -> tuple[float, float]:

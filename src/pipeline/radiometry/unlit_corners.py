@@ -33,7 +33,7 @@ import xarray as xr
 from pipeline.bands import BANDS
 from pipeline.frames import SITES_PER_BAND_PIXEL, LensImages
 from pipeline.moments import unlit_mask
-from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
+from pipeline.radiometry.dark import band_value, dark_level_dn, temperature_shift_dn
 from pipeline.rawio import RawFrame
 
 __all__ = ["CORNER_COLUMNS", "FrameCorners", "corner_mean_dn", "corner_noise_dn", "corner_pattern_dn", "corner_pixels",
@@ -128,7 +128,10 @@ def corner_noise_dn(dark: xr.Dataset, band: str, iso: float, n_sites: int) -> fl
     ISO over sqrt(n_sites) (NaN without sites)."""
     if not n_sites > 0:
         return np.nan
-    read_dn = float(dark["read_noise_dn"].sel(band=band).sel(iso=iso, method="nearest"))
+    by_iso = band_value(dark, "read_noise_dn", band)     # over the dark artefact's ISO axis
+    isos = dark.indexes["iso"]
+    exact = np.flatnonzero(isos.to_numpy() == iso)       # the frame's ISO on the axis: itself is the nearest
+    read_dn = float(by_iso[exact[0] if exact.size else isos.get_indexer([iso], method="nearest")[0]])
     return read_dn / np.sqrt(n_sites)
 
 
