@@ -65,6 +65,9 @@ STAGE = "linearity"
 log = logging.getLogger("pipeline.linearity")
 #: linear-model effects this stage fits as columns (others correct the data)
 COLUMN_EFFECTS = ("shutter_offset", "nonlinearity", "iso_gain")
+#: what ``line_slope`` is regressed on: a number on both sweeps, so that one unit (DN) serves the two rows
+SLOPE_REGRESSOR = ("the slope against the sweep's variable as a number: the exposure time in ms (sweep exposure, "
+                   "so DN per ms) or the gain ISO/100 (sweep gain)")
 
 
 def _no_circle(lens: str, why: str) -> InputError:
@@ -674,8 +677,10 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
         "pearson_r": (("sweep", "band", "y", "x"), rmap,
                       {"long_name": "per-pixel Pearson r of single frames against exposure time or gain (Fig. 2)", "units": "1"}),
         "line_slope": (("sweep", "band"), slope[..., 0],
-                       {"long_name": "regression slope of mean dark-corrected DN (per ms, or per unit ISO/100)", "units": "DN ms-1 | DN"}),
-        "line_slope_ci95": (("sweep", "band"), slope[..., 1], {"long_name": "95 % half-interval of line_slope", "units": "as line_slope"}),
+                       {"long_name": "regression slope of mean dark-corrected DN (per ms, or per unit ISO/100)", "units": "DN",
+                        "comment": SLOPE_REGRESSOR}),
+        "line_slope_ci95": (("sweep", "band"), slope[..., 1], {"long_name": "95 % half-interval of line_slope", "units": "DN",
+                                                                "comment": SLOPE_REGRESSOR}),
         "line_intercept_dn": (("sweep", "band"), intercept[..., 0], {"long_name": "regression intercept", "units": "DN"}),
         "line_intercept_ci95_dn": (("sweep", "band"), intercept[..., 1], {"long_name": "95 % half-interval of the intercept", "units": "DN"}),
         "line_r": (("sweep", "band"), r_line, {"long_name": "Pearson r of the mask means (Fig. 3)", "units": "1"}),
