@@ -98,3 +98,17 @@ def test_text_columns_naming_units_use_the_camera_notation(tiny_run):
         values = set(np.unique(closure["value_units"].values.astype(str)))
     assert {"DN", "DN2", "1"} <= values, values
     assert all(camera_unit(v) is not None for v in values), values
+
+
+def test_every_effect_states_its_amplitude_in_units_that_parse():
+    """The diagnostics' tables (``missing_effects.csv``, the lens tests, the closure figures) give a candidate's
+    amplitude in the units its effect states, per experiment: each a UDUNITS-2 unit once DN, electron and pixel
+    are counted."""
+    from pipeline.effects import available, get as get_effect
+    from pipeline.workflow import STAGE_EXPERIMENTS
+
+    experiments = sorted({exp for exps in STAGE_EXPERIMENTS.values() for exp in exps} | {"closure"})
+    labels = {(name, exp): get_effect(name).amplitude_label(exp)[1] for name in available() for exp in experiments}
+    assert len(set(labels.values())) > 2, labels
+    bad = {key: units for key, units in labels.items() if camera_unit(units) is None}
+    assert not bad, bad
