@@ -3,7 +3,8 @@
 Every artefact carries, as global attributes, the stage name, the schema
 version of that stage's output, the pipeline version, the creation time, the
 sha256 of the configuration subset the stage used and of every input file, and
-the effects of the model it was fitted with (docs/design.md). Files are written to
+the effects of the model it was fitted with (docs/design.md); their variables' units
+are UDUNITS-2 units on disk (:mod:`pipeline.units`). Files are written to
 a temporary name and renamed, so a failed stage never leaves a half-written
 artefact.
 """
@@ -112,6 +113,9 @@ from pipeline.units import decode_units, encode_units
 #: absolute 6: the signal frames' setting and level (``exposure_s``, ``iso``, ``signal_dn``), in the bundle (calibration
 #: 14) as ``absolute_exposure_s``, ``absolute_iso``, ``absolute_signal_dn``; field 4: the field scale closure
 #: (``obs_scale``: the camera/reference scale of each band against its prediction and its stated budget).
+#: No version changed when the units on disk became UDUNITS-2 units (DN, electron and pixel as counts, the camera's
+#: spelling in ``camera_units``, pipeline.units): the values and their meaning are the same, and read_artefact
+#: gives a file of either spelling the same units.
 ARTEFACT_VERSIONS = {"dark": 6, "linearity": 8, "geometry": 5, "rolloff": 9, "spectral": 4,
                      "absolute": 6, "immersion": 4, "calibration": 14, "field": 4, "closure": 7}
 

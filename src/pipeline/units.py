@@ -10,16 +10,12 @@ a file on disk, which claims the CF conventions, holds in ``units`` the same
 unit spelled for UDUNITS-2, with ``DN`` and ``electron`` written ``count``
 (UDUNITS-2's dimensionless count) and ``pixel`` left out (a dimensionless
 factor of one), and keeps the camera's spelling in the attribute
-``camera_units``:
+``camera_units`` (docs/artefact-units.md):
 
-========================= ============================ =====================
-in memory (``units``)      on disk (``units``)           on disk (``camera_units``)
-========================= ============================ =====================
-``DN s-1``                 ``count s-1``                 ``DN s-1``
-``DN/electron``            ``1``                         ``DN/electron``
-``W sr-1 m-2 nm-1 s DN-1`` ``W sr-1 m-2 nm-1 s count-1`` ``W sr-1 m-2 nm-1 s DN-1``
-``pixel``                  ``1``                         ``pixel``
-========================= ============================ =====================
+- ``DN s-1`` in memory is ``count s-1`` on disk, ``camera_units`` ``DN s-1``;
+- ``DN/electron`` is ``1``, ``camera_units`` ``DN/electron``;
+- ``W sr-1 m-2 nm-1 s DN-1`` is ``W sr-1 m-2 nm-1 s count-1``;
+- ``pixel`` is ``1``, ``camera_units`` ``pixel``.
 
 :func:`encode_units` makes the disk form (the artefact writers call it) and
 :func:`decode_units` restores the camera's (the artefact readers call it), so
@@ -52,7 +48,22 @@ def udunits_spelling(units: str) -> str:
     A unit without ``DN``, ``electron`` or ``pixel`` comes back as it is. One with them must be a product of
     symbols with integer exponents, optionally over one ``/`` (``DN s-1``, ``W sr-1 m-2 nm-1 s DN-1``,
     ``DN/electron``, ``pixel^2``); the exponents of ``count`` add up, and a product left with no symbol is ``1``.
-    A ValueError names a unit of another form (a programming error of the stage that wrote it).
+
+    Parameters
+    ----------
+    units : str
+        A unit in the camera's notation.
+
+    Returns
+    -------
+    str
+        The same unit in UDUNITS-2 notation.
+
+    Raises
+    ------
+    ValueError
+        Naming a unit of another form that uses the camera's symbols (a programming error of the stage that
+        wrote it).
     """
     text = str(units)
     if not _SYMBOLS.search(text):
@@ -75,7 +86,18 @@ def udunits_spelling(units: str) -> str:
 
 def encode_units(ds: xr.Dataset) -> xr.Dataset:
     """A shallow copy of ``ds`` whose variables' ``units`` are spelled for UDUNITS-2, the camera's spelling in
-    ``camera_units`` where it differs (the form written to disk)."""
+    ``camera_units`` where it differs (the form written to disk).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        Variables (data and coordinates) with units in the camera's notation; left unchanged.
+
+    Returns
+    -------
+    xarray.Dataset
+        The copy to write.
+    """
     out = ds.copy()   # new variables with copies of their attributes: ``ds`` keeps its own
     for var in out.variables.values():
         units = var.attrs.get("units")
@@ -87,8 +109,19 @@ def encode_units(ds: xr.Dataset) -> xr.Dataset:
 
 
 def decode_units(ds: xr.Dataset) -> xr.Dataset:
-    """``ds`` (in place, and returned) with the camera's spelling of each variable's units back in ``units``
-    where the file kept it in ``camera_units`` (the form the pipeline reads)."""
+    """``ds`` with the camera's spelling of each variable's units back in ``units`` where the file kept it in
+    ``camera_units`` (the form the pipeline reads).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A file as opened; changed in place.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``ds`` itself.
+    """
     for var in ds.variables.values():
         if CAMERA_UNITS_ATTR in var.attrs:
             var.attrs["units"] = var.attrs.pop(CAMERA_UNITS_ATTR)
