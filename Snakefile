@@ -22,9 +22,14 @@ configfile: os.path.join(workflow.basedir, "config", "config.yaml")
 report: "workflow/report/workflow.rst"
 
 
-# src/pipeline/schema.yaml (filling its defaults), model.plugins and model.effects: one line and no job on a mistake
+# the config files read (a key written twice refused), src/pipeline/schema.yaml (filling its defaults),
+# model.plugins and model.effects: one line and no job on a mistake
 try:
-    check_config(config, os.path.join(workflow.basedir, "config", "config.yaml"))
+    check_config(
+        config,
+        os.path.join(workflow.basedir, "config", "config.yaml"),
+        config_files=workflow.configfiles,
+    )
 except InputError as exc:
     sys.exit(f"error: {exc}")
 

@@ -280,12 +280,17 @@ def main() -> None:
     print(f"{'':<10} {'min ms':>8} {'median ms':>10} {'CPU median ms':>14} {'user median ms':>15} "
           f"{'system median ms':>17} {'peak MiB':>9}")
     med, cpu, user = {}, {}, {}
+    rows = []
     for what, rs in runs.items():
         walls = [r["wall_s"] * 1e3 for r in rs]
         med[what] = statistics.median(walls)
         cpu[what] = statistics.median(r["cpu_s"] * 1e3 for r in rs)
         user[what] = statistics.median(r["user_s"] * 1e3 for r in rs)
         system = statistics.median(r["system_s"] * 1e3 for r in rs)
+        rows.append({"what": what, "runs": len(rs), "min_ms": round(min(walls)), "median_ms": round(med[what]),
+                     "cpu_median_ms": round(cpu[what]), "user_median_ms": round(user[what]),
+                     "system_median_ms": round(system), "peak_mib": round(max(r["peak_rss_mib"] for r in rs)),
+                     "load_before": round(load_before, 1)})
         print(f"{what:<10} {min(walls):8.0f} {med[what]:10.0f} {cpu[what]:14.0f} {user[what]:15.0f} {system:17.0f} "
               f"{max(r['peak_rss_mib'] for r in rs):9.0f}")
     print(f"apply / decode (wall medians): {med['apply'] / med['decode']:.2f} with the pixel maps, "
@@ -296,6 +301,9 @@ def main() -> None:
     print(f"apply / decode (user CPU medians, without the kernel's page-cache and page-fault time): "
           f"{user['apply'] / user['decode']:.2f} with the pixel maps, {user['apply-grid'] / user['decode']:.2f} "
           "the sphere grid only")
+    from record import append_rows
+
+    append_rows("bench_apply", rows)
 
 
 if __name__ == "__main__":

@@ -209,6 +209,7 @@ def main() -> None:
         tanh_case(config)
     rng = np.random.default_rng(args.seed)
     t0, c0 = time.perf_counter(), time.process_time()
+    records = []
     print(f"{'case':34s} {'level':>6s} " + " ".join(f"{r:>9s}" for r in REFERENCES) + f" {'rows':>9s}"
           "  (counts of p below level)")
     for rel, off in NULL_CASES if args.null else ():
@@ -220,7 +221,10 @@ def main() -> None:
                       r["p_value_model"]))
         p = np.array(p)
         for level in (0.05, 0.01):
-            counts = " ".join(f"{n:>9d}" for n in np.sum(p < level, axis=0))
+            below = np.sum(p < level, axis=0)
+            records.append({"case": "null", "relative": rel, "offset_dn": off, "level": level, "tables": args.null,
+                            **{f"below_{name}": int(n) for name, n in zip((*REFERENCES, "rows"), below)}})
+            counts = " ".join(f"{n:>9d}" for n in below)
             print(f"null: relative {rel:.3f}, offset {off:.1f} DN {level:6.2f} {counts}  of {args.null} "
                   f"(expected {args.null * level:.0f}, binomial 0.999 bound {stats.binom.ppf(0.999, args.null, level):.0f})")
     level = config["diagnostics"]["significance_level"] / 13
@@ -231,9 +235,16 @@ def main() -> None:
             r = candidate_significance("iso_gain", [Observations("linearity", "setting", table)], [], config_f, 13)
             p.append((r["p_value"], *bootstrap_p_values(table, config, level, args.draws, args.seed + 10 * i),
                       r["p_value_model"]))
-        counts = " ".join(f"{n:>9d}" for n in np.sum(np.array(p) < level, axis=0))
+        below = np.sum(np.array(p) < level, axis=0)
+        records.append({"case": "ladder 0.01", "relative": rel, "offset_dn": off, "level": f"{level:.2g}",
+                        "tables": args.power, **{f"below_{name}": int(n) for name, n in zip((*REFERENCES, "rows"), below)}})
+        counts = " ".join(f"{n:>9d}" for n in below)
         print(f"ladder 0.01: rel {rel:.3f}, off {off:.1f} DN {level:6.1e} {counts}  of {args.power}")
     print(f"{time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU")
+    if records:
+        from record import append_rows
+
+        append_rows("bench_block_reference", records)
 
 
 if __name__ == "__main__":

@@ -45,6 +45,7 @@ def main() -> None:
     lens = next(iter(ds.lenses))
     s1 = s2 = None
     marks = {args.frames // 4, args.frames // 2, args.frames}
+    records = []
     t0 = time.perf_counter()
     for i, dec in enumerate(iter_frames(ds, args.experiment, rows, decode_ahead_frames=args.ahead), start=1):
         g = dec.lenses[lens].bands["G"]
@@ -56,6 +57,12 @@ def main() -> None:
             m = memory_mib()
             print(f"{i:>5} frames  peak {m['VmHWM']:7.0f} MiB  now {m['VmRSS']:7.0f} MiB  "
                   f"{time.perf_counter() - t0:6.0f} s", flush=True)
+            records.append({"experiment": args.experiment, "ahead": args.ahead, "frames": i,
+                            "peak_mib": round(m["VmHWM"]), "now_mib": round(m["VmRSS"]),
+                            "wall_s": round(time.perf_counter() - t0, 1)})
+    from record import append_rows
+
+    append_rows("bench_decode_memory", records)
 
 
 if __name__ == "__main__":

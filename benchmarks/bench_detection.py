@@ -302,6 +302,14 @@ def main() -> None:
               f"in {sum(len(r['signal_level']) for r in clean)} tables of {len(clean)} datasets, smallest p "
               f"{min((p for r in clean for p in r['signal_level']), default=float('nan')):.2g}")
     print(f"  {time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU")
+    from record import append_rows
+
+    append_rows("bench_detection", [
+        {"case": r["case"], "kind": r["kind"], "level": r["level"], "top_ranked": r["top"],
+         "significant": bool(r["significant"]), "p": f"{r['p']:.2g}", "amplitude": r.get("amplitude", ""),
+         "detectable": r.get("detectable", ""), "units": r.get("units", ""), "rms_z_before": round(r["rms_before"], 2),
+         "rms_z_after": round(r["rms_after"], 2) if "rms_after" in r else "", "at_noise_floor": bool(r["floor"]),
+         "top1": bool(r["top1"])} for r in rows + clean])
     if tmp is not None:
         tmp.cleanup()
 

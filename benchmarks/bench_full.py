@@ -95,7 +95,8 @@ def job_child(stage: str, dataset: str, results: str, lens: str, bundle: str = "
     upstream = {name: {lens: res / f"{name}/{lens}.nc"} for name in spec.upstream + spec.optional_upstream
                 if (res / f"{name}/{lens}.nc").exists()}
     t0, c0 = time.perf_counter(), time.process_time()
-    run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream, bundle=bundle or None)
+    # as a workflow job runs it: the workflow's start-up check validated the folder before any job
+    run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream, bundle=bundle or None, checked=True)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     print(json.dumps({"wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_mib()}))
 
@@ -336,6 +337,8 @@ def write_csv(path: Path, rows: list[dict]) -> None:
 
 
 def main() -> None:
+    from record import append_rows
+
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--experiments", default="dark,linearity,geometry,rolloff,spectral,absolute,immersion")
     ap.add_argument("--work", default=str(HERE / "out" / "full"), help="datasets, artefacts and the CSV go here")
@@ -414,6 +417,7 @@ def main() -> None:
         if not args.keep:
             remove_dataset(source)
         write_csv(work / f"bench_scaling-{exp}.csv", rows)
+        append_rows("bench_scaling", rows)
         return
     results = work / "results"
     for exp in args.experiments.split(","):
@@ -430,6 +434,7 @@ def main() -> None:
         if not args.keep:
             remove_dataset(dataset)
         write_csv(work / f"bench_full-{args.experiments.replace(',', '-')}.csv", rows)
+    append_rows("bench_full", rows)
 
 
 if __name__ == "__main__":

@@ -40,6 +40,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     args = ap.parse_args()
     rng = np.random.default_rng(0)
+    rows = []
     for n in args.boards:
         J, r, groups, nuisance = jacobian(n, args.corners, rng)
         out = {}
@@ -52,6 +53,11 @@ def main() -> None:
                 times.append(time.perf_counter() - t0)
             out[name] = statistics.median(times)
         print(f"{n} boards x {args.corners} corners: " + ", ".join(f"{k} {v * 1e3:.1f} ms" for k, v in out.items()))
+        rows += [{"boards": n, "corners": args.corners, "covariance": k, "median_ms": round(v * 1e3, 1)}
+                 for k, v in out.items()]
+    from record import append_rows
+
+    append_rows("bench_geometry_covariance", rows)
 
 
 if __name__ == "__main__":

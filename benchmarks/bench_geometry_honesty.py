@@ -69,6 +69,10 @@ def main() -> None:
                 print(line)
     for name, (chi2, dof) in sums.items():
         print(f"{name}: chi2 {chi2:.1f} for {dof} (p = {stats.chi2.sf(chi2, dof):.2g})")
+    from record import append_rows
+
+    append_rows("bench_geometry_honesty", [{"quantity": name, "chi2": round(chi2, 1), "dof": dof,
+                                            "p": f"{stats.chi2.sf(chi2, dof):.2g}"} for name, (chi2, dof) in sums.items()])
 
 
 if __name__ == "__main__":

@@ -44,6 +44,7 @@ def main() -> None:
         simulate_dataset(root, scale=args.scale, seed=args.seed, experiments=("geometry",), progress=False)
     truth = yaml.safe_load((truth_dir_for(root) / "truth.yaml").read_text())["experiments_truth"]["geometry"]
     config = load_config(overrides={"dataset": str(root)})
+    rows = []
     for lens in sorted(truth["models"]):
         out = root.parent / f"geometry_{lens}.nc"
         if not out.exists():
@@ -63,6 +64,13 @@ def main() -> None:
                 print(f"seed {args.seed} {lens}/{medium}/{band}: half_fov fit {half_fit:.2f} true {t.half_fov_deg:.2f} "
                       f"d {half_fit - t.half_fov_deg:+.2f}; rim err {np.round(error, 2)} sigma "
                       f"{np.round(np.sqrt(np.diag(s)), 2)} chi2 {chi2:.2f}", flush=True)
+                rows.append({"seed": args.seed, "scale": args.scale, "lens": lens, "medium": medium, "band": band,
+                             "half_fov_fit_deg": round(half_fit, 2), "half_fov_true_deg": round(t.half_fov_deg, 2),
+                             "rim_rms_error_deg": round(float(np.sqrt(np.mean(error ** 2))), 3),
+                             "rim_chi2": round(chi2, 2), "rim_points": error.size})
+    from record import append_rows
+
+    append_rows("bench_rim_theta", rows)
 
 
 if __name__ == "__main__":

@@ -44,6 +44,10 @@ def main() -> None:
     load = "/".join(f"{v:.1f}" for v in os.getloadavg())
     print(f"one setting's pixel search, {n} x {n} band images: {min(cpu) * 1e3:.0f} ms CPU "
           f"(min of {args.repeat}), load {load}")
+    from record import append_rows
+
+    append_rows("bench_rolloff_spot", [{"band_px": n, "spot_px": args.spot_px, "repeat": args.repeat,
+                                        "min_cpu_ms": round(min(cpu) * 1e3), "load": load}])
 
 
 if __name__ == "__main__":

@@ -7,7 +7,8 @@ Simulates the dataset once (kept in benchmarks/out/), then runs every stage,
 one lens at a time (one workflow job), in a fresh Python process, --repeat times, and prints the minimum, median and
 maximum wall time, the median CPU time and the peak resident memory of the stage's process. Each
 job gets one BLAS/OpenMP thread, as Snakemake gives a rule of ``threads: 1``.
-Results go to benchmarks/out/<scale>.csv as well.
+Results go to benchmarks/out/<scale>.csv as well, and are appended to benchmarks/results/bench_stages.csv
+(benchmarks/record.py: date, commit, machine, command).
 """
 
 from __future__ import annotations
@@ -45,7 +46,8 @@ def child(stage: str, dataset: str, results: str, lens: str) -> None:
         spec = STAGES[stage]
         upstream = {name: {lens: res / f"{name}/{lens}.nc"} for name in spec.upstream + spec.optional_upstream
                     if (res / f"{name}/{lens}.nc").exists()}
-        run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream)
+        # as a workflow job runs it: the start-up check (timed by bench_workflow) validated the folder before
+        run_stage(stage, dataset, cfg, {lens: res / f"{stage}/{lens}.nc"}, upstream, checked=True)
     else:
         sys.exit(f"unknown stage {stage}")
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
@@ -109,6 +111,9 @@ def main() -> None:
         writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
         writer.writeheader()
         writer.writerows(rows)
+    from record import append_rows
+
+    append_rows("bench_stages", rows)
 
 
 if __name__ == "__main__":

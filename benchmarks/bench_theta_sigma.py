@@ -42,6 +42,10 @@ def main() -> None:
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"theta_sigma_map {args.band_px} x {args.band_px}: min {min(times):.2f} s, "
           f"median {statistics.median(times):.2f} s, peak {peak:.0f} MiB")
+    from record import append_rows
+
+    append_rows("bench_theta_sigma", [{"band_px": args.band_px, "repeat": args.repeat, "min_s": round(min(times), 2),
+                                       "median_s": round(statistics.median(times), 2), "peak_mib": round(peak)}])
 
 
 if __name__ == "__main__":

@@ -168,6 +168,10 @@ def main() -> None:
         writer = csv.DictWriter(fh, fieldnames=header)
         writer.writeheader()
         writer.writerows(rows)
+    from record import append_rows
+
+    append_rows("bench_workflow", rows + [{"stage": "workflow (total)", "wall_s": round(total, 1),
+                                           "peak_mib": round(max(j["max_rss"] for j in jobs.values()))}])
 
 
 if __name__ == "__main__":

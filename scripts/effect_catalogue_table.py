@@ -37,22 +37,15 @@ def splice(text: str, body: str) -> str:
 
 
 def main(argv: list[str]) -> int:
+    from generated_page import check_or_write   # beside this script (run as a script, its folder is on the path)
+
     body = table()
     if not argv:
         sys.stdout.write(body)
         return 0
     text = DOC.read_text(encoding="utf-8")
-    new = splice(text, body)
-    if argv == ["--check"]:
-        if new != text:
-            print(f"{DOC} is stale: run PYTHONPATH=src python scripts/effect_catalogue_table.py --write")
-            return 1
-        return 0
-    if argv == ["--write"]:
-        DOC.write_text(new, encoding="utf-8")
-        return 0
-    print(__doc__)
-    return 2
+    return check_or_write(argv, DOC, splice(text, body), "PYTHONPATH=src python scripts/effect_catalogue_table.py --write",
+                          __doc__)
 
 
 if __name__ == "__main__":

@@ -40,7 +40,8 @@ def emva1288_descriptor_or_skip() -> Path:
     return path
 
 
-def _read(path: Path) -> np.ndarray:
+def realdata_image(path: Path) -> np.ndarray:
+    """One PNG of the set as float64 values (DN)."""
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float64)
 
 
@@ -73,15 +74,15 @@ def emva1288_statistics(frames) -> Emva1288Statistics:
         if kind == "dark":
             for f in items:
                 dark_t.append(f.exposure_s)
-                dark_m.append(_read(f.image).mean())
+                dark_m.append(realdata_image(f.image).mean())
     for (kind, step), items in sorted(blocks.items(), key=lambda kv: kv[0][1]):
         if kind != "signal" or len(items) != 2:
             continue
         dark = blocks[("dark", step)]
         if len(dark) != 2 or dark[0].exposure_s != items[0].exposure_s:
             raise ValueError(f"bright step {step} has no dark pair at its exposure")
-        a, b = (_read(f.image) for f in items)
-        da, db = (_read(f.image) for f in dark)
+        a, b = (realdata_image(f.image) for f in items)
+        da, db = (realdata_image(f.image) for f in dark)
         out["t"].append(items[0].exposure_s)
         out["p"].append(items[0].photons_per_pixel)
         out["bm"].append(0.5 * (a.mean() + b.mean()))

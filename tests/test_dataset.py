@@ -205,6 +205,24 @@ def test_bad_values_linearity(ds_root, column, value, phrase):
     _expect(ds_root, ds_root / "linearity" / "frames.csv", "line 2", f"column '{column}'", phrase)
 
 
+@pytest.mark.parametrize("value, phrase", [("-5", "-5.0 must be positive"), ("many", "'many' is not a number")])
+def test_bad_photons_per_pixel(ds_root, value, phrase):
+    """The optional photon count of a linearity frame is a positive number or empty."""
+    def edit(f):
+        f["photons_per_pixel"] = ["120.5", ""]
+        f.loc[0, "photons_per_pixel"] = value
+        return f
+    _rewrite_csv(ds_root / "linearity" / "frames.csv", edit)
+    _expect(ds_root, ds_root / "linearity" / "frames.csv", "line 2", "'photons_per_pixel'", phrase)
+
+
+def test_photons_per_pixel_is_read_as_a_number(ds_root):
+    _rewrite_csv(ds_root / "linearity" / "frames.csv", lambda f: f.assign(photons_per_pixel=["120.5", ""]))
+    write_md5sums(ds_root)
+    frames = open_dataset(ds_root).frames("linearity")
+    assert frames["photons_per_pixel"].iloc[0] == 120.5 and np.isnan(frames["photons_per_pixel"].iloc[1])
+
+
 def test_non_numeric_wavelength(ds_root):
     def edit(f):
         f.loc[0, "wavelength_nm"] = "blue"

@@ -297,6 +297,9 @@ def test_linearity_with_one_iso(make_dataset, config, tmp_path):
         k, k_sigma = float(art["conversion_gain_dn_per_e"]), float(art["conversion_gain_dn_per_e_sigma"])
         true_k = float(truth["derived"]["conversion_gain_dn_per_e_iso100"])
         assert abs(k - true_k) < 5.0 * k_sigma, (lens, k, k_sigma, true_k)
+        # no photon counts in frames.csv: no responsivity or quantum efficiency, and the artefact says why
+        assert np.isnan(art["quantum_efficiency"].values).all()
+        assert "photons_per_pixel" in art["quantum_efficiency"].attrs["not_measured"]
 
 
 def test_linearity_with_one_exposure_says_the_photon_transfer_is_not_measured(make_dataset, config, tmp_path):
@@ -306,6 +309,8 @@ def test_linearity_with_one_exposure_says_the_photon_transfer_is_not_measured(ma
         assert np.isnan(float(art["conversion_gain_dn_per_e"]))
         assert art["conversion_gain_dn_per_e"].attrs["measured"] == 0
         assert "exposure sweep" in art["conversion_gain_dn_per_e"].attrs["not_measured"]
+        assert np.isnan(art["dynamic_range"].values).all()
+        assert "exposure sweep" in art["dynamic_range"].attrs["not_measured"]
 
 
 def test_gain_sweep_on_a_one_iso_dark_model_stops_with_one_line(make_dataset, config, tmp_path):

@@ -57,3 +57,19 @@ def test_ctrl_c_ends_the_run_as_an_interrupt_and_the_rerun_resumes(make_dataset,
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert all((workdir / "results" / stage / f"{lens}.nc").is_file()
                for stage in ("dark", "linearity") for lens in ("far", "close"))
+
+
+def test_ctrl_c_during_validate_is_one_line_and_130(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while ``python -m pipeline validate`` reads the frames' tags: exit 130 and the one line
+    'interrupted', no traceback (the command line's other commands alike: one handler in main)."""
+    import pipeline.validation
+    from pipeline.cli import EXIT_INTERRUPTED, main
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline.validation, "inspect_dataset", interrupted)
+    capsys.readouterr()
+    assert main(["validate", str(tmp_path)]) == EXIT_INTERRUPTED == 130
+    captured = capsys.readouterr()
+    assert captured.err == "interrupted\n" and captured.out == ""

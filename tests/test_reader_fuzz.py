@@ -52,7 +52,8 @@ FRAMES = {
     "field": [{"file": "raw/f0.dng", "lens": "far", "kind": "signal"}],
 }
 PHOTODIODE = "wavelength_nm,signal,signal_std\n450,1.5,0.01\n550,2.25,0.02\n"
-REFERENCE = "time,L_443,L_555\n2021-03-18T16:02:00Z,0.5,0.25\n2021-03-18T16:02:01Z,0.5,\n"
+#: readings at the field frame's UTC time (camera 16:02:40 less camera_clock_utc_offset_h -4 h: 20:02:40 UTC)
+REFERENCE = "time,L_443,L_555\n2021-03-18T20:02:40Z,0.5,0.25\n2021-03-18T20:02:41Z,0.5,\n"
 WATER = "temperature_c: 20.5\nsalinity_psu: 0.0\n"
 SITE = ("latitude_deg: 46.8\nlongitude_deg: -71.2\ncamera_clock_utc_offset_h: -4\n"
         "reference:\n  name: C-OPS\n  channels_nm: [443, 555]\n  fwhm_nm: 10\n  half_fov_deg: 9\n")

@@ -11,26 +11,13 @@ covariance and calibrated field angle (Section 2.4, Eq. 13), effective
 wavelengths and responses (Section 2.5, Eq. 8), R^-1 with its budget
 (Section 2.6, Eq. 9), the immersion factors (Section 2.7, Eq. 11), and the
 noise-equivalent radiance and limit of detection (Section 3.8). It is a
-versioned artefact (``artefact = calibration``, version 14: the absolute experiment's signal
-setting and level (``absolute_exposure_s``, ``absolute_iso``, ``absolute_signal_dn``), which the field
-scale closure evaluates the missing response effects against, the sha256 of the lab's input files by
-experiment (``lab_input_sha256``, which ``compare`` reads for the inputs two calibrations share) and the read
-noise's sampling uncertainty (``read_noise_dn_sigma``); 13: the geometry's image circle fitted to the lit
-region's edge; 12: the stored per-cell counts; 2: the per-pixel
-maps stored uncompressed and contiguous; 3: the azimuthal roll-off and the
-flat field's uncertainty; 5: theta_deg_sigma, the absolute budget's new lamp
-term, and what depends only on lens, medium and band precomputed per pixel:
-the roll-off step's factor 1 / g(theta, phi), its relative variances, the
-geometry flags and the cell on the default sphere grid; 6: the dark and
-linearity artefacts' bias-drift spread weighted by the corners' noise; 7: the dark and linearity
-artefacts' projection and black-level reference; 9: the per-pixel factors in the compact form apply's
-chain takes them: 1 / (F g) with the flat field folded in, one relative variance of the roll-off
-terms, the flags with the hot-pixel mask folded in, the flat field's random relative variance, and
-the sphere cell -1 where a frame-independent flag keeps the pixel off the grid; 10: the block's
-second spill index for the pixels inside the image circle, not hot, beyond the calibrated field
-angle, which the negative-mean check counts and the grid does not; 12: the pixels of each sphere cell
-and of the negative-mean check per lens, medium and band, so that apply counts none; older files are
-refused with a line asking to rebuild) carrying the sha256 of every artefact it came from,
+versioned artefact (``artefact = calibration``, its version in :data:`pipeline.artefact.ARTEFACT_VERSIONS`,
+what each version changed in docs/changelog.md; older files are refused with a line asking to
+rebuild), which also holds the absolute experiment's signal setting and level
+(``absolute_exposure_s``, ``absolute_iso``, ``absolute_signal_dn``), which the field scale closure
+evaluates the missing response effects against, the sha256 of the lab's input files by experiment
+(``lab_input_sha256``, which ``compare`` reads for the inputs two calibrations share), the read
+noise's sampling uncertainty (``read_noise_dn_sigma``), and carries the sha256 of every artefact it came from,
 the model's effects and the camera's make, model and serial number.
 
 A rectilinear lens (dataset.yaml ``projection: rectilinear``; the geometry

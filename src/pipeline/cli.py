@@ -1,4 +1,4 @@
-"""Command line: ``python -m pipeline COMMAND`` (init-dataset, validate, simulate, apply, publish, verify-store,
+"""Command line: ``python -m pipeline COMMAND`` (init-dataset, validate, simulate, apply, lightfield, publish, verify-store,
 store history, compare, diagnose).
 
 It only parses arguments and calls the package; the workflow itself runs with
@@ -24,7 +24,8 @@ HELP_COLUMN = 28
 DESCRIPTION = """\
 Calibrate a RAW camera as a radiometer. These commands lay out a lab's raw
 files as a calibration dataset (docs/dataset-format.md), check it, simulate one,
-turn raw frames into radiance with a calibration bundle, publish bundles
+turn raw frames into radiance with a calibration bundle, integrate radiance
+sphere grids into the light field (irradiances, average cosines), publish bundles
 into an append-only calibration store, compare two calibrations, or say what a
 run's diagnostics found;
 the calibration itself runs with snakemake."""
@@ -37,6 +38,7 @@ examples:
   python -m pipeline apply --calibration results/calibration/SIM-0001.nc sky.dng -o sky.nc
   python -m pipeline publish results/calibration/SIM-0001.nc --dataset /data/calib2024 --store /archive/calibrations
   python -m pipeline apply --store /archive/calibrations sky.dng -o sky.nc
+  python -m pipeline lightfield --medium water --attitude imu.csv sky.nc -o lightfield.nc
   python -m pipeline compare old/SIM-0001.nc results/calibration/SIM-0001.nc -o compare.nc --html compare.html
   python -m pipeline store history SIM-0001 --store /archive/calibrations -o history.csv
   python -m pipeline simulate --out data/sim-tiny --scale tiny --seed 1
@@ -207,6 +209,9 @@ def build_parser() -> argparse.ArgumentParser:
     from pipeline.apply import add_apply_parser
 
     add_apply_parser(sub)
+    from pipeline.lightfield.command import add_lightfield_parser
+
+    add_lightfield_parser(sub)
     pub = sub.add_parser("publish", help="file a calibration bundle into the append-only store",
                          description="Copy a calibration bundle into the store, dated and content-hashed, and "
                                      "append it to the store's index; nothing is ever overwritten.",
@@ -321,6 +326,12 @@ def _apply(args) -> int:
     return EXIT_OK
 
 
+def _lightfield(args) -> int:
+    from pipeline.lightfield.command import lightfield_command
+
+    return lightfield_command(args)
+
+
 def _publish(args) -> int:
     from pipeline.config import load_config
     from pipeline.store import parse_valid_from, publish
@@ -389,6 +400,7 @@ def _diagnose(args) -> int:
 
 
 COMMANDS = {"diagnose": _diagnose, "init-dataset": _init_dataset, "validate": _validate, "simulate": _simulate, "apply": _apply,
+            "lightfield": _lightfield,
             "publish": _publish, "verify-store": _verify_store, "compare": _compare, "store": _store}
 
 

@@ -11,6 +11,7 @@ import yaml
 from jsonschema import Draft202012Validator, validators
 
 from pipeline.errors import InputError
+from pipeline.yamlio import DuplicateKey, load_yaml
 
 #: the configuration's JSON schema: package data (src/pipeline/schema.yaml), so that an installed package
 #: has it too; a package installed from a wheel lies in files on disk, for which importlib.resources gives
@@ -81,6 +82,27 @@ _SAFE_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
 
 def _read_yaml(path: str | Path):
     return yaml.load(Path(path).read_text(), Loader=_SAFE_LOADER)  # noqa: S506 (a safe loader)
+
+
+def read_config_file(path: str | Path):
+    """A config file (config/config.yaml, a ``--configfile``) as parsed; one InputError naming the file and
+    the line of a key written twice in one mapping (YAML, and Snakemake's reader of it, keep the last
+    without a word: a threshold edited below an old copy of its section would be ignored), or of YAML
+    that does not parse."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read the config file ({getattr(exc, 'strerror', None) or exc})") from None
+    try:
+        return load_yaml(text)
+    except DuplicateKey as dup:
+        raise InputError(path, f"line {dup.line}: key {dup.key!r} appears twice (first on line {dup.first_line}); "
+                               "keep one of the two (YAML would silently use the last)") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}: " if mark is not None else ""
+        raise InputError(path, f"{where}not valid YAML ({getattr(exc, 'problem', None) or 'invalid YAML'})") from None
 
 
 _TEXT_TYPES = {"integer": lambda v: isinstance(v, int) and not isinstance(v, bool),
@@ -159,7 +181,7 @@ def load_config(path: str | Path | None = CONFIG_PATH, overrides: dict | None = 
 
     ``path`` None (the default of an installed package, which has no config/config.yaml): the schema's
     defaults alone, with the overrides."""
-    config = (_read_yaml(path) or {}) if path is not None else dict(_NO_DATASET)
+    config = (read_config_file(path) or {}) if path is not None else dict(_NO_DATASET)
     for key, value in (overrides or {}).items():
         if isinstance(value, dict) and isinstance(config.get(key), dict):
             config[key] = {**config[key], **value}

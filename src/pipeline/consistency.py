@@ -71,12 +71,17 @@ class FrameTags:
 
 
 def check_consistency(root: Path, meta, lenses, frames: list[FrameTags], experiments,
-                      now_utc: datetime | None = None) -> tuple[list[Problem], list[Problem]]:
+                      now_utc: datetime | None = None, sidecars: dict | None = None,
+                      field_settings: dict | None = None) -> tuple[list[Problem], list[Problem]]:
     """(problems, warnings) of the frames' tags against each other and dataset.yaml, the lens regions
     against each other, and the field sidecars against each other and the frames' times.
 
     ``meta`` is dataset.yaml as parsed (None when unreadable), ``lenses`` its regions (None when
-    unusable); ``now_utc`` (naive UTC, default the clock) is when "the future" starts.
+    unusable); ``now_utc`` (naive UTC, default the clock) is when "the future" starts; ``sidecars`` what
+    ``pipeline.dataset.check_sidecars`` read (path relative to the dataset -> value), of which the
+    reference radiometer's times are compared with the field frames' (not read again here), with the
+    match-up's window and clock-offset search of ``field_settings`` (the run's ``field`` config section;
+    default the schema's).
     """
     root = Path(root)
     problems: list[Problem] = []
@@ -87,11 +92,24 @@ def check_consistency(root: Path, meta, lenses, frames: list[FrameTags], experim
     problems += _camera_problems(root, camera if isinstance(camera, dict) else {}, frames)
     problems += _cfa_problems(frames)
     problems += _level_problems(frames)
-    warnings += _time_warnings(frames, now_utc if now_utc is not None
-                              else datetime.now(timezone.utc).replace(tzinfo=None))
+    timed = _time_warnings(frames, now_utc if now_utc is not None else datetime.now(timezone.utc).replace(tzinfo=None))
+    warnings += timed
+    # a frame whose time stamp is already suspect (in the future, far from the others) is named once, for that
+    suspect = {w.path for w in timed if "is out of order" not in w.message}
     if "field" in experiments:
-        problems += _channel_problems(root / "field")
-        warnings += _sun_warnings(root / "field", [f for f in frames if f.experiment == "field"])
+        reference = (sidecars or {}).get("field/reference_radiometer.csv")
+        if sidecars is None:
+            problems += _channel_problems(root / "field", _reference_header(root / "field" / "reference_radiometer.csv"))
+        elif reference is not None:         # a file with problems of its own (a regional CSV) has them named
+            problems += _channel_problems(root / "field", [str(c) for c in reference.columns])
+        field_frames = [f for f in frames if f.experiment == "field"]
+        warnings += _sun_warnings(root / "field", field_frames)
+        if reference is not None:
+            found, suspected = _reference_time_checks(root / "field", [f for f in field_frames if f.path not in suspect],
+                                                      reference, field_settings)
+            problems += found
+            warnings += suspected
+    warnings += _row_order_warnings(frames)
     return problems, warnings
 
 
@@ -351,10 +369,10 @@ def _reference_header(path: Path) -> list[str] | None:
     return None
 
 
-def _channel_problems(folder: Path) -> list[Problem]:
-    """The L_<nm> columns of reference_radiometer.csv are the channels site.yaml's reference lists."""
+def _channel_problems(folder: Path, header: list[str] | None) -> list[Problem]:
+    """The L_<nm> columns of reference_radiometer.csv (``header``, its column names) are the channels
+    site.yaml's reference lists."""
     site = _site(folder)
-    header = _reference_header(folder / "reference_radiometer.csv")
     if not site or header is None:
         return []
     listed = site.get("reference", {}).get("channels_nm")
@@ -415,3 +433,109 @@ def _sun_warnings(folder: Path, frames: list[FrameTags]) -> list[Problem]:
         f"{offset:g} h) at latitude_deg {lat:g}, longitude_deg {lon:g}{hint}"),
         fix="check latitude_deg and longitude_deg (north and east positive, west negative) and "
             "camera_clock_utc_offset_h (camera time minus UTC, in hours)")]
+
+
+def _iso(t: datetime) -> str:
+    return t.isoformat(timespec="seconds")
+
+
+#: time-zone offsets tried (hours, smallest change first: whole hours, then half and quarter hours, as the world's
+#: zones are) when the field frames miss the reference's records, to say which camera_clock_utc_offset_h would fit
+_SHIFTS_H = sorted({k / 4 for k in range(-28 * 4, 28 * 4 + 1)}, key=lambda h: (h % 1 != 0, h % 0.5 != 0, abs(h)))
+
+
+def _reference_time_checks(folder: Path, frames: list[FrameTags], reference,
+                           settings: dict | None = None) -> tuple[list[Problem], list[Problem]]:
+    """The field sky frames' UTC times against the reference radiometer's readings: none of them within the
+    reach of the stage's match-up (its window and the clock offset it searches) is a problem, since no
+    match-up is possible: a time zone or daylight-saving mistake in camera_clock_utc_offset_h, the
+    reference's local times written without a zone, or a file of another day; some frames without a reading
+    in their window is a warning naming them (the stage counts them and leaves them out).
+
+    The window and the search are ``field.reference_window_s`` and ``field.clock_offset_search_s`` of
+    ``settings`` (the workflow's config), the schema's defaults without it (``validate`` runs without a
+    config)."""
+    import numpy as np
+    import pandas as pd
+
+    from pipeline.config import defaults
+
+    sky = [f for f in frames if f.kind == _SKY_KIND and f.tags.get("time") is not None]
+    site = _site(folder)
+    times = pd.DatetimeIndex(reference["time"]) if "time" in reference else pd.DatetimeIndex([])
+    if not sky or not site or site.get("camera_clock_utc_offset_h") is None or len(times) == 0:
+        return [], []
+    field = {**defaults()["field"], **(settings or {})}
+    half_window_s = float(field["reference_window_s"]) / 2.0
+    reach_s = half_window_s + float(field["clock_offset_search_s"])
+    offset = float(site["camera_clock_utc_offset_h"])
+    ref_s = np.sort((times.tz_convert("UTC").tz_localize(None) - pd.Timestamp(0)).total_seconds().to_numpy(float))
+    utc = [f.tags["time"] - timedelta(hours=offset) for f in sky]
+    cam_s = np.array([(t - datetime(1970, 1, 1)).total_seconds() for t in utc])
+
+    def distance(s: np.ndarray) -> np.ndarray:
+        """Seconds from each time to the nearest reading."""
+        k = np.clip(np.searchsorted(ref_s, s), 1, len(ref_s) - 1) if len(ref_s) > 1 else np.zeros(len(s), int)
+        return np.minimum(np.abs(ref_s[k] - s), np.abs(ref_s[np.maximum(k - 1, 0)] - s))
+
+    far = distance(cam_s)
+    first, last = (datetime(1970, 1, 1) + timedelta(seconds=float(v)) for v in (ref_s[0], ref_s[-1]))
+    csv_path = folder / "reference_radiometer.csv"
+    if (far > reach_s).all():
+        hint = ""
+        for h in _SHIFTS_H:
+            if h and -14.0 <= offset - h <= 14.0 and (distance(cam_s + 3600.0 * h) <= half_window_s).all():
+                hint = (f"; with camera_clock_utc_offset_h {offset - h:g} every frame would have readings "
+                        f"(times {h:+g} h)")
+                break
+        return [Problem(csv_path, message=(
+            f"its readings ({_iso(first)} to {_iso(last)} UTC) miss every field sky frame: their UTC times "
+            f"(DateTimeOriginal less camera_clock_utc_offset_h {offset:g} h) are {_iso(min(utc))} to "
+            f"{_iso(max(utc))}, none within {reach_s:g} s of a reading (field.reference_window_s / 2 + "
+            f"field.clock_offset_search_s){hint}"),
+            fix="check camera_clock_utc_offset_h in field/site.yaml (camera time minus UTC; daylight saving "
+                "time?) and that the reference's times are UTC (a time without a zone is read as UTC: write "
+                "2021-03-18T20:02:00Z or the zone, +hh:mm), or use the reference file of the frames' day")], []
+    missed = np.flatnonzero(far > half_window_s)
+    return [], [Problem(sky[k].path, message=(
+        f"no reference reading within {half_window_s:g} s of its UTC time {utc[k].isoformat(sep=' ', timespec='seconds')} "
+        f"(field/reference_radiometer.csv covers {_iso(first)} to {_iso(last)} UTC; {sky[k].where()}): "
+        f"not a match-up"),
+        fix="the field stage leaves it out; add the reference's readings of that time, or delete the row")
+        for k in missed]
+
+
+def _row_order_warnings(frames: list[FrameTags]) -> list[Problem]:
+    """One warning per frames.csv whose rows are in neither the order the frames were taken nor the file
+    names' (the camera's counter; a frame out of that order is :func:`_time_warnings`'): the stages take
+    the rows' order for the order of acquisition (a drift against frame order, a frame's order within
+    its setting), so the rows out of place are named."""
+    out: list[Problem] = []
+    by_experiment: dict[str, list[FrameTags]] = {}
+    for f in frames:
+        if f.tags.get("time") is not None:
+            by_experiment.setdefault(f.experiment, []).append(f)
+    for group in by_experiment.values():
+        rows = sorted(group, key=lambda f: f.line)
+        if [f.file for f in rows] == [f.file for f in sorted(rows, key=lambda f: _natural_key(f.file))]:
+            continue
+        kept = _ordered_subset([f.tags["time"] for f in rows])
+        if len(kept) == len(rows):
+            continue
+        moved = [f for k, f in enumerate(rows) if k not in kept]
+        shown = ", ".join(f"line {f.line} ({f.file}, {_iso(f.tags['time'])})" for f in moved[:3])
+        more = f" and {len(moved) - 3} more" if len(moved) > 3 else ""
+        out.append(Problem(_frames_csv(rows[0]), message=(
+            f"the rows are not in the order the frames were taken: {shown}{more} sit among rows of other "
+            f"times (the stages take the rows' order for the order of acquisition: a drift against frame "
+            f"order, a frame's order within its setting)"),
+            fix="sort the rows by DateTimeOriginal (python -m pipeline init-dataset writes them in that order)"))
+    return out
+
+
+def _frames_csv(frame: FrameTags) -> Path:
+    """The frames.csv that lists ``frame``: its experiment folder's (``file`` is relative to it)."""
+    path = frame.path
+    for _ in Path(frame.file).parts:
+        path = path.parent
+    return path / "frames.csv"

@@ -32,7 +32,7 @@ from pipeline.errors import InputError, Problem
 from pipeline.yamlio import KEYS, DuplicateKey, load_yaml
 
 __all__ = [
-    "EXPERIMENTS", "COMMON_COLUMNS", "EXPERIMENT_COLUMNS", "OPTIONAL_COLUMNS", "TAG_COLUMNS", "SIDECARS",
+    "EXPERIMENTS", "COMMON_COLUMNS", "EXPERIMENT_COLUMNS", "OPTIONAL_COLUMNS", "OPTIONAL_COLUMN_EXPERIMENTS", "TAG_COLUMNS", "SIDECARS",
     "COLUMN_MEANINGS", "KINDS", "CHOICES", "LAYOUT_VERSION", "PROJECTIONS",
     "Dataset", "LayoutCheck", "open_dataset", "inspect_layout", "check_sidecars", "check_checksums", "check_md5",
     "write_md5sums", "read_csv_table",
@@ -59,7 +59,9 @@ EXPERIMENT_COLUMNS: dict[str, tuple[str, ...]] = {
     "field": (),
 }
 # Columns that may appear in any frames.csv.
-OPTIONAL_COLUMNS = ("temperature_c",)
+OPTIONAL_COLUMNS = ("temperature_c", "photons_per_pixel")
+# Optional columns that only some experiments read (init-dataset carries them into those frames.csv only).
+OPTIONAL_COLUMN_EXPERIMENTS = {"photons_per_pixel": ("linearity",)}
 # Copies of the tags that may appear in any frames.csv (init-dataset writes them so
 # that a lab can tell its frames apart); the tags stay the truth, and a copy that
 # disagrees with its tag is a problem.
@@ -84,6 +86,7 @@ COLUMN_MEANINGS = {
     "condition": "air or water",
     "water_height_cm": "the water height above the lens in cm (empty in air)",
     "temperature_c": "the sensor or room temperature in degrees C, or empty",
+    "photons_per_pixel": "the mean number of photons reaching one pixel during the frame's exposure (> 0), or empty",
     "exposure_s": "the ExposureTime tag in s, or empty",
     "iso": "the ISOSpeedRatings tag, or empty",
     "time": "the DateTimeOriginal tag as ISO 8601 (2021-03-18T16:02:00.5), or empty",
@@ -92,7 +95,7 @@ COLUMN_MEANINGS = {
 KINDS = ("signal", "dark")
 CHOICES = {"kind": KINDS, "sweep": ("exposure", "gain"), "medium": ("air", "water"),
            "condition": ("air", "water")}
-_NUMERIC = ("azimuth_deg", "angle_deg", "wavelength_nm", "water_height_cm", "temperature_c")
+_NUMERIC = ("azimuth_deg", "angle_deg", "wavelength_nm", "water_height_cm", "temperature_c", "photons_per_pixel")
 _TAG_NUMBERS = ("exposure_s", "iso")
 _MD5_LINE = re.compile(r"^([0-9a-fA-F]{32}) [ *](.+)$")
 #: a folder whose name is at least this similar to an experiment's (difflib ratio)
@@ -576,13 +579,16 @@ def _check_frames(root: Path, experiment: str, lenses, md5sums: dict[str, str] |
                 continue
             # Numbers may be empty for dark frames, the optional temperature, the tag
             # copies and water height in air; otherwise they are required.
-            allow_empty = (kind == "dark" or column in ("temperature_c",) + _TAG_NUMBERS
+            allow_empty = (kind == "dark" or column in ("temperature_c", "photons_per_pixel") + _TAG_NUMBERS
                            or (column == "water_height_cm" and row.get("condition") == "air"))
             try:
                 rec[column] = _number(row[column], allow_empty=allow_empty)
             except _Bad as exc:
                 rec[column] = math.nan
                 bad(line, column, exc.message)
+                continue
+            if column == "photons_per_pixel" and not rec[column] > 0 and not math.isnan(rec[column]):
+                bad(line, column, f"{rec[column]!r} must be positive")
         if row.get("time"):
             try:
                 datetime.fromisoformat(row["time"])
@@ -1014,13 +1020,21 @@ _SIDECAR_READERS = {
 assert set(_SIDECAR_READERS) == {f"{exp}/{name}" for exp, names in SIDECARS.items() for name in names}
 
 
-def check_sidecars(root, experiments) -> list[Problem]:
-    """Every problem of the sidecar files of the given (present) experiments."""
+def check_sidecars(root, experiments, values: dict | None = None) -> list[Problem]:
+    """Every problem of the sidecar files of the given (present) experiments.
+
+    ``values``, when given, receives what each sidecar read (its path relative to the dataset -> the
+    reader's value) when that file has no problem: the consistency checks compare them without reading
+    the files again."""
     root = Path(root)
     problems: list[Problem] = []
     for experiment in experiments:
         for name in SIDECARS.get(experiment, ()):
-            _SIDECAR_READERS[f"{experiment}/{name}"](root / experiment / name, problems)
+            found: list[Problem] = []
+            value = _SIDECAR_READERS[f"{experiment}/{name}"](root / experiment / name, found)
+            if values is not None and not found:
+                values[f"{experiment}/{name}"] = value
+            problems += found
     return problems
 
 

@@ -7,12 +7,14 @@ with dof = n - rank(X) degrees of freedom (docs/design.md, "Closure and diagnost
 * the chi-square tail, P(chi2_dof > sum z^2), exact for independent rows with the stated noise;
 * its block-robust equivalents, for tables whose rows share a raw frame or a setting (the blocks of
   :func:`pipeline.diagnostics.blocks_of`), which hold whatever the correlation inside a block:
+
   - a t test: per block g the excess D_g = sum_{i in g} z_i^2 - sum_{i in g} (1 - h_ii), h the hat matrix
     of the weighted fit, so that E[D_g] = 0 when the model holds; the mean of the D_g over G blocks
     against its own scatter, one-sided with G - 1 degrees of freedom;
   - a bound (:func:`block_bound_p_value`): the tail of sum z^2 were the rows of each block perfectly
     correlated, the worst case at the small tail probabilities used, P(w_max chi2_G > sum z^2) with
     w_g = sum_{i in g} (1 - h_ii);
+
   the block p-value is twice the smaller of the two (Bonferroni over the pair). The t test alone loses
   its power when the excess sits in a few blocks, because those blocks' D_g also make the scatter it is
   measured against: with one block holding all the excess, t is about 1 however large it is. Measured

@@ -47,8 +47,8 @@ import pandas as pd
 import yaml
 
 from pipeline.bands import cut_region, split_bands
-from pipeline.dataset import (COMMON_COLUMNS, EXPERIMENT_COLUMNS, EXPERIMENTS, LAYOUT_VERSION, OPTIONAL_COLUMNS,
-                              SIDECARS, TAG_COLUMNS, TYPO_SIMILARITY, read_csv_table, write_md5sums)
+from pipeline.dataset import (COMMON_COLUMNS, EXPERIMENT_COLUMNS, EXPERIMENTS, LAYOUT_VERSION,
+                              OPTIONAL_COLUMN_EXPERIMENTS, OPTIONAL_COLUMNS, SIDECARS, TAG_COLUMNS, TYPO_SIMILARITY, read_csv_table, write_md5sums)
 from pipeline.errors import InputError, Problem
 from pipeline.rawio import read_raw, read_tags, write_dng
 
@@ -455,7 +455,8 @@ def plan_dataset(raw_dir, lab_log=None, *, find_circles: bool = True) -> Scaffol
     if find_circles and lenses:
         find_lens_circles(lenses, ordered)
     lab_columns = {exp: list(COMMON_COLUMNS[1:]) + list(EXPERIMENT_COLUMNS[exp])
-                   + [c for c in OPTIONAL_COLUMNS if c in log_columns] for exp in ordered}
+                   + [c for c in OPTIONAL_COLUMNS if c in log_columns
+                      and exp in OPTIONAL_COLUMN_EXPERIMENTS.get(c, (exp,))] for exp in ordered}
     return ScaffoldPlan(raw_dir=raw_dir, lab_log=log, entries=ordered, sidecars=sidecars, ignored=ignored,
                         lab_columns=lab_columns, camera=camera, frame_shape=shape, lenses=lenses, notes=notes)
 
@@ -700,7 +701,8 @@ def emva1288_raw_folder(descriptor, raw_dir, *, make: str, model: str, serial: s
     ``dark/``, bright ones to ``linearity/`` as an exposure sweep of the one lens region ``main``.  ``crop_px``
     (rows, cols), even, keeps the centre of each frame.  ``make``, ``model`` and ``serial`` name the camera
     (the descriptor does not) in the DNG tags and so in dataset.yaml.  The lab log also holds the descriptor's photons per
-    pixel and block index (``photons_per_pixel``, ``emva1288_step``), which frames.csv leaves out.
+    pixel (``photons_per_pixel``, which init-dataset carries into linearity/frames.csv: the linearity stage's
+    responsivity and quantum efficiency) and block index (``emva1288_step``, which frames.csv leaves out).
     """
     import cv2
 

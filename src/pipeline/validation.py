@@ -41,10 +41,29 @@ _TAG_FIX = ("use the file exactly as the camera wrote it (a converted or edited 
             "its tags); the tags are the truth about each exposure")
 
 
+#: (path, size, modification and change times, inode) -> the file's tags as read_tags gave them: the stages of
+#: one calibration run from Python check overlapping experiments (linearity reads dark's frames' tags again,
+#: rolloff and the others geometry's), and a file that changed has another key
+_TAGS_SEEN: dict[tuple, dict] = {}
+#: entries kept before the cache starts again (a few full-scale datasets' frames)
+_TAGS_SEEN_MAX = 20000
+
+
+def _tags_seen(raw_path: Path) -> dict:
+    stat = Path(raw_path).stat()
+    key = (str(Path(raw_path).resolve()), stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns, stat.st_ino)
+    tags = _TAGS_SEEN.get(key)
+    if tags is None:
+        if len(_TAGS_SEEN) >= _TAGS_SEEN_MAX:
+            _TAGS_SEEN.clear()
+        tags = _TAGS_SEEN[key] = read_tags(raw_path)
+    return {**tags, "path": Path(raw_path)}
+
+
 def check_tags(raw_path: Path) -> tuple[dict | None, list[Problem]]:
     """The tags of one raw file and the problems of the tags a calibration frame needs."""
     try:
-        tags = read_tags(raw_path)
+        tags = _tags_seen(raw_path)
     except InputError as exc:
         return None, [Problem(Path(raw_path), message=exc.problem,
                               fix="replace it with the file as the camera wrote it")]
@@ -78,14 +97,17 @@ def _copy_problems(csv_path: Path, line: int, row: dict, tags: dict) -> list[Pro
     return out
 
 
-def _frame_problems(check: LayoutCheck, read: list[FrameTags] | None = None) -> list[Problem]:
+def _frame_problems(check: LayoutCheck, read: list[FrameTags] | None = None, experiments=None) -> list[Problem]:
     """Tags of every frame frames.csv lists, its tag copies, and the frame size against the lenses.
 
-    ``read``, when given, receives each readable frame with its tags (for ``pipeline.consistency``).
+    ``read``, when given, receives each readable frame with its tags (for ``pipeline.consistency``);
+    ``experiments``, when given, the experiments whose frames are read (default: all).
     """
     problems: list[Problem] = []
     shapes: dict[tuple[int, int], list[Path]] = {}
     for experiment, (table, lines) in check.tables.items():
+        if experiments is not None and experiment not in experiments:
+            continue
         csv_path = check.root / experiment / "frames.csv"
         for (_, row), line in zip(table.iterrows(), lines):
             path = row["path"]
@@ -140,8 +162,8 @@ def _chessboard_problems(check: LayoutCheck) -> list[Problem]:
             for m in used if m not in squares]
 
 
-def inspect_dataset(root, *, checksums: bool = False,
-                    warnings: list[Problem] | None = None) -> tuple[Dataset | None, list[Problem]]:
+def inspect_dataset(root, *, checksums: bool = False, warnings: list[Problem] | None = None,
+                    experiments=None, field_settings: dict | None = None) -> tuple[Dataset | None, list[Problem]]:
     """The dataset (None unless it is fine) and every problem found.
 
     Checks dataset.yaml, MD5SUMS, every frames.csv, the tags every frame needs
@@ -152,17 +174,25 @@ def inspect_dataset(root, *, checksums: bool = False,
     ``checksums`` also reads every file and compares its MD5 with MD5SUMS
     (slow: the stages compare them anyway while they decode).  ``warnings``,
     when given, receives what can only be suspected (time stamps, the sun
-    below the horizon at the field site): the caller prints them.
+    below the horizon at the field site): the caller prints them.  ``experiments``, when given, limits
+    the frames, sidecars and their consistency to those experiments (a stage run on its own reads no
+    other frames); dataset.yaml, MD5SUMS and every frames.csv are checked in any case.
+    ``field_settings`` is the run's ``field`` config section (the reference's match-up window and clock
+    search; default the schema's).
     """
     check = inspect_layout(root)
     if not check.root.is_dir():
         return None, list(check.problems)
+    present = [e for e in check.experiments() if experiments is None or e in experiments]
     problems = list(check.problems)
-    problems += _chessboard_problems(check)
-    problems += check_sidecars(check.root, check.experiments())
+    if "geometry" in present:
+        problems += _chessboard_problems(check)
+    sidecars: dict = {}
+    problems += check_sidecars(check.root, present, sidecars)
     frames: list[FrameTags] = []
-    problems += _frame_problems(check, frames)
-    found, suspected = check_consistency(check.root, check.meta, check.lenses, frames, check.experiments())
+    problems += _frame_problems(check, frames, present)
+    found, suspected = check_consistency(check.root, check.meta, check.lenses, frames, present, sidecars=sidecars,
+                                         field_settings=field_settings)
     problems += found
     if warnings is not None:
         warnings += suspected

@@ -38,7 +38,7 @@ import pandas as pd
 import xarray as xr
 
 from pipeline.artefact import BUNDLE_REQUIRED_STAGES, read_artefact, read_artefact_mapped, sha256_file, write_artefact
-from pipeline.config import defaults, stage_params, validate_config
+from pipeline.config import defaults, read_config_file, stage_params, validate_config
 from pipeline.dataset import Dataset, open_dataset
 from pipeline.effects import available, load_plugins
 from pipeline.entry import exit_on_input_error, setup_log
@@ -125,11 +125,16 @@ def load_model(config: dict) -> list[str]:
     return list(config["model"]["effects"])
 
 
-def check_config(config: dict, config_file: str | Path) -> dict:
-    """The workflow's start-up check of its configuration, before any job: the schema (filling its
-    defaults, as ``pipeline.config.validate_config``), the plugin modules of ``model.plugins`` and
-    the effect names of ``model.effects``.  One InputError naming ``config_file`` (the config file
-    the run read; the --config options extend it) and the first problem."""
+def check_config(config: dict, config_file: str | Path, config_files=()) -> dict:
+    """The workflow's start-up check of its configuration, before any job: every file of ``config_files``
+    (the config files Snakemake read: config/config.yaml and each ``--configfile``) read again by the
+    strict reader, which refuses a key written twice (Snakemake keeps the last without a word), the
+    schema (filling its defaults, as ``pipeline.config.validate_config``), the plugin modules of
+    ``model.plugins`` and the effect names of ``model.effects``.  One InputError naming ``config_file``
+    (the config file the run read; the --config options extend it), or the file with the duplicate
+    key, and the first problem."""
+    for path in dict.fromkeys(str(p) for p in config_files):
+        read_config_file(path)
     try:
         validate_config(config)
         load_model(config)
@@ -209,19 +214,91 @@ def decode_ahead_frames(config: dict) -> int:
 UPSTREAM_IN_MEMORY_BYTES = 4 * 2**20
 
 
+#: dataset folder -> (its files' fingerprint, the dataset) of the last check in this process that found no
+#: problem: a stage run again on the unchanged folder (the stages of one calibration in a script) is not
+#: checked again
+_CHECKED: dict[tuple, tuple[tuple, Dataset]] = {}
+
+
+def _fingerprint(root: Path, experiments=None) -> tuple:
+    """(path, size, modification time) of every file the check reads: those at the dataset's top
+    (dataset.yaml, MD5SUMS), every frames.csv, and every file of the checked experiments' folders (all
+    folders when ``experiments`` is None): any edit of them changes it."""
+    out = []
+    for path in sorted(root.iterdir()):
+        if path.is_dir() and (experiments is None or path.name in experiments):
+            files = sorted(p for p in path.rglob("*") if p.is_file())
+        else:
+            files = [path / "frames.csv"] if path.is_dir() else [path]
+        for file in files:
+            try:
+                stat = file.stat()
+            except OSError:          # no frames.csv: the layout check names it
+                continue
+            out.append((file.relative_to(root).as_posix(), stat.st_size, stat.st_mtime_ns))
+    return tuple(out)
+
+
+def check_experiments(stage: str) -> tuple[str, ...]:
+    """The experiments whose frames a stage run on its own is checked with: its own and those of the
+    stages it needs (their artefacts are made from them); the field's calibration bundle was checked with
+    the lab's frames when it was made, so the field checks its own."""
+    spec = STAGES[stage]
+    out = [spec.experiment]
+    for name in spec.upstream:
+        out += [e for e in check_experiments(name) if e not in out]
+    return tuple(out)
+
+
+def checked_dataset(root: str | Path, experiments=None, field_settings: dict | None = None) -> Dataset:
+    """The dataset at ``root`` after the checks ``python -m pipeline validate`` makes (the layout, the
+    tags of every frame, the sidecars, their consistency: ``pipeline.validation.inspect_dataset``), the
+    frames and sidecars of ``experiments`` only when given; an InputError naming the first problem (and
+    counting the others) when there is one, the suspicions logged as warnings. The result is kept while
+    no file of the folder changes."""
+    root = Path(root)
+    key = (root.resolve(), None if experiments is None else tuple(sorted(experiments)),
+           json.dumps(field_settings, sort_keys=True, default=str))
+    fingerprint = _fingerprint(key[0], experiments) if key[0].is_dir() else ()
+    kept = _CHECKED.get(key)
+    if kept is not None and kept[0] == fingerprint:
+        return kept[1]
+    warnings: list = []
+    dataset, problems = inspect_dataset(root, warnings=warnings, experiments=experiments,
+                                        field_settings=field_settings)
+    for line in grouped_warning_lines(warnings, root):
+        log.warning("%s", line.removeprefix("warning: "))
+    if problems:
+        raise InputError.from_problems(problems, f"python -m pipeline validate {root} lists them all")
+    _CHECKED[key] = (fingerprint, dataset)
+    return dataset
+
+
 def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: dict[str, str | Path],
               upstream: dict[str, dict[str, str | Path]] | None = None,
-              progress: bool = False, bundle: str | Path | None = None) -> dict[str, xr.Dataset]:
+              progress: bool = False, bundle: str | Path | None = None,
+              checked: bool = False) -> dict[str, xr.Dataset]:
     """Run ``stage`` for each lens of ``outputs`` (lens -> artefact path); returns the artefacts.
 
     ``upstream`` maps an upstream stage to its artefacts per lens. A required
     upstream artefact that is missing stops the stage with a clear message.
     ``bundle`` is the calibration bundle that a stage with ``bundle`` applies.
+    A dataset folder is first checked as ``validate`` checks it (:func:`checked_dataset`: the frames' tags
+    against each other and dataset.yaml, the sidecars against each other and the frames), on the
+    experiments of :func:`check_experiments`, so a stage run directly never uses what validate refuses;
+    ``checked`` says that this was done already (the workflow's jobs: its start-up check ran it on the
+    whole folder before any job), and then only the layout is read.
     """
     spec = STAGES[stage]
     module = spec.module()
     effects = load_model(config)
-    ds = dataset if isinstance(dataset, Dataset) else open_dataset(dataset)
+    if isinstance(dataset, Dataset):
+        ds = dataset
+        if not checked:
+            checked_dataset(dataset.root, check_experiments(stage), config.get("field"))
+    else:
+        ds = open_dataset(dataset) if checked else checked_dataset(dataset, check_experiments(stage),
+                                                                   config.get("field"))
     if spec.experiment not in ds.experiments():
         raise InputError(ds.root / spec.experiment, "experiment folder is absent")
     upstream = {name: dict(paths) for name, paths in (upstream or {}).items() if paths}
@@ -349,15 +426,17 @@ def stage_code_sha256(stage: str) -> str:
 class DatasetIndex:
     """A dataset validated once per workflow run: layout, checksums list, frames.csv and tags."""
 
-    def __init__(self, root: str | Path):
+    def __init__(self, root: str | Path, config: dict | None = None):
         self.root = Path(root)
         self.dataset: Dataset | None = None
+        #: the run's field section (the reference's match-up window and clock search the check uses)
+        self.field_settings = (config or {}).get("field")
 
     def load(self) -> "DatasetIndex":
         """Validate once (``pipeline.validation``); on problems print them grouped and raise InputError."""
         if self.dataset is None:
             warnings = []
-            dataset, problems = inspect_dataset(self.root, warnings=warnings)
+            dataset, problems = inspect_dataset(self.root, warnings=warnings, field_settings=self.field_settings)
             for line in grouped_warning_lines(warnings, self.root):
                 print(line, file=sys.stderr)
             if problems:
@@ -448,8 +527,10 @@ def run_stage_script(smk, stage: str) -> None:
     upstream = {name: {lens: smk.input[name]} for name in STAGES[stage].upstream + STAGES[stage].optional_upstream
                 if name in smk.input.keys()}
     bundle = smk.input["calibration"] if "calibration" in smk.input.keys() else None
+    # the workflow's start-up check (common.smk: DatasetIndex.load) ran validate's checks on this folder
+    # before it scheduled any job
     exit_on_input_error(run_stage, stage, smk.params.dataset, smk.params.config, {lens: smk.output.artefact},
-                        upstream, bundle=bundle)
+                        upstream, bundle=bundle, checked=True)
 
 
 # --------------------------------------------------------------------------- what to simulate

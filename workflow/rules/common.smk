@@ -33,7 +33,8 @@ try:
 except InputError as exc:
     sys.exit(f"error: {exc}")
 
-INDEX = DatasetIndex(DATASET)
+# the field section: the reference radiometer's match-up window and clock search the check compares with
+INDEX = DatasetIndex(DATASET, config)
 if not SIMULATE:
     # validate dataset.yaml, MD5SUMS, every frames.csv and every frame's tags before any stage runs
     try:

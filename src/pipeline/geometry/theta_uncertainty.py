@@ -70,7 +70,7 @@ def shifted_model(model: FisheyeModel, name: str, h: float) -> FisheyeModel:
 
 
 def theta_gradient(model: FisheyeModel, names, u, v) -> np.ndarray:
-    """d theta / d p (degree per unit of each parameter), shape (len(names), *u.shape)."""
+    """d theta / d p (degree per unit of each parameter), shape ``(len(names), *u.shape)``."""
     u, v = np.broadcast_arrays(np.asarray(u, float), np.asarray(v, float))
     x, y = model._sensor_xy(u, v)
     rho = np.hypot(x, y)

@@ -15,8 +15,7 @@ Experimental immersion factor (Eq. 11, Zibordi 2006 procedure)
     y_DN(0-) is the intercept of ln y_DN(z) = ln y_DN(0-) - K z over water
     heights z above the camera (6 to 11 cm in 0.5 cm steps, 5 frames each).
 
-Theoretical immersion factor of a flat external window (Eq. 10, Section 2.7,
-line "I = n_w (n_w + n_g)^2 / (1 + n_g)^2" of the paper)
+Theoretical immersion factor of a flat external window (Eq. 10, Section 2.7, line "I = n_w (n_w + n_g)^2 / (1 + n_g)^2" of the paper)
     I = n_w (n_w + n_g)^2 / (1 + n_g)^2, with n_g the index of the external
     optical surface.  Its inverse has the closed form
     n_g = (n_w - r) / (r - 1), r = sqrt(I / n_w).

@@ -51,6 +51,8 @@ def rolloff_design_matrix(theta_deg, scale_deg=1.0):
 class RolloffFit:
     """Weighted least-squares fit of Eq. (13).
 
+    Attributes
+    ----------
     coefficients : (5,) a0..a8 for theta in degrees.
     covariance : (5, 5) their covariance.
     chi2 : weighted sum of squared residuals; dof = n - 5.

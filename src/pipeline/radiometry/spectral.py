@@ -12,6 +12,7 @@ Larouche et al. (2024), Sections 2.1, 2.5 and 3.4:
   so the "half bandwidth" is Lambda_i / 2.
 * Effective band radiance, Eq. (3):
   L_i = int L(lambda) S_R,i dlambda / int S_R,i dlambda.
+
 All integrals use the trapezoidal rule, as in the paper.
 
 Wavelengths in nm, radiances in W sr-1 m-2 nm-1 (any unit passes through).

@@ -3,6 +3,7 @@
 Light: per raw pixel, photo-electrons per second =
     responsivity(band) / K100 * L_band(pixel) * g_band(theta) [* effects' optics factors]
     * light factor (e.g. 1/I in water),
+
 then any stray-light spreading (in the optics, before the light reaches the sensor), then the
 pixel's sensitivity (flat field: it multiplies all the light that lands on the pixel, the spread
 part too), then :func:`pipeline.simulate.sensor.expose` (Larouche et al. 2024, Eqs. 1 and 4).

@@ -3,6 +3,7 @@
 DN = bias + offset FPN (ADU) + K * offset FPN (e-) + frame offset
      + response(K * (Poisson(photo-electrons + dark electrons)))
      + K * read noise (e-) * N(0, 1),
+
 with the electrons clipped at the full well when the sensor has one,
 rounded and clipped to the 14-bit range, with K = conversion gain at ISO 100
 times ISO/100 times the effects' gain factor (Larouche et al. 2024, Eq. 1).

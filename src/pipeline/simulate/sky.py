@@ -435,7 +435,7 @@ class Sky:
         return {k: weights @ s for k, s in self.component_spectra.items()}
 
     def radiance(self, weights: np.ndarray, zenith_deg, azimuth_deg, i: int) -> np.ndarray:
-        """Response-averaged radiance (n_response, *directions) at time index ``i``."""
+        """Response-averaged radiance ``(n_response, *directions)`` at time index ``i``."""
         spectra = self.band_spectra(weights)
         pats = self.patterns(zenith_deg, azimuth_deg, i)
         return sum(spectra[k][:, i].reshape((-1,) + (1,) * np.ndim(pats[k])) * pats[k][None] for k in COMPONENTS)

@@ -10,7 +10,9 @@ central field of the lens; the monochromator steps from 400 to 700 nm in
 Physics.  The beam is narrow (1 nm slit against bands 80-120 nm wide), so
 its spectral radiance is a line of integrated radiance E(lambda_0); by Eq. (3)
 the effective band radiance it gives band b is
+
     L_b = E(lambda_0) S_b(lambda_0) / int S_b dlambda
+
 with S_b the TRUE peak-normalised response (integrated on a 0.1 nm grid).
 E follows the lamp and the grating: a 2796 K Planck spectrum times a blazed
 grating efficiency (peak near 500 nm), so that the photodiode correction

@@ -27,7 +27,9 @@ reduces them to:
 
 from __future__ import annotations
 
+import logging
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -45,6 +47,7 @@ from pipeline.radiometry.exposure import gain_from_iso
 from pipeline.rawio import read_tags
 
 STAGE = "dark"
+log = logging.getLogger("pipeline.stages.dark")
 
 
 def _setting_key(raw) -> tuple[float, float]:
@@ -204,6 +207,7 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
     corners = {}
     circles = {}
     frame_rows = []
+    tag_levels: dict[int, tuple[float, float]] = {}   # file_index -> (BlackLevel, WhiteLevel) tags
     inputs = {}
     optical_black = []
     dark_reference = {}                            # lens -> what measures each dark frame's black level
@@ -258,6 +262,7 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
                     corner_dn, n_ob = dec.raw.optical_black_dn, dec.raw.optical_black_count
                 else:
                     corner_dn, n_ob = np.nan, 0
+                tag_levels[i] = (float(dec.raw.black_level), float(dec.raw.white_level))
                 frame_rows.append({
                     "lens": lens, "band": band, "iso": key[0], "exposure_s": key[1], "file_index": i,
                     "circle_mean_dn": float(img[circles[(lens, band)]].mean()), "corner_dn": corner_dn,
@@ -271,6 +276,7 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
     has_ob = bool(optical_black) and all(optical_black)
     return {"stats": stats, "settings": sorted(counts), "hot": hot, "base": base, "frames": table,
             "corners": corners, "inputs": inputs, "lenses": lenses, "edges": edges, "projections": projections,
+            "tag_levels": tag_levels, "paths": list(frames["path"]),
             "bias_reference": {lens: bias_reference(p, has_ob) for lens, p in projections.items()},
             "dark_bias_reference": dark_reference}
 
@@ -377,6 +383,34 @@ def mark_not_measured(ds: xr.Dataset, design: dict[str, bool], with_dark_current
             f"dark.hot_pixel_persistence = {persistence} longest), the dark frames have {len(times)}: no pixel flagged"))
     else:
         ds["hot_pixel_mask"].attrs["measured"] = 1
+
+
+def black_level_tag_note(fr: pd.DataFrame, reduced: dict, max_fraction: float) -> str:
+    """The ISOs whose dark level, measured at their shortest exposure (the image circle's mean of each frame
+    and band, their median: dark current and hot pixels negligible there), sits more than ``max_fraction``
+    of the white level from the median BlackLevel tag of those frames; empty when none does. The stages
+    subtract the measured dark level, but the tag sets the full scale (saturation margins, the sun seen in a
+    field frame): a tag far from the data is another raw mode's, or light reached the sensor."""
+    levels = reduced.get("tag_levels") or {}
+    paths = reduced.get("paths") or []
+    found = []
+    for iso, rows in fr.groupby("iso", sort=True):
+        shortest = rows[rows["exposure_s"] == rows["exposure_s"].min()]
+        tags = [levels[i] for i in sorted(set(shortest["file_index"].astype(int))) if i in levels]
+        if not tags:
+            continue
+        tag = float(np.median([b for b, _ in tags]))
+        white = float(np.median([w for _, w in tags]))
+        measured = float(np.median(shortest["circle_mean_dn"]))
+        if abs(measured - tag) > max_fraction * white:
+            first = int(shortest["file_index"].min())
+            name = Path(paths[first]).name if first < len(paths) else f"frame {first}"
+            found.append(f"ISO {iso:g}: dark level {measured:.1f} DN at {float(shortest['exposure_s'].iloc[0]):g} s "
+                         f"but the BlackLevel tag says {tag:g} DN ({name} and {len(tags) - 1} more)")
+    if not found:
+        return ""
+    return ("; ".join(found) + f": more than dark.black_level_tag_max_fraction = {max_fraction:g} of the white level "
+            "apart (a tag of another raw mode or converter, or light reaching the sensor through the cap)")
 
 
 def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, xr.Dataset]:
@@ -497,6 +531,10 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     for ds in out.values():
         mark_not_measured(ds, design, "dark_current" in effects, settings, config["dark"]["hot_pixel_persistence"])
     for lens, ds in out.items():
+        note = black_level_tag_note(fr[fr["lens"] == lens], reduced, config["dark"]["black_level_tag_max_fraction"])
+        if note:
+            log.warning("dark %s: %s", lens, note)
+            ds.attrs["black_level_tag_note"] = note
         reference = reduced.get("bias_reference", {}).get(lens, "unlit corners")
         ds.attrs["projection"] = reduced.get("projections", {}).get(lens, "fisheye")
         ds.attrs["bias_reference"] = reference
@@ -628,8 +666,35 @@ def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, 
                       {"long_name": "RMS of the noise-normalised residuals of the dark model (1 at the noise floor)", "units": "1"}),
         },
     )
+    ds = ds.merge(dsnu_dataset(reduced, lens, settings))
     ds = ds.merge(table_to_dataset(st_l, "obs_setting")).merge(table_to_dataset(fr_l, "obs_frame"))
     return ds
+
+
+def dsnu_dataset(reduced: dict, lens: str, settings: list) -> xr.Dataset:
+    """DSNU1288 per band (EMVA1288 release 3.0, :func:`pipeline.radiometry.emva1288.spatial_nonuniformity`'s dark
+    half) from the setting with the most frames (a dark stack): the spatial variance of its frame-averaged image
+    over every pixel of the region the dark model reads (hot pixels included, as the standard has it; a
+    rectilinear region without optically black pixels: the half that is not its black-level reference), less
+    the part its temporal noise leaves there (mean temporal variance over the frames); NaN below 2 frames or
+    when the temporal part exceeds the spatial variance. Of a band pixel: the G band averages two raw sites."""
+    stack = max(settings, key=lambda s: reduced["stats"][(lens, BANDS[0], s)]["n_frames"])
+    n = int(reduced["stats"][(lens, BANDS[0], stack)]["n_frames"])
+    s2 = np.full(len(BANDS), np.nan)
+    for bi, band in enumerate(BANDS):
+        d = reduced["stats"][(lens, band, stack)]["circle"]
+        if n >= 2 and d["n_used"] >= 2:
+            s2[bi] = d["width_dn"] ** 2 * d["n_used"] / (d["n_used"] - 1) - d["var_dn2"] / n
+    attrs = {"setting_iso": float(stack[0]), "setting_exposure_s": float(stack[1]), "n_frames": n}
+    dsnu = np.where(s2 >= 0, np.sqrt(np.maximum(s2, 0.0)), np.nan)
+    return xr.Dataset({
+        "dark_spatial_var_dn2": ("band", s2, {"long_name": "spatial variance of the dark stack's frame-averaged "
+                                                           "image less its temporal part (s^2_y.dark)",
+                                              "units": "DN2", **attrs}),
+        "dsnu1288_dn": ("band", dsnu, {"long_name": "dark signal non-uniformity DSNU1288 of a band pixel (sqrt of "
+                                                     "dark_spatial_var_dn2; NaN when it is negative or fewer than 2 "
+                                                     "frames)", "units": "DN", **attrs}),
+    }, coords={"band": list(BANDS)})
 
 
 def compute(ctx) -> xr.Dataset:

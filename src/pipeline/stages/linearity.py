@@ -52,6 +52,7 @@ from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.geometry.image_circle import find_image_circle, outside_lit_fraction
 from pipeline.moments import RunningMoments, RunningPearson, radius_map
 from pipeline.observations import corner_table_dataset, effect_coefficients, fit_with_effects, table_to_dataset
+from pipeline.radiometry import emva1288 as emva
 from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
 from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso
 from pipeline.radiometry.response import linear_signal
@@ -221,6 +222,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                     "corner_dn": corner_dn, "n_corner_sites": n_corner_sites,
                     "saturated": bool(images.saturated[band].reshape(-1).take(m_at).any()),
                     "temperature_c": float(row.get("temperature_c", np.nan)),
+                    "photons_per_pixel": float(row.get("photons_per_pixel", np.nan)),
                     "white_level_dn": float(dec.raw.white_level),
                 })
     return {"moments": moments, "pearson": pearson, "frames": pd.DataFrame(frame_rows), "masks": masks,
@@ -443,6 +445,16 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     fr["sigma_dn"] = np.sqrt(np.maximum(fr["pixel_var_dn2"] - np.nan_to_num(drift[0]) ** 2, 1e-12) / fr["n_mask"])
     if use_drift:
         fr["sigma_dn"] = np.hypot(fr["sigma_dn"], fr["sigma_corner_dn"])
+    # lit frames without any dark reference (no unlit corners, no optically black pixels): the black level's
+    # frame-to-frame spread that the dark stage measured in its dark frames (bias_drift) cannot be removed
+    # from them, so it enters each frame's stated noise instead of its residual
+    fr["unremoved_drift_dn"] = 0.0
+    if "bias_drift" in effects and not testable:
+        for lens in fr["lens"].unique():
+            spread = dark_drift_dn(dark[lens])
+            if spread > 0:
+                fr.loc[fr["lens"] == lens, "unremoved_drift_dn"] = spread
+        fr["sigma_dn"] = np.hypot(fr["sigma_dn"], fr["unremoved_drift_dn"])
     fr["gain"] = gain_from_iso(fr["iso"])
     fr["group"] = fr["lens"] + "/" + fr["band"] + "/" + fr["sweep"] + "/" + fr["setting"].astype(str)
     fr["x_level"] = 1.0
@@ -480,7 +492,7 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
         ptc_mean_dn=("ptc_mean_dn", "first"), offset_var_dn2=("offset_var_dn2", "first"), saturated=("saturated", "any"),
         clipped_at_white_level=("clipped_at_white_level", "any"), other_light=("other_light", "any"),
         dark_mask_dn=("dark_mask_dn", "mean"), temperature_c=("temperature_c", "mean"),
-        white_level_dn=("white_level_dn", "min")).reset_index()
+        photons_per_pixel=("photons_per_pixel", "mean"), white_level_dn=("white_level_dn", "min")).reset_index()
     st["gain"] = gain_from_iso(st["iso"])
     # with bias_drift in the model each frame is corrected against the dark level of the
     # unlit corners, so no drift is left in the setting mean; without it the drift is
@@ -522,6 +534,15 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     return {lens: _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift, saturation,
                                 dark[lens], effects)
             for lens in reduced["geometry"]}
+
+
+def dark_drift_dn(dark_ds: xr.Dataset) -> float:
+    """The frame-to-frame black-level spread the dark stage measured in its dark frames (``bias_drift_dn``), 0 when
+    it was not measured (not in its model, not testable, or NaN)."""
+    if "bias_drift_dn" not in dark_ds:
+        return 0.0
+    value = float(dark_ds["bias_drift_dn"])
+    return value if np.isfinite(value) and value > 0 else 0.0
 
 
 def saturation_levels(st: pd.DataFrame, reduced: dict) -> dict:
@@ -669,6 +690,8 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
                                          f"which is not physical; {int((~st_l['used']).sum())} settings were found "
                                          "saturated and left out: check the sweep (signal level, saturation) and "
                                          "linearity.saturation_* in the config")
+    emva = emva1288_figures(st_l, dark_ds, ptc, saturation["reached"])
+    emva.update(prnu_figures(st_l, reduced["moments"], lens, dark_ds))
     flat, flat_maps, flat_fit = reduced["flat"]
     flat_chi2 = flat_fit.chi2 if flat_fit is not None else 0.0
     flat_dof = flat_fit.dof if flat_fit is not None else 0
@@ -719,8 +742,12 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
         "bias_drift_dn": ((), drift[0], {"long_name": "frame-to-frame black-level spread (0 when not in the model, "
                                                           "NaN when not testable)", "units": "DN"}),
         "rms_z": ((), np.sqrt((np.nansum(st["z"] ** 2) + ffit.chi2 + flat_chi2) / max(fit.dof + ffit.dof + flat_dof, 1)),
-                  {"long_name": "RMS of the noise-normalised residuals of the linearity model (1 at the noise floor)", "units": "1"}),
+                  {"long_name": "RMS of the noise-normalised residuals of the linearity model (1 at the noise floor)", "units": "1",
+                   # each table's own share (chi2 over its degrees of freedom): where the residual structure sits
+                   "setting_table": _rms(float(np.nansum(st["z"] ** 2)), fit.dof),
+                   "frame_table": _rms(ffit.chi2, ffit.dof), "flat_table": _rms(flat_chi2, flat_dof)}),
     }
+    data.update(emva)
     for name, (coef, se) in effect_params.items():
         data[f"effect_{name}"] = (f"{name}_param", coef, {"long_name": f"fitted parameter(s) of {name}", "units": get_effect(name).amplitude_units})
         data[f"effect_{name}_sigma"] = (f"{name}_param", se, {"units": get_effect(name).amplitude_units})
@@ -766,6 +793,132 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
     # full-resolution job's write (its 72 MB in 0.44 s against 1.33 s for the artefact, 71 MB against 44 MB)
     ds["pearson_r"].encoding["zlib"] = False
     return ds
+
+
+#: the EMVA1288 figures of the artefact: name -> (long name, units)
+EMVA1288_VARIABLES = {
+    "temporal_dark_noise_dn": ("temporal dark noise of one raw pixel at the exposure-sweep ISO (the dark stage's "
+                               "read_noise_dn), sigma_y,dark", "DN"),
+    "saturation_signal_dn": ("mean dark-corrected signal at the saturation point (the last unsaturated setting of the "
+                             "exposure sweep), mu_y,sat", "DN"),
+    "saturation_photons_per_pixel": ("photons per pixel at the saturation point, mu_p,sat (NaN without "
+                                     "photons_per_pixel in frames.csv)", "photon"),
+    "saturation_capacity_e": ("saturation capacity mu_e,sat: eta mu_p,sat with the photon counts, else "
+                              "mu_y,sat / K", "electron"),
+    "dynamic_range": ("dynamic range mu_e,sat / (sigma_y,dark / K + 1/2) (EMVA1288 release 3.0)", "1"),
+    "dynamic_range_db": ("dynamic range, 20 log10", "dB"),
+    "dynamic_range_bits": ("dynamic range, log2", "bit"),
+    "snr_max": ("largest signal-to-noise ratio sqrt(mu_e,sat)", "1"),
+    "snr_max_db": ("largest signal-to-noise ratio, 20 log10", "dB"),
+    "linearity_error_min_pct": ("least relative deviation of the mean signal from the straight line fitted over "
+                                "5-95 % of the saturation signal (EMVA1288 LE_min)", "%"),
+    "linearity_error_max_pct": ("largest relative deviation from that line (EMVA1288 LE_max)", "%"),
+    "responsivity_dn_per_photon": ("responsivity R: slope of the mean signal against the photons per pixel up to "
+                                   "70 % of the saturation signal, through the origin", "DN/photon"),
+    "responsivity_dn_per_photon_sigma": ("standard error of responsivity_dn_per_photon (residual scatter)",
+                                         "DN/photon"),
+    "quantum_efficiency": ("quantum efficiency eta = R / K", "electron/photon"),
+    "quantum_efficiency_sigma": ("standard uncertainty of quantum_efficiency (R's and K's errors)",
+                                 "electron/photon"),
+}
+
+
+def emva1288_figures(st_l: pd.DataFrame, dark_ds: xr.Dataset, ptc: dict, reached: bool) -> dict:
+    """The EMVA1288 figures per band (:mod:`pipeline.radiometry.emva1288`) from the exposure sweep's used settings:
+    saturation point, saturation capacity, dynamic range, SNR_max, linearity error and, when every used setting
+    has ``photons_per_pixel`` (frames.csv), responsivity and quantum efficiency. NaN where the data do not give
+    them (no photon-transfer curve, saturation not reached, no photon counts), with a ``not_measured`` reason."""
+    out = {name: np.full(len(BANDS), np.nan) for name in EMVA1288_VARIABLES}
+    k, k_se = ptc.get("conversion_gain_dn_per_e", (np.nan, np.nan))
+    iso = ptc.get("ptc_iso", np.nan)
+    reasons = {}
+    if not np.isfinite(k):
+        reasons["all"] = "no photon-transfer curve (no exposure sweep)"
+    elif not reached:
+        reasons["saturation"] = "the exposure sweep did not reach saturation"
+    for bi, band in enumerate(BANDS):
+        sel = st_l[(st_l["band"] == band) & (st_l["sweep"] == "exposure") & st_l["used"]].sort_values("exposure_s")
+        if not np.isfinite(k) or not len(sel):
+            continue
+        dark_dn = float(dark_ds["read_noise_dn"].sel(band=band).sel(iso=iso, method="nearest"))
+        out["temporal_dark_noise_dn"][bi] = dark_dn
+        if not reached:
+            continue
+        top = sel["value_dn"].idxmax()
+        sat_dn = float(sel.loc[top, "value_dn"])
+        out["saturation_signal_dn"][bi] = sat_dn
+        photons = sel["photons_per_pixel"].to_numpy(float) if "photons_per_pixel" in sel else np.full(len(sel), np.nan)
+        capacity = emva.saturation_capacity_e(sat_dn, k)
+        x = sel["exposure_s"].to_numpy(float)
+        if np.all(np.isfinite(photons)) and np.all(photons > 0):
+            r, r_se, _ = emva.responsivity(photons, sel["value_dn"], sat_dn)
+            qe = r / k
+            out["responsivity_dn_per_photon"][bi], out["responsivity_dn_per_photon_sigma"][bi] = r, r_se
+            out["quantum_efficiency"][bi] = qe
+            out["quantum_efficiency_sigma"][bi] = qe * np.hypot(r_se / r, k_se / k)
+            p_sat = float(sel.loc[top, "photons_per_pixel"])
+            out["saturation_photons_per_pixel"][bi] = p_sat
+            capacity = qe * p_sat
+            x = photons
+        else:
+            reasons["photons"] = ("frames.csv of linearity/ gives no photons_per_pixel on every used setting of "
+                                  "the exposure sweep")
+        out["saturation_capacity_e"][bi] = capacity
+        dr = emva.dynamic_range(capacity, dark_dn, k)
+        out["dynamic_range"][bi], out["dynamic_range_db"][bi], out["dynamic_range_bits"][bi] = (
+            dr, emva.decibels(dr), emva.bits(dr))
+        snr = emva.snr_max(capacity)
+        out["snr_max"][bi], out["snr_max_db"][bi] = snr, emva.decibels(snr)
+        le = emva.linearity_error(x, sel["value_dn"], sat_dn)
+        out["linearity_error_min_pct"][bi], out["linearity_error_max_pct"][bi] = le.min_pct, le.max_pct
+    data = {}
+    for name, (long_name, units) in EMVA1288_VARIABLES.items():
+        attrs = {"long_name": long_name, "units": units}
+        if not np.any(np.isfinite(out[name])):
+            why = reasons.get("all") or (reasons.get("photons") if name.startswith(("responsivity", "quantum",
+                                                                                    "saturation_photons"))
+                                         else reasons.get("saturation"))
+            if why:
+                attrs.update(measured=0, not_measured=why)
+        data[name] = ("band", out[name], attrs)
+    return data
+
+
+def _rms(chi2: float, dof: int) -> float:
+    """sqrt(chi2 / dof), NaN without degrees of freedom."""
+    return float(np.sqrt(chi2 / dof)) if dof > 0 else float("nan")
+
+
+def prnu_figures(st_l: pd.DataFrame, moments: dict, lens: str, dark_ds: xr.Dataset) -> dict:
+    """PRNU1288 per band (EMVA1288 release 3.0) from the exposure sweep's used setting with the most frames (a
+    bright stack): over the photon-transfer region, the spatial variance of its frame-averaged image less the
+    part its temporal noise leaves there and less the dark stack's (the dark artefact's
+    ``dark_spatial_var_dn2``, 0 without it), over the mean dark-corrected signal, in per cent. Of a band pixel (the
+    G band averages two raw sites); the region is the photon-transfer region's pixels without the hot ones,
+    nothing smooth removed (the flat field's ``prnu`` is the pattern left after a smooth surface)."""
+    prnu = np.full(len(BANDS), np.nan)
+    attrs: dict = {"long_name": "photo response non-uniformity PRNU1288 of a band pixel over the photon-transfer "
+                                "region", "units": "%"}
+    sweep = st_l[(st_l["sweep"] == "exposure") & st_l["used"]]
+    if not len(sweep) or int(sweep["n_frames"].max()) < 2:
+        attrs.update(measured=0, not_measured="no setting of the exposure sweep has two frames or more")
+        return {"prnu1288_pct": ("band", prnu, attrs)}
+    top = sweep.loc[sweep["n_frames"].idxmax()]
+    key = (float(top["iso"]), float(top["exposure_s"]))
+    attrs.update(setting_iso=key[0], setting_exposure_s=key[1], n_frames=int(top["n_frames"]))
+    for bi, band in enumerate(BANDS):
+        mom = moments.get((lens, band, "exposure", key))
+        row = sweep[(sweep["band"] == band) & np.isclose(sweep["exposure_s"], key[1]) & (sweep["iso"] == key[0])]
+        if mom is None or mom.n < 2 or not len(row):
+            continue
+        mean, var = mom.mean(), mom.variance()
+        s2_bright = float(np.var(mean, ddof=1) - var.mean() / mom.n)
+        s2_dark = float(dark_ds["dark_spatial_var_dn2"].sel(band=band)) if "dark_spatial_var_dn2" in dark_ds else 0.0
+        signal = float(row["ptc_mean_dn"].iloc[0] - row["dark_mask_dn"].iloc[0])
+        excess = s2_bright - (s2_dark if np.isfinite(s2_dark) else 0.0)
+        if excess >= 0 and signal > 0:
+            prnu[bi] = 100.0 * np.sqrt(excess) / signal
+    return {"prnu1288_pct": ("band", prnu, attrs)}
 
 
 def corner_records(fr_l: pd.DataFrame, times: dict[int, float]) -> pd.DataFrame:

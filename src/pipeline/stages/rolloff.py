@@ -378,7 +378,7 @@ def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: di
                 raise InputError(dataset.root / STAGE / "frames.csv", f"in-water roll-off frames of lens {lens}, but "
                                  "its geometry artefact has no air model: the in-water closure needs both media")
             air_geo = geometry[lens].sel(medium="air") if medium == "water" else None
-            # the air model's stated field-angle uncertainty per pixel (geometry artefact version 2), if any
+            # the air model's stated field-angle uncertainty per pixel, if any
             static[(lens, medium)]["theta_air_sigma"] = (air_geo["theta_deg_sigma"].values
                                                          if air_geo is not None and "theta_deg_sigma" in air_geo else None)
             static[(lens, medium)]["centre"] = _centre_geometry(geometry[lens], medium)

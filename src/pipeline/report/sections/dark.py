@@ -113,6 +113,11 @@ def _dark_section(lens: str, ds: xr.Dataset, inputs) -> list:
         scal.append(["each frame's black level from", str(ds.attrs["bias_reference"])])
     if "rms_z" in ds:
         scal.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
+    if "dsnu1288_dn" in ds and np.any(np.isfinite(ds["dsnu1288_dn"].values)):
+        attrs = ds["dsnu1288_dn"].attrs
+        scal.append([f"DSNU1288 (EMVA1288; the setting with the most frames, {int(attrs.get('n_frames', 0))} at "
+                     f"{fmt_value(float(attrs.get('setting_exposure_s', np.nan)))} s)",
+                     ", ".join(f"{b} {fmt_value(float(ds['dsnu1288_dn'].sel(band=b)), 3)}" for b in bands) + " DN"])
     out.append(Table(["quantity", "value"], scal))
     if "read_noise_dn" in ds:
         isos = ds["iso"].values

@@ -217,7 +217,11 @@ def _linearity_section(lens: str, ds: xr.Dataset, inputs) -> list:
         rows.append(["lens projection; mask field angles from",
                      f"{ds.attrs['projection']}; {ds.attrs.get('field_angles_from', 'n/a')}"])
     if "rms_z" in ds:
-        rows.append(["rms of normalised residuals (1 = noise floor)", fmt_value(float(ds["rms_z"]), 3)])
+        parts = [f"{what} table {fmt_value(float(ds['rms_z'].attrs[f'{what}_table']), 3)}"
+                 for what in ("setting", "frame", "flat") if f"{what}_table" in ds["rms_z"].attrs
+                 and np.isfinite(float(ds["rms_z"].attrs[f"{what}_table"]))]
+        rows.append(["rms of normalised residuals (1 = noise floor)",
+                     fmt_value(float(ds["rms_z"]), 3) + (f" ({', '.join(parts)})" if parts else "")])
     out.append(Text("Fitted linearity and noise parameters:"))
     out.append(Table(["quantity", "value"], rows))
 
@@ -236,8 +240,41 @@ def _linearity_section(lens: str, ds: xr.Dataset, inputs) -> list:
         out.append(Table(["sweep", "band", "rate at ISO 100", "line slope", "line intercept [DN]", "line r"], rows,
                           left=2))
 
+    emva = _emva1288_table(ds, bands)
+    if emva is not None:
+        out.append(Text("EMVA1288 figures (release 3.0 definitions) per band, from the exposure sweep: saturation "
+                        "at the last unsaturated setting; dynamic range mu_e,sat / (sigma_y,dark / K + 1/2); "
+                        "linearity error over 5-95 % of the saturation signal; responsivity and quantum "
+                        "efficiency only when linearity/frames.csv gives photons_per_pixel. Not measured: "
+                        + ("; ".join(sorted({str(ds[n].attrs['not_measured']) for n in EMVA1288_SHOWN
+                                             if n in ds and 'not_measured' in ds[n].attrs})) or "none") + "."))
+        out.append(emva)
     out.append(effects_table(ds))
     return out
+
+
+#: the EMVA1288 figures shown, with their labels
+EMVA1288_SHOWN = {"temporal_dark_noise_dn": "temporal dark noise sigma_y,dark",
+                  "saturation_signal_dn": "saturation signal mu_y,sat",
+                  "saturation_capacity_e": "saturation capacity mu_e,sat",
+                  "dynamic_range": "dynamic range", "dynamic_range_db": "dynamic range",
+                  "dynamic_range_bits": "dynamic range",
+                  "snr_max": "SNR_max", "snr_max_db": "SNR_max",
+                  "linearity_error_min_pct": "linearity error LE_min",
+                  "linearity_error_max_pct": "linearity error LE_max",
+                  "responsivity_dn_per_photon": "responsivity R",
+                  "quantum_efficiency": "quantum efficiency eta",
+                  "prnu1288_pct": "PRNU1288 (photon-transfer region, the setting with the most frames)"}
+
+
+def _emva1288_table(ds: xr.Dataset, bands: list[str]) -> Table | None:
+    names = [n for n in EMVA1288_SHOWN if n in ds and "band" in ds[n].dims
+             and np.any(np.isfinite(ds[n].values))]
+    if not names:
+        return None
+    rows = [[EMVA1288_SHOWN[n], str(ds[n].attrs.get("units", ""))]
+            + [quantity(ds, n, units=False, band=b) for b in bands] for n in names]
+    return Table(["quantity", "unit"] + list(bands), rows, left=2)
 
 
 

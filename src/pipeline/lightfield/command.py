@@ -1,0 +1,319 @@
+"""``python -m pipeline lightfield``: radiance sphere grids to the light-field quantities, in the earth frame.
+
+Per frame and band: the camera-frame grid's empty band between the lenses
+filled (:mod:`~pipeline.lightfield.fill`), the earth's zenith found from the
+frame's attitude (:mod:`~pipeline.lightfield.attitude`), the quantities and
+their uncertainties (:mod:`~pipeline.lightfield.quantities`), and the grid
+resampled into the earth frame for maps (each earth cell takes the camera cell
+its centre falls in; the integrals are over the camera cells, never over the
+resampled map).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from pipeline import __version__
+from pipeline.apply import apply_calibration
+from pipeline.config import defaults
+from pipeline.errors import InputError
+from pipeline.lightfield.attitude import (LEVEL, attitude_at, earth_to_camera_directions, earth_up_in_camera,
+                                          read_attitude, solar_position)
+from pipeline.lightfield.fill import fill_between_lenses
+from pipeline.lightfield.grid import RADIANCE_UNITS, read_sphere_grids
+from pipeline.lightfield.quadrature import GridEdges, cell_centre_directions
+from pipeline.lightfield.quantities import COMPONENTS, INTEGRALS, QUANTITIES, WeightCache, light_field_quantities
+
+__all__ = ["compute_light_field", "light_field_from_raw", "write_light_field", "add_lightfield_parser",
+           "lightfield_command", "QUANTITY_ATTRS"]
+
+_IRRADIANCE = "W m-2 nm-1"
+#: per quantity: long name, units, CF standard name in air and in sea water (None: the table has none)
+QUANTITY_ATTRS = {
+    "E_d": ("downwelling plane irradiance (cosine-weighted integral of the upper hemisphere)", _IRRADIANCE,
+            "downwelling_spectral_radiative_flux_in_air", "downwelling_spectral_radiative_flux_in_sea_water"),
+    "E_u": ("upwelling plane irradiance (cosine-weighted integral of the lower hemisphere)", _IRRADIANCE,
+            "upwelling_spectral_radiative_flux_in_air", "upwelling_spectral_radiative_flux_in_sea_water"),
+    "E_0d": ("downwelling scalar irradiance (integral of the upper hemisphere)", _IRRADIANCE,
+             None, "downwelling_spectral_spherical_irradiance_in_sea_water"),
+    "E_0u": ("upwelling scalar irradiance (integral of the lower hemisphere)", _IRRADIANCE,
+             None, "upwelling_spectral_spherical_irradiance_in_sea_water"),
+    "E_0": ("scalar irradiance (integral of the whole sphere)", _IRRADIANCE,
+            None, "omnidirectional_spectral_spherical_irradiance_in_sea_water"),
+    "mu_d": ("average cosine of the downwelling light, E_d / E_0d", "1", None, None),
+    "mu_u": ("average cosine of the upwelling light, E_u / E_0u", "1", None, None),
+    "mu": ("average cosine of the light field, (E_d - E_u) / E_0", "1", None, None),
+    "L_d": ("zenith radiance (mean over the cone about the zenith)", RADIANCE_UNITS,
+            "downwelling_spectral_radiance_in_air", "downwelling_spectral_radiance_in_sea_water"),
+    "L_u": ("nadir radiance (mean over the cone about the nadir)", RADIANCE_UNITS,
+            "upwelling_spectral_radiance_in_air", "upwelling_spectral_radiance_in_sea_water"),
+    "Q": ("Q factor, E_u / L_u", "sr", None, None),
+}
+_COMPONENT_TEXT = {
+    "random": "random standard uncertainty (independent cell noise through the quadrature)",
+    "systematic": "systematic standard uncertainty (terms common to the band, fully correlated between cells)",
+    "fill_model": "standard uncertainty from the fill model of the cells no lens calibrates",
+    "attitude": "standard uncertainty from the roll and pitch uncertainty (the grid rotated)",
+    "quadrature": "quadrature error: difference from the same quadrature on the grid of half resolution",
+}
+
+
+def _frame_times_utc(grids, offset_h: float, needed_for: str) -> pd.DatetimeIndex:
+    times = []
+    for name, text in zip(grids.frame_names, grids.frame_times):
+        if not text:
+            raise InputError(name, f"the grid gives no frame_time, which {needed_for} needs")
+        try:
+            stamp = pd.Timestamp(text)
+        except ValueError:
+            raise InputError(name, f"frame_time {text!r} is not an ISO 8601 date and time") from None
+        stamp = stamp.tz_convert("UTC") if stamp.tzinfo is not None else \
+            (stamp - pd.Timedelta(hours=offset_h)).tz_localize("UTC")
+        times.append(stamp)
+    return pd.DatetimeIndex(times)
+
+
+def compute_light_field(grid_paths, medium: str | None = None, attitude_path=None, site=None,
+                        camera_utc_offset_h: float = 0.0, config: dict | None = None) -> xr.Dataset:
+    """The light field of every frame and band of the grid files (see the module docstring and docs/light-field.md).
+
+    ``site`` (latitude_deg, longitude_deg[, altitude_m]) gives the solar position (pvlib) and each earth-frame
+    azimuth relative to the sun; ``camera_utc_offset_h`` is the camera clock minus UTC for frame times without
+    an offset. ``config`` the ``lightfield`` section (default: the schema's defaults).
+    """
+    cfg = config if config is not None else defaults()["lightfield"]
+    grids = read_sphere_grids(grid_paths, medium)
+    medium = grids.medium or "air"
+    n_f, n_b, n_z, n_a = grids.radiance.shape
+    edges = GridEdges.regular(n_z, n_a)
+    times = None
+    if attitude_path is not None or site is not None:
+        times = _frame_times_utc(grids, camera_utc_offset_h, "an attitude log" if attitude_path else "a site")
+    if attitude_path is not None:
+        attitudes = attitude_at(read_attitude(attitude_path), times, grids.frame_names)
+    else:
+        attitudes = [LEVEL] * n_f
+    weights = WeightCache(float(cfg["radiance_cone_half_angle_deg"]), int(cfg["boundary_subcells"]))
+    results = {k: np.full((n_f, n_b, len(QUANTITIES)), np.nan)
+               for k in ("value", *COMPONENTS, "total", "filled_fraction", "filled_variance_fraction")}
+    earth = {k: np.full((n_f, n_b, n_z, n_a), np.nan) for k in ("radiance", "random", "systematic", "model")}
+    earth_flag = np.zeros((n_f, n_b, n_z, n_a), np.int8)
+    fallback = np.zeros((n_f, n_b), np.int32)
+    earth_centres = cell_centre_directions(edges)
+    cells = {}
+    for f in range(n_f):
+        # each earth cell's centre in the camera grid: the camera cell it falls in (once per attitude)
+        if attitudes[f] not in cells:
+            cam = earth_to_camera_directions(attitudes[f], earth_centres)
+            cz = np.degrees(np.arccos(np.clip(cam[..., 2], -1, 1)))
+            ca = np.degrees(np.arctan2(cam[..., 1], cam[..., 0])) % 360.0
+            cells[attitudes[f]] = (np.clip((cz / (180.0 / n_z)).astype(int), 0, n_z - 1),
+                                   np.clip((ca / (360.0 / n_a)).astype(int), 0, n_a - 1))
+        iz, ia = cells[attitudes[f]]
+        for b in range(n_b):
+            filled = fill_between_lenses(grids.radiance[f, b], grids.random_sigma[f, b], grids.systematic_sigma[f, b],
+                                         grids.zenith_deg, float(cfg["fill_fit_span_deg"]))
+            res = light_field_quantities(filled, edges, attitudes[f], weights, float(cfg["attitude_step_deg"]),
+                                         grids.centre_samples)
+            for k in results:
+                results[k][f, b] = res[k]
+            fallback[f, b] = filled.fallback_cells
+            earth["radiance"][f, b] = filled.radiance[iz, ia]
+            earth["random"][f, b] = filled.random_sigma[iz, ia]
+            earth["systematic"][f, b] = filled.systematic_sigma[iz, ia]
+            earth["model"][f, b] = filled.model_sigma[iz, ia]
+            earth_flag[f, b] = filled.flag[iz, ia]
+    return _dataset(grids, medium, attitudes, times, site, attitude_path, results, earth, earth_flag, fallback, cfg,
+                    edges)
+
+
+def _attrs(long_name, units, **more):
+    return {"long_name": long_name, "units": units, **more}
+
+
+def _dataset(grids, medium, attitudes, times, site, attitude_path, results, earth, earth_flag, fallback, cfg, edges):
+    dims4 = ("frame", "band", "zenith", "azimuth")
+    data = {
+        "sphere_radiance": (dims4, earth["radiance"], _attrs(
+            "spectral radiance in the earth frame (measured and filled cells)", RADIANCE_UNITS,
+            comment="upper hemisphere downwelling, lower upwelling radiance (no one CF standard name covers both); "
+                    "each earth cell takes the camera cell its centre falls in")),
+        "sphere_radiance_random_sigma": (dims4, earth["random"], _attrs("random standard uncertainty", RADIANCE_UNITS)),
+        "sphere_radiance_systematic_sigma": (dims4, earth["systematic"],
+                                             _attrs("systematic standard uncertainty (common to the band)",
+                                                    RADIANCE_UNITS)),
+        "sphere_radiance_fill_model_sigma": (dims4, earth["model"],
+                                             _attrs("fill model standard uncertainty (0: measured cell)",
+                                                    RADIANCE_UNITS)),
+        "sphere_cell_flag": (dims4, earth_flag, {"long_name": "cell source", "flag_values": np.array([0, 1, 2], np.int8),
+                                                 "flag_meanings": "measured filled empty"}),
+        "fill_fallback_cells": (("frame", "band"), fallback, _attrs(
+            "filled cells whose model sigma is the fallback half step (fewer than three calibrated rows beside "
+            "the run)", "1")),
+        "frame_file": ("frame", np.array(grids.frame_names, dtype=str), {"long_name": "raw frame (or grid file:index)"}),
+        "grid_file": ("frame", np.array(grids.frame_files, dtype=str), {"long_name": "radiance grid file"}),
+    }
+    for name, unit_attr in (("roll", "roll"), ("pitch", "pitch"), ("heading", "heading")):
+        data[f"{name}_deg"] = ("frame", np.array([getattr(a, f"{unit_attr}_deg") for a in attitudes]),
+                               _attrs(f"camera {name}", "degree"))
+        data[f"{name}_sigma_deg"] = ("frame", np.array([getattr(a, f"{unit_attr}_sigma_deg") for a in attitudes]),
+                                     _attrs(f"standard uncertainty of the camera {name}", "degree"))
+    tilt = [np.degrees(np.arccos(np.clip(earth_up_in_camera(a.roll_deg, a.pitch_deg)[2], -1, 1))) for a in attitudes]
+    data["tilt_deg"] = ("frame", np.array(tilt), _attrs("angle between the grid's zenith and the zenith", "degree"))
+    if times is not None:
+        data["frame_time_utc"] = ("frame", np.array([t.isoformat() for t in times], dtype=str),
+                                  {"long_name": "frame time (UTC)"})
+    if site is not None:
+        sz, sa = solar_position(times, *site)
+        data["solar_zenith_deg"] = ("frame", sz, _attrs("apparent solar zenith angle (pvlib)", "degree"))
+        data["solar_azimuth_deg"] = ("frame", sa, _attrs("solar azimuth from north towards east (pvlib)", "degree"))
+        rel = (edges.azimuth_centres_deg[None, :] - sa[:, None]) % 360.0
+        data["azimuth_from_sun_deg"] = (("frame", "azimuth"), rel,
+                                        _attrs("earth-frame cell azimuth relative to the solar azimuth", "degree"))
+    water = medium == "water"
+    for q, (long_name, units, cf_air, cf_water) in QUANTITY_ATTRS.items():
+        i = QUANTITIES.index(q)
+        extra = {}
+        cf = cf_water if water else cf_air
+        if cf:
+            extra["standard_name"] = cf
+        data[q] = (("frame", "band"), results["value"][..., i], _attrs(long_name, units, **extra))
+        for c in COMPONENTS:
+            suffix = "quadrature_error" if c == "quadrature" else f"{c}_sigma"
+            data[f"{q}_{suffix}"] = (("frame", "band"), results[c][..., i], _attrs(f"{q}: {_COMPONENT_TEXT[c]}", units))
+        data[f"{q}_sigma"] = (("frame", "band"), results["total"][..., i],
+                              _attrs(f"{q}: total standard uncertainty (root sum of squares of the components)", units))
+        if q in INTEGRALS:
+            data[f"{q}_filled_fraction"] = (("frame", "band"), results["filled_fraction"][..., i],
+                                            _attrs(f"{q}: share of the value from filled cells", "1"))
+        data[f"{q}_filled_variance_fraction"] = (("frame", "band"), results["filled_variance_fraction"][..., i],
+                                                 _attrs(f"{q}: fill model's share of the total variance", "1"))
+    ds = xr.Dataset(data, coords={
+        "frame": np.arange(len(attitudes)), "band": grids.bands,
+        "zenith": ("zenith", edges.zenith_centres_deg, _attrs("earth-frame zenith angle of the cell centre", "degree")),
+        "azimuth": ("azimuth", edges.azimuth_centres_deg,
+                    _attrs("earth-frame azimuth of the cell centre, from north towards east" if attitude_path
+                           else "azimuth of the cell centre in the grid's own frame (no attitude given)", "degree")),
+    })
+    ds.attrs.update({
+        "Conventions": "CF-1.10", "title": "light field from radiance sphere grids",
+        "pipeline_version": __version__, "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "medium": medium, "grid_files": ",".join(sorted(set(grids.frame_files))),
+        "attitude": (f"from {attitude_path}: roll, pitch and heading interpolated to each frame's time; the grid "
+                     "rotated into the earth frame (zenith up, azimuth from north towards east)") if attitude_path
+        else "none given: the grid's zenith is taken as the zenith and its azimuth as the azimuth; no attitude "
+             "uncertainty",
+        "quadrature": "cell radiance constant over each cell; exact solid angles and cosine integrals per cell, cells "
+                      f"the hemisphere's or cone's edge crosses divided into {int(cfg['boundary_subcells'])}^2 "
+                      "sub-cells; the quadrature error is the difference from the grid of half resolution",
+        "fill_model": "empty cells between calibrated cells of an azimuth column: linear interpolation in zenith "
+                      "angle; model sigma (z - z_a)(z_b - z) / 2 * max|L''| of quadratic fits over "
+                      f"{float(cfg['fill_fit_span_deg']):g} degrees of calibrated rows on either side",
+        "cell_values": "centre samples, turned into cell means by the local quadratic (the correction's size is "
+                       "part of the quadrature error)" if grids.centre_samples else "cell means",
+        "radiance_cone_half_angle_deg": float(cfg["radiance_cone_half_angle_deg"]),
+        "attitude_step_deg": float(cfg["attitude_step_deg"]),
+        "uncertainty": "random: independent per cell, averaged down by the quadrature; systematic: common to the "
+                       "band, fully correlated (cancels in mu_d, mu_u, mu and Q when proportional to the radiance); "
+                       "fill model: fully correlated between filled cells; attitude: derivative with respect to "
+                       "roll and pitch; total: root sum of squares with the quadrature error",
+    })
+    if grids.absent_sigmas:
+        ds.attrs["absent_uncertainty"] = (f"{', '.join(grids.absent_sigmas)} not in the grid file(s): taken as zero")
+    if site is not None:
+        ds.attrs["site"] = f"latitude {site[0]} deg, longitude {site[1]} deg" + (
+            f", altitude {site[2]} m" if len(site) > 2 else "")
+    return ds
+
+
+def write_light_field(ds: xr.Dataset, out_path, overwrite: bool = False) -> Path:
+    """Write the light field as NetCDF (atomically); an existing file only with ``overwrite``."""
+    out = Path(out_path)
+    if out.exists() and not overwrite:
+        raise InputError(out, "exists (give --overwrite to replace it)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".part")
+    ds.to_netcdf(tmp)
+    os.replace(tmp, out)
+    return out
+
+
+def light_field_from_raw(bundle_path, raw_paths, medium: str | None = None, attitude_path=None, site=None,
+                         camera_utc_offset_h: float = 0.0, grid_deg: float | None = None,
+                         config: dict | None = None) -> xr.Dataset:
+    """The light field of raw frames: ``apply`` with the calibration bundle makes their sphere grid (in a
+    temporary file, without the per-pixel maps), then :func:`compute_light_field`."""
+    with tempfile.TemporaryDirectory(prefix="lightfield-") as tmp:
+        grid = apply_calibration(bundle_path, raw_paths, medium or "air", Path(tmp) / "grid.nc", grid_deg,
+                                 pixels=False)
+        ds = compute_light_field([grid], medium, attitude_path, site, camera_utc_offset_h, config)
+        ds.load()
+    ds.attrs["grid_files"] = f"made by apply from {len(raw_paths)} raw frame(s) with the calibration {bundle_path}"
+    ds.attrs["calibration_bundle"] = str(bundle_path)
+    return ds
+
+
+def _site(text: str) -> tuple:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--site {text!r}: needs LAT,LON[,ALT_M] in degrees and metres") from None
+    if len(values) not in (2, 3) or not (-90 <= values[0] <= 90 and -180 <= values[1] <= 360):
+        raise argparse.ArgumentTypeError(f"--site {text!r}: needs LAT,LON[,ALT_M], latitude within +-90 degrees")
+    return values
+
+
+def add_lightfield_parser(subparsers) -> argparse.ArgumentParser:
+    """``lightfield [--calibration BUNDLE] [--medium air|water] [--attitude FILE] [--site LAT,LON] GRID.nc... -o OUT.nc``."""
+    p = subparsers.add_parser(
+        "lightfield", help="radiance sphere grids to irradiances, average cosines and radiances",
+        description="E_d, E_u, E_0d, E_0u, E_0, mu_d, mu_u, mu, L_d, L_u and Q per frame and band, with their "
+                    "random, systematic, fill-model, attitude and quadrature uncertainty, from radiance sphere "
+                    "grids (apply's output, or any grid in the format of docs/light-field.md).")
+    p.add_argument("grids", nargs="+", metavar="GRID.nc", help="radiance sphere grid files (with --calibration: "
+                                                                "raw DNG frames)")
+    p.add_argument("--calibration", metavar="BUNDLE", default=None,
+                   help="calibration bundle: the inputs are raw frames, which apply turns into a sphere grid first")
+    p.add_argument("--grid-deg", type=float, default=None,
+                   help="with --calibration: zenith/azimuth cell size of the grid (default: apply.grid_deg)")
+    p.add_argument("-o", "--out", required=True, help="NetCDF file to write")
+    p.add_argument("--medium", choices=("air", "water"), default=None,
+                   help="medium of the grids (default: their 'medium' attribute, else air)")
+    p.add_argument("--attitude", metavar="FILE", default=None,
+                   help="CSV log of roll, pitch, heading and their sigmas (docs/light-field.md); without it the "
+                        "grid's zenith is the zenith")
+    p.add_argument("--site", type=_site, default=None, metavar="LAT,LON[,ALT_M]",
+                   help="where the frames were taken: adds the solar position (pvlib) and azimuths from the sun")
+    p.add_argument("--camera-utc-offset-h", type=float, default=0.0, metavar="HOURS",
+                   help="camera clock minus UTC for frame times without an offset (default 0)")
+    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
+    return p
+
+
+def lightfield_command(args) -> int:
+    """Run ``lightfield`` from parsed arguments; bad input prints one line and returns 1."""
+    try:
+        if Path(args.out).exists() and not args.overwrite:
+            raise InputError(args.out, "exists (give --overwrite to replace it)")
+        if args.grid_deg is not None and args.calibration is None:
+            raise InputError(None, "--grid-deg applies to raw frames (--calibration); a grid file keeps its own cells")
+        if args.calibration is not None:
+            ds = light_field_from_raw(args.calibration, args.grids, args.medium, args.attitude, args.site,
+                                      args.camera_utc_offset_h, args.grid_deg)
+        else:
+            ds = compute_light_field(args.grids, args.medium, args.attitude, args.site, args.camera_utc_offset_h)
+        out = write_light_field(ds, args.out, overwrite=args.overwrite)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"light field: {out}")
+    return 0
