@@ -2,7 +2,7 @@
 
 An artefact claims ``Conventions: CF-1.10``, so each of its ``units`` must be a unit UDUNITS-2 parses (not
 the unknown unit). Where a variable also keeps the camera's spelling (``camera_units``: UDUNITS-2 with the
-dimensionless counts DN, electron and pixel, docs/artefact-units.md), that spelling with each of the three
+dimensionless counts DN, electron, photon and pixel, docs/artefact-units.md), that spelling with each of the four
 written as UDUNITS-2's ``count`` must be the same unit as ``units`` (UDUNITS-2 compares them: same
 dimension and scale). The substitution here is the documented rule, written independently of
 ``pipeline.units``, whose spelling of the product the check does not read.
@@ -17,7 +17,7 @@ import cf_units
 import netCDF4
 
 #: the camera's counting units (docs/artefact-units.md), each a dimensionless count
-CAMERA_COUNTS = re.compile(r"(?<![A-Za-z_])(DN|electron|pixel)(?![A-Za-z_])")
+CAMERA_COUNTS = re.compile(r"(?<![A-Za-z_])(DN|electron|photon|pixel)(?![A-Za-z_])")
 
 
 def udunits(text: str) -> cf_units.Unit | None:
@@ -30,7 +30,7 @@ def udunits(text: str) -> cf_units.Unit | None:
 
 
 def camera_unit(text: str) -> cf_units.Unit | None:
-    """A unit in the camera's notation (DN, electron and pixel counted) as a UDUNITS-2 unit, or None."""
+    """A unit in the camera's notation (DN, electron, photon and pixel counted) as a UDUNITS-2 unit, or None."""
     return udunits(CAMERA_COUNTS.sub("count", text))
 
 

@@ -5,7 +5,7 @@ bundle), with what the pipeline makes from them in a second or two here: ``apply
 per-pixel maps and the sphere grid), the closure table and the comparison of the bundle with itself. Each
 file claims ``Conventions: CF-1.10``; UDUNITS-2 itself (the C library that cf-units bundles) parses every
 ``units``, and where a variable keeps the camera's spelling (``camera_units``) it is the same unit once
-DN, electron and pixel are counted (tests/cf_units_check.py). The field stage's artefact is checked in
+DN, electron, photon and pixel are counted (tests/cf_units_check.py). The field stage's artefact is checked in
 tests/test_field_stage.py, on the one that file's fixture writes.
 """
 
@@ -58,7 +58,7 @@ def test_every_units_attribute_of_the_tiny_run_parses_with_udunits(tiny_run):
 
 
 def test_camera_units_are_kept_and_read_back_as_written(tiny_run):
-    """DN, electron and pixel (not UDUNITS-2 units) are on disk as counts with the camera's spelling beside them,
+    """DN, electron, photon and pixel (not UDUNITS-2 units) are on disk as counts with the camera's spelling beside them,
     and an artefact read by the pipeline has the units its stage wrote."""
     with xr.open_dataset(tiny_run["linearity/far"]) as raw:
         assert raw["read_noise_e"].attrs["units"] == "count" and raw["read_noise_e"].attrs["camera_units"] == "electron"
@@ -77,9 +77,10 @@ def test_camera_units_are_kept_and_read_back_as_written(tiny_run):
 @pytest.mark.parametrize("camera, spelled", [
     ("DN", "count"), ("DN s-1", "count s-1"), ("DN2", "count2"), ("electron", "count"), ("DN/electron", "1"),
     ("electron/DN", "1"), ("pixel", "1"), ("pixel^2", "1"), ("DN s-1 degree_C-1", "count s-1 degree_C-1"),
-    ("W sr-1 m-2 nm-1 s DN-1", "W sr-1 m-2 nm-1 s count-1"), ("degree", "degree"), ("1", "1")])
+    ("W sr-1 m-2 nm-1 s DN-1", "W sr-1 m-2 nm-1 s count-1"), ("DN/photon", "1"), ("photon", "count"),
+    ("degree", "degree"), ("1", "1")])
 def test_the_udunits_spelling_is_the_camera_unit_for_udunits(camera, spelled):
-    """Against UDUNITS-2: the spelling parses and is the unit the camera's notation means (DN, electron and
+    """Against UDUNITS-2: the spelling parses and is the unit the camera's notation means (DN, electron, photon and
     pixel counted), and it is the short form written here."""
     assert udunits_spelling(camera) == spelled
     assert udunits(spelled) is not None and udunits(spelled) == camera_unit(camera)
@@ -93,7 +94,7 @@ def test_a_unit_the_spelling_cannot_read_is_refused():
 
 def test_text_columns_naming_units_use_the_camera_notation(tiny_run):
     """The closure table's ``value_units`` (a text column, not an attribute) is in the camera's notation, each
-    value a UDUNITS-2 unit once DN, electron and pixel are counted."""
+    value a UDUNITS-2 unit once DN, electron, photon and pixel are counted."""
     with xr.open_dataset(tiny_run["closure"]) as closure:
         values = set(np.unique(closure["value_units"].values.astype(str)))
     assert {"DN", "DN2", "1"} <= values, values

@@ -1,13 +1,13 @@
 """Units in the artefacts: the camera's counting units in a UDUNITS-2 file.
 
-The stages state their units in UDUNITS-2 notation plus three symbols that
+The stages state their units in UDUNITS-2 notation plus four symbols that
 UDUNITS-2 does not define and a camera scientist needs: ``DN`` (a digital
 number, one step of the analogue-to-digital converter), ``electron`` (one
-photo-electron) and ``pixel`` (one band pixel: a position, a distance or a
-count on the band image). All three are counts: dimensionless. The stages
+photo-electron), ``photon`` and ``pixel`` (one band pixel: a position, a distance or a
+count on the band image). All four are counts: dimensionless. The stages
 and every reader of an artefact in memory use that notation (the camera's);
 a file on disk, which claims the CF conventions, holds in ``units`` the same
-unit spelled for UDUNITS-2, with ``DN`` and ``electron`` written ``count``
+unit spelled for UDUNITS-2, with ``DN``, ``electron`` and ``photon`` written ``count``
 (UDUNITS-2's dimensionless count) and ``pixel`` left out (a dimensionless
 factor of one), and keeps the camera's spelling in the attribute
 ``camera_units`` (docs/artefact-units.md):
@@ -33,7 +33,7 @@ __all__ = ["COUNTING_UNITS", "CAMERA_UNITS_ATTR", "udunits_spelling", "encode_un
 
 #: the camera's counting units that UDUNITS-2 lacks, and the UDUNITS-2 symbol each is written with on disk
 #: (None: left out, a dimensionless factor of one)
-COUNTING_UNITS = {"DN": "count", "electron": "count", "pixel": None}
+COUNTING_UNITS = {"DN": "count", "electron": "count", "photon": "count", "pixel": None}
 #: the attribute that keeps a variable's units in the camera's notation, beside its UDUNITS-2 ``units``
 CAMERA_UNITS_ATTR = "camera_units"
 

@@ -806,10 +806,10 @@ EMVA1288_VARIABLES = {
     "saturation_capacity_e": ("saturation capacity mu_e,sat: eta mu_p,sat with the photon counts, else "
                               "mu_y,sat / K", "electron"),
     "dynamic_range": ("dynamic range mu_e,sat / (sigma_y,dark / K + 1/2) (EMVA1288 release 3.0)", "1"),
-    "dynamic_range_db": ("dynamic range, 20 log10", "dB"),
+    "dynamic_range_db": ("dynamic range, 20 log10, in decibels (UDUNITS-2 has no decibel: units 1)", "1"),
     "dynamic_range_bits": ("dynamic range, log2", "bit"),
     "snr_max": ("largest signal-to-noise ratio sqrt(mu_e,sat)", "1"),
-    "snr_max_db": ("largest signal-to-noise ratio, 20 log10", "dB"),
+    "snr_max_db": ("largest signal-to-noise ratio, 20 log10, in decibels (UDUNITS-2 has no decibel: units 1)", "1"),
     "linearity_error_min_pct": ("least relative deviation of the mean signal from the straight line fitted over "
                                 "5-95 % of the saturation signal (EMVA1288 LE_min)", "%"),
     "linearity_error_max_pct": ("largest relative deviation from that line (EMVA1288 LE_max)", "%"),
