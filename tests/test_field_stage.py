@@ -27,6 +27,7 @@ import pytest
 import xarray as xr
 import yaml
 
+from cf_units_check import units_problems
 from pipeline.calibration import read_bundle
 from pipeline.dataset import write_md5sums
 from pipeline.diagnostics import observations_from_artefacts, rank_missing_effects
@@ -310,6 +311,15 @@ def test_artefact_variables_have_units_and_the_sky_map(field):
         # a uniform sky: the map near the zenith is the known radiance within the calibration's error (<25 %)
         true = field["written"]["A"]["true_band"][N_FRAMES // 2, j]
         assert float(np.nanmedian(sky[zen < 30])) == pytest.approx(true, rel=0.25)
+
+
+def test_field_artefacts_units_parse_with_udunits(field):
+    """Every units attribute of the field artefacts (with and without effects in the model) is a UDUNITS-2 unit
+    (tests/cf_units_check.py; the lab stages' files are checked in tests/test_artefact_units.py)."""
+    paths = sorted((field["base"] / "results").glob("*/field/*.nc"))
+    assert len(paths) == len(field["arts"])
+    problems = [line for path in paths for line in units_problems(path)]
+    assert not problems, "\n".join(problems)
 
 
 def test_reference_that_misses_the_frames_is_refused(field, tmp_path):

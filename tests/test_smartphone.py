@@ -16,6 +16,7 @@ import pytest
 import xarray as xr
 import yaml
 
+from cf_units_check import units_problems
 from pipeline.dataset import write_md5sums
 from pipeline.errors import InputError
 from pipeline.report.formatting import bias_drift_text
@@ -338,6 +339,16 @@ def phone_bundle(phone, tmp_path_factory):
     write_dng(frames["with"], raw, active_area=(top, left) + raw.shape, **tags)
     write_dng(frames["without"], np.ascontiguousarray(raw[top:, left:]), **tags)
     return bundle_path, read_bundle(bundle_path), frames, radiance, offset_dn, {**paths, "dark": dark, "geometry": geo}
+
+
+def test_rectilinear_artefacts_units_parse_with_udunits(phone_bundle):
+    """The phone's artefacts (the pinhole geometry's parameters and covariance among them) and its bundle: every
+    units attribute a UDUNITS-2 unit (tests/cf_units_check.py; docs/artefact-units.md)."""
+    bundle_path, *_, paths = phone_bundle
+    files = [bundle_path] + [path for by_lens in paths.values() for path in by_lens.values()]
+    assert len(files) == 7
+    problems = [line for path in files for line in units_problems(path)]
+    assert not problems, "\n".join(problems)
 
 
 def test_black_level_from_the_optically_black_pixels(phone, phone_bundle):

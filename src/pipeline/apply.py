@@ -60,6 +60,7 @@ from pipeline.geometry.sphere import ZENITH_LENS, grid_shape, sphere_cells, sphe
 from pipeline.moments import corner_mask
 from pipeline.radiometry import measurement as mm
 from pipeline.rawio import read_raw
+from pipeline.units import encode_units
 
 __all__ = ["apply_calibration", "band_radiance", "BandChain", "check_frame", "sphere_coordinates", "sphere_directions", "bin_on_sphere",
            "add_apply_parser", "apply_command"]
@@ -989,7 +990,7 @@ def _frames_into(pool, decoding, raw_paths, bundle, bundle_path, maps, lenses, m
            for name, var in ds.data_vars.items() if var.dtype.kind in "fiu" and var.size > 1024}
     # beside the pixel maps already written (_PixelMapFile), or a new file with the sphere grid only
     tmp.parent.mkdir(parents=True, exist_ok=True)
-    _write_unfilled(ds, tmp, big, mode="a" if pixels else "w")
+    _write_unfilled(encode_units(ds), tmp, big, mode="a" if pixels else "w")
     os.replace(tmp, out_path)
     return out_path
 

@@ -3,7 +3,8 @@
 Every artefact carries, as global attributes, the stage name, the schema
 version of that stage's output, the pipeline version, the creation time, the
 sha256 of the configuration subset the stage used and of every input file, and
-the effects of the model it was fitted with (docs/design.md). Files are written to
+the effects of the model it was fitted with (docs/design.md); their variables' units
+are UDUNITS-2 units on disk (:mod:`pipeline.units`). Files are written to
 a temporary name and renamed, so a failed stage never leaves a half-written
 artefact.
 """
@@ -21,6 +22,7 @@ import xarray as xr
 
 from pipeline import __version__
 from pipeline.errors import ArtefactError
+from pipeline.units import decode_units, encode_units
 
 #: schema version of each stage's output; bump when a stage's variables change meaning, and say what changed
 #: in docs/changelog.md (the history of every version is there)
@@ -59,10 +61,12 @@ def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict
     Variables larger than 1024 values are stored zlib-compressed (level
     :data:`ARTEFACT_COMPRESSION_LEVEL`) unless ``encoding`` names them
     (netCDF4 encodings by variable) or their own encoding says ``zlib: False``
-    (a stage's map that compresses too little to pay for it).
+    (a stage's map that compresses too little to pay for it). Every ``units``
+    is written spelled for UDUNITS-2, the camera's counting units (DN,
+    electron, pixel) kept in ``camera_units`` (:mod:`pipeline.units`).
     """
     path = Path(path)
-    ds = ds.copy()
+    ds = encode_units(ds)   # a copy, its units spelled for UDUNITS-2 (pipeline.units)
     ds.attrs.update({
         "Conventions": "CF-1.10",
         "artefact": stage,
@@ -92,6 +96,8 @@ def read_artefact(path: str | Path, stage: str, *, load: bool = True, load_below
     except those of at most ``load_below_bytes`` bytes, read at once (the
     model parameters and tables a stage reads again at every frame; a
     variable left on disk is read and decompressed again at each access).
+    The variables' units are those the stage wrote, in the camera's notation
+    (:func:`pipeline.units.decode_units`).
     """
     path = Path(path)
     if not path.exists():
@@ -108,6 +114,7 @@ def read_artefact(path: str | Path, stage: str, *, load: bool = True, load_below
         if version != ARTEFACT_VERSIONS[stage]:
             raise ArtefactError(path, f"{stage} artefact version {version} is not the supported version "
                                       f"{ARTEFACT_VERSIONS[stage]}; rerun the '{stage}' stage")
+        decode_units(ds)
         try:
             if load:
                 ds.load()

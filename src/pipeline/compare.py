@@ -57,6 +57,7 @@ import xarray as xr
 from scipy.stats import norm
 
 from pipeline.artefact import sha256_file
+from pipeline.units import encode_units
 from pipeline.bands import BANDS
 from pipeline.calibration import read_bundle
 from pipeline.config import defaults
@@ -450,7 +451,8 @@ def write_comparison(table: xr.Dataset, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
-    table.to_netcdf(tmp, engine="netcdf4")
+    # the units spelled for UDUNITS-2 on disk, the camera's (DN, electron, pixel) in camera_units (pipeline.units)
+    encode_units(table).to_netcdf(tmp, engine="netcdf4")
     tmp.replace(path)
     return path
 

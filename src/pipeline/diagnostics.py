@@ -802,7 +802,7 @@ def _write_csv_atomic(table: pd.DataFrame, path: Path) -> None:
 VALUE_UNITS = {("linearity", "flat"): "DN2", ("rolloff", "setting"): "1", ("rolloff", "water"): "1",
                ("immersion", "height"): "1"}
 #: covariates of the closure table and their units (NaN, or '' for text, where a table lacks one)
-CLOSURE_COVARIATES = {"exposure_s": "s", "iso": "1", "gain": "1", "temperature_c": "degree_Celsius",
+CLOSURE_COVARIATES = {"exposure_s": "s", "iso": "1", "gain": "1", "temperature_c": "degree_C",
                       "file_index": "1", "setting": "1", "frame": "1", "frame_in_setting": "1", "time_s": "s",
                       "theta_deg": "degree", "phi_deg": "degree", "azimuth_deg": "degree", "angle_deg": "degree",
                       "spot_x_px": "pixel", "spot_y_px": "pixel", "water_height_cm": "cm",

@@ -432,7 +432,8 @@ def _theta_uncertainty(models, results, media, band_shape, cfg) -> xr.Dataset:
          "geometry_parameter_covariance": (("medium", "band", "geometry_parameter", "geometry_parameter_b"), cov, {
              "long_name": "covariance of the fitted model parameters, board poses profiled out",
              "estimate": ", ".join(sorted(methods)),
-             "units": "geometry_parameter_units x geometry_parameter_units (per element)"}),
+             "units": "1", "comment": "element (i, j) in geometry_parameter_units[i] times geometry_parameter_units[j] "
+                                      "(a pixel counted as 1)"}),
          "stretch_model": (("medium", "band"), stretch_model.astype(str), {
              "long_name": "stretch matrix model of the fit (geometry.stretch; with auto the test's choice, "
                           "the covariance then the symmetric fit's)",

@@ -54,7 +54,9 @@ def maps_dataset(models: dict[tuple[str, str], FisheyeModel], band_shape: tuple[
             "theta_deg": (dims, theta, {"long_name": "angle of the viewing direction from the optical axis", "units": "degree"}),
             "phi_deg": (dims, phi, {"long_name": "azimuth of the viewing direction (from +x towards +y)", "units": "degree"}),
             "solid_angle_sr": (dims, omega, {"long_name": "solid angle seen by the band pixel", "units": "sr"}),
-            "poly": (("medium", "band", "coef"), poly, {"long_name": "Scaramuzza f(rho) coefficients, ascending", "units": "pixel^(1-k)"}),
+            "poly": (("medium", "band", "coef"), poly, {"long_name": "Scaramuzza f(rho) coefficients, ascending", "units": "1",
+                                                        "comment": "the coefficient of rho^k is in pixel^(1-k) (rho and "
+                                                                   "f(rho) in band pixels, a pixel counted as 1)"}),
             "xc_px": (("medium", "band"), scalars["xc_px"], {"long_name": "principal point column", "units": "pixel"}),
             "yc_px": (("medium", "band"), scalars["yc_px"], {"long_name": "principal point row", "units": "pixel"}),
             "stretch_c": (("medium", "band"), scalars["stretch_c"], {"units": "1"}),

@@ -96,10 +96,13 @@ def rectilinear_lens_dataset(tl: pd.DataFrame, boards: dict, shape: tuple[int, i
                             "pinhole_parameter_b": ("pinhole_parameter_b", list(PARAMETERS[:n_par]))})
     ds["pinhole_parameters"] = (("medium", "band", "pinhole_parameter"), params,
                                 {"long_name": "fitted fx, fy, cx, cy (band pixels) and distortion k1, k2, p1, p2 "
-                                              "(OpenCV's model, k3 = 0)", "units": "pixel | 1"})
+                                              "(OpenCV's model, k3 = 0)", "units": "1",
+                                 "comment": "fx, fy, cx, cy in band pixels (a pixel counted as 1), k1, k2, p1, p2 "
+                                            "dimensionless"})
     ds["pinhole_parameter_covariance"] = (("medium", "band", "pinhole_parameter", "pinhole_parameter_b"), cov,
                                           {"long_name": "covariance of pinhole_parameters, board poses profiled out",
-                                           "units": "product of the parameters' units"})
+                                           "units": "1", "comment": "element (i, j) in the units of parameter i times "
+                                                                    "those of parameter j (pinhole_parameters)"})
     long = {"mean_error_px": "mean Euclidean reprojection error over the used corners",
             "rms_error_px": "RMS reprojection error (OpenCV)", "n_frames_used": "frames used in the fit",
             "n_frames": "frames of this medium", "half_fov_deg": "largest field angle in the region (its corner)",

@@ -187,8 +187,10 @@ def _dataset(res: dict, obs: pd.DataFrame, water: dict) -> xr.Dataset:
         "immersion_factor_ci95_high": (d, arr(lambda r: r["fit"].immersion_factor_ci95[1]), {"units": "1"}),
         "window_index": (d, arr(lambda r: r["n_g"]), {"long_name": "n_g of the external surface from Eq. (10)", "units": "1"}),
         "window_index_sigma": (d, arr(lambda r: r["n_g_se"]), {"units": "1"}),
-        "water_temperature_c": ((), float(water["temperature_c"]), {"units": "degC"}),
-        "water_salinity_psu": ((), float(water["salinity_psu"]), {"units": "PSU"}),
+        "water_temperature_c": ((), float(water["temperature_c"]), {"long_name": "water temperature", "units": "degree_C"}),
+        "water_salinity_psu": ((), float(water["salinity_psu"]), {"long_name": "practical salinity of the water (PSS-78, "
+                                                                                "the dataset's salinity_psu)", "units": "1",
+                                                                  "standard_name": "sea_water_practical_salinity"}),
     }
     ds = xr.Dataset(data, coords={"band": list(BANDS)})
     return ds.merge(table_to_dataset(obs, "obs_height"))

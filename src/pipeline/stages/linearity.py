@@ -66,6 +66,9 @@ STAGE = "linearity"
 log = logging.getLogger("pipeline.linearity")
 #: linear-model effects this stage fits as columns (others correct the data)
 COLUMN_EFFECTS = ("shutter_offset", "nonlinearity", "iso_gain")
+#: what ``line_slope`` is regressed on: a number on both sweeps, so that one unit (DN) serves the two rows
+SLOPE_REGRESSOR = ("the slope against the sweep's variable as a number: the exposure time in ms (sweep exposure, "
+                   "so DN per ms) or the gain ISO/100 (sweep gain)")
 
 
 def _no_circle(lens: str, why: str) -> InputError:
@@ -697,8 +700,10 @@ def _lens_dataset(lens, reduced, st, fr, fit, ffit, names, effect_params, drift,
         "pearson_r": (("sweep", "band", "y", "x"), rmap,
                       {"long_name": "per-pixel Pearson r of single frames against exposure time or gain (Fig. 2)", "units": "1"}),
         "line_slope": (("sweep", "band"), slope[..., 0],
-                       {"long_name": "regression slope of mean dark-corrected DN (per ms, or per unit ISO/100)", "units": "DN ms-1 | DN"}),
-        "line_slope_ci95": (("sweep", "band"), slope[..., 1], {"long_name": "95 % half-interval of line_slope", "units": "as line_slope"}),
+                       {"long_name": "regression slope of mean dark-corrected DN (per ms, or per unit ISO/100)", "units": "DN",
+                        "comment": SLOPE_REGRESSOR}),
+        "line_slope_ci95": (("sweep", "band"), slope[..., 1], {"long_name": "95 % half-interval of line_slope", "units": "DN",
+                                                                "comment": SLOPE_REGRESSOR}),
         "line_intercept_dn": (("sweep", "band"), intercept[..., 0], {"long_name": "regression intercept", "units": "DN"}),
         "line_intercept_ci95_dn": (("sweep", "band"), intercept[..., 1], {"long_name": "95 % half-interval of the intercept", "units": "DN"}),
         "line_r": (("sweep", "band"), r_line, {"long_name": "Pearson r of the mask means (Fig. 3)", "units": "1"}),
@@ -801,10 +806,10 @@ EMVA1288_VARIABLES = {
     "saturation_capacity_e": ("saturation capacity mu_e,sat: eta mu_p,sat with the photon counts, else "
                               "mu_y,sat / K", "electron"),
     "dynamic_range": ("dynamic range mu_e,sat / (sigma_y,dark / K + 1/2) (EMVA1288 release 3.0)", "1"),
-    "dynamic_range_db": ("dynamic range, 20 log10", "dB"),
+    "dynamic_range_db": ("dynamic range, 20 log10, in decibels (UDUNITS-2 has no decibel: units 1)", "1"),
     "dynamic_range_bits": ("dynamic range, log2", "bit"),
     "snr_max": ("largest signal-to-noise ratio sqrt(mu_e,sat)", "1"),
-    "snr_max_db": ("largest signal-to-noise ratio, 20 log10", "dB"),
+    "snr_max_db": ("largest signal-to-noise ratio, 20 log10, in decibels (UDUNITS-2 has no decibel: units 1)", "1"),
     "linearity_error_min_pct": ("least relative deviation of the mean signal from the straight line fitted over "
                                 "5-95 % of the saturation signal (EMVA1288 LE_min)", "%"),
     "linearity_error_max_pct": ("largest relative deviation from that line (EMVA1288 LE_max)", "%"),

@@ -857,9 +857,12 @@ def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise
     z = o["z"].to_numpy(float)
     data = {
         "rolloff_coefficients": (("medium", "band", "power"), coef,
-                                 {"long_name": "roll-off g(theta) = sum a_k theta^k, Eq. (13), normalised g(0) = 1", "units": "degree^-k"}),
+                                 {"long_name": "roll-off g(theta) = sum a_k theta^k, Eq. (13), normalised g(0) = 1", "units": "1",
+                                  "comment": "theta is the field angle in degrees taken as a number (theta / degree): "
+                                             "a_k is in degree^-k of the angle"}),
         "rolloff_covariance": (("medium", "band", "power", "power_b"), cov,
-                               {"long_name": "covariance of rolloff_coefficients", "units": "degree^-(k+l)"}),
+                               {"long_name": "covariance of rolloff_coefficients", "units": "1",
+                                "comment": "element (k, l) in degree^-(k+l) of the angle (rolloff_coefficients)"}),
         "rolloff_reduced_chi2": (("medium", "band"), red, {"long_name": "reduced chi-square of the roll-off fit", "units": "1"}),
         "water_closure_scale": (("band",), comp[:, 0],
                                 {"long_name": "c in g_water(theta_w) = c g_air(theta_a) F(theta_a, theta_w): the in-water "
@@ -897,7 +900,7 @@ def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise
     for ax in ("x", "y"):
         if f"obs_setting__spot_{ax}_sigma_px" in ds:
             ds[f"obs_setting__spot_{ax}_sigma_px"].attrs.update({
-                "units": "px", "long_name": f"standard uncertainty of the G spot centroid spot_{ax}_px (band pixels)",
+                "units": "pixel", "long_name": f"standard uncertainty of the G spot centroid spot_{ax}_px (band pixels)",
                 "description": "sqrt of the sum of spot_centroid_pixel, _cut and _grid squared: the pixels' noise "
                                "through the flux-weighted centroid (noise model var = k S + r), the frames' scatter "
                                "of the centroid through the same cut beyond it (pooled per lens, medium and azimuth "
@@ -905,7 +908,7 @@ def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise
                                "sqrt(spot_n_pix / pi), n = 2 green sites a band pixel"})
             for term in ("pixel", "cut", "grid"):
                 ds[f"obs_setting__spot_centroid_{term}_{ax}_px"].attrs.update({
-                    "units": "px", "long_name": f"{term} term of spot_{ax}_sigma_px"})
+                    "units": "pixel", "long_name": f"{term} term of spot_{ax}_sigma_px"})
     if len(water_tab):
         w = water_tab[water_tab["lens"] == lens].reset_index(drop=True)
         w = w.assign(used=w["used"].astype(int), saturated=w["saturated"].astype(int))

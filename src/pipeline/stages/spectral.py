@@ -96,6 +96,9 @@ def central_masks(geometry: dict[str, xr.Dataset], half_angle_deg: float, min_pi
 #: wavelength key of frames without a monochromator setting (dark frames, other experiments):
 #: NaN cannot serve, it never equals itself as a dictionary key
 NO_WAVELENGTH = -1.0
+#: the photodiode's reading is in the lab's own unit (spectral/photodiode.csv: proportional to the beam power):
+#: written with units "1", this says so; only its ratios between wavelengths enter the response
+PHOTODIODE_SCALE = "in the unit of spectral/photodiode.csv, proportional to the beam power (an arbitrary scale)"
 
 
 def _wavelength_key(row) -> float:
@@ -334,8 +337,10 @@ def _lens_dataset(lens, wl, dn, dn_sigma, pd_sig, pd_std, s, s_sigma, cov, stats
                                 {"long_name": "dark-corrected mean signal in the mask, per second at ISO 100", "units": "DN s-1"}),
             "signal_dn_per_s_sigma": (("band", "wavelength_nm"), dn_sigma,
                                       {"long_name": "standard uncertainty of signal_dn_per_s", "units": "DN s-1"}),
-            "photodiode_signal": ("wavelength_nm", pd_sig, {"long_name": "reference photodiode reading", "units": "arbitrary"}),
-            "photodiode_signal_std": ("wavelength_nm", pd_std, {"long_name": "uncertainty of the photodiode reading", "units": "arbitrary"}),
+            "photodiode_signal": ("wavelength_nm", pd_sig, {"long_name": "reference photodiode reading", "units": "1",
+                                                             "comment": PHOTODIODE_SCALE}),
+            "photodiode_signal_std": ("wavelength_nm", pd_std, {"long_name": "uncertainty of the photodiode reading", "units": "1",
+                                                                "comment": PHOTODIODE_SCALE}),
             "peak_wavelength_nm": ("band", wl[np.argmax(s, axis=1)], {"long_name": "wavelength of the response peak", "units": "nm"}),
             "effective_wavelength_nm": ("band", stat("effective_wavelength_nm"),
                                         {"long_name": "effective wavelength, Eq. (8), trapezoidal rule", "units": "nm"}),

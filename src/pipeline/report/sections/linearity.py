@@ -272,7 +272,8 @@ def _emva1288_table(ds: xr.Dataset, bands: list[str]) -> Table | None:
              and np.any(np.isfinite(ds[n].values))]
     if not names:
         return None
-    rows = [[EMVA1288_SHOWN[n], str(ds[n].attrs.get("units", ""))]
+    # a figure in decibels is a number on disk (units 1: UDUNITS-2 has no decibel); its name says dB
+    rows = [[EMVA1288_SHOWN[n], "dB" if n.endswith("_db") else str(ds[n].attrs.get("units", ""))]
             + [quantity(ds, n, units=False, band=b) for b in bands] for n in names]
     return Table(["quantity", "unit"] + list(bands), rows, left=2)
 
