@@ -61,10 +61,15 @@ def dark_level_dn(ds: xr.Dataset, band: str, iso: float, exposure_s: float,
     the level follows it.
     """
     check_dark_iso(ds, iso)
-    b = ds.sel(band=band)
+    # the three parameters alone, as numbers (selecting the band of the whole artefact, maps and tables, costs
+    # milliseconds a call, and every lit frame's corner record calls this)
+    def param(name):
+        var = ds[name]
+        return (var.sel(band=band) if "band" in var.dims else var).values
+
     gain = gain_from_iso(iso)
-    level = float(dark_model_level_dn(b["bias_dn"], b["bias_per_gain_dn"], ds["dark_current_dn_per_s"], gain,
-                                      exposure_s))
+    level = float(dark_model_level_dn(param("bias_dn"), param("bias_per_gain_dn"), param("dark_current_dn_per_s"),
+                                      gain, exposure_s))
     if temperature_c is not None and np.isfinite(temperature_c):
         level += float(temperature_shift_dn(ds, iso, exposure_s, temperature_c))
     return level
