@@ -108,8 +108,9 @@ def calibrated(make_dataset, config, tmp_path_factory):
 LONGEST_FIRST = ("test_workflow.py", "test_workflow_default.py", "test_workflow_radiometric.py",
                  "test_field_scale_coverage.py", "test_compare.py",
                  "test_geometry_stage.py", "test_geometry_theta_accuracy.py", "test_coverage_over_seeds.py",
-                 "test_report.py", "test_apply_truth_sky.py", "test_apply.py", "test_geometry_calibrate.py",
-                 "test_effect_forms.py")
+                 "test_geometry_real_corners.py", "test_hidden_effects.py", "test_field_closure.py",
+                 "test_field_stage.py", "test_report.py", "test_apply_truth_sky.py", "test_apply.py",
+                 "test_geometry_calibrate.py", "test_effect_forms.py")
 
 
 def pytest_collection_modifyitems(session, config, items):

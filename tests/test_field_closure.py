@@ -20,6 +20,8 @@ the catalogue, is injected by this test into the raw files.
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 import yaml
@@ -61,9 +63,17 @@ def lab(calibrated, tmp_path_factory):
 
 
 def _field(lab, name, effects=()):
-    """A field-only dataset of the same camera with the given field effects."""
+    """A field-only dataset of the same camera with the given field effects.
+
+    Without effects it is the clean hour (the same seed and experiments: the simulator writes the same bytes),
+    so it is simulated once, as ``clean``, and copied for a test that rewrites its frames."""
     root = lab["base"] / name
     if not root.exists():
+        if not effects and name != "clean":
+            clean = _field(lab, "clean")
+            shutil.copytree(clean, root)
+            shutil.copytree(clean.parent / f"{clean.name}.truth", root.parent / f"{root.name}.truth")
+            return root
         simulate_dataset(root, scale="tiny", seed=SEED, effects=LAB_EFFECTS + list(effects), experiments=("field",),
                          progress=False)
     return root

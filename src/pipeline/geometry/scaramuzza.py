@@ -26,11 +26,35 @@ Conventions (used by every module of :mod:`pipeline.geometry`):
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
 import numpy as np
 
 #: Number of samples of the theta(rho) lookup table used to invert f(rho).
 _LUT_SAMPLES = 512
+
+
+@lru_cache(maxsize=64)
+def _derivative(poly: tuple[float, ...]) -> np.ndarray:
+    """Ascending coefficients of f'(rho) (kept per polynomial: a fit evaluates one model many times)."""
+    out = np.polynomial.polynomial.polyder(poly)
+    out.setflags(write=False)
+    return out
+
+
+@lru_cache(maxsize=64)
+def _monotone_lut(poly: tuple[float, ...], c: float, d: float, e: float, shape: tuple[int, int]):
+    """:meth:`FisheyeModel._lut` of a model with these parameters."""
+    model = FisheyeModel(poly, 0.0, 0.0, c, d, e, shape=shape)
+    rho = np.linspace(0.0, model.rho_max(), _LUT_SAMPLES)
+    theta = model.theta_of_rho(rho)
+    dtheta = np.diff(theta)
+    bad = np.nonzero(dtheta <= 0)[0]
+    n = bad[0] + 1 if bad.size else rho.size
+    theta, rho = theta[:n], rho[:n]
+    theta.setflags(write=False)
+    rho.setflags(write=False)
+    return theta, rho
 
 
 @dataclass(frozen=True)
@@ -71,9 +95,7 @@ class FisheyeModel:
 
     def df(self, rho):
         """Derivative of f with respect to rho."""
-        return np.polynomial.polynomial.polyval(
-            rho, np.polynomial.polynomial.polyder(self.poly)
-        )
+        return np.polynomial.polynomial.polyval(rho, _derivative(self.poly))
 
     def theta_of_rho(self, rho):
         """Angle from the optical axis (radians) at radial distance rho (pixels).
@@ -107,13 +129,9 @@ class FisheyeModel:
         return float(np.hypot(h, w)) * max(1.0, 1.0 / abs(self.c - self.d * self.e))
 
     def _lut(self):
-        """Monotone table (theta, rho) from rho = 0 to where theta stops rising."""
-        rho = np.linspace(0.0, self.rho_max(), _LUT_SAMPLES)
-        theta = self.theta_of_rho(rho)
-        dtheta = np.diff(theta)
-        bad = np.nonzero(dtheta <= 0)[0]
-        n = bad[0] + 1 if bad.size else rho.size
-        return theta[:n], rho[:n]
+        """Monotone table (theta, rho) from rho = 0 to where theta stops rising (read-only arrays, kept per
+        polynomial, stretch and shape: the fits' Jacobians evaluate one model at many poses)."""
+        return _monotone_lut(self.poly, self.c, self.d, self.e, self.shape)
 
     def rho_of_theta(self, theta_rad) -> np.ndarray:
         """Invert theta(rho) (radians -> pixels); NaN beyond the model's domain.

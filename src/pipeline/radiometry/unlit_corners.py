@@ -147,23 +147,32 @@ def frame_time_s(raw: RawFrame) -> float:
 
 def frame_corner_records(lens: str, images: LensImages, raw: RawFrame, dark: xr.Dataset,
                          corners: dict[str, np.ndarray], temperature_c: float = np.nan,
-                         pattern_dn: dict[str, float] | None = None) -> list[dict]:
+                         pattern_dn: dict[str, float] | None = None, memo: dict | None = None) -> list[dict]:
     """One decoded frame's corner records, one per band (columns :data:`CORNER_COLUMNS`): the measured mean
     of the lens's unlit pixels ``corners`` (per band, :func:`corner_sites` of :func:`corner_pixels`), the dark
     model's prediction there at the frame's ISO, exposure time and temperature, and the noise of the mean.
-    ``pattern_dn``: :func:`corner_pattern_dn` of each band when the caller has it already."""
+    ``pattern_dn``: :func:`corner_pattern_dn` of each band when the caller has it already; ``memo``: a dict the
+    caller keeps for one ``dark`` and ``corners``, in which the prediction and the noise of each setting are
+    kept (frames repeat their settings; the values are the same as computed afresh)."""
     iso, exposure_s = float(raw.iso), round(float(raw.exposure_s), 9)
     time_s = frame_time_s(raw)
+    logged = float(temperature_c) if np.isfinite(temperature_c) else None
+    memo = {} if memo is None else memo
     out = []
     for band in BANDS:
         corner_dn, sites = corner_mean_dn(images.bands[band], corners[band], band, raw)
         pattern = None if pattern_dn is None else pattern_dn[band]
+        key = ("dark", band, iso, exposure_s, logged, pattern)
+        if key not in memo:
+            memo[key] = predicted_corner_dn(dark, band, iso, exposure_s, corners[band], temperature_c,
+                                            pattern_dn=pattern)
+        noise_key = ("noise", band, iso, sites)
+        if noise_key not in memo:
+            memo[noise_key] = corner_noise_dn(dark, band, iso, sites)
         out.append({"lens": lens, "band": band, "iso": iso, "exposure_s": exposure_s,
                     "temperature_c": float(temperature_c), "time_s": time_s,
                     "corner_dn": corner_dn, "n_corner_sites": sites,
-                    "dark_corner_dn": predicted_corner_dn(dark, band, iso, exposure_s, corners[band], temperature_c,
-                                                          pattern_dn=pattern),
-                    "sigma_corner_dn": corner_noise_dn(dark, band, iso, sites)})
+                    "dark_corner_dn": memo[key], "sigma_corner_dn": memo[noise_key]})
     return out
 
 
@@ -183,6 +192,7 @@ class FrameCorners:
         # are opened lazily: the dark artefact's offset map, 36 MB at the full resolution, stays on disk)
         self.pattern_dn: dict[str, dict[str, float]] = {}
         self.records: list[dict] = []
+        self.memo: dict[str, dict] = {}     # lens -> the dark model's values per setting (frame_corner_records)
 
     @classmethod
     def of_upstream(cls, lens: str, upstream: dict, projection: Callable[[str], str], bias_config: dict):
@@ -202,7 +212,7 @@ class FrameCorners:
             self.pattern_dn[lens] = {band: corner_pattern_dn(self.dark[lens], band, self.corners[lens][band],
                                                              self.min_radius_fraction) for band in BANDS}
         for record in frame_corner_records(lens, images, raw, self.dark[lens], self.corners[lens], temperature_c,
-                                           self.pattern_dn[lens]):
+                                           self.pattern_dn[lens], memo=self.memo.setdefault(lens, {})):
             self.records.append({**record, **keys})
 
     def of_lens(self, lens: str) -> list[dict]:

@@ -428,8 +428,9 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
     # temporal noise of an unlit raw pixel: the dark stage's read noise at that ISO, averaged over the
     # reference's sites (a band pixel of the corners averages SITES_PER_BAND_PIXEL of them)
     if testable:
-        fr["sigma_corner_dn"] = [corner_noise_dn(dark[r.lens], r.band, r.iso, r.n_corner_sites)
-                                 for r in fr[["lens", "band", "iso", "n_corner_sites"]].itertuples()]
+        rows = list(fr[["lens", "band", "iso", "n_corner_sites"]].itertuples(index=False, name=None))
+        noise = {key: corner_noise_dn(dark[key[0]], key[1], key[2], key[3]) for key in set(rows)}  # once per setting
+        fr["sigma_corner_dn"] = [noise[key] for key in rows]
     else:
         fr = fr.drop(columns=["corner_dn"])
     drift = drift_sigma(fr) if use_drift else ((0.0, 0.0, 0.0) if testable else (np.nan, np.nan, np.nan))
