@@ -10,7 +10,7 @@ from pathlib import Path
 from snakemake.utils import min_version
 
 from pipeline.errors import InputError
-from pipeline.workflow import check_config
+from pipeline.runner.workflow import check_config
 
 min_version("8.0")
 

@@ -2,9 +2,9 @@
 
     python benchmarks/bench_apply.py [--repeat 5] [--warmup 1] [--work /tmp/bench-apply] [--seed 1] [--time-bundle]
 
-The decode floor is what every stage pays per frame: ``pipeline.rawio.read_raw``
-(rawpy decode and tags) of the DNG plus ``pipeline.bands.split_bands`` of each
-lens region. ``apply`` is ``pipeline.apply.apply_calibration(bundle, [frame],
+The decode floor is what every stage pays per frame: ``pipeline.io.rawio.read_raw``
+(rawpy decode and tags) of the DNG plus ``pipeline.io.bands.split_bands`` of each
+lens region. ``apply`` is ``pipeline.bundle.apply.apply_calibration(bundle, [frame],
 "air", out)``: decode, the measurement chain on every band pixel of both
 lenses, the sphere grid and the NetCDF write; ``apply-grid`` the same with
 ``pixels=False`` (``--no-pixels``: the sphere grid only, no per-pixel maps
@@ -49,7 +49,7 @@ stage then runs again on the kept datasets (dark, linearity and absolute at
 the full resolution with the geometry: 470 s here, the machine shared).
 
 ``apply`` reads only the bundle's values, so its cost is that of a bundle made
-from the whole dataset; its radiances are not a truth test (tests/test_apply.py
+from the whole dataset; its radiances are not a truth test (tests/bundle/test_apply.py
 is). The frame timed is the first signal frame of the full-scale absolute
 experiment (ISO 100, calibrated exposure).
 """
@@ -83,13 +83,13 @@ def _simulate(folder: str, scale, seed: int, experiments) -> float:
 
 
 def _true_geometry(folder: Path, band_px: int, effects) -> dict:
-    from pipeline.artefact import write_artefact
+    from pipeline.io.artefact import write_artefact
     from pipeline.simulate.rolloff import true_band_models
     from pipeline.stages.geometry_maps import maps_dataset
 
     import numpy as np
 
-    from pipeline.bands import BANDS
+    from pipeline.io.bands import BANDS
 
     paths = {}
     for lens in LENSES:
@@ -108,10 +108,10 @@ def build(work: Path, seed: int) -> tuple[Path, Path]:
     """The full-resolution bundle and the frame to time (made once; see the module docstring)."""
     import yaml
 
-    from pipeline.calibration import build_bundle
+    from pipeline.bundle.calibration import build_bundle
     from pipeline.config import load_config
     from pipeline.simulate.dataset import SCALES, Scale
-    from pipeline.workflow import STAGES, load_model, run_stage
+    from pipeline.runner.workflow import STAGES, load_model, run_stage
 
     full, small = work / "dataset-full-reduced", work / "dataset-small"
     results = work / "results"
@@ -170,7 +170,7 @@ def kept_artefacts(work: Path) -> tuple[dict, dict]:
 def bundle_child(work: str, out: str) -> None:
     """Gather the bundle from the kept stage artefacts into ``out`` in this fresh process (what the workflow's
     ``calibration`` rule runs); prints wall, CPU and peak RSS as JSON."""
-    from pipeline.calibration import build_bundle
+    from pipeline.bundle.calibration import build_bundle
     from pipeline.config import load_config
 
     artefacts, meta = kept_artefacts(Path(work))
@@ -185,9 +185,9 @@ def child(what: str, frame: str, bundle: str, out: str) -> None:
     """One timed call in this fresh process; prints wall time and peak RSS as JSON."""
     import yaml
 
-    from pipeline.apply import apply_calibration
-    from pipeline.bands import cut_region, split_bands
-    from pipeline.rawio import read_raw
+    from pipeline.bundle.apply import apply_calibration
+    from pipeline.io.bands import cut_region, split_bands
+    from pipeline.io.rawio import read_raw
 
     meta = yaml.safe_load((Path(frame).parents[2] / "dataset.yaml").read_text())
     t0, c0, r0 = time.perf_counter(), time.process_time(), resource.getrusage(resource.RUSAGE_SELF)

@@ -3,10 +3,10 @@
     python benchmarks/bench_block_reference.py [--null N] [--power N] [--draws B] [--seed S] [--form-case] [--tanh-case]
 
 The diagnostics test a candidate's drop in chi-square by generalised least squares under noise common to each
-block (a random effect per block, ``pipeline.fitting.block_gls_drop``) and refer F = (drop / k) / (chi2 / dof)
+block (a random effect per block, ``pipeline.stats.fitting.block_gls_drop``) and refer F = (drop / k) / (chi2 / dof)
 to the distribution ``diagnostics.block_reference`` names. Where each tested parameter is fixed by one block
 (``iso_gain``: one gain-sweep setting per ISO, k = 5 on 13 settings) F(k, G - 1) for G blocks is a poor
-reference. This script measures the alternatives of ``pipeline.block_bootstrap`` (one piece of code with the
+reference. This script measures the alternatives of ``pipeline.stats.block_bootstrap`` (one piece of code with the
 diagnostics): the statistic's own null distribution by a parametric bootstrap (the table simulated under the
 block-noise model fitted to it, every draw through the same estimator of the block variances and the same
 generalised least squares), summarised as F(k, nu) with nu matched to the draws' mean (raised by two
@@ -22,7 +22,7 @@ On synthetic 13-block linearity setting tables shaped as the tiny camera's (7 ex
 an effect, the false alarms at 0.05 and 0.01 of each, for block noise of a relative 0.3 % and 0.5 DN, of a
 relative 0.6 % and 0.5 DN, and of 2 DN offsets alone; and with a gain ladder (ISO/100)^(-0.01), how often each calls ``iso_gain``
 significant at 0.001 / 13. ``--form-case`` first prints the same for the linearity setting table of the
-tiny dataset (seed 101) with the power-law gain ladder of ``tests/effect_forms.py`` written into its raw
+tiny dataset (seed 101) with the power-law gain ladder of ``tests/support/effect_forms.py`` written into its raw
 frames (amplitude 0.01, rewrite seed 7): the drops in chi-square, the block-noise variances, the F statistic
 against F(k, G - 1) and F(k, dof), the bootstrap null distribution of its F (2000 draws at the
 variances' estimate) and the diagnostics' references and p-value;
@@ -45,10 +45,11 @@ import pandas as pd
 from scipy import stats
 
 from pipeline.config import load_config
-from pipeline.block_bootstrap import BlockTestPart, block_bootstrap_reference, block_gls_null_draws, f_reference_dof
-from pipeline.diagnostics import Observations, blocks_of, candidate_significance
+from pipeline.stats.block_bootstrap import BlockTestPart, block_bootstrap_reference, block_gls_null_draws, f_reference_dof
+from pipeline.diagnostics.tables import Observations, blocks_of
+from pipeline.diagnostics.missing_effects import candidate_significance
 from pipeline.effects import get as get_effect
-from pipeline.fitting import base_design, block_gls_drop, wls
+from pipeline.stats.fitting import base_design, block_gls_drop, wls
 from pipeline.simulate.setting_tables import synthetic_linearity_settings
 
 #: block noise (relative sigma, offset sigma in DN) of the null cases
@@ -74,7 +75,7 @@ REFERENCES = ("F(k,G-1)", "plug-in", "bootstrap", "inflated", "max(p,F)")
 
 def bootstrap_p_values(table: pd.DataFrame, config: dict, alpha: float, draws: int, seed: int) -> list[float]:
     """p-values of the iso_gain block test against the plug-in bootstrap, the propagated bootstrap (the
-    package's ``diagnostics.block_reference: bootstrap``, :func:`pipeline.block_bootstrap.block_test_p_value`),
+    package's ``diagnostics.block_reference: bootstrap``, :func:`pipeline.stats.block_bootstrap.block_test_p_value`),
     the inflated bootstrap (the variances at their estimate plus two standard deviations of the draws' own
     estimates) and the larger of the plug-in's and F(k, G - 1)'s, each the larger with the rows' F test as the
     diagnostics count it (the F(k, G - 1) p-value where the rows' F test is not below ``alpha``)."""
@@ -96,14 +97,14 @@ def bootstrap_p_values(table: pd.DataFrame, config: dict, alpha: float, draws: i
 
 
 def form_tables(config: dict, name: str, seed: int, rewrite_seed: int, model: list[str]):
-    """The dark and linearity observation tables of a clean tiny dataset with a form of tests/effect_forms.py
+    """The dark and linearity observation tables of a clean tiny dataset with a form of tests/support/effect_forms.py
     written into its raw frames at its clear amplitude, the stages run with ``model``."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "support"))
     import yaml
     from effect_forms import FORMS
 
-    from pipeline.dataset import open_dataset
-    from pipeline.diagnostics import observations_from_artefacts
+    from pipeline.io.dataset import open_dataset
+    from pipeline.diagnostics.tables import observations_from_artefacts
     from pipeline.simulate import simulate_dataset, truth_dir_for
     from pipeline.stages.dark import analyse_dark, reduce_dark
     from pipeline.stages.linearity import analyse_linearity, reduce_linearity
@@ -125,8 +126,9 @@ def form_tables(config: dict, name: str, seed: int, rewrite_seed: int, model: li
 def tanh_case(config: dict) -> None:
     """The tanh nonlinearity at 4 % with ``nonlinearity`` in the model (the detection benchmark's case, seed 521):
     the linearity setting table's residual tests, their parts, and how the residuals follow the signal level."""
-    from pipeline.diagnostics import model_design, rank_missing_effects
-    from pipeline.residual_structure import block_bound_p_value, covariate_tests, leverage
+    from pipeline.diagnostics.tables import model_design
+    from pipeline.diagnostics.missing_effects import rank_missing_effects
+    from pipeline.diagnostics.residual_structure import block_bound_p_value, covariate_tests, leverage
 
     cfg = config["diagnostics"]
     obs = form_tables(config, "nonlinearity_tanh", 521, 521, ["nonlinearity"])

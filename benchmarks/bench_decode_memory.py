@@ -36,8 +36,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=64)
     ap.add_argument("--ahead", type=int, default=1, help="frames decoded ahead (performance.decode_ahead_frames)")
     args = ap.parse_args()
-    from pipeline.dataset import open_dataset
-    from pipeline.frames import iter_frames
+    from pipeline.io.dataset import open_dataset
+    from pipeline.io.frames import iter_frames
 
     ds = open_dataset(args.dataset)
     table = ds.frames(args.experiment)

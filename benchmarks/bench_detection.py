@@ -8,7 +8,7 @@ experiment, on the simulator's true geometry with exact field angles, for the ro
 
 * each catalogue effect of those stages, simulated in the simulator's own form at two magnitudes: a
   clear one (the hidden-effect tests' values) and one near the tiny dataset's detection limit;
-* the alternative forms of ``tests/effect_forms.py`` (forms the package does not use), injected into
+* the alternative forms of ``tests/support/effect_forms.py`` (forms the package does not use), injected into
   the raw files of a clean dataset, at their two magnitudes;
 * pairs of effects, which the diagnostics' forward selection must find one after the other;
 * ``--clean N`` clean datasets (default 20) with the simulator's realistic lab noise (source flicker and
@@ -45,12 +45,13 @@ import numpy as np
 import yaml
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "tests"))
+sys.path.insert(0, str(HERE.parent / "tests" / "support"))
 
 from effect_forms import FORMS  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
-from pipeline.dataset import open_dataset  # noqa: E402
-from pipeline.diagnostics import error_figures, observations_from_artefacts, rank_missing_effects  # noqa: E402
+from pipeline.io.dataset import open_dataset  # noqa: E402
+from pipeline.diagnostics.tables import observations_from_artefacts  # noqa: E402
+from pipeline.diagnostics.missing_effects import error_figures, rank_missing_effects  # noqa: E402
 from pipeline.simulate import simulate_dataset, truth_dir_for  # noqa: E402
 from pipeline.simulate.lab_noise import LabNoise  # noqa: E402
 from pipeline.stages.dark import analyse_dark, reduce_dark  # noqa: E402
@@ -173,7 +174,7 @@ def run_case(work: Path, config: dict, seed: int, expected: list[str], sim_effec
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--effects", default=",".join(list(MAGNITUDES) + list(FORMS)),
-                    help="catalogue effects and forms of tests/effect_forms.py, comma-separated ('' for none)")
+                    help="catalogue effects and forms of tests/support/effect_forms.py, comma-separated ('' for none)")
     ap.add_argument("--magnitudes", default="clear,limit", help="clear, limit or both")
     ap.add_argument("--pairs", default=",".join(DEFAULT_PAIRS), help="a+b pairs, comma-separated ('' for none)")
     ap.add_argument("--clean", type=int, default=20, help="clean datasets with the realistic lab noise")

@@ -87,7 +87,7 @@ def job_child(stage: str, dataset: str, results: str, lens: str, bundle: str = "
     """Run one stage for one lens (one workflow job) in this process; print wall, CPU and peak as JSON.
     ``bundle``: the calibration bundle of a stage that applies it (the field), "" for none."""
     from pipeline.config import load_config
-    from pipeline.workflow import STAGES, run_stage
+    from pipeline.runner.workflow import STAGES, run_stage
 
     cfg = load_config(overrides={"dataset": dataset})
     res = Path(results)
@@ -107,10 +107,10 @@ def floor_child(dataset: str, experiment: str, lens: str) -> None:
     The frames of the lens or of both lenses (the job's view, ``workflow.lens_view``), read as the
     stages read them (bytes, MD5 and SHA-256, LibRaw) and that lens's region split into R, G, B.
     """
-    from pipeline.bands import cut_region, split_bands
-    from pipeline.dataset import open_dataset
-    from pipeline.rawio import read_raw
-    from pipeline.workflow import lens_view
+    from pipeline.io.bands import cut_region, split_bands
+    from pipeline.io.dataset import open_dataset
+    from pipeline.io.rawio import read_raw
+    from pipeline.runner.workflow import lens_view
 
     ds = lens_view(open_dataset(dataset), lens)
     frames = ds.frames(experiment)
@@ -189,7 +189,7 @@ def frame_subset(source: Path, out: Path, experiment: str, per_setting: int) -> 
     (lens, sweep, ISO, exposure from the tags), the raw files hard-linked; returns its frame count."""
     import pandas as pd
 
-    from pipeline.rawio import read_tags
+    from pipeline.io.rawio import read_tags
 
     table = pd.read_csv(source / experiment / "frames.csv")
     tags = [read_tags(source / experiment / f) for f in table["file"]]
@@ -212,7 +212,7 @@ def position_subset(source: Path, out: Path, stride: int) -> int:
 def linked_copy(source: Path, out: Path, experiment: str, keep) -> int:
     """``source`` copied to ``out`` with ``experiment`` listing only the rows of ``keep`` (its raw files
     hard-linked, the other experiments' files and every sidecar copied, MD5SUMS written anew)."""
-    from pipeline.dataset import write_md5sums
+    from pipeline.io.dataset import write_md5sums
 
     if out.exists():
         shutil.rmtree(out)
@@ -244,7 +244,7 @@ def write_true_geometry(results: Path, band_px: int) -> None:
     in ``results``/geometry, for the lenses that have none: the maps a geometry run would give, without
     simulating and fitting the geometry experiment (no ``theta_deg_sigma``: the stages then use
     their configured field-angle uncertainty)."""
-    from pipeline.artefact import write_artefact
+    from pipeline.io.artefact import write_artefact
     from pipeline.simulate.rolloff import true_band_models
     from pipeline.stages.geometry_maps import maps_dataset
 
@@ -265,8 +265,8 @@ def remove_dataset(out: Path) -> None:
 
 def frames_and_mb(dataset: Path, experiment: str, lens: str) -> tuple[int, float]:
     """Frames the lens's job reads (of the lens or of both) and their size."""
-    from pipeline.dataset import open_dataset
-    from pipeline.workflow import lens_view
+    from pipeline.io.dataset import open_dataset
+    from pipeline.runner.workflow import lens_view
 
     frames = lens_view(open_dataset(dataset), lens).frames(experiment)
     return len(frames), sum(Path(p).stat().st_size for p in frames["path"]) / 1e6
@@ -291,7 +291,7 @@ def stage_lenses(dataset: Path, experiment: str) -> tuple[str, ...]:
     field: the lens at the zenith)."""
     import pandas as pd
 
-    from pipeline.workflow import STAGES
+    from pipeline.runner.workflow import STAGES
 
     if not STAGES[STAGE_OF[experiment]].lenses_from_frames:
         return LENSES

@@ -3,7 +3,7 @@
     python benchmarks/bench_geometry_honesty.py DATASET RESULTS [--air-only]
 
 DATASET is a simulated dataset (its truth beside it, ``DATASET.truth/``), RESULTS the results folder the
-workflow (or ``pipeline.workflow.run_stage``) wrote its geometry artefacts into
+workflow (or ``pipeline.runner.workflow.run_stage``) wrote its geometry artefacts into
 (``RESULTS/geometry/<lens>.nc``). Per lens, medium and band: the error of the fitted principal point with
 its stated 2 x 2 covariance, and the error of the theta map at four pixels (5, 30, 55 and 70 deg, each at its
 own azimuth a quarter turn from the last) with their 4 x 4 propagated covariance. Prints each fit and the

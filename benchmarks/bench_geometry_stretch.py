@@ -3,7 +3,7 @@
     PYTHONPATH=src python benchmarks/bench_geometry_stretch.py DATASET > docs/figures-data/geometry_stretch_simulated.csv
 
 DATASET is a simulated dataset with the geometry experiment (its truth beside it, ``DATASET.truth/``; made
-when absent as the medium scale, seed 3, geometry only, as tests/test_geometry_theta_accuracy.py makes it).
+when absent as the medium scale, seed 3, geometry only, as tests/geometry/test_geometry_theta_accuracy.py makes it).
 Per lens, medium and band the corners the geometry stage detects are fitted with stretch "symmetric" and
 "none" (the latter at the symmetric fit's centre, as stretch auto does), each with the one-step
 leave-one-board-out jackknife and with the full refit per board. Columns: the stretch test's p-value and
@@ -28,7 +28,7 @@ import pandas as pd
 import yaml
 
 from pipeline.config import load_config
-from pipeline.dataset import open_dataset
+from pipeline.io.dataset import open_dataset
 from pipeline.geometry.calibrate import calibrate, stretch_test
 from pipeline.geometry.maps import pixel_of_direction
 from pipeline.geometry.scaramuzza import FisheyeModel

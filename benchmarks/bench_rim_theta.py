@@ -26,7 +26,7 @@ from pipeline.geometry.scaramuzza import FisheyeModel
 from pipeline.geometry.theta_uncertainty import theta_covariance
 from pipeline.simulate.dataset import simulate_dataset, truth_dir_for
 from pipeline.stages.geometry_maps import model_from_dataset
-from pipeline.workflow import run_stage
+from pipeline.runner.workflow import run_stage
 
 #: where on the true field the rim points sit (fraction of the true half field of view) and their azimuths
 RIM_FRACTION = 0.98

@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.config import load_config
 from pipeline.stages.rolloff import _setting_masks
 

@@ -31,13 +31,13 @@ LENSES = ("far", "close")
 def child(stage: str, dataset: str, results: str, lens: str) -> None:
     """Run one stage for one lens (one workflow job) in this process; print wall time and peak RSS as JSON."""
     from pipeline.config import load_config
-    from pipeline.workflow import STAGES, run_stage
+    from pipeline.runner.workflow import STAGES, run_stage
 
     cfg = load_config(overrides={"dataset": dataset})
     res = Path(results)
     t0, c0 = time.perf_counter(), time.process_time()
     if stage == "diagnostics":
-        from pipeline.diagnostics import diagnose_artefacts
+        from pipeline.diagnostics.missing_effects import diagnose_artefacts
 
         arts = {s: [res / f"{s}/{ln}.nc" for ln in LENSES] for s in STAGES if (res / s).is_dir()}
         d = res / "diagnostics"

@@ -60,7 +60,7 @@ def simulate_parts(work: Path, scale: str, seed: int) -> None:
 
 def join_parts(work: Path) -> Path:
     """The parts' experiments hard-linked into one dataset with one dataset.yaml and a new MD5SUMS."""
-    from pipeline.dataset import write_md5sums
+    from pipeline.io.dataset import write_md5sums
 
     dataset = work / "dataset"
     if dataset.exists():

@@ -3,7 +3,7 @@
 The pages are the Markdown files of this folder (MyST); the API reference is read from the
 package's docstrings (autodoc, numpydoc sections through napoleon). The configuration, command-line
 and artefact references under ``reference/`` are written by ``scripts/reference_pages.py`` from the
-schema, the parsers and the artefacts' code, and ``tests/test_docs_site.py`` checks they are current.
+schema, the parsers and the artefacts' code, and ``tests/project/test_docs_site.py`` checks they are current.
 """
 
 from __future__ import annotations

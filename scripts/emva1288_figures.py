@@ -28,9 +28,9 @@ import xarray as xr
 
 from pipeline.config import load_config
 from pipeline.radiometry.emva1288 import spatial_nonuniformity
-from pipeline.rawio import read_raw
+from pipeline.io.rawio import read_raw
 from pipeline.scaffold import init_emva1288_dataset, read_emva1288_descriptor
-from pipeline.workflow import run_stage
+from pipeline.runner.workflow import run_stage
 
 LENS = "main"
 CAMERA = {"make": "Basler", "model": "EMVA1288 Reference Set 001", "serial": "EMVA1288-SET001"}

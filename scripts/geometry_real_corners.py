@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.config import load_config
-from pipeline.geometry.calibrate import _project, _rodrigues, calibrate
+from pipeline.geometry.calibrate import _project, rodrigues, calibrate
 from pipeline.geometry.matlab_fisheye import read_fisheye_params
 from pipeline.geometry.theta_uncertainty import theta_covariance
 
@@ -66,7 +66,7 @@ def all_corner_mean_error(res, authors):
     for k, uv in enumerate(authors["corners"]):
         if res.poses[k] is not None:
             rvec, t = res.poses[k]
-            errors.append(np.linalg.norm(_project(res.model, _rodrigues(rvec[None])[0], t, authors["board_mm"]) - uv,
+            errors.append(np.linalg.norm(_project(res.model, rodrigues(rvec[None])[0], t, authors["board_mm"]) - uv,
                                          axis=1))
     return float(np.mean(np.concatenate(errors)))
 

@@ -11,10 +11,10 @@
 - ``docs/reference/artefacts.md``: every variable of each stage's artefact (dimensions, units, meaning) and its
   global attributes, read from the artefacts a workflow run wrote (``RESULTS``, the workflow's results folder,
   any dataset scale: only names, dimensions and attributes are read, not values); the page records the
-  artefact versions it was read at, and the check fails when :data:`pipeline.artefact.ARTEFACT_VERSIONS`
+  artefact versions it was read at, and the check fails when :data:`pipeline.io.artefact.ARTEFACT_VERSIONS`
   moves on from them.
 
-``tests/test_docs_site.py`` runs the check.
+``tests/project/test_docs_site.py`` runs the check.
 """
 
 from __future__ import annotations
@@ -194,7 +194,7 @@ def cli_page() -> str:
     from pipeline.cli import build_parser
 
     parser = build_parser()
-    out = [HEADER.format(source="the argparse parsers of pipeline.cli and pipeline.apply"),
+    out = [HEADER.format(source="the argparse parsers of pipeline.cli and pipeline.bundle.apply"),
            "# Command line\n\n",
            "`python -m pipeline COMMAND` (installed also as `camera-pipeline`); `python -m pipeline COMMAND --help` "
            "prints the same. The calibration itself runs with `snakemake` (see "
@@ -245,7 +245,7 @@ VERSIONS_LINE = "Read at artefact versions: "
 def artefact_page(results: Path) -> str:
     import xarray as xr
 
-    from pipeline.artefact import ARTEFACT_VERSIONS
+    from pipeline.io.artefact import ARTEFACT_VERSIONS
 
     files = {}
     for stage in ARTEFACT_VERSIONS:
@@ -313,7 +313,7 @@ def pages() -> dict[Path, str]:
 
 def stale() -> list[str]:
     """The generated pages that differ from what the code gives now, one line each."""
-    from pipeline.artefact import ARTEFACT_VERSIONS
+    from pipeline.io.artefact import ARTEFACT_VERSIONS
 
     problems = [f"{path.relative_to(ROOT)} is stale" for path, text in pages().items()
                 if not path.exists() or path.read_text(encoding="utf-8") != text]
@@ -321,7 +321,7 @@ def stale() -> list[str]:
         problems.append(f"{ARTEFACT_PAGE.relative_to(ROOT)} is missing")
     elif artefact_page_versions(ARTEFACT_PAGE.read_text(encoding="utf-8")) != ARTEFACT_VERSIONS:
         problems.append(f"{ARTEFACT_PAGE.relative_to(ROOT)} was read at other artefact versions than "
-                        "pipeline.artefact.ARTEFACT_VERSIONS: regenerate it from a new run (--artefacts RESULTS)")
+                        "pipeline.io.artefact.ARTEFACT_VERSIONS: regenerate it from a new run (--artefacts RESULTS)")
     return problems
 
 

@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from helpers import calibrate
-from pipeline.calibration import BUNDLE_STAGES
+from pipeline.bundle.calibration import BUNDLE_STAGES
 from pipeline.config import load_config
 from pipeline.simulate import simulate_dataset, truth_dir_for
 

@@ -206,7 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "(one region, 12-bit, GRBG, optically black margins, a gain table not proportional to "
                           "ISO; dark and linearity experiments; scales tiny, small, medium)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
-    from pipeline.apply import add_apply_parser
+    from pipeline.bundle.apply import add_apply_parser
 
     add_apply_parser(sub)
     from pipeline.lightfield.command import add_lightfield_parser
@@ -268,7 +268,7 @@ def _init_dataset(args) -> int:
 
 
 def _validate(args) -> int:
-    from pipeline.validation import (format_problems, grouped_warning_lines, inspect_dataset, ok_line,
+    from pipeline.io.validation import (format_problems, grouped_warning_lines, inspect_dataset, ok_line,
                                      unlisted_files, warning_lines)
 
     warnings = []
@@ -309,11 +309,11 @@ def _simulate(args) -> int:
 
 
 def _apply(args) -> int:
-    from pipeline.apply import apply_command
+    from pipeline.bundle.apply import apply_command
 
     if args.store is None:
         return apply_command(args)
-    from pipeline.store import calibrations_for_frames, output_for
+    from pipeline.bundle.store import calibrations_for_frames, output_for
 
     groups = calibrations_for_frames(args.store, args.raw)
     for bundle, row, frames in groups:
@@ -334,7 +334,7 @@ def _lightfield(args) -> int:
 
 def _publish(args) -> int:
     from pipeline.config import load_config
-    from pipeline.store import parse_valid_from, publish
+    from pipeline.bundle.store import parse_valid_from, publish
 
     store = args.store if args.store is not None else load_config()["store"]["path"]
     valid_from = parse_valid_from(args.valid_from) if args.valid_from is not None else None
@@ -349,7 +349,7 @@ def _publish(args) -> int:
 
 
 def _verify_store(args) -> int:
-    from pipeline.store import read_index, verify_store
+    from pipeline.bundle.store import read_index, verify_store
 
     problems = verify_store(args.store)
     for line in problems:
@@ -361,7 +361,7 @@ def _verify_store(args) -> int:
 
 
 def _compare(args) -> int:
-    from pipeline.compare import compare_bundles, render_html, summary_lines, write_comparison
+    from pipeline.bundle.compare import compare_bundles, render_html, summary_lines, write_comparison
     from pipeline.config import load_config
 
     table = compare_bundles(args.bundle_a, args.bundle_b, load_config())
@@ -374,7 +374,7 @@ def _compare(args) -> int:
 
 
 def _store(args) -> int:
-    from pipeline.compare import history, history_lines, write_history_csv, write_history_figure
+    from pipeline.bundle.compare import history, history_lines, write_history_csv, write_history_figure
     from pipeline.config import load_config
 
     config = load_config()
@@ -389,7 +389,7 @@ def _store(args) -> int:
 
 
 def _diagnose(args) -> int:
-    from pipeline.diagnosis import diagnosis_lines, explain_lines, read_diagnostics
+    from pipeline.diagnostics.findings import diagnosis_lines, explain_lines, read_diagnostics
 
     found = read_diagnostics(args.results)
     lines = diagnosis_lines(found, args.results)
@@ -410,7 +410,7 @@ def main(argv: list[str] | None = None) -> int:
         return COMMANDS[args.command](args)
     except InputError as exc:
         if len(exc.problems) > 1:
-            from pipeline.validation import format_problems
+            from pipeline.io.validation import format_problems
 
             print(format_problems(exc.problems), file=sys.stderr)
         print(f"error: {exc}", file=sys.stderr)

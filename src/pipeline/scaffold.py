@@ -46,11 +46,11 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from pipeline.bands import cut_region, split_bands
-from pipeline.dataset import (COMMON_COLUMNS, EXPERIMENT_COLUMNS, EXPERIMENTS, LAYOUT_VERSION,
+from pipeline.io.bands import cut_region, split_bands
+from pipeline.io.dataset import (COMMON_COLUMNS, EXPERIMENT_COLUMNS, EXPERIMENTS, LAYOUT_VERSION,
                               OPTIONAL_COLUMN_EXPERIMENTS, OPTIONAL_COLUMNS, SIDECARS, TAG_COLUMNS, TYPO_SIMILARITY, read_csv_table, write_md5sums)
 from pipeline.errors import InputError, Problem
-from pipeline.rawio import read_raw, read_tags, write_dng
+from pipeline.io.rawio import read_raw, read_tags, write_dng
 
 __all__ = ["RAW_SUFFIXES", "LensProposal", "RawEntry", "ScaffoldPlan", "InitResult", "plan_dataset",
            "propose_lens_regions", "find_lens_circles", "write_dataset", "init_dataset", "describe_result",
@@ -554,7 +554,7 @@ def write_dataset(plan: ScaffoldPlan, out, copy: bool = False) -> Path:
 
 def init_dataset(raw_dir, out, lab_log=None, copy: bool = False) -> InitResult:
     """Plan, write and validate: the dataset at ``out`` and what the user must still fill in."""
-    from pipeline.validation import validate_dataset
+    from pipeline.io.validation import validate_dataset
 
     out = Path(out)
     if out.exists() or out.is_symlink():
@@ -574,7 +574,7 @@ def _span(span: tuple[int, int]) -> str:
 
 def describe_result(result: InitResult) -> str:
     """What init-dataset wrote, the lens regions to confirm, and what is left to fill in."""
-    from pipeline.validation import format_problems
+    from pipeline.io.validation import format_problems
 
     plan = result.plan
     lines = [f"wrote {result.out}:"]
@@ -693,7 +693,7 @@ def emva1288_raw_folder(descriptor, raw_dir, *, make: str, model: str, serial: s
     """Wrap an EMVA1288 measurement as a lab's raw folder: DNG files under ``dark/`` and ``linearity/`` and a lab
     log; returns the lab log's path (for :func:`init_dataset`).
 
-    Each PNG becomes one DNG (:func:`pipeline.rawio.write_dng`) holding its values unchanged: ExposureTime from
+    Each PNG becomes one DNG (:func:`pipeline.io.rawio.write_dng`) holding its values unchanged: ExposureTime from
     the descriptor, ISO ``EMVA1288_ISO`` (one gain), the acquisition time ``EMVA1288_START`` plus one second per
     frame in descriptor order (the descriptor gives none), BlackLevel 0 (the files carry none: the dark stage
     measures it), WhiteLevel 2^bits - 1 and an RGGB CFA tag over the monochrome data (each band is a quarter

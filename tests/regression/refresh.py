@@ -16,11 +16,11 @@ import sys
 import tempfile
 from pathlib import Path
 
-TESTS = Path(__file__).resolve().parents[1]
+TESTS = Path(__file__).resolve().parents[1] / "support"
 sys.path.insert(0, str(TESTS))
 
 from helpers import calibrate, key_results  # noqa: E402
-from pipeline.calibration import BUNDLE_STAGES  # noqa: E402
+from pipeline.bundle.calibration import BUNDLE_STAGES  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
 from pipeline.simulate import simulate_dataset  # noqa: E402
 

@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 
 from pipeline.errors import InputError
-from pipeline.workflow import (
+from pipeline.runner.workflow import (
     STAGES,
     DatasetIndex,
     SignalWatch,
@@ -15,10 +15,10 @@ from pipeline.workflow import (
     stage_params,
 )
 
-# from the artefact module, not pipeline.calibration: the Snakefile (parsed again by every cluster job)
+# from the artefact module, not pipeline.bundle.calibration: the Snakefile (parsed again by every cluster job)
 # then does not import the radiometry and scipy.stats
-from pipeline.artefact import BUNDLE_STAGES as CALIBRATION_STAGES
-from pipeline.artefact import BUNDLE_REQUIRED_STAGES as CALIBRATION_REQUIRED
+from pipeline.io.artefact import BUNDLE_STAGES as CALIBRATION_STAGES
+from pipeline.io.artefact import BUNDLE_REQUIRED_STAGES as CALIBRATION_REQUIRED
 
 # the run's start: a failed run's report reads only the job logs written after it
 RUN_START = time.time()
@@ -95,7 +95,7 @@ def dataset_subset(stage):
 
 
 def job_memory_mb(stage):
-    """Resources function: memory of one lens job, from the lens region's size (pipeline.workflow)."""
+    """Resources function: memory of one lens job, from the lens region's size (pipeline.runner.workflow)."""
 
     def memory(wildcards, attempt):
         return _ready().job_memory_mb(stage, wildcards.lens, attempt)
@@ -199,7 +199,7 @@ def report_figure_labels(wildcards, output):
 
 def print_run_summary():
     """After a run: where the report is and, per experiment, what the diagnostics found."""
-    from pipeline.run_summary import summarise_run
+    from pipeline.runner.run_summary import summarise_run
 
     try:
         skipped = _ready().skipped()
@@ -218,7 +218,7 @@ def report_failed_run():
     """After a run with failed jobs (with --keep-going, after every job that could run): the
     diagnostics and the report on the artefacts written, naming each stage that did not finish.
     """
-    from pipeline.run_summary import report_after_failure
+    from pipeline.runner.run_summary import report_after_failure
 
     # Snakemake calls onerror for an interrupted run too: an interrupt is no failure to report
     SIGNALS.exit_if_interrupted()

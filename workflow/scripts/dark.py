@@ -4,6 +4,6 @@ from pipeline.entry import stop_quietly_on_interrupt
 
 stop_quietly_on_interrupt()  # first: Ctrl-C ends the job quietly, also during the imports below
 
-from pipeline.workflow import run_stage_script  # noqa: E402 (after the interrupt handler)
+from pipeline.runner.workflow import run_stage_script  # noqa: E402 (after the interrupt handler)
 
 run_stage_script(snakemake, "dark")  # noqa: F821 (snakemake injects this object)

@@ -5,7 +5,7 @@ from pipeline.entry import stop_quietly_on_interrupt
 stop_quietly_on_interrupt()  # first: Ctrl-C ends the job quietly, also during the imports below
 
 from pipeline.report import build_report  # noqa: E402 (after the interrupt handler)
-from pipeline.workflow import STAGES, artefacts_by_lens, exit_on_input_error, setup_log  # noqa: E402 (after the interrupt handler)
+from pipeline.runner.workflow import STAGES, artefacts_by_lens, exit_on_input_error, setup_log  # noqa: E402 (after the interrupt handler)
 
 smk = snakemake  # noqa: F821 (snakemake injects this object)
 setup_log(smk.log[0])

@@ -165,7 +165,7 @@ class Effect:
                         anchor: pd.DataFrame) -> np.ndarray | None:
         """What the effect, with the coefficients ``coef`` fitted on the table ``anchor`` (of
         :attr:`predicted_from`), changes in the rows of a table it is never fitted to
-        (:data:`pipeline.diagnostics.PREDICTED_TABLES`: the field scale closure, ln of the camera/reference
+        (:data:`pipeline.diagnostics.tables.PREDICTED_TABLES`: the field scale closure, ln of the camera/reference
         scale), in that table's units; None when silent there (or when the model already corrects it)."""
         return None
 

@@ -118,7 +118,7 @@ class ShutterOffset(Effect):
     where ``rate`` (DN/s at ISO 100) is the group's fitted slope, so the
     coefficient is the offset in seconds, shared by all bands. Each lens's linearity job fits its own
     offset; as a candidate in the pooled diagnostics the column is one value for both lenses, and
-    whether one value is enough is :func:`pipeline.cross_closure.lens_interaction_tests`' question.
+    whether one value is enough is :func:`pipeline.diagnostics.cross_closure.lens_interaction_tests`' question.
     """
 
     name = "shutter_offset"

@@ -20,7 +20,7 @@
   show it; the prediction from air has no shape to adjust, and the residuals
   grow with theta. Term: ``-pred * (theta/60)^4``, coefficient kappa. The
   simulator's ``optics_factor`` is the same form; the hidden-effect test
-  injects another (tests/test_effects_optics.py).
+  injects another (tests/effects/test_effects_optics.py).
 * ``stray_light``: a fraction ``f`` of the flux is spread by a wide Gaussian
   point-spread function (width a fraction of the image-circle radius; Wei et
   al. 2012, Section 3.4). Roll-off stage term (rows of level ``setting`` with

@@ -107,7 +107,7 @@ class CalibrationResult:
 
 
 # ----------------------------------------------------------------- rotations
-def _rodrigues(rvecs):
+def rodrigues(rvecs):
     """Rotation matrices (k, 3, 3) of rotation vectors (k, 3)."""
     rvecs = np.atleast_2d(rvecs)
     th = np.linalg.norm(rvecs, axis=1)
@@ -311,7 +311,7 @@ def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev, with_j
 
     def residuals(x):
         model, pose, _ = _unpack(x, n_f, degree, r_norm, shape, stretch)
-        Rs = _rodrigues(pose[:, :3])[frame_of_pt]
+        Rs = rodrigues(pose[:, :3])[frame_of_pt]
         cam = np.einsum("nij,nj->ni", Rs, XYZ) + pose[frame_of_pt, 3:]
         u, v = model.world2cam(cam)
         r = np.stack([u - uv_all[:, 0], v - uv_all[:, 1]], axis=1)
@@ -342,7 +342,7 @@ def _refine(frames, L, model0, poses0, degree, r_norm, stretch, max_nfev, with_j
                         max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
     model, pose, _ = _unpack(sol.x, n_f, degree, r_norm, shape, stretch)
     res = sol.fun.reshape(-1, 2)
-    poses = [(_rodrigues(p[:3])[0], p[3:].copy()) for p in pose]
+    poses = [(rodrigues(p[:3])[0], p[3:].copy()) for p in pose]
     return model, poses, res, frame_of_pt, sol, jacobian(sol.x) if with_jacobian else None, n_intr
 
 

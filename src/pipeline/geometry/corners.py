@@ -57,7 +57,7 @@ def to_uint8(image, low_pct: float = 0.5, high_pct: float = 99.5) -> np.ndarray:
     return np.round(out).astype(np.uint8)
 
 
-def _upsample_factor(shape) -> int:
+def upsample_factor(shape) -> int:
     return int(min(MAX_UPSAMPLE, max(1, np.ceil(MIN_DETECT_SIZE_PX / min(shape)))))
 
 
@@ -183,7 +183,7 @@ def detect_corners(image, nx: int, ny: int, *, upsample: int | None = None) -> C
     ``corners=None`` and a message (nothing is raised).
     """
     img = np.asarray(image, dtype=float)
-    k = _upsample_factor(img.shape) if upsample is None else int(upsample)
+    k = upsample_factor(img.shape) if upsample is None else int(upsample)
     img8 = to_uint8(img)
     if k > 1:
         img8 = cv2.resize(img8, (img.shape[1] * k, img.shape[0] * k),
@@ -261,7 +261,7 @@ def detect_corners_coarse_to_fine(image, nx: int, ny: int, *, coarse_size_px: in
     whole image is searched (:func:`detect_corners`).
     """
     img = np.asarray(image, dtype=float)
-    k = _upsample_factor(img.shape)
+    k = upsample_factor(img.shape)
     if coarse_size_px >= k * min(img.shape):
         return detect_corners(img, nx, ny, upsample=k)
     seed = locate_board(img, nx, ny, coarse_size_px)

@@ -33,7 +33,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 from scipy.optimize import least_squares
 
-from pipeline.moments import radius_map
+from pipeline.stats.moments import radius_map
 
 from .scaramuzza import FisheyeModel
 

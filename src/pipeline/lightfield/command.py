@@ -23,7 +23,7 @@ import pandas as pd
 import xarray as xr
 
 from pipeline import __version__
-from pipeline.apply import apply_calibration
+from pipeline.bundle.apply import apply_calibration
 from pipeline.config import defaults
 from pipeline.errors import InputError
 from pipeline.lightfield.attitude import (LEVEL, attitude_at, earth_to_camera_directions, earth_up_in_camera,

@@ -44,7 +44,7 @@ What of the lamp error propagates (``lamp_model``)
     and c = 27.4 nm; the stated lamp term is c |<1/lambda>_LS - 1/589 nm|,
     about 0.1, 0.3 and 0.9 % for R, G and B (Table 1 DN, 2796 K source).  So R^-1's stated uncertainty is
     about 2.5-3 % (reference and image), not the paper's 10.4-11 %, and a
-    coverage test over simulated labs (``tests/test_coverage_over_seeds.py``)
+    coverage test over simulated labs (``tests/stages/test_coverage_over_seeds.py``)
     checks that this is what propagates.  ``"profile"`` is the paper's own
     counting: the interpolated profile u(lambda) taken as fully correlated,
     the lamp term |u_band - rho u(589 nm)| with ``lamp_reference_correlation``

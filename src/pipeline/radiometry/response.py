@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from pipeline.artefact import model_effects
+from pipeline.io.artefact import model_effects
 from pipeline.errors import ArtefactError, InputError
 from pipeline.radiometry.dark import band_value
 from pipeline.radiometry.exposure import UNIT_GAIN_ISO

@@ -1,7 +1,7 @@
 """The dark model against the unlit corners of a lit frame (Larouche et al. 2024, Sections 2.8 and 3.7).
 
 A fisheye's image circle fits inside its square lens region, so the region's corners are never lit
-(:func:`pipeline.moments.unlit_mask`, beyond ``bias.corner_min_radius_fraction`` of the half side); a
+(:func:`pipeline.stats.moments.unlit_mask`, beyond ``bias.corner_min_radius_fraction`` of the half side); a
 rectilinear region has none, and the sensor's optically black pixels stand in for them when the DNG
 declares them. The mean of a lit frame there measures that frame's black level, which the dark model
 predicts at the frame's ISO, exposure time and logged temperature:
@@ -18,7 +18,7 @@ corners alike. The noise of the measured mean is the dark stage's
 read noise at the frame's ISO over the square root of the raw sites averaged (a G band pixel averages two):
 1.6 DN over sqrt(868) sites is 0.054 DN. The linearity stage corrects each frame's black level with it
 (``bias_drift``); every lit stage records it per frame (its artefact's ``obs_corner`` table), and the
-closure compares measurement and prediction over all experiments (:mod:`pipeline.cross_closure`,
+closure compares measurement and prediction over all experiments (:mod:`pipeline.diagnostics.cross_closure`,
 ``closure/dark_corners``).
 """
 
@@ -30,11 +30,11 @@ from datetime import datetime, timezone
 import numpy as np
 import xarray as xr
 
-from pipeline.bands import BANDS
-from pipeline.frames import SITES_PER_BAND_PIXEL, LensImages
-from pipeline.moments import unlit_mask
+from pipeline.io.bands import BANDS
+from pipeline.io.frames import SITES_PER_BAND_PIXEL, LensImages
+from pipeline.stats.moments import unlit_mask
 from pipeline.radiometry.dark import band_value, dark_level_dn, temperature_shift_dn
-from pipeline.rawio import RawFrame
+from pipeline.io.rawio import RawFrame
 
 __all__ = ["CORNER_COLUMNS", "FrameCorners", "corner_mean_dn", "corner_noise_dn", "corner_pattern_dn", "corner_pixels",
            "corner_sites", "frame_corner_records", "frame_time_s", "hot_pixels_left_out", "predicted_corner_dn"]
@@ -54,7 +54,7 @@ CORNER_COLUMNS = {"lens": ("lens region", None), "band": ("band", None),
 
 
 def corner_pixels(shape: tuple[int, int], projection: str, min_radius_fraction: float) -> np.ndarray:
-    """The band pixels of a lens region that are never lit (:func:`pipeline.moments.unlit_mask`)."""
+    """The band pixels of a lens region that are never lit (:func:`pipeline.stats.moments.unlit_mask`)."""
     return unlit_mask(shape, projection, min_radius_fraction)
 
 

@@ -16,11 +16,11 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipeline.artefact import read_artefact
+from pipeline.io.artefact import read_artefact
 from pipeline.report.formatting import fmt_uncertain, fmt_value, quantity, units_text
 from pipeline.report.inputs import ReportInputs, read_csv_or_empty
 from pipeline.report.palette import apply_style
-from pipeline.report.registry import registered_sections
+from pipeline.report.sections import registered_sections
 from pipeline.report.render import RenderedSection, number_figures, render_page, write_figures
 from pipeline.report.sections.noise_floor import snr_against_radiance
 

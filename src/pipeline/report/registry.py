@@ -1,18 +1,17 @@
 """The report's sections, registered by the module that builds each one.
 
-A section module decorates its builder with :func:`section`; :func:`registered_sections` imports every module of
-:mod:`pipeline.report.sections` and returns the sections in page order. A new stage adds its section
+A section module decorates its builder with :func:`section`;
+:func:`pipeline.report.sections.registered_sections` imports every module of :mod:`pipeline.report.sections`
+and returns the sections in page order. A new stage adds its section
 by adding one module there: no list, no dispatch to edit elsewhere.
 """
 
 from __future__ import annotations
 
-import importlib
-import pkgutil
 from dataclasses import dataclass
 from typing import Callable
 
-__all__ = ["SectionSpec", "section", "registered_sections"]
+__all__ = ["SectionSpec", "section", "sections_in_order"]
 
 
 @dataclass(frozen=True)
@@ -44,10 +43,7 @@ def section(id: str, title: str, order: int, intro: str = ""):
     return register
 
 
-def registered_sections() -> list[SectionSpec]:
-    """Every registered section, in page order."""
-    from pipeline.report import sections as package
-
-    for info in pkgutil.iter_modules(package.__path__):
-        importlib.import_module(f"{package.__name__}.{info.name}")
+def sections_in_order() -> list[SectionSpec]:
+    """The sections registered so far, in page order (:func:`pipeline.report.sections.registered_sections` imports
+    them all first)."""
     return sorted(_REGISTRY.values(), key=lambda s: s.order)

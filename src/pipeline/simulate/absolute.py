@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.radiometry.source import (QTH_TEMPERATURE_K, REFERENCE_RADIANCE_W_SR_M2_NM, REFERENCE_WAVELENGTH_NM,
                                         planck_radiance)
 from pipeline.radiometry.spectral import effective_band_radiance

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
-from pipeline.simulate.lens import RAW_SIZE_PX
+#: Raw lens image size (pixels) on which the published fits were made.
+RAW_SIZE_PX = 3456
 
 #: 14-bit analogue-to-digital converter.
 ADC_MAX_DN = 2**14 - 1

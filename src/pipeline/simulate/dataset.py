@@ -12,10 +12,10 @@ import pandas as pd
 import yaml
 
 from pipeline import __version__
-from pipeline.dataset import write_md5sums
+from pipeline.io.dataset import write_md5sums
 from pipeline.effects import get as get_effect
 from pipeline.errors import InputError
-from pipeline.rawio import write_dng
+from pipeline.io.rawio import write_dng
 from pipeline.simulate import lab  # noqa: F401  (registers the dark and linearity planners)
 from pipeline.simulate import immersion, rolloff  # noqa: F401  (registers the roll-off and immersion planners)
 from pipeline.simulate import absolute, spectral  # noqa: F401  (registers the spectral and absolute planners)

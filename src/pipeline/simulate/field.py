@@ -11,7 +11,7 @@ effects' optics, stray light and noise, :class:`pipeline.simulate.render.Rendere
 Directions. A zenith-lens pixel at field angle theta and camera azimuth phi
 looks at sky zenith angle Z = theta and compass azimuth
 alpha = phi + ``CAMERA_HEADING_DEG`` (east of north): the convention of
-:func:`pipeline.apply.sphere_coordinates` for the lens that looks up, turned
+:func:`pipeline.bundle.apply.sphere_coordinates` for the lens that looks up, turned
 by the camera's heading (recorded in the truth).
 
 Band radiance. Each scene gives every raw pixel the effective band radiance
@@ -57,7 +57,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.radiometry.rolloff import evaluate_rolloff
 from pipeline.simulate import sky as skymod
 from pipeline.simulate.glare import SunGlare

@@ -41,7 +41,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.ndimage import maximum_filter, minimum_filter
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.geometry.chessboard import Board, project_points
 from pipeline.geometry.image_circle import ImageCircle, half_fov_from_circle
 from pipeline.geometry.scaramuzza import FisheyeModel

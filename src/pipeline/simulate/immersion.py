@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 import yaml
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.radiometry.immersion import immersion_factor_flat_window, n_squared_law_factor_at
 from pipeline.radiometry.water import refractive_index_water
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.simulate.camera import DarkPlan, LinearityPlan
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 

@@ -25,9 +25,8 @@ import numpy as np
 from pipeline.geometry.scaramuzza import FisheyeModel, fit_poly_to_theta
 from pipeline.radiometry.immersion_rolloff import water_rolloff_factor
 from pipeline.radiometry.rolloff import N_COEFFICIENTS, evaluate_rolloff
+from pipeline.simulate.camera import RAW_SIZE_PX
 
-#: Raw lens image size (pixels) on which the published fits were made.
-RAW_SIZE_PX = 3456
 
 #: Published OCamCalib fits on the raw 3456 x 3456 lens image (green band, air).
 #: Coefficients ascending, a1 = 0; centre (xc, yc) in raw pixels.

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.geometry.maps import theta_phi_maps
 from pipeline.radiometry.rolloff import evaluate_rolloff
 from pipeline.simulate.camera import Camera

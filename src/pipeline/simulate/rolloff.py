@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.geometry.scaramuzza import FisheyeModel
 from pipeline.simulate.geometry import band_model, true_raw_models
 from pipeline.simulate.immersion import true_immersion_factors

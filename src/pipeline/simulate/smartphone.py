@@ -34,12 +34,12 @@ import pandas as pd
 import yaml
 
 from pipeline import __version__
-from pipeline.bands import BANDS
-from pipeline.dataset import write_md5sums
+from pipeline.io.bands import BANDS
+from pipeline.io.dataset import write_md5sums
 from pipeline.effects import get as get_effect
 from pipeline.errors import InputError
 from pipeline.geometry.chessboard import Board
-from pipeline.rawio import write_dng
+from pipeline.io.rawio import write_dng
 from pipeline.simulate.camera import SensorParams
 from pipeline.simulate.chessboard import render_chessboard
 from pipeline.simulate.dataset import partial_folders, yaml_plain

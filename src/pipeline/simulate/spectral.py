@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.radiometry.source import QTH_TEMPERATURE_K, planck_radiance
 from pipeline.radiometry.spectral import band_statistics
 from pipeline.simulate.lab_errors import photodiode_factor

@@ -53,12 +53,12 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.bands import BANDS
-from pipeline.dataset import read_source_reference, read_source_spectrum
+from pipeline.io.bands import BANDS
+from pipeline.io.dataset import read_source_reference, read_source_spectrum
 from pipeline.errors import InputError
 from pipeline.radiometry.absolute import (absolute_calibration_budget, lamp_calibration_relative_sigma,
                                           lamp_colour_temperature_shape_nm)
-from pipeline.observations import table_to_dataset, with_corner_table
+from pipeline.stages.observations import table_to_dataset, with_corner_table
 from pipeline.radiometry.measurement import FrameSettings
 from pipeline.radiometry.response import flat_field_at, response_corrected, response_effects
 from pipeline.radiometry.source import scale_to_reference

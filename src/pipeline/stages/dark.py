@@ -35,16 +35,16 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.bands import BANDS
-from pipeline.dataset import Dataset
+from pipeline.io.bands import BANDS
+from pipeline.io.dataset import Dataset
 from pipeline.effects.catalogue import drift_sigma
 from pipeline.errors import InputError
-from pipeline.fitting import base_design
-from pipeline.observations import fit_with_effects, table_to_dataset
-from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
-from pipeline.moments import RunningMoments, histogram_counts, unlit_mask
+from pipeline.stats.fitting import base_design
+from pipeline.stages.observations import fit_with_effects, table_to_dataset
+from pipeline.io.frames import SITES_PER_BAND_PIXEL, iter_frames
+from pipeline.stats.moments import RunningMoments, histogram_counts, unlit_mask
 from pipeline.radiometry.exposure import gain_from_iso
-from pipeline.rawio import read_tags
+from pipeline.io.rawio import read_tags
 
 STAGE = "dark"
 log = logging.getLogger("pipeline.stages.dark")
@@ -78,7 +78,7 @@ def dark_reference_mask(shape: tuple[int, int], projection: str, min_radius_frac
                         has_optical_black: bool) -> np.ndarray:
     """The band pixels that measure a dark frame's own black level, left out of the dark model's pixels.
 
-    A fisheye's unlit corners (:func:`pipeline.moments.unlit_mask`); none for a rectilinear region whose DNG
+    A fisheye's unlit corners (:func:`pipeline.stats.moments.unlit_mask`); none for a rectilinear region whose DNG
     declares optically black pixels (they are the reference); else, in each row of band pixels, a fixed random
     half of its pixels (seed ``DARK_HALF_SEED``).  In a dark frame every pixel is dark, so one half measures the
     frame's level and the other half, the value, is tested against it: a bias common to the frame moves both
@@ -155,7 +155,7 @@ class _Pending:
     typical pixels and 2.4e-4 DN at worst, against the frame-averaged pixel's temporal noise of
     about 1 DN / sqrt(frames) and the histogram bins of 0.5 DN. The variance map keeps 1 part in
     1.7e7 of itself. The dark results move by far less than a hundredth of their uncertainty
-    (tests/test_dark_reduction.py, tests/test_regression.py).
+    (tests/radiometry/test_dark_reduction.py, tests/regression/test_regression.py).
     """
 
     def __init__(self, moments: RunningMoments):

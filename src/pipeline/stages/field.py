@@ -3,7 +3,7 @@
 
 For the lens that ``field/frames.csv`` names (the one at the zenith), each
 frame is decoded once and checked against the bundle (camera, ISO, exposure);
-the measurement chain (:func:`pipeline.apply.band_radiance`, as one :class:`~pipeline.apply.BandChain` per band) runs on the crop
+the measurement chain (:func:`pipeline.bundle.apply.band_radiance`, as one :class:`~pipeline.bundle.apply.BandChain` per band) runs on the crop
 of the band images that holds the mask only: theta <= ``field.mask_half_angle_deg``
 on the bundle's in-air theta map, or the ``field.min_mask_pixels`` pixels
 nearest the axis when the mask holds fewer. Pixels flagged saturated, hot or
@@ -43,7 +43,7 @@ Two comparisons per band:
   (``response_outside_reference_fraction``). The convolved value is linear
   in the channel values, so it is formed once per reference sample.
 
-Per band and comparison, every statistic of :mod:`pipeline.matchup`
+Per band and comparison, every statistic of :mod:`pipeline.stats.matchup`
 (MUPD, zeta, SSPB, r, RMSE about the fit and the 1:1 line with paired
 bootstrap intervals; OLS and errors-in-both lines) on the match-ups; the
 ODR weights are the camera's random standard error and the reference's
@@ -51,7 +51,7 @@ window uncertainty (noise of the mean and variation within the window).
 
 Observation table (``obs_frame``, the diagnostics read it like any stage's): one row per match-up and
 band; base model camera = k_b x reference (one scale per band, fitted with
-:func:`pipeline.observations.fit_with_effects`); ``sigma_dn`` adds the
+:func:`pipeline.stages.observations.fit_with_effects`); ``sigma_dn`` adds the
 camera's random standard error, k_b times the reference's window
 uncertainty, the mask's sampling term (:func:`mask_sampling_sigma`) and its pointing term
 (:func:`mask_pointing_sigma`: the sky's gradient at the mask, fitted to the frame's pixels, times
@@ -116,13 +116,13 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.apply import EXCLUDED_FROM_GRID, BandChain, bin_on_sphere, check_frame, sphere_coordinates
-from pipeline.bands import BANDS
-from pipeline.dataset import REFERENCE_CALIBRATION_RELATIVE_SIGMA, read_reference_radiometer, read_site
+from pipeline.bundle.apply import EXCLUDED_FROM_GRID, BandChain, bin_on_sphere, check_frame, sphere_coordinates
+from pipeline.io.bands import BANDS
+from pipeline.io.dataset import REFERENCE_CALIBRATION_RELATIVE_SIGMA, read_reference_radiometer, read_site
 from pipeline.errors import ImpossibleResult, InputError
-from pipeline.fitting import base_design
-from pipeline.frames import iter_frames
-from pipeline.observations import fit_with_effects, table_to_dataset
+from pipeline.stats.fitting import base_design
+from pipeline.io.frames import iter_frames
+from pipeline.stages.observations import fit_with_effects, table_to_dataset
 from pipeline.radiometry import measurement as mm
 from pipeline.radiometry.field_scale import SCALE_TERMS, mismatch_prediction_relative_sigma, scale_relative_sigma
 from pipeline.radiometry.spectral import band_weights
@@ -497,7 +497,7 @@ def fit_clock_offset(y, sy, series, times_s, width, min_samples, search_s, step_
 #: modules the stage needs only after its frames (the match-up's statistics, the clock fit's minimiser, the
 #: sun's position): imported in a thread while the first frames decode, off the job's critical path (about
 #: 0.9 s of imports at the start of a job otherwise)
-AFTER_FRAMES_MODULES = ("pipeline.matchup", "scipy.optimize", "pvlib.solarposition")
+AFTER_FRAMES_MODULES = ("pipeline.stats.matchup", "scipy.optimize", "pvlib.solarposition")
 
 
 def _import_in_background(names) -> threading.Thread:
@@ -532,7 +532,7 @@ def _check_region(ctx) -> None:
 
 
 def _reduce_frames(ctx, stream, masks, window, grid_deg, negative_sigma, around):
-    """Reduce the field frames of ``stream`` (:func:`pipeline.frames.iter_frames` of the lens): per frame and
+    """Reduce the field frames of ``stream`` (:func:`pipeline.io.frames.iter_frames` of the lens): per frame and
     band the mask numbers; the middle frame's sky map."""
     bundle, lens = ctx.bundle, ctx.lens
     middle = len(ctx.dataset.frames(STAGE)) // 2
@@ -701,7 +701,7 @@ def compute(ctx) -> xr.Dataset:
                  clock["offset_se_s"], "applied" if "clock_offset" in ctx.effects else "profile only, not applied")
 
     # statistics per band and comparison
-    from pipeline.matchup import BOOTSTRAPPED, matchup_statistics
+    from pipeline.stats.matchup import BOOTSTRAPPED, matchup_statistics
 
     names = list(BOOTSTRAPPED)
     fits = ("ols", "odr")
@@ -959,7 +959,7 @@ def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_referen
                                            _attrs("d reference / dt from a line fitted to the window's samples",
                                                   "W sr-1 m-2 nm-1 s-1"))
     comp_dims = ("band", "comparison")
-    from pipeline.matchup import STATISTIC_UNITS
+    from pipeline.stats.matchup import STATISTIC_UNITS
 
     for name, value in stat.items():
         base = name.rsplit("_", 1)[0] if name.endswith(("_low", "_high")) else name

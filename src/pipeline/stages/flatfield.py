@@ -33,8 +33,8 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.bands import BANDS
-from pipeline.frames import SITES_PER_BAND_PIXEL
+from pipeline.io.bands import BANDS
+from pipeline.io.frames import SITES_PER_BAND_PIXEL
 from pipeline.radiometry.dark import dark_level_dn
 from pipeline.radiometry.response import linear_signal
 

@@ -52,19 +52,19 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.bands import BANDS
-from pipeline.dataset import Dataset
+from pipeline.io.bands import BANDS
+from pipeline.io.dataset import Dataset
 from pipeline.errors import InputError
-from pipeline.frames import iter_frames
+from pipeline.io.frames import iter_frames
 from pipeline.geometry.calibrate import calibrate
 from pipeline.geometry.chessboard import Board
-from pipeline.geometry.corners import (CROP_PAD_PX, _upsample_factor, corner_spacing_px, detect_corners_coarse_to_fine,
+from pipeline.geometry.corners import (CROP_PAD_PX, upsample_factor, corner_spacing_px, detect_corners_coarse_to_fine,
                                        detect_in_crop)
 from pipeline.geometry.image_circle import find_image_circle, half_fov_from_circle
 from pipeline.stages.geometry_rectilinear import rectilinear_lens_dataset
 from pipeline.geometry.scaramuzza import field_angle_rad
 from pipeline.geometry.theta_uncertainty import theta_sigma_at_field_angles, theta_sigma_map
-from pipeline.observations import table_to_dataset
+from pipeline.stages.observations import table_to_dataset
 from pipeline.stages.geometry_maps import MEDIA, maps_dataset
 
 STAGE = "geometry"
@@ -128,7 +128,7 @@ def reduce_geometry(dataset: Dataset, config: dict, progress: bool = False) -> d
                     res = detect_corners_coarse_to_fine(img, board.nx, board.ny, **search)
                 else:
                     margin = search["margin_squares"] * corner_spacing_px(g, board.nx, board.ny) + CROP_PAD_PX
-                    res = detect_in_crop(img, g, board.nx, board.ny, upsample=_upsample_factor(img.shape),
+                    res = detect_in_crop(img, g, board.nx, board.ny, upsample=upsample_factor(img.shape),
                                          margin_px=margin)
                     if not res.found:
                         res = detect_corners_coarse_to_fine(img, board.nx, board.ny, **search)
@@ -273,10 +273,10 @@ def _points(res, board):
     """Per used corner: radius of the detected point, theta of the board point (fitted pose), error."""
     obj = board.corners_mm()
     thetas = []
-    from pipeline.geometry.calibrate import _rodrigues
+    from pipeline.geometry.calibrate import rodrigues
     for i in res.used_frames:
         rvec, t = res.poses[i]
-        cam = obj @ _rodrigues(rvec[None])[0].T + t
+        cam = obj @ rodrigues(rvec[None])[0].T + t
         thetas.append(np.degrees(field_angle_rad(cam)))
     # used corners after single-corner outlier removal are a subset: report radius and error only
     return {"rho_px": res.residual_rho_px, "error_px": np.linalg.norm(res.residuals_px, axis=1),

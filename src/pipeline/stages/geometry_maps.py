@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.geometry.maps import solid_angle_map, theta_phi_maps
 from pipeline.geometry.scaramuzza import FisheyeModel
 

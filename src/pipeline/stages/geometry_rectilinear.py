@@ -18,10 +18,10 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.bands import BANDS
+from pipeline.io.bands import BANDS
 from pipeline.errors import InputError
 from pipeline.geometry.pinhole import PARAMETERS, calibrate_pinhole, pinhole_maps
-from pipeline.observations import table_to_dataset
+from pipeline.stages.observations import table_to_dataset
 
 MEDIA = ("air", "water")
 

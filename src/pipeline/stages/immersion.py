@@ -18,12 +18,12 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.bands import BANDS
-from pipeline.dataset import read_water
+from pipeline.io.bands import BANDS
+from pipeline.io.dataset import read_water
 from pipeline.errors import InputError
-from pipeline.fitting import wls
-from pipeline.frames import iter_frames
-from pipeline.moments import RunningMoments
+from pipeline.stats.fitting import wls
+from pipeline.io.frames import iter_frames
+from pipeline.stats.moments import RunningMoments
 from pipeline.radiometry.fresnel import transmittance_air_water
 from pipeline.radiometry.exposure import exposure_gain_s
 from pipeline.radiometry.measurement import FrameSettings
@@ -31,7 +31,7 @@ from pipeline.radiometry.response import response_corrected, response_effects
 from pipeline.radiometry.immersion import (fit_immersion_factor, n_squared_law_factor,
                                            window_index_from_immersion_factor)
 from pipeline.radiometry.water import refractive_index_water
-from pipeline.observations import table_to_dataset, with_corner_table
+from pipeline.stages.observations import table_to_dataset, with_corner_table
 from pipeline.radiometry.unlit_corners import FrameCorners
 
 STAGE = "immersion"
@@ -211,5 +211,5 @@ def compute(ctx) -> xr.Dataset:
                              linearity)
     if ctx.lens not in arts:
         raise InputError(ctx.dataset.root / STAGE / "frames.csv", f"no immersion frames for lens {ctx.lens}")
-    # the signal frames' unlit corners against the dark model, for the closure (pipeline.cross_closure)
+    # the signal frames' unlit corners against the dark model, for the closure (pipeline.diagnostics.cross_closure)
     return with_corner_table(arts[ctx.lens], corners.of_lens(ctx.lens))

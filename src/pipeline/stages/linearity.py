@@ -42,16 +42,16 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.bands import BANDS
-from pipeline.dataset import Dataset
+from pipeline.io.bands import BANDS
+from pipeline.io.dataset import Dataset
 from pipeline.effects import get as get_effect
 from pipeline.effects.catalogue import drift_sigma
 from pipeline.errors import ImpossibleResult, InputError
-from pipeline.fitting import base_design, ols_line, wls
-from pipeline.frames import SITES_PER_BAND_PIXEL, iter_frames
+from pipeline.stats.fitting import base_design, ols_line, wls
+from pipeline.io.frames import SITES_PER_BAND_PIXEL, iter_frames
 from pipeline.geometry.image_circle import find_image_circle, outside_lit_fraction
-from pipeline.moments import RunningMoments, RunningPearson, radius_map
-from pipeline.observations import corner_table_dataset, effect_coefficients, fit_with_effects, table_to_dataset
+from pipeline.stats.moments import RunningMoments, RunningPearson, radius_map
+from pipeline.stages.observations import corner_table_dataset, effect_coefficients, fit_with_effects, table_to_dataset
 from pipeline.radiometry import emva1288 as emva
 from pipeline.radiometry.dark import dark_level_dn, temperature_shift_dn
 from pipeline.radiometry.exposure import exposure_gain_s, gain_from_iso

@@ -79,16 +79,16 @@ import pandas as pd
 import xarray as xr
 from scipy import ndimage
 
-from pipeline.bands import BANDS
-from pipeline.dataset import Dataset, read_water
+from pipeline.io.bands import BANDS
+from pipeline.io.dataset import Dataset, read_water
 from pipeline.effects import get as get_effect
 from pipeline.effects.optics import azimuth_from_coefficients
-from pipeline.fitting import base_design, wls
+from pipeline.stats.fitting import base_design, wls
 from pipeline.errors import InputError
-from pipeline.frames import iter_frames
+from pipeline.io.frames import iter_frames
 from pipeline.geometry.centre_shift import centre_columns, centre_root, centre_theta_gradient, centre_variance
-from pipeline.moments import RunningMoments
-from pipeline.observations import table_to_dataset, with_corner_table
+from pipeline.stats.moments import RunningMoments
+from pipeline.stages.observations import table_to_dataset, with_corner_table
 from pipeline.radiometry.immersion_rolloff import water_rolloff_factor
 from pipeline.radiometry.rolloff import (ROLLOFF_POWERS, evaluate_rolloff, fit_rolloff, normalise_rolloff,
                                          rolloff_design_matrix, rolloff_slope)
@@ -117,7 +117,7 @@ log = logging.getLogger("pipeline.rolloff")
 #: the window is searched only where it provably holds what the whole image would give.
 SPOT_WINDOW_HALF_PX = 48
 #: independent samples of the scene in one G band pixel (the mean of the cell's two green sites,
-#: :func:`pipeline.bands.band_plane`): the grid term of the centroid's uncertainty (:func:`_add_centroid_sigma`)
+#: :func:`pipeline.io.bands.band_plane`): the grid term of the centroid's uncertainty (:func:`_add_centroid_sigma`)
 G_SITES_PER_BAND_PIXEL = 2
 
 
@@ -948,5 +948,5 @@ def compute(ctx) -> xr.Dataset:
         shifted = analyse_rolloff(reduced, ctx.config, ctx.effects, beta_shift=True)
         add_nonlinearity_covariance(arts[ctx.lens], shifted[ctx.lens])
     arts[ctx.lens].attrs["response_corrections"] = ",".join(reduced["response_corrections"])
-    # the signal frames' unlit corners against the dark model, for the closure (pipeline.cross_closure)
+    # the signal frames' unlit corners against the dark model, for the closure (pipeline.diagnostics.cross_closure)
     return with_corner_table(arts[ctx.lens], corners.of_lens(ctx.lens))

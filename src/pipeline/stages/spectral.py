@@ -53,13 +53,13 @@ import numpy as np
 import pandas as pd
 import xarray as xr
 
-from pipeline.bands import BANDS
-from pipeline.dataset import Dataset, read_photodiode
+from pipeline.io.bands import BANDS
+from pipeline.io.dataset import Dataset, read_photodiode
 from pipeline.errors import InputError
-from pipeline.fitting import base_design, wls
-from pipeline.frames import iter_frames
-from pipeline.moments import RunningMoments
-from pipeline.observations import table_to_dataset, with_corner_table
+from pipeline.stats.fitting import base_design, wls
+from pipeline.io.frames import iter_frames
+from pipeline.stats.moments import RunningMoments
+from pipeline.stages.observations import table_to_dataset, with_corner_table
 from pipeline.radiometry.dark import dark_level_dn
 from pipeline.radiometry.measurement import FrameSettings
 from pipeline.radiometry.response import flat_field_at, response_corrected, response_effects

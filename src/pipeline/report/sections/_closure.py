@@ -14,11 +14,11 @@ import pandas as pd  # noqa: E402
 import xarray as xr  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
-from pipeline.diagnostics import SOURCE_EXPERIMENT  # noqa: E402
+from pipeline.diagnostics.missing_effects import SOURCE_EXPERIMENT  # noqa: E402
 from pipeline.report.content import Figure, Table, draw  # noqa: E402
 from pipeline.report.formatting import finite, fmt_value, units_text  # noqa: E402
 from pipeline.report.palette import DIVERGING_MAP, OKABE_ITO  # noqa: E402
-from pipeline.residual_structure import (  # noqa: E402
+from pipeline.diagnostics.residual_structure import (  # noqa: E402
     IMAGE_PLANE_COLUMNS,
     LOG_SCALE_COVARIATES,
     covariate_label,

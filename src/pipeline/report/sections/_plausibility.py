@@ -1,11 +1,11 @@
 """The summary's plausibility block: each fitted quantity outside its physical range, with the value and the range
-(``plausibility.csv`` of the diagnostics, :mod:`pipeline.plausibility`); no section of its own."""
+(``plausibility.csv`` of the diagnostics, :mod:`pipeline.diagnostics.plausibility`); no section of its own."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from pipeline.plausibility import LABELS, findings, range_text, summary_lines
+from pipeline.diagnostics.plausibility import LABELS, findings, range_text, summary_lines
 from pipeline.report.content import Markup, Table, Text
 from pipeline.report.formatting import fmt_uncertain
 

@@ -10,7 +10,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import xarray as xr  # noqa: E402
 
-from pipeline.observations import dataset_to_table  # noqa: E402
+from pipeline.stages.observations import dataset_to_table  # noqa: E402
 from pipeline.radiometry.dark import dark_level_dn  # noqa: E402
 from pipeline.report.content import Table, Text, draw  # noqa: E402
 from pipeline.report.formatting import bands as band_list  # noqa: E402

@@ -12,14 +12,14 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from pipeline.diagnostics import shared_excess_sentences  # noqa: E402
-from pipeline.observations import dataset_to_table  # noqa: E402
+from pipeline.diagnostics.missing_effects import shared_excess_sentences  # noqa: E402
+from pipeline.stages.observations import dataset_to_table  # noqa: E402
 from pipeline.report.content import Details, Group, Items, Markup, Table, Text, draw  # noqa: E402
 from pipeline.report.formatting import finite, fmt_value  # noqa: E402
 from pipeline.report.palette import OKABE_ITO, category  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
 from pipeline.report.sections._closure import closure_figures, lens_tests_table, residual_tests_table  # noqa: E402
-from pipeline.residual_structure import covariate_label  # noqa: E402
+from pipeline.diagnostics.residual_structure import covariate_label  # noqa: E402
 
 __all__ = ["as_bool", "top_effect", "amplitude_text", "run_labels", "history_figure", "flagged_experiments"]
 

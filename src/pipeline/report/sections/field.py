@@ -18,7 +18,7 @@ from pipeline.report.content import Group, Table, draw  # noqa: E402
 from pipeline.report.formatting import fmt_value  # noqa: E402
 from pipeline.report.palette import BAND_COLOURS, sequential_map  # noqa: E402
 from pipeline.report.registry import section  # noqa: E402
-from pipeline.observations import dataset_to_table  # noqa: E402
+from pipeline.stages.observations import dataset_to_table  # noqa: E402
 from pipeline.report.sections._common import lens_title, not_run, residual_figure  # noqa: E402
 
 __all__ = ["field_agreement_rows", "COMPARISON_LABELS"]

@@ -11,9 +11,9 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import xarray as xr  # noqa: E402
 
-from pipeline.observations import dataset_to_table  # noqa: E402
+from pipeline.stages.observations import dataset_to_table  # noqa: E402
 from pipeline.radiometry.exposure import gain_from_iso  # noqa: E402
-from pipeline.frames import SITES_PER_BAND_PIXEL  # noqa: E402
+from pipeline.io.frames import SITES_PER_BAND_PIXEL  # noqa: E402
 from pipeline.report.content import Table, Text, draw  # noqa: E402
 from pipeline.report.formatting import bands as band_list  # noqa: E402
 from pipeline.report.formatting import bias_drift_text, fmt_uncertain, fmt_value, quantity  # noqa: E402

@@ -11,7 +11,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 import xarray as xr  # noqa: E402
 
-from pipeline.observations import dataset_to_table  # noqa: E402
+from pipeline.stages.observations import dataset_to_table  # noqa: E402
 from pipeline.report.content import Table, Text, draw  # noqa: E402
 from pipeline.report.formatting import bands as band_list  # noqa: E402
 from pipeline.report.formatting import finite, fmt_uncertain, fmt_value, quantity, var_units  # noqa: E402

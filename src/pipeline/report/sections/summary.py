@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from pipeline.diagnostics import accepted_effects, field_scale_sentence
-from pipeline.observations import dataset_to_table
+from pipeline.diagnostics.missing_effects import accepted_effects, field_scale_sentence
+from pipeline.stages.observations import dataset_to_table
 from pipeline.radiometry.rolloff import evaluate_rolloff, rolloff_slope
 from pipeline.report.content import Markup, Table, Text
 from pipeline.report.formatting import bands as band_list

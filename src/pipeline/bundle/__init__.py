@@ -1,0 +1,1 @@
+"""The calibration bundle, ``apply`` over it, the store of published bundles and their comparison."""

@@ -1,0 +1,1 @@
+"""Closure and missing-effect diagnostics: residual tests, closures across experiments, plausibility, findings."""

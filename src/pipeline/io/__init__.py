@@ -1,0 +1,1 @@
+"""Input and output: raw frames, the dataset layout, its validation, and the artefact files."""

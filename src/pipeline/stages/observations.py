@@ -1,0 +1,126 @@
+"""Observation tables: the one contract between the stages, the diagnostics and the report.
+
+Each stage reduces its frames to tables with one row per independent
+measurement (a frame, a setting, a height...): the measured ``value_dn``, its
+expected noise ``sigma_dn``, the base columns of the stage's linear model
+(``x_<name>``, one block per ``group``), the model's prediction ``pred_dn`` and
+the noise-normalised residual ``z``. The tables are stored in the stage's
+artefact as variables ``<prefix>__<column>`` along a dimension ``<prefix>``
+(for example ``obs_setting__z``) so that the diagnostics read them back
+without knowing the stage.
+
+:func:`fit_with_effects` is the effect-aware weighted fit that every stage
+uses: the base columns plus the signature columns of each effect of the model
+that is fitted (rather than corrected in the data) at that level.
+
+:func:`corner_table_dataset` stores a lit stage's per-frame unlit-corner records
+(:mod:`pipeline.radiometry.unlit_corners`) as its ``obs_corner`` table: a descriptive
+table (no ``value_dn``), which the closure reads across the stages.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import xarray as xr
+
+from pipeline.effects import get as get_effect
+from pipeline.stats.fitting import Fit, base_design, wls
+from pipeline.radiometry.unlit_corners import CORNER_COLUMNS
+
+__all__ = ["CORNER_PREFIX", "corner_table_dataset", "dataset_to_table", "datasets_by_lens", "lens_of",
+           "with_corner_table", "effect_coefficients", "fit_with_effects",
+           "table_to_dataset"]
+
+#: the prefix of the per-frame unlit-corner table in a lit stage's artefact
+CORNER_PREFIX = "obs_corner"
+
+
+def table_to_dataset(table: pd.DataFrame, prefix: str) -> xr.Dataset:
+    """Store an observation table as variables ``<prefix>__<column>`` along dimension ``<prefix>``."""
+    data = {}
+    for col in table.columns:
+        values = table[col].to_numpy()
+        if values.dtype == object or values.dtype.kind in "OUS" or str(table[col].dtype) in ("string", "str"):
+            values = table[col].astype(str).to_numpy().astype(str)
+        data[f"{prefix}__{col}"] = (prefix, values)
+    return xr.Dataset(data)
+
+
+def lens_of(ds: xr.Dataset) -> str | None:
+    """The lens a stage artefact is of: its ``lens`` attribute, else the lens of its setting or frame table's
+    rows; None when it names none."""
+    if "lens" in ds.attrs:
+        return str(ds.attrs["lens"])
+    for name in ("obs_setting__lens", "obs_frame__lens"):
+        if name in ds and ds[name].size:
+            return str(ds[name].values[0])
+    return None
+
+
+def datasets_by_lens(datasets: list[xr.Dataset]) -> dict[str, xr.Dataset]:
+    """Stage artefacts keyed by :func:`lens_of` (those that name no lens left out)."""
+    return {lens: ds for ds in datasets if (lens := lens_of(ds)) is not None}
+
+
+def with_corner_table(art: xr.Dataset, records: list[dict]) -> xr.Dataset:
+    """A lit stage's artefact with its frames' unlit-corner records as ``obs_corner`` (for the closure,
+    pipeline.diagnostics.cross_closure); as it is when there are none (no dark artefact given)."""
+    return art.merge(corner_table_dataset(records)) if records else art
+
+
+def corner_table_dataset(records: list[dict] | pd.DataFrame) -> xr.Dataset:
+    """A lit stage's unlit-corner records (one row per frame, lens and band) as its ``obs_corner`` table, each
+    column of :data:`pipeline.radiometry.unlit_corners.CORNER_COLUMNS` with its long name and units; the
+    stage's own keys (``file_index``, ``kind``, ``medium``...) as they are."""
+    table = pd.DataFrame(records).reset_index(drop=True)
+    ds = table_to_dataset(table, CORNER_PREFIX)
+    for col, (long_name, units) in CORNER_COLUMNS.items():
+        name = f"{CORNER_PREFIX}__{col}"
+        if name in ds:
+            ds[name].attrs["long_name"] = long_name
+            if units:
+                ds[name].attrs["units"] = units
+    return ds
+
+
+def dataset_to_table(ds: xr.Dataset, prefix: str) -> pd.DataFrame:
+    """Inverse of :func:`table_to_dataset`."""
+    cols = {name.split("__", 1)[1]: ds[name].values for name in ds.data_vars if name.startswith(prefix + "__")}
+    return pd.DataFrame(cols)
+
+
+def fit_with_effects(table: pd.DataFrame, level: str, effects: list[str], stage: str,
+                     only: tuple[str, ...] | None = None) -> tuple[Fit, dict]:
+    """Weighted fit of the base columns plus the columns of the model's effects at this level.
+
+    ``stage`` and ``level`` select each effect's signature columns
+    (``Effect.columns``); effects that correct the data instead of adding
+    columns are skipped; ``only`` restricts the effects considered. Returns the
+    fit and, per effect, its coefficients and standard errors.
+    """
+    X, _ = base_design(table)
+    extra = []
+    for name in effects:
+        if only is not None and name not in only:
+            continue
+        effect = get_effect(name)
+        if effect.corrects_data:
+            continue
+        cols = effect.columns(stage, level, table)
+        if cols is not None:
+            extra.append((name, cols))
+    Xfull = np.hstack([X] + [c for _, c in extra]) if extra else X
+    fit = wls(table["value_dn"].to_numpy(), table["sigma_dn"].to_numpy(), Xfull)
+    return fit, effect_coefficients(fit, X.shape[1], extra)
+
+
+def effect_coefficients(fit: Fit, first_column: int, extra: list[tuple[str, np.ndarray]]) -> dict:
+    """Slice a fit's coefficients and standard errors per effect, in the order the columns were added."""
+    out, col = {}, first_column
+    sigma = np.sqrt(np.diag(fit.cov))
+    for name, cols in extra:
+        k = cols.shape[1]
+        out[name] = (fit.coef[col:col + k], sigma[col:col + k])
+        col += k
+    return out
