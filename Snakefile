@@ -5,7 +5,6 @@
 import os
 import signal
 import sys
-from pathlib import Path
 
 from snakemake.utils import min_version
 
@@ -33,11 +32,8 @@ try:
 except InputError as exc:
     sys.exit(f"error: {exc}")
 
-# The rules' scripts import this checkout's package, also inside a rule's own software env.
-# (The workflow sets this variable for its jobs and never requires it, so it is no `envvars:` entry.)
-os.environ["PYTHONPATH"] = os.pathsep.join(
-    p for p in (str(Path(workflow.basedir) / "src"), os.environ.get("PYTHONPATH")) if p
-)
+# The rules' scripts import the installed package (`make` installs this checkout into .venv; with
+# --use-conda, workflow/envs/pipeline.post-deploy.sh installs it into the rules' software env).
 
 
 include: "workflow/rules/common.smk"
