@@ -28,7 +28,7 @@ from pipeline.effects import get as get_effect
 from pipeline.stats.fitting import Fit, base_design, wls
 from pipeline.radiometry.unlit_corners import CORNER_COLUMNS
 
-__all__ = ["CORNER_PREFIX", "corner_table_dataset", "dataset_to_table", "datasets_by_lens", "lens_of",
+__all__ = ["COLUMN_MEANINGS", "CORNER_PREFIX", "corner_table_dataset", "dataset_to_table", "datasets_by_lens", "lens_of",
            "with_corner_table", "effect_coefficients", "fit_with_effects",
            "table_to_dataset"]
 
@@ -36,14 +36,57 @@ __all__ = ["CORNER_PREFIX", "corner_table_dataset", "dataset_to_table", "dataset
 CORNER_PREFIX = "obs_corner"
 
 
+#: what the columns that many tables share mean (``long_name`` of their variables); a stage's own columns
+#: are named after what they hold, with the unit at the end of the name
+COLUMN_MEANINGS = {
+    "value_dn": "measured value of the row (the table's units attribute, else DN)",
+    "sigma_dn": "expected noise of the measured value (same units)",
+    "pred_dn": "the model's prediction of the measured value (same units)",
+    "z": "noise-normalised residual (value - prediction) / sigma",
+    "group": "block of rows that shares the base columns of the model",
+    "used": "1 where the row enters the fit, 0 where it is left out (saturated, flagged, outside the range)",
+    "lens": "lens the row belongs to",
+    "band": "colour band of the row (R, G or B)",
+    "iso": "ISO setting of the frame or setting",
+    "exposure_s": "exposure time of the frame or setting",
+    "temperature_c": "sensor temperature recorded with the frame",
+    "file_index": "index of the raw file in the experiment's frames table",
+    "frame": "index of the frame the row comes from",
+    "setting": "acquisition setting (ISO and exposure) of the row",
+    "sweep": "sweep the setting belongs to (exposure or gain)",
+    "kind": "kind of row within the table",
+    "medium": "medium in front of the lens (air or water)",
+    "saturated": "1 where the row reaches the saturation level",
+    "time_s": "acquisition time of the frame, seconds since the first frame of the table",
+    "n_frames": "number of frames reduced into the row",
+    "corner_dn": "mean level of the frame's unlit corners",
+    "dark_corner_dn": "unlit-corner level the dark model predicts for the frame",
+    "sigma_corner_dn": "noise of the unlit-corner level",
+    "n_corner_sites": "number of unlit-corner sites averaged",
+    "wavelength_nm": "wavelength of the row",
+}
+
+
+def _meaning(column: str) -> str | None:
+    if column in COLUMN_MEANINGS:
+        return COLUMN_MEANINGS[column]
+    if column.startswith("x_"):
+        return f"base column '{column[2:]}' of the stage's linear model"
+    return None
+
+
 def table_to_dataset(table: pd.DataFrame, prefix: str) -> xr.Dataset:
-    """Store an observation table as variables ``<prefix>__<column>`` along dimension ``<prefix>``."""
+    """Store an observation table as variables ``<prefix>__<column>`` along dimension ``<prefix>``.
+
+    The columns many tables share get their meaning as ``long_name`` (:data:`COLUMN_MEANINGS`).
+    """
     data = {}
     for col in table.columns:
         values = table[col].to_numpy()
         if values.dtype == object or values.dtype.kind in "OUS" or str(table[col].dtype) in ("string", "str"):
             values = table[col].astype(str).to_numpy().astype(str)
-        data[f"{prefix}__{col}"] = (prefix, values)
+        meaning = _meaning(str(col))
+        data[f"{prefix}__{col}"] = (prefix, values, {"long_name": meaning} if meaning else {})
     return xr.Dataset(data)
 
 
