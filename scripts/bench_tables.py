@@ -6,8 +6,15 @@ Each table of the page sits between two markers that name its file, its run and 
     | stage | lens | ... (generated) |
     <!-- end bench-table -->
 
-``run=latest`` shows the newest run of the file. The benchmarks append their rows
-(``benchmarks/record.py``); this script writes the tables again from them.
+``run=latest`` shows the newest run of the file. A context field (date, commit, machine, command) named
+among the columns is shown per row instead of above the table. A block
+
+    <!-- bench-index -->
+    - `bench_apply.csv`: `2026-12-02 05:00` (7 rows); ... (generated)
+    <!-- end bench-index -->
+
+lists, per file, the runs that no table of the page shows, so that every row is either shown or named.
+The benchmarks append their rows (``benchmarks/record.py``); this script writes the tables again from them.
 
     python scripts/bench_tables.py --write    # render every table of docs/performance.md
     python scripts/bench_tables.py --check    # exit 1 when a table differs from its CSV
@@ -25,6 +32,8 @@ RESULTS = ROOT / "benchmarks" / "results"
 DOC = ROOT / "docs" / "performance.md"
 BLOCK = re.compile(r"(<!-- bench-table: (?P<file>[\w.-]+) \| run=(?P<run>[^|]*?) \| (?P<columns>[^>]*?) -->\n)"
                    r"(?P<body>.*?)(?P<end><!-- end bench-table -->)", re.S)
+#: the list of the runs no table shows: every figure of benchmarks/results is either on the page or named here
+INDEX = re.compile(r"(<!-- bench-index -->\n)(?P<body>.*?)(?P<end><!-- end bench-index -->)", re.S)
 
 
 def read_rows(name: str) -> list[dict]:
@@ -46,12 +55,25 @@ def table(name: str, run: str, columns: list[str]) -> str:
     unknown = [c for c in columns if c not in chosen[0]]
     if unknown:
         raise SystemExit(f"{RESULTS / name}: no column {', '.join(unknown)} (named by a bench-table marker of {DOC.name})")
-    first = chosen[0]
-    command = "" if "command" in columns else f": `{first['command']}`"
-    lines = [f"*{first['date']}, commit {first['commit'] or 'not recorded'}, {first['machine']}{command}*",
-             "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    lines = [f"*{_context(chosen[0], columns)}*", "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     lines += ["| " + " | ".join(_cell(r, c) for c in columns) + " |" for r in chosen]
     return "\n".join(lines) + "\n"
+
+
+def _context(first: dict, columns: list[str]) -> str:
+    """The line above a table: the date, commit, machine and command of its run's first row, but those the
+    table shows as columns (rows of one run measured at different times or by different commands)."""
+    parts = []
+    if "date" not in columns:
+        parts.append(first["date"] if first["date"] not in ("", "not recorded") else "date not recorded")
+    if "commit" not in columns:
+        parts.append(f"commit {first['commit'] or 'not recorded'}")
+    if "machine" not in columns:
+        parts.append(first["machine"])
+    text = ", ".join(parts)
+    if "command" not in columns:
+        text += f": `{first['command']}`" if first["command"] else ": command not recorded"
+    return text
 
 
 def _cell(row: dict, column: str) -> str:
@@ -59,11 +81,30 @@ def _cell(row: dict, column: str) -> str:
     return f"`{text}`" if column == "command" and text else text
 
 
+def index(shown: set[tuple[str, str]]) -> str:
+    """A list, per file of benchmarks/results, of the runs no table of the page shows (``shown``: file, run)."""
+    lines = []
+    for path in sorted(RESULTS.glob("*.csv")):
+        runs = list(dict.fromkeys(r["run"] for r in read_rows(path.name)))
+        rest = [r for r in runs if (path.name, r) not in shown and (path.name, "latest") not in shown]
+        if rest:
+            lines.append(f"- `{path.name}`: " + "; ".join(f"`{r}` ({_count(path.name, r)})" for r in rest))
+    return "\n".join(lines) + "\n" if lines else "- none\n"
+
+
+def _count(name: str, run: str) -> str:
+    n = sum(r["run"] == run for r in read_rows(name))
+    return f"{n} row" + ("s" if n != 1 else "")
+
+
 def render(text: str) -> str:
-    """``text`` with every bench-table block rendered from its CSV."""
+    """``text`` with every bench-table block rendered from its CSV, and the bench-index block listing the
+    runs that no table shows."""
     def one(m: re.Match) -> str:
         return m.group(1) + table(m.group("file"), m.group("run").strip(), m.group("columns").split()) + m.group("end")
-    return BLOCK.sub(one, text)
+    text = BLOCK.sub(one, text)
+    shown = {(m.group("file"), m.group("run").strip()) for m in BLOCK.finditer(text)}
+    return INDEX.sub(lambda m: m.group(1) + index(shown) + m.group("end"), text)
 
 
 def main(argv: list[str]) -> int:
