@@ -78,7 +78,7 @@ def _context(first: dict, columns: list[str]) -> str:
 
 def _cell(row: dict, column: str) -> str:
     text = row[column].replace("|", "\\|")
-    return f"`{text}`" if column == "command" and text else text
+    return f"`{text}`" if column == "command" and text not in ("", "not recorded") else text
 
 
 def index(shown: set[tuple[str, str]]) -> str:
