@@ -31,6 +31,7 @@ Run time: about 8 s beyond the session fixture ``calibrated``.
 
 from __future__ import annotations
 
+from datetime import datetime, timedelta
 from types import SimpleNamespace
 
 import numpy as np
@@ -162,3 +163,38 @@ def test_brackets_refused_with_one_line():
         group_brackets([frame("c.dng", 0.01)], {"a.dng": "S"})
     with pytest.raises(InputError, match="no DateTimeOriginal"):
         group_brackets([frame("a.dng", 0.01)], None)
+
+
+def test_brackets_grouped_by_time_window():
+    t0 = datetime(2021, 3, 18, 16, 0, 0)
+
+    def frame(name, t, dt_s):
+        return SimpleNamespace(path=name, exposure_s=t, time=t0 + timedelta(seconds=dt_s), make="m", model="x",
+                               serial="A", iso=100.0)
+    frames = [frame("a", 0.1, 0.0), frame("b", 0.001, 1.0), frame("c", 0.01, 20.0), frame("d", 0.1, 21.5)]
+    groups = group_brackets(frames, None, window_s=5.0)
+    assert [g.frames for g in groups] == [[1, 0], [2, 3]]     # each bracket's frames by exposure
+
+
+def test_merge_by_hand():
+    """Two exposures of one pixel: the inverse-variance mean and the kinds of sigma, computed here by hand."""
+    def maps(L, r, e, c, saturated=False):
+        one = np.ones((1, 1, 1, 1))
+        return SimpleNamespace(radiance=L * one, random_sigma=r * one, exposure_sigma=e * one, common_sigma=c * one,
+                               fixed_sigma=0.0 * one, usable=one > 0, saturated=(one > 0) & saturated)
+    a, b = maps(1.0, 0.3, 0.4, 0.1), maps(1.2, 0.1, 0.0, 0.2)
+    m = merge_exposures([a, b])
+    wa, wb = 1 / (0.3 ** 2 + 0.4 ** 2), 1 / 0.1 ** 2
+    W = wa + wb
+    assert m.radiance.item() == pytest.approx((wa * 1.0 + wb * 1.2) / W)
+    assert m.random_sigma.item() == pytest.approx(np.sqrt(wa ** 2 * 0.09 + wb ** 2 * 0.01) / W)
+    assert m.exposure_sigma[:, 0, 0, 0, 0] == pytest.approx([wa * 0.4 / W, 0.0])
+    assert m.common_sigma.item() == pytest.approx((wa * 0.1 + wb * 0.2) / W)   # not averaged down
+    s = merge_exposures([maps(0.5, 0.1, 0, 0, True), maps(2.0, 0.1, 0, 0, True)])
+    assert s.saturated_everywhere.item() and np.isnan(s.radiance.item()) and s.lower_bound.item() == 2.0
+
+
+def test_frames_table_needs_a_calibration(tmp_path, capsys):
+    assert main(["lightfield", "--frames", str(tmp_path / "f.csv"), "x.dng", "-o", str(tmp_path / "o.nc")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--calibration" in err[0]
