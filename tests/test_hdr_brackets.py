@@ -44,7 +44,8 @@ from pipeline.bands import BANDS
 from pipeline.calibration import read_bundle
 from pipeline.cli import main
 from pipeline.errors import InputError
-from pipeline.lightfield.hdr import dynamic_range, exposure_maps, group_brackets, merge_exposures
+from pipeline.lightfield.hdr import (dynamic_range, exposure_maps, group_brackets, merge_exposures,
+                                     pixel_sphere_cells)
 from pipeline.rawio import read_raw
 from pipeline.simulate.brackets import render_bracket
 
@@ -113,6 +114,34 @@ def test_merged_map_within_its_stated_uncertainty_over_five_decades(merged):
             sel = decade == d
             if sel.sum() >= 30:
                 assert z[sel].std() < 2.0, (band, d, z[sel].std())
+
+
+def test_sphere_map_against_the_truth_binned_alike(calibrated, merged, bracket):
+    """The output's merged sphere cells (no attitude: the grid's own frame) against the truth of the same band
+    pixels binned alike: the same band scale and spread limits as the pixels'."""
+    m, truth, u = merged
+    bundle = read_bundle(calibrated[4])
+    lenses = [str(x) for x in bundle["lens"].values]
+    cells = pixel_sphere_cells(bundle, lenses, "air", "close", GRID_DEG)
+    _, ds = bracket["straight"]
+    n = ds["sphere_radiance"][0, 0].size
+    for b, band in enumerate(BANDS):
+        good = m.usable[:, b] & np.isfinite(m.radiance[:, b]) & (cells[:, b] >= 0)
+        count = np.bincount(cells[:, b][good], minlength=n)
+        T = np.bincount(cells[:, b][good], truth[:, b][good], n) / np.maximum(count, 1)
+        L = ds["sphere_radiance"].sel(band=band)[0].values.ravel()
+        rnd = ds["sphere_radiance_random_sigma"].sel(band=band)[0].values.ravel()
+        common = ds["sphere_radiance_systematic_sigma"].sel(band=band)[0].values.ravel()
+        exposure = ds["hdr_exposure_systematic_sigma"].sel(band=band)[0].values.ravel()
+        ok = ((ds["sphere_cell_flag"].sel(band=band)[0].values.ravel() == 0)
+              & (ds["hdr_cell_flag"].sel(band=band)[0].values.ravel() == 0) & (count > 0) & (L >= 3 * rnd))
+        assert np.log10(T[ok].max() / T[ok].min()) >= 5.0, band
+        shape = np.sqrt(np.clip(common ** 2 - (float(np.max(u[:, b])) * L) ** 2, 0.0, None))
+        s = np.sqrt(rnd ** 2 + exposure ** 2 + shape ** 2)[ok]
+        k = np.sum(L[ok] * T[ok] / s ** 2) / np.sum(T[ok] ** 2 / s ** 2)
+        assert abs(k - 1.0) <= 3 * float(np.max(u[:, b])), (band, k)
+        z = (L[ok] - k * T[ok]) / s
+        assert 0.6 <= z.std() <= 1.5, (band, z.std())
 
 
 def test_dynamic_range_matches_the_truths_span(merged, bracket):

@@ -61,9 +61,10 @@ def _proxy(maps: list[ExposureMaps], usable: np.ndarray, skip: tuple[int, int]) 
 
 
 def bracket_table(maps: list[ExposureMaps], bracket: str, lenses, full_scale_dn, min_snr: float,
-                  n_bins: int, max_signal_fraction: float) -> pd.DataFrame:
+                  n_bins: int, max_signal_fraction: float, bands=BANDS) -> pd.DataFrame:
     """The ``obs_bracket`` rows of one bracket (``maps`` by exposure; ``full_scale_dn[lens, band]`` the
-    response's full scale, the bundle's nonlinearity full scale or saturation level).
+    response's full scale, the bundle's nonlinearity full scale or saturation level; ``lenses`` and ``bands``
+    name the maps' lens and band axes).
 
     A pixel enters the pair (k, k + 1) by its level P measured by the bracket's other exposures (never by
     the pair's own readings, whose noise a cut would turn into a bias of the ratio): P at least
@@ -83,8 +84,8 @@ def bracket_table(maps: list[ExposureMaps], bracket: str, lenses, full_scale_dn,
         # sigmas of their own readings, which carry those readings' noise through the shot term)
         snr_s, snr_l = s.predicted_snr(level), lo.predicted_snr(level)
         for i, lens in enumerate(lenses):
-            for b, band in enumerate(BANDS):
-                Ls, Ll, P = s.radiance[i, b], lo.radiance[i, b], level[i, b]
+            for b, band in enumerate(bands):
+                Ls, Ll, P = s.radiance[i, b].astype(float), lo.radiance[i, b].astype(float), level[i, b]
                 rs, rl = s.random_sigma[i, b], lo.random_sigma[i, b]
                 ok = usable[i, b] & ~s.saturated[i, b] & ~lo.saturated[i, b] & np.isfinite(Ls) & np.isfinite(Ll)
                 with np.errstate(invalid="ignore", divide="ignore"):

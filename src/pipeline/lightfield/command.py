@@ -31,8 +31,9 @@ from pipeline.config import defaults
 from pipeline.geometry.sphere import ZENITH_LENS
 from pipeline.lightfield.bracket_closure import bracket_consistency, bracket_table
 from pipeline.lightfield.grid import SphereGrids
-from pipeline.lightfield.hdr import (FLAG_SATURATED_EVERYWHERE, dynamic_range, exposure_maps, group_brackets,
-                                     merge_exposures, merged_on_sphere, pixel_sphere_cells, read_frames_table)
+from pipeline.lightfield.hdr import (EXPOSURE_TERMS, FLAG_SATURATED_EVERYWHERE, SphereBins, dynamic_range,
+                                     exposure_maps, group_brackets, merge_exposures, pixel_sphere_cells,
+                                     read_frames_table, split_lens)
 from pipeline.observations import table_to_dataset
 from pipeline.rawio import read_raw
 from pipeline.errors import InputError
@@ -347,18 +348,33 @@ def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium:
     n_exp = max(len(b.frames) for b in brackets)
     merged_cells, tables, dr, dr_pixels, info = [], [], [], [], []
     for br in brackets:
-        maps = [exposure_maps(raws[i], bundle, chains, lenses, medium, effects) for i in br.frames]
-        merged = merge_exposures(maps)
-        sphere = merged_on_sphere(merged, cells, grid_deg)
+        terms = EXPOSURE_TERMS | ({"iso_gain"} if len({float(raws[i].iso) for i in br.frames}) > 1 else set())
+        bins = SphereBins(len(BANDS), len(br.frames), grid_deg)
+        extremes = [[] for _ in BANDS]      # per band, per lens: (brightest, faintest detected) merged pixel
+        # one lens and band at a time: a bracket's maps of the full-size camera stay a few hundred MB
+        for i, lens in enumerate(lenses):
+            images = [split_lens(raws[f], bundle, lens) for f in br.frames]
+            for b, band in enumerate(BANDS):
+                maps = [exposure_maps(raws[f], bundle, chains, [lens], medium, effects, [band], {lens: img}, terms)
+                        for f, img in zip(br.frames, images)]
+                merged = merge_exposures(maps)
+                bins.add(merged, cells[i:i + 1, b:b + 1], [b])
+                tables.append(bracket_table(maps, br.name, [lens], full_scale[i:i + 1, b:b + 1],
+                                            float(cfg["bracket_closure_min_snr"]),
+                                            int(cfg["bracket_closure_signal_bins"]),
+                                            float(cfg["bracket_closure_max_signal_fraction"]), [band]))
+                values = merged.radiance.ravel()
+                _, hi, lo = dynamic_range(values, np.hypot(merged.random_sigma, merged.fixed_sigma).ravel(), snr)
+                if hi >= 0:
+                    extremes[b].append((float(values[hi]), float(values[lo])))
+                del maps, merged
+            del images
+        sphere = bins.result()
         merged_cells.append(sphere)
-        tables.append(bracket_table(maps, br.name, lenses, full_scale, float(cfg["bracket_closure_min_snr"]),
-                                    int(cfg["bracket_closure_signal_bins"]),
-                                    float(cfg["bracket_closure_max_signal_fraction"])))
         dr.append([dynamic_range(sphere.radiance[b], sphere.random_sigma[b], snr, sphere.flag[b] > 0)[0]
                    for b in range(len(BANDS))])
-        dr_pixels.append([dynamic_range(merged.radiance[:, b], np.hypot(merged.random_sigma[:, b],
-                                                                          merged.fixed_sigma[:, b]), snr)[0]
-                          for b in range(len(BANDS))])
+        dr_pixels.append([float(np.log10(max(x[0] for x in e) / min(x[1] for x in e))) if e else float("nan")
+                          for e in extremes])
         info.append((br.name, [raws[i] for i in br.frames]))
     n_z, n_a = merged_cells[0].radiance.shape[-2:]
     exposure = np.zeros((len(brackets), len(BANDS), n_exp, n_z, n_a))

@@ -66,8 +66,8 @@ from pipeline.radiometry import measurement as mm
 from pipeline.radiometry.exposure import gain_from_iso
 
 __all__ = ["EXPOSURE_TERMS", "FIXED_PATTERN_TERMS", "FLAG_SATURATED_EVERYWHERE", "Bracket", "read_frames_table",
-           "group_brackets", "ExposureMaps", "exposure_maps", "Merged", "merge_exposures", "SphereMerged",
-           "merged_on_sphere", "dynamic_range"]
+           "group_brackets", "ExposureMaps", "exposure_maps", "split_lens", "Merged", "merge_exposures",
+           "SphereMerged", "SphereBins", "merged_on_sphere", "pixel_sphere_cells", "dynamic_range"]
 
 #: systematic terms of the chain that differ between the exposures of a bracket (independent between them)
 EXPOSURE_TERMS = frozenset({"shutter_offset", "nonlinearity", "dark_model", "bias_drift"})
@@ -188,34 +188,43 @@ def _sum(terms: dict, names, keep: bool, shape) -> np.ndarray:
     return np.broadcast_to(total, shape)
 
 
-def exposure_maps(raw, bundle, chains: dict, lenses, medium: str, effects) -> ExposureMaps:
-    """A decoded frame through the chain of each lens and band (``chains[(lens, band)]``: :class:`BandChain`)."""
+def split_lens(raw, bundle, lens: str):
+    """The band images of one lens of a decoded frame (:func:`pipeline.frames.lens_images`)."""
+    span = bundle["lens_region_px"].sel(lens=lens).values
+    return lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
+
+
+def exposure_maps(raw, bundle, chains: dict, lenses, medium: str, effects, bands=BANDS, images: dict | None = None,
+                  exposure_terms=EXPOSURE_TERMS) -> ExposureMaps:
+    """A decoded frame through the chain of each of ``lenses`` and ``bands`` (``chains[(lens, band)]``:
+    :class:`BandChain`); ``images`` {lens: band images} when already split (:func:`split_lens`).
+    ``exposure_terms``: the systematic terms that differ between the bracket's exposures (a bracket at
+    several ISOs adds ``iso_gain``). The maps are float32 (the chain's precision), the sigmas' sums in float64."""
     frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
     arrays = {k: [] for k in ("radiance", "random", "fixed", "exposure", "common", "signal", "usable", "saturated",
                               "read", "shot")}
     for lens in lenses:
-        span = bundle["lens_region_px"].sel(lens=lens).values
-        images = lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
+        lens_bands = images[lens] if images is not None and lens in images else split_lens(raw, bundle, lens)
         per = {k: [] for k in arrays}
-        for band in BANDS:
+        for band in bands:
             chain: BandChain = chains[(lens, band)]
-            m = chain(images, frame, source=raw.path)
-            value = np.asarray(m.value, float)
+            m = chain(lens_bands, frame, source=raw.path)
+            value = np.asarray(m.value, np.float32)
             shape = value.shape
             rnd, sy = m.random_var, m.systematic_var
             per["radiance"].append(value)
-            per["random"].append(np.sqrt(_sum(rnd, FIXED_PATTERN_TERMS, False, shape)))
-            per["fixed"].append(np.sqrt(_sum(rnd, FIXED_PATTERN_TERMS, True, shape)))
-            per["exposure"].append(np.sqrt(_sum(sy, EXPOSURE_TERMS, True, shape)))
-            per["common"].append(np.sqrt(_sum(sy, EXPOSURE_TERMS, False, shape)))
+            per["random"].append(np.sqrt(_sum(rnd, FIXED_PATTERN_TERMS, False, shape)).astype(np.float32))
+            per["fixed"].append(np.sqrt(_sum(rnd, FIXED_PATTERN_TERMS, True, shape)).astype(np.float32))
+            per["exposure"].append(np.sqrt(_sum(sy, exposure_terms, True, shape)).astype(np.float32))
+            per["common"].append(np.sqrt(_sum(sy, exposure_terms, False, shape)).astype(np.float32))
             dark, response, _ = chain.parameters(frame)
             factor = response.iso_gain_factor if "iso_gain" in chain.effects else 1.0
             per["read"].append(np.float64(dark.read_noise_dn ** 2 / dark.sites_per_pixel + dark.offset_pattern_dn ** 2))
             per["shot"].append(np.float64(response.conversion_gain_dn_per_e * gain_from_iso(frame.iso) * factor
                                           / dark.sites_per_pixel))
-            unlit = images.bands[band][chain.unlit_corners()] if "bias_drift" in chain.effects else None
-            per["signal"].append(np.asarray(mm.subtract_dark(mm.from_raw(images.bands[band]), dark, frame,
-                                                             chain.effects, unlit).value, float))
+            unlit = lens_bands.bands[band][chain.unlit_corners()] if "bias_drift" in chain.effects else None
+            per["signal"].append(np.asarray(mm.subtract_dark(mm.from_raw(lens_bands.bands[band]), dark, frame,
+                                                             chain.effects, unlit).value, np.float32))
             flags = m.flags
             per["usable"].append(((flags & _OFF) == 0) & np.isfinite(chain.g["theta_deg"].values))
             per["saturated"].append((flags & mm.FLAG_SATURATED) != 0)
@@ -243,9 +252,9 @@ class Merged:
 
 def merge_exposures(maps: list[ExposureMaps]) -> Merged:
     """Inverse-variance mean per pixel of the unsaturated, usable measurements (module docstring)."""
-    L = np.stack([m.radiance for m in maps])
-    r = np.stack([m.random_sigma for m in maps])
-    e = np.stack([m.exposure_sigma for m in maps])
+    L = np.stack([m.radiance for m in maps]).astype(float)
+    r = np.stack([m.random_sigma for m in maps]).astype(float)
+    e = np.stack([m.exposure_sigma for m in maps]).astype(float)
     usable = np.logical_and.reduce([m.usable for m in maps])
     sat = np.stack([m.saturated for m in maps])
     var = r ** 2 + e ** 2
@@ -297,38 +306,62 @@ def pixel_sphere_cells(bundle, lenses, medium: str, zenith_lens: str, grid_deg: 
     return np.stack(out)
 
 
+class SphereBins:
+    """Running per-cell sums of merged pixels, added a lens and band at a time (:func:`merged_on_sphere`)."""
+
+    def __init__(self, n_bands: int, n_exposures: int, grid_deg: float):
+        self.shape = grid_shape(grid_deg)
+        n = self.shape[0] * self.shape[1]
+        self.n = n
+        self.sums = {name: np.zeros((n_bands, n)) for name in ("value", "random_var", "common")}
+        self.exposure = np.zeros((n_exposures, n_bands, n))
+        self.count = np.zeros((n_bands, n), np.int64)
+        self.saturated = np.zeros((n_bands, n), np.int64)
+
+    def add(self, merged: Merged, cells: np.ndarray, band_indices) -> None:
+        """Add merged maps (lens, band, y, x) whose band axis holds the bands ``band_indices``; ``cells`` the
+        sphere cell of each of their pixels (:func:`pixel_sphere_cells`, the same lens and band axes)."""
+        n = self.n
+        for j, b in enumerate(band_indices):
+            c = cells[:, j].ravel()
+            value = merged.radiance[:, j].ravel().astype(float)
+            bound = merged.lower_bound[:, j].ravel().astype(float)
+            good = merged.usable[:, j].ravel() & np.isfinite(value) & (c >= 0)
+            sat = merged.saturated_everywhere[:, j].ravel() & np.isfinite(bound) & (c >= 0)
+            used = good | sat
+            v = np.where(good, value, np.where(sat, bound, 0.0))
+            self.count[b] += np.bincount(c[used], minlength=n)
+            self.saturated[b] += np.bincount(c[sat], minlength=n)
+            self.sums["value"][b] += np.bincount(c[used], v[used], n)
+            var = merged.random_sigma[:, j].ravel().astype(float) ** 2 + merged.fixed_sigma[:, j].ravel().astype(
+                float) ** 2
+            self.sums["random_var"][b] += np.bincount(c[good], var[good], n)
+            self.sums["common"][b] += np.bincount(c[good], merged.common_sigma[:, j].ravel()[good].astype(float), n)
+            for k in range(self.exposure.shape[0]):
+                self.exposure[k, b] += np.bincount(c[good], merged.exposure_sigma[k, :, j].ravel()[good].astype(float),
+                                                   n)
+
+    def result(self) -> SphereMerged:
+        has = self.count > 0
+        d = np.where(has, self.count, 1)
+        radiance = np.where(has, self.sums["value"] / d, np.nan)
+        flag = np.where(self.saturated > 0, FLAG_SATURATED_EVERYWHERE, 0).astype(np.int8)
+        n_b = radiance.shape[0]
+        shape = (n_b,) + self.shape
+        return SphereMerged(radiance.reshape(shape), np.where(has, np.sqrt(self.sums["random_var"]) / d,
+                                                               np.nan).reshape(shape),
+                            (self.exposure / d[None]).reshape((self.exposure.shape[0],) + shape),
+                            np.where(has, self.sums["common"] / d, np.nan).reshape(shape),
+                            self.count.astype(np.int32).reshape(shape), flag.reshape(shape),
+                            np.where(self.saturated > 0, radiance, np.nan).reshape(shape))
+
+
 def merged_on_sphere(merged: Merged, cells: np.ndarray, grid_deg: float) -> SphereMerged:
-    """Bin the merged pixels onto the sphere grid (module docstring), both lenses together, per band."""
-    n_z, n_a = grid_shape(grid_deg)
-    n = n_z * n_a
-    k = merged.exposure_sigma.shape[0]
-    out = {name: np.full((len(BANDS), n), np.nan) for name in ("radiance", "random", "common", "bound")}
-    exposure = np.zeros((k, len(BANDS), n))
-    count = np.zeros((len(BANDS), n), np.int32)
-    flag = np.zeros((len(BANDS), n), np.int8)
-    for b in range(len(BANDS)):
-        c = cells[:, b].ravel()
-        good = merged.usable[:, b].ravel() & np.isfinite(merged.radiance[:, b].ravel()) & (c >= 0)
-        sat = merged.saturated_everywhere[:, b].ravel() & np.isfinite(merged.lower_bound[:, b].ravel()) & (c >= 0)
-        used = good | sat
-        value = np.where(good, merged.radiance[:, b].ravel(), np.where(sat, merged.lower_bound[:, b].ravel(), 0.0))
-        num = np.bincount(c[used], minlength=n).astype(np.int32)
-        has = num > 0
-        d = np.where(has, num, 1)
-        count[b] = num
-        out["radiance"][b] = np.where(has, np.bincount(c[used], value[used], n) / d, np.nan)
-        var = merged.random_sigma[:, b].ravel() ** 2 + merged.fixed_sigma[:, b].ravel() ** 2
-        out["random"][b] = np.where(has, np.sqrt(np.bincount(c[good], var[good], n)) / d, np.nan)
-        out["common"][b] = np.where(has, np.bincount(c[good], merged.common_sigma[:, b].ravel()[good], n) / d, np.nan)
-        for j in range(k):
-            exposure[j, b] = np.bincount(c[good], merged.exposure_sigma[j, :, b].ravel()[good], n) / d
-        n_sat = np.bincount(c[sat], minlength=n)
-        flag[b] = np.where(n_sat > 0, FLAG_SATURATED_EVERYWHERE, 0)
-        out["bound"][b] = np.where(n_sat > 0, out["radiance"][b], np.nan)
-    shape = (len(BANDS), n_z, n_a)
-    return SphereMerged(out["radiance"].reshape(shape), out["random"].reshape(shape),
-                        exposure.reshape((k,) + shape), out["common"].reshape(shape), count.reshape(shape),
-                        flag.reshape(shape), out["bound"].reshape(shape))
+    """Bin the merged pixels (lens, band, y, x; every band) onto the sphere grid (module docstring), both
+    lenses together, per band."""
+    bins = SphereBins(merged.radiance.shape[1], merged.exposure_sigma.shape[0], grid_deg)
+    bins.add(merged, cells, range(merged.radiance.shape[1]))
+    return bins.result()
 
 
 def dynamic_range(radiance, random_sigma, detection_snr: float, exclude=None) -> tuple[float, int, int]:
