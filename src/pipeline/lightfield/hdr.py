@@ -250,32 +250,47 @@ class Merged:
     usable: np.ndarray
 
 
+def _weight(m: ExposureMaps, usable: np.ndarray) -> np.ndarray:
+    """w = 1 / (r^2 + e^2) where the exposure measured the pixel (usable, unsaturated, finite), else 0 (float64)."""
+    var = np.square(m.random_sigma, dtype=float) + np.square(m.exposure_sigma, dtype=float)
+    valid = usable & ~m.saturated & np.isfinite(m.radiance) & np.isfinite(var) & (var > 0)
+    return np.where(valid, 1.0 / np.where(valid, var, 1.0), 0.0)
+
+
 def merge_exposures(maps: list[ExposureMaps]) -> Merged:
-    """Inverse-variance mean per pixel of the unsaturated, usable measurements (module docstring)."""
-    L = np.stack([m.radiance for m in maps]).astype(float)
-    r = np.stack([m.random_sigma for m in maps]).astype(float)
-    e = np.stack([m.exposure_sigma for m in maps]).astype(float)
+    """Inverse-variance mean per pixel of the unsaturated, usable measurements (module docstring).
+
+    Running sums over the exposures (two passes: the weights' total first), so that the memory is a few
+    maps of one lens and band whatever the number of exposures."""
     usable = np.logical_and.reduce([m.usable for m in maps])
-    sat = np.stack([m.saturated for m in maps])
-    var = r ** 2 + e ** 2
-    valid = ~sat & usable[None] & np.isfinite(L) & np.isfinite(var) & (var > 0)
-    w = np.where(valid, 1.0 / np.where(valid, var, 1.0), 0.0)
-    W = w.sum(axis=0)
+    shape = np.shape(maps[0].radiance)
+    W = np.zeros(shape)
+    for m in maps:
+        W += _weight(m, usable)
     has = W > 0
     Wd = np.where(has, W, 1.0)
-
-    def mean(x):
-        return np.where(has, np.sum(w * np.where(valid, x, 0.0), axis=0) / Wd, np.nan)
-
-    radiance = mean(L)
-    random_sigma = np.where(has, np.sqrt(np.sum(w ** 2 * np.where(valid, r, 0.0) ** 2, axis=0)) / Wd, np.nan)
-    fixed = mean(np.stack([m.fixed_sigma for m in maps]))
-    common = mean(np.stack([m.common_sigma for m in maps]))
-    exposure = np.where(has[None], w * np.where(valid, e, 0.0) / Wd[None], 0.0)
-    everywhere = usable & sat.all(axis=0)
-    bound = np.where(everywhere, np.nanmax(np.where(sat, L, np.nan), axis=0, initial=-np.inf), np.nan)
-    bound = np.where(np.isfinite(bound), bound, np.nan)
-    return Merged(radiance, random_sigma, fixed, exposure, common, valid.sum(axis=0), everywhere, bound, usable)
+    sums = {name: np.zeros(shape) for name in ("radiance", "random", "fixed", "common")}
+    exposure = np.zeros((len(maps),) + shape, np.float32)
+    n_used = np.zeros(shape, np.int32)
+    everywhere = usable.copy()
+    bound = np.full(shape, -np.inf)
+    for k, m in enumerate(maps):
+        w = _weight(m, usable)
+        used = w > 0
+        n_used += used
+        sums["radiance"] += w * np.where(used, m.radiance, 0.0)
+        sums["random"] += np.square(w * np.where(used, m.random_sigma, 0.0))
+        sums["fixed"] += w * np.where(used, m.fixed_sigma, 0.0)
+        sums["common"] += w * np.where(used, m.common_sigma, 0.0)
+        exposure[k] = w * np.where(used, m.exposure_sigma, 0.0) / Wd
+        everywhere &= m.saturated
+        bound = np.fmax(bound, np.where(m.saturated & np.isfinite(m.radiance), m.radiance, -np.inf))
+    radiance = np.where(has, sums["radiance"] / Wd, np.nan)
+    random_sigma = np.where(has, np.sqrt(sums["random"]) / Wd, np.nan)
+    fixed = np.where(has, sums["fixed"] / Wd, np.nan)
+    common = np.where(has, sums["common"] / Wd, np.nan)
+    bound = np.where(everywhere & np.isfinite(bound), bound, np.nan)
+    return Merged(radiance, random_sigma, fixed, exposure, common, n_used, everywhere, bound, usable)
 
 
 @dataclass
