@@ -120,7 +120,7 @@ def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRA
         write_dng(path, cfa, exposure_s=float(t), iso=iso, time=when, black_level=black, white_level=white,
                   cfa_pattern="RGGB", make=camera.make, model=camera.model, serial=camera.serial)
         files.append(path)
-        when += timedelta(seconds=1)
+        when += timedelta(seconds=float(t) + 0.25)     # a burst: each exposure and a quarter second
     table = folder / "frames.csv"
     rows = "".join(f"{p.name},{bracket}\n" for p in files)
     table.write_text((table.read_text() if table.exists() else "file,bracket\n") + rows)
