@@ -114,6 +114,9 @@ class HotPixels(Effect):
 class ShutterOffset(Effect):
     """True exposure = nominal + ``offset_s``.
 
+    In the light field's bracket-consistency table (``lightfield``, ``bracket``): ``1 / t_l - 1 / t_s`` of the
+    exposure pair, coefficient the offset in seconds.
+
     Linearity model term for the exposure sweep: ``rate * gain * offset_s``
     where ``rate`` (DN/s at ISO 100) is the group's fitted slope, so the
     coefficient is the offset in seconds, shared by all bands. Each lens's linearity job fits its own
@@ -131,6 +134,10 @@ class ShutterOffset(Effect):
         return exposure_s + self.params["offset_s"]
 
     def columns(self, experiment, level, table):
+        if experiment == "lightfield" and level == "bracket":
+            # ln(L_l / L_s) of an exposure pair with the chain dividing by t: about dt (1 / t_l - 1 / t_s)
+            return (1.0 / table["exposure_long_s"].to_numpy(float)
+                    - 1.0 / table["exposure_short_s"].to_numpy(float))[:, None]
         if experiment != "linearity" or level != "setting":
             return None
         is_exposure = (table["sweep"] == "exposure").to_numpy()
@@ -154,7 +161,9 @@ class ShutterOffset(Effect):
 class Nonlinearity(Effect):
     """Response bends towards saturation: ``s -> s * (1 - beta * s / full_scale)``.
 
-    Linearity model term: ``-pred**2 / full_scale`` (both sweeps), coefficient beta.
+    Linearity model term: ``-pred**2 / full_scale`` (both sweeps), coefficient beta; in the light field's
+    bracket-consistency table (``lightfield``, ``bracket``): ``-(s_l - s_s) / full_scale`` of the exposure pair's
+    signals, coefficient beta.
     """
 
     name = "nonlinearity"
@@ -167,6 +176,11 @@ class Nonlinearity(Effect):
         return signal_dn * (1.0 - self.params["beta"] * signal_dn / full_scale_dn)
 
     def columns(self, experiment, level, table):
+        if experiment == "lightfield" and level == "bracket":
+            # ln(L_l / L_s) of an exposure pair: ln(1 - beta s_l / F) - ln(1 - beta s_s / F), about
+            # -beta (s_l - s_s) / F
+            return (-(table["signal_long_dn"].to_numpy(float) - table["signal_short_dn"].to_numpy(float))
+                    / table["full_scale_dn"].to_numpy(float))[:, None]
         if experiment != "linearity" or level != "setting":
             return None
         pred = table["pred_linear_dn"].to_numpy()

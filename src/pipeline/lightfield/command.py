@@ -23,8 +23,19 @@ import pandas as pd
 import xarray as xr
 
 from pipeline import __version__
-from pipeline.bundle.apply import apply_calibration
+from pipeline.bundle.apply import BandChain, apply_calibration, check_frame
+from pipeline.io.artefact import model_effects
+from pipeline.io.bands import BANDS
+from pipeline.bundle.calibration import read_bundle
 from pipeline.config import defaults
+from pipeline.geometry.sphere import ZENITH_LENS
+from pipeline.lightfield.bracket_closure import bracket_consistency, bracket_table
+from pipeline.lightfield.grid import SphereGrids
+from pipeline.lightfield.hdr import (EXPOSURE_TERMS, FLAG_SATURATED_EVERYWHERE, SphereBins, dynamic_range,
+                                     exposure_maps, group_brackets, merge_exposures, pixel_sphere_cells,
+                                     read_frames_table, split_lens)
+from pipeline.stages.observations import table_to_dataset
+from pipeline.io.rawio import read_raw
 from pipeline.errors import InputError
 from pipeline.lightfield.attitude import (LEVEL, attitude_at, earth_to_camera_directions, earth_up_in_camera,
                                           read_attitude, solar_position)
@@ -33,8 +44,8 @@ from pipeline.lightfield.grid import RADIANCE_UNITS, read_sphere_grids
 from pipeline.lightfield.quadrature import GridEdges, cell_centre_directions
 from pipeline.lightfield.quantities import COMPONENTS, INTEGRALS, QUANTITIES, WeightCache, light_field_quantities
 
-__all__ = ["compute_light_field", "light_field_from_raw", "write_light_field", "add_lightfield_parser",
-           "lightfield_command", "QUANTITY_ATTRS"]
+__all__ = ["compute_light_field", "light_field_of_grids", "light_field_from_raw", "light_field_from_brackets",
+           "write_light_field", "add_lightfield_parser", "lightfield_command", "QUANTITY_ATTRS"]
 
 _IRRADIANCE = "W m-2 nm-1"
 #: per quantity: long name, units, CF standard name in air and in sea water (None: the table has none)
@@ -91,7 +102,21 @@ def compute_light_field(grid_paths, medium: str | None = None, attitude_path=Non
     an offset. ``config`` the ``lightfield`` section (default: the schema's defaults).
     """
     cfg = config if config is not None else defaults()["lightfield"]
-    grids = read_sphere_grids(grid_paths, medium)
+    return light_field_of_grids(read_sphere_grids(grid_paths, medium), attitude_path, site, camera_utc_offset_h, cfg)
+
+
+def light_field_of_grids(grids, attitude_path=None, site=None, camera_utc_offset_h: float = 0.0, cfg: dict | None = None,
+                         exposure_systematic=None, lower_bound=None, extra_maps: dict | None = None) -> xr.Dataset:
+    """:func:`compute_light_field` on grids already read (:class:`~pipeline.lightfield.grid.SphereGrids`).
+
+    ``exposure_systematic`` (frame, band, exposure, zenith, azimuth): systematic sigmas each common to the
+    cells of one exposure and independent between exposures (an HDR merge's per-exposure terms), beside the
+    grids' band-common ``systematic_sigma``; ``lower_bound`` (frame, band, zenith, azimuth) bool: cells whose
+    value is a lower bound (saturated in every exposure), whose share of each integral is reported;
+    ``extra_maps`` {name: (array (frame, band, zenith, azimuth), attrs)}: camera-frame maps resampled into the
+    earth frame as ``sphere_radiance`` is and added to the output under their names.
+    """
+    cfg = cfg if cfg is not None else defaults()["lightfield"]
     medium = grids.medium or "air"
     n_f, n_b, n_z, n_a = grids.radiance.shape
     edges = GridEdges.regular(n_z, n_a)
@@ -104,9 +129,12 @@ def compute_light_field(grid_paths, medium: str | None = None, attitude_path=Non
         attitudes = [LEVEL] * n_f
     weights = WeightCache(float(cfg["radiance_cone_half_angle_deg"]), int(cfg["boundary_subcells"]))
     results = {k: np.full((n_f, n_b, len(QUANTITIES)), np.nan)
-               for k in ("value", *COMPONENTS, "total", "filled_fraction", "filled_variance_fraction")}
+               for k in ("value", *COMPONENTS, "total", "filled_fraction", "filled_variance_fraction",
+                         "lower_bound_fraction")}
     earth = {k: np.full((n_f, n_b, n_z, n_a), np.nan) for k in ("radiance", "random", "systematic", "model")}
     earth_flag = np.zeros((n_f, n_b, n_z, n_a), np.int8)
+    extra_maps = extra_maps or {}
+    extra_earth = {name: np.zeros_like(arr) for name, (arr, _) in extra_maps.items()}
     fallback = np.zeros((n_f, n_b), np.int32)
     earth_centres = cell_centre_directions(edges)
     cells = {}
@@ -123,7 +151,9 @@ def compute_light_field(grid_paths, medium: str | None = None, attitude_path=Non
             filled = fill_between_lenses(grids.radiance[f, b], grids.random_sigma[f, b], grids.systematic_sigma[f, b],
                                          grids.zenith_deg, float(cfg["fill_fit_span_deg"]))
             res = light_field_quantities(filled, edges, attitudes[f], weights, float(cfg["attitude_step_deg"]),
-                                         grids.centre_samples)
+                                         grids.centre_samples,
+                                         None if exposure_systematic is None else exposure_systematic[f, b],
+                                         None if lower_bound is None else lower_bound[f, b])
             for k in results:
                 results[k][f, b] = res[k]
             fallback[f, b] = filled.fallback_cells
@@ -132,8 +162,13 @@ def compute_light_field(grid_paths, medium: str | None = None, attitude_path=Non
             earth["systematic"][f, b] = filled.systematic_sigma[iz, ia]
             earth["model"][f, b] = filled.model_sigma[iz, ia]
             earth_flag[f, b] = filled.flag[iz, ia]
-    return _dataset(grids, medium, attitudes, times, site, attitude_path, results, earth, earth_flag, fallback, cfg,
-                    edges)
+            for name, (arr, _) in extra_maps.items():
+                extra_earth[name][f, b] = arr[f, b][iz, ia]
+    ds = _dataset(grids, medium, attitudes, times, site, attitude_path, results, earth, earth_flag, fallback, cfg,
+                  edges)
+    for name, (_, attrs) in extra_maps.items():
+        ds[name] = (("frame", "band", "zenith", "azimuth"), extra_earth[name], attrs)
+    return ds
 
 
 def _attrs(long_name, units, **more):
@@ -192,6 +227,10 @@ def _dataset(grids, medium, attitudes, times, site, attitude_path, results, eart
             data[f"{q}_{suffix}"] = (("frame", "band"), results[c][..., i], _attrs(f"{q}: {_COMPONENT_TEXT[c]}", units))
         data[f"{q}_sigma"] = (("frame", "band"), results["total"][..., i],
                               _attrs(f"{q}: total standard uncertainty (root sum of squares of the components)", units))
+        if q in INTEGRALS and np.isfinite(results["lower_bound_fraction"][..., i]).any():
+            data[f"{q}_lower_bound_fraction"] = (("frame", "band"), results["lower_bound_fraction"][..., i], _attrs(
+                f"{q}: share of the value from cells saturated in every exposure (lower bounds: the value is a "
+                "lower bound where this is above 0)", "1"))
         if q in INTEGRALS:
             data[f"{q}_filled_fraction"] = (("frame", "band"), results["filled_fraction"][..., i],
                                             _attrs(f"{q}: share of the value from filled cells", "1"))
@@ -262,6 +301,152 @@ def light_field_from_raw(bundle_path, raw_paths, medium: str | None = None, atti
     return ds
 
 
+def _full_scale_dn(bundle, lenses) -> np.ndarray:
+    """(lens, band) full scale of the response: the linearity stage's nonlinearity full scale, else its
+    saturation level, else the white level less the bias (the signatures' scale only)."""
+    out = np.full((len(lenses), len(BANDS)), np.nan)
+    for i, lens in enumerate(lenses):
+        for name in ("nonlinearity_full_scale_dn", "saturation_dn"):
+            if name in bundle and not np.isfinite(out[i]).all():
+                v = bundle[name].sel(lens=lens)
+                v = np.broadcast_to(np.asarray(v.sel(band=list(BANDS)).values if "band" in v.dims else v.values,
+                                               float), (len(BANDS),))
+                out[i] = np.where(np.isfinite(out[i]), out[i], v)
+    return np.where(np.isfinite(out), out, 16383.0 - 800.0)
+
+
+def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium: str | None = None,
+                              attitude_path=None, site=None, camera_utc_offset_h: float = 0.0,
+                              grid_deg: float | None = None, config: dict | None = None) -> xr.Dataset:
+    """The light field of exposure brackets of raw frames (:mod:`pipeline.lightfield.hdr`): the frames
+    grouped by ``frames_table`` (CSV: file, bracket) or by ``lightfield.bracket_window_s``, each bracket
+    merged per pixel through the chain at each frame's exposure, binned onto the sphere grid and
+    integrated (one output frame per bracket); the bracket-consistency closure
+    (:mod:`pipeline.lightfield.bracket_closure`) as the ``obs_bracket`` table with its residual test and
+    the ranking of the effects the model lacks. ``config`` the whole configuration (default: the schema's).
+    """
+    full = config if config is not None else defaults()
+    cfg = full["lightfield"]
+    grid_deg = float(grid_deg if grid_deg is not None else full["apply"]["grid_deg"])
+    medium = medium or "air"
+    raws = [read_raw(p) for p in raw_paths]
+    table = read_frames_table(frames_table) if frames_table is not None else None
+    brackets = group_brackets(raws, table, float(cfg["bracket_window_s"]), frames_table)
+    bundle = read_bundle(bundle_path)
+    effects = model_effects(bundle)
+    media = [m for m in str(bundle.attrs.get("media", "air")).split(",") if m]
+    if medium not in media:
+        raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(media)})")
+    for raw in raws:
+        check_frame(raw, bundle, effects)
+    lenses = [str(x) for x in bundle["lens"].values]
+    zenith_lens = ZENITH_LENS if ZENITH_LENS in lenses else lenses[0]
+    chains = {(lens, band): BandChain(bundle, lens, band, medium, effects) for lens in lenses for band in BANDS}
+    cells = pixel_sphere_cells(bundle, lenses, medium, zenith_lens, grid_deg)
+    full_scale = _full_scale_dn(bundle, lenses)
+    snr = float(cfg["hdr_detection_snr"])
+    n_exp = max(len(b.frames) for b in brackets)
+    merged_cells, tables, dr, dr_pixels, info = [], [], [], [], []
+    for br in brackets:
+        terms = EXPOSURE_TERMS | ({"iso_gain"} if len({float(raws[i].iso) for i in br.frames}) > 1 else set())
+        bins = SphereBins(len(BANDS), len(br.frames), grid_deg)
+        extremes = [[] for _ in BANDS]      # per band, per lens: (brightest, faintest detected) merged pixel
+        # one lens and band at a time: a bracket's maps of the full-size camera stay a few hundred MB
+        for i, lens in enumerate(lenses):
+            images = [split_lens(raws[f], bundle, lens) for f in br.frames]
+            for b, band in enumerate(BANDS):
+                maps = [exposure_maps(raws[f], bundle, chains, [lens], medium, effects, [band], {lens: img}, terms)
+                        for f, img in zip(br.frames, images)]
+                merged = merge_exposures(maps)
+                bins.add(merged, cells[i:i + 1, b:b + 1], [b])
+                tables.append(bracket_table(maps, br.name, [lens], full_scale[i:i + 1, b:b + 1],
+                                            float(cfg["bracket_closure_min_snr"]),
+                                            int(cfg["bracket_closure_signal_bins"]),
+                                            float(cfg["bracket_closure_max_signal_fraction"]), [band]))
+                values = merged.radiance.ravel()
+                _, hi, lo = dynamic_range(values, np.hypot(merged.random_sigma, merged.fixed_sigma).ravel(), snr)
+                if hi >= 0:
+                    extremes[b].append((float(values[hi]), float(values[lo])))
+                del maps, merged
+            del images
+        sphere = bins.result()
+        merged_cells.append(sphere)
+        dr.append([dynamic_range(sphere.radiance[b], sphere.random_sigma[b], snr, sphere.flag[b] > 0)[0]
+                   for b in range(len(BANDS))])
+        dr_pixels.append([float(np.log10(max(x[0] for x in e) / min(x[1] for x in e))) if e else float("nan")
+                          for e in extremes])
+        info.append((br.name, [raws[i] for i in br.frames]))
+    n_z, n_a = merged_cells[0].radiance.shape[-2:]
+    exposure = np.zeros((len(brackets), len(BANDS), n_exp, n_z, n_a))
+    for f, sph in enumerate(merged_cells):
+        exposure[f, :, :sph.exposure_sigma.shape[0]] = np.moveaxis(sph.exposure_sigma, 0, 1)
+
+    def stack(name):
+        return np.stack([getattr(sph, name) for sph in merged_cells])
+    flag = stack("flag")
+    grids = SphereGrids(stack("radiance"), stack("random_sigma"), stack("common_sigma"),
+                        (np.arange(n_z) + 0.5) * 180.0 / n_z, (np.arange(n_a) + 0.5) * 360.0 / n_a, list(BANDS),
+                        [str(bundle_path)] * len(brackets), [name for name, _ in info],
+                        [frames[0].time.isoformat() if frames[0].time else "" for _, frames in info], medium)
+    extra = {
+        "hdr_cell_flag": (flag, {"long_name": "HDR merge flag", "flag_values": np.array([0, FLAG_SATURATED_EVERYWHERE],
+                                                                                        np.int8),
+                                 "flag_meanings": "merged saturated_in_every_exposure"}),
+        "hdr_lower_bound": (stack("lower_bound"), _attrs(
+            "lower bound of the radiance of a cell saturated in every exposure (NaN elsewhere)", RADIANCE_UNITS)),
+        "hdr_exposure_systematic_sigma": (np.sqrt(np.sum(exposure ** 2, axis=2)), _attrs(
+            "root sum of squares of the per-exposure systematic sigmas (each common to one exposure's cells)",
+            RADIANCE_UNITS)),
+        "hdr_pixel_count": (stack("count").astype(float), _attrs("band pixels merged into the cell", "1")),
+    }
+    ds = light_field_of_grids(grids, attitude_path, site, camera_utc_offset_h, cfg, exposure, flag > 0, extra)
+    ds["hdr_dynamic_range_decades"] = (("frame", "band"), np.array(dr), _attrs(
+        "decades between the brightest unsaturated sphere cell and the faintest above its limit of detection "
+        f"(radiance >= {snr:g} random sigma)", "1"))
+    ds["hdr_pixel_dynamic_range_decades"] = (("frame", "band"), np.array(dr_pixels), _attrs(
+        "the same over the merged band pixels of both lenses", "1"))
+    ds["bracket_exposures_s"] = ("frame", np.array([" ".join(f"{float(r.exposure_s):g}" for r in frames)
+                                                    for _, frames in info], dtype=str),
+                                 {"long_name": "exposure times (s) merged in the bracket"})
+    ds["bracket_files"] = ("frame", np.array([" ".join(Path(r.path).name for r in frames) for _, frames in info],
+                                             dtype=str), {"long_name": "raw frames of the bracket"})
+    ds["frame_file"] = ("frame", np.array([name for name, _ in info], dtype=str), {"long_name": "bracket"})
+    closure = pd.concat([t for t in tables if len(t)], ignore_index=True) if any(len(t) for t in tables) else None
+    if closure is not None:
+        obs = table_to_dataset(closure, "obs_bracket")
+        obs["obs_bracket__value_dn"].attrs.update({"long_name": "ln(L_long / L_short) of an exposure pair",
+                                                   "units": "1"})
+        obs["obs_bracket__sigma_dn"].attrs.update({"long_name": "its standard uncertainty", "units": "1"})
+        ds = ds.merge(obs)
+        ranked, tests = bracket_consistency(closure, effects, full)
+        test = tests.iloc[0]
+        ds.attrs["bracket_consistency_chi2"] = float(test["chi2"])
+        ds.attrs["bracket_consistency_dof"] = int(test["dof"])
+        ds.attrs["bracket_consistency_rms_z"] = float(test["rms_z"])
+        ds.attrs["bracket_consistency_p_value"] = float(test["p_value"])
+        significant = [str(r["effect"]) for _, r in ranked.iterrows() if bool(r["significant"])] if len(ranked) else []
+        ds.attrs["bracket_consistency_effects"] = ",".join(significant)
+        ds.attrs["bracket_consistency"] = (
+            f"{len(closure)} exposure-pair rows, chi2 {float(test['chi2']):.1f} on {int(test['dof'])} dof "
+            f"(p {float(test['p_value']):.3g}); " + (
+                f"significant missing effect(s): {', '.join(significant)}" if significant
+                else "no missing effect significant: at the noise floor" if not bool(test["significant"])
+                else "structure no catalogue effect explains"))
+    else:
+        ds.attrs["bracket_consistency"] = "no pixel measured in two exposures above the closure's SNR: not tested"
+    ds.attrs["title"] = "light field from exposure brackets merged into HDR sphere grids"
+    ds.attrs["grid_files"] = f"made from {len(raw_paths)} raw frame(s) in {len(brackets)} bracket(s)"
+    ds.attrs["calibration_bundle"] = str(bundle_path)
+    ds.attrs["hdr"] = ("per band pixel, inverse-variance mean of the exposures where it is unsaturated and unflagged, "
+                       "each through the chain at its own exposure; per-exposure systematic terms (shutter offset, "
+                       "nonlinearity, dark model, black level) kept per exposure, band-common terms (R^-1, roll-off, "
+                       "immersion factor) as the weighted mean of sigmas; cells with a pixel saturated in every "
+                       "exposure flagged (hdr_cell_flag) with their lower bound")
+    ds.attrs["bracket_grouping"] = (f"frames table {frames_table}" if frames_table is not None else
+                                    f"frames within {float(cfg['bracket_window_s']):g} s of their bracket's first")
+    return ds
+
+
 def _site(text: str) -> tuple:
     try:
         values = tuple(float(v) for v in text.split(","))
@@ -295,6 +480,12 @@ def add_lightfield_parser(subparsers) -> argparse.ArgumentParser:
                    help="where the frames were taken: adds the solar position (pvlib) and azimuths from the sun")
     p.add_argument("--camera-utc-offset-h", type=float, default=0.0, metavar="HOURS",
                    help="camera clock minus UTC for frame times without an offset (default 0)")
+    p.add_argument("--frames", metavar="FRAMES.csv", default=None,
+                   help="with --calibration: exposure brackets, a CSV with the columns file and bracket; the "
+                        "frames of each bracket are merged into one HDR map")
+    p.add_argument("--hdr", action="store_true",
+                   help="with --calibration: merge exposure brackets grouped by time (lightfield.bracket_window_s) "
+                        "when no --frames table is given")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     return p
 
@@ -306,7 +497,12 @@ def lightfield_command(args) -> int:
             raise InputError(args.out, "exists (give --overwrite to replace it)")
         if args.grid_deg is not None and args.calibration is None:
             raise InputError(None, "--grid-deg applies to raw frames (--calibration); a grid file keeps its own cells")
-        if args.calibration is not None:
+        if (args.frames is not None or args.hdr) and args.calibration is None:
+            raise InputError(None, "--frames and --hdr merge raw frames: they need --calibration")
+        if args.frames is not None or args.hdr:
+            ds = light_field_from_brackets(args.calibration, args.grids, args.frames, args.medium, args.attitude,
+                                           args.site, args.camera_utc_offset_h, args.grid_deg)
+        elif args.calibration is not None:
             ds = light_field_from_raw(args.calibration, args.grids, args.medium, args.attitude, args.site,
                                       args.camera_utc_offset_h, args.grid_deg)
         else:

@@ -131,7 +131,8 @@ class WeightCache:
 
 
 def light_field_quantities(filled: Filled, edges: GridEdges, attitude: Attitude, weights: WeightCache,
-                           attitude_step_deg: float, centre_samples: bool = False) -> dict:
+                           attitude_step_deg: float, centre_samples: bool = False, exposure_systematic=None,
+                           lower_bound=None) -> dict:
     """Every quantity of one frame and band with its uncertainty components.
 
     ``centre_samples``: the grid's values are samples at the cell centres; they are turned into cell means
@@ -139,7 +140,14 @@ def light_field_quantities(filled: Filled, edges: GridEdges, attitude: Attitude,
     is part of the quadrature error.
 
     Returns {"value": (11,), "<component>": (11,) standard uncertainty for each of COMPONENTS,
-    "total": (11,), "filled_fraction": (11,) (NaN for the ratios), "filled_variance_fraction": (11,)}.
+    "total": (11,), "filled_fraction": (11,) (NaN for the ratios), "filled_variance_fraction": (11,),
+    "lower_bound_fraction": (11,) (NaN without ``lower_bound``)}.
+
+    ``exposure_systematic`` (n_exposure, n_zenith, n_azimuth): systematic sigmas of the measured cells, each
+    fully correlated over the cells and independent of the others (an HDR merge's per-exposure terms); each
+    goes through the effective weights (filled cells take their edges') as one shared deviation and joins
+    the systematic component in quadrature. ``lower_bound`` (n_zenith, n_azimuth) bool: cells whose value is
+    a lower bound; their share of each integral's value is ``lower_bound_fraction``.
     """
     grid = cell_means_from_centres(filled.radiance, edges) if centre_samples else filled.radiance
     L = grid.ravel()
@@ -158,9 +166,14 @@ def light_field_quantities(filled: Filled, edges: GridEdges, attitude: Attitude,
     s = W @ np.nan_to_num(ss_grid.ravel())
     is_filled = filled.flag.ravel() == FLAG_FILLED
     m = W[:, is_filled] @ np.nan_to_num(filled.model_sigma.ravel()[is_filled])
+    sys_var = (grad @ s) ** 2
+    if exposure_systematic is not None:
+        e = np.where(measured[None, :], np.nan_to_num(np.asarray(exposure_systematic, float).reshape(
+            len(exposure_systematic), -1)), 0.0)
+        sys_var = sys_var + np.sum((grad @ (Weff @ e.T)) ** 2, axis=1)
     out = {"value": value,
            "random": np.sqrt(np.maximum(np.einsum("qk,kl,ql->q", grad, Cr, grad), 0.0)),
-           "systematic": np.abs(grad @ s),
+           "systematic": np.sqrt(sys_var),
            "fill_model": np.abs(grad @ m)}
     # attitude: the grid rotated by +-delta in roll and in pitch
     variance = np.zeros(len(QUANTITIES))
@@ -193,4 +206,10 @@ def light_field_quantities(filled: Filled, edges: GridEdges, attitude: Attitude,
         # L_d, L_u are means: their filled share is the filled cells' share of the weighted sum (as computed)
         out["filled_fraction"] = fraction
         out["filled_variance_fraction"] = np.where(out["total"] > 0, out["fill_model"] ** 2 / out["total"] ** 2, 0.0)
+        out["lower_bound_fraction"] = np.full(len(QUANTITIES), np.nan)
+        if lower_bound is not None:
+            bound = np.asarray(lower_bound, bool).ravel()
+            Fb = _sums(W[:, bound], L[bound]) if bound.any() else np.zeros(len(LINEAR))
+            out["lower_bound_fraction"] = np.where([q in INTEGRALS for q in QUANTITIES], derived_values(Fb) / value,
+                                                   np.nan)
     return out

@@ -1,0 +1,140 @@
+"""Exposure brackets of one sky with the sun: the frames a user merges into one high-dynamic-range map.
+
+The scene (a stated form, defined here; directions as the camera's sphere
+convention: the close lens looks at the zenith, a raw site of the close lens
+at field angle theta sees zenith angle Z = theta, one of the far lens
+Z = 180 - theta, and azimuth phi, -phi respectively):
+
+* sky (Z <= 90 degrees): the CIE standard general sky of type 12 relative
+  to its zenith radiance (:func:`pipeline.simulate.sky.cie_relative_radiance`),
+  L = L_z,b * f(chi) phi(Z) / (f(Z_s) phi(0)), with L_z,b the band's zenith
+  radiance; the sun-adjacent sky is about ten times the zenith's;
+* the sun: a disc of ``sun_radius_deg`` about (Z_s, alpha_s) of radiance
+  ``sun_factor`` times L_z,b, far above saturation at the shortest exposure;
+* the lower hemisphere (Z > 90 degrees): a ground that dims from the
+  horizon to the nadir, L = L_z,b h (g / h)^((Z - 90) / 90) with
+  h = ``horizon_ratio`` and g = ``ground_ratio``: every level from the sky's
+  to the nadir's, five decades below the sun-adjacent sky.
+
+A bracket is one frame per exposure of the same scene (the camera still),
+rendered through the camera's true physics (:class:`pipeline.simulate.render.Renderer`,
+shot, read and quantisation noise, saturation at the ADC's white level), and
+written as DNG files with a frames table ``frames.csv`` (columns ``file`` and
+``bracket``). The truth, never read by the pipeline, is each lens's band
+images of the effective band radiance every band pixel sees: the scene at
+each raw site's true direction, split into bands as the pipeline splits the
+mosaic (R and B their site, G the mean of its two sites).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from datetime import datetime, timedelta
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+import yaml
+
+from pipeline.io.bands import BANDS
+from pipeline.io.rawio import write_dng
+from pipeline.simulate.camera import Camera
+from pipeline.simulate.dataset import SCALES
+from pipeline.simulate.plan import FrameSpec
+from pipeline.simulate.render import Renderer
+from pipeline.simulate.sky import CIE_SKY_TYPES, angle_from_sun_deg, cie_relative_radiance
+
+__all__ = ["BracketScene", "BRACKET_EXPOSURES_S", "render_bracket", "truth_band_images"]
+
+#: the default bracket: 1/4000 s to 1 s in steps of about four (seven exposures, 3.6 decades of exposure)
+BRACKET_EXPOSURES_S = (1 / 4000, 1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0)
+
+
+@dataclass(frozen=True)
+class BracketScene:
+    """A clear sky with the sun over a dim ground (module docstring); radiances in W m-2 sr-1 nm-1."""
+
+    zenith_radiance: tuple = (0.035, 0.04, 0.045)     # R, G, B
+    sun_zenith_deg: float = 40.0
+    sun_azimuth_deg: float = 120.0
+    sun_radius_deg: float = 4.0
+    sun_factor: float = 3000.0
+    horizon_ratio: float = 0.1
+    ground_ratio: float = 2e-5
+    cie_type: int = 12
+
+    def radiance(self, zenith_deg, azimuth_deg, band_index) -> np.ndarray:
+        """Effective band radiance of the directions (arrays of one shape; ``band_index`` 0 R, 1 G, 2 B)."""
+        z = np.asarray(zenith_deg, float)
+        a = np.asarray(azimuth_deg, float)
+        lz = np.asarray(self.zenith_radiance, float)[np.asarray(band_index)]
+        sky = CIE_SKY_TYPES[self.cie_type]
+        chi = angle_from_sun_deg(z, a, self.sun_zenith_deg, self.sun_azimuth_deg)
+        upper = lz * cie_relative_radiance(np.minimum(z, 90.0), a, self.sun_zenith_deg, self.sun_azimuth_deg, sky,
+                                           chi_deg=chi)
+        upper = np.where(chi <= self.sun_radius_deg, lz * self.sun_factor, upper)
+        lower = lz * self.horizon_ratio * (self.ground_ratio / self.horizon_ratio) ** ((np.clip(z, 90.0, 180.0)
+                                                                                        - 90.0) / 90.0)
+        return np.where(z <= 90.0, upper, lower)
+
+    def camera_radiance(self, lens: str, geometry, band_index) -> np.ndarray:
+        """The renderer's scene callback: per raw site of ``lens``."""
+        theta, phi = geometry.theta_deg, geometry.phi_deg
+        if lens == "close":
+            return self.radiance(theta, phi % 360.0, band_index)
+        return self.radiance(180.0 - theta, (-phi) % 360.0, band_index)
+
+
+def truth_band_images(renderer: Renderer, scene: BracketScene, lens: str, medium: str = "air") -> np.ndarray:
+    """(band, y, x) effective band radiance each band pixel of ``lens`` sees (G: the mean of its two sites)."""
+    geo = renderer.geometry(lens, medium)
+    sites = scene.camera_radiance(lens, geo, renderer.band_index)
+    sites = np.where(geo.lit, sites, np.nan)
+    return np.stack([sites[0::2, 0::2], 0.5 * (sites[0::2, 1::2] + sites[1::2, 0::2]), sites[1::2, 1::2]])
+
+
+def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRACKET_EXPOSURES_S, *, seed: int = 1,
+                   scale: str = "tiny", iso: float = 100.0, start: datetime = datetime(2021, 3, 18, 16, 0, 0),
+                   bracket: str = "B001", raw_transform=None, first_index: int = 0) -> dict:
+    """Render one bracket into ``folder``: ``<bracket>_<k>.dng`` per exposure, ``frames.csv`` (appended to when
+    it exists) and the truth in ``truth/<bracket>.nc`` and ``truth/<bracket>.yaml``.
+
+    ``raw_transform(cfa, black_level_dn, white_level_dn) -> cfa``: applied to each raw mosaic before it is
+    written (a test's own bent response, for example); the truth is the scene's, untouched by it.
+    Returns {"files": [paths], "frames_csv": path, "truth": path}.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    camera = Camera()
+    renderer = Renderer(camera, SCALES[scale].lens_px, seed, [])
+    black = round(camera.sensor.bias_dn)
+    white = camera.sensor.adc_max_dn
+    files = []
+    when = start
+    for k, t in enumerate(exposures_s):
+        spec = FrameSpec("both", "signal", iso, float(t), radiance=scene.camera_radiance, medium="air")
+        cfa = renderer.render(first_index + k, 97, spec)
+        if raw_transform is not None:
+            cfa = np.asarray(raw_transform(cfa, float(black), float(white)), np.uint16)
+        path = folder / f"{bracket}_{k}.dng"
+        write_dng(path, cfa, exposure_s=float(t), iso=iso, time=when, black_level=black, white_level=white,
+                  cfa_pattern="RGGB", make=camera.make, model=camera.model, serial=camera.serial)
+        files.append(path)
+        when += timedelta(seconds=float(t) + 0.25)     # a burst: each exposure and a quarter second
+    table = folder / "frames.csv"
+    rows = "".join(f"{p.name},{bracket}\n" for p in files)
+    table.write_text((table.read_text() if table.exists() else "file,bracket\n") + rows)
+    truth_dir = folder / "truth"
+    truth_dir.mkdir(exist_ok=True)
+    lenses = list(camera.lens_names)
+    truth = np.stack([truth_band_images(renderer, scene, lens) for lens in lenses])
+    ds = xr.Dataset({"radiance": (("lens", "band", "y", "x"), truth,
+                                  {"long_name": "true effective band radiance of each band pixel",
+                                   "units": "W m-2 sr-1 nm-1"})},
+                    coords={"lens": lenses, "band": list(BANDS)})
+    ds.to_netcdf(truth_dir / f"{bracket}.nc")
+    (truth_dir / f"{bracket}.yaml").write_text(yaml.safe_dump(
+        {"scene": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(scene).items()},
+         "exposures_s": [float(t) for t in exposures_s], "iso": iso, "seed": seed, "scale": scale,
+         "files": [p.name for p in files]}, sort_keys=False))
+    return {"files": files, "frames_csv": table, "truth": truth_dir / f"{bracket}.nc"}
