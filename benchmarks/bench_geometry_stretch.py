@@ -9,8 +9,8 @@ Per lens, medium and band the corners the geometry stage detects are fitted with
 leave-one-board-out jackknife and with the full refit per board. Columns: the stretch test's p-value and
 auto's choice; the chi-square of the theta errors at four pixels (5, 30, 55, 72 deg, a quarter turn apart,
 as the test) with the propagated 4 x 4 covariance for: the symmetric fit, the none fit with its own
-covariance, auto with the chosen fit's own covariance, and auto with the symmetric fit's covariance (what
-``select_stretch`` states); and the one-step jackknife's sigma of the centre and of theta at those pixels over
+covariance, auto with the chosen fit's own covariance (what ``select_stretch`` states), and auto with the
+symmetric fit's covariance (what it stated before); and the linearised jackknife's sigma of the centre and of theta at those pixels over
 the refit's. A last row per lens holds the sums. Reads the truth: a measurement, never part of the pipeline.
 """
 
