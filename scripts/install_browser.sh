@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Headless Chromium from Debian's packages, for the test that renders the HTML report in a real browser
-# (tests/report/test_report.py, the report opened in a browser; docs/tests.md). Rerunnable: does nothing when a Chromium is already on
+# (tests/runner/test_workflow_default.py opens the report in it; docs/tests.md). Rerunnable: does nothing when a Chromium is already on
 # the PATH. Needs root to install (as CI has); without root and without Chromium it says so and stops,
 # and the browser test is then skipped with one line saying that no Chromium was found.
 set -euo pipefail
