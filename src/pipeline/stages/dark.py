@@ -482,7 +482,8 @@ def _frame_table(frames: pd.DataFrame, st: pd.DataFrame, use_hot: bool, use_drif
     deviation with bias_drift), its noise and the columns of the frame-level model.
 
     Returns (frame table, whether the bias drift is testable (every frame has a black-level reference), the
-    drift's sigma terms of :func:`drift_sigma` (NaN when not testable), the frames' pixel noise alone).
+    drift's sigma terms of :func:`drift_sigma` (zeros without bias_drift in the model, NaN when not testable),
+    the frames' pixel noise alone).
     """
     fr = frames.merge(st[["lens", "band", "iso", "exposure_s", "setting", "hot_excess_dn", "pixel_var_dn2",
                           "corner_var_dn2", "n_used", "n_corner"]], on=["lens", "band", "iso", "exposure_s"])

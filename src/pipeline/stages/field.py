@@ -818,7 +818,7 @@ def _observation_table(ctx, valid, st, y, sy, sampling, t_cam, shift, clock, ser
     """The observation table (``obs_frame``): one row per match-up and band, camera against the predicted reference.
 
     ``sigma_dn`` holds the camera's random standard error, the median camera / reference ratio times the
-    reference's window uncertainty and the mask's sampling term in quadrature. Without ``clock_offset`` in the
+    reference's window uncertainty and the mask's sampling and pointing terms in quadrature. Without ``clock_offset`` in the
     model the clock profile's columns are added (constant), and the reference at the profile's offset.
     """
     lam_eff = series["effective_wavelength_nm"]
