@@ -414,21 +414,44 @@ def black_level_tag_note(fr: pd.DataFrame, reduced: dict, max_fraction: float) -
 
 
 def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, xr.Dataset]:
-    """Fit the dark model and build one artefact Dataset per lens."""
-    stats = reduced["stats"]
-    frames = reduced["frames"]
+    """Fit the dark model and build one artefact Dataset per lens.
+
+    The settings' noise table, the frame table (values, corners and bias drift) with its fit, the setting-level
+    dark model, the frames' common offsets; then per lens the artefact, its bias reference and temperature terms.
+    """
     lenses = reduced["lenses"]
-    use_hot = "hot_pixels" in effects
     use_drift = "bias_drift" in effects
     settings = reduced["settings"]
-    isos = sorted({s[0] for s in settings})
-    ref_iso = isos[0]
-    pixels = "nonhot" if use_hot else "circle"
+    ref_iso = sorted({s[0] for s in settings})[0]
+    pixels = "nonhot" if "hot_pixels" in effects else "circle"
+    st = _setting_noise_table(reduced, config, pixels)
+    fr, testable, drift, pixel_sigma = _frame_table(reduced["frames"], st, "hot_pixels" in effects, use_drift)
+    ffit, _ = fit_with_effects(fr, "frame", effects, STAGE)
+    fr["pred_dn"] = ffit.pred
+    fr["z"] = ffit.z
+    st, fit, design, params, dark_rate, temperature = _fit_dark_model(st, fr, pixel_sigma, drift, settings, effects)
+    offset_var = _common_offset_variance(fr) if use_drift and testable else {}
+    out = {lens: _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, drift, fit, ffit,
+                               config, settings, ref_iso)
+           for lens in lenses}
+    for ds in out.values():
+        mark_not_measured(ds, design, "dark_current" in effects, settings, config["dark"]["hot_pixel_persistence"])
+    for lens, ds in out.items():
+        _describe_black_level_reference(ds, lens, fr, reduced, config, testable, settings, ref_iso)
+    if temperature is not None:
+        for ds in out.values():
+            _add_temperature_model(ds, temperature)
+    return out
 
+
+def _setting_noise_table(reduced: dict, config: dict, pixels: str) -> pd.DataFrame:
+    """One row per lens, band and setting: the temporal variance of a pixel (``pixels``: "circle" or "nonhot")
+    and of the black-level reference, floored at the quantisation step's, the counts and the hot pixels' excess."""
+    stats = reduced["stats"]
     setting_rows = []
-    for lens in lenses:
+    for lens in reduced["lenses"]:
         for band in BANDS:
-            for s in settings:
+            for s in reduced["settings"]:
                 d = stats[(lens, band, s)]
                 # the reference's own noise: the corners' temporal variance, or (optically black
                 # pixels, all CFA sites, read noise only) that of one raw pixel of the band
@@ -451,8 +474,17 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     st["gain"] = gain_from_iso(st["iso"])
     st["group"] = st["lens"] + "/" + st["band"]
     st["setting"] = st.groupby(["iso", "exposure_s"], sort=True).ngroup()
+    return st
 
-    # ----- frame level: values, corners and bias drift
+
+def _frame_table(frames: pd.DataFrame, st: pd.DataFrame, use_hot: bool, use_drift: bool):
+    """The frame table: each frame's value (less the hot pixels' excess with hot_pixels, less its corners'
+    deviation with bias_drift), its noise and the columns of the frame-level model.
+
+    Returns (frame table, whether the bias drift is testable (every frame has a black-level reference), the
+    drift's sigma terms of :func:`drift_sigma` (zeros without bias_drift in the model, NaN when not testable),
+    the frames' pixel noise alone).
+    """
     fr = frames.merge(st[["lens", "band", "iso", "exposure_s", "setting", "hot_excess_dn", "pixel_var_dn2",
                           "corner_var_dn2", "n_used", "n_corner"]], on=["lens", "band", "iso", "exposure_s"])
     fr["value_dn"] = fr["circle_mean_dn"] - (fr["hot_excess_dn"] if use_hot else 0.0)
@@ -484,11 +516,16 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     fr["x_level"] = 1.0
     if fr["temperature_c"].notna().all():
         fr["temperature_ref_c"] = float(fr["temperature_c"].mean())
-    ffit, _ = fit_with_effects(fr, "frame", effects, STAGE)
-    fr["pred_dn"] = ffit.pred
-    fr["z"] = ffit.z
+    return fr, testable, drift, pixel_sigma
 
-    # ----- setting level: the dark model
+
+def _fit_dark_model(st: pd.DataFrame, fr: pd.DataFrame, pixel_sigma, drift, settings, effects: list[str]):
+    """The setting-level dark model: the frames averaged per setting and fitted with the measurable effects.
+
+    Returns (setting table with ``pred_dn`` and ``z``, the fit, the measurable parameters of
+    :func:`measurable_parameters`, {parameter: (value, sigma)} (b1 fixed at 0 with one ISO), the dark current's
+    (rate, sigma) in DN/s, the temperature terms (coef, sigma, reference_c) or None).
+    """
     agg = fr.assign(pixel_sigma_dn=pixel_sigma).groupby(["lens", "band", "setting"]).agg(
         value_dn=("value_dn", "mean"), frame_sigma=("pixel_sigma_dn", "mean"),
         temperature_c=("temperature_c", "mean")).reset_index()
@@ -514,61 +551,69 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
     if temperature is not None:
         temperature = {"coef": temperature[0], "sigma": temperature[1],
                        "reference_c": float(st["temperature_ref_c"].iloc[0])}
+    return st, fit, design, params, dark_rate, temperature
 
-    offset_var: dict = {}                          # (lens, band) -> setting -> the frames' common offset variance
-    if use_drift and testable:
-        # each setting's frames share their black-level offsets, whose sample variance every pixel's
-        # temporal variance holds; the unlit pixels measure it (less their own noise): the read noise
-        # of a pixel is what is left
-        per = fr.groupby(["lens", "band", "iso", "exposure_s"])
-        offsets = (per["corner_dev_dn"].apply(lambda d: float(np.sum(np.square(d))) / max(len(d) - 1, 1))
-                   - per["sigma_corner_dn"].apply(lambda v: float(np.mean(np.square(v)))))
-        for (lens, band, iso, t), v in offsets.items():
-            offset_var.setdefault((lens, band), {})[(float(iso), float(t))] = max(float(v), 0.0)
-    out = {lens: _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, drift, fit, ffit,
-                               config, settings, ref_iso)
-           for lens in lenses}
-    for ds in out.values():
-        mark_not_measured(ds, design, "dark_current" in effects, settings, config["dark"]["hot_pixel_persistence"])
-    for lens, ds in out.items():
-        note = black_level_tag_note(fr[fr["lens"] == lens], reduced, config["dark"]["black_level_tag_max_fraction"])
-        if note:
-            log.warning("dark %s: %s", lens, note)
-            ds.attrs["black_level_tag_note"] = note
-        reference = reduced.get("bias_reference", {}).get(lens, "unlit corners")
-        ds.attrs["projection"] = reduced.get("projections", {}).get(lens, "fisheye")
-        ds.attrs["bias_reference"] = reference
-        ds.attrs["dark_bias_reference"] = reduced.get("dark_bias_reference", {}).get(lens, reference)
-        ds.attrs["bias_drift_testable"] = int(testable)
-        if not testable:
-            ds.attrs["bias_drift_note"] = ("bias_drift not testable: a rectilinear region has no unlit corners and "
-                                           "the DNG declares no optically black pixels (ActiveArea/MaskedAreas)")
-        elif reference == "none":
-            ds.attrs["bias_drift_note"] = (
-                f"bias_drift measured in the dark frames on {DARK_HALF_REFERENCE}; the lit frames have no unlit "
-                "corners and no optically black pixels (ActiveArea/MaskedAreas): their drift cannot be removed")
-        if reference == "optically black pixels":
-            # the black-level reference of the later stages: optically black mean less the
-            # region's dark level, at the shortest exposure of the lowest ISO (no dark current)
-            shortest = min(t for (i, t) in settings if i == ref_iso)
-            sel = fr[(fr["lens"] == lens) & (fr["iso"] == ref_iso) & (fr["exposure_s"] == shortest)]
-            offset = sel.groupby("band").apply(lambda g: float((g["corner_dn"] - g["circle_mean_dn"]).mean()),
-                                               include_groups=False)
-            ds["optical_black_offset_dn"] = ("band", offset.reindex(list(BANDS)).to_numpy(float),
-                                             {"long_name": "mean of the optically black pixels less the region's "
-                                                           "dark level (shortest exposure, lowest ISO)", "units": "DN"})
-    if temperature is not None:
-        for ds in out.values():
-            ds["temperature_bias_dn_per_c"] = ((), temperature["coef"][0],
-                                               {"long_name": "black-level change per degree C", "units": "DN degree_C-1"})
-            ds["temperature_bias_dn_per_c_sigma"] = ((), temperature["sigma"][0], {"units": "DN degree_C-1"})
-            ds["temperature_dark_dn_per_s_per_c"] = ((), temperature["coef"][1],
-                                                     {"long_name": "dark-current change per degree C (ISO 100)",
-                                                      "units": "DN s-1 degree_C-1"})
-            ds["temperature_dark_dn_per_s_per_c_sigma"] = ((), temperature["sigma"][1], {"units": "DN s-1 degree_C-1"})
-            ds["temperature_reference_c"] = ((), temperature["reference_c"],
-                                             {"long_name": "reference temperature of the dark model", "units": "degree_C"})
-    return out
+
+def _common_offset_variance(fr: pd.DataFrame) -> dict:
+    """Per (lens, band) and setting the variance of the frames' common black-level offsets (bias_drift).
+
+    Each setting's frames share their black-level offsets, whose sample variance every pixel's temporal
+    variance holds; the unlit pixels measure it (less their own noise): the read noise of a pixel is what is
+    left. Returns {(lens, band): {(iso, exposure_s): variance in DN^2, at least 0}}.
+    """
+    offset_var: dict = {}
+    per = fr.groupby(["lens", "band", "iso", "exposure_s"])
+    offsets = (per["corner_dev_dn"].apply(lambda d: float(np.sum(np.square(d))) / max(len(d) - 1, 1))
+               - per["sigma_corner_dn"].apply(lambda v: float(np.mean(np.square(v)))))
+    for (lens, band, iso, t), v in offsets.items():
+        offset_var.setdefault((lens, band), {})[(float(iso), float(t))] = max(float(v), 0.0)
+    return offset_var
+
+
+def _describe_black_level_reference(ds: xr.Dataset, lens: str, fr: pd.DataFrame, reduced: dict, config: dict,
+                                    testable: bool, settings, ref_iso: float) -> None:
+    """The lens artefact's black-level reference: the BlackLevel tag check, the projection, the reference of
+    the lit and the dark frames, whether bias_drift is testable and, with optically black pixels, their offset
+    from the region's dark level (``optical_black_offset_dn``)."""
+    note = black_level_tag_note(fr[fr["lens"] == lens], reduced, config["dark"]["black_level_tag_max_fraction"])
+    if note:
+        log.warning("dark %s: %s", lens, note)
+        ds.attrs["black_level_tag_note"] = note
+    reference = reduced.get("bias_reference", {}).get(lens, "unlit corners")
+    ds.attrs["projection"] = reduced.get("projections", {}).get(lens, "fisheye")
+    ds.attrs["bias_reference"] = reference
+    ds.attrs["dark_bias_reference"] = reduced.get("dark_bias_reference", {}).get(lens, reference)
+    ds.attrs["bias_drift_testable"] = int(testable)
+    if not testable:
+        ds.attrs["bias_drift_note"] = ("bias_drift not testable: a rectilinear region has no unlit corners and "
+                                       "the DNG declares no optically black pixels (ActiveArea/MaskedAreas)")
+    elif reference == "none":
+        ds.attrs["bias_drift_note"] = (
+            f"bias_drift measured in the dark frames on {DARK_HALF_REFERENCE}; the lit frames have no unlit "
+            "corners and no optically black pixels (ActiveArea/MaskedAreas): their drift cannot be removed")
+    if reference == "optically black pixels":
+        # the black-level reference of the later stages: optically black mean less the
+        # region's dark level, at the shortest exposure of the lowest ISO (no dark current)
+        shortest = min(t for (i, t) in settings if i == ref_iso)
+        sel = fr[(fr["lens"] == lens) & (fr["iso"] == ref_iso) & (fr["exposure_s"] == shortest)]
+        offset = sel.groupby("band").apply(lambda g: float((g["corner_dn"] - g["circle_mean_dn"]).mean()),
+                                           include_groups=False)
+        ds["optical_black_offset_dn"] = ("band", offset.reindex(list(BANDS)).to_numpy(float),
+                                         {"long_name": "mean of the optically black pixels less the region's "
+                                                       "dark level (shortest exposure, lowest ISO)", "units": "DN"})
+
+
+def _add_temperature_model(ds: xr.Dataset, temperature: dict) -> None:
+    """The dark model's temperature terms (black level and dark current per degree C, reference temperature)."""
+    ds["temperature_bias_dn_per_c"] = ((), temperature["coef"][0],
+                                       {"long_name": "black-level change per degree C", "units": "DN degree_C-1"})
+    ds["temperature_bias_dn_per_c_sigma"] = ((), temperature["sigma"][0], {"units": "DN degree_C-1"})
+    ds["temperature_dark_dn_per_s_per_c"] = ((), temperature["coef"][1],
+                                             {"long_name": "dark-current change per degree C (ISO 100)",
+                                              "units": "DN s-1 degree_C-1"})
+    ds["temperature_dark_dn_per_s_per_c_sigma"] = ((), temperature["sigma"][1], {"units": "DN s-1 degree_C-1"})
+    ds["temperature_reference_c"] = ((), temperature["reference_c"],
+                                     {"long_name": "reference temperature of the dark model", "units": "degree_C"})
 
 
 def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, drift, fit, ffit, config,

@@ -591,9 +591,12 @@ def _sky_map(images, chains, frame, grid_deg, name, source):
 
 
 def compute(ctx) -> xr.Dataset:
-    """The field artefact of the zenith lens (the stage runner's contract)."""
+    """The field artefact of the zenith lens (the stage runner's contract).
+
+    The frames reduced to mask radiances, matched to the reference in time, compared per band (the match-up
+    statistics), fitted as an observation table, and the band scales closed against the calibration.
+    """
     cfg = ctx.params
-    root = ctx.dataset.root
     bundle = ctx.bundle
     if bundle is None:
         raise InputError(None, "the field stage needs the calibration bundle")
@@ -601,24 +604,73 @@ def compute(ctx) -> xr.Dataset:
         raise InputError(None, f"the calibration bundle has no lens '{ctx.lens}'")
     site = read_site(ctx.dataset)
     _check_region(ctx)
-    # the first frame decodes (a background thread) while the reference file is read and checked, the masks
-    # are made and the modules needed after the frames are imported; bad input still stops the stage with its
-    # message before any frame's numbers are used, and the decoding with it
+    reference, ref_path, channels, frames, masks, window, around, sky = _read_frames_and_reference(ctx)
+    utc, t_cam, ref_t, ref_values = _frames_on_the_reference_clock(frames, reference, ref_path, site)
+    series = _reference_series(bundle, ctx.lens, channels, ref_t, ref_values)
+    width = float(cfg["reference_window_s"])
+    predict = "convolved" if "spectral_mismatch" in ctx.effects else "nearest"
+    y = {b: frames[f"mean_{b}"].to_numpy(float) for b in BANDS}
+    sy = {b: frames[f"random_se_{b}"].to_numpy(float) for b in BANDS}
+    pointing = {b: around[b][3] for b in BANDS}
+    sampling = _mask_sampling_terms(cfg, frames, pointing)
+    clock = _clock_profile(ctx, y, sy, {b: series["windows"][(predict, b)] for b in BANDS}, t_cam)
+    shift = clock["offset_s"] if "clock_offset" in ctx.effects else 0.0
+    centres = t_cam - shift
+    st = {key: w.stats(centres, width) for key, w in series["windows"].items()}
+    channel_st = [WindowedSeries(ref_t, ref_values[:, c]).stats(centres, width) for c in range(channels.size)]
+    channel_mean = np.stack([c["mean"] for c in channel_st], axis=1)       # (frame, channel)
+    sun = _sun_covariates(cfg, bundle, ctx.lens, frames, utc - pd.to_timedelta(shift, unit="s"), site,
+                          series["response_nm"])
+    valid, no_reference = _matchups(ctx, frames, st, y, clock)
+    stat, n_matchups = _matchup_statistics(cfg, valid, st, y, sy)
+    table = _observation_table(ctx, valid, st, y, sy, sampling, t_cam, shift, clock, series, predict, channels,
+                               channel_mean, sun)
+    _check_enough_matchups(valid, len(frames), ref_path, int(cfg["min_reference_samples"]), width)
+    fit, glare, scales = _fit_band_scales(ctx, table)
+    scale_table = _scale_table(ctx, frames, table, fit, scales, valid, st, predict, channels, channel_mean,
+                               series["effective_wavelength_nm"], series["outside"], site)
+    for _, r in scale_table.iterrows():
+        log.info("field %s %s: camera / reference %.4g against the predicted 1 (%+.1f %%, %.1f %% stated, z %+.1f)",
+                 ctx.lens, r["band"], r["k_b"], 100.0 * np.expm1(r["value_dn"]), 100.0 * r["sigma_dn"],
+                 r["value_dn"] / r["sigma_dn"])
+    out = _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_reference, stat, n_matchups,
+                   table, fit, scales, series["nearest_index"], channels, series["effective_wavelength_nm"],
+                   series["weights"], series["outside"], sky, predict, sun["zenith_deg"], masks, window)
+    _add_sun_and_pointing_variables(out, cfg, frames, pointing, sun, glare)
+    return out.merge(_scale_dataset(scale_table))
+
+
+def _read_frames_and_reference(ctx):
+    """Reduce the lens's frames (:func:`_reduce_frames`) and read the reference radiometer's file.
+
+    The first frame decodes (a background thread) while the reference file is read and checked, the masks
+    are made and the modules needed after the frames are imported; bad input still stops the stage with its
+    message before any frame's numbers are used, and the decoding with it.
+    Returns (reference table, its path, its channels (nm), frame table, masks, crop window, sky around the masks, sky map).
+    """
+    cfg = ctx.params
     with iter_frames(ctx.dataset, STAGE, ctx.dataset.frames(STAGE), lenses=[ctx.lens],
                      progress=ctx.progress) as stream:
         _import_in_background(AFTER_FRAMES_MODULES)
         reference = read_reference_radiometer(ctx.dataset)
-        ref_path = root / STAGE / "reference_radiometer.csv"
+        ref_path = ctx.dataset.root / STAGE / "reference_radiometer.csv"
         channels = np.asarray(reference.attrs["channels_nm"], float)
         if len(reference) < 2:
             raise InputError(ref_path, "needs at least two readings")
-        masks, window, around = field_masks(bundle, ctx.lens, float(cfg["mask_half_angle_deg"]),
+        masks, window, around = field_masks(ctx.bundle, ctx.lens, float(cfg["mask_half_angle_deg"]),
                                             int(cfg["min_mask_pixels"]))
         frames, inputs, sky = _reduce_frames(ctx, stream, masks, window, float(cfg["sky_map_grid_deg"]),
                                              float(ctx.config["apply"]["negative_mean_sigma"]), around)
     ctx.record_frames(inputs)
+    return reference, ref_path, channels, frames, masks, window, around, sky
 
-    # camera time (local) -> UTC, seconds since the first frame
+
+def _frames_on_the_reference_clock(frames: pd.DataFrame, reference: pd.DataFrame, ref_path, site: dict):
+    """The frames' camera times (local) in UTC and both series in seconds since the first frame.
+
+    Returns (frame times in UTC, frame times in s, reference times in s sorted, reference values (sample,
+    channel) in that order); the reference must overlap the frames.
+    """
     offset_h = float(site["camera_clock_utc_offset_h"])
     utc = pd.DatetimeIndex([t - timedelta(hours=offset_h) for t in frames["local_time"]]).tz_localize("UTC")
     t0 = utc.min()
@@ -630,14 +682,22 @@ def compute(ctx) -> xr.Dataset:
     if ref_t[-1] < t_cam.min() or ref_t[0] > t_cam.max():
         raise InputError(ref_path, f"covers {reference['time'].min()} to {reference['time'].max()}, none of the frames "
                                    f"({utc.min()} to {utc.max()} UTC after the camera clock's offset of {offset_h:g} h)")
+    return utc, t_cam, ref_t, ref_values
 
-    # the two reference series of each band: nearest channel, band-convolved
-    lam_eff = bundle["effective_wavelength_nm"].sel(lens=ctx.lens).values.astype(float)
+
+def _reference_series(bundle: xr.Dataset, lens: str, channels, ref_t, ref_values) -> dict:
+    """The two reference series of each band: the nearest channel and the band-convolved channels.
+
+    Returns a dict: ``effective_wavelength_nm`` (per band), ``response_nm`` (the bundle's response wavelengths),
+    ``nearest_index`` and ``weights`` (convolution weights of the channels) and ``outside`` (response fraction
+    outside the channels' span) per band, and ``windows``: {(comparison, band): :class:`WindowedSeries`}.
+    """
+    lam_eff = bundle["effective_wavelength_nm"].sel(lens=lens).values.astype(float)
     resp_nm = bundle["wavelength_nm"].values.astype(float)
     nearest_idx, conv_w, outside = {}, {}, {}
     for j, band in enumerate(BANDS):
         nearest_idx[band] = int(np.argmin(np.abs(channels - lam_eff[j])))
-        resp = bundle["response"].sel(lens=ctx.lens, band=band).values.astype(float)
+        resp = bundle["response"].sel(lens=lens, band=band).values.astype(float)
         conv_w[band], outside[band] = convolution_weights(channels, resp_nm, resp)
     used_ch = {band: conv_w[band] != 0 for band in BANDS}
     conv_series = {}
@@ -645,50 +705,66 @@ def compute(ctx) -> xr.Dataset:
         vals = ref_values[:, used_ch[band]] @ conv_w[band][used_ch[band]]
         conv_series[band] = vals          # NaN where any weighted channel dropped out
     near_series = {band: ref_values[:, nearest_idx[band]] for band in BANDS}
-    width = float(cfg["reference_window_s"])
-    min_n = int(cfg["min_reference_samples"])
     ws = {("nearest", b): WindowedSeries(ref_t, near_series[b]) for b in BANDS}
     ws.update({("convolved", b): WindowedSeries(ref_t, conv_series[b]) for b in BANDS})
-    predict = "convolved" if "spectral_mismatch" in ctx.effects else "nearest"
-    y = {b: frames[f"mean_{b}"].to_numpy(float) for b in BANDS}
-    sy = {b: frames[f"random_se_{b}"].to_numpy(float) for b in BANDS}
-    pointing = {b: around[b][3] for b in BANDS}
-    sampling = {b: np.hypot(mask_sampling_sigma(frames[f"spread_{b}"].to_numpy(float), frames[f"n_{b}"].to_numpy(float)),
-                            mask_pointing_sigma(frames[f"gradient_{b}"].to_numpy(float), pointing[b]))
-                if cfg["mask_sampling_term"] else np.zeros(len(frames)) for b in BANDS}
+    return {"effective_wavelength_nm": lam_eff, "response_nm": resp_nm, "nearest_index": nearest_idx,
+            "weights": conv_w, "outside": outside, "windows": ws}
 
-    # the clock offset's profile: fitted and applied with clock_offset in the model; without it only recorded
-    # (obs_frame's clock_profile_ columns, for the diagnostics' candidate amplitude) and nothing shifted
-    clock_args = (y, sy, {b: ws[(predict, b)] for b in BANDS}, t_cam, width, min_n,
+
+def _mask_sampling_terms(cfg, frames: pd.DataFrame, pointing: dict) -> dict:
+    """Per band and frame the mask's sampling and pointing terms in quadrature (zero without
+    ``field.mask_sampling_term``)."""
+    return {b: np.hypot(mask_sampling_sigma(frames[f"spread_{b}"].to_numpy(float), frames[f"n_{b}"].to_numpy(float)),
+                        mask_pointing_sigma(frames[f"gradient_{b}"].to_numpy(float), pointing[b]))
+            if cfg["mask_sampling_term"] else np.zeros(len(frames)) for b in BANDS}
+
+
+def _clock_profile(ctx, y, sy, series, t_cam) -> dict | None:
+    """The camera clock offset's profile (:func:`fit_clock_offset`) against the predicted reference ``series``.
+
+    Fitted and applied with ``clock_offset`` in the model; without it only recorded (obs_frame's
+    clock_profile_ columns, for the diagnostics' candidate amplitude) and nothing shifted, and None when
+    no offset gives match-ups (the match-up checks say what is wrong).
+    """
+    cfg = ctx.params
+    clock_args = (y, sy, series, t_cam, float(cfg["reference_window_s"]), int(cfg["min_reference_samples"]),
                   float(cfg["clock_offset_search_s"]), float(cfg["clock_offset_grid_s"]))
-    clock = None
-    shift = 0.0
     if "clock_offset" in ctx.effects:
-        clock = fit_clock_offset(*clock_args, level=float(cfg["confidence_level"]))
-        shift = clock["offset_s"]
-    else:
-        try:
-            clock = fit_clock_offset(*clock_args, level=float(cfg["confidence_level"]))
-        except InputError as exc:       # no match-ups at any offset: the match-up checks below say what is wrong
-            log.info("field %s: no clock-offset profile (%s)", ctx.lens, exc)
-    centres = t_cam - shift
-    st = {key: w.stats(centres, width) for key, w in ws.items()}
-    channel_st = [WindowedSeries(ref_t, ref_values[:, c]).stats(centres, width) for c in range(channels.size)]
-    channel_mean = np.stack([c["mean"] for c in channel_st], axis=1)       # (frame, channel)
-    sun_zenith, sun_elevation = _sun_position(utc - pd.to_timedelta(shift, unit="s"), site)
-    # the stray_light effect's covariate: the sun's clear-sky direct beam in each band, seen or not, at the
-    # mask's angle from the sun (radiometry/sun_glare.py)
+        return fit_clock_offset(*clock_args, level=float(cfg["confidence_level"]))
+    try:
+        return fit_clock_offset(*clock_args, level=float(cfg["confidence_level"]))
+    except InputError as exc:       # no match-ups at any offset: the match-up checks below say what is wrong
+        log.info("field %s: no clock-offset profile (%s)", ctx.lens, exc)
+        return None
+
+
+def _sun_covariates(cfg, bundle: xr.Dataset, lens: str, frames: pd.DataFrame, times_utc: pd.DatetimeIndex,
+                    site: dict, resp_nm) -> dict:
+    """The sun at each frame's reference time and the stray_light effect's covariate.
+
+    The covariate is the sun's clear-sky direct beam in each band, seen or not, at the mask's angle from the
+    sun (:mod:`pipeline.radiometry.sun_glare`). Returns ``zenith_deg`` and ``seen`` per frame, ``direct``
+    (band direct irradiance) and ``glare`` (the covariate), both (frame, band).
+    """
+    sun_zenith, sun_elevation = _sun_position(times_utc, site)
     sun_seen = (frames["lens_n_bright"].to_numpy() >= int(cfg["sun_seen_min_pixels"])).astype(float)
-    day = int((utc - pd.to_timedelta(shift, unit="s"))[0].day_of_year)
-    sun_direct = np.stack([band_direct_irradiance(resp_nm, bundle["response"].sel(lens=ctx.lens, band=b).values,
+    day = int(times_utc[0].day_of_year)
+    sun_direct = np.stack([band_direct_irradiance(resp_nm, bundle["response"].sel(lens=lens, band=b).values,
                                                   90.0 - sun_elevation, day, float(cfg["clear_sky_aod700"]),
                                                   float(cfg["clear_sky_angstrom_exponent"]),
                                                   float(cfg["clear_sky_ozone_atm_cm"])) for b in BANDS], axis=1)
     glare_cov = sun_glare_covariate(sun_direct, sun_seen[:, None], sun_zenith[:, None],
                                     float(cfg["stray_light_angle_exponent"]),
                                     float(cfg["stray_light_reference_angle_deg"]))          # (frame, band)
+    return {"zenith_deg": sun_zenith, "seen": sun_seen, "direct": sun_direct, "glare": glare_cov}
 
-    # match-ups: enough reference samples for both comparisons and a camera value
+
+def _matchups(ctx, frames: pd.DataFrame, st: dict, y: dict, clock: dict | None):
+    """The match-ups: frames with enough reference samples for both comparisons and a camera value.
+
+    Returns ({band: match-up mask over the frames}, mask of the frames that are a match-up in no band).
+    """
+    min_n, width = int(ctx.params["min_reference_samples"]), float(ctx.params["reference_window_s"])
     valid = {b: (st[("nearest", b)]["count"] >= min_n) & (st[("convolved", b)]["count"] >= min_n) & np.isfinite(y[b])
              for b in BANDS}
     no_reference = ~np.logical_and.reduce([valid[b] for b in BANDS])
@@ -699,8 +775,14 @@ def compute(ctx) -> xr.Dataset:
     if clock is not None:
         log.info("field %s: camera clock offset %.2f +- %.2f s (camera minus UTC; %s)", ctx.lens, clock["offset_s"],
                  clock["offset_se_s"], "applied" if "clock_offset" in ctx.effects else "profile only, not applied")
+    return valid, no_reference
 
-    # statistics per band and comparison
+
+def _matchup_statistics(cfg, valid: dict, st: dict, y: dict, sy: dict):
+    """Every statistic of :func:`pipeline.stats.matchup.matchup_statistics` per band and comparison.
+
+    Returns ({statistic: array (band, comparison)}, number of match-ups (band, comparison)).
+    """
     from pipeline.stats.matchup import BOOTSTRAPPED, matchup_statistics
 
     names = list(BOOTSTRAPPED)
@@ -723,8 +805,23 @@ def compute(ctx) -> xr.Dataset:
             n_matchups[j, c] = out.pop("n")
             for key, value in out.items():
                 stat[key][j, c] = value
+    return stat, n_matchups
 
-    # the observation table
+
+#: the observation table's columns (``obs_frame``) before the fit's
+OBS_FRAME_COLUMNS = ["group", "band", "frame", "time_s", "value_dn", "sigma_dn", "x_scale", "ref_nearest",
+                     "ref_convolved", "dref_dt", "spectral_slope", "sun_zenith_deg", "sun_seen", "sun_glare_covariate"]
+
+
+def _observation_table(ctx, valid, st, y, sy, sampling, t_cam, shift, clock, series, predict, channels,
+                       channel_mean, sun) -> pd.DataFrame:
+    """The observation table (``obs_frame``): one row per match-up and band, camera against the predicted reference.
+
+    ``sigma_dn`` holds the camera's random standard error, the median camera / reference ratio times the
+    reference's window uncertainty and the mask's sampling and pointing terms in quadrature. Without ``clock_offset`` in the
+    model the clock profile's columns are added (constant), and the reference at the profile's offset.
+    """
+    lam_eff = series["effective_wavelength_nm"]
     rows = []
     for j, band in enumerate(BANDS):
         pred_series = st[(predict, band)]
@@ -740,27 +837,41 @@ def compute(ctx) -> xr.Dataset:
                 "ref_convolved": float(st[("convolved", band)]["mean"][f]),
                 "dref_dt": float(pred_series["slope"][f]),
                 "spectral_slope": spectral_slope(channels, channel_mean[f], lam_eff[j]),
-                "sun_zenith_deg": float(sun_zenith[f]),
-                "sun_seen": float(sun_seen[f]),
-                "sun_glare_covariate": float(glare_cov[f, j]),
+                "sun_zenith_deg": float(sun["zenith_deg"][f]),
+                "sun_seen": float(sun["seen"][f]),
+                "sun_glare_covariate": float(sun["glare"][f, j]),
             })
-    table = pd.DataFrame(rows, columns=["group", "band", "frame", "time_s", "value_dn", "sigma_dn", "x_scale",
-                                        "ref_nearest", "ref_convolved", "dref_dt", "spectral_slope", "sun_zenith_deg",
-                                        "sun_seen", "sun_glare_covariate"])
+    table = pd.DataFrame(rows, columns=OBS_FRAME_COLUMNS)
     if "clock_offset" not in ctx.effects and clock is not None:
         # the clock_offset candidate's amplitude (ClockOffset.amplitude): the profile's fit, valid at any offset
         # within the search, where the linearised signature (-k_b dref/dt) holds only for short shifts
         for col in CLOCK_PROFILE_COLUMNS:
             table[col] = float(clock[CLOCK_PROFILE_COLUMNS[col]])
         # ... and its secant signature: the reference at the profile's offset, each row's own band and frame
-        at_offset = {b: ws[(predict, b)].stats(t_cam - float(clock["offset_s"]), width)["mean"] for b in BANDS}
+        width = float(ctx.params["reference_window_s"])
+        at_offset = {b: series["windows"][(predict, b)].stats(t_cam - float(clock["offset_s"]), width)["mean"]
+                     for b in BANDS}
         table["ref_at_clock_profile"] = [float(at_offset[b][f]) for b, f in zip(table["band"], table["frame"])]
+    return table
+
+
+def _check_enough_matchups(valid: dict, n_frames: int, ref_path, min_n: int, width: float) -> None:
+    """Three match-ups per band at least: the fewest a line with an interval (N - 2 degrees of freedom) needs."""
     few = [b for b in BANDS if valid[b].sum() < 3]
     if few:
-        # three points are the fewest a line with an interval (N - 2 degrees of freedom) needs
-        raise InputError(ref_path, f"only {min(int(valid[b].sum()) for b in few)} of {len(frames)} frames have "
+        raise InputError(ref_path, f"only {min(int(valid[b].sum()) for b in few)} of {n_frames} frames have "
                                    f"{min_n} or more reference samples within {width:g} s (band {few[0]}): "
                                    "a match-up needs at least 3")
+
+
+def _fit_band_scales(ctx, table: pd.DataFrame):
+    """Fit the observation table (:func:`pipeline.stages.observations.fit_with_effects`) and take the band scales.
+
+    Adds the fit's ``pred_dn`` and ``z`` to ``table``. With ``stray_light`` in the model the fitted sun glare is
+    taken out of the band scales; a glare ``field.stray_light_negative_sigma`` standard errors below zero stops
+    the stage. Returns (the fit, {coef, se} of the glare or None, scale k_b per band).
+    """
+    cfg = ctx.params
     fit, coefs = fit_with_effects(table, "frame", ctx.effects, STAGE)
     table["pred_dn"] = fit.pred
     table["z"] = fit.z
@@ -771,37 +882,34 @@ def compute(ctx) -> xr.Dataset:
         glare = {"coef": float(coef[0]), "se": float(se[0])}
         base_pred = base_pred - glare["coef"] * table["sun_glare_covariate"].to_numpy(float)
         if glare["coef"] < -float(cfg["stray_light_negative_sigma"]) * glare["se"]:
-            raise ImpossibleResult(root / STAGE, f"the fitted sun glare is negative ({glare['coef']:.3g} +- "
-                                                 f"{glare['se']:.2g} sr-1): stray light only adds light; something "
-                                                 "else in the field residuals follows the sun")
+            raise ImpossibleResult(ctx.dataset.root / STAGE, f"the fitted sun glare is negative ({glare['coef']:.3g} +- "
+                                                             f"{glare['se']:.2g} sr-1): stray light only adds light; "
+                                                             "something else in the field residuals follows the sun")
         log.info("field %s: sun glare %.3g +- %.2g sr-1 at %g degree from the sun", ctx.lens, glare["coef"],
                  glare["se"], float(cfg["stray_light_reference_angle_deg"]))
     scales = np.array([float(np.nanmean((base_pred / table["x_scale"])[table["band"] == b])) for b in BANDS])
-    scale_table = _scale_table(ctx, frames, table, fit, scales, valid, st, predict, channels, channel_mean, lam_eff,
-                               outside, site)
-    for _, r in scale_table.iterrows():
-        log.info("field %s %s: camera / reference %.4g against the predicted 1 (%+.1f %%, %.1f %% stated, z %+.1f)",
-                 ctx.lens, r["band"], r["k_b"], 100.0 * np.expm1(r["value_dn"]), 100.0 * r["sigma_dn"],
-                 r["value_dn"] / r["sigma_dn"])
-    out = _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_reference, stat, n_matchups,
-                   table, fit, scales, nearest_idx, channels, lam_eff, conv_w, outside, sky, predict, sun_zenith,
-                   masks, window)
+    return fit, glare, scales
+
+
+def _add_sun_and_pointing_variables(out: xr.Dataset, cfg, frames: pd.DataFrame, pointing: dict, sun: dict,
+                                    glare: dict | None) -> None:
+    """The artefact's sky gradient, mask pointing, sun and stray-light variables, added to ``out``."""
     out["sky_gradient"] = (("frame", "band"), np.stack([frames[f"gradient_{b}"].to_numpy(float) for b in BANDS], axis=1),
                            _attrs("|grad L| of a plane fitted to the radiance in and one pixel pitch around the mask "
                                   "(the sky's change per degree of pointing)", f"{RAD} degree-1"))
     out["mask_pointing_sigma"] = ("band", np.array([pointing[b] for b in BANDS]), _attrs(
         "pointing uncertainty of the mask: the bundle's theta_deg_sigma at the pixel nearest the axis; times "
         "sky_gradient it is in the match-up noise", "degree"))
-    out["sun_seen"] = ("frame", sun_seen.astype(np.int8),
+    out["sun_seen"] = ("frame", sun["seen"].astype(np.int8),
                        _attrs(f"1: the sun disc is seen (at least {cfg['sun_seen_min_pixels']} band pixels in the "
                               f"lens at {cfg['sun_seen_fraction_of_full_scale']:g} of the full scale or above)", "1"))
     out["lens_n_bright"] = ("frame", frames["lens_n_bright"].to_numpy(int), _attrs(
         f"band pixels in the lens, all bands, at {cfg['sun_seen_fraction_of_full_scale']:g} of the full scale or above",
         "1"))
-    out["sun_direct_band_irradiance"] = (("frame", "band"), sun_direct, _attrs(
+    out["sun_direct_band_irradiance"] = (("frame", "band"), sun["direct"], _attrs(
         "clear-sky direct-normal irradiance in the band (G173 top of atmosphere, Rayleigh and aerosol, Eq. 3)",
         "W m-2 nm-1"))
-    out["sun_glare_covariate"] = (("frame", "band"), glare_cov, _attrs(
+    out["sun_glare_covariate"] = (("frame", "band"), sun["glare"], _attrs(
         "stray_light covariate: band direct irradiance x sun seen x (Z_ref / Z)^q", "W m-2 nm-1"))
     if glare is not None:
         z_ref = float(cfg["stray_light_reference_angle_deg"])
@@ -809,9 +917,8 @@ def compute(ctx) -> xr.Dataset:
             f"fitted spread of the sun's direct irradiance into the mask at {z_ref:g} degree from the sun "
             "(glare radiance per unit irradiance)", "sr-1"))
         out["stray_light_glare_sr_sigma"] = ((), glare["se"], _attrs("standard error of stray_light_glare_sr", "sr-1"))
-        out["stray_light_mask_glare"] = (("frame", "band"), glare["coef"] * glare_cov,
+        out["stray_light_mask_glare"] = (("frame", "band"), glare["coef"] * sun["glare"],
                                          _attrs("fitted sun glare in the mask's mean radiance", RAD))
-    return out.merge(_scale_dataset(scale_table))
 
 
 def _scale_table(ctx, frames, table, fit, scales, valid, st, predict, channels, channel_mean, lam_eff, outside,
@@ -916,7 +1023,49 @@ def _attrs(long_name, units, **extra):
 
 def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_reference, stat, n_matchups, table, fit,
              scales, nearest_idx, channels, lam_eff, conv_w, outside, sky, predict, sun_zenith, masks, window):
+    """The field artefact: per frame the camera and reference values, per band and comparison the match-up
+    statistics, the clock profile, the middle frame's sky map and the observation table ``obs_frame``."""
     cfg = ctx.params
+    data = _frame_variables(frames, utc, t_cam, st, valid, sun_zenith)
+    data.update(_statistic_variables(cfg, stat))
+    comp_dims = ("band", "comparison")
+    data["n_matchups"] = (comp_dims, n_matchups, _attrs("number of match-ups", "1"))
+    data["n_frames_without_reference"] = ((), int(no_reference.sum()),
+                                          _attrs(f"frames with fewer than {cfg['min_reference_samples']} reference samples "
+                                                 f"in the {cfg['reference_window_s']:g} s window (not match-ups)", "1"))
+    data["effective_wavelength_nm"] = ("band", lam_eff, _attrs("effective wavelength of the band (bundle, Eq. 8)", "nm"))
+    data["nearest_channel_nm"] = ("band", np.array([channels[nearest_idx[b]] for b in BANDS]),
+                                  _attrs("reference channel nearest the effective wavelength", "nm"))
+    data["convolution_weight"] = (("band", "channel_nm"), np.stack([conv_w[b] for b in BANDS]),
+                                  _attrs("weight of each reference channel in the band-convolved reference", "1"))
+    data["response_outside_reference_fraction"] = ("band", np.array([outside[b] for b in BANDS]),
+                                                   _attrs("fraction of the measured response outside the channels' span "
+                                                          "(left out of the convolution)", "1"))
+    data["band_scale"] = ("band", scales, _attrs(f"fitted camera / reference scale k_b (reference: {predict})", "1"))
+    data["mask_half_angle_deg"] = ((), float(cfg["mask_half_angle_deg"]), _attrs("averaging mask around the axis", "degree"))
+    data["rms_z"] = ((), fit.rms_z, _attrs("RMS of the noise-normalised match-up residuals (1 at the noise floor)", "1"))
+    data["clock_offset_s"] = ((), float(shift), _attrs("camera clock minus UTC applied to the reference times "
+                                                      "(fitted with clock_offset in the model, 0 otherwise)", "s"))
+    coords = {"frame": np.arange(len(frames)), "band": list(BANDS), "comparison": list(COMPARISONS),
+              "channel_nm": ("channel_nm", channels, _attrs("reference channel centre wavelength", "nm"))}
+    if clock is not None:
+        _add_clock_profile(data, coords, clock, "clock_offset" in ctx.effects)
+    if sky is not None:
+        _add_sky_map(data, coords, sky, float(cfg["sky_map_grid_deg"]))
+    ds = xr.Dataset(data, coords=coords, attrs={
+        "title": "field match-up of the camera against a reference radiometer (Larouche et al. 2024, Section 2.9)",
+        "lens": ctx.lens, "medium": MEDIUM, "prediction": predict,
+        "reference_window_s": float(cfg["reference_window_s"]), "confidence_level": float(cfg["confidence_level"]),
+        "mask_window_px": f"rows {window[0].start}:{window[0].stop}, cols {window[1].start}:{window[1].stop}",
+        "interpolation": "reference channels as samples at their centre wavelengths, linear in wavelength; response "
+                         "wavelengths outside the channels' span left out",
+    })
+    return ds.merge(_obs_frame_dataset(table))
+
+
+def _frame_variables(frames, utc, t_cam, st, valid, sun_zenith) -> dict:
+    """The artefact's per-frame variables: times and settings, the camera's mask numbers per band, and the
+    reference's window numbers per band and comparison (``reference_<comparison>...``)."""
     fb = ("frame", "band")
 
     def per_band(key):
@@ -958,9 +1107,14 @@ def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_referen
         data[f"reference_{comp}_slope"] = (fb, ref(comp, "slope"),
                                            _attrs("d reference / dt from a line fitted to the window's samples",
                                                   "W sr-1 m-2 nm-1 s-1"))
-    comp_dims = ("band", "comparison")
+    return data
+
+
+def _statistic_variables(cfg, stat: dict) -> dict:
+    """The match-up statistics as ``stat_<name>`` variables (band, comparison) with their units and long names."""
     from pipeline.stats.matchup import STATISTIC_UNITS
 
+    data = {}
     for name, value in stat.items():
         base = name.rsplit("_", 1)[0] if name.endswith(("_low", "_high")) else name
         if base in STATISTIC_UNITS:
@@ -975,63 +1129,45 @@ def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_referen
             units = RAD if key.startswith("intercept") else "1"
             long = f"{'ordinary least squares' if fitname == 'ols' else 'errors-in-both (ODR)'} {key.replace('_', ' ')} " \
                    f"of camera against reference (intervals Student-t at {cfg['confidence_level']:g})"
-        data[f"stat_{name}"] = (comp_dims, value, _attrs(long, units))
-    data["n_matchups"] = (comp_dims, n_matchups, _attrs("number of match-ups", "1"))
-    data["n_frames_without_reference"] = ((), int(no_reference.sum()),
-                                          _attrs(f"frames with fewer than {cfg['min_reference_samples']} reference samples "
-                                                 f"in the {cfg['reference_window_s']:g} s window (not match-ups)", "1"))
-    data["effective_wavelength_nm"] = ("band", lam_eff, _attrs("effective wavelength of the band (bundle, Eq. 8)", "nm"))
-    data["nearest_channel_nm"] = ("band", np.array([channels[nearest_idx[b]] for b in BANDS]),
-                                  _attrs("reference channel nearest the effective wavelength", "nm"))
-    data["convolution_weight"] = (("band", "channel_nm"), np.stack([conv_w[b] for b in BANDS]),
-                                  _attrs("weight of each reference channel in the band-convolved reference", "1"))
-    data["response_outside_reference_fraction"] = ("band", np.array([outside[b] for b in BANDS]),
-                                                   _attrs("fraction of the measured response outside the channels' span "
-                                                          "(left out of the convolution)", "1"))
-    data["band_scale"] = ("band", scales, _attrs(f"fitted camera / reference scale k_b (reference: {predict})", "1"))
-    data["mask_half_angle_deg"] = ((), float(cfg["mask_half_angle_deg"]), _attrs("averaging mask around the axis", "degree"))
-    data["rms_z"] = ((), fit.rms_z, _attrs("RMS of the noise-normalised match-up residuals (1 at the noise floor)", "1"))
-    data["clock_offset_s"] = ((), float(shift), _attrs("camera clock minus UTC applied to the reference times "
-                                                      "(fitted with clock_offset in the model, 0 otherwise)", "s"))
-    coords = {"frame": np.arange(len(frames)), "band": list(BANDS), "comparison": list(COMPARISONS),
-              "channel_nm": ("channel_nm", channels, _attrs("reference channel centre wavelength", "nm"))}
-    if clock is not None:
-        applied = "clock_offset" in ctx.effects
-        if applied:
-            data["clock_offset_s_sigma"] = ((), clock["offset_se_s"],
-                                            _attrs("standard error of the fitted clock offset (chi-square curvature)",
-                                                   "s"))
-        data["clock_search_reduced_chi2"] = ("clock_search_s", clock["reduced_chi2"], _attrs(
-            "reduced chi-square of the base model against the clock offset"
-            + ("" if applied else " (the profile only: clock_offset is not in the model, no offset applied)"), "1"))
-        coords["clock_search_s"] = ("clock_search_s", clock["grid_s"], _attrs("trial camera clock offset", "s"))
-        for name, key, what in (("clock_profile_offset_s", "offset_s", "camera clock minus UTC at the profile's minimum"),
-                                ("clock_profile_offset_se_s", "offset_se_s", "standard error of the profile's offset "
-                                 "(chi-square curvature)"),
-                                ("clock_profile_offset_low_s", "offset_low_s", "lower bound of the profile's interval "
-                                 f"(chi-square rise chi2_1({clock['level']:g}) x reduced chi-square; NaN: not found)"),
-                                ("clock_profile_offset_high_s", "offset_high_s", "upper bound of the profile's interval "
-                                 f"(chi-square rise chi2_1({clock['level']:g}) x reduced chi-square; NaN: not found)")):
-            data[name] = ((), float(clock[key]), _attrs(
-                f"{what}; {'applied' if applied else 'not applied: clock_offset is not in the model'}", "s",
-                confidence_level=clock["level"]))
-    if sky is not None:
-        grid = float(cfg["sky_map_grid_deg"])
-        n_z, n_a = sky["mean"].shape[1:]
-        coords["zenith"] = ("zenith", (np.arange(n_z) + 0.5) * grid, _attrs("zenith angle of the cell centre", "degree"))
-        coords["azimuth"] = ("azimuth", (np.arange(n_a) + 0.5) * grid, _attrs("azimuth of the cell centre", "degree"))
-        data["sky_radiance"] = (("band", "zenith", "azimuth"), sky["mean"],
-                                _attrs("all-sky radiance of the middle frame: mean of the unflagged pixels in the cell", RAD,
-                                       frame_file=sky["file"]))
-        data["sky_count"] = (("band", "zenith", "azimuth"), sky["count"], _attrs("pixels binned into the cell", "1"))
-    ds = xr.Dataset(data, coords=coords, attrs={
-        "title": "field match-up of the camera against a reference radiometer (Larouche et al. 2024, Section 2.9)",
-        "lens": ctx.lens, "medium": MEDIUM, "prediction": predict,
-        "reference_window_s": float(cfg["reference_window_s"]), "confidence_level": float(cfg["confidence_level"]),
-        "mask_window_px": f"rows {window[0].start}:{window[0].stop}, cols {window[1].start}:{window[1].stop}",
-        "interpolation": "reference channels as samples at their centre wavelengths, linear in wavelength; response "
-                         "wavelengths outside the channels' span left out",
-    })
+        data[f"stat_{name}"] = (("band", "comparison"), value, _attrs(long, units))
+    return data
+
+
+def _add_clock_profile(data: dict, coords: dict, clock: dict, applied: bool) -> None:
+    """The clock offset's profile (chi-square curve, offset, its standard error and interval) into ``data`` and
+    ``coords``; ``applied``: clock_offset is in the model (the offset shifted the reference)."""
+    if applied:
+        data["clock_offset_s_sigma"] = ((), clock["offset_se_s"],
+                                        _attrs("standard error of the fitted clock offset (chi-square curvature)", "s"))
+    data["clock_search_reduced_chi2"] = ("clock_search_s", clock["reduced_chi2"], _attrs(
+        "reduced chi-square of the base model against the clock offset"
+        + ("" if applied else " (the profile only: clock_offset is not in the model, no offset applied)"), "1"))
+    coords["clock_search_s"] = ("clock_search_s", clock["grid_s"], _attrs("trial camera clock offset", "s"))
+    for name, key, what in (("clock_profile_offset_s", "offset_s", "camera clock minus UTC at the profile's minimum"),
+                            ("clock_profile_offset_se_s", "offset_se_s", "standard error of the profile's offset "
+                             "(chi-square curvature)"),
+                            ("clock_profile_offset_low_s", "offset_low_s", "lower bound of the profile's interval "
+                             f"(chi-square rise chi2_1({clock['level']:g}) x reduced chi-square; NaN: not found)"),
+                            ("clock_profile_offset_high_s", "offset_high_s", "upper bound of the profile's interval "
+                             f"(chi-square rise chi2_1({clock['level']:g}) x reduced chi-square; NaN: not found)")):
+        data[name] = ((), float(clock[key]), _attrs(
+            f"{what}; {'applied' if applied else 'not applied: clock_offset is not in the model'}", "s",
+            confidence_level=clock["level"]))
+
+
+def _add_sky_map(data: dict, coords: dict, sky: dict, grid_deg: float) -> None:
+    """The middle frame's all-sky map (zenith, azimuth cells of ``grid_deg``) into ``data`` and ``coords``."""
+    n_z, n_a = sky["mean"].shape[1:]
+    coords["zenith"] = ("zenith", (np.arange(n_z) + 0.5) * grid_deg, _attrs("zenith angle of the cell centre", "degree"))
+    coords["azimuth"] = ("azimuth", (np.arange(n_a) + 0.5) * grid_deg, _attrs("azimuth of the cell centre", "degree"))
+    data["sky_radiance"] = (("band", "zenith", "azimuth"), sky["mean"],
+                            _attrs("all-sky radiance of the middle frame: mean of the unflagged pixels in the cell", RAD,
+                                   frame_file=sky["file"]))
+    data["sky_count"] = (("band", "zenith", "azimuth"), sky["count"], _attrs("pixels binned into the cell", "1"))
+
+
+def _obs_frame_dataset(table: pd.DataFrame) -> xr.Dataset:
+    """The observation table as ``obs_frame__<column>`` variables with units and long names."""
     obs = table_to_dataset(table, "obs_frame")
     units = {"value_dn": RAD, "sigma_dn": RAD, "x_scale": RAD, "pred_dn": RAD, "ref_nearest": RAD, "ref_convolved": RAD,
              "dref_dt": "W sr-1 m-2 nm-1 s-1", "spectral_slope": "1", "sun_zenith_deg": "degree", "time_s": "s",
@@ -1045,4 +1181,4 @@ def _dataset(ctx, frames, utc, t_cam, shift, clock, st, y, sy, valid, no_referen
             obs[f"obs_frame__{col}"].attrs["long_name"] = f"match-up table: {CLOCK_PROFILE_LONG_NAMES[col]}"
     for col in ("group", "band"):
         obs[f"obs_frame__{col}"].attrs.update(long_name=f"match-up table: {col}")
-    return ds.merge(obs)
+    return obs

@@ -21,8 +21,30 @@ from pipeline.report.sections._common import per_lens, z_guides  # noqa: E402
 
 
 def _dark_section(lens: str, ds: xr.Dataset, inputs) -> list:
+    """The dark section of one lens: the histograms, the centre and width against exposure and ISO with the
+    fitted model, the fitted parameters and read noise, the fixed-pattern map and the residuals."""
     out = []
     bands = band_list(ds)
+    series = _setting_series(ds)
+    if "dark_histogram" in ds:
+        out.append(_histogram_figure(lens, ds, bands, series))
+    out.append(_centre_width_figure(lens, ds, bands, series))
+    out.extend(_parameter_tables(ds, bands))
+    if "fpn_map_dn" in ds:
+        out.append(_fpn_figure(lens, ds, bands))
+    tab = dataset_to_table(ds, "obs_setting")
+    if len(tab) and "z" in tab:
+        out.append(_residuals_figure(lens, tab, bands))
+    return out
+
+
+def _setting_series(ds: xr.Dataset) -> dict:
+    """The two series of settings the figures show.
+
+    Returns a dict: ``iso``, ``exposure_s`` (per setting), ``iso_min`` and ``low`` (the settings at the lowest
+    ISO, by exposure), ``t_iso`` and ``at_t`` (the settings at the exposure time closest to 1 s that has more
+    than one ISO, by ISO).
+    """
     iso_s = ds["setting_iso"].values
     exp_s = ds["setting_exposure_s"].values
     iso_min = float(np.min(iso_s))
@@ -34,36 +56,43 @@ def _dark_section(lens: str, ds: xr.Dataset, inputs) -> list:
     t_iso = float(multi[np.argmin(np.abs(np.log(multi / 1.0)))])
     at_t = np.where(exp_s == t_iso)[0]
     at_t = at_t[np.argsort(iso_s[at_t])]
+    return {"iso": iso_s, "exposure_s": exp_s, "iso_min": iso_min, "low": low, "t_iso": t_iso, "at_t": at_t}
 
-    # histograms (Fig. 9a-b analogue)
-    if "dark_histogram" in ds:
-        centres = ds["hist_bin_centre_dn"].values if "hist_bin_centre_dn" in ds else np.arange(ds.sizes["hist_bin"])
-        fig, axes = plt.subplots(len(bands), 2, figsize=(11, 2.6 * len(bands)), squeeze=False)
-        for i, b in enumerate(bands):
-            for j, (idx, lab) in enumerate(((low, "exposure"), (at_t, "iso"))):
-                ax = axes[i, j]
-                colours = sequence(len(idx))
-                for k, s in enumerate(idx):
-                    h = ds["dark_histogram"].sel(band=b).isel(setting=int(s)).values
-                    txt = (f"{exp_s[s] * 1e3:.4g} ms" if lab == "exposure" else f"ISO {iso_s[s]:.0f}")
-                    ax.step(centres, h, where="mid", color=colours[k], lw=1, label=txt)
-                nz = np.nonzero(ds["dark_histogram"].sel(band=b).isel(setting=list(map(int, idx))).sum("setting").values)[0]
-                if len(nz):
-                    ax.set_xlim(centres[max(nz[0] - 3, 0)], centres[min(nz[-1] + 3, len(centres) - 1)])
-                ax.set_yscale("log")
-                ax.set_xlabel("frame-averaged dark level [DN]")
-                ax.set_ylabel("pixels [count]")
-                ttl = (f"{b} band, ISO {iso_min:.0f}, per exposure" if lab == "exposure"
-                       else f"{b} band, {t_iso:.4g} s, per ISO")
-                ax.set_title(ttl, fontsize=9)
-                ax.legend(fontsize=6, ncol=2)
-        fig.tight_layout()
-        out.append(draw(fig, f"dark_{lens}_histograms",
-                              f"Lens {lens}: histograms of the frame-averaged dark image "
-                              f"(left: each exposure time at the lowest ISO, {iso_min:.0f}; right: each ISO at "
-                              f"{t_iso:.4g} s). Analogue of Larouche et al. (2024) Fig. 9a–b."))
 
-    # centre and width vs exposure and ISO, with the fitted model
+def _histogram_figure(lens: str, ds: xr.Dataset, bands: list[str], series: dict):
+    """Histograms of the frame-averaged dark image per exposure at the lowest ISO and per ISO (Fig. 9a-b)."""
+    iso_s, exp_s, iso_min, t_iso = series["iso"], series["exposure_s"], series["iso_min"], series["t_iso"]
+    centres = ds["hist_bin_centre_dn"].values if "hist_bin_centre_dn" in ds else np.arange(ds.sizes["hist_bin"])
+    fig, axes = plt.subplots(len(bands), 2, figsize=(11, 2.6 * len(bands)), squeeze=False)
+    for i, b in enumerate(bands):
+        for j, (idx, lab) in enumerate(((series["low"], "exposure"), (series["at_t"], "iso"))):
+            ax = axes[i, j]
+            colours = sequence(len(idx))
+            for k, s in enumerate(idx):
+                h = ds["dark_histogram"].sel(band=b).isel(setting=int(s)).values
+                txt = (f"{exp_s[s] * 1e3:.4g} ms" if lab == "exposure" else f"ISO {iso_s[s]:.0f}")
+                ax.step(centres, h, where="mid", color=colours[k], lw=1, label=txt)
+            nz = np.nonzero(ds["dark_histogram"].sel(band=b).isel(setting=list(map(int, idx))).sum("setting").values)[0]
+            if len(nz):
+                ax.set_xlim(centres[max(nz[0] - 3, 0)], centres[min(nz[-1] + 3, len(centres) - 1)])
+            ax.set_yscale("log")
+            ax.set_xlabel("frame-averaged dark level [DN]")
+            ax.set_ylabel("pixels [count]")
+            ttl = (f"{b} band, ISO {iso_min:.0f}, per exposure" if lab == "exposure"
+                   else f"{b} band, {t_iso:.4g} s, per ISO")
+            ax.set_title(ttl, fontsize=9)
+            ax.legend(fontsize=6, ncol=2)
+    fig.tight_layout()
+    return draw(fig, f"dark_{lens}_histograms",
+                f"Lens {lens}: histograms of the frame-averaged dark image "
+                f"(left: each exposure time at the lowest ISO, {iso_min:.0f}; right: each ISO at "
+                f"{t_iso:.4g} s). Analogue of Larouche et al. (2024) Fig. 9a–b.")
+
+
+def _centre_width_figure(lens: str, ds: xr.Dataset, bands: list[str], series: dict):
+    """Centre and width of the dark image against exposure time and ISO, with the fitted model (Fig. 9c)."""
+    iso_s, exp_s, iso_min, t_iso = series["iso"], series["exposure_s"], series["iso_min"], series["t_iso"]
+    low, at_t = series["low"], series["at_t"]
     fig, axes = plt.subplots(2, 2, figsize=(11, 6.5))
     for b in bands:
         c = BAND_COLOURS.get(b, None)
@@ -92,12 +121,16 @@ def _dark_section(lens: str, ds: xr.Dataset, inputs) -> list:
     for ax in axes.ravel():
         ax.legend(fontsize=6, ncol=2)
     fig.tight_layout()
-    out.append(draw(fig, f"dark_{lens}_centre_width",
-                          f"Lens {lens}: centre (top) and spatial width (bottom) of the frame-averaged "
-                          "dark image against exposure time (left) and ISO (right); lines are the fitted "
-                          "dark model b0 + b1·(ISO/100 − 1) + D·(ISO/100)·t. Analogue of Fig. 9c."))
+    return draw(fig, f"dark_{lens}_centre_width",
+                f"Lens {lens}: centre (top) and spatial width (bottom) of the frame-averaged "
+                "dark image against exposure time (left) and ISO (right); lines are the fitted "
+                "dark model b0 + b1·(ISO/100 − 1) + D·(ISO/100)·t. Analogue of Fig. 9c.")
 
-    # fitted parameters
+
+def _parameter_tables(ds: xr.Dataset, bands: list[str]) -> list:
+    """The fitted dark model per band, the lens's scalar results (dark current, bias drift, reference, rms z,
+    DSNU1288) and the read noise per ISO."""
+    out = []
     rows = []
     for b in bands:
         rows.append([b, quantity(ds, "bias_dn", band=b), quantity(ds, "bias_per_gain_dn", band=b),
@@ -126,51 +159,50 @@ def _dark_section(lens: str, ds: xr.Dataset, inputs) -> list:
         out.append(Text(f"Read noise (temporal noise of one raw pixel at the shortest exposure) per ISO, "
                    f"in {u}:"))
         out.append(Table(["band"] + [f"ISO {i:.0f}" for i in isos], rows))
-
-    # FPN map and hot pixels
-    if "fpn_map_dn" in ds:
-        fig, axes = plt.subplots(1, len(bands), figsize=(3.6 * len(bands), 3.3), squeeze=False)
-        for ax, b in zip(axes[0], bands):
-            m = ds["fpn_map_dn"].sel(band=b).values
-            lim = np.nanpercentile(np.abs(m), 99) or 1.0
-            im = ax.imshow(m, cmap=DIVERGING_MAP, vmin=-lim, vmax=lim, origin="upper")
-            if "hot_pixel_mask" in ds:
-                yy, xx = np.nonzero(ds["hot_pixel_mask"].sel(band=b).values)
-                ax.plot(xx, yy, "o", mfc="none", mec="k", ms=6, label=f"hot ({len(xx)})")
-                ax.legend(fontsize=6, loc="lower right")
-            ax.set_title(f"{b} band", fontsize=9)
-            fig.colorbar(im, ax=ax, shrink=0.8, label=f"offset FPN [{var_units(ds, 'fpn_map_dn')}]")
-        fig.tight_layout()
-        out.append(draw(fig, f"dark_{lens}_fpn",
-                              f"Lens {lens}: offset fixed-pattern map at the shortest exposure and lowest "
-                              "ISO (mean removed); circles mark the flagged hot pixels."))
-
-    # residuals
-    tab = dataset_to_table(ds, "obs_setting")
-    if len(tab) and "z" in tab:
-        fig, ax = plt.subplots(figsize=(8, 3.8))
-        isos = np.unique(tab["iso"])
-        colours = sequence(len(isos))
-        markers = {"R": "^", "G": "o", "B": "s"}
-        for k, i in enumerate(isos):
-            for b in bands:
-                sub = tab[(tab["iso"] == i) & (tab["band"] == b)]
-                if len(sub):
-                    ax.plot(sub["exposure_s"], sub["z"], markers.get(b, "o"), color=colours[k], ms=5,
-                            label=f"ISO {i:.0f}" if b == bands[0] else None)
-        z_guides(ax)
-        ax.set_xscale("log")
-        ax.set_xlabel("exposure time [s]")
-        ax.set_ylabel("residual z (data − model)/σ [1]")
-        ax.legend(fontsize=6, ncol=3, title="▲R ●G ■B", title_fontsize=7)
-        fig.tight_layout()
-        out.append(draw(fig, f"dark_{lens}_residuals",
-                              f"Lens {lens}: setting-level residuals of the dark model, normalised by their "
-                              "uncertainty, against exposure time. Dotted: ±1, dashed: ±3. A trend with "
-                              "exposure time points to an unmodelled effect."))
     return out
 
 
+def _fpn_figure(lens: str, ds: xr.Dataset, bands: list[str]):
+    """The offset fixed-pattern map per band with the flagged hot pixels circled."""
+    fig, axes = plt.subplots(1, len(bands), figsize=(3.6 * len(bands), 3.3), squeeze=False)
+    for ax, b in zip(axes[0], bands):
+        m = ds["fpn_map_dn"].sel(band=b).values
+        lim = np.nanpercentile(np.abs(m), 99) or 1.0
+        im = ax.imshow(m, cmap=DIVERGING_MAP, vmin=-lim, vmax=lim, origin="upper")
+        if "hot_pixel_mask" in ds:
+            yy, xx = np.nonzero(ds["hot_pixel_mask"].sel(band=b).values)
+            ax.plot(xx, yy, "o", mfc="none", mec="k", ms=6, label=f"hot ({len(xx)})")
+            ax.legend(fontsize=6, loc="lower right")
+        ax.set_title(f"{b} band", fontsize=9)
+        fig.colorbar(im, ax=ax, shrink=0.8, label=f"offset FPN [{var_units(ds, 'fpn_map_dn')}]")
+    fig.tight_layout()
+    return draw(fig, f"dark_{lens}_fpn",
+                f"Lens {lens}: offset fixed-pattern map at the shortest exposure and lowest "
+                "ISO (mean removed); circles mark the flagged hot pixels.")
+
+
+def _residuals_figure(lens: str, tab, bands: list[str]):
+    """The setting-level residuals z of the dark model against exposure time, coloured by ISO."""
+    fig, ax = plt.subplots(figsize=(8, 3.8))
+    isos = np.unique(tab["iso"])
+    colours = sequence(len(isos))
+    markers = {"R": "^", "G": "o", "B": "s"}
+    for k, i in enumerate(isos):
+        for b in bands:
+            sub = tab[(tab["iso"] == i) & (tab["band"] == b)]
+            if len(sub):
+                ax.plot(sub["exposure_s"], sub["z"], markers.get(b, "o"), color=colours[k], ms=5,
+                        label=f"ISO {i:.0f}" if b == bands[0] else None)
+    z_guides(ax)
+    ax.set_xscale("log")
+    ax.set_xlabel("exposure time [s]")
+    ax.set_ylabel("residual z (data − model)/σ [1]")
+    ax.legend(fontsize=6, ncol=3, title="▲R ●G ■B", title_fontsize=7)
+    fig.tight_layout()
+    return draw(fig, f"dark_{lens}_residuals",
+                f"Lens {lens}: setting-level residuals of the dark model, normalised by their "
+                "uncertainty, against exposure time. Dotted: ±1, dashed: ±3. A trend with "
+                "exposure time points to an unmodelled effect.")
 
 
 @section("dark", "Dark frames", order=20,
