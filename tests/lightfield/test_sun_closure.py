@@ -157,12 +157,12 @@ def test_heading_fitted_from_the_sun_within_its_uncertainty(level, model):
             assert fit["dof"] == 1 and fit["chi2"] <= chi2.ppf(0.999, 1)    # the level assumption checked
 
 
-def test_command_writes_the_closure_and_the_fitted_attitude(level, tmp_path):
+def test_command_writes_the_closure_and_the_fitted_attitude(calibrated, level, tmp_path):
     case = level[0]
     info = case["info"]
     site = ",".join(f"{v:.6f}" for v in case["site"])
     files = [str(p) for p in info["files"]]
-    common = ["lightfield", "--calibration", str(pytest.bundle_path), "--frames", str(info["frames_csv"]),
+    common = ["lightfield", "--calibration", str(calibrated[4]), "--frames", str(info["frames_csv"]),
               "--grid-deg", "18", "--site", site, *files]
     assert main([*common, "--attitude", str(info["attitude_log"]), "-o", str(tmp_path / "log.nc")]) == 0
     with xr.open_dataset(tmp_path / "log.nc") as ds:
@@ -177,14 +177,9 @@ def test_command_writes_the_closure_and_the_fitted_attitude(level, tmp_path):
         assert "fitted from the sun" in ds.attrs["attitude"]
 
 
-@pytest.fixture(autouse=True)
-def _bundle(calibrated):
-    pytest.bundle_path = calibrated[4]
-
-
-def test_attitude_from_sun_without_a_site_is_one_line(level, tmp_path, capsys):
+def test_attitude_from_sun_without_a_site_is_one_line(calibrated, level, tmp_path, capsys):
     info = level[0]["info"]
-    args = ["lightfield", "--calibration", str(pytest.bundle_path), "--frames", str(info["frames_csv"]),
+    args = ["lightfield", "--calibration", str(calibrated[4]), "--frames", str(info["frames_csv"]),
             "--attitude-from-sun", "heading", *map(str, info["files"]), "-o", str(tmp_path / "x.nc")]
     assert main(args) == 1
     err = capsys.readouterr().err.strip().splitlines()
