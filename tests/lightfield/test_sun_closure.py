@@ -7,10 +7,13 @@ attitude, and an attitude log whose noise is stated. Only the shortest
 exposures are rendered: the centroid uses the shortest alone.
 
 - Closure over 8 seeds (site, time, roll and pitch up to 8 degrees, any
-  heading; log noise 0.2, 0.2, 1.0 degree): the 16 residual components over
-  their stated sigma have a spread within the 99 % interval of a unit normal's
-  for 16 values, sqrt(chi2_16 quantiles / 16) = 0.57 to 1.46 (measured 0.75),
-  and a mean within 3 / sqrt(16).
+  heading; log noise 0.2, 0.2, 1.0 degree): every frame's chi^2 (2 dof)
+  below its 0.999 quantile; the 16 residual components over their stated
+  sigma with a spread within the 99 % interval of a unit normal's for 16
+  values, sqrt(chi2_16 quantiles / 16) = 0.57 to 1.46 (measured 0.75), and a
+  mean within 3 / sqrt(16). The geometry's stated theta sigma (about 0.9
+  degree at the sun) is the largest term and is conservative here: over 24
+  other seeds the spread is 0.67.
 - A log whose heading is 5 degrees off (a good compass, stated sigma 0.3
   degree), at the seed whose sun is lowest: the horizontal component beyond
   3 sigma and naming the attitude's heading (its expected z, 5 sin Z / sigma,
@@ -117,11 +120,14 @@ def test_the_simulated_sun_is_where_pvlib_puts_it(tilted):
 
 
 def test_closure_within_its_stated_uncertainty_over_seeds(tilted):
+    """Every frame's chi^2 (2 dof) below its 0.999 quantile; the 16 components over their stated sigma with a
+    spread within the 99 % interval of a unit normal's for 16 values and a mean within 3 / sqrt(16)."""
     z = []
     for case in tilted:
         att = attitude_at(read_attitude(case["info"]["attitude_log"]),
                           pd.DatetimeIndex([pd.Timestamp(case["start"], tz="UTC")]))[0]
         res = sun_closure(case["centroid"], att, *case["solar"], Z_LIMIT)
+        assert res["chi2"] <= chi2.ppf(0.999, 2), (case["seed"], res)
         z += [res["z_zenith"], res["z_horizontal"]]
     z = np.array(z)
     lo, hi = np.sqrt(chi2.ppf([0.005, 0.995], z.size) / z.size)

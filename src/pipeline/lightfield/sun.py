@@ -32,7 +32,10 @@ components in the plane tangent at the solar direction: along the zenith
 angle and horizontal (the azimuth difference times sin of the zenith angle);
 its covariance adds the attitude's (roll, pitch and heading sigmas through
 the numerical derivative of the earth direction of c) to the centroid's and
-geometry's turned into that plane. Reported: the angle, its sigma along the
+geometry's turned into that plane. The geometry's deviation is one draw for
+all frames of a camera at the sun's field angle: over many frames it shows
+as a common offset, not as spread; the residual and the frame-to-frame
+covariance are therefore also given in the camera's tangent plane. Reported: the angle, its sigma along the
 residual's direction, chi^2 on 2 degrees of freedom and its p value, and per
 component the residual over its sigma; a component beyond
 ``lightfield.sun_closure_z`` names its cause: the horizontal one the
@@ -223,6 +226,10 @@ def sun_closure(centroid: SunCentroid, att: Attitude, solar_zenith_deg: float, s
         "p_value": float(chi2_dist.sf(chi2, 2)), "z_zenith": float(z[0]), "z_horizontal": float(z[1]),
         "attitude_sigma_deg": float(np.sqrt(u @ c_att @ u)), "measurement_sigma_deg": float(np.sqrt(u @ c_meas @ u)),
         "named": ", ".join(named),
+        # in the camera's tangent plane at c: the residual and the covariance of the terms that differ from frame
+        # to frame (centroid, attitude), apart from the geometry's, which is the same in frames of one camera
+        "residual_camera_deg": np.linalg.solve(m, r),
+        "frame_cov_camera_deg2": centroid.centroid_cov_deg2 + np.linalg.solve(m, np.linalg.solve(m, c_att).T),
     }
 
 
