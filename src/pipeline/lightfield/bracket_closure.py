@@ -57,6 +57,9 @@ def _proxy(maps: list[ExposureMaps], usable: np.ndarray, skip: tuple[int, int]) 
         num = num + w * np.where(ok, m.radiance, 0.0)
         den = den + w
         den2 = den2 + w ** 2 * np.where(ok, m.random_sigma, 0.0) ** 2
+    if np.ndim(den) == 0:                       # a bracket of two exposures: no other exposure measures the pair
+        nan = np.full(np.shape(maps[0].radiance), np.nan)
+        return nan, nan.copy()
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(den > 0, num / den, np.nan), np.where(den > 0, np.sqrt(den2) / den, np.nan)
 

@@ -42,6 +42,7 @@ from pipeline.lightfield.attitude import (LEVEL, attitude_at, earth_to_camera_di
 from pipeline.lightfield.fill import fill_between_lenses
 from pipeline.lightfield.grid import RADIANCE_UNITS, read_sphere_grids
 from pipeline.lightfield.quadrature import GridEdges, cell_centre_directions
+from pipeline.lightfield.sun_output import bracket_sun_centroids, sun_attitudes, sun_dataset
 from pipeline.lightfield.quantities import COMPONENTS, INTEGRALS, QUANTITIES, WeightCache, light_field_quantities
 
 __all__ = ["compute_light_field", "light_field_of_grids", "light_field_from_raw", "light_field_from_brackets",
@@ -106,7 +107,8 @@ def compute_light_field(grid_paths, medium: str | None = None, attitude_path=Non
 
 
 def light_field_of_grids(grids, attitude_path=None, site=None, camera_utc_offset_h: float = 0.0, cfg: dict | None = None,
-                         exposure_systematic=None, lower_bound=None, extra_maps: dict | None = None) -> xr.Dataset:
+                         exposure_systematic=None, lower_bound=None, extra_maps: dict | None = None,
+                         attitudes=None) -> xr.Dataset:
     """:func:`compute_light_field` on grids already read (:class:`~pipeline.lightfield.grid.SphereGrids`).
 
     ``exposure_systematic`` (frame, band, exposure, zenith, azimuth): systematic sigmas each common to the
@@ -123,7 +125,9 @@ def light_field_of_grids(grids, attitude_path=None, site=None, camera_utc_offset
     times = None
     if attitude_path is not None or site is not None:
         times = _frame_times_utc(grids, camera_utc_offset_h, "an attitude log" if attitude_path else "a site")
-    if attitude_path is not None:
+    if attitudes is not None:
+        attitudes = list(attitudes)
+    elif attitude_path is not None:
         attitudes = attitude_at(read_attitude(attitude_path), times, grids.frame_names)
     else:
         attitudes = [LEVEL] * n_f
@@ -317,14 +321,21 @@ def _full_scale_dn(bundle, lenses) -> np.ndarray:
 
 def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium: str | None = None,
                               attitude_path=None, site=None, camera_utc_offset_h: float = 0.0,
-                              grid_deg: float | None = None, config: dict | None = None) -> xr.Dataset:
+                              grid_deg: float | None = None, config: dict | None = None,
+                              attitude_from_sun: str | None = None) -> xr.Dataset:
     """The light field of exposure brackets of raw frames (:mod:`pipeline.lightfield.hdr`): the frames
     grouped by ``frames_table`` (CSV: file, bracket) or by ``lightfield.bracket_window_s``, each bracket
     merged per pixel through the chain at each frame's exposure, binned onto the sphere grid and
     integrated (one output frame per bracket); the bracket-consistency closure
     (:mod:`pipeline.lightfield.bracket_closure`) as the ``obs_bracket`` table with its residual test and
-    the ranking of the effects the model lacks. ``config`` the whole configuration (default: the schema's).
+    the ranking of the effects the model lacks. With ``site``: the sun's centroid in each bracket's shortest
+    exposure against the solar position (:mod:`pipeline.lightfield.sun`, the ``sun_*`` variables and the
+    ``obs_sun`` table); ``attitude_from_sun`` (``heading`` or ``heading_tilt``, no log) fits the attitude from
+    it. ``config`` the whole configuration (default: the schema's).
     """
+    if attitude_from_sun is not None and (site is None or attitude_path is not None):
+        raise InputError(None, "--attitude-from-sun needs --site (the solar position at the frames' times) and "
+                               "no --attitude log")
     full = config if config is not None else defaults()
     cfg = full["lightfield"]
     grid_deg = float(grid_deg if grid_deg is not None else full["apply"]["grid_deg"])
@@ -399,7 +410,44 @@ def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium:
             RADIANCE_UNITS)),
         "hdr_pixel_count": (stack("count").astype(float), _attrs("band pixels merged into the cell", "1")),
     }
-    ds = light_field_of_grids(grids, attitude_path, site, camera_utc_offset_h, cfg, exposure, flag > 0, extra)
+    sun = None
+    attitudes = None
+    if site is not None:
+        centroids = bracket_sun_centroids(raws, brackets, bundle, chains, lenses, medium, effects, zenith_lens,
+                                          full_scale)
+        times = _frame_times_utc(grids, camera_utc_offset_h, "a site")
+        solar = list(zip(*solar_position(times, *site)))
+        logged = (attitude_at(read_attitude(attitude_path), times, grids.frame_names) if attitude_path is not None
+                  else [LEVEL] * len(brackets))
+        attitudes, fits = sun_attitudes(centroids, logged, solar, attitude_from_sun, grids.frame_names)
+        sun = sun_dataset(centroids, attitudes, solar, grids.frame_names, float(cfg["sun_closure_z"]), fits)
+    ds = light_field_of_grids(grids, attitude_path, site, camera_utc_offset_h, cfg, exposure, flag > 0, extra,
+                              attitudes)
+    if sun is not None:
+        ds = ds.merge(sun)
+        source = (f"fitted from the sun ({attitude_from_sun})" if attitude_from_sun else
+                  f"the log {attitude_path}" if attitude_path else "none: level, heading 0 assumed")
+        ds.attrs["attitude_source"] = source
+        found = int(np.sum(ds["sun_core_pixels"].values > 0))
+        if attitude_from_sun:
+            ds.attrs["attitude"] = (f"fitted from the sun's centroid against the solar position ({attitude_from_sun}: "
+                                    + ("roll and pitch 0 assumed, heading fitted" if attitude_from_sun == "heading"
+                                       else "heading and the tilt towards the sun fitted, the tilt across it 0 "
+                                            "assumed") + "); the grid rotated into the earth frame")
+            ds["azimuth"].attrs["long_name"] = "earth-frame azimuth of the cell centre, from north towards east"
+            ds.attrs["sun_fit_dof"] = 1 if attitude_from_sun == "heading" else 0
+            ds.attrs["sun_closure"] = (f"attitude fitted from the sun ({attitude_from_sun}, {ds.attrs['sun_fit_dof']} "
+                                       "degree(s) of freedom left): the closure checks only what the fit leaves")
+        else:
+            worst = ds["sun_z"].values[np.isfinite(ds["sun_z"].values)]
+            named = sorted({x for x in ds["sun_closure_named"].values if x})
+            ds.attrs["sun_closure"] = (
+                f"sun found in {found} of {len(brackets)} bracket(s); attitude {source}; largest angle over its "
+                f"sigma {float(worst.max()) if worst.size else float('nan'):.2f}"
+                + (f"; beyond {float(cfg['sun_closure_z']):g} sigma, naming: {'; '.join(named)}" if named else
+                   "; every component within its uncertainty"))
+    else:
+        ds.attrs["sun_closure"] = "no --site: the solar position is unknown, the sun closure not tested"
     ds["hdr_dynamic_range_decades"] = (("frame", "band"), np.array(dr), _attrs(
         "decades between the brightest unsaturated sphere cell and the faintest above its limit of detection "
         f"(radiance >= {snr:g} random sigma)", "1"))
@@ -486,6 +534,9 @@ def add_lightfield_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--hdr", action="store_true",
                    help="with --calibration: merge exposure brackets grouped by time (lightfield.bracket_window_s) "
                         "when no --frames table is given")
+    p.add_argument("--attitude-from-sun", choices=("heading", "heading_tilt"), default=None,
+                   help="with --frames/--hdr and --site, no --attitude: fit the attitude from the sun's centroid "
+                        "(heading: the horizon level assumed; heading_tilt: also the tilt towards the sun)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
     return p
 
@@ -501,7 +552,11 @@ def lightfield_command(args) -> int:
             raise InputError(None, "--frames and --hdr merge raw frames: they need --calibration")
         if args.frames is not None or args.hdr:
             ds = light_field_from_brackets(args.calibration, args.grids, args.frames, args.medium, args.attitude,
-                                           args.site, args.camera_utc_offset_h, args.grid_deg)
+                                           args.site, args.camera_utc_offset_h, args.grid_deg,
+                                           attitude_from_sun=args.attitude_from_sun)
+        elif args.attitude_from_sun is not None:
+            raise InputError(None, "--attitude-from-sun fits the sun in exposure brackets: it needs --calibration "
+                                   "and --frames or --hdr")
         elif args.calibration is not None:
             ds = light_field_from_raw(args.calibration, args.grids, args.medium, args.attitude, args.site,
                                       args.camera_utc_offset_h, args.grid_deg)

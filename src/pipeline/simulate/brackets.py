@@ -28,13 +28,15 @@ mosaic (R and B their site, G the mean of its two sites).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from datetime import datetime, timedelta
 from pathlib import Path
 
 import numpy as np
 import xarray as xr
+import pandas as pd
 import yaml
+from scipy.spatial.transform import Rotation
 
 from pipeline.io.bands import BANDS
 from pipeline.io.rawio import write_dng
@@ -44,7 +46,12 @@ from pipeline.simulate.plan import FrameSpec
 from pipeline.simulate.render import Renderer
 from pipeline.simulate.sky import CIE_SKY_TYPES, angle_from_sun_deg, cie_relative_radiance
 
-__all__ = ["BracketScene", "BRACKET_EXPOSURES_S", "render_bracket", "truth_band_images"]
+__all__ = ["BracketScene", "BRACKET_EXPOSURES_S", "render_bracket", "truth_band_images", "sun_at_site",
+           "write_attitude_log", "ATTITUDE_LOG_SIGMA_DEG"]
+
+#: the simulated attitude log's noise (roll, pitch, heading; degree): each sample is the true attitude plus
+#: independent normal noise of these standard deviations, which the log states as its sigmas
+ATTITUDE_LOG_SIGMA_DEG = (0.2, 0.2, 1.0)
 
 #: the default bracket: 1/4000 s to 1 s in steps of about four (seven exposures, 3.6 decades of exposure)
 BRACKET_EXPOSURES_S = (1 / 4000, 1 / 1000, 1 / 250, 1 / 60, 1 / 15, 1 / 4, 1.0)
@@ -62,6 +69,9 @@ class BracketScene:
     horizon_ratio: float = 0.1
     ground_ratio: float = 2e-5
     cie_type: int = 12
+    #: the camera's true attitude (roll, pitch, heading; degree): camera directions are rotated into the
+    #: earth frame (north, east, down) by Rz(heading) Ry(pitch) Rx(roll) before the scene is looked up
+    attitude_deg: tuple = (0.0, 0.0, 0.0)
 
     def radiance(self, zenith_deg, azimuth_deg, band_index) -> np.ndarray:
         """Effective band radiance of the directions (arrays of one shape; ``band_index`` 0 R, 1 G, 2 B)."""
@@ -81,8 +91,22 @@ class BracketScene:
         """The renderer's scene callback: per raw site of ``lens``."""
         theta, phi = geometry.theta_deg, geometry.phi_deg
         if lens == "close":
-            return self.radiance(theta, phi % 360.0, band_index)
-        return self.radiance(180.0 - theta, (-phi) % 360.0, band_index)
+            z, a = theta, phi % 360.0
+        else:
+            z, a = 180.0 - theta, (-phi) % 360.0
+        return self.radiance(*self.earth_direction(z, a), band_index)
+
+    def earth_direction(self, zenith_deg, azimuth_deg):
+        """Earth-frame zenith angle and azimuth (deg, from north towards east) of camera directions."""
+        if not any(self.attitude_deg):
+            return zenith_deg, azimuth_deg
+        z, a = np.radians(np.asarray(zenith_deg, float)), np.radians(np.asarray(azimuth_deg, float))
+        ned = np.stack([np.sin(z) * np.cos(a), np.sin(z) * np.sin(a), -np.cos(z)], axis=-1)
+        roll, pitch, heading = self.attitude_deg
+        e = Rotation.from_euler("ZYX", [heading, pitch, roll], degrees=True).apply(ned.reshape(-1, 3))
+        e = e.reshape(ned.shape)
+        return (np.degrees(np.arccos(np.clip(-e[..., 2], -1.0, 1.0))),
+                np.degrees(np.arctan2(e[..., 1], e[..., 0])) % 360.0)
 
 
 def truth_band_images(renderer: Renderer, scene: BracketScene, lens: str, medium: str = "air") -> np.ndarray:
@@ -93,11 +117,48 @@ def truth_band_images(renderer: Renderer, scene: BracketScene, lens: str, medium
     return np.stack([sites[0::2, 0::2], 0.5 * (sites[0::2, 1::2] + sites[1::2, 0::2]), sites[1::2, 1::2]])
 
 
+def sun_at_site(site, when: datetime) -> tuple[float, float]:
+    """The sun's apparent zenith angle and azimuth (deg, from north towards east) at ``site`` (lat, lon[, alt_m])
+    and the UTC time ``when`` (pvlib's solar position, as the scene's truth)."""
+    from pvlib.solarposition import get_solarposition
+
+    pos = get_solarposition(pd.DatetimeIndex([pd.Timestamp(when, tz="UTC")]), site[0], site[1],
+                            altitude=site[2] if len(site) > 2 else 0.0)
+    return float(pos["apparent_zenith"].iloc[0]), float(pos["azimuth"].iloc[0])
+
+
+def write_attitude_log(path, attitude_deg, start: datetime, seconds: float, *, seed: int,
+                       sigma_deg=ATTITUDE_LOG_SIGMA_DEG, heading_bias_deg: float = 0.0) -> Path:
+    """An attitude log (the pipeline's CSV format) of a still camera: one sample a second from two seconds
+    before ``start`` to two after ``start + seconds`` (a sample at ``start`` itself), each the true attitude
+    plus normal noise of ``sigma_deg``, stated as the sigmas; ``heading_bias_deg`` adds a wrong heading to
+    every sample (a compass off by that much), not stated."""
+    rng = np.random.default_rng([seed, 33])
+    n = int(np.ceil(seconds)) + 5
+    times = [pd.Timestamp(start, tz="UTC") + pd.Timedelta(seconds=k - 2) for k in range(n)]
+    noise = rng.normal(0.0, 1.0, (n, 3)) * np.asarray(sigma_deg, float)
+    values = np.asarray(attitude_deg, float) + noise
+    values[:, 2] = (values[:, 2] + heading_bias_deg) % 360.0
+    table = pd.DataFrame({"time_utc": [t.isoformat() for t in times], "roll_deg": values[:, 0],
+                          "pitch_deg": values[:, 1], "heading_deg": values[:, 2],
+                          "roll_sigma_deg": sigma_deg[0], "pitch_sigma_deg": sigma_deg[1],
+                          "heading_sigma_deg": sigma_deg[2]})
+    path = Path(path)
+    table.to_csv(path, index=False)
+    return path
+
+
 def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRACKET_EXPOSURES_S, *, seed: int = 1,
                    scale: str = "tiny", iso: float = 100.0, start: datetime = datetime(2021, 3, 18, 16, 0, 0),
-                   bracket: str = "B001", raw_transform=None, first_index: int = 0) -> dict:
+                   bracket: str = "B001", raw_transform=None, first_index: int = 0, site=None,
+                   attitude_log_sigma_deg=None, heading_bias_deg: float = 0.0) -> dict:
     """Render one bracket into ``folder``: ``<bracket>_<k>.dng`` per exposure, ``frames.csv`` (appended to when
     it exists) and the truth in ``truth/<bracket>.nc`` and ``truth/<bracket>.yaml``.
+
+    ``site`` (lat, lon[, alt_m]): the sun is put where pvlib puts it at the site and ``start`` (the first
+    frame's time, which the DNG carries in UTC), replacing the scene's sun position.
+    ``attitude_log_sigma_deg`` (roll, pitch, heading): also write ``<bracket>_attitude.csv``, a log of the
+    scene's ``attitude_deg`` with that noise (:func:`write_attitude_log`; ``heading_bias_deg`` a wrong heading).
 
     ``raw_transform(cfa, black_level_dn, white_level_dn) -> cfa``: applied to each raw mosaic before it is
     written (a test's own bent response, for example); the truth is the scene's, untouched by it.
@@ -105,6 +166,9 @@ def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRA
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
+    if site is not None:
+        sz, sa = sun_at_site(site, start)
+        scene = replace(scene, sun_zenith_deg=sz, sun_azimuth_deg=sa)
     camera = Camera()
     renderer = Renderer(camera, SCALES[scale].lens_px, seed, [])
     black = round(camera.sensor.bias_dn)
@@ -137,4 +201,15 @@ def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRA
         {"scene": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(scene).items()},
          "exposures_s": [float(t) for t in exposures_s], "iso": iso, "seed": seed, "scale": scale,
          "files": [p.name for p in files]}, sort_keys=False))
-    return {"files": files, "frames_csv": table, "truth": truth_dir / f"{bracket}.nc"}
+    out = {"files": files, "frames_csv": table, "truth": truth_dir / f"{bracket}.nc", "scene": scene}
+    meta = yaml.safe_load((truth_dir / f"{bracket}.yaml").read_text())
+    meta["site"] = list(site) if site is not None else None
+    meta["start_utc"] = start.isoformat()
+    if attitude_log_sigma_deg is not None:
+        out["attitude_log"] = write_attitude_log(folder / f"{bracket}_attitude.csv", scene.attitude_deg, start,
+                                                 (when - start).total_seconds(), seed=seed,
+                                                 sigma_deg=attitude_log_sigma_deg, heading_bias_deg=heading_bias_deg)
+        meta["attitude_log"] = {"file": out["attitude_log"].name, "sigma_deg": list(attitude_log_sigma_deg),
+                                "heading_bias_deg": float(heading_bias_deg)}
+    (truth_dir / f"{bracket}.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+    return out
