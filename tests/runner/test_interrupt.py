@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from workflow_runs import REPO, SNAKEMAKE
+from workflow_runs import LOCAL_ENV, REPO, SNAKEMAKE
 
 #: seconds the test waits for the first job's log (the start-up check and the DAG come first)
 JOB_START_TIMEOUT_S = 60
@@ -39,7 +39,7 @@ def test_ctrl_c_ends_the_run_as_an_interrupt_and_the_rerun_resumes(make_dataset,
     ledger_before = _ledger(workdir)
     # a session of its own: the signal goes to Snakemake and its jobs, as a terminal's Ctrl-C does
     proc = subprocess.Popen(_command(dataset), cwd=workdir, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, start_new_session=True)
+                            text=True, start_new_session=True, env=LOCAL_ENV)
     logs = workdir / "results" / "logs"
     deadline = time.monotonic() + JOB_START_TIMEOUT_S
     while not any(logs.glob("*/*.log")) and proc.poll() is None and time.monotonic() < deadline:
@@ -53,7 +53,7 @@ def test_ctrl_c_ends_the_run_as_an_interrupt_and_the_rerun_resumes(make_dataset,
     assert len(ours) == 1, err[-3000:]
     assert "Jobs failed" not in err and not (workdir / "results" / "failed_run").exists()
     assert _ledger(workdir) == ledger_before
-    resumed = subprocess.run(_command(dataset), cwd=workdir, capture_output=True, text=True, timeout=600)
+    resumed = subprocess.run(_command(dataset), cwd=workdir, capture_output=True, text=True, timeout=600, env=LOCAL_ENV)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
     assert all((workdir / "results" / stage / f"{lens}.nc").is_file()
                for stage in ("dark", "linearity") for lens in ("far", "close"))

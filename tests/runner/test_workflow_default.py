@@ -24,7 +24,7 @@ from report_browser import (  # noqa: F401  (the browser's tests, collected here
     test_every_image_is_decoded_and_non_empty, test_no_console_errors_or_failed_requests,
     test_no_horizontal_overflow_at_1280_px, test_screenshot_is_a_non_blank_png, test_the_browser_leaves_no_process_behind)
 from helpers import assert_g_theta_within_a_band_pixel
-from workflow_runs import LENSES, REPO, SNAKEMAKE, planned_rules, snakemake
+from workflow_runs import LENSES, LOCAL_ENV, REPO, SNAKEMAKE, planned_rules, snakemake
 
 
 @pytest.fixture(scope="module")
@@ -205,7 +205,7 @@ def test_a_run_killed_mid_stage_restarts_to_completion_without_a_corrupt_artefac
     targets = [f"results/{stage}/{lens}.nc" for stage in ("dark", "linearity")]
     cmd = [str(SNAKEMAKE), *targets, "-s", str(REPO / "Snakefile"), "--cores", "2", "--config", f"dataset={dataset}"]
     proc = subprocess.Popen(cmd, cwd=tmp_path, start_new_session=True, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+                            stderr=subprocess.DEVNULL, env=LOCAL_ENV)
     started = tmp_path / "results/logs/linearity"
     try:
         while proc.poll() is None and not (started.is_dir() and any(started.iterdir())):
@@ -219,8 +219,8 @@ def test_a_run_killed_mid_stage_restarts_to_completion_without_a_corrupt_artefac
     # the killed run's lock is still there (the same command would stop: 'Directory cannot be locked')
     # and its job's output is marked incomplete
     assert list((tmp_path / ".snakemake/locks").glob("*")) and list((tmp_path / ".snakemake/incomplete").glob("*"))
-    subprocess.run([*cmd, "--unlock"], cwd=tmp_path, check=True, capture_output=True, timeout=600)
-    restart = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    subprocess.run([*cmd, "--unlock"], cwd=tmp_path, check=True, capture_output=True, timeout=600, env=LOCAL_ENV)
+    restart = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=600, env=LOCAL_ENV)
     assert restart.returncode == 0, restart.stderr[-3000:]
     assert "incomplete" not in restart.stderr.lower()
     # only the interrupted job ran again; every artefact whole, no temporary file left behind

@@ -6,6 +6,7 @@ directory, results/ there).
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
 import subprocess
@@ -19,6 +20,12 @@ LENSES = ("far", "close")
 #: the folder they run in; made absolute so that the workflow records the same path as the tests' own runs)
 TUTORIAL = REPO / "docs" / "tutorial.md"
 TUTORIAL_DATASET = "data/tutorial"
+#: the environment of the runs that do not go to SLURM: Snakemake loads its SLURM executor plugin at every start,
+#: and the plugin asks ``scontrol show config`` for a help text; where the SLURM client is installed but no
+#: controller answers, scontrol waits out its message timeout (10 s of wall time per Snakemake start, no CPU).
+#: A local run has no use for the answer, so the client is given an empty configuration, which it refuses at
+#: once; the runs through profiles/slurm keep the real one.
+LOCAL_ENV = {**os.environ, "SLURM_CONF": os.devnull}
 
 
 def tutorial_commands() -> list[list[str]]:
@@ -45,7 +52,7 @@ def run_tutorial_command(argv: list[str], workdir: Path) -> subprocess.Completed
         argv = [sys.executable, *argv[1:]]
     else:
         argv = [str(SNAKEMAKE), "-s", str(REPO / "Snakefile"), *argv[1:]]
-    proc = subprocess.run(argv, cwd=workdir, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(argv, cwd=workdir, capture_output=True, text=True, timeout=600, env=LOCAL_ENV)
     if proc.returncode != 0:
         raise AssertionError(f"tutorial command failed: {shlex.join(argv)}\n{proc.stderr[-3000:]}")
     return proc
@@ -57,7 +64,8 @@ def snakemake(workdir: Path, dataset: Path, *args: str, check: bool = True,
     --config would otherwise swallow."""
     cmd = [str(SNAKEMAKE), "-s", str(REPO / "Snakefile"), *targets, "--cores", "2", "--config", f"dataset={dataset}",
            *args]
-    proc = subprocess.run(cmd, cwd=workdir, capture_output=True, text=True, timeout=600)
+    env = None if "--profile" in args else LOCAL_ENV
+    proc = subprocess.run(cmd, cwd=workdir, capture_output=True, text=True, timeout=600, env=env)
     if check and proc.returncode != 0:
         raise AssertionError(f"snakemake failed:\n{proc.stderr[-3000:]}")
     return proc

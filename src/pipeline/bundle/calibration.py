@@ -39,6 +39,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import xarray as xr
@@ -536,6 +537,54 @@ def _noise_floor(bundle: xr.Dataset, effects, cfg: dict) -> xr.Dataset:
     }, coords={"lens": lenses, "band": bands})
 
 
+class _ReadPart(NamedTuple):
+    """What :func:`build_bundle` takes from one stage artefact."""
+
+    sha256: str
+    effects: list
+    input_sha256: str
+    projection: str
+    bias_reference: str
+    part: xr.Dataset
+
+
+#: artefacts build_bundle has read in this process, (resolved path, stage) -> (file identity, what it took): a
+#: process that builds many bundles from the same upstream artefacts (a bundle per simulated lab session with
+#: one camera's dark, linearity, geometry and roll-off) reads and hashes each of them once. The identity is
+#: (inode, size, mtime in ns): the stages replace an artefact by renaming a new file into place, a new inode.
+_READ_CACHE: dict[tuple[str, str], tuple[tuple[int, int, int], _ReadPart]] = {}
+#: what the cache holds at most: entries, and the in-memory size of one part (bytes; at the full scale the
+#: per-pixel maps are hundreds of MB, read once by the workflow's single bundle job: not kept)
+_READ_CACHE_ENTRIES, _READ_CACHE_PART_BYTES = 32, 32 << 20
+
+
+def _read_part(path: str | Path, stage: str) -> _ReadPart:
+    """The artefact's sha256, model effects, lab-input hashes, projection, bias reference and bundle part (the
+    cached read while the file is the same file; the caller copies the part before changing it)."""
+    if not Path(path).is_file():
+        return _read_uncached(path, stage)      # read_artefact says what is wrong with the path, in one line
+    stat = os.stat(path)
+    identity = (stat.st_ino, stat.st_size, stat.st_mtime_ns)
+    key = (str(Path(path).resolve()), stage)
+    hit = _READ_CACHE.get(key)
+    if hit is not None and hit[0] == identity:
+        return hit[1]
+    read = _read_uncached(path, stage)
+    if read.part.nbytes <= _READ_CACHE_PART_BYTES:
+        _READ_CACHE.pop(key, None)
+        while len(_READ_CACHE) >= _READ_CACHE_ENTRIES:
+            _READ_CACHE.pop(next(iter(_READ_CACHE)))          # the oldest first
+        _READ_CACHE[key] = (identity, read)
+    return read
+
+
+def _read_uncached(path: str | Path, stage: str) -> _ReadPart:
+    ds = read_artefact(path, stage)
+    return _ReadPart(sha256_file(path), model_effects(ds), ds.attrs.get("input_sha256", "{}"),
+                     str(ds.attrs.get("projection", "fisheye")), str(ds.attrs.get("bias_reference", "unlit corners")),
+                     PARTS[stage](ds))
+
+
 def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Path, camera: dict,
                  lens_regions: dict[str, dict], config: dict | None = None) -> xr.Dataset:
     """Gather the stage artefacts ({stage: {lens: path}}) into the calibration bundle at ``out_path``.
@@ -565,22 +614,22 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
             raise InputError(out_path, f"the {stage} artefacts are for lenses {sorted(paths)}, the dark ones for {lenses}")
         parts[stage] = {}
         for lens in lenses:
-            ds = read_artefact(paths[lens], stage)
-            found = model_effects(ds)
+            read = _read_part(paths[lens], stage)
+            found = list(read.effects)
             if effects is None:
                 effects, first = found, paths[lens]
             elif found != effects:
                 raise InputError(paths[lens], f"was fitted with the model [{', '.join(found)}], {first} with "
                                               f"[{', '.join(effects)}]: rerun the stages with one model")
-            inputs[_relative(paths[lens], results_root)] = sha256_file(paths[lens])
-            lab.append(json.loads(ds.attrs.get("input_sha256", "{}")))
+            inputs[_relative(paths[lens], results_root)] = read.sha256
+            lab.append(json.loads(read.input_sha256))
             if stage == "geometry":
                 geometry_inputs[_relative(paths[lens], results_root)] = inputs[_relative(paths[lens], results_root)]
             if stage == "geometry":
-                projection[lens] = str(ds.attrs.get("projection", "fisheye"))
+                projection[lens] = read.projection
             if stage == "dark":
-                bias_reference[lens] = str(ds.attrs.get("bias_reference", "unlit corners"))
-            parts[stage][lens] = PARTS[stage](ds)
+                bias_reference[lens] = read.bias_reference
+            parts[stage][lens] = read.part.copy(deep=True)    # _stack adds variables to it: the cache's stays whole
     if "geometry" in parts and "rolloff" in parts:
         # only the media the geometry has maps for (a rectilinear region calibrated in air only; its roll-off
         # artefact may list water without measurements): an outer join would add them with NaN maps

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from datetime import datetime
 
 import numpy as np
@@ -24,6 +25,13 @@ class LensGeometry:
     theta_deg: np.ndarray
     phi_deg: np.ndarray
     lit: np.ndarray          # inside the image circle
+
+    @cached_property
+    def direction(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The unit viewing vector of every raw pixel (sin t cos p, sin t sin p, cos t), computed once per lens
+        and medium: a scene called for hundreds of frames of one geometry reads it instead of recomputing it."""
+        t, p = np.radians(self.theta_deg), np.radians(self.phi_deg)
+        return np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)
 
 
 @dataclass

@@ -57,9 +57,8 @@ class PortScene:
         self.cos_radius = np.cos(np.radians(radius_deg))
 
     def __call__(self, lens, geo, band_index):
-        t, p = np.radians(geo.theta_deg), np.radians(geo.phi_deg)
-        cos_d = (np.sin(t) * np.cos(p) * self.axis[0] + np.sin(t) * np.sin(p) * self.axis[1]
-                 + np.cos(t) * self.axis[2])
+        x, y, z = geo.direction
+        cos_d = x * self.axis[0] + y * self.axis[1] + z * self.axis[2]
         return np.where(cos_d >= self.cos_radius, self.radiance[band_index], 0.0)
 
 

@@ -65,8 +65,12 @@ def expose(rng: np.random.Generator, *, lens: str, photo_rate_e_per_s, exposure_
     # Light reaches the sensor only while the shutter is open (t_true); dark
     # current accumulates over the nominal integration.
     mean_e = np.asarray(photo_rate_e_per_s, dtype=np.float64) * t_true + np.asarray(dark_rate) * exposure_s
-    mean_e = np.broadcast_to(mean_e, shape)
-    electrons = rng.poisson(mean_e).astype(np.float64)
+    if mean_e.ndim == 0 and mean_e == 0.0:
+        # an unlit lens without dark current: Poisson(0) is 0 and numpy draws nothing from the stream for it,
+        # so the zeros are the same frame and the same generator state as rng.poisson would leave
+        electrons = np.zeros(shape)
+    else:
+        electrons = rng.poisson(np.broadcast_to(mean_e, shape)).astype(np.float64)
     if sensor.full_well_e is not None:
         electrons = np.minimum(electrons, sensor.full_well_e)
     signal_dn = k * electrons
