@@ -710,13 +710,17 @@ def _embed_covariance(cov: np.ndarray, names, into) -> np.ndarray:
     return out
 
 
-def _calibrate_fixed(image_points, object_points, image_shape, *, degree, stretch, min_corners, min_frames,
-                     outlier_factor, max_frame_rms_px, point_outlier_factor, centre_half_width_frac, max_nfev,
-                     half_fov_deg, centre_guess, covariance, jackknife_refit_max_boards) -> CalibrationResult:
-    """:func:`calibrate` with one stretch model; ``covariance=None`` skips the covariance (left None)."""
-    n_in = len(image_points)
-    if isinstance(object_points, np.ndarray) and object_points.ndim == 2:
-        object_points = [object_points] * n_in
+def _usable_frames(image_points, object_points, min_corners):
+    """The frames a fit can use: each frame's finite corners and their board points in board units.
+
+    Returns
+    -------
+    frames : list of (uv, XY) pairs, the image corners (px) and the planar board points divided by ``L``
+    idx : the input index of each usable frame
+    kept : the indices of each frame's corners that are used
+    dropped : input index -> why the frame is not used
+    L : the board unit (mm), the median absolute board coordinate
+    """
     dropped = {}
     frames, idx, kept = [], [], []
     allpts = [np.asarray(o, float) for o in object_points if o is not None]
@@ -736,6 +740,17 @@ def _calibrate_fixed(image_points, object_points, image_shape, *, degree, stretc
         frames.append((uv[good], obj[good, :2] / L))
         idx.append(i)
         kept.append(np.flatnonzero(good))
+    return frames, idx, kept, dropped, L
+
+
+def _calibrate_fixed(image_points, object_points, image_shape, *, degree, stretch, min_corners, min_frames,
+                     outlier_factor, max_frame_rms_px, point_outlier_factor, centre_half_width_frac, max_nfev,
+                     half_fov_deg, centre_guess, covariance, jackknife_refit_max_boards) -> CalibrationResult:
+    """:func:`calibrate` with one stretch model; ``covariance=None`` skips the covariance (left None)."""
+    n_in = len(image_points)
+    if isinstance(object_points, np.ndarray) and object_points.ndim == 2:
+        object_points = [object_points] * n_in
+    frames, idx, kept, dropped, L = _usable_frames(image_points, object_points, min_corners)
     # every usable corner of each frame, those the corner rule will reject too (the rejection-aware jackknife)
     all_frames, all_kept = list(frames), list(kept)
     if len(frames) < min_frames:

@@ -319,6 +319,84 @@ def _full_scale_dn(bundle, lenses) -> np.ndarray:
     return np.where(np.isfinite(out), out, 16383.0 - 800.0)
 
 
+def _with_sun_closure(ds: xr.Dataset, sun: xr.Dataset | None, attitude_from_sun: str | None, attitude_path,
+                      n_brackets: int, cfg: dict) -> xr.Dataset:
+    """The light field with the sun closure's variables and its summary attributes (what the attitude is, the
+    largest angle over its sigma and what it names), or the note that the closure was not tested."""
+    if sun is not None:
+        ds = ds.merge(sun)
+        source = (f"fitted from the sun ({attitude_from_sun})" if attitude_from_sun else
+                  f"the log {attitude_path}" if attitude_path else "none: level, heading 0 assumed")
+        ds.attrs["attitude_source"] = source
+        found = int(np.sum(ds["sun_core_pixels"].values > 0))
+        if attitude_from_sun:
+            ds.attrs["attitude"] = (f"fitted from the sun's centroid against the solar position ({attitude_from_sun}: "
+                                    + ("roll and pitch 0 assumed, heading fitted" if attitude_from_sun == "heading"
+                                       else "heading and the tilt towards the sun fitted, the tilt across it 0 "
+                                            "assumed") + "); the grid rotated into the earth frame")
+            ds["azimuth"].attrs["long_name"] = "earth-frame azimuth of the cell centre, from north towards east"
+            ds.attrs["sun_fit_dof"] = 1 if attitude_from_sun == "heading" else 0
+            ds.attrs["sun_closure"] = (f"attitude fitted from the sun ({attitude_from_sun}, {ds.attrs['sun_fit_dof']} "
+                                       "degree(s) of freedom left): the closure checks only what the fit leaves")
+        else:
+            worst = ds["sun_z"].values[np.isfinite(ds["sun_z"].values)]
+            named = sorted({x for x in ds["sun_closure_named"].values if x})
+            ds.attrs["sun_closure"] = (
+                f"sun found in {found} of {n_brackets} bracket(s); attitude {source}; largest angle over its "
+                f"sigma {float(worst.max()) if worst.size else float('nan'):.2f}"
+                + (f"; beyond {float(cfg['sun_closure_z']):g} sigma, naming: {'; '.join(named)}" if named else
+                   "; every component within its uncertainty"))
+    else:
+        ds.attrs["sun_closure"] = "no --site: the solar position is unknown, the sun closure not tested"
+    return ds
+
+
+def _with_bracket_descriptions(ds: xr.Dataset, dr, dr_pixels, info, snr: float) -> xr.Dataset:
+    """The light field with what describes each bracket: the dynamic range of its merged cells and pixels, its
+    exposures and its raw files."""
+    ds["hdr_dynamic_range_decades"] = (("frame", "band"), np.array(dr), _attrs(
+        "decades between the brightest unsaturated sphere cell and the faintest above its limit of detection "
+        f"(radiance >= {snr:g} random sigma)", "1"))
+    ds["hdr_pixel_dynamic_range_decades"] = (("frame", "band"), np.array(dr_pixels), _attrs(
+        "the same over the merged band pixels of both lenses", "1"))
+    ds["bracket_exposures_s"] = ("frame", np.array([" ".join(f"{float(r.exposure_s):g}" for r in frames)
+                                                    for _, frames in info], dtype=str),
+                                 {"long_name": "exposure times (s) merged in the bracket"})
+    ds["bracket_files"] = ("frame", np.array([" ".join(Path(r.path).name for r in frames) for _, frames in info],
+                                             dtype=str), {"long_name": "raw frames of the bracket"})
+    ds["frame_file"] = ("frame", np.array([name for name, _ in info], dtype=str), {"long_name": "bracket"})
+    return ds
+
+
+def _with_bracket_consistency(ds: xr.Dataset, tables: list, effects, full: dict) -> xr.Dataset:
+    """The light field with the bracket-consistency closure: the ``obs_bracket`` table, its residual test and
+    the effects the model lacks that it ranks significant, or the note that it was not tested."""
+    closure = pd.concat([t for t in tables if len(t)], ignore_index=True) if any(len(t) for t in tables) else None
+    if closure is not None:
+        obs = table_to_dataset(closure, "obs_bracket")
+        obs["obs_bracket__value_dn"].attrs.update({"long_name": "ln(L_long / L_short) of an exposure pair",
+                                                   "units": "1"})
+        obs["obs_bracket__sigma_dn"].attrs.update({"long_name": "its standard uncertainty", "units": "1"})
+        ds = ds.merge(obs)
+        ranked, tests = bracket_consistency(closure, effects, full)
+        test = tests.iloc[0]
+        ds.attrs["bracket_consistency_chi2"] = float(test["chi2"])
+        ds.attrs["bracket_consistency_dof"] = int(test["dof"])
+        ds.attrs["bracket_consistency_rms_z"] = float(test["rms_z"])
+        ds.attrs["bracket_consistency_p_value"] = float(test["p_value"])
+        significant = [str(r["effect"]) for _, r in ranked.iterrows() if bool(r["significant"])] if len(ranked) else []
+        ds.attrs["bracket_consistency_effects"] = ",".join(significant)
+        ds.attrs["bracket_consistency"] = (
+            f"{len(closure)} exposure-pair rows, chi2 {float(test['chi2']):.1f} on {int(test['dof'])} dof "
+            f"(p {float(test['p_value']):.3g}); " + (
+                f"significant missing effect(s): {', '.join(significant)}" if significant
+                else "no missing effect significant: at the noise floor" if not bool(test["significant"])
+                else "structure no catalogue effect explains"))
+    else:
+        ds.attrs["bracket_consistency"] = "no pixel measured in two exposures above the closure's SNR: not tested"
+    return ds
+
+
 def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium: str | None = None,
                               attitude_path=None, site=None, camera_utc_offset_h: float = 0.0,
                               grid_deg: float | None = None, config: dict | None = None,
@@ -423,65 +501,9 @@ def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium:
         sun = sun_dataset(centroids, attitudes, solar, grids.frame_names, float(cfg["sun_closure_z"]), fits)
     ds = light_field_of_grids(grids, attitude_path, site, camera_utc_offset_h, cfg, exposure, flag > 0, extra,
                               attitudes)
-    if sun is not None:
-        ds = ds.merge(sun)
-        source = (f"fitted from the sun ({attitude_from_sun})" if attitude_from_sun else
-                  f"the log {attitude_path}" if attitude_path else "none: level, heading 0 assumed")
-        ds.attrs["attitude_source"] = source
-        found = int(np.sum(ds["sun_core_pixels"].values > 0))
-        if attitude_from_sun:
-            ds.attrs["attitude"] = (f"fitted from the sun's centroid against the solar position ({attitude_from_sun}: "
-                                    + ("roll and pitch 0 assumed, heading fitted" if attitude_from_sun == "heading"
-                                       else "heading and the tilt towards the sun fitted, the tilt across it 0 "
-                                            "assumed") + "); the grid rotated into the earth frame")
-            ds["azimuth"].attrs["long_name"] = "earth-frame azimuth of the cell centre, from north towards east"
-            ds.attrs["sun_fit_dof"] = 1 if attitude_from_sun == "heading" else 0
-            ds.attrs["sun_closure"] = (f"attitude fitted from the sun ({attitude_from_sun}, {ds.attrs['sun_fit_dof']} "
-                                       "degree(s) of freedom left): the closure checks only what the fit leaves")
-        else:
-            worst = ds["sun_z"].values[np.isfinite(ds["sun_z"].values)]
-            named = sorted({x for x in ds["sun_closure_named"].values if x})
-            ds.attrs["sun_closure"] = (
-                f"sun found in {found} of {len(brackets)} bracket(s); attitude {source}; largest angle over its "
-                f"sigma {float(worst.max()) if worst.size else float('nan'):.2f}"
-                + (f"; beyond {float(cfg['sun_closure_z']):g} sigma, naming: {'; '.join(named)}" if named else
-                   "; every component within its uncertainty"))
-    else:
-        ds.attrs["sun_closure"] = "no --site: the solar position is unknown, the sun closure not tested"
-    ds["hdr_dynamic_range_decades"] = (("frame", "band"), np.array(dr), _attrs(
-        "decades between the brightest unsaturated sphere cell and the faintest above its limit of detection "
-        f"(radiance >= {snr:g} random sigma)", "1"))
-    ds["hdr_pixel_dynamic_range_decades"] = (("frame", "band"), np.array(dr_pixels), _attrs(
-        "the same over the merged band pixels of both lenses", "1"))
-    ds["bracket_exposures_s"] = ("frame", np.array([" ".join(f"{float(r.exposure_s):g}" for r in frames)
-                                                    for _, frames in info], dtype=str),
-                                 {"long_name": "exposure times (s) merged in the bracket"})
-    ds["bracket_files"] = ("frame", np.array([" ".join(Path(r.path).name for r in frames) for _, frames in info],
-                                             dtype=str), {"long_name": "raw frames of the bracket"})
-    ds["frame_file"] = ("frame", np.array([name for name, _ in info], dtype=str), {"long_name": "bracket"})
-    closure = pd.concat([t for t in tables if len(t)], ignore_index=True) if any(len(t) for t in tables) else None
-    if closure is not None:
-        obs = table_to_dataset(closure, "obs_bracket")
-        obs["obs_bracket__value_dn"].attrs.update({"long_name": "ln(L_long / L_short) of an exposure pair",
-                                                   "units": "1"})
-        obs["obs_bracket__sigma_dn"].attrs.update({"long_name": "its standard uncertainty", "units": "1"})
-        ds = ds.merge(obs)
-        ranked, tests = bracket_consistency(closure, effects, full)
-        test = tests.iloc[0]
-        ds.attrs["bracket_consistency_chi2"] = float(test["chi2"])
-        ds.attrs["bracket_consistency_dof"] = int(test["dof"])
-        ds.attrs["bracket_consistency_rms_z"] = float(test["rms_z"])
-        ds.attrs["bracket_consistency_p_value"] = float(test["p_value"])
-        significant = [str(r["effect"]) for _, r in ranked.iterrows() if bool(r["significant"])] if len(ranked) else []
-        ds.attrs["bracket_consistency_effects"] = ",".join(significant)
-        ds.attrs["bracket_consistency"] = (
-            f"{len(closure)} exposure-pair rows, chi2 {float(test['chi2']):.1f} on {int(test['dof'])} dof "
-            f"(p {float(test['p_value']):.3g}); " + (
-                f"significant missing effect(s): {', '.join(significant)}" if significant
-                else "no missing effect significant: at the noise floor" if not bool(test["significant"])
-                else "structure no catalogue effect explains"))
-    else:
-        ds.attrs["bracket_consistency"] = "no pixel measured in two exposures above the closure's SNR: not tested"
+    ds = _with_sun_closure(ds, sun, attitude_from_sun, attitude_path, len(brackets), cfg)
+    ds = _with_bracket_descriptions(ds, dr, dr_pixels, info, snr)
+    ds = _with_bracket_consistency(ds, tables, effects, full)
     ds.attrs["title"] = "light field from exposure brackets merged into HDR sphere grids"
     ds.attrs["grid_files"] = f"made from {len(raw_paths)} raw frame(s) in {len(brackets)} bracket(s)"
     ds.attrs["calibration_bundle"] = str(bundle_path)
