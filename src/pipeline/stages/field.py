@@ -60,7 +60,8 @@ the bundle's pointing uncertainty) in quadrature, k_b the median camera/referenc
 prediction is the band-convolved reference, the nearest channel otherwise.
 With ``clock_offset`` in the model the camera clock offset c (camera - UTC, s)
 is fitted by shifting the reference series: the chi-square of the base model
-(profiled over the band scales, each frame's sigma at that shift) is
+(profiled over the band scales, each frame's sigma at that shift: the camera's random standard
+error, the mask's sampling and pointing terms and the reference's window uncertainty, as the match-ups') is
 evaluated on a grid of ``field.clock_offset_grid_s`` steps within +/-
 ``field.clock_offset_search_s``, minimised per point over the frames that
 are match-ups at that shift (reduced chi-square), refined by a bounded scalar
@@ -613,7 +614,11 @@ def compute(ctx) -> xr.Dataset:
     sy = {b: frames[f"random_se_{b}"].to_numpy(float) for b in BANDS}
     pointing = {b: around[b][3] for b in BANDS}
     sampling = _mask_sampling_terms(cfg, frames, pointing)
-    clock = _clock_profile(ctx, y, sy, {b: series["windows"][(predict, b)] for b in BANDS}, t_cam)
+    # the profile weighs each frame as the match-ups do, the mask's sampling and pointing terms with the camera's
+    # noise: a mask pointing delta degrees from the reference's cone sees drifting cloud edges delta / |v| early
+    # or late, which a profile weighed by the random noise alone takes for a clock offset
+    clock = _clock_profile(ctx, y, {b: np.hypot(sy[b], sampling[b]) for b in BANDS},
+                           {b: series["windows"][(predict, b)] for b in BANDS}, t_cam)
     shift = clock["offset_s"] if "clock_offset" in ctx.effects else 0.0
     centres = t_cam - shift
     st = {key: w.stats(centres, width) for key, w in series["windows"].items()}
