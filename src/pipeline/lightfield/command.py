@@ -17,6 +17,7 @@ import sys
 import tempfile
 from datetime import datetime, timezone
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -35,14 +36,14 @@ from pipeline.lightfield.hdr import (EXPOSURE_TERMS, FLAG_SATURATED_EVERYWHERE, 
                                      exposure_maps, group_brackets, merge_exposures, pixel_sphere_cells,
                                      read_frames_table, split_lens)
 from pipeline.stages.observations import table_to_dataset
-from pipeline.io.rawio import read_raw
+from pipeline.io.rawio import read_raw, read_tags
 from pipeline.errors import InputError
 from pipeline.lightfield.attitude import (LEVEL, attitude_at, earth_to_camera_directions, earth_up_in_camera,
                                           read_attitude, solar_position)
 from pipeline.lightfield.fill import fill_between_lenses
 from pipeline.lightfield.grid import RADIANCE_UNITS, read_sphere_grids
 from pipeline.lightfield.quadrature import GridEdges, cell_centre_directions
-from pipeline.lightfield.sun_output import bracket_sun_centroids, sun_attitudes, sun_dataset
+from pipeline.lightfield.sun_output import shortest_exposure_sun_centroid, sun_attitudes, sun_dataset
 from pipeline.lightfield.quantities import COMPONENTS, INTEGRALS, QUANTITIES, WeightCache, light_field_quantities
 
 __all__ = ["compute_light_field", "light_field_of_grids", "light_field_from_raw", "light_field_from_brackets",
@@ -397,6 +398,44 @@ def _with_bracket_consistency(ds: xr.Dataset, tables: list, effects, full: dict)
     return ds
 
 
+def _merged_grids(merged_cells, n_exp: int, bundle_path, info, medium: str):
+    """The brackets' merged sphere cells as sphere grids, the per-exposure systematic sigmas
+    (bracket, band, exposure, zenith, azimuth), the HDR flag and the HDR variables of the output."""
+    n_z, n_a = merged_cells[0].radiance.shape[-2:]
+    exposure = np.zeros((len(merged_cells), len(BANDS), n_exp, n_z, n_a))
+    for f, sph in enumerate(merged_cells):
+        exposure[f, :, :sph.exposure_sigma.shape[0]] = np.moveaxis(sph.exposure_sigma, 0, 1)
+
+    def stack(name):
+        return np.stack([getattr(sph, name) for sph in merged_cells])
+    flag = stack("flag")
+    grids = SphereGrids(stack("radiance"), stack("random_sigma"), stack("common_sigma"),
+                        (np.arange(n_z) + 0.5) * 180.0 / n_z, (np.arange(n_a) + 0.5) * 360.0 / n_a, list(BANDS),
+                        [str(bundle_path)] * len(merged_cells), [name for name, _ in info],
+                        [frames[0].time.isoformat() if frames[0].time else "" for _, frames in info], medium)
+    extra = {
+        "hdr_cell_flag": (flag, {"long_name": "HDR merge flag", "flag_values": np.array([0, FLAG_SATURATED_EVERYWHERE],
+                                                                                        np.int8),
+                                 "flag_meanings": "merged saturated_in_every_exposure"}),
+        "hdr_lower_bound": (stack("lower_bound"), _attrs(
+            "lower bound of the radiance of a cell saturated in every exposure (NaN elsewhere)", RADIANCE_UNITS)),
+        "hdr_exposure_systematic_sigma": (np.sqrt(np.sum(exposure ** 2, axis=2)), _attrs(
+            "root sum of squares of the per-exposure systematic sigmas (each common to one exposure's cells)",
+            RADIANCE_UNITS)),
+        "hdr_pixel_count": (stack("count").astype(float), _attrs("band pixels merged into the cell", "1")),
+    }
+    return grids, exposure, flag, extra
+
+
+def _frame_tags(path) -> SimpleNamespace:
+    """A raw file's tags without decoding its pixels; a file lacking a tag the chain needs stops with the
+    reader's own line."""
+    tags = read_tags(path)
+    if any(tags.get(k) is None for k in ("exposure_s", "iso", "time")):
+        read_raw(path)      # raises the one line that names the missing tag
+    return SimpleNamespace(**tags)
+
+
 def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium: str | None = None,
                               attitude_path=None, site=None, camera_utc_offset_h: float = 0.0,
                               grid_deg: float | None = None, config: dict | None = None,
@@ -418,16 +457,17 @@ def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium:
     cfg = full["lightfield"]
     grid_deg = float(grid_deg if grid_deg is not None else full["apply"]["grid_deg"])
     medium = medium or "air"
-    raws = [read_raw(p) for p in raw_paths]
+    # the brackets are formed from the tags; each bracket's frames are decoded when it is merged (once each)
+    frames = [_frame_tags(p) for p in raw_paths]
     table = read_frames_table(frames_table) if frames_table is not None else None
-    brackets = group_brackets(raws, table, float(cfg["bracket_window_s"]), frames_table)
+    brackets = group_brackets(frames, table, float(cfg["bracket_window_s"]), frames_table)
     bundle = read_bundle(bundle_path)
     effects = model_effects(bundle)
     media = [m for m in str(bundle.attrs.get("media", "air")).split(",") if m]
     if medium not in media:
         raise InputError(bundle_path, f"has no calibration for medium '{medium}' (media: {', '.join(media)})")
-    for raw in raws:
-        check_frame(raw, bundle, effects)
+    for frame in frames:
+        check_frame(frame, bundle, effects)
     lenses = [str(x) for x in bundle["lens"].values]
     zenith_lens = ZENITH_LENS if ZENITH_LENS in lenses else lenses[0]
     chains = {(lens, band): BandChain(bundle, lens, band, medium, effects) for lens in lenses for band in BANDS}
@@ -435,9 +475,10 @@ def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium:
     full_scale = _full_scale_dn(bundle, lenses)
     snr = float(cfg["hdr_detection_snr"])
     n_exp = max(len(b.frames) for b in brackets)
-    merged_cells, tables, dr, dr_pixels, info = [], [], [], [], []
+    merged_cells, tables, dr, dr_pixels, info, centroids = [], [], [], [], [], []
     for br in brackets:
-        terms = EXPOSURE_TERMS | ({"iso_gain"} if len({float(raws[i].iso) for i in br.frames}) > 1 else set())
+        raws = {f: read_raw(raw_paths[f]) for f in br.frames}
+        terms = EXPOSURE_TERMS | ({"iso_gain"} if len({float(frames[i].iso) for i in br.frames}) > 1 else set())
         bins = SphereBins(len(BANDS), len(br.frames), grid_deg)
         extremes = [[] for _ in BANDS]      # per band, per lens: (brightest, faintest detected) merged pixel
         # one lens and band at a time: a bracket's maps of the full-size camera stay a few hundred MB
@@ -464,35 +505,16 @@ def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium:
                    for b in range(len(BANDS))])
         dr_pixels.append([float(np.log10(max(x[0] for x in e) / min(x[1] for x in e))) if e else float("nan")
                           for e in extremes])
-        info.append((br.name, [raws[i] for i in br.frames]))
-    n_z, n_a = merged_cells[0].radiance.shape[-2:]
-    exposure = np.zeros((len(brackets), len(BANDS), n_exp, n_z, n_a))
-    for f, sph in enumerate(merged_cells):
-        exposure[f, :, :sph.exposure_sigma.shape[0]] = np.moveaxis(sph.exposure_sigma, 0, 1)
-
-    def stack(name):
-        return np.stack([getattr(sph, name) for sph in merged_cells])
-    flag = stack("flag")
-    grids = SphereGrids(stack("radiance"), stack("random_sigma"), stack("common_sigma"),
-                        (np.arange(n_z) + 0.5) * 180.0 / n_z, (np.arange(n_a) + 0.5) * 360.0 / n_a, list(BANDS),
-                        [str(bundle_path)] * len(brackets), [name for name, _ in info],
-                        [frames[0].time.isoformat() if frames[0].time else "" for _, frames in info], medium)
-    extra = {
-        "hdr_cell_flag": (flag, {"long_name": "HDR merge flag", "flag_values": np.array([0, FLAG_SATURATED_EVERYWHERE],
-                                                                                        np.int8),
-                                 "flag_meanings": "merged saturated_in_every_exposure"}),
-        "hdr_lower_bound": (stack("lower_bound"), _attrs(
-            "lower bound of the radiance of a cell saturated in every exposure (NaN elsewhere)", RADIANCE_UNITS)),
-        "hdr_exposure_systematic_sigma": (np.sqrt(np.sum(exposure ** 2, axis=2)), _attrs(
-            "root sum of squares of the per-exposure systematic sigmas (each common to one exposure's cells)",
-            RADIANCE_UNITS)),
-        "hdr_pixel_count": (stack("count").astype(float), _attrs("band pixels merged into the cell", "1")),
-    }
+        info.append((br.name, [frames[i] for i in br.frames]))
+        if site is not None:
+            shortest = raws[min(br.frames, key=lambda i: float(frames[i].exposure_s))]
+            centroids.append(shortest_exposure_sun_centroid(shortest, bundle, chains, lenses, medium, effects,
+                                                            zenith_lens, full_scale))
+        del raws
+    grids, exposure, flag, extra = _merged_grids(merged_cells, n_exp, bundle_path, info, medium)
     sun = None
     attitudes = None
     if site is not None:
-        centroids = bracket_sun_centroids(raws, brackets, bundle, chains, lenses, medium, effects, zenith_lens,
-                                          full_scale)
         times = _frame_times_utc(grids, camera_utc_offset_h, "a site")
         solar = list(zip(*solar_position(times, *site)))
         logged = (attitude_at(read_attitude(attitude_path), times, grids.frame_names) if attitude_path is not None

@@ -17,7 +17,7 @@ from pipeline.lightfield.hdr import exposure_maps
 from pipeline.lightfield.sun import FIT_MODELS, SunCentroid, fit_attitude_from_sun, sun_centroid, sun_closure
 from pipeline.stages.observations import table_to_dataset
 
-__all__ = ["CENTROID_BAND", "bracket_sun_centroids", "sun_attitudes", "sun_dataset"]
+__all__ = ["CENTROID_BAND", "shortest_exposure_sun_centroid", "sun_attitudes", "sun_dataset"]
 
 #: the band whose saturated core and rim give the centroid (the Bayer pattern's densest)
 CENTROID_BAND = "G"
@@ -44,15 +44,11 @@ _VARS = {
 }
 
 
-def bracket_sun_centroids(raws, brackets, bundle, chains, lenses, medium, effects, zenith_lens, full_scale_dn):
-    """Per bracket the sun's centroid in its shortest exposure (None where no pixel saturates)."""
+def shortest_exposure_sun_centroid(raw, bundle, chains, lenses, medium, effects, zenith_lens, full_scale_dn):
+    """The sun's centroid in a bracket's shortest exposure ``raw`` (None where no pixel saturates)."""
     b = ["R", "G", "B"].index(CENTROID_BAND)
-    out = []
-    for br in brackets:
-        k = min(br.frames, key=lambda i: float(raws[i].exposure_s))
-        maps = exposure_maps(raws[k], bundle, chains, lenses, medium, effects, [CENTROID_BAND])
-        out.append(sun_centroid(maps, bundle, lenses, medium, zenith_lens, full_scale_dn[:, b], CENTROID_BAND, 0))
-    return out
+    maps = exposure_maps(raw, bundle, chains, lenses, medium, effects, [CENTROID_BAND])
+    return sun_centroid(maps, bundle, lenses, medium, zenith_lens, full_scale_dn[:, b], CENTROID_BAND, 0)
 
 
 def sun_attitudes(centroids, logged, solar, model: str | None, names):
