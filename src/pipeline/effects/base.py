@@ -97,52 +97,211 @@ class Effect:
     def prepare(self, rng: np.random.Generator, context: dict) -> None:
         """Draw the static, per-camera part of the effect (pixel maps, per-ISO factors).
 
-        ``context`` (from the simulator): ``lens_names``, ``lens_shape`` (raw
-        pixels of one lens region) and ``image_circle_radius_band_px``.
+        Parameters
+        ----------
+        rng : numpy.random.Generator
+            The simulator's generator of the camera's static patterns (the same seed gives the same camera).
+        context : dict
+            From the simulator: ``lens_names`` (tuple of str), ``lens_shape`` (rows, columns of one lens region in
+            raw pixels) and ``image_circle_radius_band_px`` (radius of the image circle, band pixels).
         """
 
     def true_exposure_s(self, exposure_s: float) -> float:
+        """The time the shutter is really open for a frame of nominal exposure ``exposure_s``.
+
+        Parameters
+        ----------
+        exposure_s : float
+            Exposure time the camera records (s); an effect earlier in the list may have changed it already.
+
+        Returns
+        -------
+        float
+            Exposure time during which light reaches the sensor (s); ``exposure_s`` itself when the effect does not
+            act on the shutter.
+        """
         return exposure_s
 
     def gain_factor(self, iso: float) -> float:
+        """Factor on the nominal analog gain (ISO/100) of a frame taken at ``iso``.
+
+        Parameters
+        ----------
+        iso : float
+            ISO setting of the frame.
+
+        Returns
+        -------
+        float
+            True gain over nominal gain (dimensionless); 1 when the effect does not act on the gain.
+        """
         return 1.0
 
     def dark_rate_e_per_s(self, lens: str, shape: tuple[int, int]) -> np.ndarray | float:
+        """Dark-current rate that the effect adds to each raw pixel of a lens.
+
+        Parameters
+        ----------
+        lens : str
+            Name of the lens whose region is exposed.
+        shape : tuple of int
+            (rows, columns) of the lens region in raw pixels.
+
+        Returns
+        -------
+        numpy.ndarray or float
+            Dark-current rate (electron s-1 per raw pixel), an array of ``shape`` or a scalar broadcast to it;
+            0 when the effect adds none.
+        """
         return 0.0
 
     def response_dn(self, signal_dn: np.ndarray, full_scale_dn: float) -> np.ndarray:
+        """The camera's response to a linear signal: how the effect bends the recorded DN.
+
+        Parameters
+        ----------
+        signal_dn : numpy.ndarray
+            Signal above the black level, linear in the collected electrons (DN), any shape.
+        full_scale_dn : float
+            Largest signal the converter records above the black level (DN): ADC maximum minus bias.
+
+        Returns
+        -------
+        numpy.ndarray
+            Recorded signal above the black level (DN), same shape as ``signal_dn``; ``signal_dn`` itself when the
+            response stays linear.
+        """
         return signal_dn
 
     def frame_offset_dn(self, rng: np.random.Generator) -> float:
+        """Black-level shift of one whole frame, drawn once per frame (both lenses share it).
+
+        Parameters
+        ----------
+        rng : numpy.random.Generator
+            The frame's generator (its seed fixes the frame).
+
+        Returns
+        -------
+        float
+            Offset added to every raw pixel of the frame (DN); 0 when the effect draws none.
+        """
         return 0.0
 
     def sensitivity_map(self, lens: str, shape: tuple[int, int]) -> np.ndarray | float:
-        """Multiplicative per-pixel sensitivity (raw lens shape), e.g. a flat field."""
+        """Multiplicative per-pixel sensitivity (raw lens shape), e.g. a flat field.
+
+        Parameters
+        ----------
+        lens : str
+            Name of the lens whose region is exposed.
+        shape : tuple of int
+            (rows, columns) of the lens region in raw pixels.
+
+        Returns
+        -------
+        numpy.ndarray or float
+            Relative sensitivity of each raw pixel (dimensionless), an array of ``shape`` or a scalar; 1 when the
+            effect leaves the sensitivity alone.
+        """
         return 1.0
 
     def optics_factor(self, lens: str, medium: str, theta_deg: np.ndarray, phi_deg: np.ndarray,
                       band_index: np.ndarray) -> np.ndarray | float:
-        """Multiplicative change of the light reaching each raw pixel (roll-off, immersion)."""
+        """Multiplicative change of the light reaching each raw pixel (roll-off, immersion).
+
+        Parameters
+        ----------
+        lens : str
+            Name of the lens.
+        medium : str
+            Medium in front of the lens, ``"air"`` or ``"water"``.
+        theta_deg : numpy.ndarray
+            Field angle of each raw pixel's viewing direction from the optical axis (degree), lens shape.
+        phi_deg : numpy.ndarray
+            Azimuth of each raw pixel's viewing direction around the optical axis (degree), lens shape.
+        band_index : numpy.ndarray
+            Index of each raw pixel's colour band in the mosaic (int), lens shape.
+
+        Returns
+        -------
+        numpy.ndarray or float
+            Factor on the photo-electron rate of each raw pixel (dimensionless); 1 when the effect leaves the
+            optics alone.
+        """
         return 1.0
 
     def spread_light(self, photo_rate: np.ndarray, lens: str) -> np.ndarray:
-        """Redistribute the photo-electron rate image (point-spread function, stray light)."""
+        """Redistribute the photo-electron rate image (point-spread function, stray light).
+
+        Parameters
+        ----------
+        photo_rate : numpy.ndarray
+            Photo-electron rate of each raw pixel of the lens region (electron s-1).
+        lens : str
+            Name of the lens.
+
+        Returns
+        -------
+        numpy.ndarray
+            Photo-electron rate after the spreading (electron s-1), same shape; ``photo_rate`` itself when the
+            effect spreads no light.
+        """
         return photo_rate
 
     def bias_offset_dn(self, temperature_c: float | None) -> float:
-        """Black-level change of a frame taken at ``temperature_c``."""
+        """Black-level change of a frame taken at ``temperature_c``.
+
+        Parameters
+        ----------
+        temperature_c : float or None
+            Sensor temperature logged with the frame (degree Celsius); None when the frame has none.
+
+        Returns
+        -------
+        float
+            Offset added to every raw pixel of the frame (DN); 0 when the effect does not depend on temperature.
+        """
         return 0.0
 
     def dark_rate_factor(self, temperature_c: float | None) -> float:
-        """Factor on every dark-current rate at ``temperature_c``."""
+        """Factor on every dark-current rate at ``temperature_c``.
+
+        Parameters
+        ----------
+        temperature_c : float or None
+            Sensor temperature logged with the frame (degree Celsius); None when the frame has none.
+
+        Returns
+        -------
+        float
+            Factor on the dark-current rates (dimensionless); 1 when the effect does not depend on temperature.
+        """
         return 1.0
 
     def camera_clock_offset_s(self) -> float:
-        """Camera clock minus true time (s) of the frames a camera with this effect writes."""
+        """Camera clock minus true time (s) of the frames a camera with this effect writes.
+
+        Returns
+        -------
+        float
+            Offset of the camera's time stamps from true time (s); 0 when the effect leaves the clock alone.
+        """
         return 0.0
 
     def sky_spectral_exponent(self, hours_since_start: float) -> float:
-        """Exponent a of a factor (lambda / 550 nm)^(-a) on the simulated sky spectrum at that time."""
+        """Exponent a of a factor (lambda / 550 nm)^(-a) on the simulated sky spectrum at that time.
+
+        Parameters
+        ----------
+        hours_since_start : float
+            Time since the start of the simulated field series (hour).
+
+        Returns
+        -------
+        float
+            Angstrom-like exponent a (dimensionless); 0 leaves the sky spectrum as it is.
+        """
         return 0.0
 
     def sun_glare_wings(self) -> dict | None:
@@ -150,12 +309,37 @@ class Effect:
         return None
 
     def truth(self) -> dict:
-        """What the simulator writes to the truth folder for this effect."""
+        """What the simulator writes to the truth folder for this effect.
+
+        Returns
+        -------
+        dict
+            The effect's parameters (``params`` and what :meth:`prepare` drew) as plain Python values (lists for
+            arrays), ready for YAML.
+        """
         return {k: _plain(v) for k, v in self.params.items()}
 
     # ------------------------------------------------------------- pipeline
     def columns(self, experiment: str, level: str, table: pd.DataFrame) -> np.ndarray | None:
-        """Linearised model columns (n_rows, k) in DN, or None when silent here."""
+        """Linearised model columns (n_rows, k) in DN, or None when silent here.
+
+        Parameters
+        ----------
+        experiment : str
+            Stage whose observation table this is (``"linearity"``, ``"dark"``, ``"rolloff"``, ...).
+        level : str
+            Level of the observations within the stage (e.g. ``"setting"``, ``"frame"``, ``"water"``).
+        table : pandas.DataFrame
+            The observation table, one row per independent measurement, with the columns the module's
+            docstring lists and the covariates the effect documents.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            Model columns of shape (n_rows, k), in the units of the table's ``value_dn`` (DN unless the table says
+            otherwise), scaled so that the fitted coefficients are the effect's physical parameters; None when the
+            effect leaves no signature in that table.
+        """
         return None
 
     #: the (experiment, level) whose fitted coefficients :meth:`predicted_shift` takes, or None
@@ -166,16 +350,73 @@ class Effect:
         """What the effect, with the coefficients ``coef`` fitted on the table ``anchor`` (of
         :attr:`predicted_from`), changes in the rows of a table it is never fitted to
         (:data:`pipeline.diagnostics.tables.PREDICTED_TABLES`: the field scale closure, ln of the camera/reference
-        scale), in that table's units; None when silent there (or when the model already corrects it)."""
+        scale), in that table's units; None when silent there (or when the model already corrects it).
+
+        Parameters
+        ----------
+        experiment : str
+            Stage of the table whose rows are predicted.
+        level : str
+            Level of that table within the stage.
+        table : pandas.DataFrame
+            The table whose rows are predicted.
+        coef : numpy.ndarray
+            Coefficients of the effect's columns fitted on ``anchor``, shape (k,), in the effect's physical units.
+        anchor : pandas.DataFrame
+            The observation table of :attr:`predicted_from` on which ``coef`` was fitted.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            Change of each row of ``table``, shape (n_rows,), in that table's units; None when silent there.
+        """
         return None
 
     def amplitude_label(self, experiment: str) -> tuple[str, str]:
-        """Name and units of the amplitude that :meth:`amplitude` returns for that experiment."""
+        """Name and units of the amplitude that :meth:`amplitude` returns for that experiment.
+
+        Parameters
+        ----------
+        experiment : str
+            Stage whose fitted coefficients the amplitude is made of.
+
+        Returns
+        -------
+        name : str
+            Name of the amplitude, as the diagnostics report it.
+        units : str
+            Its units (``"1"`` for a dimensionless amplitude).
+        """
         return self.amplitude_name, self.amplitude_units
 
     def amplitude(self, experiment: str, level: str, table: pd.DataFrame,
                   coef: np.ndarray, cov: np.ndarray) -> tuple[float, float, float]:
-        """Physical amplitude and its 95 % interval from the fitted coefficients."""
+        """Physical amplitude and its 95 % interval from the fitted coefficients.
+
+        The base class takes the first coefficient and its standard error (normal interval, +- 1.96 sigma).
+
+        Parameters
+        ----------
+        experiment : str
+            Stage whose table the columns were fitted on.
+        level : str
+            Level of that table within the stage.
+        table : pandas.DataFrame
+            The observation table the columns were fitted on.
+        coef : numpy.ndarray
+            Fitted coefficients of the effect's columns, shape (k,).
+        cov : numpy.ndarray
+            Their covariance, shape (k, k).
+
+        Returns
+        -------
+        amplitude : float
+            The effect's amplitude, in the units :meth:`amplitude_label` gives.
+        low : float
+            Lower end of its 95 % interval, same units.
+        high : float
+            Upper end of its 95 % interval, same units.
+        """
         se = float(np.sqrt(max(cov[0, 0], 0.0)))
         return float(coef[0]), float(coef[0] - 1.96 * se), float(coef[0] + 1.96 * se)
 
@@ -191,7 +432,23 @@ def _plain(value):
 
 
 def register(cls: type[Effect]) -> type[Effect]:
-    """Class decorator: make an effect available by its name."""
+    """Class decorator: make an effect available by its name.
+
+    Parameters
+    ----------
+    cls : type
+        Subclass of :class:`Effect` with a non-empty ``name``.
+
+    Returns
+    -------
+    type
+        ``cls`` itself, now registered.
+
+    Raises
+    ------
+    ValueError
+        When ``cls`` has no name.
+    """
     if not cls.name:
         raise ValueError(f"{cls.__name__} has no name")
     _REGISTRY[cls.name] = cls
@@ -199,11 +456,36 @@ def register(cls: type[Effect]) -> type[Effect]:
 
 
 def available() -> list[str]:
+    """Names of the registered effects.
+
+    Returns
+    -------
+    list of str
+        The names, sorted.
+    """
     return sorted(_REGISTRY)
 
 
 def get(name: str, **params) -> Effect:
-    """An instance of the named effect (InputError naming the known ones otherwise)."""
+    """An instance of the named effect (InputError naming the known ones otherwise).
+
+    Parameters
+    ----------
+    name : str
+        Name of a registered effect (a key of :data:`CATALOGUE` that is implemented).
+    **params
+        Simulator parameters overriding the effect's ``truth_defaults``.
+
+    Returns
+    -------
+    Effect
+        The effect, its ``params`` the defaults updated with ``params``.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        When no effect has that name, or a parameter is not one of the effect's.
+    """
     if name not in _REGISTRY:
         hint = " (in the catalogue but not implemented yet)" if name in CATALOGUE else ""
         raise InputError(None, f"unknown effect '{name}'{hint}; implemented: {', '.join(available())}")
@@ -211,7 +493,19 @@ def get(name: str, **params) -> Effect:
 
 
 def load_plugins(modules: list[str]) -> None:
-    """Import user modules that register their own effects."""
+    """Import user modules that register their own effects.
+
+    Parameters
+    ----------
+    modules : list of str
+        Dotted names of the modules to import (``model.plugins`` of the configuration); None or empty imports
+        nothing.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        When a module fails to import, naming it and the error.
+    """
     for module in modules or []:
         try:
             importlib.import_module(module)
@@ -221,7 +515,25 @@ def load_plugins(modules: list[str]) -> None:
 
 
 def parse_effect_spec(spec: str) -> tuple[str, dict]:
-    """``name[:param=value,...]`` as the simulator's --effect option takes it."""
+    """``name[:param=value,...]`` as the simulator's --effect option takes it.
+
+    Parameters
+    ----------
+    spec : str
+        The option's value, e.g. ``"shutter_offset:offset_s=0.0002"``.
+
+    Returns
+    -------
+    name : str
+        Name of the effect.
+    params : dict[str, float]
+        Its parameters, each value read as a float.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        When an item is not ``param=value`` or a value is not a number.
+    """
     name, _, rest = spec.partition(":")
     params = {}
     if rest:

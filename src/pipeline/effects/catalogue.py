@@ -56,7 +56,29 @@ class DarkCurrent(Effect):
     def predicted_shift(self, experiment, level, table, coef, anchor):
         """Field scale: the dark signal D x ISO/100 x t that a dark model without it leaves in the field
         frames' mask, over their signal: ln(1 + D (ISO/100 t / S)). The absolute experiment subtracts its own dark
-        frames (docs/dataset-format.md), which hold the dark current, so it adds no term of its own."""
+        frames (docs/dataset-format.md), which hold the dark current, so it adds no term of its own.
+
+        Parameters
+        ----------
+        experiment : str
+            Stage of the table whose rows are predicted (``"field"``: silent elsewhere).
+        level : str
+            Level of that table (``"scale"``: silent elsewhere).
+        table : pandas.DataFrame
+            The field scale closure's table, one row per band and lens, with ``field_dark_s_per_dn``
+            (ISO/100 t / S of the field frames, s DN-1).
+        coef : numpy.ndarray
+            The effect's coefficients fitted on ``anchor``: one, the dark-current rate D (DN s-1 at
+            ISO 100).
+        anchor : pandas.DataFrame
+            The observation table of :attr:`predicted_from` on which ``coef`` was fitted.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            Shift of ln(camera / reference scale) of each row of ``table`` (dimensionless), shape (n_rows,); None
+            when the table lacks the covariates.
+        """
         if not _field_scale(experiment, level, table, ("field_dark_s_per_dn",)):
             return None
         return np.log(np.maximum(1.0 + float(coef[0]) * table["field_dark_s_per_dn"].to_numpy(float), _TINY))
@@ -148,7 +170,28 @@ class ShutterOffset(Effect):
     def predicted_shift(self, experiment, level, table, coef, anchor):
         """Field scale: R^-1 was made at the absolute experiment's exposure t_a and the field frames are at t_f;
         with the true exposure t + dt and the chain dividing by t, the field radiance is off by
-        ln((1 + dt / t_f) / (1 + dt / t_a)) (exact, not linearised: at 1/4000 s a 0.4 ms offset is a factor 2.6)."""
+        ln((1 + dt / t_f) / (1 + dt / t_a)) (exact, not linearised: at 1/4000 s a 0.4 ms offset is a factor 2.6).
+
+        Parameters
+        ----------
+        experiment : str
+            Stage of the table whose rows are predicted (``"field"``: silent elsewhere).
+        level : str
+            Level of that table (``"scale"``: silent elsewhere).
+        table : pandas.DataFrame
+            The field scale closure's table, one row per band and lens, with ``inv_field_exposure_per_s``
+            (1 / t_f, s-1) and ``calibration_exposure_s`` (t_a, s).
+        coef : numpy.ndarray
+            The effect's coefficients fitted on ``anchor``: one, the shutter offset dt (s).
+        anchor : pandas.DataFrame
+            The observation table of :attr:`predicted_from` on which ``coef`` was fitted.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            Shift of ln(camera / reference scale) of each row of ``table`` (dimensionless), shape (n_rows,); None
+            when the table lacks the covariates.
+        """
         if not _field_scale(experiment, level, table, ("inv_field_exposure_per_s", "calibration_exposure_s")):
             return None
         dt = float(coef[0])
@@ -190,7 +233,28 @@ class Nonlinearity(Effect):
 
     def predicted_shift(self, experiment, level, table, coef, anchor):
         """Field scale: ln((1 - beta S_f / FS) / (1 - beta S_a / FS)), the response's bend at the field
-        frames' level S_f against the absolute experiment's S_a (FS: the linearity table's full scale)."""
+        frames' level S_f against the absolute experiment's S_a (FS: the linearity table's full scale).
+
+        Parameters
+        ----------
+        experiment : str
+            Stage of the table whose rows are predicted (``"field"``: silent elsewhere).
+        level : str
+            Level of that table (``"scale"``: silent elsewhere).
+        table : pandas.DataFrame
+            The field scale closure's table, one row per band and lens, with ``field_signal_dn`` (S_f, DN)
+            and ``calibration_signal_dn`` (S_a, DN); ``anchor`` has ``full_scale_dn`` (FS, DN).
+        coef : numpy.ndarray
+            The effect's coefficients fitted on ``anchor``: one, beta (dimensionless).
+        anchor : pandas.DataFrame
+            The observation table of :attr:`predicted_from` on which ``coef`` was fitted.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            Shift of ln(camera / reference scale) of each row of ``table`` (dimensionless), shape (n_rows,); None
+            when the table lacks the covariates.
+        """
         needed = ("field_signal_dn", "calibration_signal_dn")
         if not _field_scale(experiment, level, table, needed) or "full_scale_dn" not in anchor:
             return None
@@ -229,6 +293,19 @@ class IsoGain(Effect):
 
     @staticmethod
     def isos_fitted(table: pd.DataFrame) -> list[float]:
+        """The ISO settings whose gain factor the model fits: those of the gain sweep but the lowest (the reference,
+        factor 1).
+
+        Parameters
+        ----------
+        table : pandas.DataFrame
+            The linearity stage's setting table, with the columns ``sweep`` and ``iso``.
+
+        Returns
+        -------
+        list of float
+            The fitted ISO settings, ascending; one coefficient of :meth:`columns` each.
+        """
         gains = table.loc[table["sweep"] == "gain", "iso"]
         isos = sorted(set(gains.astype(float)))
         return isos[1:]
@@ -248,7 +325,29 @@ class IsoGain(Effect):
 
     def predicted_shift(self, experiment, level, table, coef, anchor):
         """Field scale: ln(f(ISO_f) / f(ISO_a)), the fitted gain factors (1 at the lowest ISO) at the field
-        frames' ISO and the absolute experiment's; silent when an ISO is neither fitted nor the lowest."""
+        frames' ISO and the absolute experiment's; silent when an ISO is neither fitted nor the lowest.
+
+        Parameters
+        ----------
+        experiment : str
+            Stage of the table whose rows are predicted (``"field"``: silent elsewhere).
+        level : str
+            Level of that table (``"scale"``: silent elsewhere).
+        table : pandas.DataFrame
+            The field scale closure's table, one row per band and lens, with ``field_iso`` and
+            ``calibration_iso``.
+        coef : numpy.ndarray
+            The effect's coefficients fitted on ``anchor``: f - 1 at each ISO of :meth:`isos_fitted`
+            (dimensionless).
+        anchor : pandas.DataFrame
+            The observation table of :attr:`predicted_from` on which ``coef`` was fitted.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            Shift of ln(camera / reference scale) of each row of ``table`` (dimensionless), shape (n_rows,); None
+            when the table lacks the covariates or an ISO has no factor.
+        """
         if not _field_scale(experiment, level, table, ("field_iso", "calibration_iso")) or "sweep" not in anchor:
             return None
         isos = self.isos_fitted(anchor)
@@ -306,6 +405,22 @@ def drift_sigma(table: pd.DataFrame) -> tuple[float, float, float]:
     when the table says which frame a row came from (``file_index``: the rows of one frame, both
     lenses and three bands, share its offset, so they are one draw, and each distinct set of frames
     averaged into a setting mean takes one), times the weights' efficiency (sum w)^2 / (n sum w^2).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        Observation table with ``corner_dev_dn`` (each row's unlit-corner deviation from its setting mean, DN)
+        and ``sigma_corner_dn`` (the corners' own noise, DN); optionally ``lens``, ``band``, ``sweep``,
+        ``setting`` (the groups of the setting means) and ``file_index``.
+
+    Returns
+    -------
+    sigma : float
+        Frame-to-frame standard deviation tau of the black level (DN).
+    low : float
+        Lower end of its 95 % interval (DN), 0 at the least.
+    high : float
+        Upper end of its 95 % interval (DN).
     """
     from scipy import stats
 

@@ -26,6 +26,18 @@ def band_scale(table: pd.DataFrame) -> np.ndarray:
 
     The base model of the field table is camera = k_b x reference; the
     effects' columns are in the camera's units, so they carry k_b.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        The field match-up table, with ``pred_dn`` (the model's camera prediction, camera units) and
+        ``x_scale`` (the reference radiance the scale multiplies).
+
+    Returns
+    -------
+    numpy.ndarray
+        k_b of each row, shape (n_rows,), in camera units per reference unit; 1 where either column is missing,
+        x_scale is 0 or the ratio is not finite.
     """
     if "pred_dn" not in table or "x_scale" not in table:
         return np.ones(len(table))
@@ -75,7 +87,23 @@ class ClockOffset(Effect):
         is the secant to the profile's offset c*, k_b (ref(t - c*) - ref(t)) / c* (``ref_at_clock_profile``),
         with the same coefficient, exact at c = c*: a signature valid at the amplitude it is tested at (a
         120 s offset, against which the tangent points the other way). Rows without the reference at c*
-        keep the tangent."""
+        keep the tangent.
+
+        Parameters
+        ----------
+        experiment : str
+            Stage whose observation table this is (``"field"``: silent elsewhere).
+        level : str
+            Level of the observations (``"frame"``: silent elsewhere).
+        table : pandas.DataFrame
+            The observation table, one row per match-up, with ``dref_dt`` (the reference's time
+            derivative, reference units s-1).
+
+        Returns
+        -------
+        numpy.ndarray or None
+            One column, shape (n_rows, 1), in the camera's units per second; None where silent.
+        """
         if not _field_frame(experiment, level, table, ("dref_dt",)):
             return None
         k = band_scale(table)
@@ -98,6 +126,28 @@ class ClockOffset(Effect):
         ``_high_s``: the same fit the stage applies with the effect in the model, recorded without it) that
         is the amplitude; where the profile gave no bound, +/-1.96 of its standard error
         (``clock_profile_offset_se_s``, from the curvature); the linearised coefficient otherwise.
+
+        Parameters
+        ----------
+        experiment : str
+            Stage whose table the column was fitted on.
+        level : str
+            Level of that table within the stage.
+        table : pandas.DataFrame
+            The match-up table the column was fitted on.
+        coef : numpy.ndarray
+            Fitted coefficient of the column, shape (1,) (s).
+        cov : numpy.ndarray
+            Its covariance, shape (1, 1) (s2).
+
+        Returns
+        -------
+        amplitude : float
+            The clock offset c, camera minus UTC (s).
+        low : float
+            Lower end of its 95 % interval (s).
+        high : float
+            Upper end of its 95 % interval (s).
         """
         if experiment == "field" and "clock_profile_offset_s" in table and len(table):
             c = float(table["clock_profile_offset_s"].iloc[0])
@@ -128,7 +178,24 @@ class SpectralMismatch(Effect):
 
     def columns(self, experiment, level, table):
         """k_b (ref_convolved - ref_nearest): the camera follows the band-convolved reference, so
-        against the nearest channel the coefficient is 1 (0 when the in-band slope does not matter)."""
+        against the nearest channel the coefficient is 1 (0 when the in-band slope does not matter).
+
+        Parameters
+        ----------
+        experiment : str
+            Stage whose observation table this is (``"field"``: silent elsewhere).
+        level : str
+            Level of the observations (``"frame"``: silent elsewhere).
+        table : pandas.DataFrame
+            The observation table, one row per match-up, with ``ref_convolved`` (the reference
+            spectrum convolved with the band's response) and ``ref_nearest`` (the nearest reference channel), both in
+            reference units.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            One column, shape (n_rows, 1), in the camera's units; None where silent.
+        """
         if not _field_frame(experiment, level, table, ("ref_convolved", "ref_nearest")):
             return None
         diff = table["ref_convolved"].to_numpy(float) - table["ref_nearest"].to_numpy(float)
@@ -139,7 +206,28 @@ class SpectralMismatch(Effect):
     def predicted_shift(self, experiment, level, table, coef, anchor):
         """Field scale against the nearest channel: ln(1 + c (m - 1)), m the band-convolved over the nearest
         channel's reference over the match-ups, c the match-up table's coefficient (1 when the camera follows
-        the band-convolved reference)."""
+        the band-convolved reference).
+
+        Parameters
+        ----------
+        experiment : str
+            Stage of the table whose rows are predicted (``"field"``: silent elsewhere).
+        level : str
+            Level of that table (``"scale"``: silent elsewhere).
+        table : pandas.DataFrame
+            The field scale closure's table, one row per band and lens, with ``mismatch_factor`` (m,
+            dimensionless).
+        coef : numpy.ndarray
+            The effect's coefficients fitted on ``anchor``: one, c (dimensionless).
+        anchor : pandas.DataFrame
+            The observation table of :attr:`predicted_from` on which ``coef`` was fitted.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            Shift of ln(camera / reference scale) of each row of ``table`` (dimensionless), shape (n_rows,); None
+            when the table lacks the covariates.
+        """
         if experiment != "field" or level != "scale" or "mismatch_factor" not in table:
             return None
         m = table["mismatch_factor"].to_numpy(float)

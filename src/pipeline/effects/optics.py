@@ -91,7 +91,27 @@ class RolloffAzimuth(Effect):
 
 
 def azimuth_from_coefficients(coef, cov) -> tuple[float, float, float, float]:
-    """(A, sigma_A, phi0_deg, sigma_phi0_deg) from (A cos phi0, A sin phi0) and their covariance."""
+    """(A, sigma_A, phi0_deg, sigma_phi0_deg) from (A cos phi0, A sin phi0) and their covariance.
+
+    Parameters
+    ----------
+    coef : array_like
+        The two fitted coefficients of :class:`RolloffAzimuth`'s columns, (A cos phi0, A sin phi0)
+        (dimensionless); further entries are ignored.
+    cov : array_like
+        Their covariance; its leading 2 x 2 block is used.
+
+    Returns
+    -------
+    amplitude : float
+        A, the relative amplitude of the azimuthal term at theta = 90 degree (dimensionless).
+    sigma_amplitude : float
+        Its standard error, by linear propagation (dimensionless).
+    phi0_deg : float
+        Azimuth phi0 of the brightest side (degree, in (-180, 180]).
+    sigma_phi0_deg : float
+        Its standard error (degree).
+    """
     c, s = float(coef[0]), float(coef[1])
     amp = float(np.hypot(c, s))
     ja = np.array([c, s]) / amp
@@ -162,7 +182,24 @@ class StrayLight(Effect):
         """Lab: the halo column (coefficient about f). Field (level ``frame``): the field stage's
         ``sun_glare_covariate`` (the band's clear-sky direct irradiance, the sun seen or not, an
         inverse-square law in the angle from the sun: radiometry/sun_glare.py); one coefficient common to
-        the bands, the spread in sr-1 at the reference angle."""
+        the bands, the spread in sr-1 at the reference angle.
+
+        Parameters
+        ----------
+        experiment : str
+            Stage whose observation table this is (``"rolloff"`` or ``"field"``).
+        level : str
+            Level of the observations (``"setting"`` of the roll-off stage, ``"frame"`` of
+            the field stage).
+        table : pandas.DataFrame
+            The observation table, with ``halo_column_dn`` (lab, DN) or ``sun_glare_covariate``
+            (field, camera units sr).
+
+        Returns
+        -------
+        numpy.ndarray or None
+            One column, shape (n_rows, 1); None where silent or where the table lacks the covariate.
+        """
         if experiment == "field":
             if level != "frame" or "sun_glare_covariate" not in table:
                 return None
@@ -175,7 +212,27 @@ class StrayLight(Effect):
 
     def predicted_shift(self, experiment, level, table, coef, anchor):
         """Field scale: the glare the match-up table's coefficient c (sr-1) puts into the mask, as a share of the
-        camera radiance, ln(1 + c G) with G the mean glare covariate over the mean camera radiance (sr)."""
+        camera radiance, ln(1 + c G) with G the mean glare covariate over the mean camera radiance (sr).
+
+        Parameters
+        ----------
+        experiment : str
+            Stage of the table whose rows are predicted (``"field"``: silent elsewhere).
+        level : str
+            Level of that table (``"scale"``: silent elsewhere).
+        table : pandas.DataFrame
+            The field scale closure's table, one row per band and lens, with ``glare_share_sr`` (G, sr).
+        coef : numpy.ndarray
+            The effect's coefficients fitted on ``anchor``: one, c (sr-1).
+        anchor : pandas.DataFrame
+            The observation table of :attr:`predicted_from` on which ``coef`` was fitted.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            Shift of ln(camera / reference scale) of each row of ``table`` (dimensionless), shape (n_rows,); None
+            when the table lacks the covariates.
+        """
         if experiment != "field" or level != "scale" or "glare_share_sr" not in table:
             return None
         return np.log(np.maximum(1.0 + float(coef[0]) * table["glare_share_sr"].to_numpy(float), 1e-6))
