@@ -137,7 +137,18 @@ class Measured:
         return out
 
     def in_base_units(self, variance):
-        """A variance in the units of the value, in those of ``base`` (over the factors squared)."""
+        """A variance in the units of the value, in those of ``base`` (over the factors squared).
+
+        Parameters
+        ----------
+        variance : numpy.ndarray or float
+            A variance in the units of ``value`` squared, broadcastable to the value.
+
+        Returns
+        -------
+        numpy.ndarray or float
+            The same variance in the units of ``base`` squared; ``variance`` itself when no factor is applied.
+        """
         if self.unscaled:
             return variance
         return variance / self._scale_of(np.ones(np.shape(self.base), np.result_type(np.float32, self.base)),
@@ -207,12 +218,32 @@ class Measured:
     def evaluate_into(self, value=None, random_sigma=None, systematic_sigma=None, scratch=None) -> "Measured":
         """Take ``value``, ``random_sigma`` and ``systematic_sigma`` into the arrays given (returns ``self``).
 
-        Each given array (the value's shape, e.g. a slot of an output map)
-        receives what the property of that name returns. Where the array has
+        Each given array receives what the property of that name returns. Where the array has
         the property's float type it is computed there, without a temporary
-        image (``scratch``, an array like them, holds a sum of variance maps),
-        and the property then returns that array; otherwise the property is
+        image, and the property then returns that array; otherwise the property is
         computed as usual and copied in (cast to the array's type).
+
+        Parameters
+        ----------
+        value : numpy.ndarray, optional
+            Receives the value (in ``units``); the value's shape, e.g. a slot of an output map.
+        random_sigma : numpy.ndarray, optional
+            Receives the random standard uncertainty (in ``units``), same shape.
+        systematic_sigma : numpy.ndarray, optional
+            Receives the systematic standard uncertainty (in ``units``), same shape.
+        scratch : numpy.ndarray, optional
+            An array like them (shape, float type of the uncertainties) that holds a sum of variance maps on the
+            way; ignored when it is not of that shape and type.
+
+        Returns
+        -------
+        Measured
+            ``self``, its properties now the arrays given where computed there.
+
+        Raises
+        ------
+        ValueError
+            When a given array's shape is not the value's.
         """
         shape = np.broadcast_shapes(np.shape(self.base), *(np.shape(f) for f in self.factor_maps))
         value_type = np.result_type(self.base) if self.unscaled else np.result_type(self.base, *self.factor_maps,
@@ -239,9 +270,22 @@ class Measured:
     def scaled(self, factor, units: str, relative_systematic=None, **extra_systematic) -> "Measured":
         """value * factor (every variance then times factor^2), plus new systematic terms.
 
-        ``relative_systematic`` terms are relative variances (the factor's
-        relative uncertainty squared); ``extra_systematic`` are variances
-        already in the new units.
+        Parameters
+        ----------
+        factor : float or numpy.ndarray
+            The factor on the value: a scalar, or a map broadcastable to the value (e.g. 1 / g(theta)).
+        units : str
+            Units of the scaled value.
+        relative_systematic : dict[str, float or numpy.ndarray], optional
+            New systematic terms as relative variances (dimensionless: the factor's relative uncertainty squared);
+            a term of an existing name replaces it.
+        **extra_systematic
+            New systematic terms as absolute variances, already in the new ``units`` squared.
+
+        Returns
+        -------
+        Measured
+            A new value; ``self`` is left unchanged.
         """
         if np.ndim(factor) == 0:
             out = self._replace(factor=self.factor * float(factor), units=units)
@@ -257,6 +301,18 @@ class Measured:
 
         ``value`` becomes the new base (no factor); the terms go with it, all as absolute variances
         (the relative ones were relative to the old value).
+
+        Parameters
+        ----------
+        value : numpy.ndarray
+            The mapped value f(value), in the current units (the value's shape).
+        slope : numpy.ndarray or float
+            The derivative df/dvalue at each pixel (dimensionless), broadcastable to the value.
+
+        Returns
+        -------
+        Measured
+            A new value with the same units and flags.
         """
         out = {}
         for name in ("random", "systematic"):
@@ -266,12 +322,37 @@ class Measured:
         return self._replace(base=value, factor=1.0, factor_maps=(), **out)
 
     def flagged(self, where, bit: int) -> "Measured":
+        """These flags with one bit set where a condition holds.
+
+        Parameters
+        ----------
+        where : array_like of bool
+            Pixels to flag, broadcastable to the value.
+        bit : int
+            The flag bit (one of the ``FLAG_*`` constants).
+
+        Returns
+        -------
+        Measured
+            A new value with the flags ORed; value and variances unchanged.
+        """
         flags = np.zeros(np.shape(self.base), np.uint8) if self.flags is None else self.flags.copy()
         np.bitwise_or(flags, np.uint8(bit), out=flags, where=np.asarray(where, bool))
         return self._replace(flags=flags)
 
     def flagged_by(self, bits) -> "Measured":
-        """Flags ORed with a map of flag bits (uint8, broadcastable to the value)."""
+        """Flags ORed with a map of flag bits (uint8, broadcastable to the value).
+
+        Parameters
+        ----------
+        bits : array_like of numpy.uint8
+            Flag bits of each pixel (ORs of the ``FLAG_*`` constants).
+
+        Returns
+        -------
+        Measured
+            A new value with the flags ORed; value and variances unchanged.
+        """
         flags = np.zeros(np.shape(self.base), np.uint8) if self.flags is None else self.flags.copy()
         flags |= np.asarray(bits, np.uint8)
         return self._replace(flags=flags)
@@ -408,9 +489,21 @@ class BandCalibration:
 
 # --------------------------------------------------------------------------- the steps
 def from_raw(image_dn, saturated=None) -> Measured:
-    """A raw band image (DN) entering the chain; ``saturated`` marks band pixels with a site at the white level.
+    """A raw band image (DN) entering the chain.
 
     A float32 image (the band split's) stays float32 through the chain, anything else becomes float64.
+
+    Parameters
+    ----------
+    image_dn : array_like
+        The band image's raw readings (DN), black level included.
+    saturated : array_like of bool, optional
+        Band pixels with a CFA site at the white level; flagged :data:`FLAG_SATURATED`.
+
+    Returns
+    -------
+    Measured
+        The value in ``DN``, no variance yet, flags of the image's shape.
     """
     image = np.asarray(image_dn)
     value = image if image.dtype == np.float32 else image.astype(float)
@@ -430,8 +523,7 @@ def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects, u
     The signal's shot noise needs the signal, so the next step adds it
     (:func:`add_shot_noise`).
 
-    With ``bias_drift`` in the model and ``unlit_dn`` (the raw values of this
-    band image's unlit pixels, outside the image circle; Section 3.7) the
+    With ``bias_drift`` in the model and ``unlit_dn`` (Section 3.7) the
     frame's own black level replaces the model's: the level is the unlit
     pixels' mean (which moves with the frame's offset), and the standard
     error of that mean, their sample variance over their number, is the
@@ -439,9 +531,30 @@ def subtract_dark(m: Measured, dark: DarkModel, frame: FrameSettings, effects, u
     band image, independent between frames). The dark model's parameter
     term then no longer applies to the level and is dropped. A lens without
     unlit pixels (a rectilinear region) gives the frame's black level as
-    ``frame_black_dn = (level_dn, variance_dn2)`` instead: the level of its
-    band pixels measured by the sensor's optically black pixels, and the
-    variance of that level (the ``bias_drift`` term).
+    ``frame_black_dn`` instead.
+
+    Parameters
+    ----------
+    m : Measured
+        The raw band image (DN).
+    dark : DarkModel
+        The dark stage's model of the band.
+    frame : FrameSettings
+        Exposure time, ISO and temperature of the frame.
+    effects : collection of str
+        The names of ``model.effects``; this step owns ``dark_current``, ``temperature`` and ``bias_drift``.
+    unlit_dn : array_like, optional
+        Raw values (DN) of this band image's unlit pixels, outside the image circle; used with ``bias_drift``
+        when there are at least two.
+    frame_black_dn : tuple of float, optional
+        ``(level_dn, variance_dn2)``: the level of the band pixels measured by the sensor's optically black
+        pixels (DN) and the variance of that level (DN2); used with ``bias_drift`` when ``unlit_dn`` is not given.
+
+    Returns
+    -------
+    Measured
+        The signal above dark (DN), with the random terms ``read`` and ``dark`` and the systematic term
+        ``dark_model`` or ``bias_drift``.
     """
     gain = gain_from_iso(frame.iso)
     current = dark.dark_current_dn_per_s if "dark_current" in effects else 0.0
@@ -479,6 +592,25 @@ def add_shot_noise(m: Measured, dark: DarkModel, response: ResponseModel, frame:
 
     K_ISO = K_100 * ISO/100 * f_ISO (photon-transfer gain, Janesick 2007);
     the dark current's electrons join the ``dark`` term.
+
+    Parameters
+    ----------
+    m : Measured
+        The signal above dark (DN), from :func:`subtract_dark`.
+    dark : DarkModel
+        The dark model (sites per band pixel, dark current).
+    response : ResponseModel
+        The linearity stage's fit (conversion gain K_100, ISO gain factor f_ISO).
+    frame : FrameSettings
+        Exposure time and ISO of the frame.
+    effects : collection of str
+        The names of ``model.effects`` (``iso_gain``, ``dark_current`` matter here).
+
+    Returns
+    -------
+    Measured
+        The same value with the random term ``shot`` (DN2; negative signals count as 0) and, with
+        ``dark_current``, the dark electrons added to ``dark``.
     """
     k_iso = response.conversion_gain_dn_per_e * gain_from_iso(frame.iso) * (
         response.iso_gain_factor if "iso_gain" in effects else 1.0)
@@ -494,14 +626,42 @@ def add_shot_noise(m: Measured, dark: DarkModel, response: ResponseModel, frame:
 
 
 def flag_hot_pixels(m: Measured, hot_mask, effects) -> Measured:
-    """Flag the dark stage's hot pixels (``hot_pixels`` effect); their values are kept, flagged."""
+    """Flag the dark stage's hot pixels (``hot_pixels`` effect); their values are kept, flagged.
+
+    Parameters
+    ----------
+    m : Measured
+        The band image.
+    hot_mask : array_like or None
+        The dark stage's hot-pixel mask (non-zero: hot), the band image's shape; None flags nothing.
+    effects : collection of str
+        The names of ``model.effects``; without ``hot_pixels`` nothing is flagged.
+
+    Returns
+    -------
+    Measured
+        The band image with :data:`FLAG_HOT` set on the hot pixels (``m`` itself when nothing is flagged).
+    """
     if "hot_pixels" not in effects or hot_mask is None:
         return m
     return m.flagged(np.asarray(hot_mask) > 0, FLAG_HOT)
 
 
 def flag_saturation(m: Measured, response: ResponseModel) -> Measured:
-    """Flag dark-corrected signals at or above the saturation level found by the linearity stage."""
+    """Flag dark-corrected signals at or above the saturation level found by the linearity stage.
+
+    Parameters
+    ----------
+    m : Measured
+        The signal above dark (DN).
+    response : ResponseModel
+        The linearity stage's fit; ``saturation_dn`` NaN (not reached) flags nothing.
+
+    Returns
+    -------
+    Measured
+        The band image with :data:`FLAG_SATURATED` set where the signal is at or above ``saturation_dn``.
+    """
     if not np.isfinite(response.saturation_dn):
         return m
     return m.flagged(m.value >= float(response.saturation_dn), FLAG_SATURATED)
@@ -512,6 +672,26 @@ def linearise(m: Measured, response: ResponseModel, effects) -> Measured:
 
     s = 2 m / (1 + sqrt(1 - 4 beta m / F)); ds/dm = 1 / sqrt(1 - 4 beta m / F).
     A reading beyond the curve's top (4 beta m > F) has no inverse: NaN, flagged saturated.
+
+    Parameters
+    ----------
+    m : Measured
+        The signal above dark (DN), bent by the response.
+    response : ResponseModel
+        The linearity stage's fit: ``nonlinearity_beta`` (dimensionless), its sigma and ``full_scale_dn`` F (DN).
+    effects : collection of str
+        The names of ``model.effects``; without ``nonlinearity`` (or with beta 0) nothing changes.
+
+    Returns
+    -------
+    Measured
+        The linear signal s (DN), variances propagated with ds/dm, the shot term rescaled to the linear signal,
+        and the relative systematic term ``nonlinearity``.
+
+    Raises
+    ------
+    pipeline.errors.ImpossibleResult
+        When the full scale is not a positive number.
     """
     beta, full = response.nonlinearity_beta, response.full_scale_dn
     if "nonlinearity" not in effects or beta == 0.0:
@@ -540,6 +720,28 @@ def normalise_exposure(m: Measured, response: ResponseModel, frame: FrameSetting
 
     y = s / ((t + dt) * ISO/100 * f_ISO), with the shutter offset dt
     (``shutter_offset``) and the per-ISO gain factor f_ISO (``iso_gain``).
+
+    Parameters
+    ----------
+    m : Measured
+        The linear signal above dark (DN).
+    response : ResponseModel
+        The linearity stage's fit: shutter offset dt (s), ISO gain factor f_ISO and their sigmas.
+    frame : FrameSettings
+        Nominal exposure time t (s) and ISO of the frame.
+    effects : collection of str
+        The names of ``model.effects``; dt and f_ISO apply only with their effects.
+
+    Returns
+    -------
+    Measured
+        The signal rate in DN s-1 at ISO 100, with the relative systematic terms ``shutter_offset`` and
+        ``iso_gain`` of the effects applied.
+
+    Raises
+    ------
+    pipeline.errors.ImpossibleResult
+        When the true exposure t + dt is not positive.
     """
     offset = response.shutter_offset_s if "shutter_offset" in effects else 0.0
     factor = response.iso_gain_factor if "iso_gain" in effects else 1.0
@@ -561,12 +763,31 @@ def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float =
 
     Where the flat field was not measured (NaN: outside the region the
     linearity stage saw), the pixel's sensitivity is unknown by the fitted
-    PRNU spread: value kept, random term ``prnu`` = (value * prnu_sigma_rel)^2 / sites
-    (``prnu_sigma_rel`` is the spread of one raw site, the linearity stage's
-    S^2 / sites term; a band pixel of ``sites`` sites averages their patterns).
+    PRNU spread: value kept, random term ``prnu`` = (value * prnu_sigma_rel)^2 / sites.
     Where it was measured, ``prnu`` is the noise of the measured flat field,
     (value * flat_field_sigma)^2: fixed from frame to frame, random from pixel
     to pixel.
+
+    Parameters
+    ----------
+    m : Measured
+        The band image (any units; kept).
+    flat_field : array_like or None
+        Relative sensitivity F of each band pixel (dimensionless, mean 1; NaN or non-positive where not
+        measured); None leaves the image as it is.
+    effects : collection of str
+        The names of ``model.effects``; without ``prnu`` nothing changes.
+    prnu_sigma_rel : float, default 0.0
+        Relative spread of the sensitivity of one raw site (the linearity stage's S^2 / sites term).
+    flat_field_sigma : array_like, optional
+        Standard uncertainty of the measured flat field (dimensionless), the band image's shape.
+    sites : int, default 1
+        Raw sites averaged in a band pixel (2 for G): the pixel averages their patterns.
+
+    Returns
+    -------
+    Measured
+        The band image over F, with the relative random term ``prnu``.
     """
     if "prnu" not in effects or flat_field is None:
         return m
@@ -576,7 +797,28 @@ def correct_flat_field(m: Measured, flat_field, effects, prnu_sigma_rel: float =
 
 
 def flat_field_terms(flat_field, flat_field_sigma=None, prnu_sigma_rel: float = 0.0, sites: int = 1, dtype=np.float32):
-    """What :func:`correct_flat_field` multiplies by (1 / F, 1 where F is not measured) and its ``prnu`` relative variance."""
+    """What :func:`correct_flat_field` multiplies by (1 / F, 1 where F is not measured) and its ``prnu`` relative variance.
+
+    Parameters
+    ----------
+    flat_field : array_like
+        Relative sensitivity F of each band pixel (dimensionless; NaN or non-positive where not measured).
+    flat_field_sigma : array_like, optional
+        Standard uncertainty of the measured F (dimensionless); None: no term where measured.
+    prnu_sigma_rel : float, default 0.0
+        Relative sensitivity spread of one raw site, used where F is not measured.
+    sites : int, default 1
+        Raw sites averaged in a band pixel.
+    dtype : numpy dtype, default numpy.float32
+        Float type of the returned maps.
+
+    Returns
+    -------
+    inverse : numpy.ndarray
+        1 / F, 1 where F is not measured (dimensionless).
+    relative_variance : numpy.ndarray
+        The ``prnu`` term's relative variance: (sigma_F / F)^2 where measured, prnu_sigma_rel^2 / sites elsewhere.
+    """
     flat = np.asarray(flat_field, dtype=dtype)
     measured = np.isfinite(flat) & (flat > 0)
     flat = np.where(measured, flat, 1.0).astype(dtype, copy=False)
@@ -606,13 +848,33 @@ def rolloff_map(theta_deg, calibration: BandCalibration, phi_deg=None, effects=(
                 theta_deg_sigma=None) -> RolloffMap:
     """Eq. (13) and its azimuthal term on a band image's angles, with the relative variances from the covariance.
 
-    With ``theta_deg_sigma`` (the geometric fit's uncertainty of each pixel's
-    field angle, common to all frames) also the systematic term
+    With ``theta_deg_sigma`` also the systematic term
     ``field_angle``: (g'(theta) / g * sigma_theta)^2, the roll-off read at a
     field angle that is itself uncertain (the azimuthal factor's own
     dependence on theta is left out: A theta / theta_ref changes by A
     sigma_theta / theta_ref, below 1e-5 for the fitted A and sigma_theta).
     Evaluated in float64 (the variance polynomial cancels), returned in ``dtype``.
+
+    Parameters
+    ----------
+    theta_deg : array_like
+        Field angle of each band pixel (degree); NaN outside the image circle.
+    calibration : BandCalibration
+        The band's roll-off coefficients, covariance, calibrated field angle and azimuthal term.
+    phi_deg : array_like, optional
+        Azimuth of each band pixel (degree); needed for the azimuthal term.
+    effects : collection of str, default ()
+        The names of ``model.effects``; the azimuthal term applies with ``rolloff_azimuth``.
+    dtype : numpy dtype, default float
+        Float type of the returned maps.
+    theta_deg_sigma : array_like, optional
+        The geometric fit's standard uncertainty of each pixel's field angle (degree), common to all frames.
+
+    Returns
+    -------
+    RolloffMap
+        1 / g(theta, phi) (dimensionless), the relative variances ``rolloff`` (and ``field_angle``,
+        ``rolloff_azimuth``) and the geometry flags.
     """
     theta = np.asarray(theta_deg, dtype=float)
     if calibration.rolloff_covariance is None:
@@ -648,8 +910,27 @@ def correct_rolloff(m: Measured, theta_deg, calibration: BandCalibration, phi_de
 
     Pixels without a viewing direction (theta NaN) are flagged outside the
     image circle; field angles beyond the calibrated one are flagged.
-    ``rolloff``: the :func:`rolloff_map` of these pixels, when already at hand
-    (``theta_deg`` and ``phi_deg`` are then not used).
+
+    Parameters
+    ----------
+    m : Measured
+        The band image (any units; kept).
+    theta_deg : array_like
+        Field angle of each band pixel (degree), NaN outside the image circle.
+    calibration : BandCalibration
+        The band's roll-off calibration.
+    phi_deg : array_like, optional
+        Azimuth of each band pixel (degree).
+    effects : collection of str, default ()
+        The names of ``model.effects``.
+    rolloff : RolloffMap, optional
+        The :func:`rolloff_map` of these pixels, when already at hand (``theta_deg`` and ``phi_deg`` are then
+        not used).
+
+    Returns
+    -------
+    Measured
+        The band image over g(theta, phi), with the roll-off's relative systematic terms and geometry flags.
     """
     if rolloff is None:
         rolloff = rolloff_map(theta_deg, calibration, phi_deg, effects, np.result_type(np.float32, m.base))
@@ -679,7 +960,18 @@ class PixelFactors:
     flags: np.ndarray
 
     def window(self, key) -> "PixelFactors":
-        """These factors on a window of the image (``key`` a slice of rows or a (rows, columns) pair; views)."""
+        """These factors on a window of the image (views).
+
+        Parameters
+        ----------
+        key : slice or tuple of slice
+            A slice of rows or a (rows, columns) pair of slices.
+
+        Returns
+        -------
+        PixelFactors
+            The factors, terms and flags of the window (scalars kept as they are).
+        """
         def cut(x):
             return x[key] if np.ndim(x) else x
         return PixelFactors(cut(self.inverse), {k: cut(v) for k, v in self.systematic_rel.items()},
@@ -688,7 +980,32 @@ class PixelFactors:
 
 def pixel_factors(rolloff: RolloffMap, effects, *, hot_mask=None, flat_field=None, flat_field_sigma=None,
                   prnu_sigma_rel: float = 0.0, sites: int = 1, dtype=np.float32) -> PixelFactors:
-    """The :class:`PixelFactors` of a band image from its roll-off map and, per ``effects``, flat field and hot pixels."""
+    """The :class:`PixelFactors` of a band image from its roll-off map and, per ``effects``, flat field and hot pixels.
+
+    Parameters
+    ----------
+    rolloff : RolloffMap
+        The band image's :func:`rolloff_map`.
+    effects : collection of str
+        The names of ``model.effects`` (``prnu`` and ``hot_pixels`` matter here).
+    hot_mask : array_like, optional
+        The dark stage's hot-pixel mask (non-zero: hot).
+    flat_field : array_like, optional
+        Relative sensitivity F of each band pixel (dimensionless; NaN where not measured).
+    flat_field_sigma : array_like, optional
+        Standard uncertainty of the measured F (dimensionless).
+    prnu_sigma_rel : float, default 0.0
+        Relative sensitivity spread of one raw site, used where F is not measured.
+    sites : int, default 1
+        Raw sites averaged in a band pixel.
+    dtype : numpy dtype, default numpy.float32
+        Float type of the maps.
+
+    Returns
+    -------
+    PixelFactors
+        1 / (F g), the roll-off's systematic and the flat field's random relative variances, and the flags.
+    """
     inverse = np.asarray(rolloff.inverse, dtype)
     flags = np.asarray(rolloff.flags, np.uint8)
     random_rel = {}
@@ -702,7 +1019,20 @@ def pixel_factors(rolloff: RolloffMap, effects, *, hot_mask=None, flat_field=Non
 
 
 def correct_pixel_factors(m: Measured, factors: PixelFactors) -> Measured:
-    """Hot pixels, flat field and roll-off in one step (:class:`PixelFactors`; ``flags`` None: no flag added)."""
+    """Hot pixels, flat field and roll-off in one step (:class:`PixelFactors`; ``flags`` None: no flag added).
+
+    Parameters
+    ----------
+    m : Measured
+        The band image (any units; kept).
+    factors : PixelFactors
+        The frame-independent per-pixel factors of the image, from :func:`pixel_factors`.
+
+    Returns
+    -------
+    Measured
+        The band image times ``factors.inverse``, with their terms and flags.
+    """
     out = m.scaled(factors.inverse, m.units, relative_systematic=factors.systematic_rel)
     if factors.random_rel:
         out = out._replace(random_rel={**out.random_rel, **factors.random_rel})
@@ -710,7 +1040,27 @@ def correct_pixel_factors(m: Measured, factors: PixelFactors) -> Measured:
 
 
 def correct_immersion(m: Measured, calibration: BandCalibration, medium: str) -> Measured:
-    """In water multiply by the immersion factor I, Eq. (4) and (11); term ``immersion_factor``. In air, nothing."""
+    """In water multiply by the immersion factor I, Eq. (4) and (11); term ``immersion_factor``. In air, nothing.
+
+    Parameters
+    ----------
+    m : Measured
+        The band image (any units; kept).
+    calibration : BandCalibration
+        The band's immersion factor I (dimensionless) and its sigma.
+    medium : str
+        ``"water"`` or ``"air"``.
+
+    Returns
+    -------
+    Measured
+        The band image times I in water, with the relative systematic term ``immersion_factor``; ``m`` in air.
+
+    Raises
+    ------
+    pipeline.errors.ImpossibleResult
+        When the immersion factor is not a positive number.
+    """
     if medium != "water":
         return m
     i = calibration.immersion_factor
@@ -721,14 +1071,45 @@ def correct_immersion(m: Measured, calibration: BandCalibration, medium: str) ->
 
 
 def check_inverse_responsivity(value: float, where: str = "") -> None:
-    """A non-positive (or non-finite) R^-1 is no calibration: stop with a clear message."""
+    """A non-positive (or non-finite) R^-1 is no calibration: stop with a clear message.
+
+    Parameters
+    ----------
+    value : float
+        The inverse responsivity R^-1 (W sr-1 m-2 nm-1 per DN s-1).
+    where : str, default ""
+        Where it comes from, put in the message (with a trailing space, e.g. ``"of band R "``).
+
+    Raises
+    ------
+    pipeline.errors.ImpossibleResult
+        When ``value`` is not finite or not positive.
+    """
     if not np.isfinite(value) or value <= 0:
         raise ImpossibleResult(None, f"inverse responsivity R^-1 {where}is {value}, not positive: "
                                      "rerun the absolute stage")
 
 
 def to_radiance(m: Measured, calibration: BandCalibration) -> Measured:
-    """Eq. (9) turned round: L = R^-1 y, in W sr-1 m-2 nm-1; term ``inverse_responsivity`` (its budget)."""
+    """Eq. (9) turned round: L = R^-1 y, in W sr-1 m-2 nm-1; term ``inverse_responsivity`` (its budget).
+
+    Parameters
+    ----------
+    m : Measured
+        The corrected signal rate y (DN s-1 at ISO 100).
+    calibration : BandCalibration
+        The band's inverse responsivity R^-1 (W sr-1 m-2 nm-1 per DN s-1) and its relative sigma.
+
+    Returns
+    -------
+    Measured
+        Spectral radiance L (W sr-1 m-2 nm-1), with the relative systematic term ``inverse_responsivity``.
+
+    Raises
+    ------
+    pipeline.errors.ImpossibleResult
+        When R^-1 is not a positive number.
+    """
     check_inverse_responsivity(calibration.inverse_responsivity)
     rel = float(calibration.inverse_responsivity_relative_sigma) ** 2
     return m.scaled(float(calibration.inverse_responsivity), "W sr-1 m-2 nm-1",
@@ -743,10 +1124,51 @@ def measure_band(image_dn, frame: FrameSettings, dark: DarkModel, response: Resp
                  frame_black_dn=None, factors: PixelFactors | None = None) -> Measured:
     """One band image of one lens from raw DN to spectral radiance: the whole inverse of Eq. (4).
 
-    ``rolloff``: the :func:`rolloff_map` of the image's pixels when already at hand (the bundle stores it).
-    ``factors``: the :func:`pixel_factors` of the image's pixels (hot pixels, flat field and roll-off taken
-    once for many frames); ``hot_mask``, the flat field, ``rolloff``, ``theta_deg`` and ``phi_deg`` are
-    then not used.
+    Parameters
+    ----------
+    image_dn : array_like
+        The band image's raw readings (DN).
+    frame : FrameSettings
+        Exposure time, ISO and temperature of the frame.
+    dark : DarkModel
+        The dark stage's model of the band.
+    response : ResponseModel
+        The linearity stage's fit of the band at the frame's ISO.
+    calibration : BandCalibration
+        The band's roll-off, immersion factor and R^-1 for the lens and medium.
+    theta_deg : array_like
+        Field angle of each band pixel (degree), NaN outside the image circle.
+    medium : str
+        ``"air"`` or ``"water"``.
+    effects : collection of str
+        The names of ``model.effects``.
+    saturated : array_like of bool, optional
+        Band pixels with a CFA site at the white level.
+    hot_mask : array_like, optional
+        The dark stage's hot-pixel mask.
+    flat_field : array_like, optional
+        Relative sensitivity of each band pixel (dimensionless, NaN where not measured).
+    prnu_sigma_rel : float, default 0.0
+        Relative sensitivity spread of one raw site.
+    phi_deg : array_like, optional
+        Azimuth of each band pixel (degree).
+    flat_field_sigma : array_like, optional
+        Standard uncertainty of the flat field (dimensionless).
+    rolloff : RolloffMap, optional
+        The :func:`rolloff_map` of the image's pixels when already at hand (the bundle stores it).
+    unlit_dn : array_like, optional
+        Raw values (DN) of the band image's unlit pixels (``bias_drift``, :func:`subtract_dark`).
+    frame_black_dn : tuple of float, optional
+        The frame's black level (DN) and its variance (DN2) from optically black pixels (:func:`subtract_dark`).
+    factors : PixelFactors, optional
+        The :func:`pixel_factors` of the image's pixels (hot pixels, flat field and roll-off taken once for
+        many frames); ``hot_mask``, the flat field, ``rolloff``, ``theta_deg`` and ``phi_deg`` are then not used.
+
+    Returns
+    -------
+    Measured
+        Spectral radiance (W sr-1 m-2 nm-1) of each band pixel with its named random and systematic
+        variances and quality flags.
     """
     effects = tuple(effects)
     m = from_raw(image_dn, saturated)

@@ -33,14 +33,36 @@ def _amplitude(row) -> str:
 def summarise_run(results: str | Path, model_effects: list[str], skipped: dict[str, str] | None = None,
                   structured_rms_z: float = 1.5, *, diagnostics: Path | None = None,
                   report: Path | None = None) -> list[str]:
-    """The lines to print after a run; ``results`` is the workflow's results folder (``diagnostics``
-    and ``report``: the tables' folder and the report, when not the rules' own).
+    """The lines to print after a run.
 
     The field match-up's line begins with its scale closure (``field_scale.csv``: the camera/reference scale
     against the lab calibration's prediction), the one test of the absolute radiance against an instrument
     the calibration was not fitted to. The last line gives one ``--config`` that adds every effect the
     run found, in the order the diagnostics accepted them (following one experiment's suggestion alone
-    would drop the others')."""
+    would drop the others').
+
+    Parameters
+    ----------
+    results : str or pathlib.Path
+        The workflow's results folder.
+    model_effects : list of str
+        The effects of the run's ``model.effects``.
+    skipped : dict[str, str], optional
+        Stage -> why it was skipped; one line each.
+    structured_rms_z : float, default 1.5
+        RMS of the normalised residuals (dimensionless) at or below which an experiment without a significant
+        candidate is at the noise floor (``diagnostics.structured_rms_z``).
+    diagnostics : pathlib.Path, optional
+        Folder of the diagnostics' tables, when not ``results/diagnostics``.
+    report : pathlib.Path, optional
+        The report's HTML file, when not ``results/report/index.html``.
+
+    Returns
+    -------
+    list of str
+        The lines: where the report is, one per experiment, the ``--config`` that adds what was found, the
+        plausibility findings and the skipped stages.
+    """
     from pipeline.diagnostics.missing_effects import accepted_effects, field_scale_sentence
 
     results = Path(results)
@@ -83,8 +105,20 @@ def summarise_run(results: str | Path, model_effects: list[str], skipped: dict[s
 
 
 def plausibility_summary(path: Path) -> list[str]:
-    """One line per fitted quantity outside its physical range (``plausibility.csv``), with the value and
-    the range (:func:`pipeline.diagnostics.plausibility.finding_sentence`)."""
+    """One line per fitted quantity outside its physical range, with the value and the range.
+
+    The sentence is :func:`pipeline.diagnostics.plausibility.finding_sentence`'s.
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The diagnostics' ``plausibility.csv`` (absent or empty: no line).
+
+    Returns
+    -------
+    list of str
+        One line per finding, beginning with its status.
+    """
     from pipeline.diagnostics.plausibility import finding_sentence, findings
 
     return [f"  {row['status']}: {finding_sentence(row)}" for _, row in findings(_read(path)).iterrows()]
@@ -100,9 +134,22 @@ FAILED_RUN_DIR = "failed_run"
 
 
 def job_error_line(log_path: str | Path, since: float | None = None) -> str | None:
-    """The error of a failed job from its log: the message of its last ERROR record (bad input,
-    an impossible result, or ``unexpected <Exception>: ...``), or None when the log holds none
-    (or was last written before ``since``, a time stamp: a job of an earlier run)."""
+    """The error of a failed job from its log.
+
+    Parameters
+    ----------
+    log_path : str or pathlib.Path
+        The job's log (``results/logs/<stage>/<lens>.log``).
+    since : float, optional
+        A time stamp (s since the epoch, as ``time.time()``): a log last written before it belongs to a job of
+        an earlier run and gives None.
+
+    Returns
+    -------
+    str or None
+        The message of its last ERROR record (bad input, an impossible result, or
+        ``unexpected <Exception>: ...``); None when the log is absent, older than ``since`` or holds none.
+    """
     path = Path(log_path)
     if not path.is_file() or (since is not None and path.stat().st_mtime < since):
         return None
@@ -115,10 +162,22 @@ def stages_not_finished(results: str | Path, stage_lenses: dict[str, list[str]],
                         since: float | None = None) -> dict[str, str]:
     """Stage -> why it has no artefact for some lens after a failed run (from the jobs' logs).
 
-    ``stage_lenses`` maps every stage the run was to run to its lenses. A job that ran and failed
-    gives its error line (``failed for lens far: <file>: <problem> (log: ...)``); a stage that did
-    not run says which failed stage it needed, or that the run stopped before it. ``since``: the
-    run's start (logs older than it belong to earlier runs).
+    A job that ran and failed gives its error line (``failed for lens far: <file>: <problem> (log: ...)``);
+    a stage that did not run says which failed stage it needed, or that the run stopped before it.
+
+    Parameters
+    ----------
+    results : str or pathlib.Path
+        The workflow's results folder.
+    stage_lenses : dict[str, list of str]
+        Every stage the run was to run -> its lenses.
+    since : float, optional
+        The run's start (s since the epoch): logs older than it belong to earlier runs.
+
+    Returns
+    -------
+    dict[str, str]
+        Stage -> the reason, for the stages that lack an artefact of some lens.
     """
     from pipeline.runner.workflow import STAGES
 
@@ -150,13 +209,31 @@ def stages_not_finished(results: str | Path, stage_lenses: dict[str, list[str]],
 def report_after_failure(results: str | Path, stage_lenses: dict[str, list[str]], config: dict,
                          skipped: dict[str, str] | None = None, since: float | None = None) -> list[str]:
     """After a run in which jobs failed: the diagnostics and the report on the artefacts that were
-    written, the report naming each stage that did not finish and why; returns the lines to print.
+    written, the report naming each stage that did not finish and why.
 
     Writes the diagnostics' tables and the report into ``results/failed_run/`` (one more entry in
     the diagnostics' ledger), never over the outputs of the diagnostics and report rules: Snakemake
-    would take those for up to date and not rerun the failed jobs below them. ``since``: the run's
-    start, so that the log of a job that failed in an earlier run and did not run in this one is
-    not taken for this run's error.
+    would take those for up to date and not rerun the failed jobs below them.
+
+    Parameters
+    ----------
+    results : str or pathlib.Path
+        The workflow's results folder.
+    stage_lenses : dict[str, list of str]
+        Every stage the run was to run -> its lenses.
+    config : dict
+        The run's validated configuration.
+    skipped : dict[str, str], optional
+        Stage -> why it was skipped (the dataset lacks its experiment).
+    since : float, optional
+        The run's start (s since the epoch), so that the log of a job that failed in an earlier run and did
+        not run in this one is not taken for this run's error.
+
+    Returns
+    -------
+    list of str
+        The lines to print: the stages that did not finish and why, the failed jobs after the stages, then
+        :func:`summarise_run`'s lines on the stages that finished (or why there are none).
     """
     from pipeline.io.artefact import BUNDLE_STAGES
     from pipeline.config import stage_params

@@ -79,6 +79,13 @@ class StageSpec:
         return tuple(out)
 
     def module(self):
+        """The stage's module in :mod:`pipeline.stages` (imported on first use).
+
+        Returns
+        -------
+        module
+            ``pipeline.stages.<name>``, which provides ``compute(ctx)``.
+        """
         return importlib.import_module(f"pipeline.stages.{self.name}")
 
 
@@ -120,19 +127,54 @@ STAGE_EXPERIMENTS = {name: spec.experiments for name, spec in STAGES.items()}
 
 # --------------------------------------------------------------------------- the model
 def load_model(config: dict) -> list[str]:
-    """The effects of ``model.effects``, after importing the plugin modules that define user effects."""
+    """The effects of ``model.effects``, after importing the plugin modules that define user effects.
+
+    Parameters
+    ----------
+    config : dict
+        The run's configuration, with the section ``model`` (``effects``, optional ``plugins``).
+
+    Returns
+    -------
+    list of str
+        The names of the effects in the model, in the configuration's order.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        When a plugin module fails to import.
+    """
     load_plugins(config["model"].get("plugins", []))
     return list(config["model"]["effects"])
 
 
 def check_config(config: dict, config_file: str | Path, config_files=()) -> dict:
-    """The workflow's start-up check of its configuration, before any job: every file of ``config_files``
-    (the config files Snakemake read: config/config.yaml and each ``--configfile``) read again by the
-    strict reader, which refuses a key written twice (Snakemake keeps the last without a word), the
+    """The workflow's start-up check of its configuration, before any job.
+
+    Every file of ``config_files`` is read again by the
+    strict reader, which refuses a key written twice (Snakemake keeps the last without a word); then the
     schema (filling its defaults, as ``pipeline.config.validate_config``), the plugin modules of
-    ``model.plugins`` and the effect names of ``model.effects``.  One InputError naming ``config_file``
-    (the config file the run read; the --config options extend it), or the file with the duplicate
-    key, and the first problem."""
+    ``model.plugins`` and the effect names of ``model.effects`` are checked.
+
+    Parameters
+    ----------
+    config : dict
+        The configuration as Snakemake merged it; its defaults are filled in place.
+    config_file : str or pathlib.Path
+        The config file the run read (the --config options extend it), named in the error.
+    config_files : iterable of str or pathlib.Path, default ()
+        The config files Snakemake read: config/config.yaml and each ``--configfile``.
+
+    Returns
+    -------
+    dict
+        ``config``, validated and with the schema's defaults.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        One, naming ``config_file`` (or the file with the duplicate key) and the first problem.
+    """
     for path in dict.fromkeys(str(p) for p in config_files):
         read_config_file(path)
     try:
@@ -155,6 +197,19 @@ class LensDataset(Dataset):
     lens: str = ""
 
     def frames(self, experiment: str) -> pd.DataFrame:
+        """The frames table of an experiment, restricted to frames of this lens or of both.
+
+        Parameters
+        ----------
+        experiment : str
+            Name of the experiment folder.
+
+        Returns
+        -------
+        pandas.DataFrame
+            The rows of the experiment's frames.csv whose ``lens`` is this lens or ``both`` (all rows when the
+            table has no ``lens`` column).
+        """
         frames = super().frames(experiment)
         if "lens" in frames:
             frames = frames[frames["lens"].isin([self.lens, "both"])]
@@ -162,6 +217,25 @@ class LensDataset(Dataset):
 
 
 def lens_view(dataset: Dataset, lens: str) -> LensDataset:
+    """The dataset as the job of one lens sees it: only that lens's region, only frames of it or of both.
+
+    Parameters
+    ----------
+    dataset : pipeline.io.dataset.Dataset
+        The opened dataset.
+    lens : str
+        Name of a lens of ``dataset.yaml``.
+
+    Returns
+    -------
+    LensDataset
+        A view with only ``lens`` in ``lenses``.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        When the dataset has no such lens.
+    """
     if lens not in dataset.lenses:
         raise InputError(dataset.root / "dataset.yaml", f"has no lens '{lens}' (lenses: {', '.join(dataset.lenses)})")
     fields = {f.name: getattr(dataset, f.name) for f in dataclasses.fields(Dataset)}
@@ -186,7 +260,15 @@ class StageContext:
     inputs: dict[str, str] = field(default_factory=dict)
 
     def record_frames(self, hashes: dict[str, str], experiment: str | None = None) -> None:
-        """Record the sha256 of decoded frames, given by their path relative to the experiment folder."""
+        """Record the sha256 of decoded frames, given by their path relative to the experiment folder.
+
+        Parameters
+        ----------
+        hashes : dict[str, str]
+            Frame path relative to the experiment folder -> hex sha256 of its bytes.
+        experiment : str, optional
+            The experiment folder of the frames; the stage's own when None.
+        """
         experiment = experiment or STAGES[self.stage].experiment
         for name, sha in hashes.items():
             self.inputs[f"{experiment}/{name}"] = sha
@@ -205,7 +287,18 @@ def _relative(path: Path, root: Path) -> str:
 
 
 def decode_ahead_frames(config: dict) -> int:
-    """The job's ``performance.decode_ahead_frames`` (the schema's default where the config lacks the section)."""
+    """The job's ``performance.decode_ahead_frames`` (the schema's default where the config lacks the section).
+
+    Parameters
+    ----------
+    config : dict
+        The run's configuration.
+
+    Returns
+    -------
+    int
+        How many frames are decoded ahead of the one a stage reduces.
+    """
     return (config.get("performance") or defaults()["performance"])["decode_ahead_frames"]
 
 
@@ -240,9 +333,21 @@ def _fingerprint(root: Path, experiments=None) -> tuple:
 
 
 def check_experiments(stage: str) -> tuple[str, ...]:
-    """The experiments whose frames a stage run on its own is checked with: its own and those of the
-    stages it needs (their artefacts are made from them); the field's calibration bundle was checked with
-    the lab's frames when it was made, so the field checks its own."""
+    """The experiments whose frames a stage run on its own is checked with.
+
+    Its own and those of the stages it needs (their artefacts are made from them); the field's calibration
+    bundle was checked with the lab's frames when it was made, so the field checks its own.
+
+    Parameters
+    ----------
+    stage : str
+        Name of a stage of :data:`STAGES`.
+
+    Returns
+    -------
+    tuple of str
+        Experiment folder names, the stage's own first.
+    """
     spec = STAGES[stage]
     out = [spec.experiment]
     for name in spec.upstream:
@@ -251,11 +356,31 @@ def check_experiments(stage: str) -> tuple[str, ...]:
 
 
 def checked_dataset(root: str | Path, experiments=None, field_settings: dict | None = None) -> Dataset:
-    """The dataset at ``root`` after the checks ``python -m pipeline validate`` makes (the layout, the
-    tags of every frame, the sidecars, their consistency: ``pipeline.io.validation.inspect_dataset``), the
-    frames and sidecars of ``experiments`` only when given; an InputError naming the first problem (and
-    counting the others) when there is one, the suspicions logged as warnings. The result is kept while
-    no file of the folder changes."""
+    """The dataset at ``root`` after the checks ``python -m pipeline validate`` makes.
+
+    The checks are the layout, the tags of every frame, the sidecars and their consistency
+    (``pipeline.io.validation.inspect_dataset``); the suspicions are logged as warnings. The result is kept
+    while no file of the folder changes.
+
+    Parameters
+    ----------
+    root : str or pathlib.Path
+        The dataset folder.
+    experiments : iterable of str, optional
+        Check the frames and sidecars of these experiments only; all when None.
+    field_settings : dict, optional
+        The run's ``field`` section (the reference's match-up window and clock search the check uses).
+
+    Returns
+    -------
+    pipeline.io.dataset.Dataset
+        The opened, checked dataset.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        Naming the first problem (and counting the others) when there is one.
+    """
     root = Path(root)
     key = (root.resolve(), None if experiments is None else tuple(sorted(experiments)),
            json.dumps(field_settings, sort_keys=True, default=str))
@@ -280,14 +405,41 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
               checked: bool = False) -> dict[str, xr.Dataset]:
     """Run ``stage`` for each lens of ``outputs`` (lens -> artefact path); returns the artefacts.
 
-    ``upstream`` maps an upstream stage to its artefacts per lens. A required
-    upstream artefact that is missing stops the stage with a clear message.
-    ``bundle`` is the calibration bundle that a stage with ``bundle`` applies.
+    A required upstream artefact that is missing stops the stage with a clear message.
     A dataset folder is first checked as ``validate`` checks it (:func:`checked_dataset`: the frames' tags
     against each other and dataset.yaml, the sidecars against each other and the frames), on the
-    experiments of :func:`check_experiments`, so a stage run directly never uses what validate refuses;
-    ``checked`` says that this was done already (the workflow's jobs: its start-up check ran it on the
-    whole folder before any job), and then only the layout is read.
+    experiments of :func:`check_experiments`, so a stage run directly never uses what validate refuses.
+
+    Parameters
+    ----------
+    stage : str
+        Name of a stage of :data:`STAGES`.
+    dataset : str, pathlib.Path or pipeline.io.dataset.Dataset
+        The dataset folder, or the dataset already opened.
+    config : dict
+        The run's validated configuration.
+    outputs : dict[str, str or pathlib.Path]
+        Lens -> path of the artefact to write (``results/<stage>/<lens>.nc``).
+    upstream : dict[str, dict[str, str or pathlib.Path]], optional
+        Upstream stage -> its artefacts per lens.
+    progress : bool, default False
+        Show the stage's progress.
+    bundle : str or pathlib.Path, optional
+        The calibration bundle that a stage with ``bundle`` applies.
+    checked : bool, default False
+        The dataset folder was checked already (the workflow's jobs: its start-up check ran it on the whole
+        folder before any job); then only the layout is read.
+
+    Returns
+    -------
+    dict[str, xarray.Dataset]
+        Lens -> the artefact written, loaded in memory.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        When the experiment folder, a sidecar, a required upstream artefact or the bundle is missing, or the
+        dataset fails its checks.
     """
     spec = STAGES[stage]
     module = spec.module()
@@ -396,7 +548,18 @@ def _parse_package_imports(path: Path) -> set[str]:
 
 
 def stage_code_modules(stage: str) -> list[str]:
-    """The package's modules whose code a stage's job runs: its module and all it imports, transitively."""
+    """The package's modules whose code a stage's job runs: its module and all it imports, transitively.
+
+    Parameters
+    ----------
+    stage : str
+        Name of a stage (its module ``pipeline.stages.<stage>``).
+
+    Returns
+    -------
+    list of str
+        Dotted module names, sorted, with this runner and the packages' ``__init__`` modules.
+    """
     seen, todo = set(), [f"pipeline.stages.{stage}", "pipeline.runner.workflow"]
     while todo:
         name = todo.pop()
@@ -414,7 +577,18 @@ def stage_code_modules(stage: str) -> list[str]:
 
 
 def stage_code_sha256(stage: str) -> str:
-    """sha256 of the source of every module a stage runs: a rule's param, so a code change reruns it."""
+    """sha256 of the source of every module a stage runs: a rule's param, so a code change reruns it.
+
+    Parameters
+    ----------
+    stage : str
+        Name of a stage.
+
+    Returns
+    -------
+    str
+        Hex sha256 of the names and sources of :func:`stage_code_modules`.
+    """
     h = hashlib.sha256()
     for name in stage_code_modules(stage):
         h.update(name.encode())
@@ -433,7 +607,18 @@ class DatasetIndex:
         self.field_settings = (config or {}).get("field")
 
     def load(self) -> "DatasetIndex":
-        """Validate once (``pipeline.io.validation``); on problems print them grouped and raise InputError."""
+        """Validate once (``pipeline.io.validation``); on problems print them grouped and raise InputError.
+
+        Returns
+        -------
+        DatasetIndex
+            ``self``, its ``dataset`` set.
+
+        Raises
+        ------
+        pipeline.errors.InputError
+            When the dataset has problems (listed on standard error).
+        """
         if self.dataset is None:
             warnings = []
             dataset, problems = inspect_dataset(self.root, warnings=warnings, field_settings=self.field_settings)
@@ -448,10 +633,28 @@ class DatasetIndex:
         return self
 
     def lenses(self) -> list[str]:
+        """The lenses of the dataset.
+
+        Returns
+        -------
+        list of str
+            Lens names in the order of dataset.yaml.
+        """
         return list(self.load().dataset.lenses)
 
     def stage_lenses(self, stage: str) -> list[str]:
-        """The lenses a stage runs for: every lens, or those its frames.csv names (``lenses_from_frames``)."""
+        """The lenses a stage runs for: every lens, or those its frames.csv names (``lenses_from_frames``).
+
+        Parameters
+        ----------
+        stage : str
+            Name of a stage of :data:`STAGES`.
+
+        Returns
+        -------
+        list of str
+            Lens names.
+        """
         lenses = self.lenses()
         spec = STAGES[stage]
         if not spec.lenses_from_frames or spec.experiment not in self.dataset.experiments():
@@ -460,10 +663,29 @@ class DatasetIndex:
         return lenses if "both" in named else [lens for lens in lenses if lens in named]
 
     def stage_runnable(self, stage: str) -> bool:
+        """Whether the dataset has every experiment folder the stage reads.
+
+        Parameters
+        ----------
+        stage : str
+            Name of a stage of :data:`STAGES`.
+
+        Returns
+        -------
+        bool
+            True when all of :data:`STAGE_EXPERIMENTS` of the stage are present.
+        """
         present = set(self.load().dataset.experiments())
         return all(exp in present for exp in STAGE_EXPERIMENTS[stage])
 
     def skipped(self) -> dict[str, str]:
+        """The stages the dataset cannot run and why.
+
+        Returns
+        -------
+        dict[str, str]
+            Stage -> the reason (the experiment folders it lacks).
+        """
         present = set(self.load().dataset.experiments())
         out = {}
         for stage, needs in STAGE_EXPERIMENTS.items():
@@ -473,7 +695,19 @@ class DatasetIndex:
         return out
 
     def stage_files(self, stage: str) -> list[str]:
-        """The experiment's files a stage reads: frames.csv, raw frames, sidecars (and DATASET_FILES at the root)."""
+        """The experiment's files a stage reads: frames.csv, raw frames, sidecars (and DATASET_FILES at the root).
+
+        Parameters
+        ----------
+        stage : str
+            Name of a stage of :data:`STAGES`.
+
+        Returns
+        -------
+        list of str
+            Paths of the experiment's files (the root's DATASET_FILES are :meth:`layout_files`); empty when the
+            dataset has no folder for the stage's experiment.
+        """
         dataset = self.load().dataset
         spec = STAGES[stage]
         if spec.experiment not in dataset.experiments():
@@ -484,7 +718,21 @@ class DatasetIndex:
                 + [str(folder / name) for name in spec.sidecars])
 
     def dataset_subset(self, stage: str, lens: str) -> dict:
-        """The part of dataset.yaml that the job of one lens reads (its rerun trigger)."""
+        """The part of dataset.yaml that the job of one lens reads (its rerun trigger).
+
+        Parameters
+        ----------
+        stage : str
+            Name of a stage of :data:`STAGES`.
+        lens : str
+            Name of the lens.
+
+        Returns
+        -------
+        dict
+            ``camera``, the lens's region under ``lens`` and the keys of the stage's ``reads_meta``, as plain JSON
+            values with sorted keys.
+        """
         meta = self.load().dataset.meta
         out = {"camera": meta.get("camera"), "lens": meta.get("lenses", {}).get(lens)}
         for key in STAGES[stage].reads_meta:
@@ -492,18 +740,52 @@ class DatasetIndex:
         return json.loads(json.dumps(out, sort_keys=True, default=str))   # key order of the file does not matter
 
     def job_memory_mb(self, stage: str, lens: str, attempt: int = 1) -> int:
-        """Memory to ask a scheduler for, for the job of one stage and lens (see JOB_MEMORY_*)."""
+        """Memory to ask a scheduler for, for the job of one stage and lens (see JOB_MEMORY_*).
+
+        Parameters
+        ----------
+        stage : str
+            Name of a stage of :data:`STAGES`.
+        lens : str
+            Name of the lens (its region's size sets the band pixels).
+        attempt : int, default 1
+            The job's attempt; each retry asks for that many times more.
+
+        Returns
+        -------
+        int
+            Memory in MB (10^6 bytes), rounded up.
+        """
         (r0, r1), (c0, c1) = self.load().dataset.lenses[lens]
         band_pixels = (r1 - r0) * (c1 - c0) / 4
         mib = JOB_MEMORY_FIXED_MIB + JOB_MEMORY_BYTES_PER_BAND_PIXEL[stage] * band_pixels / 2**20
         return int(np.ceil(JOB_MEMORY_HEADROOM * attempt * mib * 1.048576))
 
     def layout_files(self) -> list[str]:
-        """dataset.yaml and MD5SUMS: read by every stage."""
+        """dataset.yaml and MD5SUMS: read by every stage.
+
+        Returns
+        -------
+        list of str
+            Their paths.
+        """
         return [str(self.load().dataset.root / name) for name in DATASET_FILES]
 
     def lens_files(self, stage: str, lens: str) -> list[str]:
-        """The files of :meth:`stage_files` that the job of one lens reads."""
+        """The files of :meth:`stage_files` that the job of one lens reads.
+
+        Parameters
+        ----------
+        stage : str
+            Name of a stage of :data:`STAGES`.
+        lens : str
+            Name of the lens.
+
+        Returns
+        -------
+        list of str
+            Paths: frames.csv, the sidecars and the raw frames of that lens or of both.
+        """
         dataset = self.load().dataset
         spec = STAGES[stage]
         if spec.experiment not in dataset.experiments():
@@ -515,13 +797,36 @@ class DatasetIndex:
 
 # --------------------------------------------------------------------------- the scripts' entry point
 def artefacts_by_lens(paths) -> dict[str, str]:
-    """Artefact paths of one stage (``results/<stage>/<lens>.nc``) keyed by lens."""
+    """Artefact paths of one stage (``results/<stage>/<lens>.nc``) keyed by lens.
+
+    Parameters
+    ----------
+    paths : str, pathlib.Path or iterable of them
+        One artefact path or several.
+
+    Returns
+    -------
+    dict[str, str]
+        Lens (the file's stem) -> path.
+    """
     paths = [paths] if isinstance(paths, (str, Path)) else list(paths)
     return {Path(p).stem: str(p) for p in paths}
 
 
 def run_stage_script(smk, stage: str) -> None:
-    """Entry point of the thin stage scripts: one stage, one lens (the rule's ``{lens}`` wildcard)."""
+    """Entry point of the thin stage scripts: one stage, one lens (the rule's ``{lens}`` wildcard).
+
+    Exits with the message of an InputError (:func:`pipeline.entry.exit_on_input_error`).
+
+    Parameters
+    ----------
+    smk : snakemake.script.Snakemake
+        The ``snakemake`` object of the rule's script: ``input`` (upstream artefacts by stage name,
+        ``calibration``), ``output.artefact``, ``params.dataset``, ``params.config``, ``wildcards.lens`` and
+        ``log``.
+    stage : str
+        Name of a stage of :data:`STAGES`.
+    """
     setup_log(smk.log[0] if smk.log else None)
     lens = smk.wildcards.lens
     upstream = {name: {lens: smk.input[name]} for name in STAGES[stage].upstream + STAGES[stage].optional_upstream
@@ -541,6 +846,21 @@ def dataset_to_simulate(config: dict) -> bool:
     is simulated when absent, or any folder with ``simulate: true``. A folder a
     user named that does not exist is an error before any job runs, so a
     mistyped or unmounted path never yields a report of a simulated camera.
+
+    Parameters
+    ----------
+    config : dict
+        The run's configuration (``dataset``, ``simulate_if_missing``, optional ``simulate``).
+
+    Returns
+    -------
+    bool
+        True when the dataset folder is absent and is to be simulated; False when it exists.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        When the folder does not exist and is not to be simulated.
     """
     path = Path(config["dataset"])
     if path.exists():
@@ -568,8 +888,16 @@ class SignalWatch:
         self.signals: list[int] = []
 
     def watch(self, *signums: int) -> None:
-        """Note each of ``signums`` from now on, before the handler installed so far acts (Snakemake's
-        scheduler installs its SIGTERM handler when it starts: watch SIGTERM from ``onstart``)."""
+        """Note each of ``signums`` from now on, before the handler installed so far acts.
+
+        Snakemake's scheduler installs its SIGTERM handler when it starts: watch SIGTERM from ``onstart``.
+        Outside the main thread nothing is installed.
+
+        Parameters
+        ----------
+        *signums : int
+            Signal numbers (``signal.SIGINT``, ``signal.SIGTERM``).
+        """
         for signum in signums:
             previous = signal.getsignal(signum)
 
