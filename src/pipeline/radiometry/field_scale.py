@@ -42,12 +42,43 @@ SCALE_TERMS = ("fit", "camera_calibration", "reference_calibration", "spectral_m
 def mismatch_prediction_relative_sigma(spectral_slope, wavelength_nm: float, wavelength_sigma_nm: float,
                                        outside_fraction: float) -> float:
     """Relative uncertainty of the band-convolved reference as the band radiance (see the module docstring):
-    |d ln L / d ln lambda| x sigma_lambda / lambda in quadrature with outside_fraction / sqrt(3)."""
+    |d ln L / d ln lambda| x sigma_lambda / lambda in quadrature with outside_fraction / sqrt(3).
+
+    NaN inputs count as 0.
+
+    Parameters
+    ----------
+    spectral_slope : float
+        The scene's in-band spectral slope d ln L / d ln lambda (dimensionless).
+    wavelength_nm : float
+        The band's effective wavelength lambda (nm).
+    wavelength_sigma_nm : float
+        Standard uncertainty of the effective wavelength sigma_lambda (nm).
+    outside_fraction : float
+        Share f of the band's response outside the reference channels' span (dimensionless).
+
+    Returns
+    -------
+    float
+        The ``spectral_mismatch_prediction`` term, a relative standard uncertainty (dimensionless).
+    """
     slope = float(np.nan_to_num(spectral_slope))
     position = abs(slope) * float(np.nan_to_num(wavelength_sigma_nm)) / float(wavelength_nm)
     return float(np.hypot(position, float(np.nan_to_num(outside_fraction)) / np.sqrt(3.0)))
 
 
 def scale_relative_sigma(terms: dict[str, float]) -> float:
-    """Quadrature sum of a band's :data:`SCALE_TERMS` (relative)."""
+    """Quadrature sum of a band's :data:`SCALE_TERMS` (relative).
+
+    Parameters
+    ----------
+    terms : dict[str, float]
+        Term name -> relative standard uncertainty (dimensionless); a missing or NaN term counts as 0, a name
+        outside :data:`SCALE_TERMS` is ignored.
+
+    Returns
+    -------
+    float
+        Relative standard uncertainty of the band's field scale (dimensionless).
+    """
     return float(np.sqrt(sum(float(np.nan_to_num(terms.get(t, 0.0))) ** 2 for t in SCALE_TERMS)))

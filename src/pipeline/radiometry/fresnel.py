@@ -26,7 +26,22 @@ __all__ = [
 
 
 def refraction_angle_deg(n1, n2, incidence_deg):
-    """Refraction angle (degrees) by Snell's law n1 sin(i) = n2 sin(t); NaN beyond the critical angle."""
+    """Refraction angle (degrees) by Snell's law n1 sin(i) = n2 sin(t); NaN beyond the critical angle.
+
+    Parameters
+    ----------
+    n1 : array_like
+        Refractive index of the incident medium (dimensionless).
+    n2 : array_like
+        Refractive index of the transmitting medium (dimensionless).
+    incidence_deg : array_like
+        Incidence angle from the normal (degree).
+
+    Returns
+    -------
+    numpy.ndarray
+        Refraction angle t from the normal (degree), broadcast over the inputs; NaN beyond the critical angle.
+    """
     n1 = np.asarray(n1, dtype=float)
     n2 = np.asarray(n2, dtype=float)
     s = n1 / n2 * np.sin(np.deg2rad(np.asarray(incidence_deg, dtype=float)))
@@ -35,14 +50,40 @@ def refraction_angle_deg(n1, n2, incidence_deg):
 
 
 def fresnel_reflectance_normal(n1, n2):
-    """Power reflectance at normal incidence, R = ((n1 - n2) / (n1 + n2))^2 (dimensionless)."""
+    """Power reflectance at normal incidence, R = ((n1 - n2) / (n1 + n2))^2 (dimensionless).
+
+    Parameters
+    ----------
+    n1 : array_like
+        Refractive index of the incident medium (dimensionless).
+    n2 : array_like
+        Refractive index of the transmitting medium (dimensionless).
+
+    Returns
+    -------
+    numpy.ndarray
+        Reflectance R in [0, 1], broadcast over the inputs.
+    """
     n1 = np.asarray(n1, dtype=float)
     n2 = np.asarray(n2, dtype=float)
     return ((n1 - n2) / (n1 + n2)) ** 2
 
 
 def fresnel_transmittance_normal(n1, n2):
-    """Power transmittance at normal incidence, T = 4 n1 n2 / (n1 + n2)^2 = 1 - R (dimensionless)."""
+    """Power transmittance at normal incidence, T = 4 n1 n2 / (n1 + n2)^2 = 1 - R (dimensionless).
+
+    Parameters
+    ----------
+    n1 : array_like
+        Refractive index of the incident medium (dimensionless).
+    n2 : array_like
+        Refractive index of the transmitting medium (dimensionless).
+
+    Returns
+    -------
+    numpy.ndarray
+        Transmittance T in [0, 1], broadcast over the inputs.
+    """
     n1 = np.asarray(n1, dtype=float)
     n2 = np.asarray(n2, dtype=float)
     return 4.0 * n1 * n2 / (n1 + n2) ** 2
@@ -78,7 +119,20 @@ def fresnel_reflectance(n1, n2, incidence_deg):
 
 
 def fresnel_transmittance(n1, n2, incidence_deg):
-    """Unpolarised power transmittance T = 1 - R at a flat n1 -> n2 interface (dimensionless)."""
+    """Unpolarised power transmittance T = 1 - R at a flat n1 -> n2 interface (dimensionless).
+
+    Parameters
+    ----------
+    n1, n2 : array_like
+        Refractive indices of the incident and transmitting media (dimensionless).
+    incidence_deg : array_like
+        Incidence angle from the normal (degree, 0 to 90).
+
+    Returns
+    -------
+    numpy.ndarray
+        Transmittance T in [0, 1], broadcast over the inputs; 0 beyond the critical angle.
+    """
     return 1.0 - fresnel_reflectance(n1, n2, incidence_deg)
 
 
@@ -88,6 +142,20 @@ def transmittance_air_water(wavelength_nm, temperature_c=25.0, salinity_psu=0.0)
     Uses n_air = 1 and n_w from Quan and Fry (1995).  At normal incidence the
     Fresnel transmittance is symmetric, so t_aw = t_wa.  About 0.9797 at
     600 nm (Larouche et al. 2024, Section 3.6 / Table 2 example).
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelength (nm).
+    temperature_c : array_like, default 25.0
+        Water temperature (degree Celsius).
+    salinity_psu : array_like, default 0.0
+        Salinity (PSU).
+
+    Returns
+    -------
+    numpy.ndarray
+        Transmittance t_aw (dimensionless), broadcast over the inputs.
     """
     n_w = refractive_index_water(wavelength_nm, temperature_c, salinity_psu)
     return fresnel_transmittance_normal(refractive_index_air(), n_w)

@@ -51,6 +51,18 @@ def n_squared_law_factor(t_aw, n_w):
     """Radiance gain across the air -> water surface, t_aw * n_w^2 (dimensionless).
 
     E.g. 0.9797 * 1.3317^2 = 1.737 (Larouche et al. 2024, Table 2 at 600 nm).
+
+    Parameters
+    ----------
+    t_aw : array_like
+        Air -> water Fresnel power transmittance at normal incidence (dimensionless).
+    n_w : array_like
+        Refractive index of the water (dimensionless).
+
+    Returns
+    -------
+    numpy.ndarray
+        t_aw n_w^2 (dimensionless), broadcast over the inputs.
     """
     return np.asarray(t_aw, dtype=float) * np.asarray(n_w, dtype=float) ** 2
 
@@ -60,6 +72,20 @@ def n_squared_law_factor_at(wavelength_nm, temperature_c=25.0, salinity_psu=0.0)
 
     About 1.7387, 1.7437, 1.7503 at 600, 540, 480 nm, 25 C, 0 PSU (the paper's
     Table 2, from Hale and Querry 1973 indices, has 1.738, 1.742, 1.748).
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelength, e.g. the band's effective wavelength (nm).
+    temperature_c : array_like, default 25.0
+        Water temperature (degree Celsius).
+    salinity_psu : array_like, default 0.0
+        Salinity (PSU).
+
+    Returns
+    -------
+    numpy.ndarray
+        t_aw n_w^2 (dimensionless), broadcast over the inputs.
     """
     n_w = refractive_index_water(wavelength_nm, temperature_c, salinity_psu)
     return n_squared_law_factor(transmittance_air_water(wavelength_nm, temperature_c, salinity_psu), n_w)
@@ -159,9 +185,25 @@ def immersion_factor_from_intercept(dn_air, dn_air_sigma, dn_below, dn_below_sig
     Table 2 check: 5267 +/- 68 over 3111 +/- 12 (already divided by
     t_aw n_w^2, so n2_factor = 1) gives 1.693 +/- 0.023.
 
+    Parameters
+    ----------
+    dn_air : array_like
+        In-air signal y_DN(0+) (any DN unit, e.g. DN s-1).
+    dn_air_sigma : array_like
+        Its standard uncertainty (same unit).
+    dn_below : array_like
+        In-water signal just below the surface y_DN(0-), the fit's extrapolation (same unit).
+    dn_below_sigma : array_like
+        Its standard uncertainty (same unit).
+    n2_factor : array_like
+        t_aw n_w^2 (dimensionless).
+
     Returns
     -------
-    (I, sigma_I) as numpy arrays (dimensionless).
+    immersion_factor : numpy.ndarray
+        I (dimensionless).
+    immersion_factor_sigma : numpy.ndarray
+        Its standard uncertainty (dimensionless).
     """
     dn_air = np.asarray(dn_air, dtype=float)
     dn_below = np.asarray(dn_below, dtype=float)
@@ -246,9 +288,19 @@ def fit_immersion_factor(height_cm, dn_water, dn_air, n2_factor, dn_air_sigma=No
 def immersion_factor_flat_window(n_w, n_g):
     """Theoretical immersion factor, Eq. (10): I = n_w (n_w + n_g)^2 / (1 + n_g)^2.
 
-    n_w : refractive index of water; n_g : index of the external optical
-    surface (dimensionless, broadcast).  E.g. n_w = 1.3322, n_g = 1.60 gives
-    1.694 (Larouche et al. 2024, Section 3.6, red band).
+    E.g. n_w = 1.3322, n_g = 1.60 gives 1.694 (Larouche et al. 2024, Section 3.6, red band).
+
+    Parameters
+    ----------
+    n_w : array_like
+        Refractive index of water (dimensionless).
+    n_g : array_like
+        Refractive index of the external optical surface (dimensionless).
+
+    Returns
+    -------
+    numpy.ndarray
+        Immersion factor I (dimensionless), broadcast over the inputs.
     """
     n_w = np.asarray(n_w, dtype=float)
     n_g = np.asarray(n_g, dtype=float)
@@ -263,8 +315,22 @@ def window_index_from_immersion_factor(immersion_factor, n_w, immersion_factor_s
     (NaN outside).  The inverse is steep: dn_g/dI ~ 10 near I = 1.69, so an
     uncertainty of 0.02 in I is ~0.2 in n_g.
 
-    Returns n_g, or (n_g, sigma_n_g) by first-order propagation when
-    ``immersion_factor_sigma`` is given.
+    Parameters
+    ----------
+    immersion_factor : array_like
+        Immersion factor I (dimensionless).
+    n_w : array_like
+        Refractive index of water (dimensionless).
+    immersion_factor_sigma : array_like, optional
+        Standard uncertainty of I (dimensionless).
+
+    Returns
+    -------
+    n_g : numpy.ndarray
+        Refractive index of the external surface (dimensionless); NaN where I is outside (n_w, n_w^3).
+    sigma_n_g : numpy.ndarray
+        Its standard uncertainty by first-order propagation; returned, as the second element of a tuple,
+        only when ``immersion_factor_sigma`` is given.
     """
     i = np.asarray(immersion_factor, dtype=float)
     n_w = np.asarray(n_w, dtype=float)

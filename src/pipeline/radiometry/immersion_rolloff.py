@@ -50,9 +50,23 @@ __all__ = ["outer_surface_incidence_deg", "water_rolloff_factor"]
 def outer_surface_incidence_deg(theta_air_deg, theta_water_deg, n_water):
     """Incidence angles (i_air, i_water) in degrees on the outer surface for the same internal ray.
 
-    ``theta_air_deg`` and ``theta_water_deg`` are the field angles of one pixel
-    in air and in water; ``n_water`` the index of the water (air taken as 1).
     Both angles 0 on the axis.
+
+    Parameters
+    ----------
+    theta_air_deg : array_like
+        Field angle theta_a of the pixel in air (degree).
+    theta_water_deg : array_like
+        Field angle theta_w of the same pixel in water (degree).
+    n_water : array_like
+        Refractive index of the water (dimensionless; air taken as 1).
+
+    Returns
+    -------
+    i_air : numpy.ndarray
+        Incidence angle on the outer surface from air, theta_a - beta (degree).
+    i_water : numpy.ndarray
+        Incidence angle on the outer surface from water, theta_w - beta (degree).
     """
     ta = np.radians(np.asarray(theta_air_deg, dtype=float))
     tw = np.radians(np.asarray(theta_water_deg, dtype=float))
@@ -71,6 +85,22 @@ def water_rolloff_factor(theta_air_deg, theta_water_deg, n_water, n_glass):
     in the immersion factor). 1 on the axis; slightly above 1 off the axis,
     because the air-side incidence is the steeper one (about 1.4 % at 70 deg in
     water for the default camera).
+
+    Parameters
+    ----------
+    theta_air_deg : array_like
+        Field angle of the pixel in air (degree).
+    theta_water_deg : array_like
+        Field angle of the same pixel in water (degree).
+    n_water : array_like
+        Refractive index of the water (dimensionless).
+    n_glass : array_like
+        Refractive index of the outer element's glass (dimensionless).
+
+    Returns
+    -------
+    numpy.ndarray
+        Factor on the in-air roll-off (dimensionless), broadcast over the inputs.
     """
     i_a, i_w = outer_surface_incidence_deg(theta_air_deg, theta_water_deg, n_water)
     t_w = fresnel_transmittance(n_water, n_glass, i_w) / fresnel_transmittance(n_water, n_glass, 0.0)

@@ -43,6 +43,18 @@ def planck_radiance(wavelength_nm, temperature_k):
     wavelength, times 1e-9 m/nm.  At 589 nm and 2796 K, B = 269.9
     W sr-1 m-2 nm-1 (the tests check Wien's displacement law and the
     Stefan-Boltzmann integral).
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelength in vacuum (nm).
+    temperature_k : array_like
+        Temperature of the blackbody (K).
+
+    Returns
+    -------
+    numpy.ndarray
+        Spectral radiance (W sr-1 m-2 nm-1), broadcast over the inputs.
     """
     lam_m = np.asarray(wavelength_nm, dtype=float) * 1e-9
     t = np.asarray(temperature_k, dtype=float)

@@ -34,7 +34,23 @@ __all__ = [
 
 
 def trapezoid_weights(x):
-    """Weights w with sum(w * y) == trapezoid(y, x) for a 1-D abscissa x (same unit as x)."""
+    """Weights w with sum(w * y) == trapezoid(y, x) for a 1-D abscissa x (same unit as x).
+
+    Parameters
+    ----------
+    x : array_like
+        The abscissa, shape (n,) with n >= 2 (e.g. wavelength in nm).
+
+    Returns
+    -------
+    numpy.ndarray
+        The weights, shape (n,), in the unit of ``x``.
+
+    Raises
+    ------
+    ValueError
+        When ``x`` is not 1-D or has fewer than two points.
+    """
     x = np.asarray(x, dtype=float)
     if x.ndim != 1 or x.size < 2:
         raise ValueError("x must be 1-D with at least two points")
@@ -96,7 +112,22 @@ def peak_normalise_response(dn, photodiode, dn_sigma=None, photodiode_sigma=None
 
 
 def bandwidth(wavelength_nm, response, axis=-1):
-    """Bandwidth Lambda = int S_R dlambda (nm) of a peak-normalised response (trapezoid, Section 2.5)."""
+    """Bandwidth Lambda = int S_R dlambda (nm) of a peak-normalised response (trapezoid, Section 2.5).
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelengths of the response, shape (n,) (nm).
+    response : array_like
+        Peak-normalised response S_R (dimensionless), n values along ``axis``.
+    axis : int, default -1
+        Axis of ``response`` that runs over wavelength.
+
+    Returns
+    -------
+    numpy.ndarray or float
+        Bandwidth Lambda (nm), one per response.
+    """
     s = np.moveaxis(np.asarray(response, dtype=float), axis, -1)
     return np.sum(trapezoid_weights(wavelength_nm) * s, axis=-1)
 
@@ -106,8 +137,19 @@ def band_weights(wavelength_nm, response):
 
     Any quantity X(lambda) sampled on ``wavelength_nm`` has the band average
     int X S dlambda / int S dlambda = sum_j k_j X_j: Eq. (3) with X the
-    spectral radiance, Eq. (8) with X = lambda.  ``response`` (n,) or
-    (..., n), peak normalisation cancels; the weights sum to 1 along the last axis.
+    spectral radiance, Eq. (8) with X = lambda. Peak normalisation cancels.
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelengths, shape (n,) (nm).
+    response : array_like
+        Spectral response, shape (n,) or (..., n), any scale.
+
+    Returns
+    -------
+    numpy.ndarray
+        The weights k (dimensionless), shape of ``response``, summing to 1 along the last axis.
     """
     ws = trapezoid_weights(wavelength_nm) * np.asarray(response, dtype=float)
     return ws / np.sum(ws, axis=-1, keepdims=True)
@@ -118,6 +160,20 @@ def effective_wavelength(wavelength_nm, response, axis=-1):
 
     The band average of lambda itself, i.e. Eq. (3) with L(lambda) = lambda
     (:func:`effective_band_radiance`).
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelengths, shape (n,) (nm).
+    response : array_like
+        Spectral response (any scale), n values along ``axis``.
+    axis : int, default -1
+        Axis of ``response`` that runs over wavelength.
+
+    Returns
+    -------
+    numpy.ndarray or float
+        Effective wavelength lambda_eff (nm), one per response.
     """
     wl = np.asarray(wavelength_nm, dtype=float)
     s = np.moveaxis(np.asarray(response, dtype=float), axis, -1)

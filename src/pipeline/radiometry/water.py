@@ -80,8 +80,17 @@ def refractive_index_air(wavelength_nm=None):
     """Refractive index of air, taken as 1.0 (true value ~1.0003 in the visible).
 
     The 3e-4 departure changes an air-water Fresnel transmittance by under
-    1e-5 and is far below every calibration uncertainty here.  Returns a
-    float, or an array of ones shaped like ``wavelength_nm`` when given.
+    1e-5 and is far below every calibration uncertainty here.
+
+    Parameters
+    ----------
+    wavelength_nm : array_like, optional
+        Wavelengths (nm); only their shape is used.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        1.0, or an array of ones shaped like ``wavelength_nm`` when given (dimensionless).
     """
     if wavelength_nm is None:
         return 1.0
