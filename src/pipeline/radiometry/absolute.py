@@ -81,7 +81,24 @@ def inverse_responsivity(effective_radiance, dn_per_s, effective_radiance_sigma=
     in W sr-1 m-2 nm-1 s ADU-1.  Relative uncertainties of the two
     (independent) inputs add in quadrature.
 
-    Returns R^-1, or (R^-1, sigma) when any sigma is given.
+    Parameters
+    ----------
+    effective_radiance : array_like
+        Effective band radiance of the source L_eff, Eq. (3) (e.g. W sr-1 m-2 nm-1).
+    dn_per_s : array_like
+        The source's signal y_DN (ADU s-1 at ISO 100).
+    effective_radiance_sigma : array_like, optional
+        Standard uncertainty of L_eff (same unit).
+    dn_per_s_sigma : array_like, optional
+        Standard uncertainty of y_DN (ADU s-1).
+
+    Returns
+    -------
+    inverse_responsivity : numpy.ndarray
+        R^-1 (radiance unit per ADU s-1), broadcast over the inputs.
+    sigma : numpy.ndarray
+        Its standard uncertainty (same unit); returned, as the second element of a tuple, only when a sigma
+        is given.
     """
     l_eff = np.asarray(effective_radiance, dtype=float)
     y = np.asarray(dn_per_s, dtype=float)
@@ -101,7 +118,21 @@ def lamp_calibration_relative_sigma(wavelength_nm, at_400_nm=0.091, at_800_nm=0.
 
     Linear in wavelength between the manufacturer's 9.1 % at 400 nm and
     6.9 % at 800 nm (Ocean Optics HL-3P-INT-CAL, Section 3.5), held
-    constant outside.  Dimensionless.
+    constant outside.
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelength (nm).
+    at_400_nm : float, default 0.091
+        Relative standard uncertainty at 400 nm (dimensionless).
+    at_800_nm : float, default 0.069
+        Relative standard uncertainty at 800 nm (dimensionless).
+
+    Returns
+    -------
+    numpy.ndarray
+        Relative standard uncertainty of the lamp at each wavelength (dimensionless).
     """
     wl = np.asarray(wavelength_nm, dtype=float)
     return np.interp(wl, [400.0, 800.0], [at_400_nm, at_800_nm])
@@ -113,8 +144,23 @@ def lamp_colour_temperature_shape_nm(at_400_nm=0.091, at_800_nm=0.069):
     u(lambda)^2 = sigma_s^2 + (c / lambda)^2 at 400 and 800 nm (see the
     module docstring): c^2 = (u400^2 - u800^2) / (400^-2 - 800^-2). The
     manufacturer's 9.1 and 6.9 % give c = 27.4 nm and sigma_s = 6.0 %.
-    Raises ValueError when the two numbers allow no such split (u400 <
-    u800, or a negative constant part).
+
+    Parameters
+    ----------
+    at_400_nm : float, default 0.091
+        The lamp's relative standard uncertainty at 400 nm (dimensionless).
+    at_800_nm : float, default 0.069
+        The lamp's relative standard uncertainty at 800 nm (dimensionless).
+
+    Returns
+    -------
+    float
+        c (nm): the relative uncertainty of the colour-temperature part at wavelength lambda is c / lambda.
+
+    Raises
+    ------
+    ValueError
+        When the two numbers allow no such split (u400 < u800, or a negative constant part).
     """
     c2 = (at_400_nm**2 - at_800_nm**2) / (1 / 400.0**2 - 1 / 800.0**2)
     if c2 < 0 or at_800_nm**2 < c2 / 800.0**2:
@@ -147,40 +193,56 @@ def absolute_calibration_budget(
 
     Parameters
     ----------
-    wavelength_nm : (n,) nm, increasing, covering the band and the reference
-    source_spectrum : (n,) relative source spectrum (spectrometer), any unit
-    response : (n,) relative spectral response of the band
-    dn_per_s, dn_per_s_sigma : source y_DN (ADU/s at ISO 100) and its
-        standard uncertainty (the paper: standard deviation in the mask)
-    spectrum_noise_sigma : (n,), optional
-        Spectrometer noise, same unit as ``source_spectrum``, independent
-        per wavelength (also enters through the value at 589 nm).
-    reference_* : reading used for scaling, W sr-1 m-2 nm-1 (default C-OPS
-        0.68 +/- 0.02 mW sr-1 m-2 nm-1 at 589 nm)
-    lamp_relative_sigma : "manufacturer" (9.1 % at 400 nm to 6.9 % at
-        800 nm) or None to leave it out; with ``lamp_model="colour_temperature"``
-        also a pair (sigma at 400 nm, sigma at 800 nm); with ``"profile"`` also
-        a scalar or an (n,) array
-    lamp_reference_correlation : rho in [0, 1], ``"profile"`` only; see the module docstring
-    lamp_model : ``"colour_temperature"`` (default: the scale part cancels
-        in the rescaling, the 1/lambda part propagates) or ``"profile"`` (the
-        paper's counting); see the module docstring
-    extra_components : mapping name -> relative standard uncertainty of the
-        source radiance that the user supplies (e.g. sphere drift measured
-        in the lab); independent of each other and of the other terms; each
-        is reported as ``extra:<name>``, their quadrature sum as ``extra``
-    response_relative_sigma : relative uncertainty of y_DN from the fitted
-        response corrections (shutter offset, ISO gain factor, nonlinearity)
-        applied by the measurement chain; common to every frame of the band
+    wavelength_nm : array_like
+        Wavelengths, shape (n,), increasing, covering the band and the reference wavelength (nm).
+    source_spectrum : array_like
+        Relative source spectrum from the spectrometer, shape (n,), any unit.
+    response : array_like
+        Relative spectral response of the band, shape (n,) (dimensionless).
+    dn_per_s : float
+        The source's y_DN (ADU s-1 at ISO 100).
+    dn_per_s_sigma : float
+        Its standard uncertainty (ADU s-1; the paper: standard deviation in the mask).
+    spectrum_noise_sigma : array_like, optional
+        Spectrometer noise, shape (n,), same unit as ``source_spectrum``, independent per wavelength (also
+        enters through the value at 589 nm).
+    reference_wavelength_nm : float, default 589.0
+        Wavelength of the reference reading used for scaling (nm).
+    reference_value : float, default 0.68e-3
+        The reference reading (W sr-1 m-2 nm-1; default the C-OPS 0.68 mW sr-1 m-2 nm-1).
+    reference_sigma : float, default 0.02e-3
+        Its standard uncertainty (W sr-1 m-2 nm-1).
+    lamp_relative_sigma : str, float, tuple or numpy.ndarray or None, default "manufacturer"
+        ``"manufacturer"`` (9.1 % at 400 nm to 6.9 % at 800 nm) or None to leave it out; with
+        ``lamp_model="colour_temperature"`` also a pair (sigma at 400 nm, sigma at 800 nm); with ``"profile"``
+        also a scalar or an (n,) array (relative, dimensionless).
+    lamp_reference_correlation : float, default 0.0
+        rho in [0, 1], ``"profile"`` only; see the module docstring.
+    extra_components : dict[str, float], optional
+        Name -> relative standard uncertainty of the source radiance that the user supplies (e.g. sphere drift
+        measured in the lab); independent of each other and of the other terms; each is reported as
+        ``extra:<name>``, their quadrature sum as ``extra``.
+    lamp_model : str, default "colour_temperature"
+        ``"colour_temperature"`` (the scale part cancels in the rescaling, the 1/lambda part propagates) or
+        ``"profile"`` (the paper's counting); see the module docstring.
+    response_relative_sigma : float, default 0.0
+        Relative uncertainty of y_DN from the fitted response corrections (shutter offset, ISO gain factor,
+        nonlinearity) applied by the measurement chain; common to every frame of the band.
 
     Returns
     -------
-    dict with ``inverse_responsivity`` (W sr-1 m-2 nm-1 per ADU/s),
-    ``inverse_responsivity_sigma``, ``relative_sigma``,
-    ``effective_radiance`` (W sr-1 m-2 nm-1), ``effective_radiance_sigma``,
-    ``contributions`` (relative standard uncertainty of each term:
-    ``lamp_calibration``, ``reference``, ``spectrometer_noise``, ``extra``,
-    ``image``, ``response``) and ``dominant`` (name of the largest term).
+    dict
+        ``inverse_responsivity`` (W sr-1 m-2 nm-1 per ADU s-1), ``inverse_responsivity_sigma`` (same unit),
+        ``relative_sigma`` (dimensionless), ``effective_radiance`` (W sr-1 m-2 nm-1),
+        ``effective_radiance_sigma``, ``contributions`` (relative standard uncertainty of each term:
+        ``lamp_calibration``, ``reference``, ``spectrometer_noise``, ``extra``, ``image``, ``response`` and each
+        ``extra:<name>``) and ``dominant`` (name of the largest term).
+
+    Raises
+    ------
+    ValueError
+        On an unknown ``lamp_model`` or ``lamp_relative_sigma``, a negative extra component, or a lamp
+        uncertainty that :func:`lamp_colour_temperature_shape_nm` cannot split.
     """
     wl = np.asarray(wavelength_nm, dtype=float)
     spec = np.asarray(source_spectrum, dtype=float)

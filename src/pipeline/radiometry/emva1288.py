@@ -40,36 +40,119 @@ THRESHOLD_OFFSET_E = 0.5
 
 
 def saturation_capacity_e(saturation_signal_dn: float, conversion_gain_dn_per_e: float) -> float:
-    """mu_e,sat = mu_y,sat / K (electrons)."""
+    """mu_e,sat = mu_y,sat / K (electrons).
+
+    Parameters
+    ----------
+    saturation_signal_dn : float
+        Mean dark-corrected signal at the saturation point mu_y,sat (DN).
+    conversion_gain_dn_per_e : float
+        Conversion gain K (DN per electron).
+
+    Returns
+    -------
+    float
+        Saturation capacity mu_e,sat (electrons).
+    """
     return float(saturation_signal_dn) / float(conversion_gain_dn_per_e)
 
 
 def dynamic_range(saturation_capacity: float, temporal_dark_noise_dn: float, conversion_gain_dn_per_e: float) -> float:
-    """DR = mu_e,sat / (sigma_y,dark / K + 1/2), a ratio (1)."""
+    """DR = mu_e,sat / (sigma_y,dark / K + 1/2), a ratio (1).
+
+    Parameters
+    ----------
+    saturation_capacity : float
+        Saturation capacity mu_e,sat (electrons).
+    temporal_dark_noise_dn : float
+        Temporal dark noise of one raw pixel sigma_y,dark (DN).
+    conversion_gain_dn_per_e : float
+        Conversion gain K (DN per electron).
+
+    Returns
+    -------
+    float
+        Dynamic range (dimensionless ratio).
+    """
     return float(saturation_capacity) / (float(temporal_dark_noise_dn) / float(conversion_gain_dn_per_e)
                                          + THRESHOLD_OFFSET_E)
 
 
 def snr_max(saturation_capacity: float) -> float:
-    """SNR_max = sqrt(mu_e,sat), a ratio (1)."""
+    """SNR_max = sqrt(mu_e,sat), a ratio (1).
+
+    Parameters
+    ----------
+    saturation_capacity : float
+        Saturation capacity mu_e,sat (electrons).
+
+    Returns
+    -------
+    float
+        Largest signal-to-noise ratio (dimensionless).
+    """
     return float(np.sqrt(saturation_capacity))
 
 
 def decibels(ratio) -> float:
-    """20 log10 of an amplitude ratio."""
+    """20 log10 of an amplitude ratio.
+
+    Parameters
+    ----------
+    ratio : float
+        An amplitude ratio (dimensionless), e.g. the dynamic range.
+
+    Returns
+    -------
+    float
+        The ratio in dB.
+    """
     return float(20.0 * np.log10(ratio))
 
 
 def bits(ratio) -> float:
-    """log2 of a ratio."""
+    """log2 of a ratio.
+
+    Parameters
+    ----------
+    ratio : float
+        A ratio (dimensionless), e.g. the dynamic range.
+
+    Returns
+    -------
+    float
+        The ratio in bits.
+    """
     return float(np.log2(ratio))
 
 
 def responsivity(photons_per_pixel, signal_dn, saturation_signal_dn: float,
                  fraction: float = PTC_FIT_FRACTION) -> tuple[float, float, int]:
-    """(R, its standard error, points used): the least-squares slope through the origin of ``signal_dn`` against
-    ``photons_per_pixel`` over the points at or below ``fraction`` of ``saturation_signal_dn``; the error from the
-    residual scatter (NaN with fewer than two points)."""
+    """The least-squares slope through the origin of ``signal_dn`` against ``photons_per_pixel``.
+
+    The fit takes the points at or below ``fraction`` of ``saturation_signal_dn``; the error comes from the
+    residual scatter.
+
+    Parameters
+    ----------
+    photons_per_pixel : array_like
+        Mean photons per pixel mu_p of each point (photons).
+    signal_dn : array_like
+        Mean dark-corrected signal mu_y of each point (DN).
+    saturation_signal_dn : float
+        Signal at the saturation point mu_y,sat (DN).
+    fraction : float, default 0.7
+        Largest signal used, as a fraction of the saturation signal (:data:`PTC_FIT_FRACTION`).
+
+    Returns
+    -------
+    responsivity : float
+        R (DN per photon); NaN when no point with photons is in range.
+    sigma : float
+        Its standard error (DN per photon); NaN with fewer than two points.
+    n_points : int
+        Points used.
+    """
     x = np.asarray(photons_per_pixel, float)
     y = np.asarray(signal_dn, float)
     use = np.isfinite(x) & np.isfinite(y) & (y <= fraction * float(saturation_signal_dn))
@@ -100,7 +183,26 @@ class LinearityError:
 def linearity_error(x, signal_dn, saturation_signal_dn: float,
                     signal_range: tuple[float, float] = LINEARITY_RANGE) -> LinearityError:
     """Fit y = a x + b to the points with ``signal_range[0]`` mu_y,sat <= y <= ``signal_range[1]`` mu_y,sat,
-    minimising sum(((y - a x - b) / y)^2), and return the relative deviations 100 (y - line) / line."""
+    minimising sum(((y - a x - b) / y)^2), and return the relative deviations 100 (y - line) / line.
+
+    Parameters
+    ----------
+    x : array_like
+        Any quantity proportional to the light of each point: photons per pixel, or the exposure time (s) of
+        a sweep under a steady source.
+    signal_dn : array_like
+        Mean dark-corrected signal of each point (DN).
+    saturation_signal_dn : float
+        Signal at the saturation point mu_y,sat (DN).
+    signal_range : tuple of float, default (0.05, 0.95)
+        Fit range as fractions of the saturation signal (:data:`LINEARITY_RANGE`).
+
+    Returns
+    -------
+    LinearityError
+        LE_min and LE_max (%), the line (slope per unit of x, offset in DN), each point's deviation (%) and
+        whether it was in the fit range; NaN figures with fewer than three points in range.
+    """
     x = np.asarray(x, float)
     y = np.asarray(signal_dn, float)
     low, high = (f * float(saturation_signal_dn) for f in signal_range)
@@ -128,10 +230,32 @@ class SpatialNonuniformity:
 
 def spatial_nonuniformity(bright_mean_dn, bright_var_dn2, n_bright: int, dark_mean_dn, dark_var_dn2,
                           n_dark: int) -> SpatialNonuniformity:
-    """From the per-pixel mean and temporal variance (``ddof=1``) images of a bright and a dark stack of
-    ``n_bright`` and ``n_dark`` frames (the same pixels): s^2 = var_spatial(mean image) - mean(variance image) / L,
-    DSNU1288 = sqrt(s^2_dark) (NaN when negative), PRNU1288 = 100 sqrt(s^2_bright - s^2_dark) / (mu_bright -
-    mu_dark)."""
+    """DSNU1288 and PRNU1288 from the per-pixel mean and temporal variance images of a bright and a dark stack.
+
+    With ``n_bright`` and ``n_dark`` frames (the same pixels): s^2 = var_spatial(mean image) -
+    mean(variance image) / L, DSNU1288 = sqrt(s^2_dark) (NaN when negative), PRNU1288 = 100
+    sqrt(s^2_bright - s^2_dark) / (mu_bright - mu_dark).
+
+    Parameters
+    ----------
+    bright_mean_dn : array_like
+        Per-pixel mean of the bright stack (DN).
+    bright_var_dn2 : array_like
+        Per-pixel temporal variance (``ddof=1``) of the bright stack (DN2).
+    n_bright : int
+        Frames L in the bright stack.
+    dark_mean_dn : array_like
+        Per-pixel mean of the dark stack (DN).
+    dark_var_dn2 : array_like
+        Per-pixel temporal variance (``ddof=1``) of the dark stack (DN2).
+    n_dark : int
+        Frames L in the dark stack.
+
+    Returns
+    -------
+    SpatialNonuniformity
+        DSNU1288 (DN), PRNU1288 (%), the spatial variances (DN2) and the mean signal above dark (DN).
+    """
     bm, bv, dm, dv = (np.asarray(a, float).ravel() for a in (bright_mean_dn, bright_var_dn2, dark_mean_dn,
                                                              dark_var_dn2))
     s2_bright = float(np.var(bm, ddof=1) - bv.mean() / int(n_bright))

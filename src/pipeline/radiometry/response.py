@@ -42,10 +42,26 @@ _FITTED_VARIABLE = {"shutter_offset": "effect_shutter_offset", "iso_gain": "effe
 def linear_signal(reading_dn, beta: float, full_scale_dn: float) -> tuple[np.ndarray, np.ndarray]:
     """Inverse of the fitted nonlinearity m = s (1 - beta s / F) on arrays of readings (DN above dark).
 
-    Returns (s, ds/dm): s = 2 m / (1 + sqrt(1 - 4 beta m / F)), ds/dm = 1 / sqrt(1 - 4 beta m / F), the
+    s = 2 m / (1 + sqrt(1 - 4 beta m / F)), ds/dm = 1 / sqrt(1 - 4 beta m / F), the
     same inverse as the chain's ``linearise`` step (a reading beyond the curve's top, 4 beta m >= F, is
     held at its top). With beta = 0 (or no finite full scale) the reading itself and a unit slope.
     E.g. beta = 0.05, F = 15600 DN: m = 10000 DN is s = 10343 DN, ds/dm = 1.071.
+
+    Parameters
+    ----------
+    reading_dn : array_like
+        Readings m above dark (DN).
+    beta : float
+        The fitted nonlinearity beta (dimensionless).
+    full_scale_dn : float
+        The full scale F of the nonlinearity (DN).
+
+    Returns
+    -------
+    signal : numpy.ndarray
+        Linear signal s (DN), shape of ``reading_dn``.
+    slope : numpy.ndarray
+        ds/dm (dimensionless), same shape.
     """
     m = np.asarray(reading_dn, dtype=float)
     if not beta or not np.isfinite(full_scale_dn) or full_scale_dn <= 0:
@@ -58,6 +74,21 @@ def response_effects(linearity: xr.Dataset | None) -> tuple[str, ...]:
     """The response corrections the linearity artefact fitted: its model's effects that the chain's response steps own.
 
     An effect in its model without its fitted parameter is a broken artefact: refused.
+
+    Parameters
+    ----------
+    linearity : xarray.Dataset or None
+        The linearity artefact of the lens; None: no correction.
+
+    Returns
+    -------
+    tuple of str
+        The effects of :data:`RESPONSE_EFFECTS` in the artefact's ``model_effects``, in that order.
+
+    Raises
+    ------
+    pipeline.errors.ArtefactError
+        When the artefact's model lists an effect whose fitted variable it does not hold.
     """
     if linearity is None:
         return ()
@@ -97,6 +128,28 @@ def response_model(linearity: xr.Dataset, band: str, iso: float) -> ResponseMode
     Parameters of effects outside :func:`response_effects` keep their neutral
     values (no offset, factor 1, no bending), so the chain leaves them out even
     if it were asked to apply them.
+
+    Parameters
+    ----------
+    linearity : xarray.Dataset
+        The linearity artefact of the lens.
+    band : str
+        Band label.
+    iso : float
+        ISO setting of the frame.
+
+    Returns
+    -------
+    pipeline.radiometry.measurement.ResponseModel
+        Conversion gain (DN per electron at ISO 100), shutter offset (s), ISO gain factor, nonlinearity beta,
+        full scale and saturation level (DN), with their standard uncertainties.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        With ``iso_gain`` fitted, when ``iso`` is neither ISO 100 nor an ISO the stage fitted a factor at.
+    pipeline.errors.ArtefactError
+        When the artefact is broken (:func:`response_effects`).
     """
     effects = response_effects(linearity)
     offset = offset_sigma = 0.0
@@ -120,7 +173,20 @@ def response_model(linearity: xr.Dataset, band: str, iso: float) -> ResponseMode
 def flat_field_at(linearity: xr.Dataset | None, band: str, mask: np.ndarray) -> np.ndarray | None:
     """The linearity artefact's flat field (relative pixel sensitivity) at the pixels of ``mask``.
 
-    None when the artefact did not fit ``prnu`` or its map does not have the mask's shape.
+    Parameters
+    ----------
+    linearity : xarray.Dataset or None
+        The linearity artefact of the lens.
+    band : str
+        Band label.
+    mask : numpy.ndarray of bool
+        Band pixels to take, the band image's shape.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        The flat field (dimensionless, mean 1; NaN where not measured) at the mask's pixels, 1-D; None when
+        the artefact did not fit ``prnu`` or its map does not have the mask's shape.
     """
     if "prnu" not in response_effects(linearity):
         return None
@@ -132,13 +198,31 @@ def response_corrected(signal_dn, linearity: xr.Dataset | None, band: str, frame
                        signal_sigma_dn=0.0, flat_field=None) -> tuple[Measured, Measured]:
     """A dark-corrected signal (DN) through the chain's linearise, normalise_exposure and correct_flat_field steps.
 
-    Returns (linearised DN, DN s-1 at ISO 100, Eq. 2 with the true exposure
-    t + dt and gain ISO/100 f_ISO), the latter divided by ``flat_field`` (the
-    pixels' relative sensitivity, :func:`flat_field_at`) when it is given and
-    the artefact fitted ``prnu``. ``signal_sigma_dn`` enters as the random
-    term ``signal``; the fitted parameters' uncertainties come out as the
-    systematic terms of the chain. Without a linearity artefact both steps are
-    the nominal Eq. (2): the signal itself, and the signal over t ISO/100.
+    The fitted parameters' uncertainties come out as the systematic terms of the chain. Without a linearity
+    artefact both steps are the nominal Eq. (2): the signal itself, and the signal over t ISO/100.
+
+    Parameters
+    ----------
+    signal_dn : array_like
+        Dark-corrected signal (DN).
+    linearity : xarray.Dataset or None
+        The linearity artefact of the lens.
+    band : str
+        Band label.
+    frame : pipeline.radiometry.measurement.FrameSettings
+        Exposure time and ISO of the frame.
+    signal_sigma_dn : float or array_like, default 0.0
+        Standard uncertainty of the signal (DN), entering as the random term ``signal``.
+    flat_field : array_like, optional
+        The pixels' relative sensitivity (:func:`flat_field_at`); used when the artefact fitted ``prnu``.
+
+    Returns
+    -------
+    linear : pipeline.radiometry.measurement.Measured
+        The linearised signal (DN).
+    rate : pipeline.radiometry.measurement.Measured
+        The signal rate (DN s-1 at ISO 100; Eq. 2 with the true exposure t + dt and gain ISO/100 f_ISO),
+        divided by the flat field when it applies.
     """
     effects = response_effects(linearity)
     response = response_model(linearity, band, frame.iso) if linearity is not None \

@@ -37,11 +37,21 @@ ROLLOFF_POWERS = tuple(2 * k for k in range(N_COEFFICIENTS))
 def rolloff_design_matrix(theta_deg, scale_deg=1.0):
     """Design matrix of Eq. (13): columns (theta / scale)^(2k), k = 0..4.
 
-    theta_deg in degrees, scale_deg in degrees (a scale of the order of the
-    largest angle keeps least-squares fits well conditioned).  Shape: that
-    of ``theta_deg`` plus a last axis of 5, e.g. (n, 5) for n angles; at
-    theta = scale every column is 1.  g(theta) = A(theta) @ a for
-    coefficients a of theta / scale.
+    At theta = scale every column is 1.  g(theta) = A(theta) @ a for coefficients a of theta / scale.
+
+    Parameters
+    ----------
+    theta_deg : array_like
+        Field angles (degree).
+    scale_deg : float, default 1.0
+        Scale of the angles (degree); one of the order of the largest angle keeps least-squares fits well
+        conditioned.
+
+    Returns
+    -------
+    numpy.ndarray
+        The design matrix (dimensionless): the shape of ``theta_deg`` plus a last axis of 5, e.g. (n, 5) for
+        n angles.
     """
     u = np.asarray(theta_deg, dtype=float) / float(scale_deg)
     return u[..., None] ** np.asarray(ROLLOFF_POWERS)
@@ -131,7 +141,23 @@ def evaluate_rolloff(coefficients, theta_deg, covariance=None):
 
     With ``covariance`` also returns the standard uncertainty of the
     prediction at each theta, sqrt(J C J^T) with J_k = theta^2k.
-    Coefficients may carry leading batch axes (..., 5).
+
+    Parameters
+    ----------
+    coefficients : array_like
+        (a0, a2, a4, a6, a8) for theta in degrees, shape (5,) or with leading batch axes (..., 5).
+    theta_deg : array_like
+        Field angles (degree).
+    covariance : array_like, optional
+        Covariance of the coefficients, shape (5, 5).
+
+    Returns
+    -------
+    g : numpy.ndarray
+        Relative illumination at each theta (dimensionless).
+    sigma : numpy.ndarray
+        Its standard uncertainty (dimensionless); returned, as the second element of a tuple, only with
+        ``covariance``.
     """
     c = np.asarray(coefficients, dtype=float)
     powers = rolloff_design_matrix(theta_deg)
@@ -150,6 +176,27 @@ def rolloff_on_image(coefficients, theta_deg, covariance=None):
     variance J C J^T = sum_k d_k u^k with d_k the sum of the covariance's
     k-th anti-diagonal (k = 0..8). The same values as :func:`evaluate_rolloff`
     to rounding (1e-15 relative in g, 1e-11 in its sigma on fitted curves).
+
+    Parameters
+    ----------
+    coefficients : array_like
+        (a0, a2, a4, a6, a8) for theta in degrees, shape (5,).
+    theta_deg : array_like
+        Field angles (degree), any shape.
+    covariance : array_like, optional
+        Covariance of the coefficients, shape (5, 5).
+
+    Returns
+    -------
+    g : numpy.ndarray or float
+        Relative illumination (dimensionless), shape of ``theta_deg`` (a scalar for a scalar theta).
+    sigma : numpy.ndarray or float
+        Its standard uncertainty; returned, as the second element of a tuple, only with ``covariance``.
+
+    Raises
+    ------
+    ValueError
+        When ``coefficients`` is not one set of five.
     """
     c = np.asarray(coefficients, dtype=float)
     if c.ndim != 1:
@@ -178,8 +225,19 @@ def _horner(coefficients, u):
 def rolloff_slope(coefficients, theta_deg):
     """dg/dtheta of Eq. (13) in deg^-1: sum_k 2k a_2k theta^(2k - 1), theta in degrees.
 
-    Coefficients (a0, a2, a4, a6, a8) for theta in degrees, as stored; e.g.
-    g = 1 - 1e-4 theta^2 has slope -2e-3 deg^-1 at 10 deg.
+    E.g. g = 1 - 1e-4 theta^2 has slope -2e-3 deg^-1 at 10 deg.
+
+    Parameters
+    ----------
+    coefficients : array_like
+        (a0, a2, a4, a6, a8) for theta in degrees, as stored; shape (5,) or (..., 5).
+    theta_deg : array_like
+        Field angles (degree).
+
+    Returns
+    -------
+    numpy.ndarray
+        dg/dtheta (degree-1) at each theta.
     """
     c = np.asarray(coefficients, dtype=float)
     t = np.asarray(theta_deg, dtype=float)
@@ -192,6 +250,23 @@ def rolloff_slope_on_image(coefficients, theta_deg):
     """:func:`rolloff_slope` of one set of coefficients on a large array of angles, by Horner's rule in theta^2.
 
     g'(theta) = theta * sum_k 2k a_2k u^(k - 1) with u = theta^2 (deg^-1), without the design matrix.
+
+    Parameters
+    ----------
+    coefficients : array_like
+        (a0, a2, a4, a6, a8) for theta in degrees, shape (5,).
+    theta_deg : array_like
+        Field angles (degree), any shape.
+
+    Returns
+    -------
+    numpy.ndarray or float
+        dg/dtheta (degree-1), shape of ``theta_deg`` (a scalar for a scalar theta).
+
+    Raises
+    ------
+    ValueError
+        When ``coefficients`` is not one set of five.
     """
     c = np.asarray(coefficients, dtype=float)
     if c.ndim != 1:
@@ -206,8 +281,21 @@ def rolloff_slope_on_image(coefficients, theta_deg):
 def normalise_rolloff(coefficients, covariance=None):
     """Divide by a0 so that g(0) = 1; propagate the covariance (first order).
 
-    Returns coefficients, or (coefficients, covariance).  The normalised a0
-    is exactly 1 with zero variance.
+    The normalised a0 is exactly 1 with zero variance.
+
+    Parameters
+    ----------
+    coefficients : array_like
+        (a0, a2, a4, a6, a8) for theta in degrees, shape (5,).
+    covariance : array_like, optional
+        Their covariance, shape (5, 5).
+
+    Returns
+    -------
+    coefficients : numpy.ndarray
+        The normalised coefficients, shape (5,).
+    covariance : numpy.ndarray
+        Their covariance, shape (5, 5); returned, as the second element of a tuple, only with ``covariance``.
     """
     c = np.asarray(coefficients, dtype=float)
     a0 = c[0]

@@ -67,12 +67,38 @@ def saturated_settings(exposure, signal_dn, variance_dn2, plateau_fraction: floa
                        variance_rel_se=0.0, noise_sigma: float = 3.0) -> np.ndarray:
     """Boolean mask of the saturated settings of one sweep (any order of the inputs).
 
-    ``exposure``: t ISO/100 (or any quantity the signal is proportional to);
-    ``signal_dn``: dark-corrected mean signal; ``variance_dn2``: temporal
-    variance of the same pixels; ``clipped``: settings whose raw values reached
-    the white level (saturated whatever their statistics); ``variance_rel_se``:
-    relative standard error of each variance (scalar or per setting);
-    ``stall_fraction`` 0 tests only that the variance rose at all.
+    The tests are the module docstring's (plateau, collapse, stall); every setting above a saturated one is
+    saturated too.
+
+    Parameters
+    ----------
+    exposure : array_like
+        t ISO/100 of each setting (s), or any quantity the signal is proportional to.
+    signal_dn : array_like
+        Dark-corrected mean signal of each setting (DN).
+    variance_dn2 : array_like
+        Temporal variance of the same pixels (DN2).
+    plateau_fraction : float
+        A setting whose signal rose by less than this fraction of the rise proportional to exposure since the
+        last unsaturated setting is on a plateau (dimensionless).
+    variance_drop : float
+        A setting whose variance fell below this fraction of the largest variance of the unsaturated
+        settings below it has collapsed (dimensionless).
+    clipped : array_like of bool, optional
+        Settings whose raw values reached the white level (saturated whatever their statistics).
+    stall_fraction : float, default 0.0
+        A setting whose variance rose by less than this fraction of the rise predicted by the line of
+        variance against exposure has stalled; 0 tests only that the variance rose at all.
+    variance_rel_se : float or array_like, default 0.0
+        Relative standard error of each variance (scalar or per setting; sqrt(2 / (N (n - 1))) for N pixels
+        and n frames).
+    noise_sigma : float, default 3.0
+        Standard errors beyond the rounding swing a collapse or stall's shortfall must exceed.
+
+    Returns
+    -------
+    numpy.ndarray of bool
+        True at the saturated settings, in the order of the inputs.
     """
     x = np.asarray(exposure, dtype=float)
     s = np.asarray(signal_dn, dtype=float)
@@ -116,13 +142,29 @@ def non_monotonic_settings(exposure, signal_dn, signal_se_dn, noise_sigma: float
 
     A setting between two neighbours (shorter and longer exposure) is a candidate when its signal is
     below its shorter neighbour's, or above its longer neighbour's, by more than ``noise_sigma``
-    standard errors of the difference (``signal_se_dn``: each setting's standard error), while its
+    standard errors of the difference, while its
     neighbours themselves rise in order (the longer above the shorter by as much): a frame series taken
     under other light. A sweep that only stops rising (a plateau) or falls from some setting on is not
     named here; that is saturation's. The candidate departing most from the line through its
     neighbours (in standard errors) is named first and the test repeated without it, so one stray
     setting does not make its neighbours look stray. The shortest and the longest setting
     have one neighbour and are not tested.
+
+    Parameters
+    ----------
+    exposure : array_like
+        t ISO/100 of each setting (s), or any quantity the signal is proportional to.
+    signal_dn : array_like
+        Dark-corrected mean signal of each setting (DN).
+    signal_se_dn : array_like
+        Standard error of each setting's mean signal (DN).
+    noise_sigma : float
+        Standard errors a departure must exceed.
+
+    Returns
+    -------
+    numpy.ndarray of bool
+        True at the settings taken under other light, in the order of the inputs.
     """
     x = np.asarray(exposure, dtype=float)
     s = np.asarray(signal_dn, dtype=float)
@@ -149,8 +191,24 @@ def non_monotonic_settings(exposure, signal_dn, signal_se_dn, noise_sigma: float
 
 
 def expected_between_neighbours(exposure, signal_dn, index: int, left_out) -> float:
-    """The signal at setting ``index`` on the line through its nearest kept neighbours in exposure
-    (``left_out``: settings that are not neighbours); NaN without one on each side."""
+    """The signal at setting ``index`` on the line through its nearest kept neighbours in exposure.
+
+    Parameters
+    ----------
+    exposure : array_like
+        t ISO/100 of each setting (s), or any quantity the signal is proportional to.
+    signal_dn : array_like
+        Mean signal of each setting (DN).
+    index : int
+        Position of the setting in the inputs.
+    left_out : array_like of bool
+        Settings that are not neighbours (e.g. those of :func:`non_monotonic_settings`).
+
+    Returns
+    -------
+    float
+        The interpolated signal (DN); NaN without a kept neighbour on each side.
+    """
     x = np.asarray(exposure, dtype=float)
     s = np.asarray(signal_dn, dtype=float)
     kept = ~np.asarray(left_out, dtype=bool)
@@ -168,7 +226,22 @@ def signal_fraction(signal_dn, black_dn, white_level_dn) -> np.ndarray:
     between the black level ``black_dn`` and the raw files' white level (unit 1; 1 at the ADC top).
 
     The covariate a response that bends with signal level follows (a nonlinearity whose form the model
-    lacks leaves residuals that change sign along it); NaN where the range is not positive."""
+    lacks leaves residuals that change sign along it).
+
+    Parameters
+    ----------
+    signal_dn : array_like
+        Signal above the black level (DN).
+    black_dn : array_like
+        Black level (DN).
+    white_level_dn : array_like
+        The raw files' white level (DN).
+
+    Returns
+    -------
+    numpy.ndarray
+        The fraction (dimensionless), broadcast over the inputs; NaN where the range is not positive.
+    """
     signal = np.asarray(signal_dn, dtype=float)
     span = np.asarray(white_level_dn, dtype=float) - np.asarray(black_dn, dtype=float)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -50,14 +50,40 @@ CHAPPUIS_WIDTH_NM = 65.0
 
 
 def ozone_optical_depth(wavelength_nm, column_atm_cm: float) -> np.ndarray:
-    """Optical depth of the ozone column in the Chappuis band (Gaussian approximation, module docstring)."""
+    """Optical depth of the ozone column in the Chappuis band (Gaussian approximation, module docstring).
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelength (nm).
+    column_atm_cm : float
+        Ozone column (atm-cm; 0.3 is a typical column of 300 Dobson units).
+
+    Returns
+    -------
+    numpy.ndarray
+        Vertical optical depth (dimensionless) at each wavelength.
+    """
     wl = np.asarray(wavelength_nm, float)
     sigma = CHAPPUIS_PEAK_CM2 * np.exp(-0.5 * ((wl - CHAPPUIS_CENTRE_NM) / CHAPPUIS_WIDTH_NM) ** 2)
     return column_atm_cm * LOSCHMIDT_PER_CM2 * sigma
 
 
 def rayleigh_optical_depth(wavelength_nm, pressure_pa: float = SEA_LEVEL_PRESSURE_PA) -> np.ndarray:
-    """Rayleigh optical depth of the atmosphere (Hansen and Travis 1974, Eq. 2.29), scaled by pressure."""
+    """Rayleigh optical depth of the atmosphere (Hansen and Travis 1974, Eq. 2.29), scaled by pressure.
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelength (nm).
+    pressure_pa : float, default 101325.0
+        Surface pressure (Pa).
+
+    Returns
+    -------
+    numpy.ndarray
+        Vertical optical depth (dimensionless) at each wavelength.
+    """
     um = np.asarray(wavelength_nm, float) / 1000.0
     return 0.008569 * um**-4 * (1.0 + 0.0113 * um**-2 + 0.00013 * um**-4) * pressure_pa / SEA_LEVEL_PRESSURE_PA
 
@@ -66,7 +92,30 @@ def direct_normal_spectrum(wavelength_nm, apparent_zenith_deg, day_of_year: int,
                            angstrom_exponent: float, ozone_atm_cm: float,
                            pressure_pa: float = SEA_LEVEL_PRESSURE_PA) -> np.ndarray:
     """Clear-sky direct-normal spectral irradiance (n_time, n_wavelength), W m-2 nm-1 (module docstring); 0 below
-    the horizon."""
+    the horizon.
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelengths, shape (n_wavelength,) (nm).
+    apparent_zenith_deg : array_like
+        The sun's apparent (refracted) zenith angle at each time, shape (n_time,) (degree).
+    day_of_year : int
+        Day of the year (1 to 366), for the Earth-Sun distance.
+    aod700 : float
+        Aerosol optical depth at 700 nm (dimensionless).
+    angstrom_exponent : float
+        Angstrom exponent alpha of the aerosol optical depth (dimensionless).
+    ozone_atm_cm : float
+        Ozone column (atm-cm).
+    pressure_pa : float, default 101325.0
+        Surface pressure (Pa).
+
+    Returns
+    -------
+    numpy.ndarray
+        Direct-normal spectral irradiance (W m-2 nm-1), shape (n_time, n_wavelength).
+    """
     from pvlib.atmosphere import get_relative_airmass
     from pvlib.spectrum import get_reference_spectra
 
@@ -84,7 +133,30 @@ def direct_normal_spectrum(wavelength_nm, apparent_zenith_deg, day_of_year: int,
 
 def band_direct_irradiance(response_nm, response, apparent_zenith_deg, day_of_year: int, aod700: float,
                            angstrom_exponent: float, ozone_atm_cm: float) -> np.ndarray:
-    """E_b (n_time,): the direct-normal spectrum averaged with one band's measured response (Eq. 3)."""
+    """E_b (n_time,): the direct-normal spectrum averaged with one band's measured response (Eq. 3).
+
+    Parameters
+    ----------
+    response_nm : array_like
+        Wavelengths of the band's response, shape (n,) (nm).
+    response : array_like
+        The band's relative spectral response, shape (n,) (NaN counts as 0).
+    apparent_zenith_deg : array_like
+        The sun's apparent zenith angle at each time, shape (n_time,) (degree).
+    day_of_year : int
+        Day of the year (1 to 366).
+    aod700 : float
+        Aerosol optical depth at 700 nm (dimensionless).
+    angstrom_exponent : float
+        Angstrom exponent of the aerosol optical depth (dimensionless).
+    ozone_atm_cm : float
+        Ozone column (atm-cm).
+
+    Returns
+    -------
+    numpy.ndarray
+        Band-averaged direct-normal irradiance E_b (W m-2 nm-1), shape (n_time,).
+    """
     wl = np.asarray(response_nm, float)
     s = np.nan_to_num(np.asarray(response, float))
     spectrum = direct_normal_spectrum(wl, apparent_zenith_deg, day_of_year, aod700, angstrom_exponent, ozone_atm_cm)
@@ -93,7 +165,31 @@ def band_direct_irradiance(response_nm, response, apparent_zenith_deg, day_of_ye
 
 def sun_glare_covariate(band_irradiance, sun_seen, angle_from_sun_deg, exponent: float,
                         reference_angle_deg: float) -> np.ndarray:
-    """E_b x seen x (Z_ref / angle)^q of the module docstring (W m-2 nm-1)."""
+    """E_b x seen x (Z_ref / angle)^q of the module docstring (W m-2 nm-1).
+
+    Parameters
+    ----------
+    band_irradiance : array_like
+        The band's clear-sky direct irradiance E_b (W m-2 nm-1).
+    sun_seen : array_like of bool or float
+        Whether the sun's disc is seen in each frame (1 or 0).
+    angle_from_sun_deg : array_like
+        Angle between the sun and the mask (degree; the solar zenith angle for the mask at the zenith).
+    exponent : float
+        q, the power with which the spread falls with the angle (dimensionless).
+    reference_angle_deg : float
+        Z_ref, the angle at which the coefficient is the spread (degree).
+
+    Returns
+    -------
+    numpy.ndarray
+        The covariate (W m-2 nm-1), broadcast over the inputs.
+
+    Raises
+    ------
+    ValueError
+        When an angle is not positive.
+    """
     angle = np.asarray(angle_from_sun_deg, float)
     if np.any(angle <= 0):
         raise ValueError("the angle between the sun and the mask must be positive")

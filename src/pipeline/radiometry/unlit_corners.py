@@ -54,20 +54,61 @@ CORNER_COLUMNS = {"lens": ("lens region", None), "band": ("band", None),
 
 
 def corner_pixels(shape: tuple[int, int], projection: str, min_radius_fraction: float) -> np.ndarray:
-    """The band pixels of a lens region that are never lit (:func:`pipeline.stats.moments.unlit_mask`)."""
+    """The band pixels of a lens region that are never lit (:func:`pipeline.stats.moments.unlit_mask`).
+
+    Parameters
+    ----------
+    shape : tuple of int
+        (rows, columns) of the lens region's band image (band pixels).
+    projection : str
+        The lens region's declared projection; ``"rectilinear"`` has no unlit pixels.
+    min_radius_fraction : float
+        Pixels beyond this fraction of the half side from the centre are corners
+        (``bias.corner_min_radius_fraction``).
+
+    Returns
+    -------
+    numpy.ndarray of bool
+        True at the unlit band pixels, ``shape``.
+    """
     return unlit_mask(shape, projection, min_radius_fraction)
 
 
 def hot_pixels_left_out(dark: xr.Dataset) -> bool:
     """Whether the dark model is the level of the pixels that are not hot (``hot_pixels`` in its model: the
-    dark stage fits those and flags the others in ``hot_pixel_mask``)."""
+    dark stage fits those and flags the others in ``hot_pixel_mask``).
+
+    Parameters
+    ----------
+    dark : xarray.Dataset
+        The dark artefact of the lens.
+
+    Returns
+    -------
+    bool
+        True when the artefact's model has ``hot_pixels`` and it holds ``hot_pixel_mask``.
+    """
     effects = str(dark.attrs.get("model_effects", "")).replace(",", " ").split()
     return "hot_pixels" in effects and "hot_pixel_mask" in dark
 
 
 def corner_sites(dark: xr.Dataset, corners: np.ndarray) -> dict[str, np.ndarray]:
     """Per band, the corner pixels whose mean the dark model predicts: ``corners`` less the dark stage's hot
-    pixels when its model leaves them out (:func:`hot_pixels_left_out`), else ``corners`` (module docstring)."""
+    pixels when its model leaves them out (:func:`hot_pixels_left_out`), else ``corners`` (module docstring).
+
+    Parameters
+    ----------
+    dark : xarray.Dataset
+        The dark artefact of the lens.
+    corners : numpy.ndarray of bool
+        The lens's unlit band pixels (:func:`corner_pixels`).
+
+    Returns
+    -------
+    dict[str, numpy.ndarray]
+        Band -> boolean mask of the corner pixels to average (``corners`` itself for a band whose corners
+        would all be hot).
+    """
     if not corners.any() or not hot_pixels_left_out(dark):
         return {band: corners for band in BANDS}
     out = {}
@@ -81,7 +122,26 @@ def corner_mean_dn(band_image: np.ndarray, corners: np.ndarray, band: str, raw: 
     """A frame's black-level reference in one band: (mean DN, raw sites averaged).
 
     Its unlit corners (fisheye), else the sensor's optically black pixels when the DNG declares them,
-    else none (NaN, 0)."""
+    else none (NaN, 0).
+
+    Parameters
+    ----------
+    band_image : numpy.ndarray
+        The frame's band image of the lens (raw DN).
+    corners : numpy.ndarray of bool
+        The band's corner pixels (:func:`corner_sites`); none for a rectilinear region.
+    band : str
+        Band label (a G band pixel averages two raw sites).
+    raw : pipeline.io.rawio.RawFrame
+        The decoded frame (its optically black pixels' mean and count).
+
+    Returns
+    -------
+    mean_dn : float
+        Mean raw value of the reference pixels (DN); NaN without any.
+    n_sites : int
+        Raw sites averaged; 0 without any.
+    """
     if corners.any():
         return float(band_image[corners].mean()), SITES_PER_BAND_PIXEL[band] * int(corners.sum())
     if raw.optical_black_dn is not None:
@@ -96,7 +156,24 @@ def corner_pattern_dn(dark: xr.Dataset, band: str, corners: np.ndarray, min_radi
     With the ``min_radius_fraction`` that made ``corners``, the dark stage's own average over the same pixels
     (``fpn_corner_mean_dn``, when it was made with that fraction and over the same pixels, :func:`corner_sites`)
     is read instead of the whole offset map
-    (decompressing the map of one band at the full resolution costs about 0.1 s)."""
+    (decompressing the map of one band at the full resolution costs about 0.1 s).
+
+    Parameters
+    ----------
+    dark : xarray.Dataset
+        The dark artefact of the lens.
+    band : str
+        Band label.
+    corners : numpy.ndarray of bool
+        The band's corner pixels.
+    min_radius_fraction : float, optional
+        The fraction that made ``corners``; None always averages the offset map.
+
+    Returns
+    -------
+    float
+        Mean fixed-pattern offset over the reference pixels (DN); NaN without either source.
+    """
     stored = dark.get("fpn_corner_mean_dn")
     if (corners.any() and min_radius_fraction is not None and stored is not None
             and stored.attrs.get("corner_min_radius_fraction") == float(min_radius_fraction)
@@ -114,8 +191,30 @@ def predicted_corner_dn(dark: xr.Dataset, band: str, iso: float, exposure_s: flo
                         temperature_c: float | None = None, pattern_dn: float | None = None) -> float:
     """The dark model's prediction of :func:`corner_mean_dn` (module docstring), DN.
 
-    The temperature term is added when the dark model has one and ``temperature_c`` is logged (finite);
-    ``pattern_dn`` is :func:`corner_pattern_dn` when the caller has it already."""
+    The temperature term is added when the dark model has one and ``temperature_c`` is logged (finite).
+
+    Parameters
+    ----------
+    dark : xarray.Dataset
+        The dark artefact of the lens.
+    band : str
+        Band label.
+    iso : float
+        ISO setting of the frame.
+    exposure_s : float
+        Exposure time of the frame (s).
+    corners : numpy.ndarray of bool
+        The band's corner pixels.
+    temperature_c : float, optional
+        Logged sensor temperature (degree Celsius).
+    pattern_dn : float, optional
+        :func:`corner_pattern_dn` when the caller has it already (DN).
+
+    Returns
+    -------
+    float
+        Predicted mean of the reference pixels (DN).
+    """
     pattern = corner_pattern_dn(dark, band, corners) if pattern_dn is None else pattern_dn
     value = dark_level_dn(dark, band, iso, exposure_s) + pattern
     if temperature_c is not None and np.isfinite(temperature_c):
@@ -125,7 +224,24 @@ def predicted_corner_dn(dark: xr.Dataset, band: str, iso: float, exposure_s: flo
 
 def corner_noise_dn(dark: xr.Dataset, band: str, iso: float, n_sites: int) -> float:
     """Noise of a corner mean of ``n_sites`` raw sites: the dark stage's read noise of the band at the nearest
-    ISO over sqrt(n_sites) (NaN without sites)."""
+    ISO over sqrt(n_sites) (NaN without sites).
+
+    Parameters
+    ----------
+    dark : xarray.Dataset
+        The dark artefact of the lens (``read_noise_dn`` over its ``iso`` axis).
+    band : str
+        Band label.
+    iso : float
+        ISO setting of the frame.
+    n_sites : int
+        Raw sites averaged in the mean.
+
+    Returns
+    -------
+    float
+        Standard deviation of the mean (DN).
+    """
     if not n_sites > 0:
         return np.nan
     by_iso = band_value(dark, "read_noise_dn", band)     # over the dark artefact's ISO axis
@@ -136,7 +252,18 @@ def corner_noise_dn(dark: xr.Dataset, band: str, iso: float, n_sites: int) -> fl
 
 
 def frame_time_s(raw: RawFrame) -> float:
-    """The frame's time stamp in seconds since 1970-01-01, a stamp without time zone read as UTC; NaN without one."""
+    """The frame's time stamp in seconds since 1970-01-01, a stamp without time zone read as UTC; NaN without one.
+
+    Parameters
+    ----------
+    raw : pipeline.io.rawio.RawFrame
+        The decoded frame.
+
+    Returns
+    -------
+    float
+        Seconds since 1970-01-01 (s) on the camera clock.
+    """
     stamp: datetime | None = raw.time
     if stamp is None:
         return np.nan
@@ -148,12 +275,36 @@ def frame_time_s(raw: RawFrame) -> float:
 def frame_corner_records(lens: str, images: LensImages, raw: RawFrame, dark: xr.Dataset,
                          corners: dict[str, np.ndarray], temperature_c: float = np.nan,
                          pattern_dn: dict[str, float] | None = None, memo: dict | None = None) -> list[dict]:
-    """One decoded frame's corner records, one per band (columns :data:`CORNER_COLUMNS`): the measured mean
-    of the lens's unlit pixels ``corners`` (per band, :func:`corner_sites` of :func:`corner_pixels`), the dark
-    model's prediction there at the frame's ISO, exposure time and temperature, and the noise of the mean.
-    ``pattern_dn``: :func:`corner_pattern_dn` of each band when the caller has it already; ``memo``: a dict the
-    caller keeps for one ``dark`` and ``corners``, in which the prediction and the noise of each setting are
-    kept (frames repeat their settings; the values are the same as computed afresh)."""
+    """One decoded frame's corner records, one per band (columns :data:`CORNER_COLUMNS`).
+
+    Each holds the measured mean of the lens's unlit pixels, the dark model's prediction there at the frame's
+    ISO, exposure time and temperature, and the noise of the mean.
+
+    Parameters
+    ----------
+    lens : str
+        Name of the lens.
+    images : pipeline.io.frames.LensImages
+        The frame's band images of the lens.
+    raw : pipeline.io.rawio.RawFrame
+        The decoded frame (ISO, exposure time, time stamp, optically black pixels).
+    dark : xarray.Dataset
+        The dark artefact of the lens.
+    corners : dict[str, numpy.ndarray]
+        Band -> the corner pixels (:func:`corner_sites` of :func:`corner_pixels`).
+    temperature_c : float, default NaN
+        Logged sensor temperature (degree Celsius); NaN when not logged.
+    pattern_dn : dict[str, float], optional
+        :func:`corner_pattern_dn` of each band when the caller has it already (DN).
+    memo : dict, optional
+        A dict the caller keeps for one ``dark`` and ``corners``, in which the prediction and the noise of
+        each setting are kept (frames repeat their settings; the values are the same as computed afresh).
+
+    Returns
+    -------
+    list of dict
+        One record per band, keyed by the names of :data:`CORNER_COLUMNS`.
+    """
     iso, exposure_s = float(raw.iso), round(float(raw.exposure_s), 9)
     time_s = frame_time_s(raw)
     logged = float(temperature_c) if np.isfinite(temperature_c) else None
@@ -197,12 +348,45 @@ class FrameCorners:
     @classmethod
     def of_upstream(cls, lens: str, upstream: dict, projection: Callable[[str], str], bias_config: dict):
         """A stage's recorder for ``lens``: its dark artefact from the stage's ``upstream`` (none: nothing
-        recorded), the corners by ``bias.corner_min_radius_fraction``."""
+        recorded), the corners by ``bias.corner_min_radius_fraction``.
+
+        Parameters
+        ----------
+        lens : str
+            Name of the lens.
+        upstream : dict[str, xarray.Dataset]
+            The stage's upstream artefacts by stage name (``dark`` used when present).
+        projection : callable
+            Lens name -> the dataset's declared projection of its region.
+        bias_config : dict
+            The configuration's ``bias`` section.
+
+        Returns
+        -------
+        FrameCorners
+            The recorder.
+        """
         return cls({lens: upstream["dark"]} if "dark" in upstream else None, projection,
                    bias_config["corner_min_radius_fraction"])
 
     def add(self, lens: str, images: LensImages, raw: RawFrame, temperature_c: float = np.nan, **keys) -> None:
-        """Record one frame of ``lens``; ``keys`` (the stage's own: ``file_index``, ``medium``...) go on each row."""
+        """Record one frame of ``lens``; ``keys`` (the stage's own: ``file_index``, ``medium``...) go on each row.
+
+        Nothing is recorded for a lens without a dark artefact.
+
+        Parameters
+        ----------
+        lens : str
+            Name of the lens.
+        images : pipeline.io.frames.LensImages
+            The frame's band images of the lens.
+        raw : pipeline.io.rawio.RawFrame
+            The decoded frame.
+        temperature_c : float, default NaN
+            Logged sensor temperature (degree Celsius); NaN when not logged.
+        **keys
+            Further columns of each record.
+        """
         if lens not in self.dark:
             return
         if lens not in self.corners:
@@ -216,4 +400,16 @@ class FrameCorners:
             self.records.append({**record, **keys})
 
     def of_lens(self, lens: str) -> list[dict]:
+        """The records of one lens.
+
+        Parameters
+        ----------
+        lens : str
+            Name of the lens.
+
+        Returns
+        -------
+        list of dict
+            Its records, in the order the frames were added.
+        """
         return [r for r in self.records if r["lens"] == lens]
