@@ -102,7 +102,7 @@ class Effect:
         rng : numpy.random.Generator
             The simulator's generator of the camera's static patterns (the same seed gives the same camera).
         context : dict
-            From the simulator: ``lens_names`` (tuple of str), ``lens_shape`` (rows, columns of one lens region in
+            From the simulator: ``lens_names`` (sequence of str), ``lens_shape`` (rows, columns of one lens region in
             raw pixels) and ``image_circle_radius_band_px`` (radius of the image circle, band pixels).
         """
 
@@ -314,8 +314,8 @@ class Effect:
         Returns
         -------
         dict
-            The effect's parameters (``params`` and what :meth:`prepare` drew) as plain Python values (lists for
-            arrays), ready for YAML.
+            The effect's parameters ``params`` (and, for an effect with a static part, what :meth:`prepare`
+            drew) as plain Python values (lists for arrays), ready for YAML.
         """
         return {k: _plain(v) for k, v in self.params.items()}
 
