@@ -128,7 +128,6 @@ NOT_YET_DOCUMENTED: set[str] = {
     "simulate/sky.py",
     "simulate/smartphone.py",
     "simulate/spectral.py",
-    "stages/field.py",
     "stats/block_bootstrap.py",
     "stats/fitting.py",
     "stats/matchup.py",
