@@ -225,7 +225,7 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
         ``pearson`` ((lens, band, sweep) -> per-pixel correlation with exposure or gain), ``frames`` (one row per
         frame, lens and band: ``mask_mean_dn``, ``corner_dn`` in DN, ``saturated``, ...), ``masks``, ``corners``,
         ``ptc``, ``geometry`` (lens -> :func:`axis_masks`'s circle), ``angle_source``, ``projection``,
-        ``inputs`` (file -> sha256), ``paths``, ``times`` (frame index -> time, s), ``max_raw_dn`` and
+        ``inputs`` (file -> sha256), ``paths``, ``times`` (frame index -> time stamp, s since 1970 UTC), ``max_raw_dn`` and
         ``white_level_dn`` (DN).
     """
     cfg = config["linearity"]
@@ -1248,7 +1248,7 @@ def corner_records(fr_l: pd.DataFrame, times: dict[int, float]) -> pd.DataFrame:
         The lens's frame table after the dark correction (``corner_dn``, ``dark_corner_dn``, ``sigma_corner_dn``
         in DN, ``n_corner_sites`` and the frame's keys).
     times : dict[int, float]
-        Frame index -> the frame's time stamp, s.
+        Frame index -> the frame's time stamp, s since 1970-01-01 UTC.
 
     Returns
     -------
