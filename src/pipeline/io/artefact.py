@@ -36,6 +36,20 @@ BUNDLE_REQUIRED_STAGES = ("dark", "linearity", "geometry", "rolloff", "absolute"
 
 
 def sha256_file(path: str | Path, chunk: int = 1 << 22) -> str:
+    """The sha256 digest of a file's bytes, read in blocks (the provenance of an artefact's inputs).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file to hash.
+    chunk : int, default 4194304
+        Bytes read at a time (4 MiB), which bounds the memory used for a large raw frame.
+
+    Returns
+    -------
+    str
+        The digest as 64 lowercase hexadecimal characters.
+    """
     h = hashlib.sha256()
     with open(path, "rb") as fh:
         while block := fh.read(chunk):
@@ -44,6 +58,18 @@ def sha256_file(path: str | Path, chunk: int = 1 << 22) -> str:
 
 
 def config_sha256(config_subset: dict) -> str:
+    """The sha256 digest of a configuration subset, as its keys-sorted JSON text.
+
+    Parameters
+    ----------
+    config_subset : dict
+        The configuration values a stage used; values JSON cannot write are written as their ``str``.
+
+    Returns
+    -------
+    str
+        The digest as 64 lowercase hexadecimal characters: equal for equal subsets whatever their keys' order.
+    """
     text = json.dumps(config_subset, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()
 
@@ -64,6 +90,29 @@ def write_artefact(ds: xr.Dataset, path: str | Path, *, stage: str, inputs: dict
     (a stage's map that compresses too little to pay for it). Every ``units``
     is written spelled for UDUNITS-2, the camera's counting units (DN,
     electron, pixel) kept in ``camera_units`` (:mod:`pipeline.io.units`).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The stage's output; not modified (the units are spelled for UDUNITS-2 in a copy).
+    path : str or pathlib.Path
+        The artefact's file; its folder is made if missing, an existing file replaced.
+    stage : str
+        The stage's name, a key of :data:`ARTEFACT_VERSIONS` (its schema version is written with it).
+    inputs : dict[str, str]
+        Input file name -> sha256 of its bytes (:func:`sha256_file`).
+    config_subset : dict
+        The configuration values the stage used, written as JSON text and as their digest
+        (:func:`config_sha256`).
+    effects : list[str]
+        The names of the model's effects the stage fitted, written comma-separated in ``model_effects``.
+    encoding : dict or None, optional
+        netCDF4 encodings by variable name, overriding the default compression.
+
+    Returns
+    -------
+    pathlib.Path
+        The path written.
     """
     path = Path(path)
     ds = encode_units(ds)   # a copy, its units spelled for UDUNITS-2 (pipeline.io.units)
@@ -98,6 +147,28 @@ def read_artefact(path: str | Path, stage: str, *, load: bool = True, load_below
     variable left on disk is read and decompressed again at each access).
     The variables' units are those the stage wrote, in the camera's notation
     (:func:`pipeline.io.units.decode_units`).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The artefact's file.
+    stage : str
+        The stage that must have written it, a key of :data:`ARTEFACT_VERSIONS`.
+    load : bool, default True
+        Read every variable into memory and close the file.
+    load_below_bytes : int, default 0
+        With ``load=False``, the size in bytes up to which a variable is read at once.
+
+    Returns
+    -------
+    xarray.Dataset
+        The artefact, its units in the camera's notation; with ``load=False`` still open on its file.
+
+    Raises
+    ------
+    pipeline.errors.ArtefactError
+        If the file is missing or not a readable NetCDF file, or was written by another stage or at another
+        schema version than the supported one.
     """
     path = Path(path)
     if not path.exists():
@@ -142,6 +213,21 @@ def mapped_variables(path: str | Path, ds: xr.Dataset, names) -> dict[str, np.nd
     file opened lazily (:func:`read_artefact` with ``load=False``), for the decoding. Mapping instead
     of reading saves copying the maps into fresh memory: ``apply`` then touches the page cache's pages
     where its chain uses them (179 MB of the full-resolution bundle with ``--no-pixels``).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The artefact's file (a NetCDF-4, i.e. HDF5, file).
+    ds : xarray.Dataset
+        The same file opened lazily, whose variables give the dtypes, shapes and decoding to check against.
+    names : iterable of str
+        The variables to map.
+
+    Returns
+    -------
+    dict[str, numpy.ndarray]
+        Variable name -> a read-only array mapped on the file's bytes, for those of ``names`` that can be mapped;
+        empty if h5py is not installed, the file has a user block or cannot be opened by HDF5.
     """
     try:
         import h5py
@@ -182,6 +268,26 @@ def read_artefact_mapped(path: str | Path, stage: str, *, lenses=None) -> xr.Dat
     (a view of the mapped maps; otherwise the maps are copied). The field stage reads of the calibration
     bundle's two lenses and media its lens's maps in air, a crop of them at every frame and the whole of
     them once: reading its lens whole (0.5 GB at the full resolution) cost it more than the crops.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The artefact's file.
+    stage : str
+        The stage that must have written it (checked as by :func:`read_artefact`).
+    lenses : sequence of str or None, optional
+        The lenses to keep, by their labels on the ``lens`` axis; lenses absent from the file are ignored.
+        ``None`` (default) keeps all.
+
+    Returns
+    -------
+    xarray.Dataset
+        The artefact, closed on its file, its ``(..., y, x)`` maps memory-mapped where possible.
+
+    Raises
+    ------
+    pipeline.errors.ArtefactError
+        As :func:`read_artefact`, and if a variable cannot be read.
     """
     with read_artefact(path, stage, load=False) as on_disk:
         names = [n for n, v in on_disk.data_vars.items() if v.dims[-2:] == ("y", "x")]
@@ -201,5 +307,17 @@ def read_artefact_mapped(path: str | Path, stage: str, *, lenses=None) -> xr.Dat
 
 
 def model_effects(ds: xr.Dataset) -> list[str]:
+    """The names of the model effects an artefact was fitted with, from its ``model_effects`` attribute.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        An artefact written by :func:`write_artefact`.
+
+    Returns
+    -------
+    list[str]
+        The effects' names in the order written; empty if the attribute is missing or empty.
+    """
     text = ds.attrs.get("model_effects", "")
     return [e for e in text.split(",") if e]

@@ -28,8 +28,25 @@ def _check_range(name: str, span, size: int) -> tuple[int, int]:
 def cut_region(cfa, rows: tuple[int, int], cols: tuple[int, int]) -> np.ndarray:
     """The mosaic's [rows[0], rows[1]) x [cols[0], cols[1]) region (a view).
 
-    Raises ValueError when the region is out of range or starts on an odd row
-    or column (which would change the Bayer phase).
+    Parameters
+    ----------
+    cfa : array_like
+        The raw Bayer mosaic, 2-D (rows, columns), in DN.
+    rows : tuple[int, int]
+        First (even) and one-past-last row of the region, in mosaic pixels.
+    cols : tuple[int, int]
+        First (even) and one-past-last column of the region, in mosaic pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        A view of the region of ``cfa``, shape ``(rows[1] - rows[0], cols[1] - cols[0])``.
+
+    Raises
+    ------
+    ValueError
+        If ``cfa`` is not 2-D, or a span is not a pair of integers, is outside the mosaic or starts on an odd
+    row or column (which would change the Bayer phase).
     """
     cfa = np.asarray(cfa)
     if cfa.ndim != 2:
@@ -75,7 +92,29 @@ def _integer_threshold(cfa: np.ndarray, threshold_dn: float):
 
 def band_saturation(cfa, pattern: str, band: str, threshold_dn: float, window=None, out=None) -> np.ndarray:
     """One band of :func:`split_saturation`, on ``window`` ((row slice, column slice) of the band plane) when
-    given; into ``out`` (boolean, the window's shape) when given."""
+    given; into ``out`` (boolean, the window's shape) when given.
+
+    Parameters
+    ----------
+    cfa : array_like
+        The raw Bayer mosaic (or a lens's region of it), 2-D, in DN.
+    pattern : str
+        The 2x2 Bayer cell read row-major, e.g. ``"RGGB"``.
+    band : str
+        ``"R"``, ``"G"`` or ``"B"``.
+    threshold_dn : float
+        The raw value (DN) at or above which a CFA site counts as saturated.
+    window : tuple[slice, slice] or None, optional
+        Rows and columns of the band plane to test; ``None`` (default) the whole plane.
+    out : numpy.ndarray or None, optional
+        Boolean array of the window's shape to write into.
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean, shape of the band plane (``(rows // 2, cols // 2)``) or of ``window``: True where any of the
+        band pixel's sites is at or above the threshold (all False if the mosaic's integer type cannot reach it).
+    """
     cfa = np.asarray(cfa)
     sites = [_window(v, window) for v in _sites(cfa, pattern)[band]]
     limit = _integer_threshold(cfa, threshold_dn)
@@ -95,6 +134,20 @@ def split_saturation(cfa, pattern: str, threshold_dn: float) -> dict[str, np.nda
 
     Compares the integer mosaic's site views with the threshold rounded up to
     an integer (the same test for integer values), so no float plane is made.
+
+    Parameters
+    ----------
+    cfa : array_like
+        The raw Bayer mosaic, 2-D, in DN.
+    pattern : str
+        The 2x2 Bayer cell read row-major, e.g. ``"RGGB"``.
+    threshold_dn : float
+        The raw value (DN) at or above which a CFA site counts as saturated (the white level less a margin).
+
+    Returns
+    -------
+    dict[str, numpy.ndarray]
+        Band -> boolean plane of shape ``(rows // 2, cols // 2)``.
     """
     return {b: band_saturation(cfa, pattern, b, threshold_dn) for b in BANDS}
 
@@ -102,7 +155,27 @@ def split_saturation(cfa, pattern: str, threshold_dn: float) -> dict[str, np.nda
 def band_plane(cfa, pattern: str, band: str, window=None, out=None) -> np.ndarray:
     """One float32 plane of :func:`split_bands` (G the mean of its two sites), on ``window`` ((row slice,
     column slice) of the plane) when given; into ``out`` (float32, the window's shape) when given. The same
-    operations in the same order either way, so the same numbers."""
+    operations in the same order either way, so the same numbers.
+
+    Parameters
+    ----------
+    cfa : array_like
+        The raw Bayer mosaic (or a lens's region of it), 2-D, in DN.
+    pattern : str
+        The 2x2 Bayer cell read row-major, e.g. ``"RGGB"``.
+    band : str
+        ``"R"``, ``"G"`` or ``"B"``.
+    window : tuple[slice, slice] or None, optional
+        Rows and columns of the band plane to make; ``None`` (default) the whole plane.
+    out : numpy.ndarray or None, optional
+        float32 array of the window's shape to write into.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32, shape ``(rows // 2, cols // 2)`` or that of ``window``: the band's raw values in DN (black
+        level not subtracted).
+    """
     sites = [_window(v, window) for v in _sites(cfa, pattern)[band]]
     if out is None:
         out = np.empty(sites[0].shape, np.float32)
@@ -116,7 +189,23 @@ def band_plane(cfa, pattern: str, band: str, window=None, out=None) -> np.ndarra
 def split_bands(cfa, pattern: str) -> dict[str, np.ndarray]:
     """Split a Bayer mosaic into {"R", "G", "B"} float32 planes (rows//2, cols//2).
 
-    ``pattern`` is the 2x2 cell row-major, e.g. "RGGB", "BGGR", "GRBG", "GBRG".
     An odd trailing row or column is dropped.
+
+    Parameters
+    ----------
+    cfa : array_like
+        The raw Bayer mosaic, 2-D, in DN.
+    pattern : str
+        The 2x2 cell read row-major, e.g. "RGGB", "BGGR", "GRBG", "GBRG".
+
+    Returns
+    -------
+    dict[str, numpy.ndarray]
+        Band -> float32 plane of raw values in DN, shape ``(rows // 2, cols // 2)``.
+
+    Raises
+    ------
+    ValueError
+        If ``cfa`` is not 2-D or holds no whole 2x2 cell, or ``pattern`` is not a Bayer pattern.
     """
     return {b: band_plane(cfa, pattern, b) for b in BANDS}

@@ -67,6 +67,13 @@ class FrameTags:
     tags: dict
 
     def where(self) -> str:
+        """Where the frame is listed, for a message.
+
+        Returns
+        -------
+        str
+            E.g. ``"dark/frames.csv line 3"``.
+        """
         return f"{self.experiment}/frames.csv line {self.line}"
 
 
@@ -76,12 +83,37 @@ def check_consistency(root: Path, meta, lenses, frames: list[FrameTags], experim
     """(problems, warnings) of the frames' tags against each other and dataset.yaml, the lens regions
     against each other, and the field sidecars against each other and the frames' times.
 
-    ``meta`` is dataset.yaml as parsed (None when unreadable), ``lenses`` its regions (None when
-    unusable); ``now_utc`` (naive UTC, default the clock) is when "the future" starts; ``sidecars`` what
-    ``pipeline.io.dataset.check_sidecars`` read (path relative to the dataset -> value), of which the
-    reference radiometer's times are compared with the field frames' (not read again here), with the
-    match-up's window and clock-offset search of ``field_settings`` (the run's ``field`` config section;
-    default the schema's).
+    Parameters
+    ----------
+    root : pathlib.Path
+        The dataset's folder.
+    meta : dict or None
+        dataset.yaml as parsed; ``None`` when unreadable.
+    lenses : dict or None
+        The lens regions of dataset.yaml, lens -> ``((row0, row1), (col0, col1))`` in mosaic pixels; ``None``
+        when unusable.
+    frames : list[FrameTags]
+        Every frame the frames.csv files list, with its tags.
+    experiments : collection of str
+        The experiments present (the field checks run when ``"field"`` is among them).
+    now_utc : datetime.datetime or None, optional
+        Naive UTC time when "the future" starts; default the clock.
+    sidecars : dict or None, optional
+        What ``pipeline.io.dataset.check_sidecars`` read (path relative to the dataset -> value), of which the
+        reference radiometer's times are compared with the field frames' (not read again here); ``None``
+        (default): the reference radiometer's header is read for its channel check only.
+    field_settings : dict or None, optional
+        The run's ``field`` config section, whose match-up window and clock-offset search the time check uses;
+        default the schema's.
+
+    Returns
+    -------
+    problems : list[pipeline.errors.Problem]
+        What stops the run, such as another camera, CFA pattern or black/white level than the others, overlapping lens
+        regions, unusable reference radiometer channels or times.
+    warnings : list[pipeline.errors.Problem]
+        What is suspect but does not stop it, such as time stamps in the future, far from the experiment's others or out
+        of order, field frames with the sun below the horizon, reference times that suggest a clock offset.
     """
     root = Path(root)
     problems: list[Problem] = []
@@ -118,7 +150,20 @@ def check_consistency(root: Path, meta, lenses, frames: list[FrameTags], experim
 
 
 def lens_overlap_problems(yaml_path: Path, lenses: dict) -> list[Problem]:
-    """One problem per pair of lens regions that share pixels (each pixel belongs to one lens)."""
+    """One problem per pair of lens regions that share pixels (each pixel belongs to one lens).
+
+    Parameters
+    ----------
+    yaml_path : pathlib.Path
+        The dataset.yaml the regions come from, named in each problem.
+    lenses : dict
+        Lens -> ``((row0, row1), (col0, col1))``, its half-open row and column spans in mosaic pixels.
+
+    Returns
+    -------
+    list[pipeline.errors.Problem]
+        One per overlapping pair, naming both regions and the shared rows and columns; empty when none overlap.
+    """
     out = []
     names = list(lenses)
     for i, a in enumerate(names):

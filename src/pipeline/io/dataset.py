@@ -321,8 +321,25 @@ def read_csv_table(path, required=(), what: str = "the table") -> tuple[list[str
                                                                        list[Problem]]:
     """A CSV file as (header, [(line number, row dict)], problems), checked as frames.csv is.
 
-    Values are stripped and blank lines skipped; ``required`` columns must be
-    present; ``what`` says what the file should hold (the fix of its problems).
+    Values are stripped and blank lines skipped.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The CSV file (separated by ``,``, ``;`` or tabs).
+    required : sequence of str, default ()
+        Columns that must be present (matched without regard to case).
+    what : str, default "the table"
+        What the file should hold, in the fix of its problems.
+
+    Returns
+    -------
+    header : list[str] or None
+        The column names; ``None`` when the file cannot be read as a table.
+    rows : list[tuple[int, dict[str, str]]]
+        (line number in the file, column -> stripped value) of each row with as many values as the header.
+    problems : list[pipeline.errors.Problem]
+        Every problem found: ragged rows (left out of ``rows``), missing columns, no rows, decimal commas.
     """
     problems: list[Problem] = []
     header, rows = _read_csv(Path(path), tuple(required), problems, what)
@@ -627,17 +644,53 @@ class Dataset:
     _frames: dict[str, pd.DataFrame] = field(default_factory=dict, repr=False, compare=False)
 
     def projection(self, lens: str) -> str:
-        """The projection lens region ``lens`` declares in dataset.yaml (PROJECTIONS; default fisheye)."""
+        """The projection lens region ``lens`` declares in dataset.yaml (PROJECTIONS; default fisheye).
+
+        Parameters
+        ----------
+        lens : str
+            The lens region's name in dataset.yaml.
+
+        Returns
+        -------
+        str
+            The projection's name, one of ``PROJECTIONS``.
+        """
         region = (self.meta.get("lenses") or {}).get(lens) if isinstance(self.meta, dict) else None
         value = region.get("projection", PROJECTIONS[0]) if isinstance(region, dict) else PROJECTIONS[0]
         return str(value)
 
     def experiments(self) -> list[str]:
-        """Experiment folders present, in the order of EXPERIMENTS."""
+        """Experiment folders present, in the order of EXPERIMENTS.
+
+        Returns
+        -------
+        list[str]
+            The names of the experiment folders found under the dataset's root.
+        """
         return [name for name in EXPERIMENTS if (self.root / name).is_dir()]
 
     def frames(self, experiment: str) -> pd.DataFrame:
-        """Validated frames.csv of one experiment plus an absolute ``path`` column."""
+        """Validated frames.csv of one experiment plus an absolute ``path`` column.
+
+        Parameters
+        ----------
+        experiment : str
+            One of ``EXPERIMENTS``, e.g. ``"dark"``.
+
+        Returns
+        -------
+        pandas.DataFrame
+            One row per frame, frames.csv's columns (numbers as floats) and ``path``, the raw file's absolute path;
+            a copy, checked once and kept.
+
+        Raises
+        ------
+        ValueError
+            If ``experiment`` is not a known experiment.
+        pipeline.errors.InputError
+            If its folder is absent or its frames.csv has a problem (the first named, the others counted).
+        """
         if experiment not in EXPERIMENTS:
             raise ValueError(f"unknown experiment {experiment!r}; known: {', '.join(EXPERIMENTS)}")
         if experiment not in self._frames:
@@ -651,7 +704,18 @@ class Dataset:
         return self._frames[experiment].copy()
 
     def raw_files(self, experiment: str) -> list[Path]:
-        """Absolute paths of the raw files that frames.csv lists, in its order."""
+        """Absolute paths of the raw files that frames.csv lists, in its order.
+
+        Parameters
+        ----------
+        experiment : str
+            One of ``EXPERIMENTS``.
+
+        Returns
+        -------
+        list[pathlib.Path]
+            The raw files.
+        """
         return list(self.frames(experiment)["path"])
 
 
@@ -668,10 +732,28 @@ class LayoutCheck:
     problems: list[Problem] = field(default_factory=list)
 
     def experiments(self) -> list[str]:
+        """Experiment folders present, in the order of EXPERIMENTS.
+
+        Returns
+        -------
+        list[str]
+            The names of the experiment folders found under the dataset's root.
+        """
         return [name for name in EXPERIMENTS if (self.root / name).is_dir()]
 
     def dataset(self) -> Dataset:
-        """The Dataset, or one InputError naming the first problem and counting the others."""
+        """The Dataset, or one InputError naming the first problem and counting the others.
+
+        Returns
+        -------
+        Dataset
+            The checked dataset, its frame tables already read.
+
+        Raises
+        ------
+        pipeline.errors.InputError
+            If any problem was found.
+        """
         _raise_if(self.problems, self.root)
         frames = {exp: table for exp, (table, _) in self.tables.items()}
         return Dataset(root=self.root, meta=self.meta, lenses=self.lenses, md5sums=self.md5sums, _frames=frames)
@@ -689,7 +771,21 @@ def _check_folders(root: Path, problems: list[Problem]) -> None:
 
 
 def inspect_layout(root, check_frames: bool = True) -> LayoutCheck:
-    """Check dataset.yaml, MD5SUMS and every present frames.csv; collect every problem."""
+    """Check dataset.yaml, MD5SUMS and every present frames.csv; collect every problem.
+
+    Parameters
+    ----------
+    root : str or pathlib.Path
+        The dataset's folder.
+    check_frames : bool, default True
+        Check every present experiment's frames.csv (and the files MD5SUMS lists but are absent); ``False`` checks
+        dataset.yaml and MD5SUMS only.
+
+    Returns
+    -------
+    LayoutCheck
+        The parsed files and every problem found (none raised).
+    """
     root = Path(root)
     if not root.is_dir():
         what = "is a file, not a folder" if root.exists() else "dataset folder not found"
@@ -728,12 +824,44 @@ def open_dataset(root, check_frames: bool = True) -> Dataset:
 
     Raises one InputError when anything is wrong: its line names the first
     problem and counts the others (``inspect_layout`` returns them all).
+
+    Parameters
+    ----------
+    root : str or pathlib.Path
+        The dataset's folder.
+    check_frames : bool, default True
+        Check every present experiment's frames.csv now.
+
+    Returns
+    -------
+    Dataset
+        The validated dataset.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        When anything is wrong.
     """
     return inspect_layout(root, check_frames=check_frames).dataset()
 
 
 def check_md5(dataset: Dataset, relative_path, md5_hex: str) -> None:
-    """Raise InputError unless MD5SUMS lists ``relative_path`` with ``md5_hex``."""
+    """Raise InputError unless MD5SUMS lists ``relative_path`` with ``md5_hex``.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        The opened dataset, whose MD5SUMS is checked against.
+    relative_path : str or pathlib.Path
+        The file, relative to the dataset's root or absolute inside it.
+    md5_hex : str
+        The MD5 of the file's bytes as read, in hexadecimal (either case).
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the file is outside the dataset, not listed in MD5SUMS, or listed with another checksum.
+    """
     rel_in = Path(relative_path)
     if rel_in.is_absolute():
         try:
@@ -750,7 +878,20 @@ def check_md5(dataset: Dataset, relative_path, md5_hex: str) -> None:
 
 
 def check_checksums(root, md5sums: dict[str, str]) -> list[Problem]:
-    """Read every file MD5SUMS lists and compare its MD5 (slow: reads every byte)."""
+    """Read every file MD5SUMS lists and compare its MD5 (slow: reads every byte).
+
+    Parameters
+    ----------
+    root : str or pathlib.Path
+        The dataset's folder.
+    md5sums : dict[str, str]
+        Path relative to ``root`` -> expected MD5 in hexadecimal, as MD5SUMS lists them.
+
+    Returns
+    -------
+    list[pipeline.errors.Problem]
+        One per file whose MD5 differs; absent files are skipped (the layout check names them).
+    """
     root = Path(root)
     problems: list[Problem] = []
     for rel, expected in md5sums.items():
@@ -765,7 +906,13 @@ def check_checksums(root, md5sums: dict[str, str]) -> list[Problem]:
 
 
 def write_md5sums(root) -> None:
-    """Write ROOT/MD5SUMS for every file below root (except MD5SUMS), sorted by path."""
+    """Write ROOT/MD5SUMS for every file below root (except MD5SUMS), sorted by path.
+
+    Parameters
+    ----------
+    root : str or pathlib.Path
+        The dataset's folder; its MD5SUMS is overwritten.
+    """
     root = Path(root)
     entries = []
     for path in root.rglob("*"):
@@ -1052,9 +1199,21 @@ assert set(_SIDECAR_READERS) == {f"{exp}/{name}" for exp, names in SIDECARS.item
 def check_sidecars(root, experiments, values: dict | None = None) -> list[Problem]:
     """Every problem of the sidecar files of the given (present) experiments.
 
-    ``values``, when given, receives what each sidecar read (its path relative to the dataset -> the
-    reader's value) when that file has no problem: the consistency checks compare them without reading
-    the files again."""
+    Parameters
+    ----------
+    root : str or pathlib.Path
+        The dataset's folder.
+    experiments : iterable of str
+        The experiments whose sidecars are read (an experiment without sidecars has none to check).
+    values : dict or None, optional
+        When given, receives what each sidecar read (its path relative to the dataset -> the reader's value)
+        when that file has no problem: the consistency checks compare them without reading the files again.
+
+    Returns
+    -------
+    list[pipeline.errors.Problem]
+        Every problem found, in the order of the experiments.
+    """
     root = Path(root)
     problems: list[Problem] = []
     for experiment in experiments:
@@ -1076,34 +1235,135 @@ def _read_sidecar(source, relative: str):
 
 
 def read_photodiode(source) -> pd.DataFrame:
-    """spectral/photodiode.csv: wavelength_nm, signal, signal_std (a Dataset or a path)."""
+    """spectral/photodiode.csv: wavelength_nm, signal, signal_std (a Dataset or a path).
+
+    Parameters
+    ----------
+    source : Dataset or str or pathlib.Path
+        The dataset (its spectral/photodiode.csv is read) or the file itself.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``wavelength_nm`` (monochromator wavelength, nm), ``signal`` (the photodiode's reading of the beam,
+        proportional to beam power, any unit) and ``signal_std`` (its standard deviation, same unit), floats.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the file is missing or a value is missing, not a number or out of range.
+    """
     return _read_sidecar(source, "spectral/photodiode.csv")
 
 
 def read_source_spectrum(source) -> pd.DataFrame:
-    """absolute/source_spectrum.csv: wavelength_nm, radiance, radiance_std."""
+    """absolute/source_spectrum.csv: wavelength_nm, radiance, radiance_std.
+
+    Parameters
+    ----------
+    source : Dataset or str or pathlib.Path
+        The dataset (its absolute/source_spectrum.csv is read) or the file itself.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``wavelength_nm`` (nm), ``radiance`` (the sphere port's relative spectral radiance, any unit) and
+        ``radiance_std`` (its standard deviation, same unit), floats.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the file is missing or a value is missing, not a number or out of range.
+    """
     return _read_sidecar(source, "absolute/source_spectrum.csv")
 
 
 def read_source_reference(source) -> pd.DataFrame:
-    """absolute/source_reference.csv: wavelength_nm, radiance_W_sr_m2_nm, uncertainty_rel."""
+    """absolute/source_reference.csv: wavelength_nm, radiance_W_sr_m2_nm, uncertainty_rel.
+
+    Parameters
+    ----------
+    source : Dataset or str or pathlib.Path
+        The dataset (its absolute/source_reference.csv is read) or the file itself.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``wavelength_nm`` (nm), ``radiance_W_sr_m2_nm`` (the port's absolute radiance from a calibrated
+        instrument, W sr-1 m-2 nm-1) and ``uncertainty_rel`` (its relative standard uncertainty), floats.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the file is missing or a value is missing, not a number or out of range.
+    """
     return _read_sidecar(source, "absolute/source_reference.csv")
 
 
 def read_water(source) -> dict:
-    """immersion/water.yaml: {temperature_c, salinity_psu} as floats."""
+    """immersion/water.yaml: {temperature_c, salinity_psu} as floats.
+
+    Parameters
+    ----------
+    source : Dataset or str or pathlib.Path
+        The dataset (its immersion/water.yaml is read) or the file itself.
+
+    Returns
+    -------
+    dict
+        The file's mapping, ``temperature_c`` (the tank water's temperature, degree Celsius, -5 to 60) and
+        ``salinity_psu`` (its salinity, PSU, 0 to 60) as floats.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the file is missing, not a mapping, or a value is missing or out of range.
+    """
     return _read_sidecar(source, "immersion/water.yaml")
 
 
 def read_reference_radiometer(source) -> pd.DataFrame:
     """field/reference_radiometer.csv: ``time`` (UTC, tz-aware) and L_<nm> columns (floats).
 
-    Empty radiance cells become NaN (instrument drop-outs).  The channel
-    wavelengths are in ``df.attrs["channels_nm"]`` (same order as the columns).
+    Parameters
+    ----------
+    source : Dataset or str or pathlib.Path
+        The dataset (its field/reference_radiometer.csv is read) or the file itself.
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``time`` (UTC, tz-aware; a time without a zone is taken as UTC) and one ``L_<nm>`` column per channel,
+        the reference radiometer's radiance in W sr-1 m-2 nm-1; an empty cell (an instrument drop-out) is NaN.
+        The channel wavelengths (nm) are in ``df.attrs["channels_nm"]``, in the columns' order.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the file is missing, has no ``time`` or radiance column, or a time or number cannot be read.
     """
     return _read_sidecar(source, "field/reference_radiometer.csv")
 
 
 def read_site(source) -> dict:
-    """field/site.yaml: position, camera clock offset and the reference instrument."""
+    """field/site.yaml: position, camera clock offset and the reference instrument.
+
+    Parameters
+    ----------
+    source : Dataset or str or pathlib.Path
+        The dataset (its field/site.yaml is read) or the file itself.
+
+    Returns
+    -------
+    dict
+        The file's mapping: ``latitude_deg`` and ``longitude_deg`` (degree), ``camera_clock_utc_offset_h``
+        (hours, camera time minus this is UTC), and ``reference`` (``name``; ``channels_nm`` in nm;
+        ``fwhm_nm`` in nm, one or one per channel; ``half_fov_deg`` in degree; ``calibration_relative_sigma``,
+        relative, default :data:`REFERENCE_CALIBRATION_RELATIVE_SIGMA`).
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the file is missing, not a mapping, or a key is missing or out of range.
+    """
     return _read_sidecar(source, "field/site.yaml")

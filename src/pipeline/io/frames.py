@@ -54,6 +54,21 @@ def decode_ahead(frames: int):
 
     The stage runner sets it for each job from ``performance.decode_ahead_frames``, so that every
     stage reads the setting without each of its functions passing it on.
+
+    Parameters
+    ----------
+    frames : int
+        Frames decoded ahead in a background thread, >= 0.
+
+    Yields
+    ------
+    None
+        Control to the block, with the setting in force (restored on leaving it).
+
+    Raises
+    ------
+    ValueError
+        If ``frames`` is not an integer >= 0.
     """
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
         raise ValueError(f"decode_ahead_frames must be an integer >= 0, not {frames!r}")
@@ -77,6 +92,36 @@ def iter_frames(dataset: Dataset, experiment: str, frames: pd.DataFrame | None =
     later); a bad frame stops the iteration when its turn comes, with the same message.
     The stream is an iterator; :meth:`FrameStream.close` (or leaving it as a context manager)
     stops the decoding of frames not yet taken.
+
+    Parameters
+    ----------
+    dataset : pipeline.io.dataset.Dataset
+        The opened dataset (lens regions, MD5SUMS, frame tables).
+    experiment : str
+        The experiment's folder name, e.g. ``"dark"``.
+    frames : pandas.DataFrame or None, optional
+        Rows of the experiment's frames.csv to decode (a ``path`` column at least), in that order; ``None``
+        (default) all of them.
+    lenses : list[str] or None, optional
+        The lenses to cut out; ``None`` (default) every lens of the dataset.
+    saturation_margin_dn : float, default 1.0
+        A band pixel is marked saturated where a CFA site reaches the white level less this, in DN.
+    progress : bool, default False
+        Show a progress bar on the terminal.
+    decode_ahead_frames : int or None, optional
+        Frames decoded ahead, overriding the setting of :func:`decode_ahead`.
+
+    Returns
+    -------
+    FrameStream
+        Iterator of :class:`DecodedFrame`: each frame's row, its :class:`~pipeline.io.rawio.RawFrame` and its
+        :class:`LensImages` by lens.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        When the iteration reaches a frame that cannot be read, whose checksum differs from MD5SUMS, that lacks a
+        required tag, or whose lens region does not fit it.
     """
     frames = dataset.frames(experiment) if frames is None else frames
     lenses = list(dataset.lenses) if lenses is None else lenses
@@ -158,7 +203,29 @@ SATURATION_MARGIN_DN = 1.0
 
 
 def lens_images(raw: RawFrame, region_span, lens: str, saturation_margin_dn: float = SATURATION_MARGIN_DN) -> LensImages:
-    """One lens's band images of a decoded frame; ``region_span`` is its (rows, cols) in the mosaic."""
+    """One lens's band images of a decoded frame.
+
+    Parameters
+    ----------
+    raw : pipeline.io.rawio.RawFrame
+        The decoded frame.
+    region_span : tuple[tuple[int, int], tuple[int, int]]
+        The lens's ``(rows, cols)`` spans in the mosaic, each ``(start, stop)`` in mosaic pixels.
+    lens : str
+        The lens's name, for the error message.
+    saturation_margin_dn : float, default :data:`SATURATION_MARGIN_DN`
+        A band pixel is saturated where a CFA site reaches the frame's white level less this, in DN.
+
+    Returns
+    -------
+    LensImages
+        The lens's R, G, B float32 planes (raw DN, black level not subtracted) and their saturation maps.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the lens region does not fit the frame.
+    """
     rows_span, cols_span = region_span
     try:
         region = cut_region(raw.cfa, rows_span, cols_span)

@@ -66,7 +66,18 @@ _TAG_PROBLEM = {"exposure_s": "is missing or not a positive number of seconds",
 
 
 def tag_problem(key: str) -> str:
-    """One line: the tag's name and what is wrong with it (``key``: a field of :data:`TAG_NAMES`)."""
+    """One line: the tag's name and what is wrong with it.
+
+    Parameters
+    ----------
+    key : str
+        A field of :class:`RawFrame` named in :data:`TAG_NAMES`, e.g. ``"exposure_s"``.
+
+    Returns
+    -------
+    str
+        E.g. ``"ExposureTime tag is missing or not a positive number of seconds"``.
+    """
     return f"{TAG_NAMES[key]} tag {_TAG_PROBLEM.get(key, 'is missing')}"
 
 
@@ -364,6 +375,19 @@ def optical_black_rectangles(tags: dict, full_shape: tuple[int, int]) -> list[tu
     reads about 2050 DN over its 152 left columns against a black level of 2056, where
     the lit image reads 2466); margins below and to the right are often unread and are
     not used. No declaration: no rectangles.
+
+    Parameters
+    ----------
+    tags : dict
+        The frame's tags as :func:`read_tags` gives them (``masked_areas`` and ``active_area`` are used).
+    full_shape : tuple[int, int]
+        (rows, columns) of the full raw image, masked margins included, in raw pixels.
+
+    Returns
+    -------
+    list[tuple[int, int, int, int]]
+        The rectangles as (top, left, bottom, right) raw pixel indices, bottom and right exclusive; empty when
+        the file declares neither.
     """
     if tags.get("masked_areas"):
         return list(tags["masked_areas"])
@@ -387,6 +411,23 @@ def read_tags(path) -> dict:
     shape ((rows, cols) of the visible mosaic), active_area ((top, left, bottom,
     right) or None) and masked_areas (a list of such rectangles, DNG MaskedAreas).
     Absent, empty or zero tags are None.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The raw (DNG/TIFF) file.
+
+    Returns
+    -------
+    dict
+        The tags by the keys above: ``exposure_s`` in s, ``iso``, ``time`` a :class:`datetime.datetime`,
+        ``black_level`` and ``white_level`` in DN, ``cfa_pattern`` e.g. ``"RGGB"``, the rest text or pixel
+        indices.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the file is missing or is not a readable DNG/TIFF file.
     """
     path = Path(path)
     if not path.exists():
@@ -411,6 +452,27 @@ def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = T
     ``checksums=False`` (a reader that neither checks MD5SUMS nor records the
     frame's sha256, as ``apply``) ``md5`` and ``sha256`` are empty: the two
     hashes of a 48 MB frame cost about as much CPU as its decode.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The raw file.
+    require : sequence of str, default ("exposure_s", "iso", "time")
+        The fields whose tags must be present and valid.
+    checksums : bool, default True
+        Compute the MD5 and sha256 of the file's bytes.
+
+    Returns
+    -------
+    RawFrame
+        The visible mosaic (uint16, DN, black level not subtracted), its tags, its checksums and the mean and
+        variance of its optically black pixels (:func:`optical_black_rectangles`). Where the file lacks
+        BlackLevel or WhiteLevel, LibRaw's values are used.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the file cannot be read or decoded, is not a 2x2 R, G, G, B Bayer image, or lacks a required tag.
     """
     path = Path(path)
     data = _read_bytes(path)
@@ -477,7 +539,18 @@ def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = T
 
 
 def missing_tags(frame_or_tags) -> list[str]:
-    """Human names of the tags a calibration frame needs but this one lacks."""
+    """Human names of the tags a calibration frame needs but this one lacks.
+
+    Parameters
+    ----------
+    frame_or_tags : RawFrame or dict
+        A decoded frame, or the tags of :func:`read_tags`.
+
+    Returns
+    -------
+    list[str]
+        The tag names (:data:`TAG_NAMES`) that are absent, in report order; empty when none is.
+    """
     if isinstance(frame_or_tags, RawFrame):
         get = lambda name: getattr(frame_or_tags, name)  # noqa: E731
     else:
@@ -501,8 +574,38 @@ def write_dng(path, cfa: np.ndarray, *, exposure_s: float, iso: float, time: dat
               active_area: tuple[int, int, int, int] | None = None) -> None:
     """Write a minimal uncompressed 16-bit CFA DNG 1.4 (one IFD), deterministically.
 
-    ``active_area`` (top, left, bottom, right) declares the DNG ActiveArea: the pixels
-    outside it are the sensor's masked (optically black) margins; None writes none.
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The file to write.
+    cfa : numpy.ndarray
+        The 2-D mosaic of raw values in DN, integers within 0..65535 (written as uint16).
+    exposure_s : float
+        Exposure time in s, > 0 (written as a rational).
+    iso : float
+        ISO speed, a whole number in 1..65535.
+    time : datetime.datetime
+        The capture time (DateTimeOriginal, with sub-seconds).
+    black_level : float
+        The black level in DN, within 0..65535.
+    white_level : float, default 16383
+        The white (saturation) level in DN, within 1..65535.
+    cfa_pattern : str, default "RGGB"
+        The 2x2 Bayer cell read row-major, four letters from R, G, B.
+    make : str, default "Insta360"
+        Camera make, non-empty ASCII.
+    model : str, default "ONE"
+        Camera model, non-empty ASCII.
+    serial : str, default "SIM-0001"
+        Camera serial number, non-empty ASCII.
+    active_area : tuple[int, int, int, int] or None, optional
+        The DNG ActiveArea as (top, left, bottom, right) pixel indices: the pixels outside it are the sensor's
+        masked (optically black) margins; ``None`` (default) writes none.
+
+    Raises
+    ------
+    ValueError
+        If a value cannot be written as the DNG requires.
     """
     cfa = np.asarray(cfa)
     if cfa.ndim != 2 or cfa.size == 0:

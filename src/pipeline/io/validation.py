@@ -77,6 +77,16 @@ def tag_cache_file(root) -> Path | None:
     dataset folder; an entry is used only for a file of the same path, size, modification and change times
     and inode (an edited or replaced frame is read again), and only by the reader that wrote it (the key
     holds a hash of ``pipeline.io.rawio``'s source). None when the variable is ``off``.
+
+    Parameters
+    ----------
+    root : str or pathlib.Path
+        The dataset's folder.
+
+    Returns
+    -------
+    pathlib.Path or None
+        The cache file (named by a hash of the folder's resolved path; it may not exist yet), or ``None``.
     """
     where = os.environ.get(TAG_CACHE_ENV, "")
     if where.lower() == "off":
@@ -125,7 +135,21 @@ def _save_tag_cache(root) -> None:
 
 
 def check_tags(raw_path: Path) -> tuple[dict | None, list[Problem]]:
-    """The tags of one raw file and the problems of the tags a calibration frame needs."""
+    """The tags of one raw file and the problems of the tags a calibration frame needs.
+
+    Parameters
+    ----------
+    raw_path : pathlib.Path
+        The raw file.
+
+    Returns
+    -------
+    tags : dict or None
+        The tags as :func:`pipeline.io.rawio.read_tags` gives them (``path`` set to ``raw_path``); ``None`` when
+        the file cannot be read.
+    problems : list[pipeline.errors.Problem]
+        One per required tag (:data:`REQUIRED_TAGS`) absent or zero, or the one problem of an unreadable file.
+    """
     try:
         tags = _tags_seen(raw_path)
     except InputError as exc:
@@ -235,14 +259,31 @@ def inspect_dataset(root, *, checksums: bool = False, warnings: list[Problem] | 
     lens regions, the chessboard when geometry/ is present, the sidecar files,
     and the parts against each other (``pipeline.io.consistency``: the frames'
     camera, CFA pattern and levels, the lens regions, the field sidecars).
-    ``checksums`` also reads every file and compares its MD5 with MD5SUMS
-    (slow: the stages compare them anyway while they decode).  ``warnings``,
-    when given, receives what can only be suspected (time stamps, the sun
-    below the horizon at the field site): the caller prints them.  ``experiments``, when given, limits
-    the frames, sidecars and their consistency to those experiments (a stage run on its own reads no
-    other frames); dataset.yaml, MD5SUMS and every frames.csv are checked in any case.
-    ``field_settings`` is the run's ``field`` config section (the reference's match-up window and clock
-    search; default the schema's).
+    The tags read are kept between processes (:func:`tag_cache_file`).
+
+    Parameters
+    ----------
+    root : str or pathlib.Path
+        The dataset's folder.
+    checksums : bool, default False
+        Also read every file and compare its MD5 with MD5SUMS (slow: the stages compare them anyway while
+        they decode).
+    warnings : list[pipeline.errors.Problem] or None, optional
+        When given, receives what can only be suspected (time stamps, the sun below the horizon at the field
+        site): the caller prints them.
+    experiments : collection of str or None, optional
+        When given, limits the frames, sidecars and their consistency to those experiments (a stage run on its
+        own reads no other frames); dataset.yaml, MD5SUMS and every frames.csv are checked in any case.
+    field_settings : dict or None, optional
+        The run's ``field`` config section (the reference's match-up window and clock search); default the
+        schema's.
+
+    Returns
+    -------
+    dataset : Dataset or None
+        The opened dataset when no problem was found, else ``None``.
+    problems : list[pipeline.errors.Problem]
+        Every problem found; empty when the dataset is fine.
     """
     check = inspect_layout(root)
     if not check.root.is_dir():
@@ -272,7 +313,20 @@ def inspect_dataset(root, *, checksums: bool = False, warnings: list[Problem] | 
 
 
 def validate_dataset(root, *, checksums: bool = False) -> list[Problem]:
-    """Every problem of the dataset at ``root``; empty when it is fine."""
+    """Every problem of the dataset at ``root``; empty when it is fine.
+
+    Parameters
+    ----------
+    root : str or pathlib.Path
+        The dataset's folder.
+    checksums : bool, default False
+        Also compare every file's MD5 with MD5SUMS (reads every byte).
+
+    Returns
+    -------
+    list[pipeline.errors.Problem]
+        Every problem found (:func:`inspect_dataset`); warnings are not included.
+    """
     return inspect_dataset(root, checksums=checksums)[1]
 
 
@@ -282,6 +336,16 @@ def unlisted_files(dataset: Dataset) -> list[Problem]:
     The stages read only the frames frames.csv lists, so such a file is ignored; it is
     a warning, not a problem, because a lab may keep notes or spare frames beside them.
     Hidden files (``.name``) are left out.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        The opened dataset.
+
+    Returns
+    -------
+    list[pipeline.errors.Problem]
+        One warning per unlisted file, in the order of the experiments and the files' paths.
     """
     found = []
     for experiment in dataset.experiments():
@@ -299,13 +363,37 @@ def unlisted_files(dataset: Dataset) -> list[Problem]:
 
 
 def warning_lines(warnings: list[Problem]) -> list[str]:
-    """``warning: <file>: <problem>`` per warning."""
+    """``warning: <file>: <problem>`` per warning.
+
+    Parameters
+    ----------
+    warnings : list[pipeline.errors.Problem]
+        The warnings to print.
+
+    Returns
+    -------
+    list[str]
+        One line per warning, in order.
+    """
     return [f"warning: {w}" for w in warnings]
 
 
 def grouped_warning_lines(warnings: list[Problem], root=None) -> list[str]:
     """``warning: <file>: <what was seen>; fix: <how>`` per kind of warning and file, those of one kind
-    in many files of a folder merged (``warning: linearity/raw/: ...: a.dng, b.dng [2 files]``)."""
+    in many files of a folder merged (``warning: linearity/raw/: ...: a.dng, b.dng [2 files]``).
+
+    Parameters
+    ----------
+    warnings : list[pipeline.errors.Problem]
+        The warnings to print.
+    root : str or pathlib.Path or None, optional
+        The dataset's folder: files are shown relative to it; ``None`` (default) shows them as given.
+
+    Returns
+    -------
+    list[str]
+        One line per merged warning, in order of first appearance.
+    """
     if root is not None:
         root = Path(root).resolve() if Path(root).exists() else Path(root)
     out = []
@@ -317,7 +405,18 @@ def grouped_warning_lines(warnings: list[Problem], root=None) -> list[str]:
 
 
 def ok_line(dataset: Dataset) -> str:
-    """``ok: 169 frames in 2 experiments (dark, linearity)``."""
+    """``ok: 169 frames in 2 experiments (dark, linearity)``.
+
+    Parameters
+    ----------
+    dataset : Dataset
+        The opened dataset.
+
+    Returns
+    -------
+    str
+        The line: the number of frames listed and the experiments present.
+    """
     experiments = dataset.experiments()
     n = sum(len(dataset.frames(e)) for e in experiments)
     return (f"ok: {n} frame{'s' if n != 1 else ''} in {len(experiments)} experiment"
@@ -416,7 +515,23 @@ def _entry_text(entry: dict) -> str:
 
 
 def format_problems(problems: list[Problem], root=None) -> str:
-    """The problems grouped by file, with a count, for a person to read (several lines)."""
+    """The problems grouped by file, with a count, for a person to read (several lines).
+
+    Parameters
+    ----------
+    problems : list[pipeline.errors.Problem]
+        The problems found, in the order they were found.
+    root : str or pathlib.Path or None, optional
+        The dataset's folder: files are shown relative to it and it is named in the first line; ``None``
+        (default) shows them as given.
+
+    Returns
+    -------
+    str
+        A first line counting the problems and files, then one block per file (or folder, for identical
+        problems of several files), problems of one kind on several lines merged into line ranges, each
+        followed by its fix.
+    """
     if root is not None:
         root = Path(root).resolve() if Path(root).exists() else Path(root)
     blocks = _group(problems, root)

@@ -32,16 +32,40 @@ REPORT_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolu
 
 
 def build_sections(inputs: ReportInputs) -> list[RenderedSection]:
-    """Every registered section's blocks, in page order."""
+    """Every registered section's blocks, in page order.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The artefacts, diagnostics tables and run facts the sections read.
+
+    Returns
+    -------
+    list[pipeline.report.render.RenderedSection]
+        One per registered section (:func:`pipeline.report.sections.registered_sections`): its anchor, title,
+        introduction and blocks.
+    """
     apply_style()
     return [RenderedSection(s.id, s.title, s.intro, s.build(inputs)) for s in registered_sections()]
 
 
 def report_settings(config: dict) -> dict:
-    """What the report reads of the configuration: the ``report`` section and the diagnostics'
-    ``structured_rms_z`` (the rms z above which an experiment's residuals are called structured),
-    ``covariate_bins`` and ``image_plane_cells`` (the bins and the grid of the residual tests, which the
-    closure figures show)."""
+    """What the report reads of the configuration.
+
+    The ``report`` section and the diagnostics' ``structured_rms_z`` (the rms z above which an experiment's
+    residuals are called structured), ``covariate_bins`` and ``image_plane_cells`` (the bins and the grid of
+    the residual tests, which the closure figures show).
+
+    Parameters
+    ----------
+    config : dict
+        The run's configuration.
+
+    Returns
+    -------
+    dict
+        The ``report`` section's settings with the three diagnostics settings added.
+    """
     diag = config["diagnostics"]
     return {**config["report"], **{k: diag[k] for k in ("structured_rms_z", "covariate_bins", "image_plane_cells")}}
 
@@ -65,20 +89,63 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
                  plausibility: Path | None = None) -> Path:
     """Write the calibration report as one self-contained HTML file and return its path.
 
-    Each stage argument maps lens name to that stage's artefact; a stage given as None or empty gets a
-    section saying it was not run, with its reason from ``skipped`` (stage -> reason). The four CSVs come
-    from the diagnostics stage, and so do ``residual_tests`` (``residual_tests.csv``) and ``closure`` (the
-    closure table ``residuals.nc``) and ``lens_tests`` (``lens_tests.csv``: one value shared by the lenses
-    against one per lens) and ``field_scale`` (``field_scale.csv``: the field scale closure) and ``plausibility``
-    (``plausibility.csv``: each fitted quantity with a physical range against it), all optional:
-    absent, the diagnostics section says so. ``calibration``
-    (optional) is the calibration bundle (noise floor). ``failed`` (after a run with failed jobs) maps a
-    stage that did not finish to its error line: the summary names them first. ``dataset`` (optional):
-    ``path``, ``camera`` (make, model, serial) and ``experiments`` for the summary. ``settings``: the
-    config's ``report`` section (:func:`report_settings`; the schema defaults when None). With
-    ``figures_dir`` every figure is also written there as ``NN_name.png`` with ``figures.json`` naming each
-    one's section and caption. The HTML is written
-    to a temporary sibling and renamed.
+    A stage given as None or empty gets a section saying it was not run, with its reason from ``skipped``.
+    The diagnostics tables are optional: absent, the diagnostics section says so. The artefacts are opened
+    lazily and closed once the page is rendered. The HTML is written to a temporary sibling and renamed.
+
+    Parameters
+    ----------
+    dark : dict[str, pathlib.Path]
+        Lens -> the dark artefact.
+    linearity : dict[str, pathlib.Path]
+        Lens -> the linearity artefact.
+    missing_effects : pathlib.Path
+        The diagnostics' ``missing_effects.csv``: the effects missing from the model, ranked by how well each
+        one's signature explains the residuals.
+    unexplained : pathlib.Path
+        The diagnostics' ``unexplained.csv``: the tables with significant structure, a sentence each.
+    run_errors : pathlib.Path
+        The diagnostics' ``run_errors.csv``: each experiment's fit (rms z, chi-square, dof).
+    error_history : pathlib.Path
+        The diagnostics' ``error_history.csv``: one row per experiment and run, for the history figure.
+    out_html : pathlib.Path
+        The report's file.
+    skipped : dict[str, str] or None, optional
+        Stage -> why it was not run.
+    figures_dir : pathlib.Path or None, optional
+        When given, every figure is also written there as ``NN_name.png`` with ``figures.json`` naming each
+        one's section and caption (:func:`pipeline.report.render.write_figures`).
+    geometry, rolloff, spectral, absolute, immersion, field : dict[str, pathlib.Path] or None, optional
+        Lens -> that stage's artefact.
+    calibration : pathlib.Path or None, optional
+        The calibration bundle (noise floor).
+    failed : dict[str, str] or None, optional
+        After a run with failed jobs, a stage that did not finish -> its error line: the summary names them
+        first.
+    dataset : dict or None, optional
+        ``path``, ``camera`` (make, model, serial) and ``experiments``, for the summary.
+    settings : dict or None, optional
+        :func:`report_settings` of the run's configuration; the schema defaults when None.
+    residual_tests : pathlib.Path or None, optional
+        The diagnostics' ``residual_tests.csv``.
+    closure : pathlib.Path or None, optional
+        The closure table ``residuals.nc``.
+    lens_tests : pathlib.Path or None, optional
+        ``lens_tests.csv``: one value shared by the lenses against one per lens.
+    field_scale : pathlib.Path or None, optional
+        ``field_scale.csv``: the field scale closure.
+    plausibility : pathlib.Path or None, optional
+        ``plausibility.csv``: each fitted quantity with a physical range against it.
+
+    Returns
+    -------
+    pathlib.Path
+        ``out_html``.
+
+    Raises
+    ------
+    pipeline.errors.ArtefactError
+        If an artefact given is missing, unreadable or of another stage or version.
     """
     out_html = Path(out_html)
     failed = dict(failed or {})

@@ -89,7 +89,24 @@ Block = Union[Text, Items, Table, Figure, Group, Details]
 
 
 def draw(fig, name: str, caption: str, alt: str | None = None) -> Figure:
-    """The matplotlib figure ``fig`` as a :class:`Figure` (PNG bytes); the figure is closed."""
+    """The matplotlib figure ``fig`` as a :class:`Figure` (PNG bytes); the figure is closed.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+        The figure, drawn; closed after.
+    name : str
+        The figure's short name (its file name in the figures folder, without number).
+    caption : str
+        The caption under it.
+    alt : str or None, optional
+        Its alternative text; default the name with spaces for underscores.
+
+    Returns
+    -------
+    Figure
+        The figure as PNG bytes, at ``FIGURE_DPI``.
+    """
     buf = io.BytesIO()
     # a figure laid out once by ``tight_layout`` keeps a placeholder layout engine, for which savefig draws
     # the whole figure once more before drawing it into the PNG; the placeholder lays nothing out, so it

@@ -19,6 +19,18 @@ _SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
 
 
 def finite(x) -> bool:
+    """Whether ``x`` is a finite number (False for None, text and NaN).
+
+    Parameters
+    ----------
+    x : object
+        Any value.
+
+    Returns
+    -------
+    bool
+        True when ``float(x)`` is finite.
+    """
     try:
         return math.isfinite(float(x))
     except (TypeError, ValueError):
@@ -26,7 +38,21 @@ def finite(x) -> bool:
 
 
 def fmt_value(value, digits: int = 4) -> str:
-    """A number with ``digits`` significant figures (plain notation unless very large or small)."""
+    """A number with ``digits`` significant figures (plain notation unless very large or small).
+
+    Parameters
+    ----------
+    value : object
+        A number (or None, or anything else, shown as its text).
+    digits : int, default 4
+        Significant figures.
+
+    Returns
+    -------
+    str
+        The text: ``"—"`` for None, ``"n/a"`` for NaN, an integer as it is, else plain notation, or
+        scientific below 1e-3 and from 1e6.
+    """
     if value is None:
         return "—"
     try:
@@ -53,6 +79,20 @@ def fmt_uncertain(value, sigma, digits: int = 4) -> str:
 
     Falls back to :func:`fmt_value` (``digits`` significant figures) when sigma is missing, zero or
     not finite.
+
+    Parameters
+    ----------
+    value : object
+        The value.
+    sigma : object
+        Its standard uncertainty, same units.
+    digits : int, default 4
+        Significant figures of the fallback.
+
+    Returns
+    -------
+    str
+        E.g. ``"1.234 ± 0.012"``, or ``"(1.23 ± 0.12)×10^-5"`` below 1e-3 and from 1e6.
     """
     if not finite(value):
         return fmt_value(value, digits)
@@ -75,6 +115,16 @@ def units_text(units) -> str:
     """CF units as a reader writes them: "W sr-1 m-2" -> "W sr⁻¹ m⁻²", "DN2" -> "DN²", "degree" -> "°".
 
     A dimensionless "1" and an empty string give "".
+
+    Parameters
+    ----------
+    units : str or None
+        The units as the artefact writes them.
+
+    Returns
+    -------
+    str
+        The units for the page.
     """
     if units is None:
         return ""
@@ -97,6 +147,29 @@ def quantity(ds: xr.Dataset, name: str, sigma: str | None = None, digits: int = 
     The uncertainty is ``sigma`` when given, else the first of ``name_sigma`` and
     ``<name without _dn>_sigma_dn`` the artefact holds; ``name_low``/``name_high`` add the 95 %
     interval. "n/a" when the variable is absent or the selection is not one value.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The artefact.
+    name : str
+        The variable.
+    sigma : str or None, optional
+        The variable holding its uncertainty.
+    digits : int, default 4
+        Significant figures when there is no uncertainty.
+    units : bool, default True
+        Append the variable's units (:func:`units_text`).
+    interval : bool, default True
+        Append the 95 % interval when the artefact has it.
+    **sel
+        Coordinates that select one value (``band="G"``, ``medium="air"``...); a dimension the variable
+        lacks is ignored.
+
+    Returns
+    -------
+    str
+        E.g. ``"2056.3 ± 0.2 DN"``.
     """
     if name not in ds:
         return "n/a"
@@ -120,25 +193,87 @@ def quantity(ds: xr.Dataset, name: str, sigma: str | None = None, digits: int = 
 
 
 def pct(x, decimals: int = 2) -> str:
-    """A fraction as a percentage, "n/a" when not finite."""
+    """A fraction as a percentage, "n/a" when not finite.
+
+    Parameters
+    ----------
+    x : object
+        A fraction (0.01 is 1 %).
+    decimals : int, default 2
+        Decimals of the percentage.
+
+    Returns
+    -------
+    str
+        E.g. ``"1.00 %"``.
+    """
     return f"{100 * float(x):.{decimals}f} %" if finite(x) else "n/a"
 
 
 def bands(ds: xr.Dataset) -> list[str]:
+    """The artefact's bands, in its order (empty without a ``band`` coordinate).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        An artefact.
+
+    Returns
+    -------
+    list[str]
+        E.g. ``["R", "G", "B"]``.
+    """
     return [str(b) for b in ds["band"].values] if "band" in ds.coords else []
 
 
 def media(ds: xr.Dataset) -> list[str]:
+    """The artefact's media, in its order (empty without a ``medium`` coordinate).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        An artefact.
+
+    Returns
+    -------
+    list[str]
+        E.g. ``["air", "water"]``.
+    """
     return [str(m) for m in ds["medium"].values] if "medium" in ds.coords else []
 
 
 def var_units(ds: xr.Dataset, name: str) -> str:
-    """The units of artefact variable ``name`` as :func:`units_text` writes them ("" when absent)."""
+    """The units of artefact variable ``name`` as :func:`units_text` writes them ("" when absent).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        An artefact.
+    name : str
+        The variable.
+
+    Returns
+    -------
+    str
+        The units for the page.
+    """
     return units_text(ds[name].attrs.get("units", "")) if name in ds else ""
 
 
 def bias_drift_text(ds: xr.Dataset) -> str:
-    """The bias drift, or why it could not be tested (no unlit corners, no optically black pixels)."""
+    """The bias drift, or why it could not be tested (no unlit corners, no optically black pixels).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A dark or linearity artefact.
+
+    Returns
+    -------
+    str
+        ``bias_drift_dn`` with its uncertainty, interval and units (:func:`quantity`), or the artefact's note on
+        why it is not testable.
+    """
     if not int(ds.attrs.get("bias_drift_testable", 1)):
         return ds.attrs.get("bias_drift_note", "not testable")
     return quantity(ds, "bias_drift_dn")

@@ -13,7 +13,18 @@ __all__ = ["ReportInputs", "read_csv_or_empty", "input_count"]
 
 
 def read_csv_or_empty(path: Path) -> pd.DataFrame:
-    """A CSV table, or an empty one when the file is absent or empty (a stage that did not run)."""
+    """A CSV table, or an empty one when the file is absent or empty (a stage that did not run).
+
+    Parameters
+    ----------
+    path : pathlib.Path
+        The CSV file.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The table, or an empty DataFrame.
+    """
     try:
         return pd.read_csv(path)
     except (FileNotFoundError, pd.errors.EmptyDataError):
@@ -21,7 +32,18 @@ def read_csv_or_empty(path: Path) -> pd.DataFrame:
 
 
 def input_count(ds: xr.Dataset) -> str:
-    """How many input files an artefact was made from (its ``input_sha256`` attribute)."""
+    """How many input files an artefact was made from (its ``input_sha256`` attribute).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        An artefact.
+
+    Returns
+    -------
+    str
+        The number of input files, or ``"n/a"`` when the attribute cannot be read.
+    """
     try:
         return str(len(json.loads(ds.attrs.get("input_sha256", "{}"))))
     except (TypeError, ValueError):
@@ -55,19 +77,42 @@ class ReportInputs:
     settings: dict = field(default_factory=dict)
 
     def stage(self, name: str) -> dict[str, xr.Dataset]:
-        """The artefacts of one stage by lens (empty when the stage did not run)."""
+        """The artefacts of one stage by lens (empty when the stage did not run).
+
+        Parameters
+        ----------
+        name : str
+            The stage, e.g. ``"dark"``.
+
+        Returns
+        -------
+        dict[str, xarray.Dataset]
+            Lens -> its artefact.
+        """
         return self.artefacts.get(name, {})
 
     def model_effects(self) -> list[str]:
         """The model's effects as the artefacts record them (the first artefact's; every stage of one run has
-        the same model)."""
+        the same model).
+
+        Returns
+        -------
+        list[str]
+            The effects' names; empty when there is no artefact or it records none.
+        """
         for _, _, _, ds in self.all_artefacts():
             text = str(ds.attrs.get("model_effects", ""))
             return [e.strip() for e in text.split(",") if e.strip()]
         return []
 
     def all_artefacts(self):
-        """(stage, lens, path, dataset) of every artefact, in the order of the chain."""
+        """(stage, lens, path, dataset) of every artefact, in the order of the chain.
+
+        Yields
+        ------
+        tuple[str, str, pathlib.Path, xarray.Dataset]
+            (stage, lens, the artefact's file, the artefact).
+        """
         for stage, by_lens in self.artefacts.items():
             for lens, ds in by_lens.items():
                 yield stage, lens, self.paths[stage][lens], ds

@@ -27,18 +27,46 @@ DIVERGING_MAP = "RdBu_r"
 
 
 def category(i: int) -> str:
-    """The i-th categorical colour (cycling; black first is kept for references, so start at orange)."""
+    """The i-th categorical colour (cycling; black first is kept for references, so start at orange).
+
+    Parameters
+    ----------
+    i : int
+        The series' index, from 0.
+
+    Returns
+    -------
+    str
+        A colour of the Okabe-Ito palette as ``"#rrggbb"``.
+    """
     return OKABE_ITO[1 + i % (len(OKABE_ITO) - 1)]
 
 
 def sequence(n: int) -> list:
-    """``n`` colours of an ordered series, dark blue to green, never the pale yellow end of viridis."""
+    """``n`` colours of an ordered series, dark blue to green, never the pale yellow end of viridis.
+
+    Parameters
+    ----------
+    n : int
+        The number of colours (at least one is returned).
+
+    Returns
+    -------
+    list[tuple[float, float, float, float]]
+        RGBA colours, evenly spaced along the cut map.
+    """
     cmap = plt.get_cmap(SEQUENTIAL_MAP)
     return [cmap(x) for x in np.linspace(0.0, SEQUENCE_END, max(n, 1))]
 
 
 def sequential_map():
-    """viridis cut at 80 %, before its yellow end, for images whose values are all positive (sky radiance)."""
+    """viridis cut at 80 %, before its yellow end, for images whose values are all positive (sky radiance).
+
+    Returns
+    -------
+    matplotlib.colors.ListedColormap
+        The colour map, 256 colours, named ``"viridis_cut"``.
+    """
     from matplotlib.colors import ListedColormap
 
     return ListedColormap(plt.get_cmap(SEQUENTIAL_MAP)(np.linspace(0.0, SEQUENCE_END, 256)), name="viridis_cut")

@@ -33,7 +33,29 @@ _REGISTRY: dict[str, SectionSpec] = {}
 
 
 def section(id: str, title: str, order: int, intro: str = ""):
-    """Register the decorated function as the builder of section ``id``."""
+    """Register the decorated function as the builder of section ``id``.
+
+    Parameters
+    ----------
+    id : str
+        The section's anchor on the page.
+    title : str
+        Its heading.
+    order : int
+        Its place on the page (ascending).
+    intro : str, optional
+        A paragraph under the heading.
+
+    Returns
+    -------
+    callable
+        The decorator: it registers the builder (``build(inputs)`` -> blocks) and returns it unchanged.
+
+    Raises
+    ------
+    ValueError
+        When the decorator is applied, if another module already registered ``id``.
+    """
     def register(build: Callable) -> Callable:
         if id in _REGISTRY and _REGISTRY[id].build.__module__ != build.__module__:
             raise ValueError(f"report section {id!r} is registered twice ({_REGISTRY[id].build.__module__}, "
@@ -45,5 +67,11 @@ def section(id: str, title: str, order: int, intro: str = ""):
 
 def sections_in_order() -> list[SectionSpec]:
     """The sections registered so far, in page order (:func:`pipeline.report.sections.registered_sections` imports
-    them all first)."""
+    them all first).
+
+    Returns
+    -------
+    list[SectionSpec]
+        The sections, sorted by ``order``.
+    """
     return sorted(_REGISTRY.values(), key=lambda s: s.order)

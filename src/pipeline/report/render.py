@@ -44,8 +44,18 @@ def _walk(blocks):
 
 
 def number_figures(sections: list[RenderedSection]) -> list[tuple[str, Figure]]:
-    """Number the figures in page order; returns (category, figure) pairs, the category being the
-    section's number and title as the page shows them."""
+    """Number the figures in page order (each figure's ``number`` is set).
+
+    Parameters
+    ----------
+    sections : list[RenderedSection]
+        The rendered sections, in page order.
+
+    Returns
+    -------
+    list[tuple[str, pipeline.report.content.Figure]]
+        (category, figure) pairs, the category being the section's number and title as the page shows them.
+    """
     out = []
     for i, s in enumerate(sections, start=1):
         for b in _walk(s.blocks):
@@ -60,6 +70,13 @@ def write_figures(figures: list[tuple[str, Figure]], folder: Path) -> None:
 
     Files are written to a temporary name and renamed, so a reader never sees half a PNG; PNGs of an
     earlier report in the folder are removed first (their numbering no longer holds).
+
+    Parameters
+    ----------
+    figures : list[tuple[str, pipeline.report.content.Figure]]
+        What :func:`number_figures` returned; each figure's ``file`` is set.
+    folder : pathlib.Path
+        The figures folder, made if missing.
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -79,7 +96,23 @@ def write_figures(figures: list[tuple[str, Figure]], folder: Path) -> None:
 
 
 def read_figure_index(folder) -> dict:
-    """:data:`FIGURE_INDEX` of a figures folder: file stem -> category, number, caption, alt text."""
+    """:data:`FIGURE_INDEX` of a figures folder: file stem -> category, number, caption, alt text.
+
+    Parameters
+    ----------
+    folder : str or pathlib.Path
+        A figures folder written by :func:`write_figures`.
+
+    Returns
+    -------
+    dict
+        File stem -> ``category``, ``number``, ``caption`` and ``alt``.
+
+    Raises
+    ------
+    ValueError
+        If the index is missing or not JSON.
+    """
     path = Path(folder) / FIGURE_INDEX
     try:
         return json.loads(path.read_text(encoding="utf-8"))
@@ -88,12 +121,41 @@ def read_figure_index(folder) -> dict:
 
 
 def render_page(title: str, sections: list[RenderedSection], written: str, n_figures: int) -> str:
+    """The report's whole HTML page from its sections.
+
+    Parameters
+    ----------
+    title : str
+        The page's title.
+    sections : list[RenderedSection]
+        The rendered sections, figures numbered.
+    written : str
+        When the report was written (ISO 8601, UTC).
+    n_figures : int
+        The number of figures.
+
+    Returns
+    -------
+    str
+        The HTML document, self-contained (figures inline).
+    """
     return _environment().get_template("report.html.j2").render(title=title, sections=sections, written=written,
                                                                n_figures=n_figures)
 
 
 def render_fragment(blocks: list) -> str:
-    """The HTML of some blocks alone (a section's content without the page around it)."""
+    """The HTML of some blocks alone (a section's content without the page around it).
+
+    Parameters
+    ----------
+    blocks : list
+        Blocks of :mod:`pipeline.report.content`.
+
+    Returns
+    -------
+    str
+        Their HTML.
+    """
     env = _environment()
     return env.from_string('{% from "blocks.html.j2" import block %}{% for b in blocks %}{{ block(b) }}{% endfor %}'
                            ).render(blocks=blocks)

@@ -69,7 +69,23 @@ TERMS = ("lamp_calibration", "reference", "spectrometer_noise", "extra", "image"
 
 
 def extra_components(cfg: dict) -> dict[str, float]:
-    """The user's named source-radiance uncertainties (``absolute.extra_uncertainty``), name -> relative sigma."""
+    """The user's named source-radiance uncertainties (``absolute.extra_uncertainty``), name -> relative sigma.
+
+    Parameters
+    ----------
+    cfg : dict
+        The ``absolute`` section of the configuration.
+
+    Returns
+    -------
+    dict[str, float]
+        Name -> relative standard uncertainty of the source radiance; empty when none is given.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If a name is given twice.
+    """
     out = {}
     for item in cfg.get("extra_uncertainty", []):
         if item["name"] in out:
@@ -80,7 +96,31 @@ def extra_components(cfg: dict) -> dict[str, float]:
 
 def reference_reading(table: pd.DataFrame, path: Path, wavelength_nm: float,
                       tolerance_nm: float = 0.5) -> tuple[float, float]:
-    """The reference radiance (W sr-1 m-2 nm-1) and its relative uncertainty at ``wavelength_nm``."""
+    """The reference radiance (W sr-1 m-2 nm-1) and its relative uncertainty at ``wavelength_nm``.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        The source reference readings (:func:`pipeline.io.dataset.read_source_reference`).
+    path : pathlib.Path
+        Their file, named in the errors.
+    wavelength_nm : float
+        The reference wavelength, nm (``absolute.reference_wavelength_nm``).
+    tolerance_nm : float, default 0.5
+        How far from it a reading may be, nm.
+
+    Returns
+    -------
+    radiance : float
+        The port's radiance at that wavelength, W sr-1 m-2 nm-1.
+    relative_sigma : float
+        Its relative standard uncertainty.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If no reading, or more than one, lies within the tolerance.
+    """
     hit = np.flatnonzero(np.abs(table["wavelength_nm"].to_numpy(float) - wavelength_nm) <= tolerance_nm)
     if hit.size == 0:
         raise InputError(path, f"no reading at {wavelength_nm:g} nm (needed to scale the source spectrum)")
@@ -91,6 +131,25 @@ def reference_reading(table: pd.DataFrame, path: Path, wavelength_nm: float,
 
 
 def check_spectrum(spectrum: pd.DataFrame, path: Path, reference_nm: float, response_nm: np.ndarray) -> None:
+    """Check the source's relative spectrum before it is used: increasing wavelengths covering the reference and the response.
+
+    Parameters
+    ----------
+    spectrum : pandas.DataFrame
+        The relative spectrum (:func:`pipeline.io.dataset.read_source_spectrum`).
+    path : pathlib.Path
+        Its file, named in the errors.
+    reference_nm : float
+        The reference wavelength the spectrum is scaled at, nm.
+    response_nm : numpy.ndarray
+        The wavelengths of the measured spectral response, nm, ascending.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the wavelengths do not increase strictly, do not cover the reference wavelength or the response's
+        range, or a radiance is negative.
+    """
     wl = spectrum["wavelength_nm"].to_numpy(float)
     if np.any(np.diff(wl) <= 0):
         raise InputError(path, "wavelength_nm must increase strictly")
@@ -104,14 +163,62 @@ def check_spectrum(spectrum: pd.DataFrame, path: Path, reference_nm: float, resp
 
 
 def response_on_grid(wavelength_nm: np.ndarray, response_nm: np.ndarray, response: np.ndarray) -> np.ndarray:
-    """Measured response linearly interpolated onto ``wavelength_nm``; zero outside its range."""
+    """Measured response linearly interpolated onto ``wavelength_nm``; zero outside its range.
+
+    Parameters
+    ----------
+    wavelength_nm : numpy.ndarray
+        The wavelengths to interpolate to, nm.
+    response_nm : numpy.ndarray
+        The wavelengths of the measured response, nm, ascending.
+    response : numpy.ndarray
+        The relative spectral response at ``response_nm``.
+
+    Returns
+    -------
+    numpy.ndarray
+        The response at ``wavelength_nm``, shape of ``wavelength_nm``.
+    """
     return np.interp(wavelength_nm, response_nm, response, left=0.0, right=0.0)
 
 
 def analyse_absolute(reduced: dict, darks: dict, spectral: dict[str, xr.Dataset], spectrum: pd.DataFrame,
                      spectrum_path: Path, reference: tuple[float, float], config: dict,
                      linearity: dict[str, xr.Dataset] | None = None) -> dict[str, xr.Dataset]:
-    """R^-1 and its budget per lens and band; ``linearity`` (lens -> artefact), when given, corrects y_DN."""
+    """R^-1 and its budget per lens and band.
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`pipeline.stages.spectral.reduce_central` returned for the absolute frames.
+    darks : dict
+        What :func:`pipeline.stages.spectral.dark_levels` returned.
+    spectral : dict[str, xarray.Dataset]
+        Lens -> its spectral artefact (the relative spectral response).
+    spectrum : pandas.DataFrame
+        The source's relative spectrum (:func:`pipeline.io.dataset.read_source_spectrum`).
+    spectrum_path : pathlib.Path
+        Its file, named in the errors (its folder's frames.csv too).
+    reference : tuple[float, float]
+        The reference radiance (W sr-1 m-2 nm-1) and its relative uncertainty (:func:`reference_reading`).
+    config : dict
+        The run's configuration (section ``absolute``).
+    linearity : dict[str, xarray.Dataset] or None, optional
+        Lens -> its linearity artefact, which corrects y_DN through the chain's response steps.
+
+    Returns
+    -------
+    dict[str, xarray.Dataset]
+        Lens -> its absolute artefact: the inverse responsivity R^-1 (W sr-1 m-2 nm-1 s DN-1) with its
+        uncertainty and budget by term, the effective band radiance (W sr-1 m-2 nm-1), the signal (DN s-1) and
+        the frame table.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the mask saturates, a lens has no spectral artefact or no signal frames, the spectrum fails
+        :func:`check_spectrum`, or the lamp settings are inconsistent.
+    """
     cfg = config[STAGE]
     moments = reduced["moments"]
     linearity = linearity or {}
@@ -255,7 +362,19 @@ def _lens_dataset(rows, wl, scaled, ref_value, ref_rel, fr, cfg) -> xr.Dataset:
 
 
 def compute(ctx) -> xr.Dataset:
-    """The absolute artefact of one lens (the stage runner's contract)."""
+    """The absolute artefact of one lens (the stage runner's contract).
+
+    Parameters
+    ----------
+    ctx : pipeline.runner.workflow.StageContext
+        The job: the lens's dataset, the configuration and the upstream ``geometry``, ``spectral`` and (when
+        given) ``dark`` and ``linearity`` artefacts.
+
+    Returns
+    -------
+    xarray.Dataset
+        The lens's absolute artefact (:func:`analyse_absolute`) with its ``obs_corner`` table.
+    """
     cfg = ctx.params
     root = ctx.dataset.root
     # sidecars first: bad input fails before any frame is decoded

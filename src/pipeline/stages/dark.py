@@ -55,7 +55,20 @@ def _setting_key(raw) -> tuple[float, float]:
 
 
 def bias_reference(projection: str, has_optical_black: bool) -> str:
-    """What measures each lit frame's black level: the unlit corners, the optically black pixels, or nothing."""
+    """What measures each lit frame's black level: the unlit corners, the optically black pixels, or nothing.
+
+    Parameters
+    ----------
+    projection : str
+        The lens region's projection (``"fisheye"`` or ``"rectilinear"``).
+    has_optical_black : bool
+        Whether the frames' DNG declares optically black pixels.
+
+    Returns
+    -------
+    str
+        ``"unlit corners"`` (a fisheye), ``"optically black pixels"`` or ``"none"`` (a rectilinear region).
+    """
     if projection != "rectilinear":
         return "unlit corners"
     return "optically black pixels" if has_optical_black else "none"
@@ -69,7 +82,20 @@ DARK_HALF_SEED = 1288
 
 def dark_bias_reference(projection: str, has_optical_black: bool) -> str:
     """What measures each dark frame's black level: as in the lit frames (:func:`bias_reference`), or, where
-    they have nothing, half of the region itself (:func:`dark_reference_mask`)."""
+    they have nothing, half of the region itself (:func:`dark_reference_mask`).
+
+    Parameters
+    ----------
+    projection : str
+        The lens region's projection (``"fisheye"`` or ``"rectilinear"``).
+    has_optical_black : bool
+        Whether the frames' DNG declares optically black pixels.
+
+    Returns
+    -------
+    str
+        As :func:`bias_reference`, with :data:`DARK_HALF_REFERENCE` in place of ``"none"``.
+    """
     reference = bias_reference(projection, has_optical_black)
     return DARK_HALF_REFERENCE if reference == "none" else reference
 
@@ -89,6 +115,23 @@ def dark_reference_mask(shape: tuple[int, int], projection: str, min_radius_frac
     see as a difference of the halves: the EMVA1288 reference CCD has such a pattern, repeating every 4 sites
     along the rows and down the columns, and its checkerboard halves differ by 14 to 19 times their noise
     (docs/real-sensor-emva1288.md).
+
+    Parameters
+    ----------
+    shape : tuple[int, int]
+        (rows, columns) of the lens's band plane, in band pixels.
+    projection : str
+        The lens region's projection (``"fisheye"`` or ``"rectilinear"``).
+    min_radius_fraction : float
+        For a fisheye, the radius beyond which a pixel counts as an unlit corner, as a fraction of the half
+        diagonal (``bias.corner_min_radius_fraction``).
+    has_optical_black : bool
+        Whether the frames' DNG declares optically black pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean, ``shape``: True on the reference pixels.
     """
     if projection != "rectilinear" or has_optical_black:
         return unlit_mask(shape, projection, min_radius_fraction)
@@ -109,9 +152,25 @@ MIN_FRAMES_PER_SETTING = 2
 
 
 def check_frames_per_setting(counts: Counter, keys: list, paths: list) -> None:
-    """Stop with one line when a setting has a single dark frame: the temporal noise of a setting (the
-    read noise, and the weight of each setting in the dark model) is a frame-to-frame variance, which
-    one frame cannot give."""
+    """Stop with one line when a setting has a single dark frame.
+
+    The temporal noise of a setting (the read noise, and the weight of each setting in the dark model) is a
+    frame-to-frame variance, which one frame cannot give.
+
+    Parameters
+    ----------
+    counts : collections.Counter
+        Setting (ISO, exposure time in s) -> number of dark frames.
+    keys : list[tuple[float, float]]
+        Each frame's setting, in frames.csv order.
+    paths : list[pathlib.Path]
+        Each frame's raw file, in the same order (the first frame of a single-frame setting is named).
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If a setting has fewer than :data:`MIN_FRAMES_PER_SETTING` frames.
+    """
     single = [k for k in counts if counts[k] < MIN_FRAMES_PER_SETTING]
     if single:
         iso, t = single[0]
@@ -123,7 +182,20 @@ def check_frames_per_setting(counts: Counter, keys: list, paths: list) -> None:
 
 def hot_mask_settings(settings, persistence: int) -> list[tuple[float, float]]:
     """The settings the hot-pixel mask is made from: the shortest and the ``persistence`` longest exposures
-    of the lowest ISO (only the shortest when that ISO has too few exposures for the mask)."""
+    of the lowest ISO (only the shortest when that ISO has too few exposures for the mask).
+
+    Parameters
+    ----------
+    settings : iterable of tuple[float, float]
+        The dark frames' settings (ISO, exposure time in s).
+    persistence : int
+        The number of longest exposures a pixel must be an outlier in (``dark.hot_pixel_persistence``).
+
+    Returns
+    -------
+    list[tuple[float, float]]
+        The settings, the shortest exposure first.
+    """
     iso = min(s[0] for s in settings)
     times = sorted({s[1] for s in settings if s[0] == iso})
     if len(times) < persistence + 1:
@@ -134,7 +206,31 @@ def hot_mask_settings(settings, persistence: int) -> list[tuple[float, float]]:
 def summarise_setting(mean: np.ndarray, var: np.ndarray, circle: np.ndarray, hot: np.ndarray,
                       corners: np.ndarray, edges: np.ndarray) -> dict:
     """What the fit and the artefact need of one setting's mean and variance maps, for both pixel sets that
-    ``analyse_dark`` may use (the whole image circle, or the circle without the hot pixels)."""
+    ``analyse_dark`` may use (the whole image circle, or the circle without the hot pixels).
+
+    Parameters
+    ----------
+    mean : numpy.ndarray
+        The setting's frame-averaged band image, DN, shape (rows, columns).
+    var : numpy.ndarray
+        Each pixel's temporal variance over the setting's frames, DN^2, same shape.
+    circle : numpy.ndarray
+        Boolean, same shape: the pixels the dark model reads (all but the black-level reference).
+    hot : numpy.ndarray
+        Boolean, same shape: the hot-pixel mask.
+    corners : numpy.ndarray
+        Boolean, same shape: the black-level reference pixels (:func:`dark_reference_mask`).
+    edges : numpy.ndarray
+        The histogram's bin edges, DN (:func:`histogram_edges`).
+
+    Returns
+    -------
+    dict
+        ``corner_var_dn2`` (mean temporal variance of the reference pixels, DN^2; NaN without any),
+        ``n_corner``, ``n_hot`` (hot pixels in the circle), ``n_pixels``, and for each of ``"circle"`` and
+        ``"nonhot"`` a dict: ``hist`` (counts of the mean image per bin), ``centre_dn`` and ``width_dn`` (mean
+        and standard deviation of the mean image, DN), ``var_dn2`` (mean temporal variance, DN^2), ``n_used``.
+    """
     nonhot = circle & ~hot
     out = {"corner_var_dn2": float(var[corners].mean()) if corners.any() else float("nan"),
            "n_corner": int(corners.sum()),
@@ -183,6 +279,31 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
     declares them; NaN otherwise). The histograms' range (``dark.histogram_range_dn``) keeps its
     width and moves to the data when the dark level of the first setting lies outside it (another
     camera's black level, a 12-bit phone's 256 DN), the dark level at 30 % of it.
+
+    Parameters
+    ----------
+    dataset : pipeline.io.dataset.Dataset
+        The dataset; its ``dark`` experiment's frames are read, for every lens it holds.
+    config : dict
+        The run's configuration (sections ``dark`` and ``bias``).
+    progress : bool, default False
+        Show a progress bar.
+
+    Returns
+    -------
+    dict
+        ``stats`` ((lens, band, setting) -> :func:`summarise_setting` plus ``n_frames``), ``settings`` (sorted
+        (ISO, exposure s) pairs), ``hot`` and ``corners`` ((lens, band) -> boolean maps), ``base`` ((lens, band)
+        -> the shortest exposure's mean map), ``frames`` (one row per frame, lens and band: ``circle_mean_dn``,
+        ``corner_dn`` in DN, ...), ``inputs`` (file -> sha256), ``lenses``, ``edges``, ``projections``,
+        ``tag_levels`` (frame index -> BlackLevel and WhiteLevel tags, DN), ``paths``, ``bias_reference`` and
+        ``dark_bias_reference`` (lens -> text).
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If a frame lacks its ISO or exposure tag, a setting has a single frame, or a frame's decoded setting
+        differs from its tags.
     """
     cfg = config["dark"]
     frames = dataset.frames(STAGE).reset_index(drop=True)
@@ -283,7 +404,20 @@ def reduce_dark(dataset: Dataset, config: dict, progress: bool = False) -> dict:
 
 def histogram_edges(cfg: dict, level_dn: float | None = None) -> np.ndarray:
     """Bin edges of the dark histograms (``dark.histogram_range_dn``, ``dark.histogram_bin_dn``); a dark level
-    ``level_dn`` outside the range moves the range, its width kept, to put the level at 30 % of it."""
+    ``level_dn`` outside the range moves the range, its width kept, to put the level at 30 % of it.
+
+    Parameters
+    ----------
+    cfg : dict
+        The ``dark`` section of the configuration.
+    level_dn : float or None, optional
+        The dark level, DN; ``None`` (default) keeps the configured range.
+
+    Returns
+    -------
+    numpy.ndarray
+        The bin edges, DN, ascending, ``dark.histogram_bin_dn`` apart.
+    """
     lo, hi = (float(v) for v in cfg["histogram_range_dn"])
     if level_dn is not None and not lo <= level_dn <= hi:
         lo, hi = level_dn - 0.3 * (hi - lo), level_dn + 0.7 * (hi - lo)
@@ -291,9 +425,24 @@ def histogram_edges(cfg: dict, level_dn: float | None = None) -> np.ndarray:
 
 
 def quantisation_var_dn2(step_dn: float, band: str) -> float:
-    """Variance of the rounding of one band pixel in one frame (DN^2): step^2 / 12 per raw site (a value
-    rounded to a step of ``step_dn`` carries a uniform error over one step), over the sites a band pixel
-    averages (two for G). E.g. 1 DN steps: 1/12 = 0.083 DN^2 for R, 0.042 DN^2 for G."""
+    """Variance of the rounding of one band pixel in one frame (DN^2).
+
+    It is step^2 / 12 per raw site (a value rounded to a step of ``step_dn`` carries a uniform error over one
+    step), over the sites a band pixel averages (two for G). E.g. 1 DN steps: 1/12 = 0.083 DN^2 for R,
+    0.042 DN^2 for G.
+
+    Parameters
+    ----------
+    step_dn : float
+        The raw values' quantisation step, DN (``dark.quantisation_step_dn``).
+    band : str
+        ``"R"``, ``"G"`` or ``"B"``.
+
+    Returns
+    -------
+    float
+        The variance, DN^2.
+    """
     return step_dn ** 2 / 12.0 / SITES_PER_BAND_PIXEL[band]
 
 
@@ -310,6 +459,27 @@ def find_hot_pixels(means: dict[tuple[float, float], np.ndarray], iso: float, th
     n the frames averaged at each setting. Without the floor, a sensor whose dark noise is below
     one step (an 8-bit camera at 0.3 DN) has most pixels at the same rounded value in every frame,
     a MAD of exactly zero, and a rise of one step over a few frames counts as many sigma.
+
+    Parameters
+    ----------
+    means : dict[tuple[float, float], numpy.ndarray]
+        Setting (ISO, exposure time in s) -> frame-averaged band image, DN; all of one shape.
+    iso : float
+        The ISO whose exposures are compared.
+    threshold_sigma : float
+        The robust z above which a pixel's rise is an outlier (``dark.hot_pixel_threshold_sigma``).
+    persistence : int
+        The number of longest exposures a pixel must be an outlier in.
+    n_frames : dict[tuple[float, float], int] or None, optional
+        Setting -> number of frames averaged (for the quantisation floor); ``None`` counts one per setting.
+    quantisation_dn2 : float, default 0.0
+        The rounding variance of one band pixel in one frame, DN^2 (:func:`quantisation_var_dn2`).
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean, the images' shape: True on hot pixels; all False when ``iso`` has fewer than
+        ``persistence + 1`` exposure times.
     """
     times = sorted(t for (i, t) in means if i == iso)
     if len(times) < persistence + 1:
@@ -337,6 +507,18 @@ def measurable_parameters(settings: list[tuple[float, float]], with_dark_current
     has full column rank; one exposure time makes g t a combination of the other columns, so D is
     not measured then. A parameter the data do not determine is left out of the fit and fixed at 0,
     never solved for from a rank-deficient design.
+
+    Parameters
+    ----------
+    settings : list[tuple[float, float]]
+        The dark frames' settings (ISO, exposure time in s).
+    with_dark_current : bool
+        Whether ``dark_current`` is among the model's effects.
+
+    Returns
+    -------
+    dict[str, bool]
+        ``{"gain": ..., "dark_current": ...}``: True where the parameter is measured.
     """
     gain = len({iso for iso, _ in settings}) > 1
     g = gain_from_iso(np.array([iso for iso, _ in settings], float))
@@ -354,6 +536,20 @@ def mark_not_measured(ds: xr.Dataset, design: dict[str, bool], with_dark_current
     Each of ``bias_per_gain_dn``, ``dark_current_dn_per_s`` and ``hot_pixel_mask`` gets the attribute
     ``measured`` (1 or 0) and, when 0, a ``not_measured`` reason; with one ISO ``bias_dn`` is the black
     level at that ISO (its ``reference_iso`` attribute; 100 otherwise, where g - 1 = 0).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The lens's dark artefact, modified in place.
+    design : dict[str, bool]
+        What :func:`measurable_parameters` found.
+    with_dark_current : bool
+        Whether ``dark_current`` is among the model's effects.
+    settings : list[tuple[float, float]]
+        The dark frames' settings (ISO, exposure time in s).
+    persistence : int
+        ``dark.hot_pixel_persistence``: the hot-pixel test needs ``persistence + 1`` exposure times at the lowest
+        ISO.
     """
     isos = sorted({iso for iso, _ in settings})
     times = sorted({t for iso, t in settings if iso == isos[0]})
@@ -386,11 +582,28 @@ def mark_not_measured(ds: xr.Dataset, design: dict[str, bool], with_dark_current
 
 
 def black_level_tag_note(fr: pd.DataFrame, reduced: dict, max_fraction: float) -> str:
-    """The ISOs whose dark level, measured at their shortest exposure (the image circle's mean of each frame
-    and band, their median: dark current and hot pixels negligible there), sits more than ``max_fraction``
-    of the white level from the median BlackLevel tag of those frames; empty when none does. The stages
-    subtract the measured dark level, but the tag sets the full scale (saturation margins, the sun seen in a
-    field frame): a tag far from the data is another raw mode's, or light reached the sensor."""
+    """The ISOs whose dark level sits far from the median BlackLevel tag of its frames.
+
+    The dark level is measured at the ISO's shortest exposure (the image circle's mean of each frame and
+    band, their median: dark current and hot pixels negligible there). The stages subtract the measured dark
+    level, but the tag sets the full scale (saturation margins, the sun seen in a field frame): a tag far from
+    the data is another raw mode's, or light reached the sensor.
+
+    Parameters
+    ----------
+    fr : pandas.DataFrame
+        The frame table of one lens (``iso``, ``exposure_s``, ``file_index``, ``circle_mean_dn`` in DN).
+    reduced : dict
+        What :func:`reduce_dark` returned (its ``tag_levels`` and ``paths``).
+    max_fraction : float
+        The largest distance allowed, as a fraction of the white level (``dark.black_level_tag_max_fraction``).
+
+    Returns
+    -------
+    str
+        One clause per ISO beyond it (measured level and tag, DN, and the first frame's name) and the reasons
+        such a difference has; empty when none is.
+    """
     levels = reduced.get("tag_levels") or {}
     paths = reduced.get("paths") or []
     found = []
@@ -418,6 +631,23 @@ def analyse_dark(reduced: dict, config: dict, effects: list[str]) -> dict[str, x
 
     The settings' noise table, the frame table (values, corners and bias drift) with its fit, the setting-level
     dark model, the frames' common offsets; then per lens the artefact, its bias reference and temperature terms.
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_dark` returned.
+    config : dict
+        The run's configuration (sections ``dark`` and ``bias``).
+    effects : list[str]
+        The model's effects (``model.effects``): ``dark_current``, ``hot_pixels``, ``bias_drift``,
+        ``temperature`` change the fit.
+
+    Returns
+    -------
+    dict[str, xarray.Dataset]
+        Lens -> its dark artefact: black level b0 and b1 (DN), dark current (DN s-1), bias drift, read and
+        temporal noise (DN), histograms, fixed-pattern map and hot-pixel mask, DSNU1288, and the observation
+        tables ``obs_setting`` and ``obs_frame``.
     """
     lenses = reduced["lenses"]
     use_drift = "bias_drift" in effects
@@ -717,12 +947,30 @@ def _lens_dataset(lens, st, fr, reduced, pixels, offset_var, params, dark_rate, 
 
 
 def dsnu_dataset(reduced: dict, lens: str, settings: list) -> xr.Dataset:
-    """DSNU1288 per band (EMVA1288 release 3.0, :func:`pipeline.radiometry.emva1288.spatial_nonuniformity`'s dark
-    half) from the setting with the most frames (a dark stack): the spatial variance of its frame-averaged image
-    over every pixel of the region the dark model reads (hot pixels included, as the standard has it; a
-    rectilinear region without optically black pixels: the half that is not its black-level reference), less
-    the part its temporal noise leaves there (mean temporal variance over the frames); NaN below 2 frames or
-    when the temporal part exceeds the spatial variance. Of a band pixel: the G band averages two raw sites."""
+    """DSNU1288 per band (EMVA1288 release 3.0) from the setting with the most frames (a dark stack).
+
+    The dark half of :func:`pipeline.radiometry.emva1288.spatial_nonuniformity`: the spatial variance of the
+    stack's frame-averaged image over every pixel of the region the dark model reads (hot pixels included, as
+    the standard has it; a rectilinear region without optically black pixels: the half that is not its
+    black-level reference), less the part its temporal noise leaves there (mean temporal variance over the
+    frames); NaN below 2 frames or when the temporal part exceeds the spatial variance. Of a band pixel: the
+    G band averages two raw sites.
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_dark` returned.
+    lens : str
+        The lens.
+    settings : list[tuple[float, float]]
+        The dark frames' settings (ISO, exposure time in s).
+
+    Returns
+    -------
+    xarray.Dataset
+        ``dark_spatial_var_dn2`` (DN2) and ``dsnu1288_dn`` (DN) along ``band``, with the stack's ISO, exposure
+        time and frame count as attributes.
+    """
     stack = max(settings, key=lambda s: reduced["stats"][(lens, BANDS[0], s)]["n_frames"])
     n = int(reduced["stats"][(lens, BANDS[0], stack)]["n_frames"])
     s2 = np.full(len(BANDS), np.nan)
@@ -743,7 +991,18 @@ def dsnu_dataset(reduced: dict, lens: str, settings: list) -> xr.Dataset:
 
 
 def compute(ctx) -> xr.Dataset:
-    """The dark artefact of one lens (the stage runner's contract)."""
+    """The dark artefact of one lens (the stage runner's contract).
+
+    Parameters
+    ----------
+    ctx : pipeline.runner.workflow.StageContext
+        The job: the lens's dataset, the configuration and the model's effects.
+
+    Returns
+    -------
+    xarray.Dataset
+        The lens's dark artefact (:func:`analyse_dark`); the frames' sha256 are recorded in ``ctx``.
+    """
     reduced = reduce_dark(ctx.dataset, ctx.config, progress=ctx.progress)
     ctx.record_frames(reduced["inputs"])
     return analyse_dark(reduced, ctx.config, ctx.effects)[ctx.lens]

@@ -160,11 +160,32 @@ def field_masks(bundle: xr.Dataset, lens: str, half_angle_deg: float, min_pixels
     of the bundle's map and the pointing uncertainty of the mask: the bundle's theta_deg_sigma at the
     pixel nearest the axis (how far from the zenith the direction the bundle calls the axis may lie;
     0 when the bundle has no uncertainty). The crop holds the masks and the sky around them.
-    Returns ({band: mask of the crop}, (row_slice, col_slice), {band: (around, x_deg, y_deg, pointing_deg)}).
 
     Searched in a square about the image circle's centre, four times the mask's share of the field wide,
     grown until the masks and the sky around them touch none of its edges (the whole band image is
     some 3 million pixels at the real camera's resolution; the crop about a sixth of them).
+
+    Parameters
+    ----------
+    bundle : xarray.Dataset
+        The calibration bundle (its in-air ``theta_deg``, ``phi_deg`` and ``theta_deg_sigma`` maps, degree;
+        ``half_fov_deg`` and ``circle_radius_px``).
+    lens : str
+        The zenith lens.
+    half_angle_deg : float
+        The mask's half angle about the axis, degree.
+    min_pixels : int
+        The fewest band pixels a mask holds.
+
+    Returns
+    -------
+    masks : dict[str, numpy.ndarray]
+        Band -> boolean mask of the crop's shape.
+    window : tuple[slice, slice]
+        The crop's rows and columns in the band image.
+    around : dict[str, tuple]
+        Band -> (sky-around mask of the crop, x_deg, y_deg maps of the crop in degree, pointing uncertainty in
+        degree).
     """
     g = bundle.sel(lens=lens, medium=MEDIUM, band="G")
     shape = g["theta_deg"].shape
@@ -234,7 +255,22 @@ def _masks_in(bundle, lens, half_angle_deg, min_pixels, search):
 
 
 def mask_statistics(m: mm.Measured, mask: np.ndarray) -> dict:
-    """Mean, random standard error, systematic sigma and spatial spread of the chain's radiance in the mask."""
+    """Mean, random standard error, systematic sigma and spatial spread of the chain's radiance in the mask.
+
+    Parameters
+    ----------
+    m : pipeline.radiometry.measurement.Measured
+        The measurement chain's output for the crop: value, random and systematic sigmas, flags per pixel.
+    mask : numpy.ndarray
+        Boolean, the crop's shape: the mask. Pixels flagged as excluded or not finite are left out.
+
+    Returns
+    -------
+    dict
+        ``mean`` (the mask's mean radiance, in the chain's units), ``random_se`` (its random standard error),
+        ``systematic`` (the pixels' mean systematic sigma), ``spread`` (standard deviation of the pixels, ddof 1),
+        ``n`` (pixels used) and ``n_saturated``; NaN values when no pixel is usable.
+    """
     good = mask & ((m.flags & MASK_EXCLUDED) == 0) & np.isfinite(m.value)
     n = int(good.sum())
     if n == 0:
@@ -255,6 +291,18 @@ def mask_sampling_sigma(spread, n_pixels):
     sample, spread / sqrt(n). For a clear sky the spread, hence the term, is small. It is an upper
     estimate for pixels that integrate their whole footprint, whose difference from the cone is
     confined to the pixels on the mask's edge.
+
+    Parameters
+    ----------
+    spread : array_like
+        The radiance's spatial standard deviation over the mask's pixels (NaN counts as 0).
+    n_pixels : array_like
+        The pixels in the mask (at least 1 is used).
+
+    Returns
+    -------
+    numpy.ndarray
+        The term, in the units of ``spread``, broadcast over both.
     """
     spread = np.nan_to_num(np.asarray(spread, float))
     return spread / np.sqrt(np.maximum(np.asarray(n_pixels, float), 1.0))
@@ -270,13 +318,44 @@ def mask_pointing_sigma(gradient, pointing_deg):
     drifting over the cone (frozen advection, dL/dt = -v . grad L) that difference follows the reference's
     dL/dt: left out of the noise, a pointing error looks like a clock offset of delta / |v| (for a cloud
     layer at 1800 m moving at 11 m/s, 2.9 s per degree).
+
+    Parameters
+    ----------
+    gradient : array_like
+        |grad L|, radiance per degree (NaN counts as 0).
+    pointing_deg : array_like
+        The mask's pointing uncertainty, degree.
+
+    Returns
+    -------
+    numpy.ndarray
+        The term, in radiance units, broadcast over both.
     """
     return np.nan_to_num(np.asarray(gradient, float)) * np.asarray(pointing_deg, float)
 
 
 def sky_gradient(m: mm.Measured, region: np.ndarray, x_deg: np.ndarray, y_deg: np.ndarray) -> float:
-    """|grad L| (radiance per degree) of a plane fitted to the unflagged pixels of ``region`` against the
-    direction's components theta cos(phi), theta sin(phi) (degrees, the bundle's map)."""
+    """|grad L| (radiance per degree) of a plane fitted to the unflagged pixels of ``region``.
+
+    The plane is fitted against the direction's components theta cos(phi), theta sin(phi) (degrees, the
+    bundle's map).
+
+    Parameters
+    ----------
+    m : pipeline.radiometry.measurement.Measured
+        The measurement chain's output for the crop.
+    region : numpy.ndarray
+        Boolean, the crop's shape: the sky around the mask.
+    x_deg : numpy.ndarray
+        theta cos(phi) of each pixel of the crop, degree.
+    y_deg : numpy.ndarray
+        theta sin(phi) of each pixel of the crop, degree.
+
+    Returns
+    -------
+    float
+        The gradient's magnitude in the chain's radiance units per degree; NaN with fewer than 4 usable pixels.
+    """
     good = region & ((m.flags & MASK_EXCLUDED) == 0) & np.isfinite(m.value)
     if good.sum() < 4:
         return float("nan")
@@ -289,8 +368,28 @@ def sky_gradient(m: mm.Measured, region: np.ndarray, x_deg: np.ndarray, y_deg: n
 def convolution_weights(channels_nm, response_nm, response) -> tuple[np.ndarray, float]:
     """Weights w_c with sum_c w_c L_c = Eq. (3) of the channels interpolated linearly onto the response.
 
-    Only response wavelengths inside [first channel, last channel] are used;
-    also returns the fraction of the response (trapezoid) that lies outside.
+    Only response wavelengths inside [first channel, last channel] are used.
+
+    Parameters
+    ----------
+    channels_nm : array_like
+        The reference radiometer's channel wavelengths, nm (any order).
+    response_nm : array_like
+        The wavelengths of the band's measured spectral response, nm.
+    response : array_like
+        The band's relative spectral response there (NaN counts as 0).
+
+    Returns
+    -------
+    weights : numpy.ndarray
+        One weight per channel, in the order of ``channels_nm``.
+    outside : float
+        The fraction of the response (trapezoid integral) that lies outside the channels' range.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If fewer than two response wavelengths lie within the channels' range.
     """
     ch = np.asarray(channels_nm, float)
     order = np.argsort(ch)
@@ -330,7 +429,22 @@ class WindowedSeries:
         self.nd, self.sd2 = cum(dok.astype(float)), cum(np.where(dok, d, 0.0) ** 2)
 
     def stats(self, centres_s, width_s: float) -> dict:
-        """Per centre: count, mean, std (ddof 1), white-noise variance per sample, slope (per s)."""
+        """Per centre: count, mean, std (ddof 1), white-noise variance per sample, slope (per s).
+
+        Parameters
+        ----------
+        centres_s : array_like
+            The windows' centres, s on the series' time axis.
+        width_s : float
+            The windows' full width, s.
+
+        Returns
+        -------
+        dict
+            Arrays over the centres: ``count`` (finite samples), ``mean``, ``std``, ``noise_var`` (white-noise
+            variance per sample from successive differences), ``slope`` (per s) and ``line_var`` (the samples'
+            variance about the window's straight line); NaN where too few samples give them.
+        """
         c = np.asarray(centres_s, float)
         lo = np.searchsorted(self.t, c - width_s / 2.0, "left")
         hi = np.searchsorted(self.t, c + width_s / 2.0, "right")
@@ -358,17 +472,44 @@ class WindowedSeries:
 
 
 def window_uncertainty(st: dict) -> np.ndarray:
-    """Standard uncertainty of the window mean as the value at the frame's instant, in quadrature: the white
-    noise of the mean and the reference's true variation within the window that a centred mean does not
-    average out (its scatter about the window's straight line minus the white noise; a steady trend
-    averages out, clouds and steps do not)."""
+    """Standard uncertainty of the window mean as the value at the frame's instant.
+
+    In quadrature: the white noise of the mean and the reference's true variation within the window that a
+    centred mean does not average out (its scatter about the window's straight line minus the white noise; a
+    steady trend averages out, clouds and steps do not).
+
+    Parameters
+    ----------
+    st : dict
+        What :meth:`WindowedSeries.stats` returned.
+
+    Returns
+    -------
+    numpy.ndarray
+        The uncertainty per window, in the series' units.
+    """
     noise = np.nan_to_num(st["noise_var"], nan=0.0)
     var = np.nan_to_num(st["line_var"], nan=0.0)
     return np.sqrt(noise / np.maximum(st["count"], 1) + np.clip(var - noise, 0.0, None))
 
 
 def spectral_slope(channels_nm, spectrum, wavelength_nm: float) -> float:
-    """d ln L / d ln lambda of a channel spectrum at ``wavelength_nm``: the slope between the two channels around it."""
+    """d ln L / d ln lambda of a channel spectrum at ``wavelength_nm``: the slope between the two channels around it.
+
+    Parameters
+    ----------
+    channels_nm : array_like
+        The channels' wavelengths, nm.
+    spectrum : array_like
+        The radiance in each channel (non-positive or NaN channels are left out).
+    wavelength_nm : float
+        The wavelength, nm (outside the channels, the slope of the nearest pair).
+
+    Returns
+    -------
+    float
+        The dimensionless slope; NaN with fewer than two usable channels.
+    """
     ch = np.asarray(channels_nm, float)
     L = np.asarray(spectrum, float)
     ok = np.isfinite(L) & (L > 0)
@@ -424,12 +565,39 @@ def _profile_chi2_grid(y, sy, series: dict, times_s, offsets_s, width, min_sampl
 
 
 def profile_interval(chi2_at, c, chi2_c, threshold, step_s, scan_s, search_s, dof) -> tuple[float, float]:
-    """The offsets on either side of the best ``c`` where the profile's chi-square (``chi2_at(offset)`` ->
-    (chi2, points)) rises ``threshold`` above its value ``chi2_c`` at ``c``: scanned outward from ``c`` in steps of ``scan_s`` (the reference's sample
-    spacing, below which the windows' chi-square does not change), the bound is the last point at or below
-    the threshold once a whole ``step_s`` (one grid step) beyond it lies above (the curve is jagged at the
-    scale of a sample: one point above the threshold does not end the interval). NaN on a side where the
-    scan reaches the search range or the number of match-ups changes (chi-square no longer comparable)."""
+    """The offsets on either side of the best ``c`` where the profile's chi-square rises ``threshold`` above
+    its value ``chi2_c`` at ``c``.
+
+    Scanned outward from ``c`` in steps of ``scan_s`` (the reference's sample spacing, below which the
+    windows' chi-square does not change), the bound is the last point at or below the threshold once a whole
+    ``step_s`` (one grid step) beyond it lies above (the curve is jagged at the scale of a sample: one point
+    above the threshold does not end the interval). NaN on a side where the scan reaches the search range or
+    the number of match-ups changes (chi-square no longer comparable).
+
+    Parameters
+    ----------
+    chi2_at : callable
+        ``chi2_at(offset)`` -> (chi-square, number of points) of the profile at a clock offset in s.
+    c : float
+        The fitted offset, s.
+    chi2_c : float
+        The chi-square at ``c``.
+    threshold : float
+        The rise that bounds the interval.
+    step_s : float
+        The offset grid's step, s.
+    scan_s : float
+        The scan's step, s.
+    search_s : float
+        The largest offset searched, s (either sign).
+    dof : int
+        The number of points at ``c``.
+
+    Returns
+    -------
+    tuple[float, float]
+        The lower and upper bounds, s.
+    """
     patience = max(int(np.ceil(step_s / scan_s)), 1)
     bounds = []
     for sign in (-1.0, 1.0):
@@ -455,9 +623,40 @@ def profile_interval(chi2_at, c, chi2_c, threshold, step_s, scan_s, search_s, do
 def fit_clock_offset(y, sy, series, times_s, width, min_samples, search_s, step_s, level=None) -> dict:
     """Camera clock minus UTC (s) that makes the shifted reference fit the camera best (see the module docstring).
 
-    With ``level`` also the interval of the profile at that confidence level (``offset_low_s``,
-    ``offset_high_s``, :func:`profile_interval`): where the chi-square rises chi2_1(level) times the reduced
-    chi-square (when above 1) over its value at the fitted offset, with that offset's match-ups.
+    Parameters
+    ----------
+    y : dict[str, numpy.ndarray]
+        Band -> each frame's mask radiance.
+    sy : dict[str, numpy.ndarray]
+        Band -> its standard uncertainty, same units.
+    series : dict[str, WindowedSeries]
+        Band -> the reference's prediction of that band as a time series.
+    times_s : numpy.ndarray
+        The frames' camera-clock times on the series' time axis, s.
+    width : float
+        The reference window's full width, s.
+    min_samples : int
+        The fewest reference samples a window needs for a match-up.
+    search_s : float
+        The largest offset searched, s (either sign).
+    step_s : float
+        The offset grid's step, s.
+    level : float or None, optional
+        With it also the interval of the profile at that confidence level (``offset_low_s``,
+        ``offset_high_s``, :func:`profile_interval`): where the chi-square rises chi2_1(level) times the reduced
+        chi-square (when above 1) over its value at the fitted offset, with that offset's match-ups.
+
+    Returns
+    -------
+    dict
+        ``offset_s`` and ``offset_se_s`` (s, the standard error from the chi-square's curvature, scaled by the
+        reduced chi-square when above 1), ``grid_s`` and ``reduced_chi2`` (the profile on the grid), ``chi2`` and
+        ``dof`` at the offset; with ``level`` also ``offset_low_s``, ``offset_high_s`` (s) and ``level``.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If no offset within the search range gives match-ups.
     """
     grid = np.arange(-search_s, search_s + 0.5 * step_s, step_s)
 
@@ -596,6 +795,25 @@ def compute(ctx) -> xr.Dataset:
 
     The frames reduced to mask radiances, matched to the reference in time, compared per band (the match-up
     statistics), fitted as an observation table, and the band scales closed against the calibration.
+
+    Parameters
+    ----------
+    ctx : pipeline.runner.workflow.StageContext
+        The job: the zenith lens's dataset (field frames, reference radiometer, site), the configuration, the
+        model's effects and the calibration bundle.
+
+    Returns
+    -------
+    xarray.Dataset
+        The field artefact: per frame the mask radiances and the reference's prediction, the clock offset and
+        its profile, the match-up statistics, the band scales against the reference with their budget, and the
+        sun and pointing variables.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If there is no calibration bundle or it lacks the lens, the field inputs are unusable, or there are too
+        few match-ups.
     """
     cfg = ctx.params
     bundle = ctx.bundle

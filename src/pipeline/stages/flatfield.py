@@ -62,13 +62,36 @@ def flatfield(reduced: dict, dark: dict[str, xr.Dataset], iso: float, beta: floa
               rectilinear_degree: int = 6) -> tuple[pd.DataFrame, dict]:
     """Observation table (level ``flat``) and flat-field maps (band, y, x) per lens.
 
-    The maps are (flat field, its standard uncertainty) per lens, both (band, y, x).
-    ``beta`` and ``full_scale_dn``: the linearity model's fitted nonlinearity (0: none).
-    ``offset_var_dn2`` ((lens, band, (iso, exposure_s)) -> DN^2, with ``bias_drift``): the sample
-    variance of the frames' common black-level offsets in a setting, which every pixel's temporal
-    variance holds but which adds no spatial variance to the setting's mean image: taken out of
-    the noise. A rectilinear lens region (``reduced["projection"]``) has its smooth surface as a
-    2-D polynomial of ``rectilinear_degree`` (:func:`_smooth_design`).
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`pipeline.stages.linearity.reduce_linearity` returned (its ``ptc`` regions, ``moments``,
+        ``frames`` and ``projection``).
+    dark : dict[str, xarray.Dataset]
+        Lens -> its dark artefact (fixed pattern, dark level, read noise, hot pixels).
+    iso : float
+        The exposure sweep's ISO whose settings are used.
+    beta : float, default 0.0
+        The linearity model's fitted nonlinearity (0: none).
+    full_scale_dn : float, default nan
+        Its full scale, DN.
+    offset_var_dn2 : dict or None, optional
+        (lens, band, (iso, exposure_s)) -> DN^2, with ``bias_drift``: the sample variance of the frames' common
+        black-level offsets in a setting, which every pixel's temporal variance holds but which adds no
+        spatial variance to the setting's mean image: taken out of the noise.
+    rectilinear_degree : int, default 6
+        A rectilinear lens region (``reduced["projection"]``) has its smooth surface as a 2-D polynomial of
+        this degree (:func:`_smooth_design`).
+
+    Returns
+    -------
+    table : pandas.DataFrame
+        One row per lens, band and unsaturated setting of the exposure sweep: the spatial variance of the
+        residual about the smooth surface and the part the noise leaves there (DN^2), ``value_dn`` their
+        difference (DN^2) and its ``sigma_dn``, the signal (DN).
+    maps : dict[str, tuple[numpy.ndarray, numpy.ndarray]]
+        Lens -> (flat field, its standard uncertainty), each float32 (band, y, x), relative (1 on the smooth
+        surface), NaN outside the photon-transfer region and on hot pixels.
     """
     offset_var_dn2 = offset_var_dn2 or {}
     rows, maps = [], {}

@@ -75,6 +75,25 @@ BOARD_SIZE_HINT = "chessboard inner_corners/square_mm in dataset.yaml may be wro
 
 
 def board_of(dataset: Dataset, medium: str) -> Board:
+    """The chessboard dataset.yaml declares for the frames taken in ``medium``.
+
+    Parameters
+    ----------
+    dataset : pipeline.io.dataset.Dataset
+        The dataset (its dataset.yaml's ``chessboard`` entry).
+    medium : str
+        ``"air"`` or ``"water"``: dataset.yaml declares a square size per medium.
+
+    Returns
+    -------
+    pipeline.geometry.chessboard.Board
+        The board's inner corners (nx, ny) and square size, mm.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If dataset.yaml has no ``chessboard`` entry or no square size for ``medium``.
+    """
     cb = dataset.meta.get("chessboard")
     path = dataset.root / "dataset.yaml"
     if not cb:
@@ -103,7 +122,31 @@ def _match_order(corners, reference):
 
 
 def reduce_geometry(dataset: Dataset, config: dict, progress: bool = False) -> dict:
-    """Stream the geometry frames once: corners per frame and band, running maxima, thumbnails."""
+    """Stream the geometry frames once: corners per frame and band, running maxima, thumbnails.
+
+    Parameters
+    ----------
+    dataset : pipeline.io.dataset.Dataset
+        The dataset; its ``geometry`` experiment's frames are read.
+    config : dict
+        The run's configuration (section ``geometry``: the corner search).
+    progress : bool, default False
+        Show a progress bar.
+
+    Returns
+    -------
+    dict
+        ``rows`` (one dict per frame, lens and band: ``found``, ``corners`` in band pixels, ``method``,
+        ``detector_message``), ``maxima`` ((lens, medium, band) -> the band images' running maximum, DN),
+        ``thumbs`` ((frame, lens, band) -> (thumbnail, block size) of the frames without a board), ``inputs``
+        (file -> sha256), ``boards`` (medium -> :class:`~pipeline.geometry.chessboard.Board`), ``n_frames`` and
+        ``projections`` (lens -> projection).
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If dataset.yaml declares no board for a medium of the frames, or a frame cannot be read.
+    """
     frames = dataset.frames(STAGE)
     rows, maxima, thumbs, inputs = [], {}, {}, {}
     boards = {m: board_of(dataset, m) for m in sorted(set(frames["medium"]))}
@@ -151,6 +194,23 @@ def classify_missing(thumb: np.ndarray, k: int, circle, contrast_threshold: floa
     ``contrast_threshold`` times the frame's bright level) mark a board;
     blocks within two thumbnail blocks of the circle's rim are not counted
     as rim contacts unless they lie inside it (the rim itself is an edge).
+
+    Parameters
+    ----------
+    thumb : numpy.ndarray
+        The frame's band image averaged in k x k blocks, DN.
+    k : int
+        The block size, band pixels.
+    circle : pipeline.geometry.image_circle.ImageCircle
+        The lens's image circle, band pixels.
+    contrast_threshold : float
+        The fraction of the bright level a block's local spread must exceed to count as board
+        (``geometry.board_contrast_fraction``).
+
+    Returns
+    -------
+    str
+        The reason, one sentence for the frame's row and the log.
     """
     from scipy.ndimage import generic_filter  # noqa: F401 (kept light: use max/min filters)
     from scipy.ndimage import maximum_filter, minimum_filter
@@ -183,6 +243,34 @@ def _projection_curves(model, rho):
 
 
 def analyse_geometry(reduced: dict, config: dict, dataset_root: Path) -> dict[str, xr.Dataset]:
+    """Calibrate every lens's projection in each medium and band from the detected corners; one artefact per lens.
+
+    A fisheye lens is fitted with the Scaramuzza model (:func:`pipeline.geometry.calibrate.calibrate`), its
+    image circle found in the frames' running maximum and its frames without a board explained
+    (:func:`classify_missing`); a rectilinear lens with the pinhole model
+    (:func:`~pipeline.stages.geometry_rectilinear.rectilinear_lens_dataset`).
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_geometry` returned.
+    config : dict
+        The run's configuration (section ``geometry``).
+    dataset_root : pathlib.Path
+        The dataset's folder (its ``geometry`` folder is named in the errors).
+
+    Returns
+    -------
+    dict[str, xarray.Dataset]
+        Lens -> its geometry artefact (:func:`lens_dataset`).
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If frames.csv lists no frames, a board is found in too few frames (``geometry.min_found_fraction``,
+        ``geometry.min_frames``), the calibration fails, or its mean reprojection error exceeds
+        ``geometry.max_mean_error_px``.
+    """
     cfg = config[STAGE]
     folder = Path(dataset_root) / STAGE
     table = pd.DataFrame(reduced["rows"])
@@ -284,7 +372,36 @@ def _points(res, board):
 
 
 def lens_dataset(models, results, circles, frame_rows, points_rows, band_shape, cfg, reduced, lens) -> xr.Dataset:
-    """The geometry artefact of one lens (see module docstring)."""
+    """The geometry artefact of one lens (see module docstring).
+
+    Parameters
+    ----------
+    models : dict[tuple[str, str], pipeline.geometry.scaramuzza.FisheyeModel]
+        (medium, band) -> the fitted model, its half field of view set from the image circle.
+    results : dict[tuple[str, str], pipeline.geometry.calibrate.CalibrationResult]
+        (medium, band) -> the calibration's result (poses, residuals, covariance).
+    circles : dict[tuple[str, str], pipeline.geometry.image_circle.ImageCircle]
+        (medium, band) -> the image circle, band pixels.
+    frame_rows : list[dict]
+        One row per frame, medium and band: board found, used, RMS error (band pixels), reason, detector.
+    points_rows : list[pandas.DataFrame]
+        The corners used by each (medium, band) fit, with their residuals.
+    band_shape : tuple[int, int]
+        (rows, columns) of the band images.
+    cfg : dict
+        The ``geometry`` section of the configuration (curve samples, radius bins, uncertainty settings).
+    reduced : dict
+        What :func:`reduce_geometry` returned.
+    lens : str
+        The lens.
+
+    Returns
+    -------
+    xarray.Dataset
+        The maps (:func:`~pipeline.stages.geometry_maps.maps_dataset`) with the projection curves, the
+        reprojection errors against radius, the image circles, the theta uncertainty, and the ``obs_frame`` and
+        ``used_corner`` tables.
+    """
     ds = maps_dataset(models, band_shape)
     media = list(ds["medium"].values)
     nb, nm = len(BANDS), len(media)
@@ -465,7 +582,23 @@ def _parameter_units(name: str) -> str:
 
 
 def compute(ctx) -> xr.Dataset:
-    """The geometry artefact of one lens (the stage runner's contract)."""
+    """The geometry artefact of one lens (the stage runner's contract).
+
+    Parameters
+    ----------
+    ctx : pipeline.runner.workflow.StageContext
+        The job: the lens's dataset and the configuration.
+
+    Returns
+    -------
+    xarray.Dataset
+        The lens's geometry artefact (:func:`analyse_geometry`); the frames' sha256 are recorded in ``ctx``.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the geometry frames hold none of the lens.
+    """
     reduced = reduce_geometry(ctx.dataset, ctx.config, progress=ctx.progress)
     ctx.record_frames(reduced["inputs"])
     arts = analyse_geometry(reduced, ctx.config, ctx.dataset.root)

@@ -28,7 +28,23 @@ MEDIA = ("air", "water")
 
 
 def maps_dataset(models: dict[tuple[str, str], FisheyeModel], band_shape: tuple[int, int]) -> xr.Dataset:
-    """Maps and model parameters for every (medium, band) in ``models``."""
+    """Maps and model parameters for every (medium, band) in ``models``.
+
+    Parameters
+    ----------
+    models : dict[tuple[str, str], pipeline.geometry.scaramuzza.FisheyeModel]
+        (medium, band) -> the fitted fisheye model.
+    band_shape : tuple[int, int]
+        (rows, columns) of the band images, band pixels.
+
+    Returns
+    -------
+    xarray.Dataset
+        Over (medium, band, y, x): ``theta_deg`` and ``phi_deg`` (each band pixel's viewing direction, degree)
+        and ``solid_angle_sr`` (sr), float32, NaN outside the field of view; over (medium, band): the
+        polynomial ``poly``, principal point ``xc_px`` and ``yc_px`` (band pixels), stretch ``c``, ``d``, ``e``
+        and ``half_fov_deg`` (degree). Media in the order of ``MEDIA``; a (medium, band) without a model is NaN.
+    """
     media = [m for m in MEDIA if any(k[0] == m for k in models)]
     n_coef = max(len(m.poly) for m in models.values())
     shape = (len(media), len(BANDS)) + tuple(band_shape)
@@ -70,6 +86,23 @@ def maps_dataset(models: dict[tuple[str, str], FisheyeModel], band_shape: tuple[
 
 
 def model_from_dataset(ds: xr.Dataset, medium: str, band: str) -> FisheyeModel:
+    """The fisheye model of one medium and band, rebuilt from a geometry artefact (the inverse of :func:`maps_dataset`).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The geometry artefact (or :func:`maps_dataset`'s dataset).
+    medium : str
+        ``"air"`` or ``"water"``.
+    band : str
+        ``"R"``, ``"G"`` or ``"B"``.
+
+    Returns
+    -------
+    pipeline.geometry.scaramuzza.FisheyeModel
+        The model: polynomial coefficients (the finite ones), principal point and stretch, the maps' shape and
+        half field of view (None when the artefact has NaN).
+    """
     sel = ds.sel(medium=medium, band=band)
     poly = [float(a) for a in sel["poly"].values if np.isfinite(a)]
     half = float(sel["half_fov_deg"])

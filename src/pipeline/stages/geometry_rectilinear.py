@@ -28,7 +28,39 @@ MEDIA = ("air", "water")
 
 def rectilinear_lens_dataset(tl: pd.DataFrame, boards: dict, shape: tuple[int, int], cfg: dict,
                              folder: Path, lens: str, board_hint: str) -> xr.Dataset:
-    """The geometry artefact of one rectilinear lens from its rows of detected corners ``tl``."""
+    """The geometry artefact of one rectilinear lens from its rows of detected corners.
+
+    Parameters
+    ----------
+    tl : pandas.DataFrame
+        The lens's rows of :func:`pipeline.stages.geometry.reduce_geometry` (``frame``, ``file``, ``medium``,
+        ``band``, ``found``, ``corners`` in band pixels, ``method``).
+    boards : dict[str, pipeline.geometry.chessboard.Board]
+        Medium -> the chessboard.
+    shape : tuple[int, int]
+        (rows, columns) of the band images.
+    cfg : dict
+        The ``geometry`` section of the configuration (``min_frames``, ``max_mean_error_px``).
+    folder : pathlib.Path
+        The dataset's geometry folder, named in the errors.
+    lens : str
+        The lens.
+    board_hint : str
+        What to check when the board is not found or fits badly, appended to the error message.
+
+    Returns
+    -------
+    xarray.Dataset
+        Over (medium, band, y, x): ``theta_deg``, ``phi_deg`` (degree), ``solid_angle_sr`` (sr) and
+        ``theta_deg_sigma`` (degree); the pinhole parameters and their covariance; the reprojection errors
+        (band pixels) and half field of view (degree); NaN image-circle variables; the ``obs_frame`` table.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If a band has fewer than ``min_frames`` frames with a board, the calibration fails, or its mean
+        reprojection error exceeds ``max_mean_error_px``.
+    """
     media = [m for m in MEDIA if m in set(tl["medium"])]
     nm, nb = len(media), len(BANDS)
     maps = {k: np.full((nm, nb) + tuple(shape), np.nan, dtype=np.float32)

@@ -39,6 +39,18 @@ NOMINAL_WAVELENGTH_NM = {"R": 600.0, "G": 540.0, "B": 480.0}
 
 
 def effective_wavelengths(spectral: xr.Dataset | None) -> dict[str, float]:
+    """The wavelength each band's water optics are evaluated at: the spectral stage's effective wavelengths, else the nominal ones.
+
+    Parameters
+    ----------
+    spectral : xarray.Dataset or None
+        The lens's spectral artefact, or ``None`` when the spectral stage has not run.
+
+    Returns
+    -------
+    dict[str, float]
+        Band -> wavelength, nm (``NOMINAL_WAVELENGTH_NM`` without the artefact).
+    """
     if spectral is not None and "effective_wavelength_nm" in spectral:
         return {b: float(spectral["effective_wavelength_nm"].sel(band=b)) for b in BANDS}
     return dict(NOMINAL_WAVELENGTH_NM)
@@ -55,8 +67,33 @@ def _mask(theta: np.ndarray, half: float, min_pixels: int) -> np.ndarray:
 
 def reduce_immersion(dataset, geometry: dict[str, xr.Dataset], config: dict, progress=False,
                      corners: FrameCorners | None = None) -> dict:
-    """Stream the immersion frames once (dark frames first); ``corners``, when given, records each signal frame's
-    unlit corners against the dark model (:class:`pipeline.radiometry.unlit_corners.FrameCorners`)."""
+    """Stream the immersion frames once (dark frames first).
+
+    Parameters
+    ----------
+    dataset : pipeline.io.dataset.Dataset
+        The dataset; its ``immersion`` experiment's frames are read.
+    geometry : dict[str, xarray.Dataset]
+        Lens -> its geometry artefact (the theta maps of each medium, for the central masks).
+    config : dict
+        The run's configuration (section ``immersion``: ``mask_half_angle_deg``, ``min_mask_pixels``).
+    progress : bool, default False
+        Show a progress bar.
+    corners : pipeline.radiometry.unlit_corners.FrameCorners or None, optional
+        When given, records each signal frame's unlit corners against the dark model.
+
+    Returns
+    -------
+    dict
+        ``frames`` (one row per signal frame, lens and band: ``condition``, ``water_height_cm`` (cm, 0 in
+        air), ``dn`` (mean dark-subtracted DN in the central mask), ``exposure_s``, ``iso``, ``n_mask``) and
+        ``inputs`` (file -> sha256).
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If a lens has signal frames but no dark frames.
+    """
     half = config[STAGE]["mask_half_angle_deg"]
     frames = dataset.frames(STAGE)
     order = pd.concat([frames[frames["kind"] == "dark"], frames[frames["kind"] == "signal"]])
@@ -109,6 +146,18 @@ def response_normalised(fr: pd.DataFrame, linearity: xr.Dataset | None) -> np.nd
     exposure; without it, the nominal t ISO/100. The mask mean is corrected
     (not pixel by pixel): the 1.5 degree masks are small enough that the
     pixel-to-pixel response spread averages out in the ratio.
+
+    Parameters
+    ----------
+    fr : pandas.DataFrame
+        The frames of one lens (``dn`` in DN, ``exposure_s`` in s, ``iso``, ``band``).
+    linearity : xarray.Dataset or None
+        The lens's linearity artefact, or ``None``.
+
+    Returns
+    -------
+    numpy.ndarray
+        Each frame's signal, DN s-1 at ISO 100, in the rows' order.
     """
     if linearity is None:
         return (fr["dn"] / exposure_gain_s(fr["exposure_s"], fr["iso"])).to_numpy(float)
@@ -122,6 +171,30 @@ def response_normalised(fr: pd.DataFrame, linearity: xr.Dataset | None) -> np.nd
 
 def analyse_immersion(reduced: dict, water: dict, wavelengths: dict[str, float],
                       linearity: dict[str, xr.Dataset] | None = None) -> dict[str, xr.Dataset]:
+    """The immersion factor of every lens and band from the signal in air and under water at several heights; one artefact per lens.
+
+    The water column's attenuation is fitted to ln DN against height, its intercept against the air frames
+    gives the immersion factor, and with the water's refractive index and air-water transmittance (at the
+    band's wavelength) the index of the lens's front window.
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_immersion` returned.
+    water : dict
+        The tank's water (:func:`pipeline.io.dataset.read_water`): ``temperature_c`` (degree Celsius) and
+        ``salinity_psu`` (PSU).
+    wavelengths : dict[str, float]
+        Band -> wavelength the water's optics are taken at, nm (:func:`effective_wavelengths`).
+    linearity : dict[str, xarray.Dataset] or None, optional
+        Lens -> its linearity artefact, whose response corrections are applied (:func:`response_normalised`).
+
+    Returns
+    -------
+    dict[str, xarray.Dataset]
+        Lens -> its immersion artefact: per band the immersion factor and its uncertainty, the water's index
+        and transmittance, the window's index, and the ``obs_height`` table of ln DN per water height.
+    """
     fr = reduced["frames"].copy()
     # DN per second at ISO 100, Eq. (2) (the frames may use different settings), per lens through
     # the fitted response when its linearity artefact is given
@@ -201,6 +274,22 @@ def compute(ctx) -> xr.Dataset:
 
     The water's refractive index and t_aw are taken at this lens's effective
     wavelengths (its spectral artefact) when the spectral stage has run.
+
+    Parameters
+    ----------
+    ctx : pipeline.runner.workflow.StageContext
+        The job: the lens's dataset (and its immersion/water.yaml), the configuration and the upstream
+        ``geometry`` and, when given, ``dark``, ``spectral`` and ``linearity`` artefacts.
+
+    Returns
+    -------
+    xarray.Dataset
+        The lens's immersion artefact (:func:`analyse_immersion`) with its ``obs_corner`` table.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the immersion frames hold none of the lens.
     """
     corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
     reduced = reduce_immersion(ctx.dataset, {ctx.lens: ctx.upstream["geometry"]}, ctx.config, progress=ctx.progress,

@@ -84,6 +84,27 @@ def fisheye_circle(g_image: np.ndarray, dark_level_dn: float, config: dict, lens
     the pixels outside the fitted circle must be lit by less than
     ``linearity.image_circle_max_outside_fraction`` of the inside (both above the dark level),
     and the inside by more than ``linearity.signal_frame_min_snr`` times the pixel noise outside.
+
+    Parameters
+    ----------
+    g_image : numpy.ndarray
+        The lens's G band image of its first linearity frame, DN, shape (rows, columns) in band pixels.
+    dark_level_dn : float
+        The dark level of that frame's setting from the dark model, DN.
+    config : dict
+        The run's configuration (section ``linearity``).
+    lens : str
+        The lens region's name, for the message.
+
+    Returns
+    -------
+    pipeline.geometry.image_circle.ImageCircle
+        The circle's centre (``xc``, ``yc``) and ``radius``, in band pixels.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If no circle is found, or the best one fails either test above.
     """
     try:
         circle = find_image_circle(g_image)
@@ -112,8 +133,39 @@ def axis_masks(g_image: np.ndarray, geometry: xr.Dataset | None, config: dict, *
     ``nominal_half_fov_deg`` at the circle's edge; for a rectilinear region the
     axis is the region's centre and the radii are f tan(theta), the focal length
     f putting ``rectilinear_nominal_half_fov_deg`` at the region's half diagonal.
-    Returns (cx, cy, radius, mask radius), the radius being the circle's or
-    (rectilinear) the half diagonal, the two masks and the source of the field angles.
+
+    Parameters
+    ----------
+    g_image : numpy.ndarray
+        The lens's G band image of its first linearity frame, DN, shape (rows, columns).
+    geometry : xarray.Dataset or None
+        The lens's geometry artefact (its in-air G ``theta_deg`` map, degree), or ``None``.
+    config : dict
+        The run's configuration (section ``linearity``).
+    lens : str, optional
+        The lens region's name, for messages.
+    projection : str, default "fisheye"
+        The projection the lens region declares (``"fisheye"`` or ``"rectilinear"``).
+    dark_level_dn : float, default 0.0
+        The frame's dark level, DN (for the fisheye's circle test).
+
+    Returns
+    -------
+    geometry : tuple[float, float, float, float]
+        (cx, cy, radius, mask radius) in band pixels: the centre, the circle's radius (rectilinear: the half
+        diagonal) and the mask's radius (with the geometry artefact, that of a disc of the mask's area).
+    mask : numpy.ndarray
+        Boolean, ``g_image``'s shape: the averaging mask.
+    ptc_region : numpy.ndarray
+        Boolean, same shape: the photon-transfer region.
+    source : str
+        Where the field angles came from.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the geometry artefact's maps have another shape than the frames, or a fisheye region shows no image
+        circle.
     """
     cfg = config[STAGE]
     if projection == "rectilinear":
@@ -151,7 +203,30 @@ def reduce_linearity(dataset: Dataset, dark: dict[str, xr.Dataset], config: dict
                      progress: bool = False, geometry: dict[str, xr.Dataset] | None = None) -> dict:
     """Stream the linearity frames of every lens; one decode per frame.
 
-    ``geometry`` (lens -> geometry artefact, optional) gives the field angles of the masks.
+    Parameters
+    ----------
+    dataset : pipeline.io.dataset.Dataset
+        The dataset; the ``signal`` frames of its ``linearity`` experiment are read.
+    dark : dict[str, xarray.Dataset]
+        Lens -> its dark artefact (dark level, hot pixels, unlit-corner sites).
+    config : dict
+        The run's configuration (sections ``linearity`` and ``bias``).
+    effects : list[str]
+        The model's effects (``hot_pixels`` leaves the dark stage's hot pixels out of the masks).
+    progress : bool, default False
+        Show a progress bar.
+    geometry : dict[str, xarray.Dataset] or None, optional
+        Lens -> geometry artefact, which gives the field angles of the masks (:func:`axis_masks`).
+
+    Returns
+    -------
+    dict
+        ``moments`` ((lens, band, sweep, setting) -> running moments of the photon-transfer region's pixels),
+        ``pearson`` ((lens, band, sweep) -> per-pixel correlation with exposure or gain), ``frames`` (one row per
+        frame, lens and band: ``mask_mean_dn``, ``corner_dn`` in DN, ``saturated``, ...), ``masks``, ``corners``,
+        ``ptc``, ``geometry`` (lens -> :func:`axis_masks`'s circle), ``angle_source``, ``projection``,
+        ``inputs`` (file -> sha256), ``paths``, ``times`` (frame index -> time stamp, s since 1970 UTC), ``max_raw_dn`` and
+        ``white_level_dn`` (DN).
     """
     cfg = config["linearity"]
     frames = dataset.frames(STAGE)
@@ -291,14 +366,31 @@ def _stop_on_unlit_frames(fr: pd.DataFrame, reduced: dict, dark: dict[str, xr.Da
 
 
 def sweep_settings(fr: pd.DataFrame, cfg: dict) -> pd.DataFrame:
-    """One row per (lens, band, sweep, setting) with ``other_light`` (the mean leaves the sweep's rise with
-    exposure: :func:`~pipeline.radiometry.saturation.non_monotonic_settings`, among the settings not clipped
-    at the white level) and ``saturated_in_data`` (plateau, variance stall or collapse among the others).
+    """One row per (lens, band, sweep, setting) with its flags.
+
+    ``other_light``: the mean leaves the sweep's rise with exposure
+    (:func:`~pipeline.radiometry.saturation.non_monotonic_settings`, among the settings not clipped at the white
+    level); ``saturated_in_data``: plateau, variance stall or collapse among the others.
 
     A setting mean's standard error is the larger of its frames' scatter over sqrt(frames) (flicker, drift)
     and the pixel noise over sqrt(mask pixels x frames); a setting variance's relative standard error is
     sqrt(2 / (N (n - 1))) over the photon-transfer region's N pixels and n frames (the variance the
     saturation test and the photon-transfer fit read).
+
+    Parameters
+    ----------
+    fr : pandas.DataFrame
+        The frame table, dark-corrected (``value_dn`` in DN, ``pixel_var_dn2`` and ``ptc_var_dn2`` in DN^2,
+        ``n_mask``, ``n_ptc``, ``n_frames``, ``saturated``).
+    cfg : dict
+        The ``linearity`` section of the configuration (the saturation tests' thresholds).
+
+    Returns
+    -------
+    pandas.DataFrame
+        The settings with ``value_dn`` (mean, DN), ``value_se_dn`` (DN), ``variance_rel_se``, ``clipped``,
+        ``other_light``, ``saturated_in_data`` and ``expected_dn`` (the value the neighbouring settings give a
+        setting under other light, DN; NaN elsewhere).
     """
     per = fr.groupby(["lens", "band", "sweep", "setting"]).agg(
         iso=("iso", "first"), exposure_s=("exposure_s", "first"), value_dn=("value_dn", "mean"),
@@ -337,7 +429,22 @@ def sweep_settings(fr: pd.DataFrame, cfg: dict) -> pd.DataFrame:
 
 def other_light_lines(stray: pd.DataFrame, fr: pd.DataFrame, paths: list[str]) -> list[tuple[str, str]]:
     """One (lens, line) per setting whose mean leaves its sweep's rise: its frames, its settings, and the
-    signal its neighbours give against the one measured (the band that departs most)."""
+    signal its neighbours give against the one measured (the band that departs most).
+
+    Parameters
+    ----------
+    stray : pandas.DataFrame
+        The rows of :func:`sweep_settings` flagged ``other_light``.
+    fr : pandas.DataFrame
+        The frame table (``lens``, ``sweep``, ``setting``, ``file_index``).
+    paths : list[str]
+        Each frame's raw file, by frame index.
+
+    Returns
+    -------
+    list[tuple[str, str]]
+        (lens, message) per setting, sorted by lens, sweep and setting.
+    """
     out = []
     for (lens, sweep, setting), rows in stray.groupby(["lens", "sweep", "setting"], sort=True):
         worst = rows.loc[(rows["value_dn"] - rows["expected_dn"]).abs().idxmax()]
@@ -373,6 +480,23 @@ def analyse_linearity(reduced: dict, dark: dict[str, xr.Dataset], config: dict,
 
     The frames dark-corrected and given their noise, the settings under other light and the saturated ones
     flagged, the frame-level and setting-level fits, the flat field; one dataset per lens.
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_linearity` returned.
+    dark : dict[str, xarray.Dataset]
+        Lens -> its dark artefact.
+    config : dict
+        The run's configuration.
+    effects : list[str]
+        The model's effects (``bias_drift``, ``nonlinearity``, ``hot_pixels``... change the fits).
+
+    Returns
+    -------
+    dict[str, xarray.Dataset]
+        Lens -> its linearity artefact: the response fit, saturation level, photon-transfer and EMVA1288
+        figures, flat field and the observation tables.
     """
     fr = reduced["frames"].copy()
     # bias_drift needs each frame's own black level: unlit corners or optically black pixels
@@ -594,8 +718,18 @@ def _flat_field(reduced: dict, dark: dict[str, xr.Dataset], st: pd.DataFrame, fr
 
 
 def dark_drift_dn(dark_ds: xr.Dataset) -> float:
-    """The frame-to-frame black-level spread the dark stage measured in its dark frames (``bias_drift_dn``), 0 when
-    it was not measured (not in its model, not testable, or NaN)."""
+    """The frame-to-frame black-level spread the dark stage measured in its dark frames (``bias_drift_dn``).
+
+    Parameters
+    ----------
+    dark_ds : xarray.Dataset
+        The lens's dark artefact.
+
+    Returns
+    -------
+    float
+        The spread, DN; 0 when it was not measured (not in its model, not testable, or NaN).
+    """
     if "bias_drift_dn" not in dark_ds:
         return 0.0
     value = float(dark_ds["bias_drift_dn"])
@@ -607,6 +741,22 @@ def saturation_levels(st: pd.DataFrame, reduced: dict) -> dict:
 
     Where the raw values reached the white level, the level is the ADC top minus the dark level;
     where the full well clipped first, the plateau: the largest mean of the saturated settings.
+
+    Parameters
+    ----------
+    st : pandas.DataFrame
+        The setting table of one lens: ``value_dn`` (dark-corrected mean, DN), ``saturated``, ``band``,
+        ``dark_mask_dn`` (DN) and ``clipped_at_white_level``.
+    reduced : dict
+        What :func:`reduce_linearity` returned (``white_level_dn`` and ``max_raw_dn``).
+
+    Returns
+    -------
+    dict
+        ``reached`` (bool), ``n_saturated_settings``, ``lower_bound_dn`` (the largest unsaturated mean, DN),
+        ``adc_range_dn`` (white level less the lowest dark level, DN), ``level_dn`` (the saturation level above
+        dark, DN; NaN when not reached) and ``by`` (``"ADC white level"``, ``"full well (plateau)"`` or
+        ``"not reached"``).
     """
     adc_range = reduced["white_level_dn"] - float(st["dark_mask_dn"].min())
     sat = st[st["saturated"]]
@@ -649,6 +799,28 @@ def photon_transfer(st_l: pd.DataFrame, dark_ds: xr.Dataset, beta: float = 0.0,
     m has signal variance N'(s)^2 K s with N'(s) = 1 - 2 beta s / F =
     sqrt(1 - 4 beta m / F); the curve is that variance over N'^2 against s
     (left bent, K comes out low by about 3 beta s / F).
+
+    Parameters
+    ----------
+    st_l : pandas.DataFrame
+        The lens's setting table: ``used``, ``band``, ``sweep``, ``iso``, ``ptc_mean_dn`` and ``dark_mask_dn``
+        (DN), ``ptc_var_dn2`` (temporal variance of a band pixel over the photon-transfer region, DN^2), and
+        ``offset_var_dn2`` (DN^2) when the offsets are removed.
+    dark_ds : xarray.Dataset
+        The lens's dark artefact (its ``read_noise_dn`` by band and ISO, DN).
+    beta : float, default 0.0
+        The fitted nonlinearity's coefficient (0: a linear response).
+    full_scale_dn : float, default nan
+        The full scale F of the nonlinearity, DN.
+    offsets_removed : bool, default False
+        Whether ``bias_drift`` is in the model.
+
+    Returns
+    -------
+    dict
+        With an exposure sweep: ``conversion_gain_dn_per_e`` (K, DN per electron) and ``gain_e_per_dn`` (1/K),
+        ``read_noise_e`` (electron), each a (value, standard error) pair, and ``ptc_iso``; always
+        ``gain_sweep``, a list of (ISO, K at that ISO in DN per electron).
     """
     out = {}
     rows = st_l[st_l["used"]].copy()
@@ -927,10 +1099,30 @@ EMVA1288_VARIABLES = {
 
 
 def emva1288_figures(st_l: pd.DataFrame, dark_ds: xr.Dataset, ptc: dict, reached: bool) -> dict:
-    """The EMVA1288 figures per band (:mod:`pipeline.radiometry.emva1288`) from the exposure sweep's used settings:
-    saturation point, saturation capacity, dynamic range, SNR_max, linearity error and, when every used setting
+    """The EMVA1288 figures per band (:mod:`pipeline.radiometry.emva1288`) from the exposure sweep's used settings.
+
+    Saturation point, saturation capacity, dynamic range, SNR_max, linearity error and, when every used setting
     has ``photons_per_pixel`` (frames.csv), responsivity and quantum efficiency. NaN where the data do not give
-    them (no photon-transfer curve, saturation not reached, no photon counts), with a ``not_measured`` reason."""
+    them (no photon-transfer curve, saturation not reached, no photon counts), with a ``not_measured`` reason.
+
+    Parameters
+    ----------
+    st_l : pandas.DataFrame
+        The lens's setting table (``band``, ``sweep``, ``used``, ``exposure_s``, ``value_dn`` in DN, and
+        ``photons_per_pixel`` when frames.csv gives it).
+    dark_ds : xarray.Dataset
+        The lens's dark artefact (its ``read_noise_dn``, DN).
+    ptc : dict
+        What :func:`photon_transfer` returned.
+    reached : bool
+        Whether the exposure sweep reached saturation.
+
+    Returns
+    -------
+    dict
+        Variable name of ``EMVA1288_VARIABLES`` -> ``("band", values, attrs)``, ready for an
+        :class:`xarray.Dataset`; the units are in the attributes.
+    """
     out = {name: np.full(len(BANDS), np.nan) for name in EMVA1288_VARIABLES}
     k, k_se = ptc.get("conversion_gain_dn_per_e", (np.nan, np.nan))
     iso = ptc.get("ptc_iso", np.nan)
@@ -993,12 +1185,32 @@ def _rms(chi2: float, dof: int) -> float:
 
 
 def prnu_figures(st_l: pd.DataFrame, moments: dict, lens: str, dark_ds: xr.Dataset) -> dict:
-    """PRNU1288 per band (EMVA1288 release 3.0) from the exposure sweep's used setting with the most frames (a
-    bright stack): over the photon-transfer region, the spatial variance of its frame-averaged image less the
-    part its temporal noise leaves there and less the dark stack's (the dark artefact's
+    """PRNU1288 per band (EMVA1288 release 3.0) from the exposure sweep's used setting with the most frames.
+
+    Over the photon-transfer region of that bright stack, the spatial variance of its frame-averaged image less
+    the part its temporal noise leaves there and less the dark stack's (the dark artefact's
     ``dark_spatial_var_dn2``, 0 without it), over the mean dark-corrected signal, in per cent. Of a band pixel (the
     G band averages two raw sites); the region is the photon-transfer region's pixels without the hot ones,
-    nothing smooth removed (the flat field's ``prnu`` is the pattern left after a smooth surface)."""
+    nothing smooth removed (the flat field's ``prnu`` is the pattern left after a smooth surface).
+
+    Parameters
+    ----------
+    st_l : pandas.DataFrame
+        The lens's setting table (``sweep``, ``used``, ``n_frames``, ``band``, ``iso``, ``exposure_s``,
+        ``ptc_mean_dn`` and ``dark_mask_dn`` in DN).
+    moments : dict
+        (lens, band, sweep, setting) -> running moments of the photon-transfer region (:func:`reduce_linearity`).
+    lens : str
+        The lens.
+    dark_ds : xarray.Dataset
+        The lens's dark artefact.
+
+    Returns
+    -------
+    dict
+        ``{"prnu1288_pct": ("band", values in %, attrs)}``; NaN where the excess variance or the signal is not
+        positive, and all NaN (``measured`` 0) when no setting has two frames.
+    """
     prnu = np.full(len(BANDS), np.nan)
     attrs: dict = {"long_name": "photo response non-uniformity PRNU1288 of a band pixel over the photon-transfer "
                                 "region", "units": "%"}
@@ -1025,8 +1237,24 @@ def prnu_figures(st_l: pd.DataFrame, moments: dict, lens: str, dark_ds: xr.Datas
 
 
 def corner_records(fr_l: pd.DataFrame, times: dict[int, float]) -> pd.DataFrame:
-    """One lens's ``obs_corner`` rows (:mod:`pipeline.radiometry.unlit_corners`): every frame's unlit-corner
-    mean with the dark model's prediction (its temperature term as the frames' correction has it) and noise."""
+    """One lens's ``obs_corner`` rows (:mod:`pipeline.radiometry.unlit_corners`).
+
+    Every frame's unlit-corner mean with the dark model's prediction (its temperature term as the frames'
+    correction has it) and noise.
+
+    Parameters
+    ----------
+    fr_l : pandas.DataFrame
+        The lens's frame table after the dark correction (``corner_dn``, ``dark_corner_dn``, ``sigma_corner_dn``
+        in DN, ``n_corner_sites`` and the frame's keys).
+    times : dict[int, float]
+        Frame index -> the frame's time stamp, s since 1970-01-01 UTC.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per frame and band, sorted by frame and band, with ``time_s`` and ``saturated`` (0 or 1).
+    """
     keys = ["lens", "band", "sweep", "file_index", "iso", "exposure_s", "temperature_c"]
     out = fr_l[keys + ["corner_dn", "n_corner_sites", "dark_corner_dn", "sigma_corner_dn"]].copy()
     out["time_s"] = out["file_index"].map(times).astype(float)
@@ -1035,7 +1263,19 @@ def corner_records(fr_l: pd.DataFrame, times: dict[int, float]) -> pd.DataFrame:
 
 
 def compute(ctx) -> xr.Dataset:
-    """The linearity artefact of one lens (the stage runner's contract); frames dark-corrected by its dark model."""
+    """The linearity artefact of one lens (the stage runner's contract); frames dark-corrected by its dark model.
+
+    Parameters
+    ----------
+    ctx : pipeline.runner.workflow.StageContext
+        The job: the lens's dataset, the configuration, the model's effects and the upstream ``dark`` (and,
+        when given, ``geometry``) artefacts.
+
+    Returns
+    -------
+    xarray.Dataset
+        The lens's linearity artefact (:func:`analyse_linearity`); the frames' sha256 are recorded in ``ctx``.
+    """
     dark = {ctx.lens: ctx.upstream["dark"]}
     geometry = {ctx.lens: ctx.upstream["geometry"]} if "geometry" in ctx.upstream else None
     reduced = reduce_linearity(ctx.dataset, dark, ctx.config, ctx.effects, progress=ctx.progress, geometry=geometry)

@@ -79,6 +79,18 @@ def table_to_dataset(table: pd.DataFrame, prefix: str) -> xr.Dataset:
     """Store an observation table as variables ``<prefix>__<column>`` along dimension ``<prefix>``.
 
     The columns many tables share get their meaning as ``long_name`` (:data:`COLUMN_MEANINGS`).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        The observation table, one row per measurement; text columns are stored as strings.
+    prefix : str
+        The table's name in the artefact, e.g. ``"obs_setting"``: the dimension and the variables' prefix.
+
+    Returns
+    -------
+    xarray.Dataset
+        One variable per column along dimension ``prefix``.
     """
     data = {}
     for col in table.columns:
@@ -92,7 +104,18 @@ def table_to_dataset(table: pd.DataFrame, prefix: str) -> xr.Dataset:
 
 def lens_of(ds: xr.Dataset) -> str | None:
     """The lens a stage artefact is of: its ``lens`` attribute, else the lens of its setting or frame table's
-    rows; None when it names none."""
+    rows; None when it names none.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A stage's artefact (or its observation tables).
+
+    Returns
+    -------
+    str or None
+        The lens's name.
+    """
     if "lens" in ds.attrs:
         return str(ds.attrs["lens"])
     for name in ("obs_setting__lens", "obs_frame__lens"):
@@ -102,20 +125,55 @@ def lens_of(ds: xr.Dataset) -> str | None:
 
 
 def datasets_by_lens(datasets: list[xr.Dataset]) -> dict[str, xr.Dataset]:
-    """Stage artefacts keyed by :func:`lens_of` (those that name no lens left out)."""
+    """Stage artefacts keyed by :func:`lens_of` (those that name no lens left out).
+
+    Parameters
+    ----------
+    datasets : list[xarray.Dataset]
+        Stage artefacts, one per lens.
+
+    Returns
+    -------
+    dict[str, xarray.Dataset]
+        Lens name -> its artefact (the last one given, if several name the same lens).
+    """
     return {lens: ds for ds in datasets if (lens := lens_of(ds)) is not None}
 
 
 def with_corner_table(art: xr.Dataset, records: list[dict]) -> xr.Dataset:
     """A lit stage's artefact with its frames' unlit-corner records as ``obs_corner`` (for the closure,
-    pipeline.diagnostics.cross_closure); as it is when there are none (no dark artefact given)."""
+    pipeline.diagnostics.cross_closure); as it is when there are none (no dark artefact given).
+
+    Parameters
+    ----------
+    art : xarray.Dataset
+        The stage's artefact.
+    records : list[dict]
+        One record per frame, lens and band, as :func:`corner_table_dataset` takes them.
+
+    Returns
+    -------
+    xarray.Dataset
+        ``art`` merged with the ``obs_corner`` table, or ``art`` itself when ``records`` is empty.
+    """
     return art.merge(corner_table_dataset(records)) if records else art
 
 
 def corner_table_dataset(records: list[dict] | pd.DataFrame) -> xr.Dataset:
     """A lit stage's unlit-corner records (one row per frame, lens and band) as its ``obs_corner`` table, each
     column of :data:`pipeline.radiometry.unlit_corners.CORNER_COLUMNS` with its long name and units; the
-    stage's own keys (``file_index``, ``kind``, ``medium``...) as they are."""
+    stage's own keys (``file_index``, ``kind``, ``medium``...) as they are.
+
+    Parameters
+    ----------
+    records : list[dict] or pandas.DataFrame
+        The records, one per frame, lens and band (:mod:`pipeline.radiometry.unlit_corners`).
+
+    Returns
+    -------
+    xarray.Dataset
+        Variables ``obs_corner__<column>`` along dimension ``obs_corner``.
+    """
     table = pd.DataFrame(records).reset_index(drop=True)
     ds = table_to_dataset(table, CORNER_PREFIX)
     for col, (long_name, units) in CORNER_COLUMNS.items():
@@ -128,7 +186,21 @@ def corner_table_dataset(records: list[dict] | pd.DataFrame) -> xr.Dataset:
 
 
 def dataset_to_table(ds: xr.Dataset, prefix: str) -> pd.DataFrame:
-    """Inverse of :func:`table_to_dataset`."""
+    """Inverse of :func:`table_to_dataset`.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        An artefact holding the table as variables ``<prefix>__<column>``.
+    prefix : str
+        The table's name, e.g. ``"obs_setting"``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One column per variable of the table (named without the prefix), in the artefact's order; empty when
+        the artefact has no such table.
+    """
     cols = {name.split("__", 1)[1]: ds[name].values for name in ds.data_vars if name.startswith(prefix + "__")}
     return pd.DataFrame(cols)
 
@@ -137,10 +209,31 @@ def fit_with_effects(table: pd.DataFrame, level: str, effects: list[str], stage:
                      only: tuple[str, ...] | None = None) -> tuple[Fit, dict]:
     """Weighted fit of the base columns plus the columns of the model's effects at this level.
 
-    ``stage`` and ``level`` select each effect's signature columns
-    (``Effect.columns``); effects that correct the data instead of adding
-    columns are skipped; ``only`` restricts the effects considered. Returns the
-    fit and, per effect, its coefficients and standard errors.
+    Effects that correct the data instead of adding columns are skipped.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        The observation table: ``value_dn``, ``sigma_dn`` (its noise, same units), ``group`` and the base
+        columns ``x_<name>`` (one block of coefficients per group, :func:`pipeline.stats.fitting.base_design`).
+    level : str
+        The table's level (e.g. ``"setting"``, ``"frame"``), which with ``stage`` selects each effect's
+        signature columns (``Effect.columns``).
+    effects : list[str]
+        The names of the model's effects.
+    stage : str
+        The stage fitting, e.g. ``"linearity"``.
+    only : tuple[str, ...] or None, optional
+        Restricts the effects considered to these; ``None`` (default) considers all of ``effects``.
+
+    Returns
+    -------
+    fit : pipeline.stats.fitting.Fit
+        The weighted least-squares fit of ``value_dn`` on the base and effect columns (coefficients, their
+        covariance, prediction, residual ``z``, chi-square and degrees of freedom).
+    coefficients : dict[str, tuple[numpy.ndarray, numpy.ndarray]]
+        Per effect whose columns entered the fit, its coefficients and their standard errors
+        (:func:`effect_coefficients`).
     """
     X, _ = base_design(table)
     extra = []
@@ -159,7 +252,23 @@ def fit_with_effects(table: pd.DataFrame, level: str, effects: list[str], stage:
 
 
 def effect_coefficients(fit: Fit, first_column: int, extra: list[tuple[str, np.ndarray]]) -> dict:
-    """Slice a fit's coefficients and standard errors per effect, in the order the columns were added."""
+    """Slice a fit's coefficients and standard errors per effect, in the order the columns were added.
+
+    Parameters
+    ----------
+    fit : pipeline.stats.fitting.Fit
+        The fit whose design was the base columns followed by each effect's columns.
+    first_column : int
+        The index of the first effect column (the number of base columns).
+    extra : list[tuple[str, numpy.ndarray]]
+        (effect name, its columns of shape (rows, k)) in the order they were appended to the design.
+
+    Returns
+    -------
+    dict[str, tuple[numpy.ndarray, numpy.ndarray]]
+        Effect name -> (its k coefficients, their standard errors from the fit's covariance), in the units of
+        the table's values per unit of the effect's columns.
+    """
     out, col = {}, first_column
     sigma = np.sqrt(np.diag(fit.cov))
     for name, cols in extra:

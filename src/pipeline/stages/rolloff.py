@@ -318,16 +318,44 @@ def _deg_per_px(theta: np.ndarray) -> float:
 def reduce_rolloff(dataset: Dataset, geometry: dict[str, xr.Dataset], config: dict,
                    progress: bool = False, corners: FrameCorners | None = None,
                    linearity: dict[str, xr.Dataset] | None = None) -> dict:
-    """Stream the roll-off frames once (dark frames first); ``corners``, when given, records each signal frame's
-    unlit corners against the dark model (:class:`pipeline.radiometry.unlit_corners.FrameCorners`).
+    """Stream the roll-off frames once (dark frames first).
 
-    With a lens's linearity artefact (``linearity``: lens -> artefact) every dark-subtracted pixel the stage
+    With a lens's linearity artefact every dark-subtracted pixel the stage
     measures (the averaging circle, the halo annulus, the port's own pixels) goes through the chain's response
     steps that artefact fitted, the inverse nonlinearity and the flat field
     (:class:`pipeline.radiometry.response.PixelResponse`): a roll-off point is the ratio of the light at an
     angle to that on the axis, and a sensor that bends its bright readings makes that ratio too high (beta
     0.047 at F = 15,600 DN, the axis at 11,000 DN: g at 55 degrees 0.6 % high); with the nonlinearity the
     same pixels at beta + sigma_beta are kept as well, for its uncertainty (:func:`compute`).
+
+    Parameters
+    ----------
+    dataset : pipeline.io.dataset.Dataset
+        The dataset; its ``rolloff`` experiment's frames are read (and immersion/water.yaml when present).
+    geometry : dict[str, xarray.Dataset]
+        Lens -> its geometry artefact (field angle maps per medium and band).
+    config : dict
+        The run's configuration (section ``rolloff``).
+    progress : bool, default False
+        Show a progress bar.
+    corners : pipeline.radiometry.unlit_corners.FrameCorners or None, optional
+        When given, records each signal frame's unlit corners against the dark model.
+    linearity : dict[str, xarray.Dataset] or None, optional
+        Lens -> its linearity artefact, whose response steps are applied.
+
+    Returns
+    -------
+    dict
+        ``acc`` ((lens, medium, azimuth, angle, band) -> one dict per frame: the dark-subtracted, linearised
+        pixel values of the circle in DN, annulus and halo means in DN, saturation, exposure and ISO),
+        ``masks`` and ``dropped`` (per setting: its pixel sets, or why its spot cannot be measured), ``static``
+        ((lens, medium) -> dark levels and variances, field angle maps), ``inputs``, ``water`` (the tank's
+        water or None), ``response_corrections`` and ``beta_shift``.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the linearity artefact's flat field does not match the band images.
     """
     cfg = config[STAGE]
     frames = dataset.frames(STAGE)
@@ -472,7 +500,25 @@ def _halo_weights(spot: np.ndarray, annulus: np.ndarray, sigma_px: float) -> np.
 
 
 def setting_table(reduced: dict, config: dict, beta_shift: bool = False) -> pd.DataFrame:
-    """One row per setting and band; with ``beta_shift`` the pixels linearised at beta + sigma_beta."""
+    """One row per setting and band; with ``beta_shift`` the pixels linearised at beta + sigma_beta.
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_rolloff` returned.
+    config : dict
+        The run's configuration.
+    beta_shift : bool, default False
+        Read the pixels linearised at beta + sigma_beta instead of beta.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Per (lens, band, medium, azimuth, angle): ``signal_dn`` (mean dark-subtracted signal over the circle,
+        DN), ``diff_var_dn2`` (frame-to-frame variance, DN^2), ``theta_deg`` and ``phi_deg`` (the spot's field
+        angle and azimuth, degree) with their uncertainties and gradients, annulus and halo means (DN), dark
+        variance (DN^2), the spot's position (band pixels), ``saturated``, ``exposure_s`` and ``iso``.
+    """
     sfx = "_beta" if beta_shift else ""
     rows = []
     for key, frames in reduced["acc"].items():
@@ -535,6 +581,17 @@ def noise_model(tab: pd.DataFrame) -> dict[str, tuple[float, float]]:
     fitted to the frame-to-frame variances of the settings, iteratively
     reweighted by 1 / model^2 (weights from the noisy estimates themselves
     would favour the low ones).
+
+    Parameters
+    ----------
+    tab : pandas.DataFrame
+        The setting table of :func:`setting_table` (``band``, ``signal_dn``, ``diff_var_dn2``,
+        ``dark_var_dn2``, ``saturated``).
+
+    Returns
+    -------
+    dict[str, tuple[float, float]]
+        Band -> (k in DN, r in DN^2).
     """
     out = {}
     for band, g in tab.groupby("band"):
@@ -620,8 +677,25 @@ def _fit_setting(obs: pd.DataFrame, effects: list[str]):
 
 
 def water_indices(reduced: dict, config: dict) -> tuple[dict[str, float], float]:
-    """n_w per band (Quan and Fry at the band's nominal wavelength; the tank's water from
-    immersion/water.yaml, else ``rolloff.water_temperature_c`` and ``water_salinity_psu``) and n_g."""
+    """n_w per band (Quan and Fry at the band's nominal wavelength) and n_g.
+
+    The tank's water from immersion/water.yaml, else ``rolloff.water_temperature_c`` and
+    ``rolloff.water_salinity_psu``.
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_rolloff` returned (its ``water``).
+    config : dict
+        The run's configuration (section ``rolloff``).
+
+    Returns
+    -------
+    n_w : dict[str, float]
+        Band -> the water's refractive index.
+    n_g : float
+        The refractive index of the lens's front surface (``rolloff.front_surface_index``).
+    """
     cfg = config[STAGE]
     water = reduced.get("water") or {"temperature_c": cfg["water_temperature_c"],
                                      "salinity_psu": cfg["water_salinity_psu"]}
@@ -721,6 +795,28 @@ def _add_centroid_sigma(tab: pd.DataFrame, noise_g: tuple[float, float]) -> None
 
 
 def analyse_rolloff(reduced: dict, config: dict, effects: list[str], beta_shift: bool = False) -> dict[str, xr.Dataset]:
+    """Fit the roll-off curves of every lens, medium and band from the reduced settings; one artefact per lens.
+
+    The spots' values are normalised by a first fit's a0 (g(0) = 1) and fitted with their halo, the
+    principal point's share of the field angle's error and the model's effects (docs/stages.md).
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_rolloff` returned.
+    config : dict
+        The run's configuration.
+    effects : list[str]
+        The model's effects.
+    beta_shift : bool, default False
+        Use the pixels linearised at beta + sigma_beta (for :func:`add_nonlinearity_covariance`).
+
+    Returns
+    -------
+    dict[str, xarray.Dataset]
+        Lens -> its roll-off artefact: the curves' coefficients and covariance per medium and band, the
+        observation tables and the noise model.
+    """
     tab = setting_table(reduced, config, beta_shift)
     noise = noise_model(tab)
     k = tab["band"].map(lambda b: noise[b][0])
@@ -827,8 +923,25 @@ def analyse_rolloff(reduced: dict, config: dict, effects: list[str], beta_shift:
 
 
 def check_settings(reduced: dict, config: dict, frames_csv) -> None:
-    """Stop with one line when a lens and medium keeps fewer than ``rolloff.min_settings`` measured settings
-    after the settings whose spot cannot be measured were dropped (:func:`_setting_masks`)."""
+    """Stop with one line when a lens and medium keeps too few measured settings.
+
+    That is fewer than ``rolloff.min_settings`` after the settings whose spot cannot be measured were
+    dropped (:func:`_setting_masks`).
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_rolloff` returned.
+    config : dict
+        The run's configuration.
+    frames_csv : pathlib.Path
+        The roll-off frames.csv, named in the error.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        Naming the lens, the medium and why the first dropped setting was dropped.
+    """
     need = int(config[STAGE]["min_settings"])
     dropped = reduced.get("dropped", {})
     for lens, medium in sorted(reduced["static"]):
@@ -918,10 +1031,19 @@ def _lens_dataset(lens, obs, water_tab, curves, scale, effect_params, fit, noise
 
 # ----------------------------------------------------------------------------- the stage
 def add_nonlinearity_covariance(art: xr.Dataset, shifted: xr.Dataset) -> None:
-    """The fitted nonlinearity's uncertainty in the roll-off curves: the whole analysis repeated on the pixels
-    linearised at beta + sigma_beta (``shifted``), the change d of each curve's coefficients added to its
-    covariance as d d^T (first order; common to the points of a curve, so it is a covariance, not a point's noise).
-    The change is kept as ``rolloff_nonlinearity_shift``."""
+    """The fitted nonlinearity's uncertainty in the roll-off curves.
+
+    The whole analysis is repeated on the pixels linearised at beta + sigma_beta (``shifted``); the change d
+    of each curve's coefficients is added to its covariance as d d^T (first order; common to the points of a
+    curve, so it is a covariance, not a point's noise). The change is kept as ``rolloff_nonlinearity_shift``.
+
+    Parameters
+    ----------
+    art : xarray.Dataset
+        The lens's roll-off artefact, modified in place.
+    shifted : xarray.Dataset
+        The same artefact from the pixels at beta + sigma_beta.
+    """
     delta = shifted["rolloff_coefficients"].values - art["rolloff_coefficients"].values
     delta = np.where(np.isfinite(delta), delta, 0.0)
     art["rolloff_covariance"].values = art["rolloff_covariance"].values + delta[..., :, None] * delta[..., None, :]
@@ -933,7 +1055,24 @@ def add_nonlinearity_covariance(art: xr.Dataset, shifted: xr.Dataset) -> None:
 
 
 def compute(ctx) -> xr.Dataset:
-    """The roll-off artefact of one lens (the stage runner's contract)."""
+    """The roll-off artefact of one lens (the stage runner's contract).
+
+    Parameters
+    ----------
+    ctx : pipeline.runner.workflow.StageContext
+        The job: the lens's dataset, the configuration, the model's effects and the upstream ``geometry``
+        artefact, and when given the ``dark`` (the unlit corners' records) and ``linearity`` ones.
+
+    Returns
+    -------
+    xarray.Dataset
+        The lens's roll-off artefact with its ``obs_corner`` table; the frames' sha256 are recorded in ``ctx``.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the lens has too few measurable settings or no roll-off frames.
+    """
     geometry = {ctx.lens: ctx.upstream["geometry"]}
     corners = FrameCorners.of_upstream(ctx.lens, ctx.upstream, ctx.dataset.projection, ctx.config["bias"])
     linearity = {ctx.lens: ctx.upstream["linearity"]} if ctx.upstream.get("linearity") is not None else None

@@ -78,6 +78,22 @@ def central_masks(geometry: dict[str, xr.Dataset], half_angle_deg: float, min_pi
 
     When fewer than ``min_pixels`` band pixels fall inside (coarse images),
     the mask is the ``min_pixels`` pixels with the smallest theta.
+
+    Parameters
+    ----------
+    geometry : dict[str, xarray.Dataset]
+        Lens -> its geometry artefact (the ``theta_deg`` map, degree).
+    half_angle_deg : float
+        The mask's half angle about the axis, degree.
+    min_pixels : int
+        The fewest band pixels a mask holds.
+    medium : str, default "air"
+        The medium whose theta map is read.
+
+    Returns
+    -------
+    dict[tuple[str, str], numpy.ndarray]
+        (lens, band) -> boolean mask of the band plane's shape.
     """
     out = {}
     for lens, geo in geometry.items():
@@ -111,8 +127,27 @@ def _wavelength_key(row) -> float:
 
 
 def central_frames(dataset: Dataset, experiment: str, saturation_margin_dn: float = 1.0, progress: bool = False):
-    """The experiment's frames as :func:`reduce_central` reads them, decoding from this call on: a stage makes
-    its masks and reads its upstream artefacts while the first frame decodes, then hands the stream on."""
+    """The experiment's frames as :func:`reduce_central` reads them, decoding from this call on.
+
+    A stage makes its masks and reads its upstream artefacts while the first frame decodes, then hands the
+    stream on.
+
+    Parameters
+    ----------
+    dataset : pipeline.io.dataset.Dataset
+        The dataset.
+    experiment : str
+        The experiment, e.g. ``"spectral"`` or ``"absolute"``.
+    saturation_margin_dn : float, default 1.0
+        A band pixel is saturated where a CFA site reaches the white level less this, DN.
+    progress : bool, default False
+        Show a progress bar.
+
+    Returns
+    -------
+    pipeline.io.frames.FrameStream
+        The decoded frames, in frames.csv order.
+    """
     return iter_frames(dataset, experiment, dataset.frames(experiment), saturation_margin_dn=saturation_margin_dn,
                        progress=progress)
 
@@ -123,10 +158,36 @@ def reduce_central(dataset: Dataset, experiment: str, masks: dict[tuple[str, str
     """Stream an experiment's frames once: running moments of the mask pixels per setting.
 
     Setting key: (lens, band, kind, wavelength_nm or NO_WAVELENGTH, iso, exposure_s).
-    Returns ``moments``, per-frame ``frames`` table, ``inputs`` (file -> sha256). ``corners``, when given,
-    records each signal frame's unlit corners against the dark model
-    (:class:`pipeline.radiometry.unlit_corners.FrameCorners`). ``stream``: the frames of
-    :func:`central_frames` already decoding (made here otherwise).
+
+    Parameters
+    ----------
+    dataset : pipeline.io.dataset.Dataset
+        The dataset.
+    experiment : str
+        The experiment, e.g. ``"spectral"`` or ``"absolute"``.
+    masks : dict[tuple[str, str], numpy.ndarray]
+        (lens, band) -> the averaging mask (:func:`central_masks`); only these lenses are read.
+    saturation_margin_dn : float, default 1.0
+        A band pixel is saturated where a CFA site reaches the white level less this, DN.
+    progress : bool, default False
+        Show a progress bar.
+    corners : pipeline.radiometry.unlit_corners.FrameCorners or None, optional
+        When given, records each signal frame's unlit corners against the dark model.
+    stream : pipeline.io.frames.FrameStream or None, optional
+        The frames of :func:`central_frames` already decoding (made here otherwise).
+
+    Returns
+    -------
+    dict
+        ``moments`` (setting key -> running moments of the mask's pixels, DN), ``frames`` (one row per frame,
+        lens and band: ``mask_mean_dn`` in DN, ``saturated``, the setting), ``inputs`` (file -> sha256) and
+        ``masks``.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If a signal frame of the spectral experiment has no wavelength, a band image does not match the mask,
+        or there are no frames.
     """
     lenses = sorted({lens for lens, _ in masks})
     moments = defaultdict(RunningMoments)
@@ -169,6 +230,26 @@ def dark_levels(reduced: dict, dark: dict[str, xr.Dataset] | None, frames_csv: P
 
     From the experiment's dark frames at the same setting; otherwise the dark
     artefact's model plus its fixed pattern averaged over the mask.
+
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_central` returned.
+    dark : dict[str, xarray.Dataset] or None
+        Lens -> its dark artefact, for settings without dark frames.
+    frames_csv : pathlib.Path
+        The experiment's frames.csv, named in the error.
+
+    Returns
+    -------
+    dict
+        (lens, band, iso, exposure_s) -> ``level_dn`` (DN), ``sigma_dn`` (DN), ``n_frames`` (dark frames
+        averaged; 0 from the artefact) and ``source``.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If a signal setting has neither dark frames nor a dark artefact.
     """
     moments = reduced["moments"]
     out = {}
@@ -200,11 +281,24 @@ def dark_levels(reduced: dict, dark: dict[str, xr.Dataset] | None, frames_csv: P
 def frame_table(reduced: dict, darks: dict, linearity: dict[str, xr.Dataset] | None = None) -> pd.DataFrame:
     """Frame-level observation table: dark-corrected mask means with their temporal noise.
 
-    ``value_dn`` and ``sigma_dn`` in DN above dark, linearised when the lens's
-    linearity artefact (``linearity``: lens -> artefact) fitted the
-    nonlinearity; ``dn_per_s`` and ``dn_per_s_sigma`` the same per second at
-    ISO 100 through the chain's response corrections (Eq. 2 with the true
-    exposure and gain; the nominal Eq. 2 without a linearity artefact).
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_central` returned.
+    darks : dict
+        What :func:`dark_levels` returned.
+    linearity : dict[str, xarray.Dataset] or None, optional
+        Lens -> its linearity artefact, whose response corrections are applied.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per frame, lens and band: ``value_dn`` and ``sigma_dn`` in DN above dark, linearised when the
+        lens's linearity artefact fitted the nonlinearity; ``dn_per_s`` and ``dn_per_s_sigma`` the same per
+        second at ISO 100 through the chain's response corrections (Eq. 2 with the true exposure and gain; the
+        nominal Eq. 2 without a linearity artefact), in DN s-1; ``dark_dn``, ``n_mask``, ``pred_dn`` and ``z``
+        of a constant level per setting, ``saturated`` and ``used``. Frames without a dark level are left out;
+        ``attrs["rms_z"]`` holds the fit's RMS of z.
     """
     linearity = linearity or {}
     fr = reduced["frames"].copy()
@@ -246,8 +340,34 @@ def analyse_spectral(reduced: dict, darks: dict, photodiode: pd.DataFrame, photo
                      config: dict, linearity: dict[str, xr.Dataset] | None = None) -> dict[str, xr.Dataset]:
     """Response, effective wavelength and bandwidth per lens and band.
 
-    ``linearity`` (lens -> artefact), when given, brings every setting to DN
-    per second at ISO 100 through the chain's response corrections.
+    Parameters
+    ----------
+    reduced : dict
+        What :func:`reduce_central` returned.
+    darks : dict
+        What :func:`dark_levels` returned.
+    photodiode : pandas.DataFrame
+        The photodiode's readings (:func:`pipeline.io.dataset.read_photodiode`): one per wavelength used.
+    photodiode_path : pathlib.Path
+        The photodiode file, named in the errors (its folder's frames.csv too).
+    config : dict
+        The run's configuration (section ``spectral``).
+    linearity : dict[str, xarray.Dataset] or None, optional
+        Lens -> its linearity artefact: brings every setting to DN per second at ISO 100 through the chain's
+        response corrections.
+
+    Returns
+    -------
+    dict[str, xarray.Dataset]
+        Lens -> its spectral artefact: the peak-normalised relative response per band and wavelength with its
+        uncertainty and covariance, the signal in DN s-1, the peak and effective wavelengths and bandwidths
+        (nm), and the frame table.
+
+    Raises
+    ------
+    pipeline.errors.InputError
+        If the mask saturates, a lens has fewer than two wavelengths, or the photodiode has no (or several)
+        readings at a wavelength used or a reading that is not positive.
     """
     moments = reduced["moments"]
     linearity = linearity or {}
@@ -366,9 +486,28 @@ def _lens_dataset(lens, wl, dn, dn_sigma, pd_sig, pd_std, s, s_sigma, cov, stats
 
 # ----------------------------------------------------------------------------- the stage
 def reduce_lens_central(ctx, experiment: str):
-    """One lens job's reduction of a central-mask experiment (spectral, absolute): the mask from the lens's
-    in-air theta map, the frames streamed once (the first decoding while the mask is made and the dark
-    artefact read), the frames recorded, the dark level of each setting. Returns (reduced, darks, corners)."""
+    """One lens job's reduction of a central-mask experiment (spectral, absolute).
+
+    The mask from the lens's in-air theta map, the frames streamed once (the first decoding while the mask is
+    made and the dark artefact read), the frames recorded, the dark level of each setting.
+
+    Parameters
+    ----------
+    ctx : pipeline.runner.workflow.StageContext
+        The job: the lens's dataset, the stage's configuration (``mask_half_angle_deg``, ``mask_min_pixels``)
+        and the upstream ``geometry`` and (when given) ``dark`` artefacts.
+    experiment : str
+        ``"spectral"`` or ``"absolute"``.
+
+    Returns
+    -------
+    reduced : dict
+        What :func:`reduce_central` returned.
+    darks : dict
+        What :func:`dark_levels` returned.
+    corners : pipeline.radiometry.unlit_corners.FrameCorners
+        The signal frames' unlit-corner records.
+    """
     cfg = ctx.params
     with central_frames(ctx.dataset, experiment, progress=ctx.progress) as stream:
         masks = central_masks({ctx.lens: ctx.upstream["geometry"]}, cfg["mask_half_angle_deg"],
@@ -387,6 +526,16 @@ def compute(ctx) -> xr.Dataset:
     dark artefact, when given, serves only signal settings without dark frames;
     the linearity artefact, when given, corrects every setting's signal
     through the measurement chain (``response_corrections`` attribute).
+
+    Parameters
+    ----------
+    ctx : pipeline.runner.workflow.StageContext
+        The job: the lens's dataset, the configuration and the upstream artefacts.
+
+    Returns
+    -------
+    xarray.Dataset
+        The lens's spectral artefact (:func:`analyse_spectral`) with its ``obs_corner`` table.
     """
     photodiode = read_photodiode(ctx.dataset)      # bad sidecar input fails before any frame is decoded
     reduced, darks, corners = reduce_lens_central(ctx, STAGE)

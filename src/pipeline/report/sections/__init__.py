@@ -9,7 +9,13 @@ from pipeline.report.registry import SectionSpec, sections_in_order
 
 
 def registered_sections() -> list[SectionSpec]:
-    """Every section of the report, in page order: each module of this package is imported, so it registers."""
+    """Every section of the report, in page order: each module of this package is imported, so it registers.
+
+    Returns
+    -------
+    list[pipeline.report.registry.SectionSpec]
+        The sections, sorted by their order.
+    """
     for info in pkgutil.iter_modules(__path__):
         importlib.import_module(f"{__name__}.{info.name}")
     return sections_in_order()

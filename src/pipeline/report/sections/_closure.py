@@ -48,7 +48,18 @@ def _flag(row, column: str) -> bool:
 
 
 def is_structured(row) -> bool:
-    """A residual test's row is structured when its ``significant`` column says so."""
+    """A residual test's row is structured when its ``significant`` column says so.
+
+    Parameters
+    ----------
+    row : pandas.Series or dict
+        One row of ``residual_tests.csv``.
+
+    Returns
+    -------
+    bool
+        True when ``significant`` is true (as a bool, a number or its text).
+    """
     return _flag(row, "significant")
 
 
@@ -62,7 +73,18 @@ def _text(v) -> str:
 
 
 def residual_tests_table(tests: pd.DataFrame) -> Table:
-    """One row per experiment and level; the structured rows marked (and listed first in their experiment)."""
+    """One row per experiment and level; the structured rows marked (and listed first in their experiment).
+
+    Parameters
+    ----------
+    tests : pandas.DataFrame
+        The diagnostics' ``residual_tests.csv``.
+
+    Returns
+    -------
+    pipeline.report.content.Table
+        n, dof, chi-square over dof, the p-values, whether structured, the covariate and image-plane cell.
+    """
     rows, marked = [], []
     for _, r in tests.iterrows():
         dof = r.get("dof")
@@ -87,7 +109,19 @@ def residual_tests_table(tests: pd.DataFrame) -> Table:
 
 
 def lens_tests_table(tests: pd.DataFrame) -> Table:
-    """One row per effect and table tested for one value shared by the two lenses against one per lens."""
+    """One row per effect and table tested for one value shared by the two lenses against one per lens.
+
+    Parameters
+    ----------
+    tests : pandas.DataFrame
+        The diagnostics' ``lens_tests.csv``.
+
+    Returns
+    -------
+    pipeline.report.content.Table
+        Per lens the value and its 95 % interval, the two chi-squares, the dof and p, and whether the lenses
+        differ (highlighted).
+    """
     rows, marked = [], []
     for _, r in tests.iterrows():
         units = "" if _text(r.get("units")) in ("", "1") else f" {_text(r.get('units'))}"
@@ -109,7 +143,20 @@ def lens_tests_table(tests: pd.DataFrame) -> Table:
 
 
 def closure_frame(ds: xr.Dataset) -> tuple[pd.DataFrame, dict[str, str]]:
-    """The closure table as a data frame (one row per measurement) and the units of each numeric covariate."""
+    """The closure table as a data frame (one row per measurement) and the units of each numeric covariate.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The closure table (``residuals.nc``), variables along ``measurement``.
+
+    Returns
+    -------
+    frame : pandas.DataFrame
+        Its variables along ``measurement`` as columns (text as ``str``).
+    units : dict[str, str]
+        Variable -> its units attribute ("" when absent).
+    """
     frame = pd.DataFrame({name: ds[name].values for name in ds.data_vars if ds[name].dims == ("measurement",)})
     for name in frame.columns:
         if frame[name].dtype == object or frame[name].dtype.kind in "SU":
@@ -126,7 +173,22 @@ def _numeric_covariates(frame: pd.DataFrame) -> list[str]:
 def plotted_covariate(rows: pd.DataFrame, tests: pd.DataFrame, bins: int) -> str | None:
     """The covariate to plot one experiment's z against: the one its structured test names (its first test
     when none is structured) when the closure table has it, else the numeric covariate whose grouping of z
-    is most significant; None when no covariate varies."""
+    is most significant; None when no covariate varies.
+
+    Parameters
+    ----------
+    rows : pandas.DataFrame
+        One experiment's rows of the closure table (finite ``z``).
+    tests : pandas.DataFrame
+        That experiment's rows of ``residual_tests.csv`` (may be empty).
+    bins : int
+        The quantile bins of the covariate test (``diagnostics.covariate_bins``).
+
+    Returns
+    -------
+    str or None
+        The covariate's column.
+    """
     for structured_first in (True, False):
         for _, r in tests.iterrows():
             if structured_first and not is_structured(r):
@@ -155,7 +217,28 @@ def _structured_levels(tests: pd.DataFrame) -> set[str]:
 def z_covariate_figure(experiment: str, rows: pd.DataFrame, covariate: str, units: dict[str, str],
                        structured: set[str], bins: int) -> Figure:
     """z of one experiment's measurements against ``covariate``, one colour per level, the structured
-    levels in vermillion, the ±2 band shaded and the mean z in quantile bins of the covariate."""
+    levels in vermillion, the ±2 band shaded and the mean z in quantile bins of the covariate.
+
+    Parameters
+    ----------
+    experiment : str
+        The experiment, for the title and caption.
+    rows : pandas.DataFrame
+        Its rows of the closure table.
+    covariate : str
+        The column to plot against (text covariates spread as categories).
+    units : dict[str, str]
+        Column -> units, for the axis label.
+    structured : set[str]
+        The levels (tables) the residual tests call structured.
+    bins : int
+        The number of quantile bins of the binned mean.
+
+    Returns
+    -------
+    pipeline.report.content.Figure
+        The figure (z clipped at the plot's limit).
+    """
     fig, ax = plt.subplots(figsize=(7.5, 2.9))
     ax.axhspan(-2, 2, color=OKABE_ITO[2], alpha=0.15, lw=0, label="±2 (95 % of a unit normal)")
     ax.axhline(0, color=OKABE_ITO[0], lw=0.8)
@@ -215,7 +298,22 @@ def z_covariate_figure(experiment: str, rows: pd.DataFrame, covariate: str, unit
 def image_plane_figure(experiment: str, rows: pd.DataFrame, cells: int) -> Figure | None:
     """Mean z per cell of a ``cells`` x ``cells`` grid over the measured span of the pixel positions (the
     grid of the residual tests: per table, over all lenses), one panel per table (level) and lens, the
-    cell that departs most in each table outlined; None without pixel positions."""
+    cell that departs most in each table outlined; None without pixel positions.
+
+    Parameters
+    ----------
+    experiment : str
+        The experiment, for the title and caption.
+    rows : pandas.DataFrame
+        Its rows of the closure table (pixel position columns, ``z``, ``level``, ``lens``).
+    cells : int
+        The grid's cells per side (``diagnostics.image_plane_cells``).
+
+    Returns
+    -------
+    pipeline.report.content.Figure or None
+        The figure; None when no table has pixel positions and enough measurements (two per cell).
+    """
     if not all(c in rows for c in IMAGE_PLANE_COLUMNS):
         return None
     panels, patterns = [], []
@@ -276,7 +374,24 @@ def image_plane_figure(experiment: str, rows: pd.DataFrame, cells: int) -> Figur
 
 
 def closure_figures(closure: xr.Dataset | None, tests: pd.DataFrame, bins: int, cells: int) -> list[Figure]:
-    """Per experiment of the closure table: z against its covariate and, with pixel positions, the image-plane map."""
+    """Per experiment of the closure table: z against its covariate and, with pixel positions, the image-plane map.
+
+    Parameters
+    ----------
+    closure : xarray.Dataset or None
+        The closure table, or None when the diagnostics did not write it.
+    tests : pandas.DataFrame
+        ``residual_tests.csv`` (may be empty).
+    bins : int
+        The quantile bins of the covariate test.
+    cells : int
+        The image-plane grid's cells per side.
+
+    Returns
+    -------
+    list[pipeline.report.content.Figure]
+        The figures in the closure table's order of experiments; empty without a closure table with ``z``.
+    """
     if closure is None or "z" not in closure:
         return []
     frame, units = closure_frame(closure)

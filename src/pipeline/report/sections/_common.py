@@ -13,12 +13,34 @@ __all__ = ["z_guides", "not_run", "effects_table", "per_lens", "lens_title"]
 
 
 def z_guides(ax):
-    """Horizontal guides of a normalised-residual plot: 0, ±1 (dotted), ±3 (dashed)."""
+    """Horizontal guides of a normalised-residual plot: 0, ±1 (dotted), ±3 (dashed).
+
+    Parameters
+    ----------
+    ax : matplotlib.axes.Axes
+        The plot's axes.
+    """
     for level, style in ((0, "-"), (1, ":"), (-1, ":"), (3, "--"), (-3, "--")):
         ax.axhline(level, color="grey", lw=0.8, ls=style, zorder=0)
 
 
 def not_run(stage: str, title: str, skipped: dict[str, str]) -> Text:
+    """The note that a stage was not run, with its reason and a link to the "Stages not run" section.
+
+    Parameters
+    ----------
+    stage : str
+        The stage, e.g. ``"rolloff"``.
+    title : str
+        The stage's name as the page writes it.
+    skipped : dict[str, str]
+        Stage -> why it was not run.
+
+    Returns
+    -------
+    pipeline.report.content.Text
+        A note.
+    """
     reason = skipped.get(stage)
     why = Markup(": {}").format(reason) if reason else Markup("; no artefacts were given")
     return Text(Markup('The {} stage was not run{} (see <a href="#skipped">Stages not run</a>).').format(title, why),
@@ -26,11 +48,37 @@ def not_run(stage: str, title: str, skipped: dict[str, str]) -> Text:
 
 
 def lens_title(lens: str, suffix: str = "") -> str:
+    """The heading of one lens's part of a section.
+
+    Parameters
+    ----------
+    lens : str
+        The lens.
+    suffix : str, optional
+        Text after the lens's name.
+
+    Returns
+    -------
+    str
+        E.g. ``Lens “front”``.
+    """
     return f"Lens “{lens}”{suffix}"
 
 
 def effects_table(ds: xr.Dataset):
-    """Fitted effect parameters stored as ``effect_<name>`` (+ ``_sigma``), one row per element."""
+    """Fitted effect parameters stored as ``effect_<name>`` (+ ``_sigma``), one row per element.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        A stage's artefact.
+
+    Returns
+    -------
+    pipeline.report.content.Table or pipeline.report.content.Text
+        The table (effect, description, value ± standard error with units), or a note when the artefact holds
+        no effect parameter.
+    """
     names = [v for v in ds.data_vars if v.startswith("effect_") and not v.endswith("_sigma")]
     rows = []
     for v in names:
@@ -51,8 +99,26 @@ def effects_table(ds: xr.Dataset):
 
 
 def per_lens(inputs: ReportInputs, stage: str, title: str, build_lens, anchor: str | None = None) -> list:
-    """One :class:`Group` per lens of ``stage`` (``build_lens(lens, ds, inputs)`` gives its blocks),
-    or a note that the stage did not run."""
+    """One :class:`Group` per lens of ``stage``, or a note that the stage did not run.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+    stage : str
+        The stage whose artefacts are shown.
+    title : str
+        The stage's name as the page writes it (for the note).
+    build_lens : callable
+        ``build_lens(lens, ds, inputs)`` -> the lens's blocks.
+    anchor : str or None, optional
+        The groups' anchor prefix; default ``stage``.
+
+    Returns
+    -------
+    list
+        The groups (anchored ``<anchor>-<lens>``), or the one note of :func:`not_run`.
+    """
     arts = inputs.stage(stage)
     if not arts:
         return [not_run(stage, title, inputs.skipped)]
@@ -62,9 +128,35 @@ def per_lens(inputs: ReportInputs, stage: str, title: str, build_lens, anchor: s
 
 def residual_figure(tab, x: str, xlabel: str, name: str, caption: str, group: str | None = None,
                     group_label: str = "", logx: bool = False):
-    """Where a stage's model fails: the normalised residuals z of its observation table ``tab`` against
-    the covariate ``x``, one colour per band, one marker per value of ``group`` (e.g. azimuth plane or
-    medium), with the ±1 and ±3 guides. None when the table has no z or no ``x``."""
+    """Where a stage's model fails: the normalised residuals z of its observation table against a covariate.
+
+    One colour per band, one marker per value of ``group`` (e.g. azimuth plane or medium), with the ±1 and
+    ±3 guides.
+
+    Parameters
+    ----------
+    tab : pandas.DataFrame
+        The observation table (``z``, the covariate, ``band``; only ``used`` rows are drawn when it has them).
+    x : str
+        The covariate's column.
+    xlabel : str
+        The x axis's label (with units).
+    name : str
+        The figure's short name.
+    caption : str
+        Its caption.
+    group : str or None, optional
+        A column whose values get their own marker.
+    group_label : str, optional
+        What a value of ``group`` is called in the legend.
+    logx : bool, default False
+        A logarithmic x axis.
+
+    Returns
+    -------
+    pipeline.report.content.Figure or None
+        The figure; None when the table has no z or no ``x``.
+    """
     import matplotlib.pyplot as plt
 
     from pipeline.report.content import draw

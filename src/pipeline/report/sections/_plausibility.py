@@ -19,7 +19,18 @@ def _text(value) -> str:
 def plausibility_blocks(inputs) -> list:
     """A callout and a table of the values outside their range (status, value ± standard uncertainty, range,
     how far beyond it, how the value was derived, the range's reason), or one line saying every checked value
-    is within its range; nothing when the diagnostics wrote no plausibility table."""
+    is within its range; nothing when the diagnostics wrote no plausibility table.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs (its ``plausibility`` table).
+
+    Returns
+    -------
+    list
+        The blocks (:mod:`pipeline.report.content`).
+    """
     table = inputs.plausibility
     if table is None or table.empty or "status" not in table:
         return []

@@ -83,4 +83,16 @@ def _absolute_section(lens: str, ds: xr.Dataset, inputs) -> list:
          intro="Effective band radiance of the calibration source, dark-subtracted DN per second and the "
                "calibration coefficient R⁻¹ with its uncertainty budget (Section 3.5).")
 def absolute_section(inputs) -> list:
+    """The "Absolute spectral radiance" section: one group per lens with its absolute artefact, or a note that the stage was not run.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     return per_lens(inputs, "absolute", "absolute spectral radiance", _absolute_section)

@@ -209,4 +209,16 @@ def _residuals_figure(lens: str, tab, bands: list[str]):
          intro="Dark frames per lens: distribution of the frame-averaged dark image, its centre and width against "
                "exposure time and ISO, the fitted bias and dark current, read noise and hot pixels (Section 3.7).")
 def dark_section(inputs) -> list:
+    """The "Dark frames" section: one group per lens with its dark artefact, or a note that the stage was not run.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     return per_lens(inputs, "dark", "dark", _dark_section)

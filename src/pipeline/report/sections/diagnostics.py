@@ -25,6 +25,18 @@ __all__ = ["as_bool", "top_effect", "amplitude_text", "run_labels", "history_fig
 
 
 def as_bool(x) -> bool:
+    """A table cell read as a flag: True, 1 or the text "true", "1" or "yes" (any case); NaN and unreadable values are False.
+
+    Parameters
+    ----------
+    x : object
+        The cell.
+
+    Returns
+    -------
+    bool
+        The flag.
+    """
     if isinstance(x, str):
         return x.strip().lower() in ("true", "1", "yes")
     try:
@@ -34,7 +46,20 @@ def as_bool(x) -> bool:
 
 
 def top_effect(missing: pd.DataFrame, experiment: str | None = None):
-    """The best-ranked candidate (of one experiment when given), or None."""
+    """The best-ranked candidate (of one experiment when given), or None.
+
+    Parameters
+    ----------
+    missing : pandas.DataFrame
+        The diagnostics' ``missing_effects.csv``.
+    experiment : str or None, optional
+        Only that experiment's candidates.
+
+    Returns
+    -------
+    pandas.Series or None
+        The row of the lowest ``rank`` (the first row without the column).
+    """
     if missing.empty:
         return None
     m = missing if experiment is None else missing[missing["experiment"].astype(str) == experiment]
@@ -49,6 +74,19 @@ def _units(row) -> str:
 
 
 def amplitude_text(row) -> str:
+    """A candidate effect's fitted amplitude with its 95 % interval and units, e.g. ``D = 1.2 DN s-1, 95 % interval [0.9, 1.5] DN s-1``.
+
+    Parameters
+    ----------
+    row : pandas.Series
+        A row of ``missing_effects.csv`` (``amplitude``, ``amplitude_low``, ``amplitude_high``, and
+        ``amplitude_name`` and units when given).
+
+    Returns
+    -------
+    str
+        The text.
+    """
     units = _units(row)
     name = row.get("amplitude_name")
     name = f"{name} = " if isinstance(name, str) and name else ""
@@ -64,7 +102,18 @@ def _effect_set(text) -> list[str]:
 
 def run_labels(history: pd.DataFrame) -> list[str]:
     """One label per run (in run order): the first run's effects, then the effects each run added (+)
-    or removed (−) against the run before it."""
+    or removed (−) against the run before it.
+
+    Parameters
+    ----------
+    history : pandas.DataFrame
+        The diagnostics' ``error_history.csv`` (``run_time``, ``model_effects``).
+
+    Returns
+    -------
+    list[str]
+        One multi-line label per run.
+    """
     runs = list(dict.fromkeys(history["run_time"].astype(str)))
     labels, before = [], None
     for i, r in enumerate(runs):
@@ -81,7 +130,18 @@ def run_labels(history: pd.DataFrame) -> list[str]:
 
 
 def history_figure(history: pd.DataFrame):
-    """rms z per experiment against run, each run labelled by the effects it added or removed; None without history."""
+    """rms z per experiment against run, each run labelled by the effects it added or removed; None without history.
+
+    Parameters
+    ----------
+    history : pandas.DataFrame
+        The diagnostics' ``error_history.csv`` (``run_time``, ``experiment``, ``rms_z``, ``model_effects``).
+
+    Returns
+    -------
+    pipeline.report.content.Figure or None
+        The figure.
+    """
     if history.empty or not {"run_time", "experiment", "rms_z"} <= set(history.columns):
         return None
     runs = list(dict.fromkeys(history["run_time"].astype(str)))
@@ -112,7 +172,18 @@ def history_figure(history: pd.DataFrame):
 
 
 def flagged_experiments(inputs) -> set[str]:
-    """Experiments where the diagnostics found a significant missing effect or unexplained structure."""
+    """Experiments where the diagnostics found a significant missing effect or unexplained structure.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs (``missing_effects`` and ``unexplained``).
+
+    Returns
+    -------
+    set[str]
+        The experiments.
+    """
     out = set()
     m = inputs.missing_effects
     if not m.empty and {"experiment", "significant"} <= set(m.columns):
@@ -145,7 +216,18 @@ def _rms_figure(errors: pd.DataFrame, flagged: set[str]):
 
 def stage_residuals(inputs) -> dict[str, np.ndarray]:
     """The normalised residuals z of every observation table of every artefact, pooled over lenses, per stage
-    (used observations only when the table says which were used)."""
+    (used observations only when the table says which were used).
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    dict[str, numpy.ndarray]
+        Stage -> its finite z values (dimensionless); a stage without any is left out.
+    """
     out = {}
     for stage, by_lens in inputs.artefacts.items():
         zs = []
@@ -262,6 +344,21 @@ def _residual_test_blocks(inputs) -> list:
                "table with the measurements' z against the covariate their structure follows, the candidate "
                "effects the residuals point to, structure no candidate explains, and how the error changed from run to run.")
 def diagnostics_section(inputs) -> list:
+    """The "Diagnostics: where the model fails" section.
+
+    This run's residual errors, the residual tests per table (with the per-lens tests and the closure
+    figures), the missing-effect search, the structure left unexplained and the error history.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     out = []
     errors = inputs.run_errors
     this_run = []

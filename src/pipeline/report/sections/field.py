@@ -131,7 +131,21 @@ def _figure_sky(ds: xr.Dataset, lens: str):
 
 
 def field_agreement_rows(lens: str, ds: xr.Dataset) -> list[list[str]]:
-    """Rows of the summary's field table: per band, camera / reference and MUPD against both references."""
+    """Rows of the summary's field table: per band, camera / reference and MUPD against both references.
+
+    Parameters
+    ----------
+    lens : str
+        The zenith lens.
+    ds : xarray.Dataset
+        Its field artefact.
+
+    Returns
+    -------
+    list[list[str]]
+        Per band: lens, band, camera / reference band scale, MUPD (%) against the nearest and the convolved
+        reference, the number of match-ups (nearest) and the fit's rms z.
+    """
     c_near = list(ds["comparison"].values).index("nearest")
     c_conv = list(ds["comparison"].values).index("convolved")
     return [[lens, str(band), _num(ds["band_scale"].isel(band=b), 3),
@@ -181,6 +195,18 @@ def _field_lens(lens: str, ds: xr.Dataset) -> list:
                "reference radiometer (Sections 2.9 and 3.8, Eq. 12, Fig. 10): the only closure of the lab "
                "calibration against data it was not fitted on.")
 def field_section(inputs) -> list:
+    """The "Field match-up" section: one group per zenith lens with its field artefact, or a note that the stage was not run.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     arts = inputs.stage("field")
     if not arts:
         return [not_run("field", "field match-up", inputs.skipped)]

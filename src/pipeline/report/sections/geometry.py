@@ -185,4 +185,16 @@ def _dropped_frames(ds: xr.Dataset) -> list:
                "reprojection errors and half field of view; a region declared `projection: rectilinear` is fitted "
                "with the pinhole model and its distortion, and its artefact says so.")
 def geometry_section(inputs) -> list:
+    """The "Geometry" section: one group per lens with its geometry artefact, or a note that the stage was not run.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     return per_lens(inputs, "geometry", "geometry", _geometry_section)

@@ -94,4 +94,16 @@ def _immersion_section(lens: str, ds: xr.Dataset, inputs) -> list:
          intro="Log-linear extrapolation of the in-water signal to just below the surface and the immersion "
                "factor I (Section 3.6).")
 def immersion_section(inputs) -> list:
+    """The "Immersion factor" section: one group per lens with its immersion artefact, or a note that the stage was not run.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     return per_lens(inputs, "immersion", "immersion factor", _immersion_section)

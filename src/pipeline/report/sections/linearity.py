@@ -309,4 +309,16 @@ def _emva1288_table(ds: xr.Dataset, bands: list[str]) -> Table | None:
          intro="Response against exposure time and ISO gain inside the averaging mask, the photon-transfer gain "
                "and read noise, and the residuals of the linearity model (Section 3.1).")
 def linearity_section(inputs) -> list:
+    """The "Linearity" section: one group per lens with its linearity artefact, or a note that the stage was not run.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     return per_lens(inputs, "linearity", "linearity", _linearity_section, anchor="lin")

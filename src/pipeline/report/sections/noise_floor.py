@@ -26,6 +26,22 @@ def snr_against_radiance(radiance, ner: float, lod: float, lod_snr: float):
     radiance units; NER is where L = sigma (SNR 1), the limit of detection where L = k sigma. The
     two conditions give b = (LoD^2 / k^2 - NER^2) / (LoD - NER), a = NER^2 - b NER, and
     SNR(L) = L / sqrt(a + b L) (Section 3.8).
+
+    Parameters
+    ----------
+    radiance : array_like
+        Spectral radiance L, W sr-1 m-2 nm-1.
+    ner : float
+        The noise-equivalent radiance, W sr-1 m-2 nm-1.
+    lod : float
+        The limit of detection, W sr-1 m-2 nm-1 (larger than ``ner``).
+    lod_snr : float
+        The SNR k at the limit of detection.
+
+    Returns
+    -------
+    numpy.ndarray
+        The SNR at each radiance, dimensionless.
     """
     b = (lod**2 / lod_snr**2 - ner**2) / (lod - ner)
     a = ner**2 - b * ner
@@ -34,14 +50,38 @@ def snr_against_radiance(radiance, ner: float, lod: float, lod_snr: float):
 
 
 def operating_point(bundle: xr.Dataset) -> tuple[float, str]:
-    """The SNR of the limit of detection and the setting (ISO, exposure) both figures are stated at."""
+    """The SNR of the limit of detection and the setting (ISO, exposure) both figures are stated at.
+
+    Parameters
+    ----------
+    bundle : xarray.Dataset
+        The calibration bundle (its ``limit_of_detection`` attributes).
+
+    Returns
+    -------
+    snr : float
+        The SNR of the limit of detection (default 3).
+    setting : str
+        E.g. ``"ISO 100, 1 s"``.
+    """
     lod = bundle["limit_of_detection"]
     return float(lod.attrs.get("snr", 3.0)), f"ISO {lod.attrs.get('iso', 100):g}, {lod.attrs.get('exposure_s', 1):g} s"
 
 
 def noise_floor_blocks(bundle: xr.Dataset | None) -> list:
     """NER and limit of detection per lens and band from the calibration bundle, and SNR against radiance;
-    an empty list without a bundle (or one without the noise floor)."""
+    an empty list without a bundle (or one without the noise floor).
+
+    Parameters
+    ----------
+    bundle : xarray.Dataset or None
+        The calibration bundle.
+
+    Returns
+    -------
+    list
+        The text, the table (W sr-1 m-2 nm-1) and the SNR figure (:mod:`pipeline.report.content`).
+    """
     if bundle is None or "noise_equivalent_radiance" not in bundle:
         return []
     ner, lod = bundle["noise_equivalent_radiance"], bundle["limit_of_detection"]
@@ -78,6 +118,18 @@ def noise_floor_blocks(bundle: xr.Dataset | None) -> list:
 
 @section("noise-floor", "Noise floor and limit of detection", order=85)
 def noise_floor_section(inputs) -> list:
+    """The "Noise floor and limit of detection" section (:func:`noise_floor_blocks`), or a note that no bundle with a noise floor was given.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs (its ``calibration``).
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     blocks = noise_floor_blocks(inputs.calibration)
     if blocks:
         return blocks

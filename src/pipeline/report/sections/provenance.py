@@ -15,6 +15,21 @@ from pipeline.report.registry import section
                "wrote them, when, with which model effects, how many input files and which configuration "
                "(SHA-256 of each stage's configuration subset).")
 def provenance_section(inputs) -> list:
+    """The "Provenance" section: every artefact read and where it comes from.
+
+    Each artefact's versions, creation time, model effects, input count and configuration digest, the
+    calibration bundle's (when given), and each artefact's configuration subset.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     arts = list(inputs.all_artefacts())
     rows = [[st, lens, Path(p).name, str(ds.attrs.get("artefact_version", "?")),
              str(ds.attrs.get("pipeline_version", "?")), str(ds.attrs.get("created", "?")),

@@ -125,4 +125,16 @@ def _rolloff_section(lens: str, ds: xr.Dataset, inputs) -> list:
          intro="Relative illumination against field angle per band and medium, both azimuth planes, with the "
                "even 8th-degree polynomial of Eq. (13) (Section 3.3).")
 def rolloff_section(inputs) -> list:
+    """The "Roll-off" section: one group per lens with its roll-off artefact, or a note that the stage was not run.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     return per_lens(inputs, "rolloff", "roll-off", _rolloff_section)

@@ -71,4 +71,16 @@ def _spectral_section(lens: str, ds: xr.Dataset, inputs) -> list:
 @section("spectral", "Relative spectral response", order=60,
          intro="Peak-normalised relative spectral response with effective wavelengths and bandwidths (Section 3.4).")
 def spectral_section(inputs) -> list:
+    """The "Relative spectral response" section: one group per lens with its spectral artefact, or a note that the stage was not run.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     return per_lens(inputs, "spectral", "relative spectral response", _spectral_section)

@@ -85,7 +85,28 @@ def rolloff_at_angle(ds, medium: str, band: str, angle: float, geo=None) -> tupl
     the curve was fitted against the fitted geometry's angles (on the tiny simulated camera 0.5 to 0.7 deg
     low at 60 deg, within their stated sigma), and with the curve's sigma alone the curves missed the
     simulator's truth at 60 deg by 3 to 4 of it over 8 seeds, while they matched it pixel by pixel, each on
-    its own geometry."""
+    its own geometry.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The lens's roll-off artefact.
+    medium : str
+        ``"air"`` or ``"water"``.
+    band : str
+        ``"R"``, ``"G"`` or ``"B"``.
+    angle : float
+        The field angle, degree.
+    geo : xarray.Dataset or None, optional
+        The lens's geometry artefact (its theta uncertainty).
+
+    Returns
+    -------
+    g : float
+        The relative illumination at ``angle`` (1 on the axis).
+    sigma : float
+        Its standard uncertainty.
+    """
     coef = ds["rolloff_coefficients"].sel(medium=medium, band=band).values
     if "rolloff_covariance" not in ds:
         return float(evaluate_rolloff(coef, angle)), float("nan")
@@ -126,10 +147,27 @@ def _budget(a, band: str) -> str:
 
 
 def calibration_rows(inputs, angles: list[float]) -> tuple[tuple[list[str], list[list[str]]], tuple[list[str], list[list[str]]]]:
-    """The summary's two calibration tables, one row per lens and band: radiometry (the layout of
-    Table 1: effective wavelength, half bandwidth, R⁻¹ with its relative uncertainty and largest budget
-    term, NER, limit of detection) and optics (Table 2: immersion factor, half field of view, roll-off at
-    ``angles`` per medium). Each as (header, rows); no rows without absolute or immersion artefacts."""
+    """The summary's two calibration tables, one row per lens and band.
+
+    Radiometry (the layout of Table 1: effective wavelength, half bandwidth, R⁻¹ with its relative
+    uncertainty and largest budget term, NER, limit of detection) and optics (Table 2: immersion factor, half
+    field of view, roll-off at ``angles`` per medium).
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+    angles : list[float]
+        The field angles the roll-off is given at, degree (``report.rolloff_summary_angles_deg``).
+
+    Returns
+    -------
+    radiometry : tuple[list[str], list[list[str]]]
+        (header, rows) of the radiometry table.
+    optics : tuple[list[str], list[list[str]]]
+        (header, rows) of the optics table; both without rows when there are no absolute or immersion
+        artefacts.
+    """
     absolute, immersion = inputs.stage("absolute"), inputs.stage("immersion")
     spectral, geometry, rolloff = inputs.stage("spectral"), inputs.stage("geometry"), inputs.stage("rolloff")
     bundle = inputs.calibration
@@ -178,8 +216,21 @@ def _significant_for(missing, experiment: str):
 
 
 def evidence_text(top) -> str:
-    """How strongly the residuals ask for a candidate: the chi-square it removes for its parameters, with p,
-    and the share of the excess chi-square it explains when there is an excess (rms z above 1)."""
+    """How strongly the residuals ask for a candidate.
+
+    The chi-square it removes for its parameters, with p, and the share of the excess chi-square it explains
+    when there is an excess (rms z above 1).
+
+    Parameters
+    ----------
+    top : pandas.Series
+        A row of ``missing_effects.csv`` (``delta_chi2``, ``n_params``, ``p_value``, ``explained_fraction``).
+
+    Returns
+    -------
+    str
+        E.g. ``"it lowers χ² by 412 for 1 parameter, p = 1.0e-12, 93 % of the excess χ²"``.
+    """
     text = (f"it lowers χ² by {fmt_value(top.get('delta_chi2'), 3)} for {int(top.get('n_params', 0))} "
             f"parameter{'s' if int(top.get('n_params', 0)) != 1 else ''}, p = {fmt_value(top.get('p_value'), 2)}")
     share = top.get("explained_fraction")
@@ -189,9 +240,23 @@ def evidence_text(top) -> str:
 
 
 def stage_verdicts(inputs) -> list[list[str]]:
-    """One row per experiment of this run: rms z and the verdict: the missing effect (significant
-    candidate), structure no candidate explains, at the noise floor (rms z at most the diagnostics'
-    ``structured_rms_z``), or above it with no significant candidate."""
+    """One row per experiment of this run: rms z and the verdict.
+
+    The verdict is the missing effect (significant candidate), structure no candidate explains, at the noise
+    floor (no table's residual chi-square significant or, without the residual tests, rms z at most the
+    diagnostics' ``structured_rms_z``), or above it with no significant candidate.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs (``run_errors``, ``missing_effects``, ``unexplained``, ``residual_tests``,
+        ``field_scale``).
+
+    Returns
+    -------
+    list[list[str]]
+        (experiment, rms z, verdict) per row of ``run_errors.csv``; empty without it.
+    """
     errors = inputs.run_errors
     if errors.empty or not {"experiment", "rms_z"} <= set(errors.columns):
         return []
@@ -225,6 +290,21 @@ def stage_verdicts(inputs) -> list[list[str]]:
 
 @section("summary", "Summary", order=10)
 def summary_section(inputs) -> list:
+    """The "Summary" section.
+
+    The run's facts, the camera, the calibration tables, the plausibility checks, the field agreement and
+    the verdict per experiment.
+
+    Parameters
+    ----------
+    inputs : pipeline.report.inputs.ReportInputs
+        The report's inputs.
+
+    Returns
+    -------
+    list
+        The section's blocks (:mod:`pipeline.report.content`).
+    """
     out = _top_of_page(inputs)
     camera = _camera_table(inputs)
     if camera is not None:
