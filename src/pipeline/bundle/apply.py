@@ -983,8 +983,8 @@ def _frames_into(pool, decoding, raw_paths, bundle, bundle_path, maps, lenses, m
             + ", ".join(f"{name} lens {lens}" for name, lens in uncorrected)
             + ": the frame declares no optically black pixels (DNG ActiveArea/MaskedAreas) or the calibration "
               "has no optical_black_offset_dn")
-    # the sphere grid: uncompressed by default (zlib level 1 with the byte shuffle took 0.16 s of CPU per frame
-    # for 4.6 MB instead of 7.0 MB at 1 degree); apply.sphere_zlib_level > 0 compresses it, with the shuffle
+    # the sphere grid: uncompressed by default (zlib level 1 with the byte shuffle: a smaller file for more CPU,
+    # measured in docs/performance.md); apply.sphere_zlib_level > 0 compresses it, with the shuffle
     level = int(cfg["sphere_zlib_level"])
     big = {name: ({"zlib": True, "complevel": level, "shuffle": True} if level else {"zlib": False})
            for name, var in ds.data_vars.items() if var.dtype.kind in "fiu" and var.size > 1024}
