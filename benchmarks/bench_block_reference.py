@@ -34,6 +34,7 @@ signal level. A benchmark, not a test: nothing is asserted.
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 import tempfile
@@ -210,7 +211,7 @@ def main() -> None:
     if args.tanh_case:
         tanh_case(config)
     rng = np.random.default_rng(args.seed)
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
     records = []
     print(f"{'case':34s} {'level':>6s} " + " ".join(f"{r:>9s}" for r in REFERENCES) + f" {'rows':>9s}"
           "  (counts of p below level)")
@@ -242,11 +243,15 @@ def main() -> None:
                         "tables": args.power, **{f"below_{name}": int(n) for name, n in zip((*REFERENCES, "rows"), below)}})
         counts = " ".join(f"{n:>9d}" for n in below)
         print(f"ladder 0.01: rel {rel:.3f}, off {off:.1f} DN {level:6.1e} {counts}  of {args.power}")
-    print(f"{time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU")
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    print(f"{wall:.0f} s wall, {cpu:.0f} s CPU")
     if records:
         from record import append_rows
 
-        append_rows("bench_block_reference", records)
+        # the run's cost on each of its rows (the tables of every case drawn in one loop)
+        cost = {"draws": args.draws, "run_cpu_s": round(cpu), "run_wall_s": round(wall),
+                "load": f"{load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end"}
+        append_rows("bench_block_reference", [{**r, **cost} for r in records])
 
 
 if __name__ == "__main__":

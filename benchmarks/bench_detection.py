@@ -28,12 +28,15 @@ the signal level. ``--effects`` takes catalogue names and form names; ``--magnit
 ``--clean N``'s 300 to 300 + N - 1, and ``--lab-noise bias_dn_per_room_c=0`` changes the named sizes of the
 lab noise (:class:`pipeline.simulate.lab_noise.LabNoise`) from their defaults. Each case is simulated with its own seed, in a
 temporary folder removed after it (``--work`` to keep them elsewhere). A benchmark, not a test: nothing
-here is asserted.
+here is asserted. The run appends its rows to ``benchmarks/results/`` (``benchmarks/record.py``), under one run
+name: one per case to ``bench_detection.csv``, the summary to ``bench_detection_summary.csv``, its CPU and wall
+time and the load average to ``bench_detection_runs.csv``; ``docs/effects-and-diagnostics.md`` renders them.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 import tempfile
@@ -171,6 +174,105 @@ def run_case(work: Path, config: dict, seed: int, expected: list[str], sim_effec
         shutil.rmtree(root.parent, ignore_errors=True)
 
 
+def _count(flags) -> str:
+    flags = [bool(f) for f in flags]
+    return f"{sum(flags)} of {len(flags)}" + (f" ({100 * sum(flags) / len(flags):.0f} %)" if flags else "")
+
+
+def summary_rows(rows: list[dict], clean: list[dict]) -> list[dict]:
+    """The run's summary, one row per kind of case and magnitude, the single-effect cases pooled, and the clean
+    datasets.
+
+    Parameters
+    ----------
+    rows : list of dict
+        The effect cases and pairs, as :func:`run_case` returns them with their case, kind, level, top1,
+        ranked_first and (single effects) above_limit.
+    clean : list of dict
+        The clean datasets' cases.
+
+    Returns
+    -------
+    list of dict
+        Column name to text: cases, top1_significant, above_limit_top1, ranked_first, back_to_floor,
+        reported (of those not back to the floor, reported as residual structure or as an excess shared by
+        blocks), and for the clean datasets false_alarms and note.
+    """
+    out = []
+    for kind, label in (("catalogue", "catalogue"), ("form", "other forms"), ("pair", "pairs")):
+        for level in ("clear", "limit"):
+            sub = [r for r in rows if r["kind"] == kind and r["level"] == level]
+            if not sub:
+                continue
+            back = [r for r in sub if "rms_after" in r]
+            missed = [r for r in back if not r["floor"]]
+            row = {"cases": f"{label}, {'clear' if level == 'clear' else 'near the limit'} ({len(sub)})",
+                   "top1_significant": _count(r["top1"] for r in sub) + (" found in turn" if kind == "pair" else ""),
+                   "ranked_first": _count(r["ranked_first"] for r in sub),
+                   "back_to_floor": _count(r["floor"] for r in back),
+                   "reported": (f"{sum(bool(r['reported']) for r in missed)} of {len(missed)} as residual structure, "
+                                f"{sum(bool(r['noted']) for r in missed if not r['reported'])} as an excess shared "
+                                f"by blocks")}
+            if kind != "pair":
+                row["above_limit_top1"] = _count(r["top1"] for r in sub if r["above_limit"])
+            out.append(row)
+    single = [r for r in rows if r["kind"] != "pair" and r["above_limit"]]
+    if single:
+        out.append({"cases": "all single-effect cases pooled", "above_limit_top1": _count(r["top1"] for r in single)})
+    if clean:
+        out.append({"cases": f"clean with lab noise ({len(clean)})",
+                    "false_alarms": _count(r["found"] for r in clean),
+                    "back_to_floor": "rms_z within the floor " + _count(r["floor"] for r in clean),
+                    "reported": (f"{sum(bool(r['reported']) for r in clean)} as residual structure, "
+                                 f"{sum(bool(r['noted']) for r in clean)} as an excess shared by blocks"),
+                    "note": f"covariate scan's smallest p {min(r['scan'][2] for r in clean):.2g}; " + _signal_level(clean)})
+    return out
+
+
+def _signal_level(clean: list[dict]) -> str:
+    named = [p for r in clean for p in r["signal_level"]]
+    return (f"the signal level (signal_fraction) named in {len(named)} tables"
+            + (f", smallest p {min(named):.2g}" if named else ""))
+
+
+def record(rows: list[dict], clean: list[dict], parts: str, t0: float, c0: float, load0: float) -> None:
+    """Print the summary and append the run to benchmarks/results: its cases (``bench_detection.csv``), its
+    summary (``bench_detection_summary.csv``) and its cost (``bench_detection_runs.csv``), all under one run name.
+
+    Parameters
+    ----------
+    rows, clean : list of dict
+        The effect cases and pairs, and the clean datasets' cases.
+    parts : str
+        What the run ran (effects, magnitudes, pairs, clean datasets).
+    t0, c0, load0 : float
+        Wall clock, CPU time and the one-minute load average at the start.
+    """
+    from datetime import datetime, timezone
+
+    from record import append_rows, commit
+
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    summary = summary_rows(rows, clean)
+    print()
+    print("summary (tiny scale; dark and linearity experiments, roll-off for its effects)")
+    for s in summary:
+        print(f"  {s['cases']}: " + ", ".join(f"{k} {v}" for k, v in s.items() if k != "cases"))
+    print(f"  {wall:.0f} s wall, {cpu:.0f} s CPU")
+    run = f"{datetime.now(timezone.utc):%Y-%m-%d %H:%M} {commit()}"
+    append_rows("bench_detection", [
+        {"case": r["case"], "kind": r["kind"], "level": r["level"], "top_ranked": r["top"],
+         "significant": bool(r["significant"]), "p": f"{r['p']:.2g}", "injected": r.get("injected", ""),
+         "amplitude": r.get("amplitude", ""), "detectable": r.get("detectable", ""), "units": r.get("units", ""),
+         "above_limit": r.get("above_limit", ""), "rms_z_before": round(r["rms_before"], 2),
+         "rms_z_after": round(r["rms_after"], 2) if "rms_after" in r else "", "at_noise_floor": bool(r["floor"]),
+         "top1": bool(r["top1"])} for r in rows + clean], run=run)
+    append_rows("bench_detection_summary", summary, run=run)
+    append_rows("bench_detection_runs", [{"parts": parts, "load": f"{load0:.1f} at the start, "
+                                          f"{os.getloadavg()[0]:.1f} at the end", "cpu_s": round(cpu),
+                                          "wall_s": round(wall)}], run=run)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--effects", default=",".join(list(MAGNITUDES) + list(FORMS)),
@@ -217,7 +319,7 @@ def main() -> None:
     else:
         tmp = tempfile.TemporaryDirectory(prefix="bench-detection-")
         work = Path(tmp.name)
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
     seed = args.seed
     rows = []
     header = (f"{'case':42s} {'level':5s} {'injected':>10s} {'found':>10s} {'detect.':>10s} {'units':14s} "
@@ -256,8 +358,12 @@ def main() -> None:
                 row = run_case(work, config, seed, [form.effect], form=form, amplitude=form.amplitudes[i],
                                experiments=exps)
                 injected, label, kind, effect = form.amplitudes[i], f"{name} ({form.effect})", "form", form.effect
+            # above the detection limit: the injected amplitude (for a form, whose units may differ, the one
+            # found) beyond the detectable amplitude the diagnostics report
+            size = injected if kind == "catalogue" else row.get("amplitude", np.nan)
             row.update(case=label, kind=kind, level=level, top1=row["top"] == effect and row["significant"],
-                       ranked_first=row["top"] == effect)
+                       ranked_first=row["top"] == effect, injected=injected,
+                       above_limit=bool(abs(size) > row.get("detectable", np.nan)))
             rows.append(row)
             show(label, level, row, injected)
     for a, b in pairs:
@@ -277,40 +383,9 @@ def main() -> None:
         clean.append(row)
         show(f"clean seed {clean_seed} (lab noise)", "-", row, np.nan)
 
-    print()
-    print("summary (tiny scale; dark and linearity experiments, roll-off for its effects)")
-    for kind in ("catalogue", "form", "pair"):
-        for level in ("clear", "limit"):
-            sub = [r for r in rows if r["kind"] == kind and r["level"] == level]
-            if not sub:
-                continue
-            what = "both found in turn" if kind == "pair" else "top-1 and significant"
-            back = [r for r in sub if "rms_after" in r]
-            print(f"  {kind:9s} {level:5s}: {what} {sum(r['top1'] for r in sub)}/{len(sub)}"
-                  f" ({100 * np.mean([r['top1'] for r in sub]):.0f} %), ranked first "
-                  f"{sum(r['ranked_first'] for r in sub)}/{len(sub)}, back to the noise floor once added "
-                  f"{sum(r['floor'] for r in back)}/{len(back)}, residual structure reported where not "
-                  f"{sum(bool(r['reported']) for r in back if not r['floor'])}/{sum(not r['floor'] for r in back)}"
-                  f", of the others an excess shared by blocks said "
-                  f"{sum(bool(r['noted']) for r in back if not r['floor'] and not r['reported'])}")
-    if clean:
-        alarms = sum(bool(r["found"]) for r in clean)
-        print(f"  clean (lab noise, bias_drift in the model): false alarms {alarms}/{len(clean)} "
-              f"({100 * alarms / len(clean):.0f} %), rms_z within the floor {sum(r['floor'] for r in clean)}/{len(clean)}, "
-              f"residual structure reported {sum(bool(r['reported']) for r in clean)}/{len(clean)}, an excess "
-              f"shared by blocks said in {sum(bool(r['noted']) for r in clean)}, smallest "
-              f"covariate-scan p {min(r['scan'][2] for r in clean):.2g}; the signal level (signal_fraction) named "
-              f"in {sum(len(r['signal_level']) for r in clean)} tables of {len(clean)} datasets, smallest p "
-              f"{min((p for r in clean for p in r['signal_level']), default=float('nan')):.2g}")
-    print(f"  {time.perf_counter() - t0:.0f} s wall, {time.process_time() - c0:.0f} s CPU")
-    from record import append_rows
-
-    append_rows("bench_detection", [
-        {"case": r["case"], "kind": r["kind"], "level": r["level"], "top_ranked": r["top"],
-         "significant": bool(r["significant"]), "p": f"{r['p']:.2g}", "amplitude": r.get("amplitude", ""),
-         "detectable": r.get("detectable", ""), "units": r.get("units", ""), "rms_z_before": round(r["rms_before"], 2),
-         "rms_z_after": round(r["rms_after"], 2) if "rms_after" in r else "", "at_noise_floor": bool(r["floor"]),
-         "top1": bool(r["top1"])} for r in rows + clean])
+    parts = (f"{len(names)} effects or forms at {' and '.join(levels) or 'no'} magnitudes, {len(pairs)} pairs, "
+             f"{len(clean_seeds)} clean datasets")
+    record(rows, clean, parts, t0, c0, load0)
     if tmp is not None:
         tmp.cleanup()
 

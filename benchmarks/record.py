@@ -1,7 +1,8 @@
 """Benchmark results as data: each ``benchmarks/bench_*.py`` appends its figures to
 ``benchmarks/results/<bench>.csv``, one row per measured thing, with the date, the commit, the machine and the
-command that gave them; ``docs/performance.md`` renders its tables from these files
-(``scripts/bench_tables.py``), so that no timing is typed by hand.
+command that gave them; the docs pages (``docs/performance.md``, the detection benchmark's section of
+``docs/effects-and-diagnostics.md``) render their tables from these files (``scripts/bench_tables.py``), so that
+no timing is typed by hand.
 
 A file's columns are the union of its rows' columns: a benchmark that reports a new figure adds a column,
 and the older rows leave it empty.
@@ -54,8 +55,8 @@ def command() -> str:
 def append_rows(bench: str, rows: list[dict], *, run: str = "", results: Path = RESULTS) -> Path:
     """Append ``rows`` (figure name -> value) to ``results/<bench>.csv`` after the context columns.
 
-    ``run`` names the run the rows belong to (default: the date and commit), so that the tables of
-    ``docs/performance.md`` can show one run's rows.
+    ``run`` names the run the rows belong to (default: the date and commit), so that a table of
+    the docs can show one run's rows.
     """
     when = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M")
     head = commit()

@@ -99,11 +99,16 @@ def test_changelog_has_every_current_artefact_version():
             f"docs/changelog.md: the {stage} artefact is at version {version}, its newest entry is {listed[:1]}"
 
 
-def test_performance_tables_are_rendered_from_the_benchmark_results():
-    """No timing typed by hand into a table of docs/performance.md: each is its CSV's rows."""
+def _bench_tables():
     spec = importlib.util.spec_from_file_location("bench_tables", ROOT / "scripts" / "bench_tables.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    return module
+
+
+def test_performance_tables_are_rendered_from_the_benchmark_results():
+    """No timing typed by hand into a table of docs/performance.md: each is its CSV's rows."""
+    module = _bench_tables()
     text = (DOCS / "performance.md").read_text(encoding="utf-8")
     blocks = module.BLOCK.findall(text)
     assert len(blocks) > 20
@@ -111,6 +116,24 @@ def test_performance_tables_are_rendered_from_the_benchmark_results():
     outside = module.BLOCK.sub("", text)
     assert not re.search(r"^\|.*\|$", outside, re.M), "a table typed by hand in docs/performance.md"
     assert module.render(text) == text, "python scripts/bench_tables.py --write"
+
+
+def test_every_pages_benchmark_tables_are_rendered_from_the_benchmark_results():
+    """Every docs page's bench-table blocks are their CSVs' rows (python scripts/bench_tables.py --check), and
+    the detection benchmark's section of docs/effects-and-diagnostics.md holds no table typed by hand and no
+    timing in its prose: its runs are rows of benchmarks/results/bench_detection_*.csv."""
+    module = _bench_tables()
+    rendered = module.render_all()
+    names = {p.name for p in rendered}
+    assert {"performance.md", "effects-and-diagnostics.md"} <= names
+    stale = [p.name for p, new in rendered.items() if new != p.read_text(encoding="utf-8")]
+    assert stale == [], "python scripts/bench_tables.py --write"
+    text = (DOCS / "effects-and-diagnostics.md").read_text(encoding="utf-8")
+    section = re.search(r"^## Detection benchmark$(.*?)^## ", text, re.M | re.S).group(1)
+    assert len(module.BLOCK.findall(section)) >= 10
+    prose = module.BLOCK.sub("", section)
+    assert not re.search(r"^\|.*\|$", prose, re.M), "a table typed by hand in the detection benchmark's section"
+    assert not re.search(r"\d ?s (CPU|wall)|load (average )?(about |of )?\d", prose), "a timing typed into the detection benchmark's prose"
 
 
 def test_readme_docs_table_points_at_pages():

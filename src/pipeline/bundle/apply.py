@@ -1006,8 +1006,8 @@ def _sphere_grid_attrs(bundle, bundle_path, lenses, medium, effects, grid_deg, z
 def _write_sphere_grid(ds: xr.Dataset, cfg: dict, tmp: Path, out_path: Path, pixels: bool) -> None:
     """The sphere grid into ``tmp`` (beside the pixel maps already there, or a new file), then renamed to
     ``out_path``."""
-    # the sphere grid: uncompressed by default (zlib level 1 with the byte shuffle took 0.16 s of CPU per frame
-    # for 4.6 MB instead of 7.0 MB at 1 degree); apply.sphere_zlib_level > 0 compresses it, with the shuffle
+    # the sphere grid: uncompressed by default (zlib level 1 with the byte shuffle: a smaller file for more CPU,
+    # measured in docs/performance.md); apply.sphere_zlib_level > 0 compresses it, with the shuffle
     level = int(cfg["sphere_zlib_level"])
     big = {name: ({"zlib": True, "complevel": level, "shuffle": True} if level else {"zlib": False})
            for name, var in ds.data_vars.items() if var.dtype.kind in "fiu" and var.size > 1024}
