@@ -142,10 +142,6 @@ NOT_YET_DOCUMENTED: set[str] = {
     "stages/observations.py",
     "stages/rolloff.py",
     "stages/spectral.py",
-    "stats/block_bootstrap.py",
-    "stats/fitting.py",
-    "stats/matchup.py",
-    "stats/moments.py",
 }
 
 _SECTION = re.compile(r"^(\w[\w ]*)\n-{3,}\s*$", re.MULTILINE)
