@@ -115,8 +115,8 @@ class SunGlare:
         Returns
         -------
         numpy.ndarray
-            sr-1: multiplied by the sun's band irradiance outside the clouds (W m-2 nm-1) it is the excess radiance,
-            W m-2 sr-1 nm-1; zero for theta above 90 degrees.
+            sr-1: multiplied by the sun's band direct-normal irradiance (W m-2 nm-1; the clouds' transmission is
+            in the pattern) it is the excess radiance, W m-2 sr-1 nm-1; zero for theta above 90 degrees.
         """
         d = image_plane_distance_rad(theta_deg, phi_deg, self.sun_zenith_deg[i], self.sun_phi_deg[i])
         out = wing_kernel_per_sr(d, self.fraction, self.core_rad, self.index) * self.transmission[i]
