@@ -113,7 +113,6 @@ NOT_YET_DOCUMENTED: set[str] = {
     "simulate/field.py",
     "simulate/lens.py",
     "simulate/rolloff.py",
-    "simulate/smartphone.py",
     "simulate/spectral.py",
     "stages/absolute.py",
     "stages/dark.py",
