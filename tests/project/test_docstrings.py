@@ -110,6 +110,7 @@ NOT_YET_DOCUMENTED: set[str] = {
     "runner/workflow.py",
     "simulate/absolute.py",
     "simulate/camera.py",
+    "simulate/dataset.py",
     "simulate/field.py",
     "simulate/lens.py",
     "simulate/rolloff.py",
