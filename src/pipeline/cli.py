@@ -126,7 +126,17 @@ examples:
 
 
 def simulate_from_config(out, simulation: dict) -> None:
-    """Simulate the default dataset from the ``simulate_if_missing`` config section."""
+    """Simulate the default dataset from the ``simulate_if_missing`` config section.
+
+    Parameters
+    ----------
+    out : str or pathlib.Path
+        The dataset folder to write.
+    simulation : dict
+        The ``simulate_if_missing`` section, defaults filled: ``scale`` (tiny, small, medium or full), ``seed``
+        (int), ``effects`` (effect specifications such as ``shutter_offset:offset_s=0.0004``) and optionally
+        ``lab_noise`` (bool, default False).
+    """
     from pipeline.effects.base import parse_effect_spec
     from pipeline.simulate import simulate_dataset
 
@@ -156,6 +166,13 @@ def _scale(name: str) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m pipeline`` with one sub-command per command.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The parser; the chosen command's name is in the parsed namespace's ``command``.
+    """
     def fmt(prog):
         return _HelpFormatter(prog, max_help_position=HELP_COLUMN)
     parser = argparse.ArgumentParser(prog="python -m pipeline", description=DESCRIPTION, epilog=EXAMPLES,
@@ -405,6 +422,21 @@ COMMANDS = {"diagnose": _diagnose, "init-dataset": _init_dataset, "validate": _v
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command of ``python -m pipeline`` and return its exit code.
+
+    A bad input (:class:`~pipeline.errors.InputError`) is printed on stderr (every problem when a validator found
+    several) rather than raised; a usage error exits from argparse with ``EXIT_USAGE``.
+
+    Parameters
+    ----------
+    argv : list of str, optional
+        The command line without the program name; None (default) reads ``sys.argv``.
+
+    Returns
+    -------
+    int
+        The exit code: ``EXIT_OK`` (0), ``EXIT_BAD_INPUT`` (1) or ``EXIT_INTERRUPTED`` (130), or the command's own.
+    """
     args = build_parser().parse_args(argv)   # exits with EXIT_USAGE on a usage error
     try:
         return COMMANDS[args.command](args)

@@ -58,6 +58,20 @@ def unknown_keys(config, schema: dict, where: str = "") -> list[tuple[str, list[
     Only where the schema lists an object's ``properties`` (and does not allow others with
     ``additionalProperties`` or ``patternProperties``); lists are followed through ``items``. A
     misspelt key would otherwise be ignored and its default used without a word.
+
+    Parameters
+    ----------
+    config : object
+        A configuration or a part of it (dict, list or value).
+    schema : dict
+        The JSON schema of that part.
+    where : str, optional
+        The dotted path of ``config`` in the whole configuration (prefix of the paths returned); default ''.
+
+    Returns
+    -------
+    list of tuple of (str, list of str)
+        For each unknown key, its dotted path (list items as ``[i]``) and the sorted keys the schema knows there.
     """
     found = []
     if isinstance(config, dict) and isinstance(schema.get("properties"), dict):
@@ -85,10 +99,27 @@ def _read_yaml(path: str | Path):
 
 
 def read_config_file(path: str | Path):
-    """A config file (config/config.yaml, a ``--configfile``) as parsed; one InputError naming the file and
-    the line of a key written twice in one mapping (YAML, and Snakemake's reader of it, keep the last
-    without a word: a threshold edited below an old copy of its section would be ignored), or of YAML
-    that does not parse."""
+    """A config file (config/config.yaml, a ``--configfile``) as parsed.
+
+    A key written twice in one mapping is refused: YAML, and Snakemake's reader of it, keep the last without a
+    word, so a threshold edited below an old copy of its section would be ignored.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The config file (UTF-8, with or without a byte-order mark).
+
+    Returns
+    -------
+    object
+        The parsed document (a dict for a configuration; None for an empty file).
+
+    Raises
+    ------
+    InputError
+        Naming the file, when it cannot be read, when it does not parse (with the line) or when a key appears
+        twice in one mapping (with both lines).
+    """
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
@@ -116,7 +147,20 @@ def values_from_text(config, schema: dict):
     Snakemake reads a ``--config key={a: 0, b: 0.5}`` override's nested values as text (its YAML base
     loader), so ``performance={decode_ahead_frames: 0}`` would arrive as the string '0' and be refused;
     the text is read with YAML where the schema's type for that key is not a string and the reading has
-    that type (anything else is left for the validator to name)."""
+    that type (anything else is left for the validator to name).
+
+    Parameters
+    ----------
+    config : object
+        A configuration or a part of it (dict, list or value).
+    schema : dict
+        The JSON schema of that part.
+
+    Returns
+    -------
+    object
+        A copy of ``config`` (new dicts and lists) with such text replaced by the value it reads as.
+    """
     if isinstance(config, dict):
         props = schema.get("properties", {})
         return {k: values_from_text(v, props[k]) if k in props else v for k, v in config.items()}
@@ -138,7 +182,18 @@ _RANGE_KEYWORDS = ("minimum", "exclusiveMinimum", "maximum", "exclusiveMaximum")
 
 
 def range_text(schema: dict) -> str:
-    """A number's range as the schema gives it, in interval notation: ``[1, 100]``, ``(0, 90]``, ``[0, inf)``."""
+    """A number's range as the schema gives it, in interval notation: ``[1, 100]``, ``(0, 90]``, ``[0, inf)``.
+
+    Parameters
+    ----------
+    schema : dict
+        The schema of one number, with any of ``minimum``, ``exclusiveMinimum``, ``maximum``, ``exclusiveMaximum``.
+
+    Returns
+    -------
+    str
+        The interval; an open side without a bound is ``-inf`` or ``inf``.
+    """
     if "exclusiveMinimum" in schema:
         low = f"({schema['exclusiveMinimum']}"
     else:
@@ -151,10 +206,30 @@ def range_text(schema: dict) -> str:
 
 
 def validate_config(config: dict, schema_path: str | Path = SCHEMA_PATH) -> dict:
-    """Validate ``config`` in place, filling defaults; InputError with the first problem (a key the
-    schema does not know included: see :func:`unknown_keys`). Numbers, booleans and nulls given as text
-    where the schema wants them (Snakemake's ``--config`` overrides) are read first
-    (:func:`values_from_text`)."""
+    """Validate ``config`` in place, filling defaults.
+
+    A key the schema does not know is an error (see :func:`unknown_keys`). Numbers, booleans and nulls given as
+    text where the schema wants them (Snakemake's ``--config`` overrides) are read first
+    (:func:`values_from_text`).
+
+    Parameters
+    ----------
+    config : dict
+        The configuration; updated in place.
+    schema_path : str or pathlib.Path, optional
+        The JSON schema (YAML); default the package's ``schema.yaml`` (:data:`SCHEMA_PATH`).
+
+    Returns
+    -------
+    dict
+        ``config`` itself, validated and with every default the schema gives filled in.
+
+    Raises
+    ------
+    InputError
+        Naming the schema file and the first problem: an unknown key (with the keys known there), a value of the
+        wrong type, or a number outside its range (in interval notation, :func:`range_text`).
+    """
     schema = _read_yaml(schema_path)
     config.update(values_from_text(config, schema))
     unknown = unknown_keys(config, schema)
@@ -179,8 +254,25 @@ def validate_config(config: dict, schema_path: str | Path = SCHEMA_PATH) -> dict
 def load_config(path: str | Path | None = CONFIG_PATH, overrides: dict | None = None) -> dict:
     """Read a config file, apply ``overrides`` (nested dicts merge), validate, fill defaults.
 
-    ``path`` None (the default of an installed package, which has no config/config.yaml): the schema's
-    defaults alone, with the overrides."""
+    Parameters
+    ----------
+    path : str or pathlib.Path or None, optional
+        The config file; default the checkout's ``config/config.yaml`` (:data:`CONFIG_PATH`). None (the default
+        of an installed package, which has no config/config.yaml): the schema's defaults alone, with the overrides.
+    overrides : dict, optional
+        Top-level sections or keys to set: a dict given for a section that is a dict in the file updates that
+        section's keys (one level deep), anything else replaces the value. Default none.
+
+    Returns
+    -------
+    dict
+        The validated configuration with defaults filled (:func:`validate_config`).
+
+    Raises
+    ------
+    InputError
+        When the file cannot be read or parsed (:func:`read_config_file`) or the configuration is not valid.
+    """
     config = (read_config_file(path) or {}) if path is not None else dict(_NO_DATASET)
     for key, value in (overrides or {}).items():
         if isinstance(value, dict) and isinstance(config.get(key), dict):
@@ -191,7 +283,13 @@ def load_config(path: str | Path | None = CONFIG_PATH, overrides: dict | None = 
 
 
 def defaults() -> dict:
-    """The schema's defaults alone (what a stage uses when a config omits a key); a fresh copy each call."""
+    """The schema's defaults alone (what a stage uses when a config omits a key); a fresh copy each call.
+
+    Returns
+    -------
+    dict
+        The configuration that the schema's defaults make (computed once per version of the schema file).
+    """
     return copy.deepcopy(_defaults(SCHEMA_PATH.stat().st_mtime_ns))
 
 
@@ -219,5 +317,18 @@ STAGE_SECTIONS = {
 
 
 def stage_params(config: dict, stage: str) -> dict:
-    """The subset of the configuration a rule uses, so that its params trigger reruns precisely."""
+    """The subset of the configuration a rule uses, so that its params trigger reruns precisely.
+
+    Parameters
+    ----------
+    config : dict
+        The validated configuration.
+    stage : str
+        A rule's name, a key of :data:`STAGE_SECTIONS` (``dark``, ``linearity``, ..., ``field``).
+
+    Returns
+    -------
+    dict
+        The configuration's sections that this rule reads (those of ``STAGE_SECTIONS[stage]`` present).
+    """
     return {key: config[key] for key in STAGE_SECTIONS[stage] if key in config}

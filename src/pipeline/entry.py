@@ -33,6 +33,13 @@ def stop_quietly_on_interrupt() -> None:
 
 
 def setup_log(path: str | None) -> None:
+    """Log the package's INFO messages to stderr and, when a path is given, to a job's log file.
+
+    Parameters
+    ----------
+    path : str or None
+        The job's log file (its folder is created; the file is overwritten), or None for stderr alone.
+    """
     handlers = [logging.StreamHandler(sys.stderr)]
     if path:
         Path(path).parent.mkdir(parents=True, exist_ok=True)
@@ -42,7 +49,26 @@ def setup_log(path: str | None) -> None:
 
 
 def exit_on_input_error(function, *args, **kwargs):
-    """Call ``function``; bad input ends the process with one line naming the file and the problem."""
+    """Call ``function``; bad input ends the process with one line naming the file and the problem.
+
+    An :class:`~pipeline.errors.InputError` is logged and printed as ``error: ...`` on stderr and the process
+    exits with status 1; Ctrl-C ends it at once with status 130 (:data:`EXIT_INTERRUPTED`); any other error is
+    logged in one line and raised again (its traceback follows on stderr).
+
+    Parameters
+    ----------
+    function : callable
+        The package call a rule's script makes.
+    *args
+        Its positional arguments.
+    **kwargs
+        Its keyword arguments.
+
+    Returns
+    -------
+    object
+        What ``function`` returns.
+    """
     try:
         return function(*args, **kwargs)
     except InputError as exc:

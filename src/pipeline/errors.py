@@ -22,7 +22,13 @@ class Problem:
     fix: str = ""
 
     def where(self) -> str:
-        """``line 3, column 'kind'`` (the parts that are known), or ''."""
+        """``line 3, column 'kind'`` (the parts that are known), or ''.
+
+        Returns
+        -------
+        str
+            The line and column of the problem, those that are known, joined by a comma; empty when neither is.
+        """
         parts = []
         if self.line is not None:
             parts.append(f"line {self.line}")
@@ -31,7 +37,13 @@ class Problem:
         return ", ".join(parts)
 
     def text(self) -> str:
-        """The problem without the file: ``line 3, column 'kind': 'x' is not one of ...``."""
+        """The problem without the file: ``line 3, column 'kind': 'x' is not one of ...``.
+
+        Returns
+        -------
+        str
+            :meth:`where` (when known) and the message.
+        """
         where = self.where()
         return f"{where}: {self.message}" if where else self.message
 
@@ -57,7 +69,25 @@ class InputError(Exception):
 
     @classmethod
     def from_problems(cls, problems: list[Problem], more_hint: str = "") -> "InputError":
-        """One error for a non-empty list: the first problem, plus how many more there are."""
+        """One error for a non-empty list: the first problem, plus how many more there are.
+
+        Parameters
+        ----------
+        problems : list of Problem
+            Every problem a validator found, the first one named in the message; kept in the error's ``problems``.
+        more_hint : str, optional
+            Appended to the count of other problems (e.g. where the full list is shown); default none.
+
+        Returns
+        -------
+        InputError
+            The error (of the class it is called on) whose path is the first problem's file.
+
+        Raises
+        ------
+        ValueError
+            When ``problems`` is empty.
+        """
         if not problems:
             raise ValueError("from_problems needs at least one problem")
         first = problems[0]

@@ -240,8 +240,20 @@ def _read_lab_log(log: Path, raws: dict[str, RawEntry], problems: list[Problem])
 def propose_lens_regions(rows_px: int, cols_px: int) -> list[LensProposal]:
     """Lens regions of a frame of rows_px x cols_px raw pixels, on even pixels (Bayer grid).
 
-    Two square regions stacked when rows = 2 cols (the dual-fisheye frame),
-    side by side when cols = 2 rows, else the whole frame as one region.
+    Two square regions stacked when rows = 2 cols (the dual-fisheye frame, lenses ``far`` above ``close``),
+    side by side when cols = 2 rows (``left``, ``right``), else the whole frame as one region (``main``).
+
+    Parameters
+    ----------
+    rows_px : int
+        Raw pixel rows of the frame.
+    cols_px : int
+        Raw pixel columns of the frame.
+
+    Returns
+    -------
+    list of LensProposal
+        One or two regions (rows and columns [start, stop) in raw pixels, even), no image circle found yet.
     """
     def even(n):
         return n // 2 * 2
@@ -323,7 +335,22 @@ def _circle_candidates(entries: dict[str, list[RawEntry]]) -> list[tuple[str, Ra
 
 def find_lens_circles(lenses: list[LensProposal], entries: dict[str, list[RawEntry]],
                       max_frames: int = MAX_CIRCLE_FRAMES) -> None:
-    """Fit each region's image circle on the first candidate frame that lights it (fills ``lenses``)."""
+    """Fit each region's image circle on the first candidate frame that lights it (fills ``lenses``).
+
+    Candidate frames are those of the lit experiments, brightest settings first; a frame the lab log assigns to
+    one lens is tried for that lens only. A region lit to its corners is marked ``projection: rectilinear``; a
+    region with no circle found gets a note saying why.
+
+    Parameters
+    ----------
+    lenses : list of LensProposal
+        The proposed regions; each one's circle (centre and radius in raw pixels of the frame), frame, note and
+        projection are set in place.
+    entries : dict[str, list of RawEntry]
+        Experiment -> its raw files (tags read), as in :class:`ScaffoldPlan`.
+    max_frames : int, optional
+        Frames decoded at most (each decode reads a whole raw file); default ``MAX_CIRCLE_FRAMES`` (16).
+    """
     reasons: dict[str, str] = {}
     decoded = 0
     for experiment, entry in _circle_candidates(entries):
@@ -378,9 +405,30 @@ def find_lens_circles(lenses: list[LensProposal], entries: dict[str, list[RawEnt
 def plan_dataset(raw_dir, lab_log=None, *, find_circles: bool = True) -> ScaffoldPlan:
     """Find the raw files, their experiments, tags and lab-log values, and propose the lens regions.
 
-    Reads RAW_DIR and the lab log only.  Raises one InputError (with every
-    problem in ``problems``) when a raw file cannot be placed: no experiment
-    folder and no lab-log experiment, a lab-log row naming no file, ...
+    Reads RAW_DIR and the lab log only (nothing is written).
+
+    Parameters
+    ----------
+    raw_dir : str or pathlib.Path
+        The lab's folder of raw files: one sub-folder per experiment, or files that the lab log assigns.
+    lab_log : str or pathlib.Path, optional
+        The CSV lab log (a ``file`` column, and ``experiment`` and lab columns); default none.
+    find_circles : bool, optional
+        Decode frames to check each proposed lens region for a lit image circle (:func:`find_lens_circles`);
+        default True.
+
+    Returns
+    -------
+    ScaffoldPlan
+        The frames of each experiment in acquisition order, the sidecars, the ignored files, the camera from the
+        tags, the frame shape and the proposed lens regions.
+
+    Raises
+    ------
+    InputError
+        When ``raw_dir`` is not a folder or holds no raw file, or (one error with every problem in ``problems``)
+        when a raw file cannot be placed: no experiment folder and no lab-log experiment, a lab-log row naming no
+        file, two files with the same target, ...
     """
     raw_dir = Path(raw_dir)
     if not raw_dir.is_dir():
@@ -525,7 +573,27 @@ def _place(source: Path, target: Path, copy: bool) -> None:
 
 
 def write_dataset(plan: ScaffoldPlan, out, copy: bool = False) -> Path:
-    """Write the layout of ``plan`` to ``out`` (which must not exist), through a temporary folder."""
+    """Write the layout of ``plan`` to ``out`` (which must not exist), through a temporary folder.
+
+    Parameters
+    ----------
+    plan : ScaffoldPlan
+        What to write (:func:`plan_dataset`).
+    out : str or pathlib.Path
+        The dataset folder; written as a hidden sibling ``.<name>.partial`` and renamed at the end.
+    copy : bool, optional
+        Copy the raw files and sidecars; default False (symbolic links to the originals).
+
+    Returns
+    -------
+    pathlib.Path
+        ``out``: dataset.yaml, each experiment's frames.csv, raw files and sidecars, and MD5SUMS.
+
+    Raises
+    ------
+    InputError
+        When ``out`` exists, or a symbolic link cannot be made there (use ``copy``).
+    """
     out = Path(out)
     if out.exists() or out.is_symlink():
         raise InputError(out, "already exists; init-dataset never overwrites a folder (choose another OUT)")
@@ -553,7 +621,29 @@ def write_dataset(plan: ScaffoldPlan, out, copy: bool = False) -> Path:
 
 
 def init_dataset(raw_dir, out, lab_log=None, copy: bool = False) -> InitResult:
-    """Plan, write and validate: the dataset at ``out`` and what the user must still fill in."""
+    """Plan, write and validate: the dataset at ``out`` and what the user must still fill in.
+
+    Parameters
+    ----------
+    raw_dir : str or pathlib.Path
+        The lab's folder of raw files (see :func:`plan_dataset`).
+    out : str or pathlib.Path
+        The dataset folder to write; it must not exist.
+    lab_log : str or pathlib.Path, optional
+        The CSV lab log; default none.
+    copy : bool, optional
+        Copy the raw files instead of linking them; default False.
+
+    Returns
+    -------
+    InitResult
+        The folder written, the plan, whether files were copied, and the problems validation still reports.
+
+    Raises
+    ------
+    InputError
+        When ``out`` exists or the raw files cannot be laid out (see :func:`plan_dataset`).
+    """
     from pipeline.io.validation import validate_dataset
 
     out = Path(out)
@@ -573,7 +663,19 @@ def _span(span: tuple[int, int]) -> str:
 
 
 def describe_result(result: InitResult) -> str:
-    """What init-dataset wrote, the lens regions to confirm, and what is left to fill in."""
+    """What init-dataset wrote, the lens regions to confirm, and what is left to fill in.
+
+    Parameters
+    ----------
+    result : InitResult
+        What :func:`init_dataset` returned.
+
+    Returns
+    -------
+    str
+        The lines the terminal shows: files written, lens regions (with the image circle found, in raw pixels),
+        notes, and the problems left or the command to run next.
+    """
     from pipeline.io.validation import format_problems
 
     plan = result.plan
@@ -654,7 +756,26 @@ def read_emva1288_descriptor(path) -> tuple[int, tuple[int, int], list[Emva1288F
 
     The format: ``n BITS WIDTH HEIGHT``, then blocks ``b EXPOSURE_NS PHOTONS`` (bright) and ``d EXPOSURE_NS``
     (dark), each followed by its images ``i RELATIVE_PATH`` (Windows separators allowed); ``#`` comments and
-    the ``v`` version line are skipped.  A malformed line stops with one InputError naming it.
+    the ``v`` version line are skipped.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The descriptor file; image paths are relative to its folder.
+
+    Returns
+    -------
+    bits : int
+        The bit depth of the frames.
+    shape : tuple of (int, int)
+        (height, width) of the frames, pixels.
+    frames : list of Emva1288Frame
+        Every image in descriptor order, with its kind, exposure (s) and photons per pixel.
+
+    Raises
+    ------
+    InputError
+        When the file is missing, a line is malformed (named), or there is no ``n`` line or no image.
     """
     path = Path(path)
     if not path.is_file():
@@ -690,19 +811,43 @@ def read_emva1288_descriptor(path) -> tuple[int, tuple[int, int], list[Emva1288F
 
 def emva1288_raw_folder(descriptor, raw_dir, *, make: str, model: str, serial: str,
                         crop_px: tuple[int, int] | None = None) -> Path:
-    """Wrap an EMVA1288 measurement as a lab's raw folder: DNG files under ``dark/`` and ``linearity/`` and a lab
-    log; returns the lab log's path (for :func:`init_dataset`).
+    """Wrap an EMVA1288 measurement as a lab's raw folder: DNG files under ``dark/`` and ``linearity/`` and a lab log.
 
     Each PNG becomes one DNG (:func:`pipeline.io.rawio.write_dng`) holding its values unchanged: ExposureTime from
     the descriptor, ISO ``EMVA1288_ISO`` (one gain), the acquisition time ``EMVA1288_START`` plus one second per
     frame in descriptor order (the descriptor gives none), BlackLevel 0 (the files carry none: the dark stage
     measures it), WhiteLevel 2^bits - 1 and an RGGB CFA tag over the monochrome data (each band is a quarter
     or, for G, half of the same sensor's pixels: the per-pixel statistics are the sensor's).  Dark blocks go to
-    ``dark/``, bright ones to ``linearity/`` as an exposure sweep of the one lens region ``main``.  ``crop_px``
-    (rows, cols), even, keeps the centre of each frame.  ``make``, ``model`` and ``serial`` name the camera
-    (the descriptor does not) in the DNG tags and so in dataset.yaml.  The lab log also holds the descriptor's photons per
-    pixel (``photons_per_pixel``, which init-dataset carries into linearity/frames.csv: the linearity stage's
-    responsivity and quantum efficiency) and block index (``emva1288_step``, which frames.csv leaves out).
+    ``dark/``, bright ones to ``linearity/`` as an exposure sweep of the one lens region ``main``.  The lab log
+    also holds the descriptor's photons per pixel (``photons_per_pixel``, which init-dataset carries into
+    linearity/frames.csv: the linearity stage's responsivity and quantum efficiency) and block index
+    (``emva1288_step``, which frames.csv leaves out).
+
+    Parameters
+    ----------
+    descriptor : str or pathlib.Path
+        The EMVA1288 descriptor (:func:`read_emva1288_descriptor`).
+    raw_dir : str or pathlib.Path
+        The raw folder to write; it must not exist.
+    make : str
+        The camera's make, written in the DNG tags (the descriptor does not name the camera) and so in dataset.yaml.
+    model : str
+        The camera's model, likewise.
+    serial : str
+        The camera's serial number, likewise.
+    crop_px : tuple of (int, int), optional
+        (rows, cols), even, of the centre of each frame to keep; default None (the whole frame).
+
+    Returns
+    -------
+    pathlib.Path
+        The lab log's path (for :func:`init_dataset`).
+
+    Raises
+    ------
+    InputError
+        When ``raw_dir`` exists, the crop is odd or larger than the frames, or an image cannot be read, is not a
+        16-bit PNG of the descriptor's size, or holds values above the bit depth.
     """
     import cv2
 
@@ -743,8 +888,32 @@ def emva1288_raw_folder(descriptor, raw_dir, *, make: str, model: str, serial: s
 
 def init_emva1288_dataset(descriptor, raw_dir, out, *, make: str, model: str, serial: str,
                           crop_px: tuple[int, int] | None = None) -> InitResult:
-    """An EMVA1288 measurement as a dataset: :func:`emva1288_raw_folder` into ``raw_dir``, then
-    :func:`init_dataset` into ``out`` with its lab log (the DNGs linked).  The one lens region is lit to its
-    corners in the bright frames, so init-dataset proposes it ``projection: rectilinear``."""
+    """An EMVA1288 measurement as a dataset: :func:`emva1288_raw_folder` into ``raw_dir``, then :func:`init_dataset`.
+
+    The dataset is written into ``out`` with the wrapper's lab log (the DNGs linked).  The one lens region is lit
+    to its corners in the bright frames, so init-dataset proposes it ``projection: rectilinear``.
+
+    Parameters
+    ----------
+    descriptor : str or pathlib.Path
+        The EMVA1288 descriptor (``EMVA1288_Data.txt``).
+    raw_dir : str or pathlib.Path
+        The raw folder of DNGs and lab log to write; it must not exist.
+    out : str or pathlib.Path
+        The dataset folder to write; it must not exist.
+    make : str
+        The camera's make (DNG tags, dataset.yaml).
+    model : str
+        The camera's model.
+    serial : str
+        The camera's serial number.
+    crop_px : tuple of (int, int), optional
+        (rows, cols), even, of the centre of each frame to keep; default None (the whole frame).
+
+    Returns
+    -------
+    InitResult
+        As :func:`init_dataset`.
+    """
     log = emva1288_raw_folder(descriptor, raw_dir, make=make, model=model, serial=serial, crop_px=crop_px)
     return init_dataset(raw_dir, out, lab_log=log)

@@ -75,8 +75,26 @@ def _mark_text(node, path: tuple) -> None:
 def load_yaml(text: str, text_paths: Iterable[tuple] = ()):
     """The document in ``text``; a YAMLError (a :class:`DuplicateKey` among them) when it is not valid.
 
-    ``text_paths`` are key paths, e.g. ``("camera", "serial")`` or ``("lenses", KEYS)``, whose plain
-    scalars are read as the text written (``0123`` stays '0123', ``no`` stays 'no').
+    Parameters
+    ----------
+    text : str
+        The YAML text of one document.
+    text_paths : iterable of tuple, optional
+        Key paths, e.g. ``("camera", "serial")`` or ``("lenses", KEYS)``, whose plain (unquoted) scalars are
+        read as the text written (``0123`` stays '0123', ``no`` stays 'no'); a step :data:`KEYS` marks the keys
+        of the mapping at that point, a step ``"*"`` every value of it. Default none.
+
+    Returns
+    -------
+    object
+        The parsed document (dict, list or scalar), or None for an empty document.
+
+    Raises
+    ------
+    DuplicateKey
+        When a mapping holds the same key twice (the key and both 1-based lines are named).
+    yaml.YAMLError
+        When the text is not valid YAML.
     """
     loader = _StrictLoader(text)
     try:

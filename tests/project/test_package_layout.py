@@ -18,12 +18,12 @@ PACKAGE = Path(pipeline.__file__).resolve().parent
 
 #: the modules a package may keep at its root: the entry points and the few base modules every layer uses
 ROOT_MODULES = {"__init__", "__main__", "cli", "config", "entry", "errors", "scaffold", "yamlio"}
-#: the longest a function may be, in lines from its ``def`` to its last line: past it, named steps read better
+#: the longest a function may be, in lines from its ``def`` to its last line less its docstring: past it, named steps
+#: read better
 MAX_FUNCTION_LINES = 120
 #: the functions longer than that today, to be split into named steps; the list may only shrink: a function split
 #: below the limit leaves it (the test says so), and a new long function fails the test
-LONG_FUNCTIONS = {"simulate/field.py::plan_field",
-                  "radiometry/absolute.py::absolute_calibration_budget", "stages/rolloff.py::reduce_rolloff"}
+LONG_FUNCTIONS = {"simulate/field.py::plan_field"}
 
 
 @cache
@@ -60,16 +60,23 @@ def test_every_test_module_sits_in_the_subfolder_of_its_layer():
 
 
 def _function_lengths(tree: ast.AST, prefix: str = ""):
-    """(qualified name, lines from ``def`` to the last line) of every function in ``tree``, nested ones included
-    (``outer.inner``, ``Class.method``)."""
+    """(qualified name, lines from ``def`` to the last line, its docstring left out) of every function in
+    ``tree``, nested ones included (``outer.inner``, ``Class.method``): the limit is on the code a reader follows,
+    not on its documentation."""
     for node in ast.iter_child_nodes(tree):
         if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
             name = f"{prefix}{node.name}"
             if not isinstance(node, ast.ClassDef):
-                yield name, node.end_lineno - node.lineno + 1
+                yield name, node.end_lineno - node.lineno + 1 - _docstring_lines(node)
             yield from _function_lengths(node, f"{name}.")
         else:
             yield from _function_lengths(node, prefix)
+
+
+def _docstring_lines(node: ast.FunctionDef) -> int:
+    first = node.body[0]
+    is_doc = isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str)
+    return first.end_lineno - first.lineno + 1 if is_doc else 0
 
 
 def _long_functions(limit: int) -> dict[str, int]:

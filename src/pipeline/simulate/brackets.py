@@ -74,7 +74,22 @@ class BracketScene:
     attitude_deg: tuple = (0.0, 0.0, 0.0)
 
     def radiance(self, zenith_deg, azimuth_deg, band_index) -> np.ndarray:
-        """Effective band radiance of the directions (arrays of one shape; ``band_index`` 0 R, 1 G, 2 B)."""
+        """Effective band radiance of the directions (arrays of one shape; ``band_index`` 0 R, 1 G, 2 B).
+
+        Parameters
+        ----------
+        zenith_deg : array_like
+            Earth-frame zenith angle Z of the directions, degree (above 90: the ground).
+        azimuth_deg : array_like
+            Azimuth, degree from north towards east.
+        band_index : array_like
+            Band index of each direction (0 R, 1 G, 2 B), same shape.
+
+        Returns
+        -------
+        numpy.ndarray
+            The scene's band radiance, W m-2 sr-1 nm-1: sky, sun disc or ground (module docstring).
+        """
         z = np.asarray(zenith_deg, float)
         a = np.asarray(azimuth_deg, float)
         lz = np.asarray(self.zenith_radiance, float)[np.asarray(band_index)]
@@ -88,7 +103,26 @@ class BracketScene:
         return np.where(z <= 90.0, upper, lower)
 
     def camera_radiance(self, lens: str, geometry, band_index) -> np.ndarray:
-        """The renderer's scene callback: per raw site of ``lens``."""
+        """The renderer's scene callback: per raw site of ``lens``.
+
+        A site of the close lens at field angle theta and azimuth phi looks at Z = theta, alpha = phi; one of the
+        far lens at Z = 180 - theta, alpha = -phi; then rotated into the earth frame by the camera's attitude
+        (:meth:`earth_direction`).
+
+        Parameters
+        ----------
+        lens : str
+            ``close`` (looking at the zenith) or ``far``.
+        geometry : LensGeometry
+            The true viewing directions of the lens's raw sites (theta, phi, degree).
+        band_index : numpy.ndarray
+            Band index of each raw site (0 R, 1 G, 2 B).
+
+        Returns
+        -------
+        numpy.ndarray
+            Band radiance at each raw site, W m-2 sr-1 nm-1.
+        """
         theta, phi = geometry.theta_deg, geometry.phi_deg
         if lens == "close":
             z, a = theta, phi % 360.0
@@ -97,7 +131,25 @@ class BracketScene:
         return self.radiance(*self.earth_direction(z, a), band_index)
 
     def earth_direction(self, zenith_deg, azimuth_deg):
-        """Earth-frame zenith angle and azimuth (deg, from north towards east) of camera directions."""
+        """Earth-frame zenith angle and azimuth (deg, from north towards east) of camera directions.
+
+        Camera directions are rotated into the earth frame (north, east, down) by Rz(heading) Ry(pitch) Rx(roll) of
+        ``attitude_deg``; unchanged when the attitude is zero.
+
+        Parameters
+        ----------
+        zenith_deg : array_like
+            Zenith angle in the camera's frame, degree.
+        azimuth_deg : array_like
+            Azimuth in the camera's frame, degree.
+
+        Returns
+        -------
+        zenith_deg : numpy.ndarray
+            Earth-frame zenith angle, degree.
+        azimuth_deg : numpy.ndarray
+            Earth-frame azimuth in [0, 360), degree from north towards east.
+        """
         if not any(self.attitude_deg):
             return zenith_deg, azimuth_deg
         z, a = np.radians(np.asarray(zenith_deg, float)), np.radians(np.asarray(azimuth_deg, float))
@@ -110,7 +162,24 @@ class BracketScene:
 
 
 def truth_band_images(renderer: Renderer, scene: BracketScene, lens: str, medium: str = "air") -> np.ndarray:
-    """(band, y, x) effective band radiance each band pixel of ``lens`` sees (G: the mean of its two sites)."""
+    """(band, y, x) effective band radiance each band pixel of ``lens`` sees (G: the mean of its two sites).
+
+    Parameters
+    ----------
+    renderer : Renderer
+        The renderer of the bracket (its camera's true geometry and band sites).
+    scene : BracketScene
+        The scene.
+    lens : str
+        The lens.
+    medium : str, optional
+        ``air`` or ``water``; default ``air``.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (3, lens_px / 2, lens_px / 2), bands R, G, B: W m-2 sr-1 nm-1; NaN outside the image circle.
+    """
     geo = renderer.geometry(lens, medium)
     sites = scene.camera_radiance(lens, geo, renderer.band_index)
     sites = np.where(geo.lit, sites, np.nan)
@@ -118,8 +187,24 @@ def truth_band_images(renderer: Renderer, scene: BracketScene, lens: str, medium
 
 
 def sun_at_site(site, when: datetime) -> tuple[float, float]:
-    """The sun's apparent zenith angle and azimuth (deg, from north towards east) at ``site`` (lat, lon[, alt_m])
-    and the UTC time ``when`` (pvlib's solar position, as the scene's truth)."""
+    """The sun's apparent zenith angle and azimuth (deg, from north towards east) at ``site`` and time ``when``.
+
+    pvlib's solar position, as the scene's truth.
+
+    Parameters
+    ----------
+    site : sequence of float
+        (latitude, longitude[, altitude]): degree north, degree east, m (altitude default 0).
+    when : datetime.datetime
+        The time, UTC (naive).
+
+    Returns
+    -------
+    zenith_deg : float
+        Apparent (refracted) zenith angle, degree.
+    azimuth_deg : float
+        Azimuth, degree from north towards east.
+    """
     from pvlib.solarposition import get_solarposition
 
     pos = get_solarposition(pd.DatetimeIndex([pd.Timestamp(when, tz="UTC")]), site[0], site[1],
@@ -129,10 +214,34 @@ def sun_at_site(site, when: datetime) -> tuple[float, float]:
 
 def write_attitude_log(path, attitude_deg, start: datetime, seconds: float, *, seed: int,
                        sigma_deg=ATTITUDE_LOG_SIGMA_DEG, heading_bias_deg: float = 0.0) -> Path:
-    """An attitude log (the pipeline's CSV format) of a still camera: one sample a second from two seconds
-    before ``start`` to two after ``start + seconds`` (a sample at ``start`` itself), each the true attitude
-    plus normal noise of ``sigma_deg``, stated as the sigmas; ``heading_bias_deg`` adds a wrong heading to
-    every sample (a compass off by that much), not stated."""
+    """An attitude log (the pipeline's CSV format) of a still camera.
+
+    One sample a second from two seconds before ``start`` to two after ``start + seconds`` (a sample at ``start``
+    itself), each the true attitude plus normal noise of ``sigma_deg``, stated as the sigmas.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The CSV file to write.
+    attitude_deg : sequence of float
+        The true (roll, pitch, heading), degree.
+    start : datetime.datetime
+        The first frame's time, UTC (naive).
+    seconds : float
+        The duration the log must cover, s.
+    seed : int
+        Seed of the noise (with the stream 33).
+    sigma_deg : sequence of float, optional
+        Standard deviations of the noise of (roll, pitch, heading), degree; default
+        :data:`ATTITUDE_LOG_SIGMA_DEG` (0.2, 0.2, 1.0).
+    heading_bias_deg : float, optional
+        A wrong heading added to every sample (a compass off by that much), degree, not stated; default 0.
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``: columns ``time_utc``, ``roll_deg``, ``pitch_deg``, ``heading_deg`` and their ``*_sigma_deg``.
+    """
     rng = np.random.default_rng([seed, 33])
     n = int(np.ceil(seconds)) + 5
     times = [pd.Timestamp(start, tz="UTC") + pd.Timedelta(seconds=k - 2) for k in range(n)]
@@ -152,17 +261,49 @@ def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRA
                    scale: str = "tiny", iso: float = 100.0, start: datetime = datetime(2021, 3, 18, 16, 0, 0),
                    bracket: str = "B001", raw_transform=None, first_index: int = 0, site=None,
                    attitude_log_sigma_deg=None, heading_bias_deg: float = 0.0) -> dict:
-    """Render one bracket into ``folder``: ``<bracket>_<k>.dng`` per exposure, ``frames.csv`` (appended to when
-    it exists) and the truth in ``truth/<bracket>.nc`` and ``truth/<bracket>.yaml``.
+    """Render one bracket into ``folder``: DNG frames, the frames table and the truth.
 
-    ``site`` (lat, lon[, alt_m]): the sun is put where pvlib puts it at the site and ``start`` (the first
-    frame's time, which the DNG carries in UTC), replacing the scene's sun position.
-    ``attitude_log_sigma_deg`` (roll, pitch, heading): also write ``<bracket>_attitude.csv``, a log of the
-    scene's ``attitude_deg`` with that noise (:func:`write_attitude_log`; ``heading_bias_deg`` a wrong heading).
+    ``<bracket>_<k>.dng`` per exposure, ``frames.csv`` (appended to when it exists) and the truth in
+    ``truth/<bracket>.nc`` and ``truth/<bracket>.yaml``. The frames follow each other by their exposure and a
+    quarter second.
 
-    ``raw_transform(cfa, black_level_dn, white_level_dn) -> cfa``: applied to each raw mosaic before it is
-    written (a test's own bent response, for example); the truth is the scene's, untouched by it.
-    Returns {"files": [paths], "frames_csv": path, "truth": path}.
+    Parameters
+    ----------
+    folder : str or pathlib.Path
+        The folder to write into (created when missing).
+    scene : BracketScene, optional
+        The scene; default ``BracketScene()``.
+    exposures_s : sequence of float, optional
+        The exposure times, s; default :data:`BRACKET_EXPOSURES_S` (1/4000 s to 1 s).
+    seed : int, optional
+        The camera's and the noise's seed; default 1.
+    scale : str, optional
+        The simulator's scale (the lens region size); default ``tiny``.
+    iso : float, optional
+        The ISO setting; default 100.
+    start : datetime.datetime, optional
+        The first frame's time (UTC, which the DNG carries); default 2021-03-18 16:00.
+    bracket : str, optional
+        The bracket's name (file names, ``bracket`` column); default ``B001``.
+    raw_transform : callable, optional
+        ``raw_transform(cfa, black_level_dn, white_level_dn) -> cfa``: applied to each raw mosaic before it is
+        written (a test's own bent response, for example); the truth is the scene's, untouched by it. Default none.
+    first_index : int, optional
+        Index of the first frame in the noise's stream (brackets of one scene with different noise); default 0.
+    site : sequence of float, optional
+        (lat, lon[, alt_m]): the sun is put where pvlib puts it at the site and ``start``, replacing the scene's
+        sun position; default None.
+    attitude_log_sigma_deg : sequence of float, optional
+        (roll, pitch, heading), degree: also write ``<bracket>_attitude.csv``, a log of the scene's
+        ``attitude_deg`` with that noise (:func:`write_attitude_log`); default None (no log).
+    heading_bias_deg : float, optional
+        A wrong heading in the attitude log, degree; default 0.
+
+    Returns
+    -------
+    dict
+        ``files`` (list of pathlib.Path, the DNGs), ``frames_csv`` and ``truth`` (paths), ``scene`` (the
+        BracketScene rendered, the sun placed), and ``attitude_log`` (path) when one was written.
     """
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

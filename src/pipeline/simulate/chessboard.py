@@ -21,6 +21,36 @@ def board_reflectance(model: FisheyeModel, board: Board, rvec, tvec, u, v, *,
     Each ray (model.cam2world) is intersected with the board plane: white or
     black squares, the white margin, ``background`` off the board or behind
     the camera, ``outside`` beyond the image circle (theta > half FOV).
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The camera model the pixel coordinates belong to.
+    board : Board
+        The chessboard (inner corners, square size in mm, margin).
+    rvec : array_like
+        Shape (3,): the board's rotation (Rodrigues vector, rad) in the camera frame.
+    tvec : array_like
+        Shape (3,): the board centre's position in the camera frame, mm.
+    u : numpy.ndarray
+        Pixel column coordinates (pixel centres at integers).
+    v : numpy.ndarray
+        Pixel row coordinates, same shape as ``u``.
+    white : float, optional
+        Reflectance of the white squares and margin; default 0.9.
+    black : float, optional
+        Reflectance of the black squares; default 0.05.
+    background : float, optional
+        Reflectance off the board; default 0.35.
+    outside : float, optional
+        Value beyond the image circle; default 0.
+    half_fov_deg : float, optional
+        The image circle's half field of view, degree; default None (the model's own; None there too: no circle).
+
+    Returns
+    -------
+    numpy.ndarray
+        The reflectance along each ray, dimensionless, shape of ``u``.
     """
     hfov = model.half_fov_deg if half_fov_deg is None else half_fov_deg
     R = rotation_matrix(rvec)
@@ -60,8 +90,37 @@ def render_chessboard(model: FisheyeModel, board: Board, rvec, tvec, *,
     ``background`` off the board or behind the camera, ``outside`` beyond the
     image circle theta > half FOV). The pixel value is the mean.
 
-    Returns ``(image, corners)``: image (rows, cols) float64 and the true
-    inner-corner pixel positions (nx*ny, 2) as (u, v), OpenCV order.
+    Parameters
+    ----------
+    model : FisheyeModel
+        The camera model; its ``shape`` (rows, cols) is the image's.
+    board : Board
+        The chessboard.
+    rvec : array_like
+        Shape (3,): the board's rotation (Rodrigues vector, rad) in the camera frame.
+    tvec : array_like
+        Shape (3,): the board centre's position in the camera frame, mm.
+    supersample : int, optional
+        Sub-pixels per side; default 4.
+    white : float, optional
+        Reflectance of the white squares and margin; default 0.9.
+    black : float, optional
+        Reflectance of the black squares; default 0.05.
+    background : float, optional
+        Reflectance off the board; default 0.35.
+    outside : float, optional
+        Value beyond the image circle; default 0.
+    half_fov_deg : float, optional
+        The image circle's half field of view, degree; default None (the model's).
+    chunk_rows : int, optional
+        Image rows rendered at once; default None (about 2 million sub-pixels at a time).
+
+    Returns
+    -------
+    image : numpy.ndarray
+        float64, shape (rows, cols): the mean reflectance of each pixel.
+    corners : numpy.ndarray
+        Shape (nx ny, 2): the true inner-corner pixel positions (u, v), OpenCV order.
     """
     rows, cols = model.shape
     ss = int(supersample)
@@ -83,7 +142,24 @@ def render_chessboard(model: FisheyeModel, board: Board, rvec, tvec, *,
 
 
 def look_rotation(direction, tilt_rad, tilt_azimuth, roll) -> np.ndarray:
-    """Rotation whose z column is `direction` tilted by tilt_rad, rolled in-plane."""
+    """Rotation whose z column is `direction` tilted by tilt_rad, rolled in-plane.
+
+    Parameters
+    ----------
+    direction : numpy.ndarray
+        Shape (3,): the direction the board's normal starts from (need not be unit length).
+    tilt_rad : float
+        Tilt away from ``direction``, rad.
+    tilt_azimuth : float
+        Azimuth of the tilt's axis about ``direction``, rad.
+    roll : float
+        In-plane rotation about the tilted z axis, rad.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (3, 3): the rotation matrix, columns x, y, z.
+    """
     z0 = direction / np.linalg.norm(direction)
     helper = np.array([0.0, 1.0, 0.0]) if abs(z0[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
     x0 = np.cross(helper, z0)
@@ -113,10 +189,38 @@ def poses_covering_fov(n: int, half_fov_deg: float, rng=None, *, board: Board | 
     180-degree orientations occur). A pose is kept only when every point of
     the board outline is at theta < half_fov - edge_margin_deg (board fully
     visible); when ``model`` is given the outline must also fall inside
-    the image. ``board_half_angle_deg`` may be a pair (on the axis, at the
-    edge): large boards near the axis constrain the focal scale through
-    perspective, small ones reach the edge of the field. Returns a list of
-    (rvec, tvec) with tvec in mm.
+    the image.
+
+    Parameters
+    ----------
+    n : int
+        Number of poses.
+    half_fov_deg : float
+        The lens's half field of view, degree.
+    rng : int or numpy.random.Generator, optional
+        Seed or generator (``numpy.random.default_rng``); default None (fresh entropy).
+    board : Board, optional
+        The chessboard; default ``Board()``.
+    board_half_angle_deg : float or tuple of (float, float), optional
+        Half-angle the board's half-diagonal subtends, degree; a pair (on the axis, at the edge) varies it over
+        the poses: large boards near the axis constrain the focal scale through perspective, small ones reach the
+        edge of the field. Default (50, 20).
+    max_tilt_deg : float, optional
+        Largest tilt of the board away from facing the camera, degree; default 45.
+    edge_margin_deg : float, optional
+        Margin of the board's outline inside the half field of view, degree; default 1.5.
+    model : FisheyeModel, optional
+        When given, the outline must also project inside its image; default None.
+
+    Returns
+    -------
+    list of tuple of (numpy.ndarray, numpy.ndarray)
+        Per pose, (rvec, tvec): rotation (Rodrigues vector, rad) and the board centre's position, mm.
+
+    Raises
+    ------
+    RuntimeError
+        When a fully visible board cannot be placed in 200 attempts.
     """
     rng = np.random.default_rng(rng)
     board = Board() if board is None else board

@@ -61,7 +61,18 @@ FRAME_INTERVAL_S = 1.5
 
 
 def truth_dir_for(dataset: str | Path) -> Path:
-    """The truth folder of a simulated dataset: beside it, never inside."""
+    """The truth folder of a simulated dataset: beside it, never inside.
+
+    Parameters
+    ----------
+    dataset : str or pathlib.Path
+        The simulated dataset's folder.
+
+    Returns
+    -------
+    pathlib.Path
+        ``<dataset>.truth`` in the same parent folder.
+    """
     dataset = Path(dataset)
     return dataset.parent / f"{dataset.name}.truth"
 
@@ -74,20 +85,49 @@ def simulate_dataset(out: str | Path, scale: str | Scale = "small", seed: int = 
 
     The dataset is written to a temporary sibling folder and renamed at the
     end, so a crash never leaves a half-written dataset; the truth goes to
-    :func:`truth_dir_for` ``(out)``. ``scale`` is a name of :data:`SCALES` or
-    a :class:`Scale` (e.g. the full lens region with fewer frames per setting,
-    for a benchmark); the scale's ``name`` chooses the chessboard and the
-    geometry frame count. With ``lab_errors`` the lab's systematic errors
-    (calibration lamp, reference radiometer, photodiode;
-    :mod:`pipeline.simulate.lab_errors`) are drawn once from the seed and
-    written to the truth (``lab_errors``); without, the lab is perfect.
-    With ``lab_noise`` (True for the default sizes, or a
-    :class:`~pipeline.simulate.lab_noise.LabNoise`) the lab's frame-to-frame
-    noise is added: source flicker and drift, bias jitter, room-temperature
-    drift (:mod:`pipeline.simulate.lab_noise`; sizes in the truth, ``lab_noise``).
-    ``sensitivity_factor`` multiplies the camera's responsivity in every band (DN/s per unit
-    radiance: 1 / 1.03 makes R^-1 3 % larger), as a unit of the same model or an aged camera
-    would differ; the truth records it and the responsivities it gives (``camera.radiometry``).
+    :func:`truth_dir_for` ``(out)``.
+
+    Parameters
+    ----------
+    out : str or pathlib.Path
+        The dataset folder to write; neither it nor its truth folder may exist.
+    scale : str or Scale, optional
+        A name of :data:`SCALES` (tiny, small, medium, full) or a :class:`Scale` (e.g. the full lens region with
+        fewer frames per setting, for a benchmark); the scale's ``name`` chooses the chessboard and the geometry
+        frame count. Default ``small``.
+    seed : int, optional
+        Seed of every random draw (noise, effects, lab errors); default 0.
+    effects : list of tuple of (str, dict), optional
+        Effects injected into the frames: (name in the effect catalogue, its parameters); default none.
+    experiments : sequence of str, optional
+        The experiments to write, in acquisition order; default :data:`EXPERIMENTS` (all eight).
+    progress : bool, optional
+        Show a progress bar of the frames; default True.
+    sensor : dict, optional
+        Fields of :class:`~pipeline.simulate.camera.SensorParams` to change from their defaults; default none.
+    lab_errors : bool, optional
+        Draw the lab's systematic errors (calibration lamp, reference radiometer, photodiode;
+        :mod:`pipeline.simulate.lab_errors`) once from the seed and write them to the truth (``lab_errors``);
+        default False (a perfect lab).
+    lab_noise : bool or LabNoise, optional
+        Add the lab's frame-to-frame noise: source flicker and drift, bias jitter, room-temperature drift
+        (:mod:`pipeline.simulate.lab_noise`; sizes in the truth, ``lab_noise``); True for the default sizes, or a
+        :class:`~pipeline.simulate.lab_noise.LabNoise`. Default False.
+    sensitivity_factor : float, optional
+        Multiplies the camera's responsivity in every band (DN/s per unit radiance: 1 / 1.03 makes R^-1 3 %
+        larger), as a unit of the same model or an aged camera would differ; the truth records it and the
+        responsivities it gives (``camera.radiometry``). Positive; default 1.
+
+    Returns
+    -------
+    pathlib.Path
+        ``out``: dataset.yaml, each experiment's frames.csv and DNG frames, sidecars, and MD5SUMS.
+
+    Raises
+    ------
+    InputError
+        For an unknown scale, experiment or sensor parameter, a sensitivity factor not positive, or when ``out``
+        or its truth folder exists.
     """
     out = Path(out)
     truth = truth_dir_for(out)
@@ -217,9 +257,25 @@ def _write_truth(folder: Path, camera: Camera, scale: Scale, seed: int, effects,
 
 
 def partial_folders(out: Path, truth: Path) -> tuple[Path, Path]:
-    """Fresh hidden folders beside ``out`` and ``truth`` that a simulation fills and then renames into
-    place, so that an interrupted run leaves no half-written dataset (a partial folder left by an earlier
-    run is removed first)."""
+    """Fresh hidden folders beside ``out`` and ``truth`` that a simulation fills and then renames into place.
+
+    An interrupted run so leaves no half-written dataset (a partial folder left by an earlier run is removed
+    first).
+
+    Parameters
+    ----------
+    out : pathlib.Path
+        The dataset folder to be written.
+    truth : pathlib.Path
+        Its truth folder.
+
+    Returns
+    -------
+    out_partial : pathlib.Path
+        ``.<out name>.partial`` beside ``out``, created empty.
+    truth_partial : pathlib.Path
+        ``.<truth name>.partial`` beside ``out``, created empty.
+    """
     folders = (out.parent / f".{out.name}.partial", out.parent / f".{truth.name}.partial")
     for path in folders:
         if path.exists():
@@ -229,7 +285,18 @@ def partial_folders(out: Path, truth: Path) -> tuple[Path, Path]:
 
 
 def yaml_plain(value):
-    """Numbers and lists YAML can write (numpy arrays and scalars converted)."""
+    """Numbers and lists YAML can write (numpy arrays and scalars converted).
+
+    Parameters
+    ----------
+    value : object
+        A value of the truth: dicts, lists, tuples, numpy arrays and scalars, nested.
+
+    Returns
+    -------
+    object
+        The same value with dict keys as text, tuples and arrays as lists and numpy scalars as Python numbers.
+    """
     if isinstance(value, dict):
         return {str(k): yaml_plain(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

@@ -16,6 +16,24 @@ def render_flat_field(model: FisheyeModel, *, half_fov_deg: float | None = None,
     """A bright, uniformly lit band image: ``level`` inside theta <= half FOV, else ``outside``.
 
     Each pixel is the mean over supersample x supersample sub-pixels.
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The band image's camera model; its ``shape`` (rows, cols) is the image's.
+    half_fov_deg : float, optional
+        The half field of view where the lit disc ends, degree; default None (the model's own).
+    level : float, optional
+        Value inside the image circle; default 1.
+    outside : float, optional
+        Value outside it; default 0.
+    supersample : int, optional
+        Sub-pixels per side; default 4.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape (rows, cols): the mean over each pixel's area (between ``outside`` and ``level`` on the edge).
     """
     rows, cols = model.shape
     hf = model.half_fov_deg if half_fov_deg is None else half_fov_deg

@@ -88,10 +88,28 @@ class BoardDesign:
     half_angle_deg: tuple[float, float]
 
     def board(self, medium: str) -> Board:
+        """The board photographed in one medium.
+
+        Parameters
+        ----------
+        medium : str
+            ``air`` or ``water`` (the square size differs).
+
+        Returns
+        -------
+        Board
+            The inner corners and the square size of that medium, mm.
+        """
         return Board(*self.inner_corners, self.square_mm[medium])
 
     def dataset_entry(self) -> dict:
-        """The ``chessboard`` entry of dataset.yaml."""
+        """The ``chessboard`` entry of dataset.yaml.
+
+        Returns
+        -------
+        dict
+            ``inner_corners`` (list of two int) and ``square_mm`` (medium -> square size, mm).
+        """
         return {"inner_corners": list(self.inner_corners), "square_mm": dict(self.square_mm)}
 
 
@@ -110,17 +128,59 @@ BOARD_BY_SCALE = {"tiny": BoardDesign((5, 4), {"air": 60.0, "water": 40.0}, (55.
 
 
 def board_design(scale_name: str) -> BoardDesign:
-    """The board the simulated lab uses at a scale (dataset.yaml declares it)."""
+    """The board the simulated lab uses at a scale (dataset.yaml declares it).
+
+    Parameters
+    ----------
+    scale_name : str
+        The dataset's scale (tiny, small, medium, full).
+
+    Returns
+    -------
+    BoardDesign
+        :data:`BOARD_BY_SCALE`'s board for that scale, else :data:`BOARD`.
+    """
     return BOARD_BY_SCALE.get(scale_name, BOARD)
 
 
 def magnified(model: FisheyeModel, m: float) -> FisheyeModel:
-    """The model with the image magnified by m about its principal point."""
+    """The model with the image magnified by m about its principal point.
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The model.
+    m : float
+        The magnification, dimensionless (polynomial coefficient a_k scaled by m^(1 - k)).
+
+    Returns
+    -------
+    FisheyeModel
+        The magnified model (a copy).
+    """
     return replace(model, poly=tuple(a * m ** (1 - k) for k, a in enumerate(model.poly)))
 
 
 def true_raw_models(lens: str, medium: str, lens_px: int) -> dict[str, FisheyeModel]:
-    """Per-band true model in raw-pixel coordinates of the lens region."""
+    """Per-band true model in raw-pixel coordinates of the lens region.
+
+    The nominal model (:func:`pipeline.simulate.lens.default_model`) with each band's chromatic magnification
+    (:data:`MAGNIFICATION`) and principal-point offset (:data:`CENTRE_OFFSET_BAND_PX`, doubled to raw pixels).
+
+    Parameters
+    ----------
+    lens : str
+        The lens (``close`` or ``far``).
+    medium : str
+        ``air`` or ``water``.
+    lens_px : int
+        Side of the square lens region, raw pixels.
+
+    Returns
+    -------
+    dict[str, FisheyeModel]
+        Band (R, G, B) -> its model in raw pixels.
+    """
     base = default_model(lens, medium, (lens_px, lens_px))
     out = {}
     for band in BANDS:
@@ -131,7 +191,20 @@ def true_raw_models(lens: str, medium: str, lens_px: int) -> dict[str, FisheyeMo
 
 
 def band_model(raw: FisheyeModel, band: str) -> FisheyeModel:
-    """True band-image model of a raw-coordinate model (Bayer site offset included)."""
+    """True band-image model of a raw-coordinate model (Bayer site offset included).
+
+    Parameters
+    ----------
+    raw : FisheyeModel
+        A band's model in raw pixels of the lens region.
+    band : str
+        R, G or B (its site in the 2 x 2 cell, :data:`SITE_OFFSET_RAW`).
+
+    Returns
+    -------
+    FisheyeModel
+        The model in that band's image pixels (half the raw scale).
+    """
     b = raw.scaled(0.5)
     su, sv = SITE_OFFSET_RAW[band]
     # band pixel i of this band sits at raw 2i + su: u_band = (u_raw - su) / 2
@@ -139,7 +212,24 @@ def band_model(raw: FisheyeModel, band: str) -> FisheyeModel:
 
 
 def true_image_circle(lens: str, medium: str, lens_px: int, band: str) -> ImageCircle:
-    """The lit disc of the renderer (nominal model, theta <= half FOV) in band coordinates."""
+    """The lit disc of the renderer (nominal model, theta <= half FOV) in band coordinates.
+
+    Parameters
+    ----------
+    lens : str
+        The lens.
+    medium : str
+        ``air`` or ``water``.
+    lens_px : int
+        Side of the square lens region, raw pixels.
+    band : str
+        R, G or B.
+
+    Returns
+    -------
+    ImageCircle
+        Centre (x, y) and radius in band pixels, fit RMS 0.
+    """
     nominal = default_model(lens, medium, (lens_px, lens_px))
     r = nominal.image_circle_radius()
     su, sv = SITE_OFFSET_RAW[band]
@@ -159,13 +249,44 @@ class ChessboardScene:
         self.ss = int(supersample)
 
     def reflectance(self, model, u, v):
+        """The board's reflectance along the rays of one band's pixels, with the geometry experiment's reflectances.
+
+        Parameters
+        ----------
+        model : FisheyeModel
+            The band's raw-pixel model.
+        u : numpy.ndarray
+            Raw pixel column coordinates.
+        v : numpy.ndarray
+            Raw pixel row coordinates, same shape.
+
+        Returns
+        -------
+        numpy.ndarray
+            Reflectance, dimensionless, shape of ``u`` (:func:`pipeline.simulate.chessboard.board_reflectance`).
+        """
         return board_reflectance(model, self.board, self.rvec, self.tvec, u, v,
                                  white=REFLECTANCE["white"], black=REFLECTANCE["black"],
                                  background=REFLECTANCE["background"], outside=REFLECTANCE["background"],
                                  half_fov_deg=180.0)
 
     def band_sites(self, band: str, shape) -> np.ndarray:
-        """Reflectance integrated over every raw pixel of one band site pattern: list of (rows, cols, values)."""
+        """Reflectance integrated over every raw pixel of one band's sites: list of (row offset, column offset, values).
+
+        Parameters
+        ----------
+        band : str
+            R, G or B.
+        shape : tuple of (int, int)
+            (rows, cols) of the lens region, raw pixels.
+
+        Returns
+        -------
+        list of tuple of (int, int, numpy.ndarray)
+            One entry per site of the band in the 2 x 2 cell (two for G): its row and column offset in the cell and
+            the reflectance of the raw pixels ``[dy::2, dx::2]``, each averaged over the pixel's area (supersampled
+            near edges).
+        """
         model = self.models[band]
         out = []
         sites = {"R": [(0, 0)], "G": [(0, 1), (1, 0)], "B": [(1, 1)]}[band]
@@ -216,12 +337,41 @@ class ChessboardScene:
 
 
 def white_radiance(ctx: SimContext) -> dict:
-    """Band radiance of a perfect white board giving WHITE_DN on the axis at ISO 100."""
+    """Band radiance of a perfect white board giving WHITE_DN on the axis at ISO 100.
+
+    Parameters
+    ----------
+    ctx : SimContext
+        The simulation (the camera's responsivity).
+
+    Returns
+    -------
+    dict[str, float]
+        Band -> radiance, W m-2 sr-1 nm-1 (band-averaged), at the experiment's exposure ``EXPOSURE_S``.
+    """
     resp = ctx.camera.radiometry.responsivity_dn_s_per_radiance
     return {b: WHITE_DN[b] / (resp[b] * EXPOSURE_S) for b in BANDS}
 
 
 def plan_poses(ctx: SimContext, lens: str, medium: str, n: int):
+    """Board poses for one lens and medium, covering the field (:func:`~pipeline.simulate.chessboard.poses_covering_fov`).
+
+    Parameters
+    ----------
+    ctx : SimContext
+        The simulation (scale, and the generator the poses' seed is drawn from).
+    lens : str
+        The lens.
+    medium : str
+        ``air`` or ``water``.
+    n : int
+        Number of poses.
+
+    Returns
+    -------
+    list of tuple of (numpy.ndarray, numpy.ndarray)
+        Per pose, (rvec, tvec): rotation (Rodrigues vector, rad) and board centre, mm.
+    """
     raw = true_raw_models(lens, medium, ctx.scale.lens_px)["G"]
     design = board_design(ctx.scale.name)
     seed = int(ctx.rng.integers(2**31))
@@ -231,6 +381,19 @@ def plan_poses(ctx: SimContext, lens: str, medium: str, n: int):
 
 @planner("geometry")
 def plan_geometry(ctx: SimContext) -> ExperimentPlan:
+    """Plan the geometric-calibration experiment: chessboard frames of each lens in air and in water.
+
+    Parameters
+    ----------
+    ctx : SimContext
+        The simulation.
+
+    Returns
+    -------
+    ExperimentPlan
+        The frames (:data:`FRAMES_PER_MEDIUM` per lens and medium) and the truth: the board, the true raw and
+        band models with their image circles, and each frame's pose.
+    """
     n = FRAMES_PER_MEDIUM.get(ctx.scale.name, 20)
     lens_px = ctx.scale.lens_px
     radiance = white_radiance(ctx)

@@ -35,7 +35,29 @@ import numpy as np
 
 
 def wing_kernel_per_sr(distance_rad, fraction: float, core_rad: float, index: float) -> np.ndarray:
-    """K(d) of the module docstring (sr-1): the image-plane kernel's wings, integral ``fraction``."""
+    """K(d) of the module docstring (sr-1): the image-plane kernel's wings, integral ``fraction``.
+
+    Parameters
+    ----------
+    distance_rad : array_like
+        Image-plane distance d from the sun's image, rad (:func:`image_plane_distance_rad`).
+    fraction : float
+        The spread fraction f: the kernel's integral over the plane, dimensionless.
+    core_rad : float
+        The core width d0, rad.
+    index : float
+        The wing index p (the wings fall as d^-p); above 2.
+
+    Returns
+    -------
+    numpy.ndarray
+        K(d), sr-1, shaped like ``distance_rad``.
+
+    Raises
+    ------
+    ValueError
+        When ``index`` is 2 or less (no finite integral).
+    """
     if index <= 2.0:
         raise ValueError(f"the wing index p must exceed 2 for a finite integral, got {index}")
     d = np.asarray(distance_rad, float)
@@ -44,7 +66,24 @@ def wing_kernel_per_sr(distance_rad, fraction: float, core_rad: float, index: fl
 
 
 def image_plane_distance_rad(theta_deg, phi_deg, sun_theta_deg: float, sun_phi_deg: float) -> np.ndarray:
-    """Distance in the equidistant image plane (r = theta, rad) between pixels and the sun's image."""
+    """Distance in the equidistant image plane (r = theta, rad) between pixels and the sun's image.
+
+    Parameters
+    ----------
+    theta_deg : array_like
+        The pixels' field angle, degree.
+    phi_deg : array_like
+        The pixels' azimuth in the camera, degree.
+    sun_theta_deg : float
+        The sun's field angle (its zenith angle for the zenith-looking lens), degree.
+    sun_phi_deg : float
+        The sun's azimuth in the camera, degree.
+
+    Returns
+    -------
+    numpy.ndarray
+        The distance, rad, the pixels' broadcast shape.
+    """
     t, p = np.radians(np.asarray(theta_deg, float)), np.radians(np.asarray(phi_deg, float))
     ts, ps = np.radians(sun_theta_deg), np.radians(sun_phi_deg)
     return np.hypot(t * np.cos(p) - ts * np.cos(ps), t * np.sin(p) - ts * np.sin(ps))
@@ -62,6 +101,23 @@ class SunGlare:
         self.transmission = np.asarray(sun_transmission, float)
 
     def pattern(self, theta_deg, phi_deg, i: int) -> np.ndarray:
+        """The glare at the pixels in frame ``i``, per unit of the sun's irradiance: K(d) times the sun's transmission.
+
+        Parameters
+        ----------
+        theta_deg : array_like
+            The pixels' field angle, degree (above 90: no glare).
+        phi_deg : array_like
+            The pixels' azimuth in the camera, degree.
+        i : int
+            The frame's index into the sun positions and transmissions.
+
+        Returns
+        -------
+        numpy.ndarray
+            sr-1: multiplied by the sun's band direct-normal irradiance (W m-2 nm-1; the clouds' transmission is
+            in the pattern) it is the excess radiance, W m-2 sr-1 nm-1; zero for theta above 90 degrees.
+        """
         d = image_plane_distance_rad(theta_deg, phi_deg, self.sun_zenith_deg[i], self.sun_phi_deg[i])
         out = wing_kernel_per_sr(d, self.fraction, self.core_rad, self.index) * self.transmission[i]
         return np.where(np.asarray(theta_deg, float) <= 90.0, out, 0.0)

@@ -45,6 +45,22 @@ SOURCE_RADIUS_DEG = 15.0
 
 
 def true_immersion_factors(temperature_c=WATER["temperature_c"], salinity_psu=WATER["salinity_psu"]) -> dict:
+    """The true indices and immersion factors of the experiment's water and window, per band.
+
+    Parameters
+    ----------
+    temperature_c : float, optional
+        The water's temperature, deg C; default 25.
+    salinity_psu : float, optional
+        The water's salinity, PSU; default 0 (pure water).
+
+    Returns
+    -------
+    dict
+        Per band (R, G, B) at the band's nominal wavelength: ``n_w`` (water's refractive index), ``n_g`` (the
+        window's), ``immersion_factor`` (I of a flat external window, Eq. 10) and ``n2_factor`` (the n-squared
+        law's factor with the surface's Fresnel transmission, t_aw n_w^2); all dimensionless.
+    """
     n_w = {b: float(refractive_index_water(BAND_WAVELENGTH_NM[b], temperature_c, salinity_psu)) for b in BANDS}
     return {
         "n_w": n_w,
@@ -74,6 +90,23 @@ class WaterFactor:
 
 @planner("immersion")
 def plan_immersion(ctx: SimContext) -> ExperimentPlan:
+    """Plan the immersion-factor experiment: each lens under a source on its axis, in air and under water.
+
+    Per lens: dark frames, frames in the empty tank, then frames at each water height of :data:`HEIGHTS_CM`,
+    the light multiplied by t_aw n_w^2 exp(-(a + b) z) / I per band.
+
+    Parameters
+    ----------
+    ctx : SimContext
+        The simulation (the camera's responsivity sets the source's radiance to the in-air levels of Table 2).
+
+    Returns
+    -------
+    ExperimentPlan
+        The frames (columns ``condition`` and ``water_height_cm``), the ``water.yaml`` sidecar (temperature,
+        salinity) and the truth: immersion factors, indices, attenuation (m-1) and the source's band radiance
+        (W m-2 sr-1 nm-1).
+    """
     resp = ctx.camera.radiometry.responsivity_dn_s_per_radiance
     radiance = {b: IN_AIR_DN[b] / (resp[b] * EXPOSURE_S * ISO / 100.0) for b in BANDS}
     true = true_immersion_factors()

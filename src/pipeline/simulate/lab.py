@@ -11,6 +11,19 @@ from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planne
 
 @planner("dark")
 def plan_dark(ctx: SimContext) -> ExperimentPlan:
+    """Plan the dark-frame experiment: both lenses capped, every (ISO, exposure) setting of the dark plan.
+
+    Parameters
+    ----------
+    ctx : SimContext
+        The simulation (the scale's dark frames per setting; the generator of the logged temperature).
+
+    Returns
+    -------
+    ExperimentPlan
+        The dark frames, each with the sensor temperature logged to 0.01 deg C (a sensor warming up during the
+        session).
+    """
     plan = DarkPlan(frames_per_setting=ctx.scale.dark_frames)
     frames = [FrameSpec("both", "dark", iso, t)
               for iso, t in plan.settings() for _ in range(plan.frames_per_setting)]
@@ -30,7 +43,22 @@ def _log_temperature(ctx: SimContext, frames: list[FrameSpec], start_c: float = 
 
 @planner("linearity")
 def plan_linearity(ctx: SimContext) -> ExperimentPlan:
-    """Both sweeps for each lens in turn, the integrating sphere filling the field."""
+    """Both sweeps for each lens in turn, the integrating sphere filling the field.
+
+    The exposure sweep at one ISO and the gain sweep at one exposure, each setting repeated the scale's
+    linearity frames per setting.
+
+    Parameters
+    ----------
+    ctx : SimContext
+        The simulation (the camera's sphere radiance, the scale, the generator of the logged temperature).
+
+    Returns
+    -------
+    ExperimentPlan
+        The signal frames (``sweep`` column ``exposure`` or ``gain``, temperature logged) and the truth: the
+        source's band radiance in each sweep, W m-2 sr-1 nm-1.
+    """
     plan = LinearityPlan(frames_per_setting=ctx.scale.linearity_frames)
     sphere = ctx.camera.radiometry.sphere_band_radiance
     exposure_source = {b: plan.exposure_source_fraction * sphere[b] for b in BANDS}

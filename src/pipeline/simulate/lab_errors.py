@@ -55,7 +55,25 @@ STREAM = 60221
 
 def lamp_error_sizes(at_400_nm: float = LAMP_RELATIVE_SIGMA_400NM, at_800_nm: float = LAMP_RELATIVE_SIGMA_800NM,
                      temperature_k: float = LAMP_TEMPERATURE_K) -> dict[str, float]:
-    """Scale sigma (1) and colour-temperature sigma (K) reproducing the stated sigma at 400 and 800 nm."""
+    """Scale sigma (1) and colour-temperature sigma (K) reproducing the stated sigma at 400 and 800 nm.
+
+    u(lambda)^2 = sigma_s^2 + (c / lambda)^2, solved for sigma_s and c from the two stated numbers; the
+    colour-temperature sigma is c T^2 / c2 (Wien's approximation).
+
+    Parameters
+    ----------
+    at_400_nm : float, optional
+        The lamp's stated relative uncertainty at 400 nm; default 0.091.
+    at_800_nm : float, optional
+        Its stated relative uncertainty at 800 nm; default 0.069.
+    temperature_k : float, optional
+        The lamp's colour temperature, K; default ``LAMP_TEMPERATURE_K`` (the source lamp's).
+
+    Returns
+    -------
+    dict[str, float]
+        ``scale_sigma`` (relative, dimensionless), ``shape_nm`` (c, nm) and ``colour_temperature_sigma_K`` (K).
+    """
     c2 = (at_400_nm**2 - at_800_nm**2) / (1 / 400.0**2 - 1 / 800.0**2)
     scale = np.sqrt(at_800_nm**2 - c2 / 800.0**2)
     return {"scale_sigma": float(scale), "shape_nm": float(np.sqrt(c2)),
@@ -63,7 +81,23 @@ def lamp_error_sizes(at_400_nm: float = LAMP_RELATIVE_SIGMA_400NM, at_800_nm: fl
 
 
 def draw_lab_errors(seed: int) -> dict[str, float]:
-    """The lab's systematic errors of one dataset (dimensionless, K)."""
+    """The lab's systematic errors of one dataset (dimensionless, K).
+
+    Drawn from ``numpy.random.default_rng([seed, STREAM])``: a stream of their own, so switching them on
+    changes no other draw.
+
+    Parameters
+    ----------
+    seed : int
+        The dataset's seed.
+
+    Returns
+    -------
+    dict
+        ``lamp_scale`` (relative), ``lamp_colour_temperature_error_K`` (K), ``reference_relative_error``
+        (relative, the reference radiometer's scale) and ``photodiode_coefficients`` (three Legendre
+        coefficients, relative).
+    """
     rng = np.random.default_rng([seed, STREAM])
     sizes = lamp_error_sizes()
     z = rng.standard_normal(6)
@@ -74,13 +108,34 @@ def draw_lab_errors(seed: int) -> dict[str, float]:
 
 
 def no_lab_errors() -> dict[str, float]:
-    """A perfect lab: every systematic error zero."""
+    """A perfect lab: every systematic error zero.
+
+    Returns
+    -------
+    dict
+        The keys of :func:`draw_lab_errors`, all zero.
+    """
     return {"lamp_scale": 0.0, "lamp_colour_temperature_error_K": 0.0, "reference_relative_error": 0.0,
             "photodiode_coefficients": [0.0, 0.0, 0.0]}
 
 
 def lamp_factor(wavelength_nm, errors: dict) -> np.ndarray:
-    """1 + relative error of the spectrometer's calibrated spectrum at ``wavelength_nm``."""
+    """1 + relative error of the spectrometer's calibrated spectrum at ``wavelength_nm``.
+
+    (1 + scale) B(lambda, T + dT) / B(lambda, T), B Planck's law at the lamp's colour temperature T.
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelength, nm.
+    errors : dict
+        The lab's errors (:func:`draw_lab_errors`): ``lamp_scale`` and ``lamp_colour_temperature_error_K``.
+
+    Returns
+    -------
+    numpy.ndarray
+        The factor on the true spectrum, dimensionless, shaped like ``wavelength_nm``.
+    """
     wl = np.asarray(wavelength_nm, dtype=float)
     t = LAMP_TEMPERATURE_K
     ratio = planck_radiance(wl, t + errors["lamp_colour_temperature_error_K"]) / planck_radiance(wl, t)
@@ -88,7 +143,22 @@ def lamp_factor(wavelength_nm, errors: dict) -> np.ndarray:
 
 
 def photodiode_factor(wavelength_nm, errors: dict) -> np.ndarray:
-    """1 + relative error of the photodiode reading against the beam reaching the camera."""
+    """1 + relative error of the photodiode reading against the beam reaching the camera.
+
+    1 + a0 + a1 x + a2 (3 x^2 - 1) / 2, x = -1 at 400 nm and +1 at 700 nm.
+
+    Parameters
+    ----------
+    wavelength_nm : array_like
+        Wavelength, nm.
+    errors : dict
+        The lab's errors (:func:`draw_lab_errors`): ``photodiode_coefficients`` (a0, a1, a2).
+
+    Returns
+    -------
+    numpy.ndarray
+        The factor, dimensionless, shaped like ``wavelength_nm``.
+    """
     lo, hi = PHOTODIODE_RANGE_NM
     x = (2.0 * np.asarray(wavelength_nm, dtype=float) - lo - hi) / (hi - lo)
     a0, a1, a2 = errors["photodiode_coefficients"]

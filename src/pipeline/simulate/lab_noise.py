@@ -59,11 +59,24 @@ class LabNoise:
     bias_dn_per_room_c: float = 0.04
 
     def truth(self) -> dict:
+        """The sizes as written to the truth folder (``lab_noise``).
+
+        Returns
+        -------
+        dict
+            Field name -> size (relative, DN, degree C or s, as each field states).
+        """
         return asdict(self)
 
 
 def no_lab_noise() -> LabNoise:
-    """A lab without frame-to-frame noise: every size zero."""
+    """A lab without frame-to-frame noise: every size zero.
+
+    Returns
+    -------
+    LabNoise
+        Flicker, drift, bias jitter, room drift and its bias coefficient all zero.
+    """
     return LabNoise(flicker_rel_sigma=0.0, drift_rel_amplitude=0.0, bias_jitter_dn=0.0, room_drift_c=0.0,
                     bias_dn_per_room_c=0.0)
 
@@ -77,7 +90,27 @@ class FrameNoise:
 
 
 def draw_frame_noise(noise: LabNoise, seed: int, experiment_id: int, n_frames: int) -> FrameNoise:
-    """Flicker, drift and bias jitter of the ``n_frames`` frames of one experiment, in acquisition order."""
+    """Flicker, drift and bias jitter of the ``n_frames`` frames of one experiment, in acquisition order.
+
+    Drawn from ``numpy.random.default_rng([seed, STREAM, experiment_id])``.
+
+    Parameters
+    ----------
+    noise : LabNoise
+        The sizes.
+    seed : int
+        The dataset's seed.
+    experiment_id : int
+        The experiment's number (1-based, acquisition order).
+    n_frames : int
+        Frames of the experiment.
+
+    Returns
+    -------
+    FrameNoise
+        Per frame: the factor on the lab source's radiance, (1 + drift)(1 + flicker), dimensionless, and the
+        black-level offset of the whole frame, DN.
+    """
     rng = np.random.default_rng([seed, STREAM, experiment_id])
     u = np.arange(n_frames) / max(n_frames, 1)
     phase = rng.uniform()
@@ -88,10 +121,36 @@ def draw_frame_noise(noise: LabNoise, seed: int, experiment_id: int, n_frames: i
 
 
 def room_phase(seed: int) -> float:
-    """Phase (0 to 1) of the room-temperature cycle at the session's first frame."""
+    """Phase (0 to 1) of the room-temperature cycle at the session's first frame.
+
+    Parameters
+    ----------
+    seed : int
+        The dataset's seed.
+
+    Returns
+    -------
+    float
+        The phase, in cycles.
+    """
     return float(np.random.default_rng([seed, STREAM]).uniform())
 
 
 def room_temperature_offset_c(noise: LabNoise, seed: int, elapsed_s: float) -> float:
-    """Room-temperature departure (degree C) ``elapsed_s`` after the session's first frame."""
+    """Room-temperature departure (degree C) ``elapsed_s`` after the session's first frame.
+
+    Parameters
+    ----------
+    noise : LabNoise
+        The sizes (``room_drift_c``, ``room_period_s``).
+    seed : int
+        The dataset's seed (the cycle's phase, :func:`room_phase`).
+    elapsed_s : float
+        Lab-clock time since the first frame, s.
+
+    Returns
+    -------
+    float
+        ``room_drift_c`` sin(2 pi (elapsed_s / room_period_s + phase)), degree C.
+    """
     return float(noise.room_drift_c * np.sin(2 * np.pi * (elapsed_s / noise.room_period_s + room_phase(seed))))

@@ -78,7 +78,18 @@ PLANNERS: dict[str, Callable[[SimContext], ExperimentPlan]] = {}
 
 
 def planner(name: str):
-    """Decorator registering the planner of experiment ``name``."""
+    """Decorator registering the planner of experiment ``name``.
+
+    Parameters
+    ----------
+    name : str
+        The experiment (``dark``, ``linearity``, ...): the key of :data:`PLANNERS`.
+
+    Returns
+    -------
+    callable
+        The decorator: it registers a planner ``fn(SimContext) -> ExperimentPlan`` and returns it unchanged.
+    """
     def wrap(fn):
         PLANNERS[name] = fn
         return fn

@@ -24,10 +24,28 @@ from pipeline.simulate.sensor import draw_static_pattern, expose
 
 
 def lens_geometry(lens: str, medium: str, lens_px: int) -> LensGeometry:
-    """True viewing directions of the raw pixels of one lens region: each raw site through the optics of
-    its band (:func:`pipeline.simulate.geometry.true_raw_models`: the lens's lateral chromatic aberration,
-    a centre offset and magnification of R and B), the same optics the chessboards of the geometry
-    experiment are rendered through, so that every experiment sees one camera."""
+    """True viewing directions of the raw pixels of one lens region.
+
+    Each raw site is seen through the optics of its band (:func:`pipeline.simulate.geometry.true_raw_models`: the
+    lens's lateral chromatic aberration, a centre offset and magnification of R and B), the same optics the
+    chessboards of the geometry experiment are rendered through, so that every experiment sees one camera.
+
+    Parameters
+    ----------
+    lens : str
+        The lens (``close`` or ``far``).
+    medium : str
+        ``air`` or ``water``.
+    lens_px : int
+        Side of the square lens region, raw pixels (even).
+
+    Returns
+    -------
+    LensGeometry
+        Per raw pixel, shape (lens_px, lens_px): zenith angle theta and azimuth phi, degree (theta 180 where the
+        model gives no direction), and whether it lies inside the image circle (theta <= the half field of view
+        in that medium).
+    """
     shape = (lens_px, lens_px)
     band_index = band_index_map(lens_px)
     theta = np.empty(shape)
@@ -41,7 +59,18 @@ def lens_geometry(lens: str, medium: str, lens_px: int) -> LensGeometry:
 
 
 def band_index_map(lens_px: int) -> np.ndarray:
-    """Band index (0 R, 1 G, 2 B) of every raw pixel of an RGGB lens region."""
+    """Band index (0 R, 1 G, 2 B) of every raw pixel of an RGGB lens region.
+
+    Parameters
+    ----------
+    lens_px : int
+        Side of the square lens region, raw pixels (even).
+
+    Returns
+    -------
+    numpy.ndarray
+        int8, shape (lens_px, lens_px).
+    """
     site = np.array([[0, 1], [1, 2]], dtype=np.int8)
     return np.tile(site, (lens_px // 2, lens_px // 2))
 
@@ -71,15 +100,45 @@ class Renderer:
         self._unit_rate = {}
 
     def geometry(self, lens: str, medium: str) -> LensGeometry:
-        """True viewing directions of the raw pixels (default model at raw resolution)."""
+        """True viewing directions of the raw pixels (default model at raw resolution), computed once per lens and medium.
+
+        Parameters
+        ----------
+        lens : str
+            The lens.
+        medium : str
+            ``air`` or ``water``.
+
+        Returns
+        -------
+        LensGeometry
+            As :func:`lens_geometry`.
+        """
         key = (lens, medium)
         if key not in self._geometry:
             self._geometry[key] = lens_geometry(lens, medium, self.n)
         return self._geometry[key]
 
     def unit_rate(self, lens: str, medium: str) -> np.ndarray:
-        """Photo-electrons per second per unit band radiance, roll-off and optics effects included
-        (the pixels' sensitivity is not: :meth:`photo_rate` applies it after any stray-light spreading)."""
+        """Photo-electrons per second per unit band radiance, roll-off and optics effects included.
+
+        The pixels' sensitivity is not: :meth:`photo_rate` applies it after any stray-light spreading. Computed once
+        per lens and medium.
+
+        Parameters
+        ----------
+        lens : str
+            The lens.
+        medium : str
+            ``air`` or ``water``.
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape (lens_px, lens_px): e- s-1 per W m-2 sr-1 nm-1 of the site's band radiance (responsivity / K at
+            ISO 100 times the roll-off at the pixel's theta and the effects' optics factors); zero outside the image
+            circle.
+        """
         key = (lens, medium)
         if key not in self._unit_rate:
             geo = self.geometry(lens, medium)
@@ -94,6 +153,26 @@ class Renderer:
         return self._unit_rate[key]
 
     def photo_rate(self, lens: str, spec: FrameSpec, light_scale: float = 1.0):
+        """Photo-electrons per second of every raw pixel of one lens in the frame ``spec`` describes.
+
+        The unit rate times the band radiance the scene sends to each site, the frame's light factor and
+        ``light_scale``; then the effects' stray-light spreading, then the pixels' sensitivity (flat field).
+
+        Parameters
+        ----------
+        lens : str
+            The lens.
+        spec : FrameSpec
+            The frame: its radiance (none, one per band, or a scene of the pixels' directions), medium, light factor
+            and the lenses it lights.
+        light_scale : float, optional
+            Factor on the source's light (the lab's flicker and drift); default 1.
+
+        Returns
+        -------
+        numpy.ndarray or float
+            Shape (lens_px, lens_px), e- s-1; the scalar 0.0 when no light reaches this lens.
+        """
         lit = spec.lit if spec.lit is not None else (self.camera.lens_names if spec.lens == "both" else (spec.lens,))
         if spec.radiance is None or lens not in lit:
             return 0.0
@@ -113,8 +192,30 @@ class Renderer:
 
     def render(self, index: int, experiment_id: int, spec: FrameSpec, light_scale: float = 1.0,
                bias_offset_dn: float = 0.0) -> np.ndarray:
-        """One raw frame; ``light_scale`` multiplies the source's light and ``bias_offset_dn`` shifts the
-        black level of the whole frame (the lab's frame-to-frame noise, :mod:`pipeline.simulate.lab_noise`)."""
+        """One raw frame of the two lenses stacked (the dual-fisheye layout), through :func:`~pipeline.simulate.sensor.expose`.
+
+        The noise is drawn from ``numpy.random.default_rng([seed, experiment_id, index])``, so a frame is the same
+        whatever the order it is rendered in.
+
+        Parameters
+        ----------
+        index : int
+            The frame's index in its experiment.
+        experiment_id : int
+            The experiment's number (1-based, acquisition order).
+        spec : FrameSpec
+            The frame: exposure (s), ISO, light, medium, temperature (deg C).
+        light_scale : float, optional
+            Multiplies the source's light; default 1.
+        bias_offset_dn : float, optional
+            Shifts the black level of the whole frame, DN (the lab's frame-to-frame noise,
+            :mod:`pipeline.simulate.lab_noise`); default 0.
+
+        Returns
+        -------
+        numpy.ndarray
+            uint16, shape (2 lens_px, lens_px): the raw CFA frame, DN.
+        """
         rng = np.random.default_rng([self.seed, experiment_id, index])
         offset = sum(e.frame_offset_dn(rng) for e in self.effects) + bias_offset_dn
         frame = np.empty((2 * self.n, self.n), dtype=np.uint16)

@@ -28,6 +28,23 @@ class StaticPattern:
 
 
 def draw_static_pattern(rng: np.random.Generator, shape, sensor: SensorParams) -> StaticPattern:
+    """Draw the per-pixel offsets of one lens that do not change between frames.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        The camera's static generator.
+    shape : tuple of (int, int)
+        (rows, columns) of the lens region, raw pixels.
+    sensor : SensorParams
+        The sensor: standard deviations of the offset fixed-pattern noise in ADU (``offset_fpn_dn``) and in
+        electrons (``offset_fpn_e``).
+
+    Returns
+    -------
+    StaticPattern
+        Zero-mean normal offsets per pixel (float32): ``offset_fpn_dn`` in DN, ``offset_fpn_e`` in electrons.
+    """
     return StaticPattern(
         offset_fpn_dn=(sensor.offset_fpn_dn * rng.standard_normal(shape)).astype(np.float32),
         offset_fpn_e=(sensor.offset_fpn_e * rng.standard_normal(shape)).astype(np.float32),
@@ -35,8 +52,26 @@ def draw_static_pattern(rng: np.random.Generator, shape, sensor: SensorParams) -
 
 
 def true_exposure_and_gain(effects, exposure_s: float, iso: float) -> tuple[float, float]:
-    """The time the shutter is really open and the factor on the nominal gain at ``iso`` (shutter
-    offset, per-ISO gain factor), as the camera with ``effects`` records a frame."""
+    """The time the shutter is really open and the factor on the nominal gain at ``iso``.
+
+    The shutter offset and the per-ISO gain factor, as the camera with ``effects`` records a frame.
+
+    Parameters
+    ----------
+    effects : iterable of Effect
+        The true effects switched on.
+    exposure_s : float
+        The nominal exposure time, s.
+    iso : float
+        The ISO setting.
+
+    Returns
+    -------
+    exposure_s : float
+        The time the shutter is open, s.
+    gain_factor : float
+        The factor on the nominal conversion gain, dimensionless.
+    """
     t_true, gain_factor = exposure_s, 1.0
     for effect in effects:
         t_true = effect.true_exposure_s(t_true)
@@ -49,9 +84,39 @@ def expose(rng: np.random.Generator, *, lens: str, photo_rate_e_per_s, exposure_
            frame_offset_dn: float, shape, temperature_c: float | None = None) -> np.ndarray:
     """One exposure of one lens: uint16 raw mosaic of ``shape``.
 
-    ``photo_rate_e_per_s`` is the photo-electron rate per raw pixel (array or 0).
-    ``frame_offset_dn`` is the black-level shift of the whole frame (bias drift),
-    drawn once per frame by the caller so that both lenses share it.
+    The light reaches the sensor only while the shutter is open (the true exposure of
+    :func:`true_exposure_and_gain`); dark current accumulates over the nominal integration.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        The frame's generator (shot and read noise).
+    lens : str
+        The lens (the effects' per-lens maps).
+    photo_rate_e_per_s : numpy.ndarray or float
+        The photo-electron rate per raw pixel, e- s-1 (an array of ``shape``, or 0).
+    exposure_s : float
+        The nominal exposure time, s.
+    iso : float
+        The ISO setting (the conversion gain is K at ISO 100 times ISO / 100).
+    sensor : SensorParams
+        The sensor: bias, read noise, full well, ADC range, conversion gain.
+    pattern : StaticPattern
+        The lens's fixed offsets (:func:`draw_static_pattern`).
+    effects : list of Effect
+        The true effects switched on (shutter offset, gain factors, dark current, nonlinearity, bias drift, ...).
+    frame_offset_dn : float
+        The black-level shift of the whole frame (bias drift), DN, drawn once per frame by the caller so that
+        both lenses share it.
+    shape : tuple of (int, int)
+        (rows, columns) of the lens region, raw pixels.
+    temperature_c : float, optional
+        The sensor's temperature, deg C, for the temperature-dependent effects; default None.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint16, shape ``shape``: the raw values, DN, rounded and clipped to [0, ``adc_max_dn``].
     """
     t_true, gain_factor = true_exposure_and_gain(effects, exposure_s, iso)
     dark_rate = 0.0

@@ -24,8 +24,30 @@ FULL_SCALE_DN = 15576.0
 
 def synthetic_linearity_settings(rng: np.random.Generator, rel_sigma: float, offset_dn: float,
                                  gain_deficit: float = 0.0) -> pd.DataFrame:
-    """One linearity setting table (the columns the linearity stage's ``obs_setting`` has and the block
-    test reads), drawn with ``rng``."""
+    """One linearity setting table, drawn with ``rng``.
+
+    The columns the linearity stage's ``obs_setting`` has and the block test reads: 13 settings (blocks) of
+    2 lenses x 3 bands.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        The generator of every draw.
+    rel_sigma : float
+        Standard deviation of the relative change of the signal common to a setting's rows (source flicker),
+        dimensionless.
+    offset_dn : float
+        Standard deviation of the offset common to a setting's rows (black-level jitter), DN.
+    gain_deficit : float, optional
+        The analogue gain is (ISO/100)^(1 - ``gain_deficit``); default 0 (a gain exactly ISO/100).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per setting, lens and band: ``lens``, ``band``, ``sweep``, ``setting``, ``iso``, ``exposure_s``
+        (s), ``gain``, ``x_rate``, ``pred_linear_dn``, ``full_scale_dn``, ``sigma_dn``, ``value_dn`` (DN) and
+        ``group`` (lens/band/sweep).
+    """
     settings = [("exposure", t, 100.0) for t in EXPOSURES_S] + [("gain", EXPOSURES_S[0], iso) for iso in ISOS]
     rows = []
     for s, (sweep, t, iso) in enumerate(settings):

@@ -102,20 +102,63 @@ CIE_SKY_TYPES = {
 
 
 def gradation(zenith_deg, sky: CieSkyType):
-    """phi(Z) = 1 + a exp(b / cos Z); 1 at and below the horizon."""
+    """phi(Z) = 1 + a exp(b / cos Z); 1 at and below the horizon.
+
+    Parameters
+    ----------
+    zenith_deg : array_like
+        Zenith angle Z of the sky directions, degree.
+    sky : CieSkyType
+        The CIE sky type (its ``a`` and ``b``).
+
+    Returns
+    -------
+    numpy.ndarray
+        The gradation, dimensionless, shaped like ``zenith_deg``.
+    """
     cos_z = np.cos(np.radians(np.asarray(zenith_deg, float)))
     with np.errstate(divide="ignore", over="ignore"):
         return np.where(cos_z > 0, 1.0 + sky.a * np.exp(sky.b / np.where(cos_z > 0, cos_z, 1.0)), 1.0)
 
 
 def indicatrix(chi_deg, sky: CieSkyType):
-    """f(chi) = 1 + c [exp(d chi) - exp(d pi/2)] + e cos^2 chi, chi the angle from the sun."""
+    """f(chi) = 1 + c [exp(d chi) - exp(d pi/2)] + e cos^2 chi, chi the angle from the sun.
+
+    Parameters
+    ----------
+    chi_deg : array_like
+        Angular distance from the sun, degree (radians inside the formula).
+    sky : CieSkyType
+        The CIE sky type (its ``c``, ``d`` and ``e``).
+
+    Returns
+    -------
+    numpy.ndarray
+        The scattering indicatrix, dimensionless, shaped like ``chi_deg``.
+    """
     chi = np.radians(np.asarray(chi_deg, float))
     return 1.0 + sky.c * (np.exp(sky.d * chi) - np.exp(sky.d * np.pi / 2)) + sky.e * np.cos(chi) ** 2
 
 
 def angle_from_sun_deg(zenith_deg, azimuth_deg, sun_zenith_deg, sun_azimuth_deg):
-    """Great-circle angle (deg) between a sky direction and the sun."""
+    """Great-circle angle (deg) between a sky direction and the sun.
+
+    Parameters
+    ----------
+    zenith_deg : array_like
+        Zenith angle of the directions, degree.
+    azimuth_deg : array_like
+        Azimuth of the directions, degree east of north.
+    sun_zenith_deg : float or array_like
+        The sun's zenith angle, degree.
+    sun_azimuth_deg : float or array_like
+        The sun's azimuth, degree east of north.
+
+    Returns
+    -------
+    numpy.ndarray
+        chi in [0, 180], degree, the arguments' broadcast shape.
+    """
     z, zs = np.radians(zenith_deg), np.radians(sun_zenith_deg)
     cos_chi = (np.cos(zs) * np.cos(z)
                + np.sin(zs) * np.sin(z) * np.cos(np.radians(np.asarray(azimuth_deg) - sun_azimuth_deg)))
@@ -126,7 +169,25 @@ def cie_relative_radiance(zenith_deg, azimuth_deg, sun_zenith_deg, sun_azimuth_d
                           chi_deg=None):
     """L(Z, alpha) / L_z of the CIE standard general sky (1 at the zenith by construction).
 
-    ``chi_deg``: the angle from the sun when the caller has it already.
+    Parameters
+    ----------
+    zenith_deg : array_like
+        Zenith angle Z of the sky directions, degree.
+    azimuth_deg : array_like
+        Azimuth alpha of the directions, degree east of north.
+    sun_zenith_deg : float or array_like
+        The sun's zenith angle, degree.
+    sun_azimuth_deg : float or array_like
+        The sun's azimuth, degree east of north.
+    sky : CieSkyType
+        The CIE sky type.
+    chi_deg : array_like, optional
+        The angle from the sun, degree, when the caller has it already; default None (computed).
+
+    Returns
+    -------
+    numpy.ndarray
+        The radiance relative to the zenith's, dimensionless.
     """
     chi = angle_from_sun_deg(zenith_deg, azimuth_deg, sun_zenith_deg, sun_azimuth_deg) if chi_deg is None else chi_deg
     return (indicatrix(chi, sky) * gradation(zenith_deg, sky)
@@ -142,6 +203,20 @@ def horizontal_integral_sr(sun_zenith_deg: float, sky: CieSkyType, step_deg: flo
     against a 0.1 degree grid, 1 degree cells are off by 6e-5 relative and
     0.5 degree cells by 1.5e-5 (sun at 65 degrees, type 12). The sun azimuth
     is taken as 0 (the integral does not depend on it).
+
+    Parameters
+    ----------
+    sun_zenith_deg : float
+        The sun's zenith angle, degree.
+    sky : CieSkyType
+        The CIE sky type.
+    step_deg : float, optional
+        The grid's cell size in Z and alpha, degree; default 0.5.
+
+    Returns
+    -------
+    float
+        The integral, sr: the horizontal diffuse irradiance per unit zenith radiance.
     """
     z = np.arange(step_deg / 2, 90.0, step_deg)
     a = np.arange(step_deg / 2, 360.0, step_deg)
@@ -152,7 +227,20 @@ def horizontal_integral_sr(sun_zenith_deg: float, sky: CieSkyType, step_deg: flo
 
 
 def solar_position(times_utc: pd.DatetimeIndex) -> pd.DataFrame:
-    """Apparent (refracted) sun zenith and azimuth (deg, azimuth east of north) by the NREL SPA in pvlib."""
+    """Apparent (refracted) sun zenith and azimuth (deg, azimuth east of north) by the NREL SPA in pvlib.
+
+    At the site of :data:`LATITUDE_DEG`, :data:`LONGITUDE_DEG`.
+
+    Parameters
+    ----------
+    times_utc : pandas.DatetimeIndex
+        The instants, tz-aware UTC.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Indexed by ``times_utc``: ``zenith_deg``, ``azimuth_deg`` and ``elevation_deg``, degree.
+    """
     from pvlib.solarposition import get_solarposition
 
     sp = get_solarposition(times_utc, LATITUDE_DEG, LONGITUDE_DEG, method="nrel_numpy")
@@ -186,7 +274,23 @@ class SkySpectra:
 
 
 def clear_sky_spectra(sun_zenith_deg, day_of_year: int, atmosphere: Atmosphere = Atmosphere()) -> SkySpectra:
-    """SPECTRL2 spectra (pvlib.spectrum.spectrl2) for a horizontal surface at each sun zenith angle."""
+    """SPECTRL2 spectra (pvlib.spectrum.spectrl2) for a horizontal surface at each sun zenith angle.
+
+    Parameters
+    ----------
+    sun_zenith_deg : float or array_like
+        The sun's apparent zenith angle at each time, degree.
+    day_of_year : int
+        The day of the year (the sun-earth distance).
+    atmosphere : Atmosphere, optional
+        Pressure, water vapour, ozone, aerosol and ground albedo; default a clean, dry late-winter atmosphere.
+
+    Returns
+    -------
+    SkySpectra
+        Wavelength (nm) and the diffuse horizontal, direct normal and global horizontal irradiance,
+        W m-2 nm-1, each of shape (n_wavelength, n_time).
+    """
     from pvlib.atmosphere import get_relative_airmass
     from pvlib.spectrum import spectrl2
 
@@ -206,8 +310,21 @@ def band_weights(native_nm: np.ndarray, fine_nm: np.ndarray, responses: np.ndarr
     """Matrix W (n_response, n_native): W @ S_native = int S R dlambda / int R dlambda.
 
     S is linearly interpolated from its native grid to ``fine_nm`` (uniform)
-    and integrated with the trapezoidal rule against each response (rows of
-    ``responses``, sampled on ``fine_nm``).
+    and integrated with the trapezoidal rule against each response.
+
+    Parameters
+    ----------
+    native_nm : numpy.ndarray
+        Shape (n_native,): the spectra's own wavelength grid, nm, increasing.
+    fine_nm : numpy.ndarray
+        Shape (n_fine,): a uniform wavelength grid, nm, the responses are sampled on.
+    responses : numpy.ndarray
+        Shape (n_response, n_fine) (or (n_fine,) for one): relative spectral responses.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (n_response, n_native): the response-weighted averaging matrix (each row sums to 1).
     """
     native_nm = np.asarray(native_nm, float)
     fine_nm = np.asarray(fine_nm, float)
@@ -266,7 +383,22 @@ class CloudField:
         self.wind_east_north_m_s = params.wind_speed_m_s * np.array([np.sin(w), np.cos(w)])
 
     def tau(self, east_m, north_m, t_s):
-        """Optical depth of the layer above horizontal offset (east, north) at time ``t_s`` (bilinear, periodic)."""
+        """Optical depth of the layer above horizontal offset (east, north) at time ``t_s`` (bilinear, periodic).
+
+        Parameters
+        ----------
+        east_m : array_like
+            Offset east of the site, m.
+        north_m : array_like
+            Offset north of the site, m.
+        t_s : float or array_like
+            Time since the start of the hour, s (the wind advects the field).
+
+        Returns
+        -------
+        numpy.ndarray
+            Vertical optical depth tau >= 0, dimensionless, the broadcast shape of ``east_m`` and ``north_m``.
+        """
         from scipy.ndimage import map_coordinates
 
         east = np.asarray(east_m, float) - self.wind_east_north_m_s[0] * t_s + self.origin_m[0]
@@ -276,7 +408,22 @@ class CloudField:
         return out.reshape(np.broadcast(east, north).shape)
 
     def tau_towards(self, zenith_deg, azimuth_deg, t_s):
-        """Optical depth of the layer seen in direction (Z, alpha); 0 below the horizon."""
+        """Optical depth of the layer seen in direction (Z, alpha); 0 below the horizon.
+
+        Parameters
+        ----------
+        zenith_deg : array_like
+            Zenith angle, degree (the offset h tan Z stops growing beyond ``CLOUD_MAX_ZENITH_DEG``).
+        azimuth_deg : array_like
+            Azimuth, degree east of north.
+        t_s : float or array_like
+            Time since the start of the hour, s.
+
+        Returns
+        -------
+        numpy.ndarray
+            Vertical optical depth, dimensionless.
+        """
         z = np.asarray(zenith_deg, float)
         a = np.radians(np.asarray(azimuth_deg, float))
         r = self.params.cloud_height_m * np.tan(np.radians(np.minimum(z, CLOUD_MAX_ZENITH_DEG)))
@@ -285,7 +432,22 @@ class CloudField:
 
 
 def cloud_diffuse_transmission(tau, sun_zenith_deg):
-    """Two-stream diffuse transmission of a conservative cloud layer of optical depth ``tau``."""
+    """Two-stream diffuse transmission of a conservative cloud layer of optical depth ``tau``.
+
+    T_d = 1 / (1 + 3/4 (1 - g) tau) - exp(-tau / cos Z_s), g = ``CLOUD_ASYMMETRY``, not below 0.
+
+    Parameters
+    ----------
+    tau : array_like
+        Vertical optical depth, dimensionless.
+    sun_zenith_deg : float or array_like
+        The sun's zenith angle Z_s, degree.
+
+    Returns
+    -------
+    numpy.ndarray
+        The fraction of the global irradiance transmitted diffusely, dimensionless.
+    """
     tau = np.asarray(tau, float)
     mu_s = np.cos(np.radians(sun_zenith_deg))
     return np.maximum(1.0 / (1.0 + 0.75 * (1.0 - CLOUD_ASYMMETRY) * tau) - np.exp(-tau / mu_s), 0.0)
@@ -378,11 +540,33 @@ class Sky:
         return self.spectra.wavelength_nm
 
     def clear_zenith_radiance(self) -> np.ndarray:
-        """Clear-sky zenith spectral radiance (n_wavelength, n_time), W sr-1 m-2 nm-1."""
+        """Clear-sky zenith spectral radiance (n_wavelength, n_time), W sr-1 m-2 nm-1.
+
+        Returns
+        -------
+        numpy.ndarray
+            The ``clear`` component's spectrum (with the spectral-exponent hook's tilt).
+        """
         return self.component_spectra["clear"]
 
     def patterns(self, zenith_deg, azimuth_deg, i: int) -> dict[str, np.ndarray]:
-        """Angular pattern of each component at time index ``i`` for sky directions (deg)."""
+        """Angular pattern of each component at time index ``i`` for sky directions (deg).
+
+        Parameters
+        ----------
+        zenith_deg : array_like
+            Zenith angle of the directions, degree.
+        azimuth_deg : array_like
+            Azimuth of the directions, degree east of north.
+        i : int
+            Index into ``times_utc``.
+
+        Returns
+        -------
+        dict[str, numpy.ndarray]
+            Component (``clear``, ``cloud``, ``sun``, ``ground``) -> its pattern at each direction, dimensionless
+            (the factor on the component's spectrum).
+        """
         z = np.asarray(zenith_deg, float)
         a = np.asarray(azimuth_deg, float)
         zs, az_s = float(self.sun["zenith_deg"].iloc[i]), float(self.sun["azimuth_deg"].iloc[i])
@@ -401,9 +585,22 @@ class Sky:
     def cone_mean_patterns(self, zenith_deg, azimuth_deg, chunk: int = 2048) -> dict[str, np.ndarray]:
         """Mean of each component's pattern over directions of equal solid angle, at every time: (n_time,) each.
 
-        Vectorised over times and directions (in chunks of ``chunk`` times);
-        for the narrow radiometer cone around the zenith (see
-        :func:`cone_directions`).
+        Vectorised over times and directions (in chunks of ``chunk`` times); for the narrow radiometer cone around
+        the zenith (see :func:`cone_directions`).
+
+        Parameters
+        ----------
+        zenith_deg : array_like
+            Shape (n_directions,): zenith angle of the directions, degree.
+        azimuth_deg : array_like
+            Shape (n_directions,): azimuth, degree east of north.
+        chunk : int, optional
+            Times computed at once; default 2048.
+
+        Returns
+        -------
+        dict[str, numpy.ndarray]
+            Component -> the mean pattern over the directions at each time, dimensionless, shape (n_time,).
         """
         z = np.asarray(zenith_deg, float)[None, :]
         a = np.asarray(azimuth_deg, float)[None, :]
@@ -431,11 +628,40 @@ class Sky:
         return out
 
     def band_spectra(self, weights: np.ndarray) -> dict[str, np.ndarray]:
-        """Component spectra averaged by ``weights`` (n_response, n_wavelength): (n_response, n_time) each."""
+        """Component spectra averaged by ``weights`` (n_response, n_wavelength): (n_response, n_time) each.
+
+        Parameters
+        ----------
+        weights : numpy.ndarray
+            Shape (n_response, n_wavelength): response-weighted averaging on the spectra's grid
+            (:func:`band_weights`).
+
+        Returns
+        -------
+        dict[str, numpy.ndarray]
+            Component -> its band-averaged spectrum, W sr-1 m-2 nm-1 per unit pattern, shape (n_response, n_time).
+        """
         return {k: weights @ s for k, s in self.component_spectra.items()}
 
     def radiance(self, weights: np.ndarray, zenith_deg, azimuth_deg, i: int) -> np.ndarray:
-        """Response-averaged radiance ``(n_response, *directions)`` at time index ``i``."""
+        """Response-averaged radiance ``(n_response, *directions)`` at time index ``i``.
+
+        Parameters
+        ----------
+        weights : numpy.ndarray
+            Shape (n_response, n_wavelength): response-weighted averaging (:func:`band_weights`).
+        zenith_deg : array_like
+            Zenith angle of the directions, degree.
+        azimuth_deg : array_like
+            Azimuth of the directions, degree east of north.
+        i : int
+            Index into ``times_utc``.
+
+        Returns
+        -------
+        numpy.ndarray
+            Band radiance, W sr-1 m-2 nm-1, shape (n_response,) followed by the directions' shape.
+        """
         spectra = self.band_spectra(weights)
         pats = self.patterns(zenith_deg, azimuth_deg, i)
         return sum(spectra[k][:, i].reshape((-1,) + (1,) * np.ndim(pats[k])) * pats[k][None] for k in COMPONENTS)
@@ -447,6 +673,22 @@ def cone_directions(half_angle_deg: float, n_rings: int = 8, n_azimuth: int = 24
     Rings at the midpoints of equal steps in cos Z, so every point carries the
     same solid angle: a plain mean over the points is the solid-angle mean
     over the cone (the mean a uniform-response radiometer field of view gives).
+
+    Parameters
+    ----------
+    half_angle_deg : float
+        The cone's half angle, degree.
+    n_rings : int, optional
+        Rings in cos Z; default 8.
+    n_azimuth : int, optional
+        Points per ring (successive rings staggered by half a step); default 24.
+
+    Returns
+    -------
+    zenith_deg : numpy.ndarray
+        Shape (n_rings n_azimuth,): zenith angle, degree.
+    azimuth_deg : numpy.ndarray
+        Shape (n_rings n_azimuth,): azimuth in [0, 360), degree.
     """
     c = 1.0 - (np.arange(n_rings) + 0.5) / n_rings * (1.0 - np.cos(np.radians(half_angle_deg)))
     z = np.degrees(np.arccos(c))

@@ -68,6 +68,23 @@ class PhoneSensor(SensorParams):
     conversion_gain_dn_per_e_iso100: float = 0.42
 
     def conversion_gain(self, iso: float) -> float:
+        """Conversion gain at ``iso`` from the phone's gain table (not ISO / 100).
+
+        Parameters
+        ----------
+        iso : float
+            The ISO setting; one of the table's.
+
+        Returns
+        -------
+        float
+            DN per electron.
+
+        Raises
+        ------
+        ValueError
+            When ``iso`` is not in the gain table.
+        """
         table = dict(self.gain_table)
         if float(iso) not in table:
             raise ValueError(f"ISO {iso} is not in the phone's gain table {sorted(table)}")
@@ -95,11 +112,45 @@ class PinholeOptics:
     mechanical_at_corner: dict = field(default_factory=lambda: {"R": 0.22, "G": 0.12, "B": 0.15})
 
     def intrinsics(self, shape: tuple[int, int]) -> tuple[float, float, float, float]:
+        """Focal lengths and principal point of the active area.
+
+        Parameters
+        ----------
+        shape : tuple of (int, int)
+            (rows, cols) of the active area, raw pixels.
+
+        Returns
+        -------
+        fx : float
+            Focal length along the columns, raw pixels.
+        fy : float
+            Focal length along the rows, raw pixels (equal to ``fx``).
+        cx : float
+            Principal point's column, raw pixels (pixel centres at integers).
+        cy : float
+            Principal point's row, raw pixels.
+        """
         h, w = shape
         f = self.focal_fraction_of_width * w
         return f, f, (w - 1) / 2 + self.centre_offset_fraction[0] * w, (h - 1) / 2 + self.centre_offset_fraction[1] * h
 
     def distort(self, x, y):
+        """Brown-Conrady distortion of normalised ray coordinates (the forward model of the class docstring).
+
+        Parameters
+        ----------
+        x : numpy.ndarray
+            Normalised undistorted coordinate x (tangent of the ray's angle along the columns).
+        y : numpy.ndarray
+            Normalised undistorted coordinate y, same shape.
+
+        Returns
+        -------
+        xd : numpy.ndarray
+            Distorted normalised x.
+        yd : numpy.ndarray
+            Distorted normalised y.
+        """
         r2 = x * x + y * y
         radial = 1 + self.k1 * r2 + self.k2 * r2 * r2
         xd = x * radial + 2 * self.p1 * x * y + self.p2 * (r2 + 2 * x * x)
@@ -107,12 +158,49 @@ class PinholeOptics:
         return xd, yd
 
     def project(self, x, y, shape):
+        """Pixel coordinates of normalised ray coordinates through the true distortion.
+
+        Parameters
+        ----------
+        x : array_like
+            Normalised undistorted coordinate x.
+        y : array_like
+            Normalised undistorted coordinate y, same shape.
+        shape : tuple of (int, int)
+            (rows, cols) of the active area, raw pixels.
+
+        Returns
+        -------
+        u : numpy.ndarray
+            Column, raw pixels (pixel centres at integers).
+        v : numpy.ndarray
+            Row, raw pixels.
+        """
         fx, fy, cx, cy = self.intrinsics(shape)
         xd, yd = self.distort(np.asarray(x, float), np.asarray(y, float))
         return fx * xd + cx, fy * yd + cy
 
     def ray(self, u, v, shape, iterations: int = 30):
-        """Normalised undistorted (x, y) of the ray that lands on pixel (u, v): Newton-free fixed point."""
+        """Normalised undistorted (x, y) of the ray that lands on pixel (u, v): Newton-free fixed point.
+
+        Parameters
+        ----------
+        u : array_like
+            Column, raw pixels.
+        v : array_like
+            Row, raw pixels, same shape.
+        shape : tuple of (int, int)
+            (rows, cols) of the active area.
+        iterations : int, optional
+            Fixed-point iterations; default 30.
+
+        Returns
+        -------
+        x : numpy.ndarray
+            Normalised undistorted x.
+        y : numpy.ndarray
+            Normalised undistorted y.
+        """
         fx, fy, cx, cy = self.intrinsics(shape)
         xd, yd = (np.asarray(u, float) - cx) / fx, (np.asarray(v, float) - cy) / fy
         x, y = xd.copy(), yd.copy()
@@ -122,17 +210,62 @@ class PinholeOptics:
         return x, y
 
     def theta_phi_deg(self, u, v, shape):
+        """Field angle and azimuth of the rays that land on pixels (u, v).
+
+        Parameters
+        ----------
+        u : array_like
+            Column, raw pixels.
+        v : array_like
+            Row, raw pixels, same shape.
+        shape : tuple of (int, int)
+            (rows, cols) of the active area.
+
+        Returns
+        -------
+        theta_deg : numpy.ndarray
+            Angle from the optical axis, degree.
+        phi_deg : numpy.ndarray
+            Azimuth about the axis, degree in (-180, 180], 0 along the columns.
+        """
         x, y = self.ray(u, v, shape)
         return np.degrees(np.arctan(np.hypot(x, y))), np.degrees(np.arctan2(y, x))
 
     def corner_theta_deg(self, shape) -> float:
+        """The largest field angle of the four corner pixels of the active area.
+
+        Parameters
+        ----------
+        shape : tuple of (int, int)
+            (rows, cols) of the active area.
+
+        Returns
+        -------
+        float
+            The field angle, degree.
+        """
         h, w = shape
         theta, _ = self.theta_phi_deg(np.array([0.0, w - 1.0, 0.0, w - 1.0]), np.array([0.0, 0.0, h - 1.0, h - 1.0]),
                                       shape)
         return float(theta.max())
 
     def vignetting(self, theta_deg, band: str, corner_theta_deg: float):
-        """Relative illumination: cos^4 (natural) times 1 - m (theta / theta_corner)^4 (mechanical)."""
+        """Relative illumination: cos^4 (natural) times 1 - m (theta / theta_corner)^4 (mechanical).
+
+        Parameters
+        ----------
+        theta_deg : array_like
+            Field angle, degree.
+        band : str
+            R, G or B (the mechanical term m at the corner, :attr:`mechanical_at_corner`).
+        corner_theta_deg : float
+            The field angle of the frame's corner, degree (:meth:`corner_theta_deg`).
+
+        Returns
+        -------
+        numpy.ndarray
+            The relative illumination, dimensionless (1 on the axis).
+        """
         t = np.radians(theta_deg)
         return np.cos(t) ** 4 * (1.0 - self.mechanical_at_corner[band] * (np.asarray(theta_deg) / corner_theta_deg) ** 4)
 
@@ -148,11 +281,38 @@ class PinholeRays:
         self._rays = {}     # the renderer asks for the same sub-pixel grid in every pose
 
     def world2cam(self, points):
-        """Pixels (u, v) of camera-frame points (..., 3) through the true distortion."""
+        """Pixels (u, v) of camera-frame points (..., 3) through the true distortion.
+
+        Parameters
+        ----------
+        points : array_like
+            Shape (..., 3): points in the camera frame (z along the optical axis, positive in front).
+
+        Returns
+        -------
+        u : numpy.ndarray
+            Column, raw pixels, shape (...).
+        v : numpy.ndarray
+            Row, raw pixels, shape (...).
+        """
         p = np.asarray(points, float)
         return self.optics.project(p[..., 0] / p[..., 2], p[..., 1] / p[..., 2], self.shape)
 
     def cam2world(self, u, v):
+        """Unit ray directions of pixels (u, v) in the camera frame (kept for a pixel grid asked for again).
+
+        Parameters
+        ----------
+        u : array_like
+            Column, raw pixels.
+        v : array_like
+            Row, raw pixels, same shape.
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape (..., 3): unit vectors, z along the optical axis.
+        """
         u, v = np.asarray(u, float), np.asarray(v, float)
         key = (u.shape, float(u.flat[0]), float(v.flat[0]), float(u.flat[-1]), float(v.flat[-1]))
         if key not in self._rays:
@@ -213,7 +373,20 @@ class Smartphone:
 
 
 def band_index_map(shape: tuple[int, int], pattern: str) -> np.ndarray:
-    """Band index (0 R, 1 G, 2 B) of every raw pixel of a mosaic with the 2 x 2 ``pattern`` (e.g. GRBG)."""
+    """Band index (0 R, 1 G, 2 B) of every raw pixel of a mosaic with the 2 x 2 ``pattern`` (e.g. GRBG).
+
+    Parameters
+    ----------
+    shape : tuple of (int, int)
+        (rows, cols) of the mosaic, raw pixels (even).
+    pattern : str
+        The CFA pattern, four letters of R, G, B in row order.
+
+    Returns
+    -------
+    numpy.ndarray
+        int8, shape ``shape``.
+    """
     site = np.array([BANDS.index(ch) for ch in pattern], dtype=np.int8).reshape(2, 2)
     return np.tile(site, (shape[0] // 2, shape[1] // 2))
 
@@ -249,6 +422,19 @@ class PhoneRenderer:
         self.geometry = LensGeometry(self.theta_deg, self.phi_deg, np.ones(self.shape, dtype=bool))
 
     def photo_rate(self, spec: FrameSpec):
+        """Photo-electrons per second of every pixel of the active area in the frame ``spec`` describes.
+
+        Parameters
+        ----------
+        spec : FrameSpec
+            The frame: its radiance (none, one per band, or a scene of the pixels' directions).
+
+        Returns
+        -------
+        numpy.ndarray or float
+            e- s-1, the active area's shape: responsivity / K at ISO 100 times the vignetting and the effects'
+            optics and sensitivity factors, times the band radiance; the scalar 0.0 for a frame without light.
+        """
         if spec.radiance is None:
             return 0.0
         if callable(spec.radiance):     # a scene: per raw pixel effective band radiance
@@ -261,7 +447,27 @@ class PhoneRenderer:
         return rate
 
     def render(self, index: int, experiment_id: int, spec: FrameSpec) -> tuple[np.ndarray, tuple]:
-        """The full raw frame (optically black margins and the active area) and its ActiveArea."""
+        """The full raw frame (optically black margins and the active area) and its ActiveArea.
+
+        The masked pixels have the same amplifier and black level, their own read noise, no light and no hot
+        pixels; they collect the sensor's median dark current.
+
+        Parameters
+        ----------
+        index : int
+            The frame's index in its experiment.
+        experiment_id : int
+            The experiment's number (1-based, acquisition order).
+        spec : FrameSpec
+            The frame: exposure (s), ISO, light, temperature.
+
+        Returns
+        -------
+        frame : numpy.ndarray
+            uint16, shape (rows + top margin, cols + left margin): the raw values, DN.
+        active_area : tuple of int
+            (top, left, bottom, right) of the active area in the frame, raw pixels (the DNG ActiveArea tag).
+        """
         rng = np.random.default_rng([self.seed, experiment_id, index])
         sensor = self.phone.sensor
         offset = sum(e.frame_offset_dn(rng) for e in self.effects)
@@ -403,7 +609,20 @@ def _default_lab_plan(name: str, phone: Smartphone, seed: int, index: int):
 
 
 def band_intrinsics(phone: Smartphone, shape: tuple[int, int]) -> dict:
-    """True intrinsics of each band image (band pixel (i, j) of a site at raw (2i + a, 2j + b))."""
+    """True intrinsics of each band image (band pixel (i, j) of a site at raw (2i + a, 2j + b)).
+
+    Parameters
+    ----------
+    phone : Smartphone
+        The phone (its optics and CFA pattern).
+    shape : tuple of (int, int)
+        (rows, cols) of the active area, raw pixels.
+
+    Returns
+    -------
+    dict[str, dict[str, float]]
+        Band -> ``fx``, ``fy``, ``cx``, ``cy`` in band pixels (G: the mean of its two sites).
+    """
     fx, fy, cx, cy = phone.optics.intrinsics(shape)
     out = {}
     for band in BANDS:
@@ -417,8 +636,37 @@ def band_intrinsics(phone: Smartphone, shape: tuple[int, int]) -> dict:
 def simulate_smartphone_dataset(out: str | Path, scale: str = "tiny", seed: int = 0,
                                 effects: list[tuple[str, dict]] = (), experiments=PHONE_EXPERIMENTS,
                                 phone: Smartphone | None = None) -> Path:
-    """Simulate the smartphone's calibration experiments into ``out`` (which must not exist yet);
-    the truth goes beside it (:func:`pipeline.simulate.dataset.truth_dir_for`)."""
+    """Simulate the smartphone's calibration experiments into ``out`` (which must not exist yet).
+
+    The truth goes beside it (:func:`pipeline.simulate.dataset.truth_dir_for`); both are written to hidden
+    partial folders and renamed at the end.
+
+    Parameters
+    ----------
+    out : str or pathlib.Path
+        The dataset folder to write.
+    scale : str, optional
+        A name of :data:`PHONE_SCALES` (tiny, small, medium); default ``tiny``.
+    seed : int, optional
+        Seed of every random draw; default 0.
+    effects : list of tuple of (str, dict), optional
+        Effects injected into the frames: (name in the effect catalogue, its parameters); default none.
+    experiments : sequence of str, optional
+        The experiments to write, in acquisition order; default :data:`PHONE_EXPERIMENTS`.
+    phone : Smartphone, optional
+        The camera; default ``Smartphone()``.
+
+    Returns
+    -------
+    pathlib.Path
+        ``out``: dataset.yaml (one rectilinear lens region), each experiment's frames.csv and DNG frames,
+        sidecars, and MD5SUMS.
+
+    Raises
+    ------
+    InputError
+        For an unknown scale or experiment, or when ``out`` or its truth folder exists.
+    """
     from pipeline.simulate.dataset import truth_dir_for  # noqa: PLC0415 (dataset imports the planners)
 
     out = Path(out)

@@ -69,22 +69,53 @@ class NullDraws:
 def block_gls_null_draws(sigma: np.ndarray, X0: np.ndarray, X1: np.ndarray, blocks: np.ndarray, fit1: Fit,
                          forms=BLOCK_NOISE_FORMS, draws: int = 400, seed: int = 0,
                          batch_values: float = 4e6, tau2=None) -> NullDraws:
-    """Parametric bootstrap of :func:`pipeline.stats.fitting.block_gls_drop` under the null: the drop in chi-square
-    and the chi-square of the larger model for each of ``draws`` simulated tables.
+    """Parametric bootstrap of :func:`pipeline.stats.fitting.block_gls_drop` under the null.
 
+    The drop in chi-square and the chi-square of the larger model for each of ``draws`` simulated tables.
     Each table is the smaller model's fit plus the noise the block-noise model says the rows have, with the
-    variances estimated from the observed larger model's residuals (:func:`block_random_effects`), or ``tau2``
-    (one per form, or one row per draw: each draw at its own variances): independent N(0, sigma_i^2) per row
-    and, per block and form, N(0, tau_f^2) times the form's loading. Every draw then goes through the same
-    steps as the observed table: its block-noise variances by moments from its own residuals of the larger
-    model (non-negative least squares over the within-block pairs), its drop and chi-square by generalised
-    least squares under them. The statistic is invariant to the smaller model's coefficients, so the draws
-    start from zero. Two simplifications, both far below the noise: the relative form's loading is the
-    observed fit's prediction in every draw (a draw's own prediction differs from it by the noise), and the
-    generalised least squares use the Woodbury identity per block, (I + C T C')^-1 = I - C T (I + C'C T)^-1 C'
-    (C the block's loadings, T the variances), instead of a Cholesky factor. ``draws`` 0: the observed table
-    through the same steps (a check of the two routes). ``batch_values`` bounds the numbers held at once
-    (draws x rows, draws x pairs)."""
+    variances estimated from the observed larger model's residuals (:func:`block_random_effects`), or ``tau2``:
+    independent N(0, sigma_i^2) per row and, per block and form, N(0, tau_f^2) times the form's loading. Every
+    draw then goes through the same steps as the observed table: its block-noise variances by moments from its
+    own residuals of the larger model (non-negative least squares over the within-block pairs), its drop and
+    chi-square by generalised least squares under them. The statistic is invariant to the smaller model's
+    coefficients, so the draws start from zero. Two simplifications, both far below the noise: the relative
+    form's loading is the observed fit's prediction in every draw (a draw's own prediction differs from it by the
+    noise), and the generalised least squares use the Woodbury identity per block,
+    (I + C T C')^-1 = I - C T (I + C'C T)^-1 C' (C the block's loadings, T the variances), instead of a Cholesky
+    factor.
+
+    Parameters
+    ----------
+    sigma : numpy.ndarray
+        Shape (n,): the expected noise of each row, in the value's units.
+    X0 : numpy.ndarray
+        Shape (n, p0): the smaller design.
+    X1 : numpy.ndarray
+        Shape (n, p1): the larger design, ``X0`` followed by the tested columns.
+    blocks : numpy.ndarray
+        Shape (n,): each row's block label (raw frame or setting).
+    fit1 : Fit
+        The observed table's weighted fit on ``X1`` (its residuals give the variances; with ``draws`` 0 its
+        values are put through the steps).
+    forms : sequence of str, optional
+        Forms of block noise (``BLOCK_NOISE_FORMS``: offset, relative); default both.
+    draws : int, optional
+        Number of simulated tables; default 400. 0: the observed table through the same steps (a check of the
+        two routes).
+    seed : int, optional
+        Seed of ``numpy.random.default_rng``; default 0.
+    batch_values : float, optional
+        Bound on the numbers held at once (draws x rows, draws x pairs); default 4e6.
+    tau2 : numpy.ndarray, optional
+        Variances to draw at: one per form, or shape (draws, forms), each draw at its own; default None (the
+        estimate from ``fit1``).
+
+    Returns
+    -------
+    NullDraws
+        Per draw the drop in chi-square and the larger model's chi-square, per draw and form the variances the
+        draw estimated, and the variances estimated from the observed table.
+    """
     sigma = np.asarray(sigma, dtype=float)
     w = 1.0 / sigma
     tau2_hat, cols = block_random_effects(fit1, X1, sigma, blocks, forms)
@@ -156,10 +187,23 @@ def block_gls_null_draws(sigma: np.ndarray, X0: np.ndarray, X1: np.ndarray, bloc
 
 
 def f_reference_dof(f_draws: np.ndarray, dof_max: float) -> float:
-    """Denominator degrees of freedom nu of the F(k, nu) that matches bootstrap draws of an F statistic:
+    """Denominator degrees of freedom nu of the F(k, nu) that matches bootstrap draws of an F statistic.
+
     E[F(k, nu)] = nu / (nu - 2), solved with the draws' mean raised by two standard errors (so that the few
-    hundred draws do not make the reference too thin-tailed by chance), at most ``dof_max`` (the residual
-    chi-square's own degrees of freedom)."""
+    hundred draws do not make the reference too thin-tailed by chance), at most ``dof_max``.
+
+    Parameters
+    ----------
+    f_draws : numpy.ndarray
+        Bootstrap draws of the F statistic.
+    dof_max : float
+        The residual chi-square's own degrees of freedom: the bound on nu.
+
+    Returns
+    -------
+    float
+        nu; ``dof_max`` when the raised mean is at or below that of F(k, dof_max).
+    """
     f_draws = np.asarray(f_draws, dtype=float)
     mean = float(np.mean(f_draws)) + 2.0 * float(np.std(f_draws, ddof=1)) / np.sqrt(len(f_draws))
     if mean <= dof_max / max(dof_max - 2.0, 1e-9):
@@ -199,8 +243,20 @@ class BlockReference:
 
 
 def jackknife_sd(values_without: np.ndarray) -> float:
-    """Standard error of an estimate from its values with each of B batches of the draws left out:
-    sqrt((B - 1) / B sum (v_j - mean v)^2)."""
+    """Standard error of an estimate from its values with each of B batches of the draws left out.
+
+    sqrt((B - 1) / B sum (v_j - mean v)^2), over the finite values.
+
+    Parameters
+    ----------
+    values_without : numpy.ndarray
+        Shape (B,): the estimate with batch j of the draws left out.
+
+    Returns
+    -------
+    float
+        The jackknife standard error, in the estimate's units; NaN with fewer than two finite values.
+    """
     v = np.asarray(values_without, float)
     v = v[np.isfinite(v)]
     if v.size < 2:
@@ -216,12 +272,32 @@ def _nu_without_batches(f_draws: np.ndarray, dof_max: float) -> tuple:
 
 def block_bootstrap_reference(parts: list[BlockTestPart], draws: int, seed: int,
                               propagated: bool = True) -> BlockReference:
-    """The null distribution of the block test's F = (sum of drops / k) / (sum of chi2 / sum of dof) over
-    ``parts`` (the tables a candidate touches, drawn independently, the draws of one index combined), summarised
-    as F(k, nu): at the block-noise variances estimated from each table (plug-in), and with each draw at the
-    variances estimated by a first draw at the estimate (propagated: the estimate's own sampling spread carried
-    into the reference). 2 x ``draws`` tables are simulated per part, from the seeds ``seed + j`` and
-    ``seed + j + 7919`` for part j; with ``propagated`` False only the first ``draws`` (``nu_propagated`` NaN)."""
+    """The null distribution of the block test's F over ``parts``, summarised as F(k, nu).
+
+    F = (sum of drops / k) / (sum of chi2 / sum of dof) over the tables a candidate touches, drawn
+    independently, the draws of one index combined: at the block-noise variances estimated from each table
+    (plug-in), and with each draw at the variances estimated by a first draw at the estimate (propagated: the
+    estimate's own sampling spread carried into the reference). 2 x ``draws`` tables are simulated per part, from
+    the seeds ``seed + j`` and ``seed + j + 7919`` for part j.
+
+    Parameters
+    ----------
+    parts : list of BlockTestPart
+        The tables of the test.
+    draws : int
+        Simulated tables per part and set.
+    seed : int
+        Base seed (:func:`table_seed`).
+    propagated : bool, optional
+        Also draw the propagated reference; default True. False: only the first ``draws`` per part
+        (``nu_propagated`` NaN).
+
+    Returns
+    -------
+    BlockReference
+        k (tested parameters, at least 1), the residual degrees of freedom, nu of the plug-in and propagated
+        references, and nu with each of ``MC_BATCHES`` batches of the draws left out.
+    """
     k, dof = 0, 0
     drop_plug, chi_plug, drop_prop, chi_prop = 0.0, 0.0, 0.0, 0.0
     for j, p in enumerate(parts):
@@ -250,19 +326,45 @@ def _rank(sigma: np.ndarray, X: np.ndarray) -> int:
 
 
 def columns_within_blocks(part: BlockTestPart) -> bool:
-    """Whether every column the test adds is non-zero in one block only (each tested parameter fixed by one
-    block: the ISO gain factors, one gain-sweep setting per ISO)."""
+    """Whether every column the test adds is non-zero in one block only.
+
+    Each tested parameter is then fixed by one block: the ISO gain factors, one gain-sweep setting per ISO.
+
+    Parameters
+    ----------
+    part : BlockTestPart
+        One table of the test.
+
+    Returns
+    -------
+    bool
+        True when the test adds at least one column and each added column is non-zero within one block at most.
+    """
     codes, _ = block_index(part.blocks)
     added = part.X1[:, part.X0.shape[1]:]
     return added.shape[1] > 0 and all(len(np.unique(codes[c != 0])) <= 1 for c in added.T)
 
 
 def table_seed(parts: list[BlockTestPart], seed: int) -> int:
-    """The seed of one test's draws: ``seed`` and a checksum of the tables' normalised residuals (rounded to 1e-6),
-    so that the Monte Carlo error of the reference is independent between tables, as
+    """The seed of one test's draws: ``seed`` and a checksum of the tables' normalised residuals (rounded to 1e-6).
+
+    The Monte Carlo error of the reference is so independent between tables, as
     ``benchmarks/bench_block_reference.py`` measured it, while the same tables always give the same draws. (One
     seed for every table gave nu 11.7 on each of eight gain-ladder tables without block noise where seeds
-    1 and 2 gave 20 and 15: the same draws for tables of one shape.)"""
+    1 and 2 gave 20 and 15: the same draws for tables of one shape.)
+
+    Parameters
+    ----------
+    parts : list of BlockTestPart
+        The tables of the test.
+    seed : int
+        The configured seed (``diagnostics.block_bootstrap_seed``).
+
+    Returns
+    -------
+    int
+        A 32-bit seed from ``numpy.random.SeedSequence``.
+    """
     crc = [zlib.crc32(np.ascontiguousarray(np.round(p.fit1.z, 6)).tobytes()) for p in parts]
     return int(np.random.SeedSequence([seed, *crc]).generate_state(1)[0])
 
@@ -274,9 +376,10 @@ BLOCK_REFERENCES = ("f", "bootstrap", "plug_in")
 
 def block_test_p_value(f_stat: float, k: int, n_blocks: int, parts: list[BlockTestPart], p_rows: float,
                        alpha: float, cfg: dict) -> tuple[float, str, float, float]:
-    """p-value of the block test's F on k parameters over tables of at least ``n_blocks`` blocks, with the
-    reference it was read from, that reference's denominator degrees of freedom, and the Monte Carlo standard
-    error of log10 of the p-value (NaN for F(k, G - 1), which has none): the jackknife over
+    """p-value of the block test's F on k parameters over tables of at least ``n_blocks`` blocks.
+
+    With it: the reference it was read from, that reference's denominator degrees of freedom, and the Monte
+    Carlo standard error of log10 of the p-value (NaN for F(k, G - 1), which has none): the jackknife over
     :data:`MC_BATCHES` batches of the draws (:func:`jackknife_sd`), so that a verdict near the level can be
     seen to rest on the draws.
 
@@ -290,7 +393,42 @@ def block_test_p_value(f_stat: float, k: int, n_blocks: int, parts: list[BlockTe
     candidate's signature only approximates the effect, its misfit is estimated as block noise, the draws'
     tails grow with it, and the bootstrap loses real effects that F(k, G - 1) finds (on the tiny dataset a
     tanh nonlinearity, nu 4.7 and p 1e-4 against 5e-8; a black level quadratic in temperature, 2e-3 against
-    7e-6; ``tests/effects/test_effect_forms.py``)."""
+    7e-6; ``tests/effects/test_effect_forms.py``).
+
+    Parameters
+    ----------
+    f_stat : float
+        The observed F = (drop / k) / (chi2 / dof).
+    k : int
+        Number of tested parameters.
+    n_blocks : int
+        G, the fewest blocks of the tables.
+    parts : list of BlockTestPart
+        The tables of the test (used by the bootstrap).
+    p_rows : float
+        p-value of the rows' F test.
+    alpha : float
+        The significance level.
+    cfg : dict
+        The ``diagnostics`` config section: ``block_reference`` (default ``f``), ``block_bootstrap_draws``,
+        ``block_bootstrap_seed``.
+
+    Returns
+    -------
+    p_value : float
+        The p-value read off the reference.
+    reference : str
+        ``F(k, G - 1)``, ``bootstrap F(k, nu)`` or ``plug_in F(k, nu)``.
+    dof : float
+        The reference's denominator degrees of freedom (G - 1 or nu).
+    log10_p_sd : float
+        Monte Carlo standard error of log10 of the p-value; NaN for F(k, G - 1).
+
+    Raises
+    ------
+    ValueError
+        For an unknown ``block_reference``.
+    """
     method = cfg.get("block_reference", "f")
     if method not in BLOCK_REFERENCES:
         raise ValueError(f"diagnostics.block_reference: unknown {method!r}; known: {', '.join(BLOCK_REFERENCES)}")

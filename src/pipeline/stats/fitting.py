@@ -37,7 +37,22 @@ class Fit:
 
 
 def base_design(table: pd.DataFrame) -> tuple[np.ndarray, list[str]]:
-    """Block-diagonal design from the table's ``x_*`` columns, one block per group."""
+    """Block-diagonal design from the table's ``x_*`` columns, one block per group.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        An observation table with a ``group`` column and base columns ``x_<name>`` (numbers, in the units the
+        stage's model gives them).
+
+    Returns
+    -------
+    X : numpy.ndarray
+        Shape (rows, columns): column ``x_<name>`` of each group's rows, zero on the other groups' rows; a column
+        that is zero throughout is left out.
+    names : list of str
+        One name per column, ``<group>:<name>``.
+    """
     xcols = [c for c in table.columns if c.startswith("x_")]
     groups = pd.Categorical(table["group"])
     blocks, names = [], []
@@ -52,7 +67,24 @@ def base_design(table: pd.DataFrame) -> tuple[np.ndarray, list[str]]:
 
 
 def wls(y: np.ndarray, sigma: np.ndarray, X: np.ndarray) -> Fit:
-    """Minimise sum(((y - X b) / sigma)^2); covariance from the stated sigma."""
+    """Minimise sum(((y - X b) / sigma)^2); covariance from the stated sigma.
+
+    Parameters
+    ----------
+    y : numpy.ndarray
+        Shape (n,): the observed values (e.g. DN).
+    sigma : numpy.ndarray
+        Shape (n,): the expected noise of each value, same unit as ``y``.
+    X : numpy.ndarray
+        Shape (n, p): the design; p may be 0.
+
+    Returns
+    -------
+    Fit
+        ``coef`` (p,), ``cov`` (p, p: the pseudo-inverse of the whitened normal matrix, not scaled by the
+        residual spread), ``pred`` = X coef (n,), ``z`` = (y - pred) / sigma (n,), ``chi2`` = sum z^2 and
+        ``dof`` = n - rank of the whitened design.
+    """
     w = 1.0 / np.asarray(sigma, dtype=float)
     if X.shape[1] == 0:
         z = np.asarray(y, float) * w
@@ -70,7 +102,23 @@ def wls(y: np.ndarray, sigma: np.ndarray, X: np.ndarray) -> Fit:
 
 
 def ols_line(x: np.ndarray, y: np.ndarray, level: float = 0.95) -> dict:
-    """Ordinary regression y = slope x + intercept with confidence intervals and Pearson r."""
+    """Ordinary regression y = slope x + intercept with confidence intervals and Pearson r.
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        Shape (n,): the abscissae.
+    y : numpy.ndarray
+        Shape (n,): the ordinates.
+    level : float, optional
+        Confidence level of the intervals; default 0.95.
+
+    Returns
+    -------
+    dict
+        ``slope`` and ``intercept`` (units of y per x, and of y), ``slope_ci`` and ``intercept_ci`` (half-widths
+        of the Student-t intervals with n - 2 degrees of freedom), ``r`` (Pearson) and ``n``.
+    """
     from scipy import stats
 
     x = np.asarray(x, float)
@@ -92,12 +140,37 @@ BLOCK_NOISE_FORMS = ("offset", "relative")
 
 
 def block_index(blocks: np.ndarray) -> tuple[np.ndarray, int]:
+    """Block labels as integer codes.
+
+    Parameters
+    ----------
+    blocks : numpy.ndarray
+        Shape (n,): each row's block label (compared as text).
+
+    Returns
+    -------
+    codes : numpy.ndarray
+        Shape (n,): integer code 0 .. n_blocks - 1 of each row's block, in order of first appearance.
+    n_blocks : int
+        The number of distinct blocks.
+    """
     codes = pd.factorize(pd.Series(blocks).astype(str))[0]
     return codes, (int(codes.max()) + 1 if len(codes) else 0)
 
 
 def column_space(A: np.ndarray) -> np.ndarray:
-    """Orthonormal basis of the columns of A (numerical rank)."""
+    """Orthonormal basis of the columns of A (numerical rank).
+
+    Parameters
+    ----------
+    A : numpy.ndarray
+        Shape (n, p).
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (n, rank): left singular vectors of the singular values above max(n, p) eps times the largest.
+    """
     if A.shape[1] == 0:
         return np.zeros((A.shape[0], 0))
     U, s, _ = np.linalg.svd(A, full_matrices=False)
@@ -106,8 +179,30 @@ def column_space(A: np.ndarray) -> np.ndarray:
 
 
 def block_noise_columns(fit: Fit, sigma: np.ndarray, forms=BLOCK_NOISE_FORMS) -> list[np.ndarray]:
-    """Whitened loading of each block-noise form on every row: 1/sigma for an offset (one value per block,
-    in the value's units), prediction/sigma for a relative change (one fraction per block)."""
+    """Whitened loading of each block-noise form on every row.
+
+    1/sigma for an offset (one value per block, in the value's units), prediction/sigma for a relative change
+    (one fraction per block).
+
+    Parameters
+    ----------
+    fit : Fit
+        The weighted fit whose prediction loads the relative form.
+    sigma : numpy.ndarray
+        Shape (n,): the expected noise of each value.
+    forms : sequence of str, optional
+        Forms among ``BLOCK_NOISE_FORMS`` (``offset``, ``relative``); default both.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        One array of shape (n,) per form, in the order of ``forms``.
+
+    Raises
+    ------
+    ValueError
+        For an unknown form.
+    """
     w = 1.0 / np.asarray(sigma, dtype=float)
     out = {"offset": w, "relative": fit.pred * w}
     unknown = set(forms) - set(out)
@@ -117,8 +212,34 @@ def block_noise_columns(fit: Fit, sigma: np.ndarray, forms=BLOCK_NOISE_FORMS) ->
 
 
 def moment_design(U: np.ndarray, cols: list[np.ndarray], codes: np.ndarray, n_blocks: int):
-    """The pairs (i, j) of rows of one block, the moment design D (one column per form: (M C_f M)_ij) and the
-    offset U_i . U_j (= -M_ij) that :func:`block_random_effects` regresses the residual products on."""
+    """The moment design of the block random effects.
+
+    The pairs (i, j) of rows of one block, the moment design D (one column per form: (M C_f M)_ij) and the
+    offset U_i . U_j (= -M_ij) that :func:`block_random_effects` regresses the residual products on.
+
+    Parameters
+    ----------
+    U : numpy.ndarray
+        Shape (n, rank): orthonormal basis of the whitened design's columns (:func:`column_space`), so that
+        M = I - U U'.
+    cols : list of numpy.ndarray
+        The whitened loadings of each form, each of shape (n,) (:func:`block_noise_columns`).
+    codes : numpy.ndarray
+        Shape (n,): each row's block code (:func:`block_index`).
+    n_blocks : int
+        The number of blocks.
+
+    Returns
+    -------
+    i : numpy.ndarray
+        Shape (pairs,): first row of each pair of rows of one block (i < j).
+    j : numpy.ndarray
+        Shape (pairs,): second row of each pair.
+    D : numpy.ndarray
+        Shape (pairs, forms): (M C_f M)_ij for each form f.
+    offset : numpy.ndarray
+        Shape (pairs,): U_i . U_j.
+    """
     i, j = np.nonzero(np.triu(codes[:, None] == codes[None, :], 1))
     design = []
     for c in cols:
@@ -144,7 +265,27 @@ def block_random_effects(fit: Fit, X: np.ndarray, sigma: np.ndarray, blocks: np.
     block r_i r_j - M_ij = sum_f tau_f^2 (M C_f M)_ij + noise; the tau_f^2 >= 0 are the non-negative least
     squares solution over all such pairs (the diagonal, the stated sigma's own business, is left out).
 
-    Returns (tau^2 per form, the whitened loadings)."""
+    Parameters
+    ----------
+    fit : Fit
+        The weighted fit (:func:`wls`) of the values on ``X``.
+    X : numpy.ndarray
+        Shape (n, p): its design.
+    sigma : numpy.ndarray
+        Shape (n,): the expected noise of each value, in the value's units.
+    blocks : numpy.ndarray
+        Shape (n,): each row's block label (rows of one raw frame or setting).
+    forms : sequence of str, optional
+        Forms of block noise among ``BLOCK_NOISE_FORMS``; default both (offset, relative).
+
+    Returns
+    -------
+    tau2 : numpy.ndarray
+        Shape (forms,): variance per form: the offset's in squared units of the value (e.g. DN^2), the relative
+        change's as a squared fraction; zeros when no block holds two rows.
+    cols : list of numpy.ndarray
+        The whitened loadings of each form (:func:`block_noise_columns`).
+    """
     from scipy.optimize import nnls
 
     sigma = np.asarray(sigma, dtype=float)
@@ -161,8 +302,27 @@ def block_random_effects(fit: Fit, X: np.ndarray, sigma: np.ndarray, blocks: np.
 
 
 def block_whitener(sigma: np.ndarray, blocks: np.ndarray, tau2: np.ndarray, cols: list[np.ndarray]):
-    """A function applying L^-1 to whitened columns, Sigma = L L' the covariance of :func:`block_random_effects`
-    (block-diagonal: one Cholesky factor per block, the blocks of one size solved together)."""
+    """A function applying L^-1 to whitened columns, Sigma = L L' the covariance of :func:`block_random_effects`.
+
+    Sigma is block-diagonal: one Cholesky factor per block, the blocks of one size solved together.
+
+    Parameters
+    ----------
+    sigma : numpy.ndarray
+        Shape (n,): the expected noise of each value (not used: the columns given to the function are
+        already whitened by it).
+    blocks : numpy.ndarray
+        Shape (n,): each row's block label.
+    tau2 : numpy.ndarray
+        Variance per block-noise form (:func:`block_random_effects`).
+    cols : list of numpy.ndarray
+        The whitened loadings of each form, each of shape (n,).
+
+    Returns
+    -------
+    callable
+        ``solve(M)``: for M of shape (n, k), whitened by sigma, returns L^-1 M, shape (n, k).
+    """
     codes, n_blocks = block_index(blocks)
     order = np.argsort(codes, kind="stable")
     sizes = np.bincount(codes, minlength=n_blocks)
@@ -210,9 +370,36 @@ def _svd_fit(A: np.ndarray, b: np.ndarray):
 
 def block_gls_drop(y: np.ndarray, sigma: np.ndarray, X0: np.ndarray, X1: np.ndarray, blocks: np.ndarray,
                    forms=BLOCK_NOISE_FORMS, fit1: Fit | None = None) -> BlockGLSDrop:
-    """Drop in chi-square from the design ``X0`` to ``X1`` (its first columns X0) by generalised least squares,
-    the covariance that of noise common to each block (:func:`block_random_effects`, estimated from the larger
-    model's residuals ``fit1``, so that the added columns' signal is not counted as block noise)."""
+    """Drop in chi-square from the design ``X0`` to ``X1`` by generalised least squares under block noise.
+
+    ``X1``'s first columns are ``X0``. The covariance is that of noise common to each block
+    (:func:`block_random_effects`, estimated from the larger model's residuals ``fit1``, so that the added columns'
+    signal is not counted as block noise).
+
+    Parameters
+    ----------
+    y : numpy.ndarray
+        Shape (n,): the observed values.
+    sigma : numpy.ndarray
+        Shape (n,): their expected noise, same unit.
+    X0 : numpy.ndarray
+        Shape (n, p0): the smaller design.
+    X1 : numpy.ndarray
+        Shape (n, p1): the larger design, ``X0`` followed by the added columns.
+    blocks : numpy.ndarray
+        Shape (n,): each row's block label.
+    forms : sequence of str, optional
+        Forms of block noise among ``BLOCK_NOISE_FORMS``; default both.
+    fit1 : Fit, optional
+        The weighted fit of ``y`` on ``X1`` when already made; default None (made here).
+
+    Returns
+    -------
+    BlockGLSDrop
+        The chi-square drop, the larger model's chi-square and degrees of freedom, the number of added
+        independent columns ``k``, the number of blocks, the block-noise variances, and the added columns'
+        coefficients with their covariance.
+    """
     y = np.asarray(y, dtype=float)
     sigma = np.asarray(sigma, dtype=float)
     fit1 = fit1 if fit1 is not None else wls(y, sigma, X1)

@@ -49,26 +49,88 @@ def _pair(y, x):
 
 
 def mupd(y, x, axis=-1):
-    """Mean unbiased percentage difference (%), Larouche et al. 2024 Eq. (12) = Wei et al. 2012 Eq. (5)."""
+    """Mean unbiased percentage difference (%), Larouche et al. 2024 Eq. (12) = Wei et al. 2012 Eq. (5).
+
+    Parameters
+    ----------
+    y : array_like
+        The camera's values (e.g. radiance, W m-2 sr-1 nm-1), paired with ``x`` by match-up.
+    x : array_like
+        The reference radiometer's values, same shape and unit as ``y``.
+    axis : int, optional
+        The axis of the match-ups; default -1 (the last).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        2 * 100 / N * sum |x - y| / (|x| + |y|), percent; the axis of match-ups reduced.
+    """
     y, x = _pair(y, x)
     return 2.0 * 100.0 * np.mean(np.abs(x - y) / (np.abs(x) + np.abs(y)), axis=axis)
 
 
 def median_symmetric_accuracy(y, x, axis=-1):
-    """zeta (%) = 100 (exp(Med |ln(y/x)|) - 1), Burggraaff et al. 2022 Eq. (9) (exp(.) - 1 outside the median)."""
+    """zeta (%) = 100 (exp(Med |ln(y/x)|) - 1), Burggraaff et al. 2022 Eq. (9) (exp(.) - 1 outside the median).
+
+    Parameters
+    ----------
+    y : array_like
+        The camera's values (e.g. radiance, W m-2 sr-1 nm-1), paired with ``x`` by match-up.
+    x : array_like
+        The reference radiometer's values, same shape and unit as ``y``.
+        Both positive (the statistic takes the log of their ratio).
+    axis : int, optional
+        The axis of the match-ups; default -1 (the last).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        zeta, percent; the axis of match-ups reduced.
+    """
     y, x = _pair(y, x)
     return 100.0 * np.expm1(np.median(np.abs(np.log(y / x)), axis=axis))
 
 
 def signed_symmetric_bias(y, x, axis=-1):
-    """SSPB (%) = 100 sgn(Med ln(y/x)) (exp(|Med ln(y/x)|) - 1), Burggraaff et al. 2022 Eq. (10)."""
+    """SSPB (%) = 100 sgn(Med ln(y/x)) (exp(|Med ln(y/x)|) - 1), Burggraaff et al. 2022 Eq. (10).
+
+    Parameters
+    ----------
+    y : array_like
+        The camera's values (e.g. radiance, W m-2 sr-1 nm-1), paired with ``x`` by match-up.
+    x : array_like
+        The reference radiometer's values, same shape and unit as ``y``.
+        Both positive (the statistic takes the log of their ratio).
+    axis : int, optional
+        The axis of the match-ups; default -1 (the last).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        SSPB, percent: positive when the camera reads above the reference; the axis of match-ups reduced.
+    """
     y, x = _pair(y, x)
     m = np.median(np.log(y / x), axis=axis)
     return 100.0 * np.sign(m) * np.expm1(np.abs(m))
 
 
 def pearson_r(y, x, axis=-1):
-    """Pearson correlation coefficient (Burggraaff Eq. 7)."""
+    """Pearson correlation coefficient (Burggraaff Eq. 7).
+
+    Parameters
+    ----------
+    y : array_like
+        The camera's values (e.g. radiance, W m-2 sr-1 nm-1), paired with ``x`` by match-up.
+    x : array_like
+        The reference radiometer's values, same shape and unit as ``y``.
+    axis : int, optional
+        The axis of the match-ups; default -1 (the last).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        r, dimensionless; NaN when either side does not vary; the axis of match-ups reduced.
+    """
     y, x = _pair(y, x)
     dy = y - y.mean(axis=axis, keepdims=True)
     dx = x - x.mean(axis=axis, keepdims=True)
@@ -77,13 +139,43 @@ def pearson_r(y, x, axis=-1):
 
 
 def rmse_one_to_one(y, x, axis=-1):
-    """Root-mean-square difference camera - reference (about the 1:1 line), in the data's units."""
+    """Root-mean-square difference camera - reference (about the 1:1 line), in the data's units.
+
+    Parameters
+    ----------
+    y : array_like
+        The camera's values (e.g. radiance, W m-2 sr-1 nm-1), paired with ``x`` by match-up.
+    x : array_like
+        The reference radiometer's values, same shape and unit as ``y``.
+    axis : int, optional
+        The axis of the match-ups; default -1 (the last).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        The RMS difference, in the unit of ``y`` and ``x``; the axis of match-ups reduced.
+    """
     y, x = _pair(y, x)
     return np.sqrt(np.mean((y - x) ** 2, axis=axis))
 
 
 def rmse_about_fit(y, x, axis=-1):
-    """Root-mean-square residual about the OLS line y = a x + b (sum of squares / N)."""
+    """Root-mean-square residual about the OLS line y = a x + b (sum of squares / N).
+
+    Parameters
+    ----------
+    y : array_like
+        The camera's values (e.g. radiance, W m-2 sr-1 nm-1), paired with ``x`` by match-up.
+    x : array_like
+        The reference radiometer's values, same shape and unit as ``y``.
+    axis : int, optional
+        The axis of the match-ups; default -1 (the last).
+
+    Returns
+    -------
+    float or numpy.ndarray
+        The RMS residual, in the unit of ``y``; the axis of match-ups reduced.
+    """
     y, x = _pair(y, x)
     dx = x - x.mean(axis=axis, keepdims=True)
     dy = y - y.mean(axis=axis, keepdims=True)
@@ -103,7 +195,21 @@ STATISTIC_UNITS = {"mupd": "percent", "median_symmetric_accuracy": "percent", "s
 def ols_fit(y, x, level: float = 0.95) -> dict:
     """y = slope x + intercept by ordinary least squares, with Student-t intervals (N - 2 dof) at ``level``.
 
-    Returns slope, intercept, their standard errors and the interval bounds.
+    Parameters
+    ----------
+    y : array_like
+        Shape (N,): the camera's values, paired with ``x``.
+    x : array_like
+        Shape (N,): the reference's values, same unit.
+    level : float, optional
+        Confidence level of the intervals; default 0.95.
+
+    Returns
+    -------
+    dict
+        ``slope`` (dimensionless when both share a unit), ``intercept`` (unit of ``y``), their standard errors
+        ``slope_se`` and ``intercept_se``, and the interval bounds ``slope_low``, ``slope_high``,
+        ``intercept_low``, ``intercept_high``.
     """
     y, x = _pair(y, x)
     res = stats.linregress(x, y)
@@ -118,10 +224,34 @@ def ols_fit(y, x, level: float = 0.95) -> dict:
 def odr_fit(y, x, y_sigma, x_sigma, level: float = 0.95) -> dict:
     """Errors-in-both regression y = slope x + intercept (``odrpack.odr_fit``, explicit ODR).
 
-    Weights 1/sigma^2 on both axes (the camera's and the reference's standard
-    uncertainties). The standard errors are ODRPACK's ``sd_beta``: the
-    covariance scaled by the residual variance (so a misstated sigma does not
-    make them too small or too large); intervals Student-t with N - 2 dof.
+    Weights 1/sigma^2 on both axes. The standard errors are ODRPACK's ``sd_beta``: the covariance scaled by the
+    residual variance (so a misstated sigma does not make them too small or too large); intervals Student-t with
+    N - 2 dof.
+
+    Parameters
+    ----------
+    y : array_like
+        Shape (N,): the camera's values, paired with ``x``.
+    x : array_like
+        Shape (N,): the reference's values, same unit.
+    y_sigma : float or array_like
+        The camera's standard uncertainty, unit of ``y`` (one value or one per match-up); positive.
+    x_sigma : float or array_like
+        The reference's standard uncertainty, unit of ``x``; positive.
+    level : float, optional
+        Confidence level of the intervals; default 0.95.
+
+    Returns
+    -------
+    dict
+        ``slope``, ``intercept``, ``slope_se``, ``intercept_se``, the interval bounds ``slope_low``,
+        ``slope_high``, ``intercept_low``, ``intercept_high``, ``converged`` (bool) and ``reduced_chi2``
+        (ODRPACK's residual variance).
+
+    Raises
+    ------
+    ValueError
+        When an uncertainty is not positive.
     """
     import odrpack
 
@@ -146,8 +276,32 @@ def bootstrap_interval(statistic, y, x, level: float = 0.95, n_resamples: int = 
                        method: str = "percentile") -> tuple[float, float]:
     """Paired bootstrap interval of ``statistic(y, x, axis)`` (:func:`scipy.stats.bootstrap`, ``paired=True``).
 
-    Match-ups are resampled as pairs, so the pairing of camera and reference
-    is kept. NaN bounds when the statistic does not vary over the resamples.
+    Match-ups are resampled as pairs, so the pairing of camera and reference is kept.
+
+    Parameters
+    ----------
+    statistic : callable
+        ``statistic(y, x, axis)``, vectorised over ``axis`` (one of :data:`BOOTSTRAPPED`).
+    y : array_like
+        Shape (N,): the camera's values.
+    x : array_like
+        Shape (N,): the reference's values.
+    level : float, optional
+        Confidence level; default 0.95.
+    n_resamples : int, optional
+        Number of bootstrap resamples; default 2000.
+    seed : int, optional
+        Seed of ``numpy.random.default_rng``; default 0.
+    method : str, optional
+        The interval's method as :func:`scipy.stats.bootstrap` names it (``percentile``, ``basic``, ``BCa``);
+        default ``percentile``.
+
+    Returns
+    -------
+    low : float
+        Lower bound, in the statistic's unit; NaN when the statistic does not vary over the resamples.
+    high : float
+        Upper bound; NaN likewise.
     """
     y, x = _pair(y, x)
     with warnings.catch_warnings():
@@ -162,9 +316,33 @@ def matchup_statistics(y, x, y_sigma, x_sigma, level: float = 0.95, n_resamples:
                        method: str = "percentile") -> dict:
     """Every statistic of this module for one band and one comparison: name -> value.
 
-    Bootstrapped statistics also give ``<name>_low`` and ``<name>_high``;
-    the regressions give ``ols_*`` and ``odr_*``; ``n`` is the number of
-    match-ups. With fewer than 3 match-ups every value is NaN (no interval, no line).
+    With fewer than 3 match-ups every value is NaN (no interval, no line).
+
+    Parameters
+    ----------
+    y : array_like
+        Shape (N,): the camera's values (e.g. radiance, W m-2 sr-1 nm-1), paired with ``x``.
+    x : array_like
+        Shape (N,): the reference radiometer's values, same unit; positive for the ratio statistics.
+    y_sigma : float or array_like
+        The camera's standard uncertainty, unit of ``y`` (weights of the errors-in-both regression).
+    x_sigma : float or array_like
+        The reference's standard uncertainty, unit of ``x``.
+    level : float, optional
+        Confidence level of the intervals; default 0.95.
+    n_resamples : int, optional
+        Bootstrap resamples per statistic; default 2000.
+    seed : int, optional
+        Seed of the first statistic's bootstrap; statistic k uses ``seed + k``. Default 0.
+    method : str, optional
+        The bootstrap interval's method; default ``percentile``.
+
+    Returns
+    -------
+    dict
+        ``n`` (match-ups); each statistic of :data:`BOOTSTRAPPED` with ``<name>_low`` and ``<name>_high``
+        (units in :data:`STATISTIC_UNITS`); the regressions' ``ols_*`` and ``odr_*`` (slope, intercept, their
+        standard errors and interval bounds).
     """
     y, x = _pair(y, x)
     out: dict = {"n": int(len(y))}

@@ -21,6 +21,13 @@ class RunningMoments:
         self.s2 = None
 
     def add(self, image: np.ndarray) -> None:
+        """Add one frame to the per-pixel sums.
+
+        Parameters
+        ----------
+        image : numpy.ndarray
+            The frame (e.g. a band image in DN), of the same shape as the frames added before.
+        """
         image = np.asarray(image)
         if self.s1 is None:
             self.shift = float(np.mean(image, dtype=np.float64))
@@ -34,10 +41,23 @@ class RunningMoments:
         self.n += 1
 
     def mean(self) -> np.ndarray:
+        """Per-pixel mean of the frames added.
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, the frames' shape and unit.
+        """
         return self.s1 / self.n + self.shift
 
     def variance(self) -> np.ndarray:
-        """Unbiased per-pixel temporal variance (zeros when only one frame)."""
+        """Unbiased per-pixel temporal variance (zeros when only one frame).
+
+        Returns
+        -------
+        numpy.ndarray
+            float64, the frames' shape, in their unit squared (e.g. DN^2); never negative.
+        """
         if self.n < 2:
             return np.zeros_like(self.s1)
         m = self.s1 / self.n
@@ -77,6 +97,18 @@ class RunningPearson:
         self.sy = self.syy = self.sxy = None
 
     def add(self, x: float, y: np.ndarray, valid: np.ndarray | None = None) -> None:
+        """Add one sample: the scalar ``x`` and the pixel values ``y`` it goes with.
+
+        Parameters
+        ----------
+        x : float
+            The sample's abscissa (e.g. exposure time, s, or a setting's relative signal).
+        y : numpy.ndarray
+            The pixel values (e.g. DN), of the same shape as the samples added before.
+        valid : numpy.ndarray, optional
+            Boolean, shape of ``y``: False leaves that pixel's value out of its sums (e.g. saturated); default None
+            (all valid).
+        """
         y = np.asarray(y)
         if self.sy is None:
             self.shape = y.shape
@@ -121,7 +153,18 @@ class RunningPearson:
         return n, sx, sxx
 
     def r(self, dtype=np.float64) -> np.ndarray:
-        """The per-pixel r (NaN where a pixel has fewer than 3 valid samples or no spread), in ``dtype``."""
+        """The per-pixel r (NaN where a pixel has fewer than 3 valid samples or no spread), in ``dtype``.
+
+        Parameters
+        ----------
+        dtype : numpy.dtype, optional
+            The result's float type; default ``numpy.float64``.
+
+        Returns
+        -------
+        numpy.ndarray
+            Pearson's r of y against x per pixel, dimensionless, the samples' shape.
+        """
         count, sx, sxx = self._x_sums()
         n = np.maximum(count, 1)
         cxx = sxx - sx**2 / n
@@ -142,7 +185,20 @@ class RunningPearson:
 
 
 def radius_map(shape: tuple[int, int], centre_xy: tuple[float, float]) -> np.ndarray:
-    """Distance (pixels) of every pixel centre from ``centre_xy`` (x = column, y = row)."""
+    """Distance (pixels) of every pixel centre from ``centre_xy`` (x = column, y = row).
+
+    Parameters
+    ----------
+    shape : tuple of (int, int)
+        (rows, columns) of the image.
+    centre_xy : tuple of (float, float)
+        The centre (column, row), pixels, pixel centres at integers.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``shape``: the distance, pixels.
+    """
     y = np.arange(shape[0], dtype=np.float64)[:, None]
     x = np.arange(shape[1], dtype=np.float64)[None, :]
     return np.hypot(x - centre_xy[0], y - centre_xy[1])
@@ -151,8 +207,20 @@ def radius_map(shape: tuple[int, int], centre_xy: tuple[float, float]) -> np.nda
 def corner_mask(shape: tuple[int, int], min_radius_fraction: float) -> np.ndarray:
     """Unlit corner pixels: farther from the region centre than ``min_radius_fraction`` of half its side.
 
-    A fisheye image circle fits inside the square lens region, so pixels
-    beyond the inscribed circle (fraction >= 1) are never lit.
+    A fisheye image circle fits inside the square lens region, so pixels beyond the inscribed circle
+    (fraction >= 1) are never lit.
+
+    Parameters
+    ----------
+    shape : tuple of (int, int)
+        (rows, columns) of the region's band image.
+    min_radius_fraction : float
+        The radius beyond which pixels count as corners, as a fraction of half the shorter side.
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean, shape ``shape``: True on the corner pixels.
     """
     h, w = shape
     r = radius_map(shape, ((w - 1) / 2, (h - 1) / 2))
@@ -160,8 +228,25 @@ def corner_mask(shape: tuple[int, int], min_radius_fraction: float) -> np.ndarra
 
 
 def unlit_mask(shape: tuple[int, int], projection: str, min_radius_fraction: float) -> np.ndarray:
-    """The band pixels of a lens region that are never lit: a fisheye's corners (:func:`corner_mask`),
-    none for a rectilinear region (an ordinary camera is lit to its edges)."""
+    """The band pixels of a lens region that are never lit.
+
+    A fisheye's corners (:func:`corner_mask`), none for a rectilinear region (an ordinary camera is lit to its
+    edges).
+
+    Parameters
+    ----------
+    shape : tuple of (int, int)
+        (rows, columns) of the region's band image.
+    projection : str
+        The lens region's projection: ``rectilinear``, or any other (a fisheye).
+    min_radius_fraction : float
+        For a fisheye, the corners' radius as a fraction of half the shorter side (:func:`corner_mask`).
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean, shape ``shape``: True on the pixels never lit.
+    """
     if projection == "rectilinear":
         return np.zeros(shape, dtype=bool)
     return corner_mask(shape, min_radius_fraction)
@@ -174,6 +259,18 @@ def histogram_counts(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
     edges given as an array (0.12 s for 3 million at the real camera's band-image size); here each value's
     bin is guessed from the mean step and corrected against the edges themselves (one bin at most, for
     equal steps to rounding, as ``np.arange`` makes them; other edges go to numpy): about half the time.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        The values, any shape (flattened).
+    edges : numpy.ndarray
+        Shape (bins + 1,): increasing bin edges, in the values' unit.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (bins,): the count of values in each bin (integers).
     """
     edges = np.asarray(edges, dtype=float)
     n = len(edges) - 1
