@@ -24,13 +24,6 @@ PACKAGE = Path(pipeline.__file__).resolve().parent
 NOT_YET_DOCUMENTED: set[str] = {
     "cli.py",
     "config.py",
-    "diagnostics/cross_closure.py",
-    "diagnostics/field_angle_closure.py",
-    "diagnostics/findings.py",
-    "diagnostics/missing_effects.py",
-    "diagnostics/plausibility.py",
-    "diagnostics/residual_structure.py",
-    "diagnostics/tables.py",
     "entry.py",
     "errors.py",
     "io/artefact.py",
