@@ -747,7 +747,8 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
     """Gather the stage artefacts into the calibration bundle at ``out_path``.
 
     Every lens needs the stages of :data:`REQUIRED_STAGES`; spectral and immersion are taken when present (without
-    immersion the bundle has no water). All artefacts must have been fitted with the same model.
+    immersion the bundle has no water). All artefacts must have been fitted with the same model. Bad input (an
+    artefact missing, lenses or models that differ, no lens regions): InputError.
 
     Parameters
     ----------
@@ -766,12 +767,6 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
     -------
     xarray.Dataset
         The bundle as written.
-
-    Raises
-    ------
-    InputError
-        When a required artefact is missing, the artefacts' lenses or models differ, or the lens regions are
-        absent.
     """
     config = config if config is not None else defaults()
     out_path = Path(out_path)

@@ -426,12 +426,12 @@ def group_threshold(change_z: float, n: int) -> float:
 def compare_bundles(path_a: str | Path, path_b: str | Path, config: dict | None = None) -> xr.Dataset:
     """The comparison table of two bundles (B against A) as a Dataset.
 
+    InputError when a bundle cannot be read or the two are not of one camera model and lens layout.
+
     Parameters
     ----------
-    path_a : str or pathlib.Path
-        Bundle A.
-    path_b : str or pathlib.Path
-        Bundle B.
+    path_a, path_b : str or pathlib.Path
+        Bundles A and B.
     config : dict, optional
         The configuration (its ``compare`` section; the schema's defaults without one).
 
@@ -441,11 +441,6 @@ def compare_bundles(path_a: str | Path, path_b: str | Path, config: dict | None 
         Per quantity ``<q>_a``, ``<q>_b``, ``<q>_difference``, ``<q>_relative_difference``,
         ``<q>_difference_sigma``, ``<q>_z`` (in the quantity's units, the relative difference and z
         dimensionless); per group the number of parameters, the largest |z|, the threshold and the verdict.
-
-    Raises
-    ------
-    InputError
-        When a bundle cannot be read or the two are not of one camera model and lens layout.
     """
     cfg = compare_settings(config)
     path_a, path_b = Path(path_a), Path(path_b)

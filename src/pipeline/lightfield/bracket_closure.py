@@ -101,8 +101,9 @@ def bracket_table(maps: list[ExposureMaps], bracket: str, lenses, full_scale_dn,
     Returns
     -------
     pandas.DataFrame
-        One row per pair of consecutive exposures, lens, band and bin: the log ratio, its sigma, the exposures
-        (s), the mean signals (DN) and the number of pixels.
+        One row per pair of consecutive exposures, lens, band and bin: ``value_dn`` ln(sum L_l / sum L_s)
+        (dimensionless), ``sigma_dn`` its standard uncertainty, the exposures (s), the mean signals above dark
+        (DN), the full scale (DN) and the number of pixels.
     """
     rows = []
     usable = np.logical_and.reduce([m.usable for m in maps])

@@ -534,48 +534,29 @@ def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium:
                               attitude_from_sun: str | None = None) -> xr.Dataset:
     """The light field of exposure brackets of raw frames (:mod:`pipeline.lightfield.hdr`).
 
-    The frames are grouped by ``frames_table`` or by ``lightfield.bracket_window_s``, each bracket
-    merged per pixel through the chain at each frame's exposure, binned onto the sphere grid and
-    integrated (one output frame per bracket); the bracket-consistency closure
-    (:mod:`pipeline.lightfield.bracket_closure`) as the ``obs_bracket`` table with its residual test and
-    the ranking of the effects the model lacks. With ``site``: the sun's centroid in each bracket's shortest
-    exposure against the solar position (:mod:`pipeline.lightfield.sun`, the ``sun_*`` variables and the
-    ``obs_sun`` table).
+    The frames are grouped by ``frames_table`` or by ``lightfield.bracket_window_s``, each bracket merged per
+    pixel through the chain at each frame's exposure, binned onto the sphere grid and integrated (one output
+    frame per bracket); the bracket-consistency closure (:mod:`pipeline.lightfield.bracket_closure`) as the
+    ``obs_bracket`` table with its residual test and the ranking of the effects the model lacks. With ``site``:
+    the sun's centroid in each bracket's shortest exposure against the solar position
+    (:mod:`pipeline.lightfield.sun`, the ``sun_*`` variables and the ``obs_sun`` table). Bad input: InputError.
 
     Parameters
     ----------
-    bundle_path : str or pathlib.Path
-        The calibration bundle.
-    raw_paths : sequence of str or pathlib.Path
-        The raw (DNG) frames.
+    bundle_path, raw_paths, medium, attitude_path, site, camera_utc_offset_h, grid_deg
+        As for :func:`light_field_from_raw`.
     frames_table : str or pathlib.Path, optional
-        CSV with the columns file and bracket; grouping by time when None.
-    medium : str, optional
-        "air" or "water" (air when None).
-    attitude_path : str or pathlib.Path, optional
-        The attitude log (CSV, :func:`pipeline.lightfield.attitude.read_attitude`); level when None.
-    site : tuple of float, optional
-        (latitude_deg, longitude_deg[, altitude_m]): gives the solar position (pvlib) and each earth-frame
-        azimuth relative to the sun.
-    camera_utc_offset_h : float, default 0.0
-        The camera clock minus UTC for frame times without an offset, hours.
-    grid_deg : float, optional
-        Cell size of the sphere grid, degree (default: ``apply.grid_deg``).
+        CSV with the columns file and bracket; the frames grouped by time when None.
     config : dict, optional
         The whole configuration (default: the schema's).
     attitude_from_sun : str, optional
-        ``"heading"`` or ``"heading_tilt"``: fit the attitude from the sun (needs ``site``, no log).
+        ``"heading"`` or ``"heading_tilt"``: the attitude fitted from the sun (needs ``site``, no log).
 
     Returns
     -------
     xarray.Dataset
         The light field, one frame per bracket, with the dynamic range, the ``obs_bracket`` table and, with a
         site, the sun closure.
-
-    Raises
-    ------
-    InputError
-        On bad frames, brackets, bundle or medium, or ``attitude_from_sun`` without a site or with a log.
     """
     if attitude_from_sun is not None and (site is None or attitude_path is not None):
         raise InputError(None, "--attitude-from-sun needs --site (the solar position at the frames' times) and "

@@ -165,7 +165,8 @@ def sun_centroid(maps, bundle, lenses, medium: str, zenith_lens: str, full_scale
     zenith_lens : str
         The lens that looks at the grid's zenith.
     full_scale_dn : numpy.ndarray
-        ``full_scale_dn[lens]``: the response's full scale of the band, DN above dark.
+        ``full_scale_dn[lens]``: the response's full scale of the band (nonlinearity full scale, else saturation
+        level), DN.
     band : str, default "G"
         The band whose saturated core and rim give the centroid.
     band_index : int, optional
