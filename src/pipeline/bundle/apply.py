@@ -73,7 +73,23 @@ SPHERE_CONVENTION = ("the {zenith} lens's optical axis is the zenith (zenith ang
 
 
 def check_frame(raw, bundle: xr.Dataset, effects) -> None:
-    """Refuse a frame the bundle does not calibrate: another camera, ISO or exposure outside the calibrated range."""
+    """Refuse a frame the bundle does not calibrate: another camera, ISO or exposure outside the calibrated range.
+
+    Parameters
+    ----------
+    raw : RawFrame
+        The decoded frame (its camera tags, ISO and exposure time in s).
+    bundle : xarray.Dataset
+        The calibration bundle.
+    effects : collection of str
+        The effects of the bundle's model.
+
+    Raises
+    ------
+    InputError
+        When the frame is from another camera, at an ISO the bundle does not calibrate, or its exposure time is
+        outside the calibrated range.
+    """
     for key, tag in (("make", "make"), ("model", "model"), ("serial", "serial")):
         want = bundle.attrs.get(f"camera_{key}", "")
         got = getattr(raw, tag)
@@ -122,6 +138,22 @@ def optical_black_level(raw, bundle: xr.Dataset, lens: str, band: str) -> tuple[
     variance is the standard error of that mean squared (their sample variance over their number; the
     offset's own error, from the dark frames, is about 0.01 DN and not propagated). None when the frame
     declares no optically black pixels or the bundle has no offset for them.
+
+    Parameters
+    ----------
+    raw : RawFrame
+        The decoded frame.
+    bundle : xarray.Dataset
+        The calibration bundle.
+    lens : str
+        The lens.
+    band : str
+        The band (R, G or B).
+
+    Returns
+    -------
+    tuple of float or None
+        (black level, DN; its variance, DN^2), or None.
     """
     if raw.optical_black_dn is None or raw.optical_black_count < 2 or "optical_black_offset_dn" not in bundle:
         return None
@@ -155,24 +187,53 @@ def band_radiance(images, bundle: xr.Dataset, lens: str, band: str, medium: str,
                   source=None, out=None, scratch=None, frame_black=None) -> mm.Measured:
     """The measurement chain on one band image of one lens: raw DN to radiance with its uncertainty.
 
-    ``images`` is what :func:`pipeline.io.frames.lens_images` returns for
-    ``lens``; ``frame`` the frame's exposure settings. With ``window =
-    (row_slice, col_slice)`` only that crop of the band image runs (and the
-    same crop of theta, the hot-pixel mask and the flat field), and the
-    result has the crop's shape; each pixel's result is the one of the whole
-    image. Pixels outside the image circle (or beyond the half field of view)
-    have no direction: NaN, flagged :data:`~pipeline.radiometry.measurement.FLAG_OUTSIDE_IMAGE_CIRCLE`.
-    A mean radiance over the unflagged pixels inside the circle more than
-    ``negative_sigma`` (default ``apply.negative_mean_sigma``) standard
-    errors below zero raises :class:`~pipeline.errors.ImpossibleResult`;
-    ``source`` names the frame in the messages. With ``out`` (three arrays
-    of the crop's shape, e.g. slots of the output maps) the radiance and its
-    random and systematic sigma are evaluated there
-    (:meth:`~pipeline.radiometry.measurement.Measured.evaluate_into`, with
-    ``scratch``, one more such array, for the sums on the way). With
-    ``bias_drift`` the frame's black level comes from the unlit corners of a
-    fisheye lens, or for a rectilinear lens from ``frame_black`` (level and
-    variance, :func:`optical_black_level`; without it the dark model's bias).
+    With ``window`` only that crop of the band image runs (and the same crop of theta, the hot-pixel mask and the
+    flat field), and the result has the crop's shape; each pixel's result is the one of the whole image. Pixels
+    outside the image circle (or beyond the half field of view) have no direction: NaN, flagged
+    :data:`~pipeline.radiometry.measurement.FLAG_OUTSIDE_IMAGE_CIRCLE`. With ``bias_drift`` the frame's black level
+    comes from the unlit corners of a fisheye lens, or for a rectilinear lens from ``frame_black`` (without it the
+    dark model's bias).
+
+    Parameters
+    ----------
+    images : LensImages
+        What :func:`pipeline.io.frames.lens_images` returns for ``lens``.
+    bundle : xarray.Dataset
+        The calibration bundle.
+    lens : str
+        The lens.
+    band : str
+        The band (R, G or B).
+    medium : str
+        "air" or "water".
+    effects : collection of str
+        The effects of the bundle's model.
+    frame : FrameSettings
+        The frame's exposure time (s) and ISO.
+    window : tuple of slice, optional
+        ``(row_slice, col_slice)`` of the band image; the whole image when None.
+    negative_sigma : float, optional
+        A mean radiance over the unflagged pixels inside the circle more than this many standard errors below
+        zero raises; default ``apply.negative_mean_sigma``.
+    source : str or pathlib.Path, optional
+        Names the frame in the messages.
+    out : tuple of numpy.ndarray, optional
+        Three arrays of the crop's shape (e.g. slots of the output maps) where the radiance and its random and
+        systematic sigma are evaluated (:meth:`~pipeline.radiometry.measurement.Measured.evaluate_into`).
+    scratch : numpy.ndarray, optional
+        One more such array, for the sums on the way.
+    frame_black : tuple of float, optional
+        The frame's black level and its variance (DN, DN^2; :func:`optical_black_level`).
+
+    Returns
+    -------
+    Measured
+        The radiance (W m-2 sr-1 nm-1) with its random and systematic variance terms and the pixels' flags.
+
+    Raises
+    ------
+    ImpossibleResult
+        When the mean radiance is significantly negative.
     """
     return BandChain(bundle, lens, band, medium, effects)(images, frame, window, negative_sigma=negative_sigma,
                                                           source=source, out=out, scratch=scratch,
@@ -199,7 +260,22 @@ class BandChain:
         self._unlit: np.ndarray | None = None
 
     def parameters(self, frame: mm.FrameSettings) -> tuple[mm.DarkModel, mm.ResponseModel, mm.BandCalibration]:
-        """:func:`pipeline.bundle.calibration.band_parameters` at the frame's ISO."""
+        """:func:`pipeline.bundle.calibration.band_parameters` at the frame's ISO.
+
+        Parameters
+        ----------
+        frame : FrameSettings
+            The frame's exposure time (s) and ISO.
+
+        Returns
+        -------
+        dark : DarkModel
+            The dark model.
+        response : ResponseModel
+            The response model.
+        calibration : BandCalibration
+            The band's calibration.
+        """
         key = float(frame.iso)
         if key not in self._parameters:
             self._parameters[key] = band_parameters(self.bundle, self.lens, self.band, self.medium, frame,
@@ -208,7 +284,13 @@ class BandChain:
 
     def unlit_corners(self) -> np.ndarray:
         """The unlit corner pixels of the band image that tell a frame's black level (``bias_drift``): those
-        of the dark and linearity stages, less the hot pixels when ``hot_pixels`` is in the model."""
+        of the dark and linearity stages, less the hot pixels when ``hot_pixels`` is in the model.
+
+        Returns
+        -------
+        numpy.ndarray
+            Boolean mask of the band image's shape.
+        """
         if self._unlit is None:
             corners = _unlit_corners(self.shape, _default_corner_fraction())
             hot = _crop(self.b, "hot_pixel_mask", slice(None), slice(None))
@@ -609,8 +691,27 @@ def _lens_radiance(raw, bundle, lens, medium, effects, frame, negative_sigma, pl
 def bin_on_sphere(zenith_deg, azimuth_deg, values, grid_deg: float):
     """Mean, spread (standard deviation) and count of ``values`` per zenith/azimuth cell; NaN where empty.
 
-    Every finite value falls into its cell (no nearest-pixel choice); the
-    arrays returned have shape (180 / grid, 360 / grid).
+    Every finite value falls into its cell (no nearest-pixel choice).
+
+    Parameters
+    ----------
+    zenith_deg : numpy.ndarray
+        Zenith angle of each value's direction, degree.
+    azimuth_deg : numpy.ndarray
+        Azimuth of each value's direction, degree in [0, 360).
+    values : numpy.ndarray
+        The values (e.g. radiance), same shape.
+    grid_deg : float
+        Cell size, degree.
+
+    Returns
+    -------
+    mean : numpy.ndarray
+        Mean per cell, in the unit of ``values``, shape ``(180 / grid_deg, 360 / grid_deg)``.
+    spread : numpy.ndarray
+        Standard deviation per cell, same unit and shape.
+    count : numpy.ndarray
+        Number of values per cell, same shape.
     """
     shape = (int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg)))
     cell = sphere_cells(zenith_deg, azimuth_deg, grid_deg)
@@ -648,10 +749,27 @@ def _pixel_directions(maps, lenses, zenith_lens, grid_deg, block_rows):
 
 
 def sphere_directions(ds: xr.Dataset) -> tuple[xr.DataArray, xr.DataArray]:
-    """Zenith angle and azimuth (deg) of every band pixel of an ``apply`` output with its pixel geometry.
+    """Zenith angle and azimuth of every band pixel of an ``apply`` output with its pixel geometry.
 
     From its ``theta_deg`` and ``phi_deg`` by its ``sphere_convention`` (the lens ``zenith_lens`` looks at the
-    zenith; :func:`~pipeline.geometry.sphere.sphere_coordinates`), float32 as the maps, dims (lens, band, y, x).
+    zenith; :func:`~pipeline.geometry.sphere.sphere_coordinates`).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        An ``apply`` output written with the pixel geometry.
+
+    Returns
+    -------
+    zenith : xarray.DataArray
+        Zenith angle, degree, float32, dims (lens, band, y, x).
+    azimuth : xarray.DataArray
+        Azimuth, degree in [0, 360), float32, dims (lens, band, y, x).
+
+    Raises
+    ------
+    InputError
+        When the output has no ``theta_deg``.
     """
     if "theta_deg" not in ds:
         raise InputError(ds.encoding.get("source"), "has no theta_deg: written without the pixel geometry")
@@ -751,17 +869,45 @@ def apply_calibration(bundle_path, raw_paths, medium: str, out_path, grid_deg: f
                       pixels: bool = True, pixel_geometry: bool = True) -> Path:
     """Turn raw frames into radiance maps with the calibration bundle; write ``out_path`` (NetCDF).
 
-    Returns the path written. Each frame is decoded once. The sphere grid is
-    always written; the per-pixel maps (radiance, uncertainties, flags and
-    the geometry of every band pixel of both lenses) only with ``pixels``;
-    ``pixel_geometry=False`` leaves the geometry maps (theta, phi, solid
-    angle) out: the output then names them in the bundle
-    (attribute ``pixel_geometry``, with the sha256 of the geometry artefacts
-    they came from, ``geometry_sha256``).
-    The output is written to a temporary name and renamed; an existing
-    ``out_path`` is replaced only with ``overwrite``. Each pixel's zenith
-    angle and azimuth on the sphere are not stored (theta and phi by the
-    output's ``sphere_convention``): :func:`sphere_directions` gives them.
+    Each frame is decoded once. The sphere grid is always written; the per-pixel maps (radiance, uncertainties,
+    flags and the geometry of every band pixel of both lenses) only with ``pixels``. The output is written to a
+    temporary name and renamed. Each pixel's zenith angle and azimuth on the sphere are not stored (theta and phi
+    by the output's ``sphere_convention``): :func:`sphere_directions` gives them.
+
+    Parameters
+    ----------
+    bundle_path : str or pathlib.Path
+        The calibration bundle.
+    raw_paths : sequence of str or pathlib.Path
+        The raw (DNG) frames.
+    medium : str
+        "air" or "water".
+    out_path : str or pathlib.Path
+        The NetCDF file to write.
+    grid_deg : float, optional
+        Cell size of the sphere grid, degree (default: ``apply.grid_deg``).
+    overwrite : bool, default False
+        Replace an existing ``out_path``.
+    zenith_lens : str, default ZENITH_LENS
+        The lens that looks at the zenith.
+    config : dict, optional
+        The configuration (default: the schema's defaults).
+    pixels : bool, default True
+        Write the per-pixel maps besides the sphere grid.
+    pixel_geometry : bool, default True
+        With the pixel maps, write the geometry maps (theta, phi, solid angle); False leaves them out and names
+        them in the bundle (attribute ``pixel_geometry``, with the sha256 of the geometry artefacts they came
+        from, ``geometry_sha256``).
+
+    Returns
+    -------
+    pathlib.Path
+        The file written (radiance in W m-2 sr-1 nm-1).
+
+    Raises
+    ------
+    InputError
+        When ``out_path`` exists without ``overwrite``, no frames are given, or a frame or the bundle is refused.
     """
     out_path = Path(out_path)
     if out_path.exists() and not overwrite:
@@ -1035,7 +1181,18 @@ def _write_unfilled(ds: xr.Dataset, path: Path, encoding: dict, mode: str = "w")
 
 # --------------------------------------------------------------------------- command line
 def add_apply_parser(subparsers) -> argparse.ArgumentParser:
-    """``apply --calibration BUNDLE | --store DIR [--medium air|water] RAW.dng... -o OUT.nc``."""
+    """``apply --calibration BUNDLE | --store DIR [--medium air|water] RAW.dng... -o OUT.nc``.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The command line's subcommands.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The ``apply`` subcommand's parser.
+    """
     p = subparsers.add_parser("apply", help="raw frames to radiance maps with a calibration bundle")
     which = p.add_mutually_exclusive_group(required=True)
     which.add_argument("--calibration", help="calibration bundle (results/calibration/<serial>.nc)")
@@ -1057,7 +1214,18 @@ def add_apply_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def apply_command(args) -> int:
-    """Run ``apply`` from parsed arguments; bad input prints one line and returns 1."""
+    """Run ``apply`` from parsed arguments; bad input prints one line and returns 1.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments of ``apply``.
+
+    Returns
+    -------
+    int
+        The exit status: 0 on success, 1 on bad input.
+    """
     try:
         out = apply_calibration(args.calibration, args.raw, args.medium, args.out, args.grid_deg,
                                 overwrite=args.overwrite, pixels=args.pixels,

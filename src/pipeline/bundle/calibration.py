@@ -124,10 +124,22 @@ def _read_noise_sigma(ds: xr.Dataset) -> xr.DataArray:
 
 
 def lab_inputs(artefact_inputs: list[dict[str, str]]) -> dict[str, str]:
-    """The lab files behind stage artefacts, from their input_sha256 dicts: the dataset's own files and the
-    instrument sidecars by name, and each experiment's raw frames (of all the artefacts) as one digest
-    ``<experiment>/frames``, the sha256 of their sorted ``name sha256`` lines; upstream artefacts (``.nc``)
-    are left out."""
+    """The lab files behind stage artefacts, from their input_sha256 dicts.
+
+    The dataset's own files and the instrument sidecars are kept by name, and each experiment's raw frames (of all
+    the artefacts) as one digest ``<experiment>/frames``, the sha256 of their sorted ``name sha256`` lines; upstream
+    artefacts (``.nc``) are left out.
+
+    Parameters
+    ----------
+    artefact_inputs : list of dict[str, str]
+        Each artefact's ``input_sha256``: {input file relative to the dataset: sha256}.
+
+    Returns
+    -------
+    dict[str, str]
+        {file or ``<experiment>/frames``: sha256}, sorted by name.
+    """
     sidecars = {f"{experiment}/{name}" for experiment, names in SIDECARS.items() for name in names}
     out, frames = {}, {}
     for inputs in artefact_inputs:
@@ -220,7 +232,20 @@ PARTS = {"dark": _dark_part, "linearity": _linearity_part, "geometry": _geometry
 
 
 def calibrated_isos(bundle: xr.Dataset, effects) -> np.ndarray:
-    """ISOs a frame may have: those of the dark model, and with ``iso_gain`` only those with a gain factor."""
+    """ISOs a frame may have: those of the dark model, and with ``iso_gain`` only those with a gain factor.
+
+    Parameters
+    ----------
+    bundle : xarray.Dataset
+        The calibration bundle.
+    effects : collection of str
+        The effects of the bundle's model.
+
+    Returns
+    -------
+    numpy.ndarray
+        The ISOs (float).
+    """
     isos = bundle["dark_iso"].values.astype(float)
     if "iso_gain" in effects and "gain_iso" in bundle.coords:
         allowed = set(bundle["gain_iso"].values.astype(float)) | {float(isos.min())}
@@ -238,7 +263,30 @@ def _number(b: xr.Dataset, name: str, default: float = 0.0, **sel) -> float:
 
 def dark_parameters(bundle: xr.Dataset, lens: str, band: str, frame: mm.FrameSettings) -> mm.DarkModel:
     """The dark model of one lens and band at a frame's setting; one line when the bundle's dark model was
-    measured at one ISO (no gain sweep) and the frame is at another."""
+    measured at one ISO (no gain sweep) and the frame is at another.
+
+    Parameters
+    ----------
+    bundle : xarray.Dataset
+        The calibration bundle.
+    lens : str
+        The lens.
+    band : str
+        The band (R, G or B).
+    frame : FrameSettings
+        The frame's exposure time (s) and ISO.
+
+    Returns
+    -------
+    DarkModel
+        Bias (DN), dark current (DN s-1), their temperature terms, read noise and offset pattern (DN), with their
+        sigmas.
+
+    Raises
+    ------
+    InputError
+        When the dark model was measured at one ISO and the frame is at another.
+    """
     b = bundle.sel(lens=lens)
 
     def num(name, default=0.0, **sel):
@@ -259,7 +307,34 @@ def dark_parameters(bundle: xr.Dataset, lens: str, band: str, frame: mm.FrameSet
 
 def band_parameters(bundle: xr.Dataset, lens: str, band: str, medium: str, frame: mm.FrameSettings,
                     effects) -> tuple[mm.DarkModel, mm.ResponseModel, mm.BandCalibration]:
-    """The measurement chain's parameter objects for one lens, band, medium and frame setting."""
+    """The measurement chain's parameter objects for one lens, band, medium and frame setting.
+
+    Parameters
+    ----------
+    bundle : xarray.Dataset
+        The calibration bundle.
+    lens : str
+        The lens.
+    band : str
+        The band (R, G or B).
+    medium : str
+        "air" or "water".
+    frame : FrameSettings
+        The frame's exposure time (s) and ISO.
+    effects : collection of str
+        The effects of the bundle's model.
+
+    Returns
+    -------
+    dark : DarkModel
+        The dark model (:func:`dark_parameters`).
+    response : ResponseModel
+        Conversion gain (DN per electron), shutter offset (s), ISO gain factor, nonlinearity, full scale and
+        saturation (DN), with their sigmas.
+    calibration : BandCalibration
+        Roll-off coefficients and covariance, calibrated field angle (degree), inverse responsivity R^-1
+        (W m-2 sr-1 nm-1 per DN s-1) and its relative sigma, immersion factor (1 in air) and azimuthal roll-off.
+    """
     b = bundle.sel(lens=lens)
 
     def num(name, default=0.0, **sel):
@@ -299,6 +374,24 @@ def outside_image_circle(g: xr.Dataset, theta: np.ndarray, rows: slice, cols: sl
 
     ``g`` is the bundle at one lens, medium and band (circle centre and radius, half field of view). A
     rectilinear lens has no image circle (radius NaN): only pixels without a field angle are outside.
+
+    Parameters
+    ----------
+    g : xarray.Dataset
+        The bundle at one lens, medium and band (circle centre and radius, pixels; half field of view, degree).
+    theta : numpy.ndarray
+        The crop's field angles, degree (NaN without a direction).
+    rows : slice
+        The crop's rows in the band image.
+    cols : slice
+        The crop's columns in the band image.
+    shape : tuple of int
+        (rows, cols) of the whole band image.
+
+    Returns
+    -------
+    numpy.ndarray
+        Boolean, of the crop's shape: True outside.
     """
     if not np.isfinite(float(g["circle_radius_px"])):
         return ~np.isfinite(theta)
@@ -315,21 +408,50 @@ FACTOR_EFFECTS = ("hot_pixels", "prnu", "rolloff_azimuth")
 
 
 def factor_effects(effects) -> str:
-    """The effects of ``effects`` that the bundle's ``pixel_factor`` depends on, comma-separated."""
+    """The effects of ``effects`` that the bundle's ``pixel_factor`` depends on, comma-separated.
+
+    Parameters
+    ----------
+    effects : iterable of str
+        The effects of the model.
+
+    Returns
+    -------
+    str
+        Those among ``FACTOR_EFFECTS``, comma-separated, in that order.
+    """
     return ",".join(e for e in FACTOR_EFFECTS if e in tuple(effects))
 
 
 def sphere_blocks(cells: np.ndarray, flags: np.ndarray, block_rows: int):
     """The sphere cells of a band image (y, x) per block of ``block_rows`` rows, in the form apply bins them.
 
-    ``cells`` the cell of every pixel (-1 off the grid), ``flags`` its frame-independent flags. Returns
-    ``index`` (y, x; uint16, uint32 where a block spans 65,534 cells or more): the pixel's cell less its
-    block's first cell where it is on the grid; off the grid the block's number of cells n (its spill
-    cell: no direction, or a hot pixel) or n + 1 (a second spill: inside the image circle and not hot,
-    but off the grid, i.e. beyond the calibrated field angle; such pixels enter apply's negative-mean
-    check, which takes every unflagged pixel inside the circle, but not the grid);
-    and per block ``first`` (its first cell), ``n_cells`` and ``columns`` ([start, stop) of the columns
-    that reach inside the image circle; start = stop for a block wholly outside it), int32.
+    Off the grid, a pixel takes its block's number of cells n (its spill cell: no direction, or a hot pixel) or
+    n + 1 (a second spill: inside the image circle and not hot, but off the grid, i.e. beyond the calibrated field
+    angle; such pixels enter apply's negative-mean check, which takes every unflagged pixel inside the circle, but
+    not the grid).
+
+    Parameters
+    ----------
+    cells : numpy.ndarray
+        The sphere cell of every pixel of a band image, shape ``(y, x)`` (-1 off the grid).
+    flags : numpy.ndarray
+        Each pixel's frame-independent flags (``pipeline.radiometry.measurement`` FLAG bits), shape ``(y, x)``.
+    block_rows : int
+        Rows per block.
+
+    Returns
+    -------
+    index : numpy.ndarray
+        Shape ``(y, x)``, uint16 (uint32 where a block spans 65,534 cells or more): the pixel's cell less its
+        block's first cell where it is on the grid, else n or n + 1.
+    first : numpy.ndarray
+        Per block its first cell (int32).
+    n_cells : numpy.ndarray
+        Per block its number of cells (int32).
+    columns : numpy.ndarray
+        Per block ``[start, stop)`` of the columns that reach inside the image circle (start = stop for a block
+        wholly outside it), int32, shape ``(n_blocks, 2)``.
     """
     shape = cells.shape
     starts = range(0, shape[0], block_rows)
@@ -361,12 +483,27 @@ def sphere_blocks(cells: np.ndarray, flags: np.ndarray, block_rows: int):
 
 
 def sphere_counts(cells: np.ndarray, flags: np.ndarray, n_cells: int) -> tuple[np.ndarray, int]:
-    """The pixels of a band image on each sphere cell (int32, ``n_cells``) and those the negative-mean check takes.
+    """The pixels of a band image on each sphere cell and those the negative-mean check takes.
 
-    ``cells`` the cell of every pixel (-1 off the grid), ``flags`` its frame-independent flags. The check's
-    pixels are those on the grid and those inside the image circle, not hot, off the grid (beyond the
+    The check's pixels are those on the grid and those inside the image circle, not hot, off the grid (beyond the
     calibrated field angle): :func:`sphere_blocks`'s cells and its second spill. What a frame's flags
     (saturation, a value that is not finite) keep off, ``apply`` takes away from these.
+
+    Parameters
+    ----------
+    cells : numpy.ndarray
+        The sphere cell of every pixel of a band image, shape ``(y, x)`` (-1 off the grid).
+    flags : numpy.ndarray
+        Each pixel's frame-independent flags (``pipeline.radiometry.measurement`` FLAG bits), shape ``(y, x)``.
+    n_cells : int
+        The number of cells of the grid.
+
+    Returns
+    -------
+    count : numpy.ndarray
+        The pixels on each cell, int32, shape ``(n_cells,)``.
+    checked : int
+        The number of pixels the negative-mean check takes.
     """
     cells = np.asarray(cells).ravel()
     on = cells >= 0
@@ -503,6 +640,26 @@ def noise_equivalent_radiance(dark: mm.DarkModel, response: mm.ResponseModel, ca
     chain itself at s = 0 and s = 1; s = (snr^2 b + sqrt(snr^4 b^2 + 4 snr^2 a)) / 2
     solves s = snr sqrt(a + b s); the radiance follows through the chain's
     exposure, gain and R^-1 steps (roll-off 1 and flat field 1 on the axis).
+
+    Parameters
+    ----------
+    dark : DarkModel
+        The band's dark model.
+    response : ResponseModel
+        The band's response model.
+    calibration : BandCalibration
+        The band's calibration (its R^-1).
+    frame : FrameSettings
+        The frame's exposure time (s) and ISO.
+    effects : collection of str
+        The effects of the model.
+    snr : float, default 1.0
+        The signal-to-noise ratio of the radiance sought.
+
+    Returns
+    -------
+    float
+        The radiance, W m-2 sr-1 nm-1.
     """
     def variance(signal_dn):
         m = mm.subtract_dark(mm.from_raw(np.zeros(1)), dark, frame, effects)
@@ -587,13 +744,29 @@ def _read_uncached(path: str | Path, stage: str) -> _ReadPart:
 
 def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Path, camera: dict,
                  lens_regions: dict[str, dict], config: dict | None = None) -> xr.Dataset:
-    """Gather the stage artefacts ({stage: {lens: path}}) into the calibration bundle at ``out_path``.
+    """Gather the stage artefacts into the calibration bundle at ``out_path``.
 
-    ``camera`` is dataset.yaml's ``camera`` section (make, model, serial),
-    ``lens_regions`` its ``lenses`` section ({lens: {rows: [r0, r1], cols: [c0, c1]}}).
-    Every lens needs the stages of :data:`REQUIRED_STAGES`; spectral and
-    immersion are taken when present (without immersion the bundle has no
-    water). All artefacts must have been fitted with the same model.
+    Every lens needs the stages of :data:`REQUIRED_STAGES`; spectral and immersion are taken when present (without
+    immersion the bundle has no water). All artefacts must have been fitted with the same model. Bad input (an
+    artefact missing, lenses or models that differ, no lens regions): InputError.
+
+    Parameters
+    ----------
+    artefacts : dict[str, dict[str, str or pathlib.Path]]
+        {stage: {lens: artefact path}}.
+    out_path : str or pathlib.Path
+        The bundle to write (NetCDF), under the results folder's ``calibration/``.
+    camera : dict
+        dataset.yaml's ``camera`` section (make, model, serial).
+    lens_regions : dict[str, dict]
+        dataset.yaml's ``lenses`` section ({lens: {rows: [r0, r1], cols: [c0, c1]}}, raw mosaic pixels).
+    config : dict, optional
+        The configuration (default: the schema's defaults).
+
+    Returns
+    -------
+    xarray.Dataset
+        The bundle as written.
     """
     config = config if config is not None else defaults()
     out_path = Path(out_path)
@@ -692,14 +865,30 @@ def build_bundle(artefacts: dict[str, dict[str, str | Path]], out_path: str | Pa
 def read_bundle(path: str | Path, *, load: bool = True) -> xr.Dataset:
     """Open a calibration bundle, refusing another artefact or an unknown version.
 
-    Loaded by default; ``load=False`` leaves the variables on disk (read when
-    selected; the caller closes the Dataset).
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The bundle (NetCDF).
+    load : bool, default True
+        Load the variables into memory; False leaves them on disk (read when selected; the caller closes the
+        Dataset).
+
+    Returns
+    -------
+    xarray.Dataset
+        The bundle.
     """
     return read_artefact(path, "calibration", load=load)
 
 
 def build_bundle_script(smk) -> None:
-    """Entry point of the ``calibration`` rule's thin script: the stage artefacts of both lenses -> the bundle."""
+    """Entry point of the ``calibration`` rule's thin script: the stage artefacts of both lenses -> the bundle.
+
+    Parameters
+    ----------
+    smk : snakemake.script.Snakemake
+        The rule's ``snakemake`` object (inputs per stage, output ``bundle``, params ``camera`` and ``config``, log).
+    """
     setup_log(smk.log[0] if smk.log else None)
     artefacts = {}
     for stage in BUNDLE_STAGES:

@@ -135,7 +135,18 @@ COORDINATE_ATTRS = {"lens": ("lens of the camera", None), "band": ("colour band 
 
 
 def compare_settings(config: dict | None = None) -> dict:
-    """The ``compare`` section of the configuration (the schema's defaults without one)."""
+    """The ``compare`` section of the configuration (the schema's defaults without one).
+
+    Parameters
+    ----------
+    config : dict, optional
+        The configuration.
+
+    Returns
+    -------
+    dict
+        The ``compare`` section (``change_z``, ``rolloff_angles_deg``, ``radius_fractions``, ...).
+    """
     return (config if config is not None else defaults())["compare"]
 
 
@@ -166,7 +177,22 @@ def _check_alike(a: xr.Dataset, b: xr.Dataset, path_b: Path, path_a: Path) -> No
 
 
 def shared_inputs(a: xr.Dataset, b: xr.Dataset) -> tuple[list[str], list[str]]:
-    """(lab inputs, stage artefacts) with the same sha256 in both bundles."""
+    """(lab inputs, stage artefacts) with the same sha256 in both bundles.
+
+    Parameters
+    ----------
+    a : xarray.Dataset
+        Bundle A.
+    b : xarray.Dataset
+        Bundle B.
+
+    Returns
+    -------
+    lab : list of str
+        The lab inputs (keys of ``lab_input_sha256``) with the same sha256 in both, sorted.
+    artefacts : list of str
+        The stage artefacts (keys of ``input_sha256``) with the same sha256 in both, sorted.
+    """
     def hashes(ds, attr):
         try:
             return json.loads(ds.attrs.get(attr, "{}"))
@@ -223,7 +249,20 @@ def _theta_sigma_at(bundle: xr.Dataset, sel: dict, angles_deg: np.ndarray, half_
 
 
 def bundle_quantities(bundle: xr.Dataset, cfg: dict) -> dict[str, Quantity]:
-    """The compared parameters of one bundle (:data:`QUANTITIES`), those it has."""
+    """The compared parameters of one bundle (:data:`QUANTITIES`), those it has.
+
+    Parameters
+    ----------
+    bundle : xarray.Dataset
+        The calibration bundle.
+    cfg : dict
+        The ``compare`` section of the configuration (:func:`compare_settings`).
+
+    Returns
+    -------
+    dict[str, Quantity]
+        Per parameter name its values over its dims, units and uncertainty terms.
+    """
     out: dict[str, Quantity] = {}
     lenses = list(bundle["lens"].values.astype(str))
     bands = list(BANDS)
@@ -315,9 +354,33 @@ def bundle_quantities(bundle: xr.Dataset, cfg: dict) -> dict[str, Quantity]:
 # --------------------------------------------------------------------------- the difference and its sigma
 def difference(value_a, terms_a: list[Term], value_b, terms_b: list[Term], shared: set[str] | list[str],
                all_common: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """B - A and its standard uncertainty: a term whose inputs are all in ``shared`` (or every term, with
-    ``all_common``) is common and adds (u_A - u_B)^2, any other u_A^2 + u_B^2 (terms matched by name; a term
-    one side lacks counts as zero there)."""
+    """B - A and its standard uncertainty.
+
+    A term whose inputs are all in ``shared`` (or every term, with ``all_common``) is common and adds
+    (u_A - u_B)^2, any other u_A^2 + u_B^2 (terms matched by name; a term one side lacks counts as zero there).
+
+    Parameters
+    ----------
+    value_a : array_like
+        The parameter in A, its units.
+    terms_a : list of Term
+        A's uncertainty terms (absolute, same units).
+    value_b : array_like
+        The parameter in B, same units and shape.
+    terms_b : list of Term
+        B's uncertainty terms.
+    shared : set of str or list of str
+        The lab inputs with the same sha256 in both bundles.
+    all_common : bool, default False
+        Take every term as common (the same stage artefact in both bundles).
+
+    Returns
+    -------
+    difference : numpy.ndarray
+        B - A, the parameter's units.
+    sigma : numpy.ndarray
+        Its standard uncertainty, same units.
+    """
     value_a, value_b = np.asarray(value_a, float), np.asarray(value_b, float)
     by_a, by_b = {t.name: t for t in terms_a}, {t.name: t for t in terms_b}
     variance = np.zeros(np.broadcast(value_a, value_b).shape)
@@ -338,8 +401,22 @@ def _z(diff: np.ndarray, sigma: np.ndarray) -> np.ndarray:
 
 
 def group_threshold(change_z: float, n: int) -> float:
-    """The |z| a group of ``n`` parameters exceeds by chance as often as one parameter exceeds ``change_z``
-    (two-sided Gaussian, Sidak); ``change_z`` itself for one parameter."""
+    """The |z| a group of ``n`` parameters exceeds by chance as often as one parameter exceeds ``change_z``.
+
+    Two-sided Gaussian, Sidak correction.
+
+    Parameters
+    ----------
+    change_z : float
+        The threshold of one parameter (``compare.change_z``).
+    n : int
+        The number of parameters of the group.
+
+    Returns
+    -------
+    float
+        The group's threshold (at least ``change_z``; ``change_z`` itself for one parameter).
+    """
     p_one = 2.0 * norm.sf(change_z)
     p_each = -np.expm1(np.log1p(-p_one) / max(n, 1))
     return float(max(change_z, norm.isf(p_each / 2.0)))
@@ -347,9 +424,24 @@ def group_threshold(change_z: float, n: int) -> float:
 
 # --------------------------------------------------------------------------- the comparison
 def compare_bundles(path_a: str | Path, path_b: str | Path, config: dict | None = None) -> xr.Dataset:
-    """The comparison table of two bundles (B against A) as a Dataset: per quantity ``<q>_a``, ``<q>_b``,
-    ``<q>_difference``, ``<q>_relative_difference``, ``<q>_difference_sigma``, ``<q>_z``; per group the
-    number of parameters, the largest |z|, the threshold and the verdict."""
+    """The comparison table of two bundles (B against A) as a Dataset.
+
+    InputError when a bundle cannot be read or the two are not of one camera model and lens layout.
+
+    Parameters
+    ----------
+    path_a, path_b : str or pathlib.Path
+        Bundles A and B.
+    config : dict, optional
+        The configuration (its ``compare`` section; the schema's defaults without one).
+
+    Returns
+    -------
+    xarray.Dataset
+        Per quantity ``<q>_a``, ``<q>_b``, ``<q>_difference``, ``<q>_relative_difference``,
+        ``<q>_difference_sigma``, ``<q>_z`` (in the quantity's units, the relative difference and z
+        dimensionless); per group the number of parameters, the largest |z|, the threshold and the verdict.
+    """
     cfg = compare_settings(config)
     path_a, path_b = Path(path_a), Path(path_b)
     a = _open(path_a)
@@ -448,6 +540,20 @@ def compare_bundles(path_a: str | Path, path_b: str | Path, config: dict | None 
 
 
 def write_comparison(table: xr.Dataset, path: str | Path) -> Path:
+    """Write the comparison table as NetCDF (atomically: a temporary file renamed).
+
+    Parameters
+    ----------
+    table : xarray.Dataset
+        The comparison table (:func:`compare_bundles`).
+    path : str or pathlib.Path
+        The file to write (its folder is created).
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
@@ -476,8 +582,21 @@ def _rows(table: xr.Dataset) -> list[dict]:
 
 
 def summary_lines(table: xr.Dataset) -> list[str]:
-    """The plain-text summary: per group the number of parameters, the largest |z| and the verdict; the
-    largest relative change of R^-1; the shared inputs."""
+    """The plain-text summary of a comparison.
+
+    Per group the number of parameters, the largest |z| and the verdict; the largest relative change of R^-1;
+    the shared inputs.
+
+    Parameters
+    ----------
+    table : xarray.Dataset
+        The comparison table (:func:`compare_bundles`).
+
+    Returns
+    -------
+    list of str
+        The lines.
+    """
     lines = [f"A: {table.attrs['bundle_a']} (camera {table.attrs['camera_serial_a']})",
              f"B: {table.attrs['bundle_b']} (camera {table.attrs['camera_serial_b']}); "
              f"{table.attrs['comparison']}",
@@ -501,7 +620,20 @@ def summary_lines(table: xr.Dataset) -> list[str]:
 
 
 def render_html(table: xr.Dataset, path: str | Path) -> Path:
-    """The comparison as an HTML page (Jinja2 template ``templates/compare.html.j2``)."""
+    """The comparison as an HTML page (Jinja2 template ``templates/compare.html.j2``).
+
+    Parameters
+    ----------
+    table : xarray.Dataset
+        The comparison table (:func:`compare_bundles`).
+    path : str or pathlib.Path
+        The HTML file to write (its folder is created).
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
     from jinja2 import Environment, PackageLoader, StrictUndefined, select_autoescape
 
     env = Environment(loader=PackageLoader("pipeline", "templates"), undefined=StrictUndefined,
@@ -521,10 +653,34 @@ def render_html(table: xr.Dataset, path: str | Path) -> Path:
 
 # --------------------------------------------------------------------------- a camera's history in the store
 def history(store: str | Path, serial: str, config: dict | None = None) -> list[dict]:
-    """The calibrations of camera ``serial`` in ``store`` in validity order (of two with one start, the
-    earlier published first), each with R^-1 per lens and band and its change from the one before: relative
-    difference, its sigma and z (:func:`difference`: the inputs the two bundles share cancel), and whether
-    |z| exceeds ``compare.change_z``. Each file is checked against the store's index before it is read."""
+    """The calibrations of camera ``serial`` in ``store`` in validity order, with the drift of R^-1.
+
+    Of two with one start, the earlier published comes first. Each comes with R^-1 per lens and band and its
+    change from the one before: relative difference, its sigma and z (:func:`difference`: the inputs the two
+    bundles share cancel), and whether |z| exceeds ``compare.change_z``. Each file is checked against the
+    store's index before it is read.
+
+    Parameters
+    ----------
+    store : str or pathlib.Path
+        The calibration store (:mod:`pipeline.bundle.store`).
+    serial : str
+        The camera serial.
+    config : dict, optional
+        The configuration (its ``compare`` section).
+
+    Returns
+    -------
+    list of dict
+        Per calibration ``valid_from``, ``file``, ``sha256``, ``inverse_responsivity`` (xarray.DataArray over lens
+        and band, W sr-1 m-2 nm-1 s DN-1), ``shared_lab_inputs``; from the second on ``relative_difference``,
+        ``relative_difference_sigma``, ``z`` and ``changed`` (xarray.DataArray).
+
+    Raises
+    ------
+    InputError
+        When the store holds no calibration of the camera or a file is altered.
+    """
     store = Path(store)
     change_z = float(compare_settings(config)["change_z"])
     rows = [(datetime.strptime(r["valid_from"], TIME_FORMAT), i, r) for i, r in enumerate(read_index(store))
@@ -556,7 +712,20 @@ def history(store: str | Path, serial: str, config: dict | None = None) -> list[
 
 
 def history_table(entries: list[dict]) -> list[dict]:
-    """:func:`history` as flat rows (one per calibration, lens and band) for the CSV and the printed table."""
+    """:func:`history` as flat rows (one per calibration, lens and band) for the CSV and the printed table.
+
+    Parameters
+    ----------
+    entries : list of dict
+        A camera's calibrations (:func:`history`).
+
+    Returns
+    -------
+    list of dict
+        Per calibration, lens and band: ``index``, ``valid_from``, ``file``, ``lens``, ``band``,
+        ``inverse_responsivity`` (W sr-1 m-2 nm-1 s DN-1), ``change_percent``, ``change_sigma_percent`` (%), ``z``
+        (NaN for the first), ``changed`` ("yes", "no" or ""), ``shared_lab_inputs``.
+    """
     rows = []
     for k, entry in enumerate(entries):
         value = entry["inverse_responsivity"]
@@ -577,7 +746,20 @@ def history_table(entries: list[dict]) -> list[dict]:
 
 def history_lines(entries: list[dict], serial: str) -> list[str]:
     """The printed table of :func:`history`: per calibration its file, then R^-1 per lens and band with the
-    change from the calibration before."""
+    change from the calibration before.
+
+    Parameters
+    ----------
+    entries : list of dict
+        A camera's calibrations (:func:`history`).
+    serial : str
+        The camera serial.
+
+    Returns
+    -------
+    list of str
+        The lines.
+    """
     lines = [f"camera {serial}: {len(entries)} calibration(s) in validity order",
              f"{'valid from':<21}{'lens':<7}{'band':<6}{'R^-1':>12}{'change %':>10}{'sigma %':>9}{'z':>8}  changed"]
     current = None
@@ -593,6 +775,20 @@ def history_lines(entries: list[dict], serial: str) -> list[str]:
 
 
 def write_history_csv(entries: list[dict], path: str | Path) -> Path:
+    """Write :func:`history_table` as CSV.
+
+    Parameters
+    ----------
+    entries : list of dict
+        A camera's calibrations (:func:`history`).
+    path : str or pathlib.Path
+        The CSV file to write (its folder is created).
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
     import csv
 
     rows = history_table(entries)
@@ -607,7 +803,22 @@ def write_history_csv(entries: list[dict], path: str | Path) -> Path:
 
 def write_history_figure(entries: list[dict], path: str | Path, serial: str) -> Path:
     """R^-1 per lens and band against the validity start (relative to the first calibration), with the
-    difference's sigma from the calibration before as error bars; PNG through the Agg canvas."""
+    difference's sigma from the calibration before as error bars; PNG through the Agg canvas.
+
+    Parameters
+    ----------
+    entries : list of dict
+        A camera's calibrations (:func:`history`).
+    path : str or pathlib.Path
+        The PNG file to write (its folder is created).
+    serial : str
+        The camera serial, in the panels' titles.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

@@ -56,7 +56,23 @@ NAME_HASH_DIGITS = 16
 
 
 def parse_valid_from(text: str) -> datetime:
-    """``2024-05-01`` or ``2024-05-01T08:30[:00]`` (camera clock, no zone) -> datetime."""
+    """``2024-05-01`` or ``2024-05-01T08:30[:00]`` (camera clock, no zone) -> datetime.
+
+    Parameters
+    ----------
+    text : str
+        The validity start, ISO 8601 without a time zone (the camera clock's local time).
+
+    Returns
+    -------
+    datetime.datetime
+        The naive time, to the second.
+
+    Raises
+    ------
+    InputError
+        When the text is not a date, or carries a time zone.
+    """
     try:
         stamp = datetime.fromisoformat(str(text).strip())
     except ValueError:
@@ -68,7 +84,27 @@ def parse_valid_from(text: str) -> datetime:
 
 
 def lab_data_end(dataset_root: str | Path, experiments: list[str], serial: str) -> datetime:
-    """The latest DateTimeOriginal of the frames of ``experiments`` in the dataset (the calibration's data)."""
+    """The latest DateTimeOriginal of the frames of ``experiments`` in the dataset (the calibration's data).
+
+    Parameters
+    ----------
+    dataset_root : str or pathlib.Path
+        The dataset the calibration was made from.
+    experiments : list of str
+        The experiments (stages) the bundle was made from.
+    serial : str
+        The bundle's camera serial, checked against the dataset's.
+
+    Returns
+    -------
+    datetime.datetime
+        The latest frame time, camera clock, to the second.
+
+    Raises
+    ------
+    InputError
+        When the dataset is of another camera, lacks an experiment, has a frame without a time or no frames.
+    """
     ds = open_dataset(dataset_root, check_frames=False)
     found = str(ds.meta.get("camera", {}).get("serial", "")) if isinstance(ds.meta, dict) else ""
     if found != serial:
@@ -101,7 +137,23 @@ def _locked(store: Path):
 
 
 def read_index(store: str | Path) -> list[dict]:
-    """The store's entries in publication order; an empty list for a store not yet written."""
+    """The store's entries in publication order; an empty list for a store not yet written.
+
+    Parameters
+    ----------
+    store : str or pathlib.Path
+        The store folder.
+
+    Returns
+    -------
+    list of dict
+        One dict per entry, keyed by ``INDEX_COLUMNS`` (all values str).
+
+    Raises
+    ------
+    InputError
+        When the folder holds files but no index, or the index's columns or times are malformed.
+    """
     store = Path(store)
     path = store / INDEX_NAME
     if not path.exists():
@@ -150,10 +202,32 @@ def _bundle_identity(bundle_path: Path) -> tuple[str, list[str]]:
 
 def publish(bundle_path: str | Path, store: str | Path, *, valid_from: datetime | None = None,
             dataset: str | Path | None = None) -> tuple[dict, bool]:
-    """File ``bundle_path`` into ``store``; returns (its index entry, whether anything was written).
+    """File ``bundle_path`` into ``store``.
 
-    The validity start is ``valid_from`` when given, else the latest lab frame
-    time of ``dataset`` (:func:`lab_data_end`); one of the two is needed.
+    Parameters
+    ----------
+    bundle_path : str or pathlib.Path
+        The calibration bundle (NetCDF).
+    store : str or pathlib.Path
+        The store folder (created when absent).
+    valid_from : datetime.datetime, optional
+        The validity start, camera clock.
+    dataset : str or pathlib.Path, optional
+        The dataset the bundle was made from: without ``valid_from``, the validity start is its latest lab frame
+        time (:func:`lab_data_end`). One of the two is needed.
+
+    Returns
+    -------
+    entry : dict
+        The bundle's index entry.
+    written : bool
+        False when the same content (sha256) was already published (nothing written).
+
+    Raises
+    ------
+    InputError
+        Without a validity start, when the store was changed by hand, the bundle changed while published, or the
+        filesystem has no hard links.
     """
     bundle_path, store = Path(bundle_path), Path(store)
     serial, stages = _bundle_identity(bundle_path)
@@ -202,7 +276,26 @@ def publish(bundle_path: str | Path, store: str | Path, *, valid_from: datetime 
 
 
 def check_entry(store: Path, row: dict) -> Path:
-    """The store file of index entry ``row``, after checking it is there and unchanged (sha256)."""
+    """The store file of index entry ``row``, after checking it is there and unchanged (sha256).
+
+    Parameters
+    ----------
+    store : pathlib.Path
+        The store folder.
+    row : dict
+        An index entry (:func:`read_index`): ``serial``, ``valid_from``, ``sha256``, ``file``, ``published_utc``,
+        ``valid_from_source``, ``source``.
+
+    Returns
+    -------
+    pathlib.Path
+        The bundle file.
+
+    Raises
+    ------
+    InputError
+        When the file is missing or its sha256 differs from the index's.
+    """
     path = store / row["file"]
     if not path.is_file():
         raise InputError(path, f"is in the store's index (published {row['published_utc']}) but missing; "
@@ -215,7 +308,18 @@ def check_entry(store: Path, row: dict) -> Path:
 
 
 def verify_store(store: str | Path) -> list[str]:
-    """Every problem of the store, one line each: a listed file missing or changed, a file not in the index."""
+    """Every problem of the store, one line each: a listed file missing or changed, a file not in the index.
+
+    Parameters
+    ----------
+    store : str or pathlib.Path
+        The store folder.
+
+    Returns
+    -------
+    list of str
+        The problems, one line each; empty for a sound store.
+    """
     store = Path(store)
     rows = read_index(store)
     problems = []
@@ -233,7 +337,30 @@ def verify_store(store: str | Path) -> list[str]:
 
 def select_calibration(store: str | Path, serial: str | None, when: datetime, frame: str | Path | None = None) -> dict:
     """The entry valid at ``when`` for camera ``serial``: the newest validity start not after it (of two
-    with the same start, the later published). A frame without a serial tag takes the store's only camera."""
+    with the same start, the later published). A frame without a serial tag takes the store's only camera.
+
+    Parameters
+    ----------
+    store : str or pathlib.Path
+        The store folder.
+    serial : str or None
+        The frame's camera serial; None when the frame has no serial tag.
+    when : datetime.datetime
+        The frame's time, camera clock.
+    frame : str or pathlib.Path, optional
+        The frame, named in the error messages.
+
+    Returns
+    -------
+    dict
+        The index entry (:func:`read_index`).
+
+    Raises
+    ------
+    InputError
+        When the store is empty, holds no calibration of the camera valid at ``when``, or several cameras for a
+        frame without a serial.
+    """
     store = Path(store)
     rows = read_index(store)
     if not rows:
@@ -260,8 +387,25 @@ def select_calibration(store: str | Path, serial: str | None, when: datetime, fr
 def calibrations_for_frames(store: str | Path, raw_paths) -> list[tuple[Path, dict, list[str]]]:
     """Group frames by the calibration valid at each one's DateTimeOriginal.
 
-    Returns [(bundle path, index entry, frames)] in order of validity; each
-    bundle's sha256 is checked against the index before it is used.
+    Each bundle's sha256 is checked against the index before it is used.
+
+    Parameters
+    ----------
+    store : str or pathlib.Path
+        The store folder.
+    raw_paths : sequence of str or pathlib.Path
+        The raw frames.
+
+    Returns
+    -------
+    list of tuple
+        ``(bundle path, index entry, frames)`` per calibration, in order of serial and validity; ``frames`` the
+        raw paths (str) it covers.
+
+    Raises
+    ------
+    InputError
+        For a frame without a time, or no valid or an altered calibration.
     """
     store = Path(store)
     groups: dict[str, tuple[dict, list[str]]] = {}
@@ -277,8 +421,24 @@ def calibrations_for_frames(store: str | Path, raw_paths) -> list[tuple[Path, di
 
 
 def output_for(out: str | Path, row: dict, n_calibrations: int) -> Path:
-    """``apply``'s output for the frames of one calibration: OUT itself when one calibration covers all
-    frames, else OUT's name with the camera serial and the validity start (``sky_SIM-0001_20210318T160000.nc``)."""
+    """``apply``'s output for the frames of one calibration.
+
+    Parameters
+    ----------
+    out : str or pathlib.Path
+        The output path given to ``apply``.
+    row : dict
+        An index entry (:func:`read_index`): ``serial``, ``valid_from``, ``sha256``, ``file``, ``published_utc``,
+        ``valid_from_source``, ``source``.
+    n_calibrations : int
+        The number of calibrations the frames need.
+
+    Returns
+    -------
+    pathlib.Path
+        OUT itself when one calibration covers all frames, else OUT's name with the camera serial and the
+        validity start (``sky_SIM-0001_20210318T160000.nc``).
+    """
     out = Path(out)
     if n_calibrations == 1:
         return out

@@ -140,8 +140,25 @@ def _effect_value(ds: xr.Dataset, name: str) -> float:
 
 
 def mean_mask_rolloff(coefficients, half_angle_deg: float, n: int = 64) -> float:
-    """Mean of g(theta) over a disc of half-angle ``half_angle_deg`` about the axis, weight theta dtheta
-    (an equidistant projection's pixel area), for the roll-off polynomial ``coefficients`` (Eq. 13)."""
+    """Mean of g(theta) over a disc of half-angle ``half_angle_deg`` about the axis.
+
+    Weight theta dtheta (an equidistant projection's pixel area), for the roll-off polynomial ``coefficients``
+    (Eq. 13).
+
+    Parameters
+    ----------
+    coefficients : array_like
+        The roll-off polynomial's coefficients (:func:`pipeline.radiometry.rolloff.evaluate_rolloff`).
+    half_angle_deg : float
+        The disc's half angle, degree.
+    n : int, default 64
+        Points of the trapezoidal rule.
+
+    Returns
+    -------
+    float
+        The mean relative response (dimensionless; g(0) for a half angle of 0).
+    """
     theta = np.linspace(0.0, float(half_angle_deg), n)
     g = np.asarray(evaluate_rolloff(coefficients, theta), dtype=float)
     return float(np.trapezoid(g * theta, theta) / np.trapezoid(theta, theta)) if half_angle_deg > 0 else float(g[0])
@@ -176,7 +193,22 @@ def _rolloff_axis(ds: xr.Dataset) -> pd.DataFrame:
 
 
 def responsivity_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.DataFrame:
-    """``closure/responsivity`` (module docstring): ln DN/s at ISO 100 on the axis per source, lens and band."""
+    """``closure/responsivity`` (module docstring): ln DN/s at ISO 100 on the axis per source, lens and band.
+
+    Parameters
+    ----------
+    loaded : dict[str, list of xarray.Dataset]
+        The stage artefacts per stage, one per lens.
+    config : dict
+        The configuration (its ``diagnostics`` section).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per source, lens and band: the axis rate at ISO 100 (``rate``, DN s-1) and its sigma,
+        ``value_dn`` = ln(rate) and ``sigma_dn`` its relative sigma (with the source level's between the
+        sessions), and the response and source columns ``x_*``; empty when there is nothing to close.
+    """
     lin = datasets_by_lens(loaded.get("linearity", []))
     roll = datasets_by_lens(loaded.get("rolloff", []))
     absolute = datasets_by_lens(loaded.get("absolute", []))
@@ -295,7 +327,22 @@ def _stage_corners(ds: xr.Dataset, blocked: bool) -> pd.DataFrame:
 def dark_corner_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.DataFrame:
     """``closure/dark_corners`` (module docstring): each lit frame's unlit-corner mean against the dark model's
     prediction there, one row per frame, lens and band, of every experiment that recorded them
-    (:data:`CORNER_EXPERIMENTS`), named in the covariate ``experiment``."""
+    (:data:`CORNER_EXPERIMENTS`), named in the covariate ``experiment``.
+
+    Parameters
+    ----------
+    loaded : dict[str, list of xarray.Dataset]
+        The stage artefacts per stage, one per lens.
+    config : dict
+        The configuration (its ``diagnostics`` section).
+
+    Returns
+    -------
+    pandas.DataFrame
+        ``value_dn`` the corner mean less the dark model's prediction (DN), ``sigma_dn`` its sigma (DN, the
+        frames' black-level spread added with ``bias_drift``), ``group`` (lens/band/ISO) and ``x_level``; empty
+        when no experiment recorded corners.
+    """
     drift = {lens: _drift_dn(ds) for lens, ds in datasets_by_lens(loaded.get("linearity", [])).items()}
     # the frames' fitted black-level offsets are common to a frame's rows: then one block each
     blocked = any(d > 0 for d in drift.values())
@@ -337,7 +384,20 @@ def dark_corner_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.D
 
 
 def closure_observations(loaded: dict[str, list[xr.Dataset]], config: dict) -> list[Observations]:
-    """The cross-experiment tables that the artefacts allow, as observation tables of experiment ``closure``."""
+    """The cross-experiment tables that the artefacts allow, as observation tables of experiment ``closure``.
+
+    Parameters
+    ----------
+    loaded : dict[str, list of xarray.Dataset]
+        The stage artefacts per stage, one per lens.
+    config : dict
+        The configuration (its ``diagnostics`` section).
+
+    Returns
+    -------
+    list of Observations
+        The ``responsivity`` (units 1), ``dark_corners`` (DN) and field-angle (degree) tables the artefacts allow.
+    """
     out = []
     resp = responsivity_table(loaded, config)
     if len(resp) and len(resp) > int(np.linalg.matrix_rank(base_design(resp)[0])):
@@ -398,7 +458,22 @@ def _largest_departure(obs: Observations, model_effects: list[str]) -> str:
 def describe_closure(unexplained: pd.DataFrame, observations: list[Observations],
                      model_effects: list[str]) -> pd.DataFrame:
     """The unexplained-structure sentences of the closure tables, with what the table compares and where
-    its largest departure is."""
+    its largest departure is.
+
+    Parameters
+    ----------
+    unexplained : pandas.DataFrame
+        The unexplained-structure table (its ``experiment``, ``level`` and ``message`` columns).
+    observations : list of Observations
+        The observation tables, the closure's among them.
+    model_effects : list of str
+        The effects of the model.
+
+    Returns
+    -------
+    pandas.DataFrame
+        A copy of ``unexplained``, the closure tables' messages extended.
+    """
     out = unexplained.copy()
     by_level = {o.level: o for o in observations if o.experiment == EXPERIMENT}
     for i, row in out.iterrows():
@@ -420,7 +495,24 @@ def _amount(value: float, units: str) -> str:
 
 def lens_interaction_tests(observations: list[Observations], model_effects: list[str], config: dict) -> pd.DataFrame:
     """Per effect of ``diagnostics.lens_interaction_effects`` and table with both lenses: one value shared by
-    the lenses against one per lens (module docstring). One row per test (columns :data:`LENS_TEST_COLUMNS`)."""
+    the lenses against one per lens (module docstring). One row per test (columns :data:`LENS_TEST_COLUMNS`).
+
+    Parameters
+    ----------
+    observations : list of Observations
+        The observation tables.
+    model_effects : list of str
+        The effects of the model.
+    config : dict
+        The configuration (its ``diagnostics`` section: ``lens_interaction_effects``, block keys and noise
+        forms, significance level).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per test, columns ``LENS_TEST_COLUMNS``: each lens's value and 95 % interval, the shared value,
+        the chi^2 of both fits, the p-values, whether significant, and the sentence.
+    """
     cfg = config["diagnostics"]
     names = [n for n in cfg["lens_interaction_effects"] if n in available()]
     rows = []
@@ -505,7 +597,18 @@ def lens_interaction_tests(observations: list[Observations], model_effects: list
 
 
 def lens_sentence(r: dict) -> str:
-    """One lens-interaction test as a plain sentence."""
+    """One lens-interaction test as a plain sentence.
+
+    Parameters
+    ----------
+    r : dict
+        A row of :func:`lens_interaction_tests` (columns ``LENS_TEST_COLUMNS``).
+
+    Returns
+    -------
+    str
+        The sentence.
+    """
     lenses, units = str(r["lenses"]).split(), str(r["units"])
     vals = [float(v) for v in str(r["values"]).split()]
     lows = [float(v) for v in str(r["lows"]).split()]
@@ -524,7 +627,18 @@ def lens_sentence(r: dict) -> str:
 
 
 def lens_findings(tests: pd.DataFrame) -> list[str]:
-    """The sentences of the lens-interaction tests that found the lenses to differ."""
+    """The sentences of the lens-interaction tests that found the lenses to differ.
+
+    Parameters
+    ----------
+    tests : pandas.DataFrame
+        The lens-interaction tests (:func:`lens_interaction_tests`).
+
+    Returns
+    -------
+    list of str
+        The sentences.
+    """
     if not len(tests):
         return []
     return [str(m) for m, s in zip(tests["message"], tests["significant"]) if _truthy(s)]

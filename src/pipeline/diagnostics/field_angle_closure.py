@@ -65,7 +65,22 @@ _RANK_TOL = 1.0e-12
 
 def in_plane_angle_deg(model: FisheyeModel, u, v, azimuth_deg) -> np.ndarray:
     """Signed angle (degree) from the optical axis of the ray of pixel (u, v), projected into the plane
-    that holds the axis and the image direction ``azimuth_deg``: positive towards that azimuth."""
+    that holds the axis and the image direction ``azimuth_deg``: positive towards that azimuth.
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model (band pixels).
+    u, v : numpy.ndarray
+        Band pixel coordinates.
+    azimuth_deg : float or numpy.ndarray
+        The image direction of the plane, degree (camera azimuth, from +u towards +v).
+
+    Returns
+    -------
+    numpy.ndarray
+        The signed angle, degree.
+    """
     ray = model.cam2world(u, v)
     az = np.radians(np.asarray(azimuth_deg, float))
     return np.degrees(np.arctan2(ray[..., 0] * np.cos(az) + ray[..., 1] * np.sin(az), ray[..., 2]))
@@ -80,7 +95,24 @@ def _step(model: FisheyeModel, name: str) -> float:
 
 
 def in_plane_gradient(model: FisheyeModel, names, u, v, azimuth_deg) -> np.ndarray:
-    """d a / d p (degree per unit of each parameter) of :func:`in_plane_angle_deg`: (len(names), n)."""
+    """d a / d p (degree per unit of each parameter) of :func:`in_plane_angle_deg`: (len(names), n).
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model (band pixels).
+    names : sequence of str
+        Model parameters (of :func:`pipeline.geometry.theta_uncertainty.parameter_names`).
+    u, v : numpy.ndarray
+        Band pixel coordinates of the n points.
+    azimuth_deg : float or numpy.ndarray
+        The image direction of the plane, degree.
+
+    Returns
+    -------
+    numpy.ndarray
+        d a / d p by central differences, degree per unit of each parameter, shape ``(len(names), n)``.
+    """
     out = np.empty((len(names), np.size(u)))
     for i, name in enumerate(names):
         h = _step(model, name)
@@ -90,7 +122,24 @@ def in_plane_gradient(model: FisheyeModel, names, u, v, azimuth_deg) -> np.ndarr
 
 
 def in_plane_pixel_gradient(model: FisheyeModel, u, v, azimuth_deg) -> tuple[np.ndarray, np.ndarray]:
-    """(d a / d u, d a / d v) (degree per band pixel) of :func:`in_plane_angle_deg`, by central differences."""
+    """(d a / d u, d a / d v) (degree per band pixel) of :func:`in_plane_angle_deg`, by central differences.
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model (band pixels).
+    u, v : numpy.ndarray
+        Band pixel coordinates.
+    azimuth_deg : float or numpy.ndarray
+        The image direction of the plane, degree (camera azimuth, from +u towards +v).
+
+    Returns
+    -------
+    d_du : numpy.ndarray
+        d a / d u, degree per band pixel, flattened.
+    d_dv : numpy.ndarray
+        d a / d v, degree per band pixel, flattened.
+    """
     h = _PIXEL_STEP_PX
     du = (in_plane_angle_deg(model, u + h, v, azimuth_deg) - in_plane_angle_deg(model, u - h, v, azimuth_deg)) / (2 * h)
     dv = (in_plane_angle_deg(model, u, v + h, azimuth_deg) - in_plane_angle_deg(model, u, v - h, azimuth_deg)) / (2 * h)
@@ -155,7 +204,23 @@ def _lens_rows(lens: str, geo: xr.Dataset, roll: xr.Dataset) -> list[pd.DataFram
 
 def field_angle_table(loaded: dict[str, list[xr.Dataset]], config: dict) -> pd.DataFrame:
     """``closure/field_angle`` (module docstring): the geometry's in-plane angle of each roll-off spot
-    against the rotation stage's angle, per lens and medium, with the geometry's error as nuisance columns."""
+    against the rotation stage's angle, per lens and medium, with the geometry's error as nuisance columns.
+
+    Parameters
+    ----------
+    loaded : dict[str, list of xarray.Dataset]
+        The stage artefacts per stage (``geometry`` and ``rolloff`` used), one per lens.
+    config : dict
+        The configuration.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per roll-off spot (``kind`` "spot"): ``value_dn`` the geometry's in-plane angle less the
+        stage's angle (degree), ``sigma_dn`` its sigma from the spot's centroid (degree), the columns
+        ``x_zero_az*`` (one zero per plane) and ``x_geometry_*`` (the geometry's error, whitened); and the
+        prior rows of those nuisance parameters (0 +/- 1). Empty when no lens has both artefacts.
+    """
     geometry, rolloff = datasets_by_lens(loaded.get("geometry", [])), datasets_by_lens(loaded.get("rolloff", []))
     parts = [p for lens in sorted(set(geometry) & set(rolloff))
              for p in _lens_rows(lens, geometry[lens], rolloff[lens])]

@@ -52,7 +52,24 @@ HISTORY_RUNS = 5
 
 
 def read_diagnostics(results: str | Path) -> dict:
-    """The diagnostics' tables and the closure table's attributes; one line naming a missing file."""
+    """The diagnostics' tables and the closure table's attributes; one line naming a missing file.
+
+    Parameters
+    ----------
+    results : str or pathlib.Path
+        The results folder of a workflow run.
+
+    Returns
+    -------
+    dict
+        The tables of ``FILES`` (pandas.DataFrame; the ``OPTIONAL`` ones empty when absent), ``closure_attrs``,
+        ``n_measurements``, ``model_effects`` (list of str) and ``plugins`` (list of str).
+
+    Raises
+    ------
+    InputError
+        When a required file is missing or a table is not readable CSV.
+    """
     results = Path(results)
     out = {}
     for key, rel in FILES.items():
@@ -99,7 +116,20 @@ def _add_line(effects: list[str], name: str) -> str:
 
 
 def effect_sentence(row: pd.Series, model_effects: list[str]) -> str:
-    """One accepted candidate as a plain sentence: signature, amplitude, what to add."""
+    """One accepted candidate as a plain sentence: signature, amplitude, what to add.
+
+    Parameters
+    ----------
+    row : pandas.Series
+        A row of the ranked missing effects (``missing_effects.csv``).
+    model_effects : list of str
+        The effects of the run's model.
+
+    Returns
+    -------
+    str
+        The sentence.
+    """
     name = str(row["effect"])
     signature = CATALOGUE.get(name, ("", "its signature in the residuals"))[1]
     experiments = " and ".join(str(row["experiment"]).split("+"))
@@ -118,7 +148,20 @@ def effect_sentence(row: pd.Series, model_effects: list[str]) -> str:
 
 
 def diagnosis_lines(found: dict, results: str | Path = "results") -> list[str]:
-    """The report of ``diagnose``: the error per experiment, then one sentence per finding."""
+    """The report of ``diagnose``: the error per experiment, then one sentence per finding.
+
+    Parameters
+    ----------
+    found : dict
+        The diagnostics read by :func:`read_diagnostics`.
+    results : str or pathlib.Path, default "results"
+        The results folder, named in the heading.
+
+    Returns
+    -------
+    list of str
+        The report's lines.
+    """
     model = found["model_effects"]
     lines = [f"Diagnosis of {results} (model: {', '.join(model) or 'the base model'}; "
              f"{found['n_measurements']} measurements in {FILES['closure']})", "",
@@ -200,7 +243,25 @@ def diagnosis_lines(found: dict, results: str | Path = "results") -> list[str]:
 
 
 def explain_lines(found: dict, name: str) -> list[str]:
-    """``diagnose --explain EFFECT``: the effect's physics and signature and how it fared in this run."""
+    """``diagnose --explain EFFECT``: the effect's physics and signature and how it fared in this run.
+
+    Parameters
+    ----------
+    found : dict
+        The diagnostics read by :func:`read_diagnostics`.
+    name : str
+        The effect's name.
+
+    Returns
+    -------
+    list of str
+        The lines.
+
+    Raises
+    ------
+    InputError
+        When the effect is not implemented (neither in the package nor in a plugin of the run).
+    """
     load_plugins(found["plugins"])
     effect = get_effect(name)           # an unknown name: one line naming the implemented ones
     if name in CATALOGUE:

@@ -152,7 +152,20 @@ log = logging.getLogger("pipeline.diagnostics.missing_effects")
 
 
 def error_figures(observations: list[Observations], model_effects: list[str]) -> pd.DataFrame:
-    """rms_z (1 at the noise floor), chi-square and dof per experiment for the current model."""
+    """rms_z (1 at the noise floor), chi-square and dof per experiment for the current model.
+
+    Parameters
+    ----------
+    observations : list of Observations
+        The residual tables, per experiment and level.
+    model_effects : list of str
+        The effects of the model.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per experiment: ``experiment``, ``chi2``, ``dof``, ``n_obs`` and ``rms_z`` = sqrt(chi2 / dof).
+    """
     rows = {}
     for obs in observations:
         fit = fit_observations(obs, model_design(obs, model_effects))
@@ -305,7 +318,27 @@ def _predicted_parts(effect, parts: list[dict], observations: list[Observations]
 def candidate_significance(name: str, observations: list[Observations], model_effects: list[str], config: dict,
                            n_candidates: int = 1) -> dict | None:
     """Drop in chi-square, significance (model and block tests), evidence and amplitude of one candidate
-    effect added to the model, as :func:`rank_missing_effects` computes them for every candidate."""
+    effect added to the model, as :func:`rank_missing_effects` computes them for every candidate.
+
+    Parameters
+    ----------
+    name : str
+        The candidate effect.
+    observations : list of Observations
+        The residual tables, per experiment and level.
+    model_effects : list of str
+        The effects of the model.
+    config : dict
+        The configuration (its ``diagnostics`` section).
+    n_candidates : int, default 1
+        The number of candidates tested (the Bonferroni factor of the significance level).
+
+    Returns
+    -------
+    dict or None
+        The candidate's row of ``missing_effects.csv`` (chi-square drop, p-values, evidence, amplitude and its
+        interval, ...); None when no table carries its columns.
+    """
     designs = _designs(observations, model_effects, [])
     out = _candidate_stats(name, observations, designs, config["diagnostics"], n_candidates)
     if out is not None:
@@ -337,8 +370,31 @@ def rank_missing_effects(observations: list[Observations], model_effects: list[s
     look-alikes significant too. ``conditional_on`` lists the effects already
     accepted when a row was tested. Then every table's residuals are tested against their degrees of
     freedom, after the accepted candidates (:func:`residual_tests`); a candidate that leaves significant
-    structure gets a note saying so. Returns (missing_effects, unexplained), and the residual tests third
-    when ``with_tests``; with ``with_scale`` also the field scale closure fourth (:func:`field_scale_table`).
+    structure gets a note saying so.
+
+    Parameters
+    ----------
+    observations : list of Observations
+        The residual tables, per experiment and level.
+    model_effects : list of str
+        The effects of the model.
+    config : dict
+        The configuration (its ``diagnostics`` section).
+    with_tests : bool, default False
+        Also return the residual tests.
+    with_scale : bool, default False
+        Also return the residual tests and the field scale closure (:func:`field_scale_table`).
+
+    Returns
+    -------
+    missing_effects : pandas.DataFrame
+        One row per candidate and round, ranked (``missing_effects.csv``).
+    unexplained : pandas.DataFrame
+        The tables whose residuals stay structured (:func:`unexplained_structure`).
+    residual_tests : pandas.DataFrame
+        With ``with_tests`` or ``with_scale``: :func:`residual_tests`.
+    field_scale : pandas.DataFrame
+        With ``with_scale``: :func:`field_scale_table`.
     """
     cfg = config["diagnostics"]
     candidates = [name for name in available() if name not in model_effects]
@@ -392,7 +448,18 @@ def rank_missing_effects(observations: list[Observations], model_effects: list[s
 
 
 def accepted_effects(ranked: pd.DataFrame) -> list[str]:
-    """The candidates forward selection accepted, in order: the ranked rows up to the first not significant."""
+    """The candidates forward selection accepted, in order: the ranked rows up to the first not significant.
+
+    Parameters
+    ----------
+    ranked : pandas.DataFrame
+        The ranked missing effects (:func:`rank_missing_effects`).
+
+    Returns
+    -------
+    list of str
+        The accepted effects.
+    """
     out = []
     for _, row in ranked.sort_values("rank").iterrows() if len(ranked) else ():
         if not bool(row["significant"]):
@@ -405,7 +472,26 @@ def residual_tests(observations: list[Observations], model_effects: list[str], r
                    cfg: dict, anchors: list[Anchor] | None = None) -> pd.DataFrame:
     """Per experiment and level, the residual chi-square against its dof (:mod:`pipeline.diagnostics.residual_structure`),
     for the model and for the model plus the candidates the ranking accepted; where structure remains,
-    the covariate and image-plane cell it follows. One row per table (columns: :data:`RESIDUAL_TEST_COLUMNS`)."""
+    the covariate and image-plane cell it follows. One row per table (columns: :data:`RESIDUAL_TEST_COLUMNS`).
+
+    Parameters
+    ----------
+    observations : list of Observations
+        The residual tables, per experiment and level.
+    model_effects : list of str
+        The effects of the model.
+    ranked : pandas.DataFrame
+        The ranked missing effects (:func:`rank_missing_effects`).
+    cfg : dict
+        The ``diagnostics`` section of the configuration.
+    anchors : list of Anchor, optional
+        The accepted candidates' fits, whose shifts are taken out of the predicted tables.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per table, columns ``RESIDUAL_TEST_COLUMNS``.
+    """
     accepted = accepted_effects(ranked)
     shifted = with_predictions(observations, anchors or [])
     before = _designs(observations, model_effects, [])
@@ -461,7 +547,18 @@ UNEXPLAINED_COLUMNS = ("experiment", "level", "rms_z", "chi2", "dof", "p_value",
 
 def unexplained_structure(tests: pd.DataFrame) -> pd.DataFrame:
     """The tables whose residuals stay significant after the accepted candidates, with a sentence each:
-    beside the candidate when one was accepted there (it explains part, not all), alone otherwise."""
+    beside the candidate when one was accepted there (it explains part, not all), alone otherwise.
+
+    Parameters
+    ----------
+    tests : pandas.DataFrame
+        The residual tests (:func:`residual_tests`).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per structured table, columns ``UNEXPLAINED_COLUMNS`` (``message`` the sentence).
+    """
     rows = []
     for _, t in tests[tests["significant"].astype(bool)].iterrows():
         where = f"they follow {covariate_label(str(t['covariate']))} most closely"
@@ -487,7 +584,18 @@ def shared_excess_sentence(t) -> str:
     but the excess is shared by the rows of each block (frame or setting), as noise common to a block
     (source flicker or drift, black-level jitter) would be, and the tests cannot tell it from a misfit
     common to the block (a bend of the response that follows the signal level of a setting). Said, not
-    called structure, so that "at the noise floor" is never claimed for it."""
+    called structure, so that "at the noise floor" is never claimed for it.
+
+    Parameters
+    ----------
+    t : pandas.Series or dict
+        A row of ``residual_tests.csv``.
+
+    Returns
+    -------
+    str
+        The sentence.
+    """
     where = ""
     if isinstance(t["covariate"], str) and t["covariate"]:
         where = f"; its residuals follow {covariate_label(str(t['covariate']))} most closely"
@@ -507,7 +615,18 @@ def shared_excess_sentence(t) -> str:
 
 
 def shared_excess_sentences(tests: pd.DataFrame) -> list[str]:
-    """:func:`shared_excess_sentence` for every table of ``tests`` (``residual_tests.csv``) marked so."""
+    """:func:`shared_excess_sentence` for every table of ``tests`` (``residual_tests.csv``) marked so.
+
+    Parameters
+    ----------
+    tests : pandas.DataFrame
+        The residual tests (``residual_tests.csv``).
+
+    Returns
+    -------
+    list of str
+        The sentences.
+    """
     if not len(tests) or "shared_excess" not in tests:
         return []
     marked = tests["shared_excess"].astype(str).str.strip().str.lower().isin(("true", "1"))
@@ -525,7 +644,24 @@ FIELD_SCALE_COLUMNS = ("lens", "band", "reference", "n_matchups", "k_b", "k_pred
 def field_scale_table(observations: list[Observations], anchors: list[Anchor], departure_sigma: float) -> pd.DataFrame:
     """The field scale closure per lens and band (``field_scale.csv``): the camera/reference scale against the lab
     calibration's prediction, its stated budget (percent), z, and what the accepted candidates predict of it
-    with what remains (module docstring, :data:`PREDICTED_TABLES`)."""
+    with what remains (module docstring, :data:`PREDICTED_TABLES`).
+
+    Parameters
+    ----------
+    observations : list of Observations
+        The residual tables, per experiment and level.
+    anchors : list of Anchor
+        The accepted candidates' fits.
+    departure_sigma : float
+        A scale departs when |z| exceeds this (``diagnostics.field_scale_departure_sigma``).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per lens and band, columns ``FIELD_SCALE_COLUMNS``: the scale ``k_b`` and its prediction, the
+        departure and its stated sigma (percent, and per term), z, what the candidates predict and what remains
+        (percent, z).
+    """
     rows = []
     for obs in observations:
         if (obs.experiment, obs.level) != ("field", "scale"):
@@ -559,7 +695,20 @@ def field_scale_sentence(scale: pd.DataFrame, ranked: pd.DataFrame | None = None
     """The field verdict's first sentence (``field_scale.csv``): whether the camera/reference scale departs from
     the lab calibration's prediction, by how much and at how many sigma, what it means, and what the candidates
     the diagnostics accepted predict of it (each at the value the table its ``predicted_from`` names fits: the
-    rows of ``missing_effects.csv``); '' without a field scale closure."""
+    rows of ``missing_effects.csv``); '' without a field scale closure.
+
+    Parameters
+    ----------
+    scale : pandas.DataFrame
+        The field scale closure (``field_scale.csv``, :func:`field_scale_table`).
+    ranked : pandas.DataFrame, optional
+        The ranked missing effects (``missing_effects.csv``).
+
+    Returns
+    -------
+    str
+        The sentence.
+    """
     if not len(scale):
         return ""
     bands = "/".join(str(b) for b in scale["band"])
@@ -626,6 +775,24 @@ def record_error_history(ledger_dir: str | Path, figures: pd.DataFrame, model_ef
     The ledger is a folder with one CSV per run, never rewritten: a run adds a
     file, so the history survives reruns of the diagnostics (whose outputs the
     workflow replaces). ``history_csv`` is all the ledger's rows in time order.
+
+    Parameters
+    ----------
+    ledger_dir : str or pathlib.Path
+        The ledger folder (created when absent).
+    figures : pandas.DataFrame
+        This run's error figures (:func:`error_figures`).
+    model_effects : list of str
+        The effects of the run's model.
+    history_csv : str or pathlib.Path
+        The error history to rewrite.
+    run_time : str, optional
+        The run's time stamp (ISO 8601); now (UTC) when None.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The error history, columns ``HISTORY_COLUMNS``, in time order.
     """
     ledger = Path(ledger_dir)
     ledger.mkdir(parents=True, exist_ok=True)
@@ -682,6 +849,21 @@ def closure_table(observations: list[Observations], model_effects: list[str], co
     The prediction is the fit of the model (base columns plus the model's effect columns) that
     ``run_errors.csv`` and ``residual_tests.csv`` are computed from, so that sum(z^2) over one
     experiment and level is that table's chi2; ``block`` names the rows that share a frame or setting.
+
+    Parameters
+    ----------
+    observations : list of Observations
+        The residual tables, per experiment and level.
+    model_effects : list of str
+        The effects of the model.
+    config : dict
+        The configuration (its ``diagnostics`` section).
+
+    Returns
+    -------
+    xarray.Dataset
+        Along ``measurement``: experiment, level, ``value_units``, group, block, value, prediction, residual and
+        sigma (in ``value_units``), z, and the covariates.
     """
     cfg = config["diagnostics"]
     parts = []
@@ -743,7 +925,26 @@ def closure_table(observations: list[Observations], model_effects: list[str], co
 
 def write_closure_table(observations: list[Observations], model_effects: list[str], config: dict, path,
                         inputs: dict[str, str]) -> Path:
-    """:func:`closure_table` written as the versioned ``closure`` artefact (``results/closure/residuals.nc``)."""
+    """:func:`closure_table` written as the versioned ``closure`` artefact (``results/closure/residuals.nc``).
+
+    Parameters
+    ----------
+    observations : list of Observations
+        The residual tables, per experiment and level.
+    model_effects : list of str
+        The effects of the model.
+    config : dict
+        The configuration.
+    path : str or pathlib.Path
+        The artefact to write.
+    inputs : dict[str, str]
+        The stage artefacts it is made from: {name: sha256}.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+    """
     from pipeline.io.artefact import write_artefact
 
     return write_artefact(closure_table(observations, model_effects, config), path, stage="closure",
@@ -755,7 +956,24 @@ def write_plausibility(artefacts: dict[str, list[str | Path]], loaded: dict[str,
                        path) -> pd.DataFrame:
     """Every fitted quantity with a physical range checked against it (:func:`pipeline.diagnostics.plausibility.check_artefacts`:
     the lens of an artefact is its file's stem, ``results/<stage>/<lens>.nc``), each finding logged, the table
-    written to ``path``."""
+    written to ``path``.
+
+    Parameters
+    ----------
+    artefacts : dict[str, list of str or pathlib.Path]
+        The artefact paths per stage.
+    loaded : dict[str, list of xarray.Dataset]
+        The same artefacts, read.
+    config : dict
+        The configuration (its ``plausibility`` section).
+    path : str or pathlib.Path
+        The CSV to write.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The checks (:func:`pipeline.diagnostics.plausibility.check_artefacts`).
+    """
     from pipeline.diagnostics.plausibility import check_artefacts, finding_sentence, findings
 
     by_lens = {exp: {Path(p).stem: ds for p, ds in zip(artefacts[exp], loaded[exp])} for exp in loaded}
@@ -769,12 +987,44 @@ def write_plausibility(artefacts: dict[str, list[str | Path]], loaded: dict[str,
 def diagnose_artefacts(artefacts: dict[str, list[str | Path]], config: dict, missing_csv, unexplained_csv,
                        errors_csv, ledger_dir, history_csv, residual_tests_csv=None, closure_nc=None,
                        lens_tests_csv=None, field_scale_csv=None, plausibility_csv=None) -> pd.DataFrame:
-    """Rank missing effects over the stages' artefacts and the cross-experiment closure tables
-    (:mod:`pipeline.diagnostics.cross_closure`), test every table's residuals and whether one value shared by the lenses
-    is enough, write this run's figures and the error history; ``residual_tests_csv`` and ``lens_tests_csv``
-    default to ``residual_tests.csv`` and ``lens_tests.csv`` beside ``unexplained_csv``; the closure table
-    is written to ``closure_nc`` when given; the plausibility of the fitted physics
-    (:func:`write_plausibility`) to ``plausibility_csv``, by default ``plausibility.csv`` beside them."""
+    """Rank missing effects over the stages' artefacts and the cross-experiment closure tables.
+
+    The closure tables come from :mod:`pipeline.diagnostics.cross_closure`; every table's residuals are tested,
+    and whether one value shared by the lenses is enough; this run's figures and the error history are written.
+
+    Parameters
+    ----------
+    artefacts : dict[str, list of str or pathlib.Path]
+        The artefact paths per stage.
+    config : dict
+        The configuration.
+    missing_csv : str or pathlib.Path
+        Where the ranked missing effects are written.
+    unexplained_csv : str or pathlib.Path
+        Where the unexplained structure is written.
+    errors_csv : str or pathlib.Path
+        Where this run's error figures are written.
+    ledger_dir : str or pathlib.Path
+        The error ledger's folder (:func:`record_error_history`).
+    history_csv : str or pathlib.Path
+        The error history.
+    residual_tests_csv : str or pathlib.Path, optional
+        Default ``residual_tests.csv`` beside ``unexplained_csv``.
+    closure_nc : str or pathlib.Path, optional
+        Where the closure table is written; not written when None.
+    lens_tests_csv : str or pathlib.Path, optional
+        Default ``lens_tests.csv`` beside ``unexplained_csv``.
+    field_scale_csv : str or pathlib.Path, optional
+        Default ``field_scale.csv`` beside ``unexplained_csv``.
+    plausibility_csv : str or pathlib.Path, optional
+        The plausibility of the fitted physics (:func:`write_plausibility`); default ``plausibility.csv`` beside
+        ``unexplained_csv``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The error history (:func:`record_error_history`).
+    """
     from pipeline.io.artefact import read_artefact, sha256_file
     from pipeline.diagnostics.cross_closure import closure_observations, describe_closure, lens_interaction_tests
 

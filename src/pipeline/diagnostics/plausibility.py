@@ -96,13 +96,35 @@ def _schema_section() -> dict:
 
 
 def range_reason(key: str) -> str:
-    """The one-line reason the schema gives for the range ``plausibility.<key>``."""
+    """The one-line reason the schema gives for the range ``plausibility.<key>``.
+
+    Parameters
+    ----------
+    key : str
+        The key within the schema's ``plausibility`` section.
+
+    Returns
+    -------
+    str
+        The reason.
+    """
     return str(_schema_section()[key]["description"])
 
 
 def plausibility_settings(config: dict | None) -> dict:
     """The ``plausibility`` section of ``config``, the schema's defaults where it has none (a config
-    validated before the section existed)."""
+    validated before the section existed).
+
+    Parameters
+    ----------
+    config : dict or None
+        The run's configuration.
+
+    Returns
+    -------
+    dict
+        The section (a copy).
+    """
     section = (config or {}).get("plausibility")
     return dict(section) if section is not None else defaults()["plausibility"]
 
@@ -111,10 +133,31 @@ def judge(value: float, sigma: float, low: float, high: float, margin_sigma: flo
           low_inclusive: bool = True) -> tuple[bool, float]:
     """(outside, departure in sigma) of ``value`` against [low, high] (``low_inclusive`` False: (low, high]).
 
-    Outside when beyond a bound by more than ``margin_sigma`` x ``sigma`` (a non-finite or missing sigma
-    counts as 0: the bound itself); with an exclusive low bound a value exactly that far below it is
-    outside too (a gain of exactly 0 with no uncertainty). ``departure`` is the distance beyond the range
-    over sigma, NaN inside it or without a positive sigma.
+    Outside when beyond a bound by more than ``margin_sigma`` x ``sigma``; with an exclusive low bound a value
+    exactly that far below it is outside too (a gain of exactly 0 with no uncertainty).
+
+    Parameters
+    ----------
+    value : float
+        The fitted value.
+    sigma : float
+        Its standard uncertainty, same units; a non-finite, missing or non-positive sigma counts as 0 (the bound
+        itself).
+    low : float
+        The range's lower bound (``-inf``: none).
+    high : float
+        The range's upper bound (``inf``: none).
+    margin_sigma : float
+        The margin, in standard uncertainties (``plausibility.margin_sigma``).
+    low_inclusive : bool, default True
+        Whether ``low`` itself is inside the range.
+
+    Returns
+    -------
+    outside : bool
+        True when the value is outside the range by more than the margin.
+    departure : float
+        The distance beyond the range over sigma; NaN inside it or without a positive sigma.
     """
     s = float(sigma) if sigma is not None and np.isfinite(sigma) and sigma > 0 else 0.0
     below, above = low - value, value - high
@@ -134,9 +177,30 @@ def window_index_checks(immersion_factor, n_w, immersion_factor_sigma=None, *, s
     """The outer-window index implied by each band's immersion factor (Eq. 10 inverted), against
     ``plausibility.window_index_range``.
 
-    ``immersion_factor``, ``n_w`` (water's index at the band's effective wavelength) and
-    ``immersion_factor_sigma`` (optional) are one value per band; the index's uncertainty is the factor's
-    propagated to first order. Impossible where no index solves Eq. (10) or the index is below 1.
+    The index's uncertainty is the factor's propagated to first order. Impossible where no index solves Eq. (10)
+    or the index is below 1.
+
+    Parameters
+    ----------
+    immersion_factor : array_like
+        The immersion factor I per band (dimensionless).
+    n_w : array_like
+        Water's refractive index at each band's effective wavelength.
+    immersion_factor_sigma : array_like, optional
+        The standard uncertainty of I per band.
+    settings : dict
+        The ``plausibility`` section of the configuration (:func:`plausibility_settings`).
+    lens : str, default ""
+        The lens, recorded in the checks.
+    bands : sequence of str, optional
+        The bands' names, recorded in the checks.
+    stage : str, default "immersion"
+        The stage, recorded in the checks.
+
+    Returns
+    -------
+    list of Check
+        One per checked value (empty when there is nothing to check).
     """
     i = np.atleast_1d(np.asarray(immersion_factor, dtype=float))
     nw = np.broadcast_to(np.asarray(n_w, dtype=float), i.shape)
@@ -168,7 +232,24 @@ def window_index_checks(immersion_factor, n_w, immersion_factor_sigma=None, *, s
 
 def conversion_gain_checks(ds: xr.Dataset, *, settings: dict, lens: str = "", stage: str = "linearity") -> list[Check]:
     """The linearity artefact's photon-transfer conversion gain (where measured) and each gain-sweep ISO's,
-    against ``plausibility.conversion_gain_min_dn_per_e`` (exclusive, no margin: impossible at or below)."""
+    against ``plausibility.conversion_gain_min_dn_per_e`` (exclusive, no margin: impossible at or below).
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The linearity artefact of one lens.
+    settings : dict
+        The ``plausibility`` section of the configuration (:func:`plausibility_settings`).
+    lens : str, default ""
+        The lens, recorded in the checks.
+    stage : str, default "linearity"
+        The stage, recorded in the checks.
+
+    Returns
+    -------
+    list of Check
+        One per checked value (empty when there is nothing to check).
+    """
     low = float(settings["conversion_gain_min_dn_per_e"])
     k = float(settings["margin_sigma"])
     values = []
@@ -201,7 +282,24 @@ def _labels(da: xr.DataArray):
 
 def quantum_efficiency_checks(ds: xr.Dataset, *, settings: dict, lens: str = "", stage: str = "") -> list[Check]:
     """Every element of an artefact variable ``quantum_efficiency`` (with ``quantum_efficiency_sigma`` when
-    stated) against ``plausibility.quantum_efficiency_range``, (low, high]."""
+    stated) against ``plausibility.quantum_efficiency_range``, (low, high].
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        An artefact of one lens.
+    settings : dict
+        The ``plausibility`` section of the configuration (:func:`plausibility_settings`).
+    lens : str, default ""
+        The lens, recorded in the checks.
+    stage : str, default ""
+        The stage, recorded in the checks.
+
+    Returns
+    -------
+    list of Check
+        One per checked value (empty when there is nothing to check).
+    """
     if "quantum_efficiency" not in ds:
         return []
     low, high = (float(v) for v in settings["quantum_efficiency_range"])
@@ -240,7 +338,32 @@ def rolloff_checks(coefficients, covariance, largest_angle_deg: float, *, settin
     """g(theta) / g(0) of one roll-off curve (coefficients a0..a8 of Eq. 13, theta in degrees; covariance
     optional) from one ``plausibility.rolloff_step_deg`` off the axis to ``largest_angle_deg``, against
     ``plausibility.rolloff_max``; one Check, at the angle that goes furthest beyond the margin (the closest
-    approach when none does)."""
+    approach when none does).
+
+    Parameters
+    ----------
+    coefficients : array_like
+        The roll-off polynomial's coefficients a0..a8 (Eq. 13, theta in degree).
+    covariance : numpy.ndarray or None
+        Their covariance.
+    largest_angle_deg : float
+        The largest measured field angle of the medium, degree.
+    settings : dict
+        The ``plausibility`` section of the configuration (:func:`plausibility_settings`).
+    lens : str, default ""
+        The lens, recorded in the checks.
+    band : str, default ""
+        The band, recorded in the check.
+    medium : str, default ""
+        The medium, recorded in the check.
+    stage : str, default "rolloff"
+        The stage, recorded in the check.
+
+    Returns
+    -------
+    list of Check
+        One check (empty for non-finite coefficients, a0 <= 0 or no angle to check).
+    """
     coef = np.asarray(coefficients, dtype=float)
     if not (np.all(np.isfinite(coef)) and np.isfinite(largest_angle_deg)) or coef[0] <= 0:
         return []
@@ -268,7 +391,24 @@ def rolloff_checks(coefficients, covariance, largest_angle_deg: float, *, settin
 
 def dark_current_checks(ds: xr.Dataset, *, settings: dict, lens: str = "", stage: str = "dark") -> list[Check]:
     """The dark artefact's dark current D (DN/s at ISO 100) where the dark frames measured it, against
-    ``plausibility.dark_current_min_dn_per_s``."""
+    ``plausibility.dark_current_min_dn_per_s``.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The dark artefact of one lens.
+    settings : dict
+        The ``plausibility`` section of the configuration (:func:`plausibility_settings`).
+    lens : str, default ""
+        The lens, recorded in the checks.
+    stage : str, default "dark"
+        The stage, recorded in the check.
+
+    Returns
+    -------
+    list of Check
+        One check, or none where the dark current was not measured.
+    """
     if "dark_current_dn_per_s" not in ds or not int(ds["dark_current_dn_per_s"].attrs.get("measured", 1)):
         return []
     value = float(ds["dark_current_dn_per_s"].values)
@@ -307,9 +447,21 @@ def _rolloff(ds: xr.Dataset, settings: dict, lens: str, stage: str) -> list[Chec
 
 
 def check_artefacts(artefacts: dict[str, dict[str, xr.Dataset]], config: dict | None = None) -> pd.DataFrame:
-    """Every check the artefacts allow, one row per checked value (:data:`COLUMNS`), in the order of the
-    chain: ``artefacts`` maps stage to lens to the stage's artefact; ``config`` the run's (its
-    ``plausibility`` section; the schema's defaults without one)."""
+    """Every check the artefacts allow, one row per checked value (:data:`COLUMNS`), in the order of the chain.
+
+    Parameters
+    ----------
+    artefacts : dict[str, dict[str, xarray.Dataset]]
+        {stage: {lens: the stage's artefact}}.
+    config : dict, optional
+        The run's configuration (its ``plausibility`` section; the schema's defaults without one).
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per checked value: where it is from, value and sigma with units, range, margin, departure,
+        ``status`` (plausible, implausible or impossible), the range's key and reason, and the derivation.
+    """
     settings = plausibility_settings(config)
     rows: list[Check] = []
     for stage, by_lens in artefacts.items():
@@ -328,7 +480,18 @@ def check_artefacts(artefacts: dict[str, dict[str, xr.Dataset]], config: dict | 
 
 def findings(table: pd.DataFrame) -> pd.DataFrame:
     """The rows of a :func:`check_artefacts` table (or its CSV) that are not plausible, the impossible
-    first."""
+    first.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        A :func:`check_artefacts` table (or its CSV read back), columns ``COLUMNS``.
+
+    Returns
+    -------
+    pandas.DataFrame
+        The rows whose status is not ``plausible``, ``impossible`` first.
+    """
     if table is None or table.empty or "status" not in table:
         return pd.DataFrame(columns=list(COLUMNS))
     bad = table[table["status"].astype(str) != "plausible"]
@@ -341,7 +504,20 @@ def _number(value: float) -> str:
 
 
 def range_text(low: float, high: float) -> str:
-    """A range as words: 'at least 0', 'at most 1', '1.3 to 2'."""
+    """A range as words: 'at least 0', 'at most 1', '1.3 to 2'.
+
+    Parameters
+    ----------
+    low : float
+        The lower bound (``-inf``: none).
+    high : float
+        The upper bound (``inf``: none).
+
+    Returns
+    -------
+    str
+        The words.
+    """
     low_ok, high_ok = np.isfinite(float(low)), np.isfinite(float(high))
     if low_ok and high_ok:
         return f"{_number(low)} to {_number(high)}"
@@ -351,7 +527,20 @@ def range_text(low: float, high: float) -> str:
 def finding_sentence(row, with_reason: bool = False) -> str:
     """One checked value in a line: lens, band and where, the quantity, value ± sigma with units, the range
     and the config key that sets it, how far beyond it, the verdict and how the value was derived; with
-    ``with_reason`` the range's reason after it."""
+    ``with_reason`` the range's reason after it.
+
+    Parameters
+    ----------
+    row : pandas.Series or dict
+        A row of a :func:`check_artefacts` table.
+    with_reason : bool, default False
+        Append the range's reason.
+
+    Returns
+    -------
+    str
+        The line.
+    """
     units = "" if str(row["units"]) in ("1", "", "nan") else f" {row['units']}"
     sigma = float(row["sigma"])
     value = _number(row["value"]) + (f" ± {float(sigma):.2g}" if np.isfinite(sigma) else "") + units
@@ -370,7 +559,18 @@ def finding_sentence(row, with_reason: bool = False) -> str:
 
 def summary_lines(table: pd.DataFrame) -> list[str]:
     """One line per checked quantity of a :func:`check_artefacts` table: how many values, their span, the
-    range and the config key, how many fall outside it (the findings themselves: :func:`finding_sentence`)."""
+    range and the config key, how many fall outside it (the findings themselves: :func:`finding_sentence`).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        A :func:`check_artefacts` table (or its CSV read back), columns ``COLUMNS``.
+
+    Returns
+    -------
+    list of str
+        The lines (empty for an empty table).
+    """
     if table is None or table.empty or "quantity" not in table:
         return []
     out = []

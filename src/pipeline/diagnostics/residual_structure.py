@@ -95,7 +95,20 @@ class TableTest:
 
 
 def leverage(X: np.ndarray, sigma: np.ndarray) -> np.ndarray:
-    """Diagonal h_ii of the hat matrix of the weighted fit (sum h_ii = rank of X)."""
+    """Diagonal h_ii of the hat matrix of the weighted fit (sum h_ii = rank of X).
+
+    Parameters
+    ----------
+    X : numpy.ndarray
+        The design matrix, shape ``(n, k)``.
+    sigma : numpy.ndarray
+        The rows' standard uncertainties, shape ``(n,)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        h_ii per row, shape ``(n,)``.
+    """
     if X.shape[1] == 0:
         return np.zeros(len(sigma))
     A = X / np.asarray(sigma, float)[:, None]
@@ -113,7 +126,20 @@ def block_bound_p_value(chi2: float, block_dof: np.ndarray) -> float:
     concentrated in one (rows moving together: Szekely and Bakirov 2003 for one form), so that sum z^2 is
     at most w_max times a chi-square with G degrees of freedom, G the number of blocks. No scatter is
     estimated from the blocks themselves, so that an excess sitting in a few blocks is not taken for their
-    spread (the t test's loss of power there)."""
+    spread (the t test's loss of power there).
+
+    Parameters
+    ----------
+    chi2 : float
+        sum z^2 over the table.
+    block_dof : numpy.ndarray
+        w_g per block.
+
+    Returns
+    -------
+    float
+        The p-value (1 when no block has degrees of freedom).
+    """
     block_dof = np.asarray(block_dof, float)
     w_max = float(block_dof.max()) if block_dof.size else 0.0
     if w_max <= 0:
@@ -123,7 +149,27 @@ def block_bound_p_value(chi2: float, block_dof: np.ndarray) -> float:
 
 def residual_chi2_test(z: np.ndarray, X: np.ndarray, sigma: np.ndarray, blocks: np.ndarray,
                        dof: int) -> TableTest:
-    """Chi-square tail of sum z^2 with ``dof`` degrees of freedom and its block-robust t test."""
+    """Chi-square tail of sum z^2 with ``dof`` degrees of freedom and its block-robust t test.
+
+    Parameters
+    ----------
+    z : numpy.ndarray
+        Noise-normalised residuals, one per row.
+    X : numpy.ndarray
+        The fit's design matrix, shape ``(n, k)``.
+    sigma : numpy.ndarray
+        The rows' standard uncertainties.
+    blocks : numpy.ndarray
+        The block label of every row.
+    dof : int
+        The fit's degrees of freedom.
+
+    Returns
+    -------
+    TableTest
+        chi^2, dof, the number of rows, the chi-square tail, the block p-value (NaN with too few blocks), the
+        number of blocks and the table's p-value (the larger of the two).
+    """
     z = np.asarray(z, float)
     chi2 = float(np.sum(z**2))
     p_chi2 = float(stats.chi2.sf(chi2, max(dof, 1)))
@@ -148,7 +194,18 @@ def residual_chi2_test(z: np.ndarray, X: np.ndarray, sigma: np.ndarray, blocks: 
 def covariates_of(table: pd.DataFrame) -> pd.DataFrame:
     """The table's covariates, plus ``frame_in_setting``: the order of a frame among the frames of its
     setting (from ``file_index``), for frame-level tables that do not carry it (settling after each
-    change of setting, warm-up)."""
+    change of setting, warm-up).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        A residual table.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Its columns among ``COVARIATES`` (and ``frame_in_setting``), row for row.
+    """
     out = table[[c for c in COVARIATES if c in table]].copy()
     if "frame" not in table and "file_index" in table and "setting" in table:
         keys = [c for c in ("lens", "band", "sweep", "setting") if c in table]
@@ -158,14 +215,38 @@ def covariates_of(table: pd.DataFrame) -> pd.DataFrame:
 
 def covariate_label(name: str) -> str:
     """The covariate in plain words, with its column name: 'the signal level as a fraction of full scale
-    (signal_fraction)'; the column name alone where it is plain."""
+    (signal_fraction)'; the column name alone where it is plain.
+
+    Parameters
+    ----------
+    name : str
+        The covariate's column name.
+
+    Returns
+    -------
+    str
+        The label.
+    """
     label = COVARIATE_LABELS.get(name)
     return f"{label} ({name})" if label else name
 
 
 def scan_values(name: str, values: pd.Series) -> pd.Series:
     """A covariate's values as scanned: the base-10 logarithm for :data:`LOG_SCALE_COVARIATES` when every
-    value is positive, else as they are."""
+    value is positive, else as they are.
+
+    Parameters
+    ----------
+    name : str
+        The covariate's column name.
+    values : pandas.Series
+        Its values.
+
+    Returns
+    -------
+    pandas.Series
+        The values as scanned.
+    """
     if name in LOG_SCALE_COVARIATES and values.dtype.kind in "fi" and len(values) and bool((values > 0).all()):
         return np.log10(values.astype(float))
     return values
@@ -176,6 +257,21 @@ def grouping_test(z: np.ndarray, groups: np.ndarray) -> tuple[float, float]:
 
     The share is adjusted for the number of groups, 1 - (1 - eta^2)(n - 1)/(n - k), so that noise scores
     0 on average (eta^2 = SS_between / SS_total would credit k groups with (k - 1)/(n - 1) of noise).
+
+    Parameters
+    ----------
+    z : numpy.ndarray
+        Noise-normalised residuals, one per row.
+    groups : numpy.ndarray
+        The group label of every row.
+
+    Returns
+    -------
+    p : float
+        The p-value.
+    share : float
+        The share of the residuals' variance explained (adjusted for the number of groups; 0 for noise on
+        average).
     """
     n, k = len(z), len(np.unique(groups))
     if n - k < 1 or k < 2:
@@ -190,7 +286,25 @@ def grouping_test(z: np.ndarray, groups: np.ndarray) -> tuple[float, float]:
 
 def covariate_tests(z: np.ndarray, values: pd.Series, bins: int) -> tuple[float, float]:
     """Most significant of: a straight line and ``bins`` quantile bins (a numeric covariate with more
-    distinct values than bins), or the levels (otherwise). Returns (p-value, variance share)."""
+    distinct values than bins), or the levels (otherwise).
+
+    Parameters
+    ----------
+    z : numpy.ndarray
+        Noise-normalised residuals, one per row.
+    values : pandas.Series
+        The covariate's values, row for row.
+    bins : int
+        The number of quantile bins.
+
+    Returns
+    -------
+    p : float
+        The p-value.
+    share : float
+        The share of the residuals' variance explained (adjusted for the number of groups; 0 for noise on
+        average).
+    """
     tests = []
     if values.dtype.kind in "fi" and values.nunique() > bins:
         x = values.to_numpy(float)
@@ -218,6 +332,22 @@ def block_means(z: np.ndarray, values: pd.Series, blocks: np.ndarray | None) -> 
     8.7e-17 over its 78 rows (seed 311), at 0.058 over its 13 setting means.
     A covariate that varies within blocks (the lens, the band, the signal level) is left to
     :func:`block_gls_covariate_test`.
+
+    Parameters
+    ----------
+    z : numpy.ndarray
+        Noise-normalised residuals, one per row.
+    values : pandas.Series
+        The covariate's values, row for row.
+    blocks : numpy.ndarray or None
+        The block label of every row.
+
+    Returns
+    -------
+    z : numpy.ndarray
+        The block means of z, or z itself.
+    values : pandas.Series
+        The block's value, or the values themselves.
     """
     values = values.reset_index(drop=True)
     if blocks is None or len(blocks) != len(values):
@@ -232,7 +362,22 @@ def block_means(z: np.ndarray, values: pd.Series, blocks: np.ndarray | None) -> 
 def block_noise_ratio(z: np.ndarray, codes: np.ndarray, n_blocks: int) -> float:
     """The variance of a noise common to a block's rows over the rows' own, tau^2 / sigma^2, from the
     one-way analysis of variance of ``z`` by block (method of moments, unbalanced blocks; 0 when the block
-    means scatter no more than the rows would make them)."""
+    means scatter no more than the rows would make them).
+
+    Parameters
+    ----------
+    z : numpy.ndarray
+        Noise-normalised residuals, one per row.
+    codes : numpy.ndarray
+        The block index (0 .. n_blocks - 1) of every row.
+    n_blocks : int
+        The number of blocks.
+
+    Returns
+    -------
+    float
+        tau^2 / sigma^2, at least 0.
+    """
     n = len(z)
     count = np.bincount(codes, minlength=n_blocks).astype(float)
     if n_blocks < 2 or n - n_blocks < 1:
@@ -245,14 +390,34 @@ def block_noise_ratio(z: np.ndarray, codes: np.ndarray, n_blocks: int) -> float:
 
 
 def block_gls_covariate_test(z: np.ndarray, values: pd.Series, blocks: np.ndarray, bins: int) -> tuple[float, float]:
-    """A covariate that varies inside the blocks, tested with the noise common to a block's rows as a
-    random effect: the block-noise ratio r of :func:`block_noise_ratio`, the rows of block g whitened by
-    (1 + m_g r)^(-1/2) along their mean (x - c_g mean_g(x), c_g = 1 - (1 + m_g r)^(-1/2), the intercept too),
-    then the F test of the covariate's columns (a straight line and ``bins`` quantile bins of a numeric
-    covariate with more distinct values than bins, the levels otherwise) after the intercept, n - 1 - k
-    degrees of freedom; the smaller p of the line and the bins, as :func:`covariate_tests` takes it. With
-    r = 0 it is the test over the rows; as r grows it leaves the block means to the blocks' own scatter.
-    Returns (p-value, variance share)."""
+    """A covariate that varies inside the blocks, tested with the noise common to a block's rows as a random effect.
+
+    The block-noise ratio r of :func:`block_noise_ratio`, the rows of block g whitened by (1 + m_g r)^(-1/2) along
+    their mean (x - c_g mean_g(x), c_g = 1 - (1 + m_g r)^(-1/2), the intercept too), then the F test of the
+    covariate's columns (a straight line and ``bins`` quantile bins of a numeric covariate with more distinct
+    values than bins, the levels otherwise) after the intercept, n - 1 - k degrees of freedom; the smaller p of
+    the line and the bins, as :func:`covariate_tests` takes it. With r = 0 it is the test over the rows; as r
+    grows it leaves the block means to the blocks' own scatter.
+
+    Parameters
+    ----------
+    z : numpy.ndarray
+        Noise-normalised residuals, one per row.
+    values : pandas.Series
+        The covariate's values, row for row.
+    blocks : numpy.ndarray
+        The block label of every row.
+    bins : int
+        The number of quantile bins.
+
+    Returns
+    -------
+    p : float
+        The p-value.
+    share : float
+        The share of the residuals' variance explained (adjusted for the number of groups; 0 for noise on
+        average).
+    """
     codes, uniques = pd.factorize(pd.Series(np.asarray(blocks)).astype(str))
     g = len(uniques)
     z = np.asarray(z, float)
@@ -301,12 +466,36 @@ def _varies_within_blocks(values: pd.Series, blocks: np.ndarray | None) -> bool:
 
 def where_structure_sits(table: pd.DataFrame, z: np.ndarray, bins: int,
                          blocks: np.ndarray | None = None) -> tuple[str, float, float, int]:
-    """The covariate whose grouping of ``z`` is most significant: (name, p-value, variance share, number of
-    covariates scanned). With ``blocks`` (the rows sharing a raw frame or setting), a covariate with one
-    value per block is tested on the blocks' mean z (:func:`block_means`); one that varies inside the blocks
-    over the rows with the noise a block's rows share as a random effect (:func:`block_gls_covariate_test`):
-    over the rows as if independent, that noise would follow any covariate whose block means differ (the
-    signal level of frames at different exposures)."""
+    """The covariate whose grouping of ``z`` is most significant.
+
+    With ``blocks`` (the rows sharing a raw frame or setting), a covariate with one value per block is tested on
+    the blocks' mean z (:func:`block_means`); one that varies inside the blocks over the rows with the noise a
+    block's rows share as a random effect (:func:`block_gls_covariate_test`): over the rows as if independent,
+    that noise would follow any covariate whose block means differ (the signal level of frames at different
+    exposures).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        The residual table.
+    z : numpy.ndarray
+        Noise-normalised residuals, one per row.
+    bins : int
+        The number of quantile bins of a numeric covariate.
+    blocks : numpy.ndarray, optional
+        The block label of every row.
+
+    Returns
+    -------
+    name : str
+        The covariate ("no single covariate" when none beats p = 1).
+    p : float
+        Its p-value.
+    share : float
+        Its share of the residuals' variance.
+    n_scanned : int
+        The number of covariates scanned.
+    """
     best, best_p, best_share, n = "no single covariate", 1.0, 0.0, 0
     for name, values in covariates_of(table).items():
         if values.nunique() < 2:
@@ -324,9 +513,26 @@ def where_structure_sits(table: pd.DataFrame, z: np.ndarray, bins: int,
 
 
 def image_plane_pattern(table: pd.DataFrame, z: np.ndarray, cells: int) -> dict | None:
-    """Where on the image plane the residuals depart: a ``cells`` x ``cells`` grid over the span of the
-    measurements' pixel positions (per lens), the F test of the cell means, and the cell whose mean z is
-    farthest from zero, with its pixel bounds. None when the table has no pixel positions."""
+    """Where on the image plane the residuals depart.
+
+    A ``cells`` x ``cells`` grid over the span of the measurements' pixel positions (per lens), the F test of the
+    cell means, and the cell whose mean z is farthest from zero, with its pixel bounds.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        The residual table (its pixel-position columns ``IMAGE_PLANE_COLUMNS``).
+    z : numpy.ndarray
+        Noise-normalised residuals, one per row.
+    cells : int
+        Cells per side of the grid.
+
+    Returns
+    -------
+    dict or None
+        ``p_value``, ``share``, ``lens``, ``mean_z``, ``n`` (rows in the cell), ``x_px`` and ``y_px`` (the cell's
+        bounds, pixels), ``cells``; None when the table has no pixel positions or too few rows.
+    """
     if not all(c in table for c in IMAGE_PLANE_COLUMNS):
         return None
     x = table[IMAGE_PLANE_COLUMNS[0]].to_numpy(float)
@@ -356,7 +562,18 @@ def image_plane_pattern(table: pd.DataFrame, z: np.ndarray, cells: int) -> dict 
 
 
 def describe_image_plane(pattern: dict | None) -> str:
-    """One phrase for a pattern of :func:`image_plane_pattern` ('' when there is none)."""
+    """One phrase for a pattern of :func:`image_plane_pattern` ('' when there is none).
+
+    Parameters
+    ----------
+    pattern : dict or None
+        A pattern of :func:`image_plane_pattern`.
+
+    Returns
+    -------
+    str
+        The phrase.
+    """
     if not pattern:
         return ""
     lens = f"{pattern['lens']} lens, " if pattern["lens"] else ""

@@ -30,7 +30,21 @@ class Observations:
 
 
 def observations_from_artefacts(artefacts: dict[str, list]) -> list[Observations]:
-    """Observation tables per experiment and level, lenses concatenated."""
+    """Observation tables per experiment and level, lenses concatenated.
+
+    Tables without ``group``, ``value_dn`` and ``sigma_dn`` (descriptive ones) are left out, and only the rows
+    marked ``used`` are kept.
+
+    Parameters
+    ----------
+    artefacts : dict[str, list]
+        {experiment: the stage artefacts (xarray.Dataset) of its lenses}.
+
+    Returns
+    -------
+    list of Observations
+        One per experiment and level, with the units of ``value_dn`` when the artefacts agree on one, else None.
+    """
     out = []
     for experiment, datasets in artefacts.items():
         levels = sorted({name.split("__", 1)[0][4:] for ds in datasets for name in ds.data_vars
@@ -58,6 +72,18 @@ PREDICTED_TABLES = {("field", "scale")}
 
 
 def is_predicted(obs: Observations) -> bool:
+    """Whether a table is one whose candidates' share is predicted from another (``PREDICTED_TABLES``).
+
+    Parameters
+    ----------
+    obs : Observations
+        One experiment and level's residual table (``value_dn``, ``sigma_dn`` in its ``value_units``).
+
+    Returns
+    -------
+    bool
+        True for a predicted table.
+    """
     return (obs.experiment, obs.level) in PREDICTED_TABLES
 
 
@@ -73,7 +99,20 @@ class Anchor:
 
 def predicted_shift(anchor: Anchor, obs: Observations) -> tuple[np.ndarray, np.ndarray] | None:
     """The shift the anchored candidate predicts in ``obs``'s rows and its variance (the coefficients'
-    covariance through the shift's central-difference derivative); None when it is silent there."""
+    covariance through the shift's central-difference derivative); None when it is silent there.
+
+    Parameters
+    ----------
+    anchor : Anchor
+        The accepted candidate, with its coefficients and covariance.
+    obs : Observations
+        One experiment and level's residual table (``value_dn``, ``sigma_dn`` in its ``value_units``).
+
+    Returns
+    -------
+    tuple of numpy.ndarray or None
+        (the shift per row, in the table's ``value_units``; its variance per row), or None.
+    """
     effect = get_effect(anchor.effect)
     shift = effect.predicted_shift(obs.experiment, obs.level, obs.table, anchor.coef, anchor.table)
     if shift is None:
@@ -93,7 +132,24 @@ def predicted_shift(anchor: Anchor, obs: Observations) -> tuple[np.ndarray, np.n
 
 def predicted_total(obs: Observations, anchors: list[Anchor]) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """The summed shift the anchored candidates predict in ``obs``'s rows, its variance, and the candidates
-    that predict one there."""
+    that predict one there.
+
+    Parameters
+    ----------
+    obs : Observations
+        One experiment and level's residual table (``value_dn``, ``sigma_dn`` in its ``value_units``).
+    anchors : list of Anchor
+        The accepted candidates, each with its coefficients and covariance as fitted on its source table.
+
+    Returns
+    -------
+    shift : numpy.ndarray
+        The summed shift per row, in the table's ``value_units``.
+    variance : numpy.ndarray
+        Its variance per row.
+    names : list of str
+        The candidates that predict a shift there.
+    """
     shift, var, names = np.zeros(len(obs.table)), np.zeros(len(obs.table)), []
     for anchor in anchors:
         found = predicted_shift(anchor, obs)
@@ -105,7 +161,20 @@ def predicted_total(obs: Observations, anchors: list[Anchor]) -> tuple[np.ndarra
 
 def with_predictions(observations: list[Observations], anchors: list[Anchor]) -> list[Observations]:
     """The observations with the accepted candidates' predicted shifts taken out of the predicted tables' rows
-    (their variances added to the rows' noise); the other tables as they are."""
+    (their variances added to the rows' noise); the other tables as they are.
+
+    Parameters
+    ----------
+    observations : list of Observations
+        The residual tables.
+    anchors : list of Anchor
+        The accepted candidates, each with its coefficients and covariance as fitted on its source table.
+
+    Returns
+    -------
+    list of Observations
+        The tables, the predicted ones corrected.
+    """
     if not anchors:
         return observations
     out = []
@@ -122,7 +191,20 @@ def with_predictions(observations: list[Observations], anchors: list[Anchor]) ->
 
 
 def model_design(obs: Observations, model_effects: list[str]) -> np.ndarray:
-    """Base columns plus the columns of the model's effects; each lens its own (:func:`per_lens_columns`)."""
+    """Base columns plus the columns of the model's effects; each lens its own (:func:`per_lens_columns`).
+
+    Parameters
+    ----------
+    obs : Observations
+        One experiment and level's residual table (``value_dn``, ``sigma_dn`` in its ``value_units``).
+    model_effects : list of str
+        The effects of the model; those that correct the data rather than add columns are skipped.
+
+    Returns
+    -------
+    numpy.ndarray
+        The design matrix, one row per table row.
+    """
     X, _ = base_design(obs.table)
     cols = [X]
     for name in model_effects:
@@ -137,7 +219,21 @@ def model_design(obs: Observations, model_effects: list[str]) -> np.ndarray:
 
 def per_lens_columns(columns: np.ndarray, table: pd.DataFrame) -> np.ndarray:
     """An effect's columns once per lens of a table that pools both lenses: every stage fits each lens on its
-    own (one job and one artefact per lens), so the model the diagnostics refit has each lens's own value."""
+    own (one job and one artefact per lens), so the model the diagnostics refit has each lens's own value.
+
+    Parameters
+    ----------
+    columns : numpy.ndarray
+        An effect's columns, shape ``(n_rows, k)``.
+    table : pandas.DataFrame
+        The table (its ``lens`` column).
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape ``(n_rows, k * n_lenses)``: each lens's copy zero outside its rows; ``columns`` itself for one lens
+        or no ``lens`` column.
+    """
     if "lens" not in table:
         return columns
     lens = table["lens"].astype(str).to_numpy()
@@ -149,7 +245,22 @@ def per_lens_columns(columns: np.ndarray, table: pd.DataFrame) -> np.ndarray:
 
 def blocks_of(table: pd.DataFrame, keys) -> tuple[np.ndarray, str]:
     """Block label of every row (rows sharing a raw frame or setting) and the key used; one block per row
-    when the table has none of ``keys`` (``a+b`` combines columns)."""
+    when the table has none of ``keys`` (``a+b`` combines columns).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        A residual table.
+    keys : iterable of str
+        Candidate block keys, in order of preference (a column, or columns joined by ``+``).
+
+    Returns
+    -------
+    labels : numpy.ndarray
+        The block label (str) of every row.
+    key : str
+        The key used, or ``"row"``.
+    """
     for key in keys:
         cols = key.split("+")
         if all(c in table for c in cols):
@@ -166,5 +277,19 @@ def blocks_of(table: pd.DataFrame, keys) -> tuple[np.ndarray, str]:
 
 
 def fit_observations(obs: Observations, X: np.ndarray):
-    """Weighted least squares of the table's values on the columns ``X``."""
+    """Weighted least squares of the table's values on the columns ``X``.
+
+    Parameters
+    ----------
+    obs : Observations
+        One experiment and level's residual table (``value_dn``, ``sigma_dn`` in its ``value_units``).
+    X : numpy.ndarray
+        The design matrix, one row per table row.
+
+    Returns
+    -------
+    Fit
+        Coefficients, their covariance (from the stated sigmas), predictions, normalised residuals z, chi^2 and
+        degrees of freedom.
+    """
     return wls(obs.table["value_dn"].to_numpy(float), obs.table["sigma_dn"].to_numpy(float), X)

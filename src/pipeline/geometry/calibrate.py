@@ -94,7 +94,22 @@ class CalibrationResult:
     covariance_method: str = ""
 
     def residuals_vs_radius(self, n_bins: int = 10):
-        """Mean residual norm in radial bins: (bin centres px, mean px, counts)."""
+        """Mean residual norm of the used corners in radial bins from the centre.
+
+        Parameters
+        ----------
+        n_bins : int, default 10
+            Number of equal-width bins from 0 to the largest corner radius.
+
+        Returns
+        -------
+        centres : numpy.ndarray
+            Bin centres, radial distance from the principal point, pixels, shape ``(n_bins,)``.
+        mean : numpy.ndarray
+            Mean Euclidean reprojection error in each bin, pixels (NaN in an empty bin).
+        counts : numpy.ndarray
+            Number of corners in each bin.
+        """
         r = self.residual_rho_px
         e = np.linalg.norm(self.residuals_px, axis=1)
         edges = np.linspace(0, r.max() if r.size else 1.0, n_bins + 1)
@@ -107,7 +122,18 @@ class CalibrationResult:
 
 # ----------------------------------------------------------------- rotations
 def rodrigues(rvecs):
-    """Rotation matrices (k, 3, 3) of rotation vectors (k, 3)."""
+    """Rotation matrices (k, 3, 3) of rotation vectors (k, 3).
+
+    Parameters
+    ----------
+    rvecs : numpy.ndarray
+        Rotation vectors (axis times angle, radians), shape ``(k, 3)`` or ``(3,)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        Rotation matrices, shape ``(k, 3, 3)``.
+    """
     rvecs = np.atleast_2d(rvecs)
     th = np.linalg.norm(rvecs, axis=1)
     k = rvecs / np.where(th > 0, th, 1.0)[:, None]
@@ -253,7 +279,40 @@ def _linear_error(frames, centre, degree, r_norm, shape, L):
 
 def search_centre(frames, shape, degree, r_norm, L, *, half_width_frac: float = 0.1,
                   n_grid: int = 5, n_levels: int = 4):
-    """Grid search of the principal point minimising the linear solution's error."""
+    """Grid search of the principal point minimising the linear solution's error.
+
+    Starting at the image centre, a ``n_grid`` x ``n_grid`` grid of candidate centres is searched, then a grid
+    around the best candidate, its half width shrunk by ``3 / (n_grid - 1)`` at each of ``n_levels`` levels.
+
+    Parameters
+    ----------
+    frames : list of tuple
+        Per usable frame, (detected corners (u, v), pixels, shape ``(k, 2)``; planar board points in board units,
+        shape ``(k, 2)``).
+    shape : tuple of int
+        (rows, cols) of the image.
+    degree : int
+        Polynomial degree N of f(rho).
+    r_norm : float
+        Radius (pixels) the polynomial's argument is divided by.
+    L : float
+        The board unit, mm.
+    half_width_frac : float, default 0.1
+        Half width of the first grid, as a fraction of the image's short side.
+    n_grid : int, default 5
+        Candidates per grid side.
+    n_levels : int, default 4
+        Number of refinements after the first grid.
+
+    Returns
+    -------
+    centre : tuple of float
+        The best principal point (xc, yc), pixels.
+    error : float
+        RMS reprojection error of the linear solution there, pixels (inf when no candidate initialised).
+    solution : tuple or None
+        The linear solution there: (normalised polynomial coefficients, per-frame (R, t) poses), or None.
+    """
     h, w = shape
     best = ((w - 1) / 2.0, (h - 1) / 2.0)
     half = half_width_frac * min(h, w)
@@ -373,9 +432,34 @@ def intrinsic_covariance(J: np.ndarray, residuals: np.ndarray, n_intrinsic: int,
     parameters (the board poses) re-fitted at every value of the others, to
     first order the same as marginalising them. Columns are scaled to unit
     norm before the inversion (centre in pixels, coefficients and poses in
-    normalised units differ by orders of magnitude). Returns (covariance,
-    s^2, n - p); ValueError when J^T J is singular (a parameter the data do
-    not constrain) or there are too few residuals or groups.
+    normalised units differ by orders of magnitude).
+
+    Parameters
+    ----------
+    J : numpy.ndarray
+        Jacobian of the residuals at the solution, shape ``(n, p)``, the intrinsic parameters' columns first.
+    residuals : numpy.ndarray
+        Residuals at the solution, pixels, shape ``(n,)``.
+    n_intrinsic : int
+        Number of leading columns whose covariance is returned.
+    groups : numpy.ndarray, optional
+        A cluster label per residual (e.g. the board); the reduced-chi-square form when None.
+
+    Returns
+    -------
+    covariance : numpy.ndarray
+        Covariance of the intrinsic parameters, in the units of the Jacobian's columns, shape
+        ``(n_intrinsic, n_intrinsic)``.
+    s2 : float
+        Reduced chi-square of the residuals, pixel^2.
+    dof : int
+        Degrees of freedom n - p.
+
+    Raises
+    ------
+    ValueError
+        When J^T J is singular (a parameter the data do not constrain), a column of J is zero, or there are too
+        few residuals or groups.
     """
     n, p = J.shape
     dof = n - p
@@ -421,9 +505,30 @@ def jackknife_covariance(J: np.ndarray, residuals: np.ndarray, n_intrinsic: int,
     (docs/stages.md, "Uncertainty of the field angle"): the fitted centres' chi-square against the simulator's truth
     42.8 for 24 (sandwich) against 24.2 (this one, refitted in full; the one-step form here 23.9).
 
-    ``groups`` labels the residual rows, ``nuisance_group`` the columns beyond ``n_intrinsic`` (the board
-    whose pose each is). ValueError with fewer than three boards or when a leave-one-out normal matrix is
-    singular (a parameter only one board constrains).
+    Parameters
+    ----------
+    J : numpy.ndarray
+        Jacobian of the residuals at the solution, shape ``(n, p)``, the intrinsic parameters' columns first.
+    residuals : numpy.ndarray
+        Residuals at the solution, pixels, shape ``(n,)``.
+    n_intrinsic : int
+        Number of leading (shared) columns whose covariance is returned.
+    groups : numpy.ndarray
+        The board of each residual row, shape ``(n,)``.
+    nuisance_group : numpy.ndarray
+        The board whose pose each column beyond ``n_intrinsic`` is, shape ``(p - n_intrinsic,)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        Covariance of the intrinsic parameters, in the units of the Jacobian's columns, shape
+        ``(n_intrinsic, n_intrinsic)``.
+
+    Raises
+    ------
+    ValueError
+        With fewer than three boards, a zero Jacobian column, or when a leave-one-out normal matrix is singular
+        (a parameter only one board constrains).
     """
     labels = np.unique(groups)
     if labels.size < 3:
@@ -482,6 +587,34 @@ def jackknife_rejection_covariance(J: np.ndarray, residuals: np.ndarray, n_intri
     board instead of a nonlinear fit. Without rejection (every corner within the limits) it is
     :func:`jackknife_covariance`. ValueError with fewer than three boards or when a leave-one-out system is
     singular.
+
+    Parameters
+    ----------
+    J : numpy.ndarray
+        Jacobian of the residuals over every corner, shape ``(2 m, p)``, rows u, v per corner.
+    residuals : numpy.ndarray
+        Projected minus detected positions, pixels, ``2 m`` values (u, v per corner).
+    n_intrinsic : int
+        Number of leading columns whose covariance is returned.
+    frame_of_pt : numpy.ndarray
+        The board (0..G-1) of each corner, shape ``(m,)``.
+    outlier_factor : float
+        The frame rule: a board whose RMS exceeds this times the median board RMS is dropped.
+    point_outlier_factor : float
+        The corner rule: a corner whose error exceeds this times the median corner error is dropped.
+    max_frame_rms_px : float, optional
+        An absolute limit on a board's RMS error, pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        Covariance of the intrinsic parameters, in the units of the Jacobian's columns, shape
+        ``(n_intrinsic, n_intrinsic)``.
+
+    Raises
+    ------
+    ValueError
+        With fewer than three boards, a zero Jacobian column, or a singular leave-one-out system.
     """
     frame_of_pt = np.asarray(frame_of_pt)
     n_boards = int(frame_of_pt.max()) + 1 if frame_of_pt.size else 0
@@ -544,6 +677,34 @@ def jackknife_refit_covariance(image_points, object_points, image_shape, used_fr
     and of fits that move beyond the linear range (measured on the paper's close lens, 11 boards, stretch
     "symmetric": the one-step sigma of the centre's column 0.54 times this one's;
     docs/geometry-real-corners.md). ValueError with fewer than three boards.
+
+    Parameters
+    ----------
+    image_points : list
+        Per frame, detected corners (u, v), pixels, shape ``(k, 2)``, or None.
+    object_points : list of numpy.ndarray
+        Per frame, board-frame corner positions, mm, shape ``(k, 3)``.
+    image_shape : tuple of int
+        (rows, cols) of the images.
+    used_frames : list of int
+        Indices of the frames the full fit used.
+    centre : tuple of float
+        The full fit's principal point (xc, yc), pixels.
+    stretch : str
+        The stretch model of the full fit (one of ``STRETCH_MODELS``).
+    **options
+        The other keyword arguments of the full fit (as :func:`calibrate` passes them; ``degree`` and
+        ``min_frames`` are required).
+
+    Returns
+    -------
+    numpy.ndarray
+        Covariance of the intrinsic parameters in the refinement's units, square, one row per parameter.
+
+    Raises
+    ------
+    ValueError
+        With fewer than three boards, or when a leave-one-out fit fails.
     """
     used = list(used_frames)
     if len(used) < 3:
@@ -599,9 +760,17 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
     outlier_factor : a frame whose RMS error exceeds outlier_factor times
         the median frame RMS (and max_frame_rms_px when given) is dropped
         and the fit repeated.
+    max_frame_rms_px : float, optional
+        An absolute limit (pixels) on a frame's RMS reprojection error, on top of
+        ``outlier_factor``; none when None.
     point_outlier_factor : single corners whose error exceeds this times the
         median corner error are dropped (a mislocated corner on a steeply
         tilted board) and the fit repeated; counted in ``n_points_dropped``.
+    centre_half_width_frac : float, default 0.1
+        Half width of the first grid of candidate principal points around the
+        image centre, as a fraction of the image's short side.
+    max_nfev : int, default 200
+        Most function evaluations of the nonlinear refinement.
     half_fov_deg : stored in the returned model (e.g. from the image circle).
     centre_guess : a principal point already known to within a few pixels
         (e.g. another band's fit): the centre grid search is skipped and the
@@ -619,6 +788,24 @@ def calibrate(image_points, object_points, image_shape, *, degree: int = 4,
         ``"reduced_chi2"`` (every corner coordinate independent). The
         reduced chi-square is returned either way; the result's
         ``covariance_method`` says which was used.
+    jackknife_refit_max_boards : int, default 0
+        Most boards for which ``"board_jackknife"`` redoes every leave-one-out
+        fit in full; with more boards the linearised form is used.
+    stretch_significance : float, default 0.05
+        Significance level of the Wald test of no stretch with ``stretch="auto"``.
+
+    Returns
+    -------
+    CalibrationResult
+        The fitted model, the boards' poses, the reprojection errors, the frames
+        used and dropped, and the parameter covariance.
+
+    Raises
+    ------
+    ValueError
+        On an unknown ``covariance`` or ``stretch``, when fewer than ``min_frames``
+        usable frames remain, or when the linear initialisation fails at every
+        candidate centre.
     """
     if covariance not in COVARIANCE_ESTIMATES:
         raise ValueError(f"covariance must be one of {COVARIANCE_ESTIMATES}, got {covariance!r}")
@@ -644,7 +831,17 @@ def stretch_test(result: CalibrationResult) -> dict:
     chi-square W follows chi-square(p). The boards, not the corners, are the independent units: a corner
     criterion (BIC on the corner residuals as independent Gaussian) counts each board's shared error 48
     times and is carried by a few corners of the heavy tails (docs/geometry-real-corners.md).
-    Returns {"wald_statistic", "p_value", "n_boards", "reference"}.
+
+    Parameters
+    ----------
+    result : CalibrationResult
+        A fit with stretch "symmetric" and a parameter covariance.
+
+    Returns
+    -------
+    dict
+        ``"wald_statistic"`` (W, float), ``"p_value"`` (float), ``"n_boards"`` (G, int) and ``"reference"`` (the
+        reference distribution, str).
     """
     names = list(result.parameter_names)
     at = [names.index("stretch_c"), names.index("stretch_d_and_e")]
@@ -682,6 +879,24 @@ def select_stretch(image_points, object_points, image_shape, *, stretch_signific
     ``stretch_selection`` holds the test, its values and the chosen model. "full" is no candidate: it adds
     to "symmetric" only a roll about the optical axis that the board poses absorb (the same reprojection,
     one parameter more, and a singular normal matrix).
+
+    Parameters
+    ----------
+    image_points : list
+        Per frame, detected corners (u, v), pixels, shape ``(k, 2)``, or None.
+    object_points : numpy.ndarray or list of numpy.ndarray
+        Board-frame corner positions, mm, shape ``(k, 3)``, shared or one per frame.
+    image_shape : tuple of int
+        (rows, cols) of the images.
+    stretch_significance : float
+        Significance level of the Wald test: the symmetric fit is kept when the p-value is below it.
+    **options
+        The other keyword arguments of :func:`calibrate`.
+
+    Returns
+    -------
+    CalibrationResult
+        The chosen fit, its ``stretch_selection`` holding the test.
     """
     general = AUTO_STRETCH_CANDIDATES[-1]
     first = _calibrate_fixed(image_points, object_points, image_shape, stretch=general, **options)

@@ -29,14 +29,38 @@ def centre_theta_gradient(model: FisheyeModel, u, v) -> np.ndarray:
     """Mean over the pixels (u, v) of d theta / d (xc, yc), degree per pixel: shape (2,).
 
     The mean is that of a quantity averaged over those pixels (a spot's theta is the mean of theta over
-    its pixels); pixels on the axis itself (theta not differentiable in the centre) count as zero."""
+    its pixels); pixels on the axis itself (theta not differentiable in the centre) count as zero.
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model, with the principal point (xc, yc) to differentiate against.
+    u, v : numpy.ndarray
+        Pixel coordinates of the pixels averaged over, pixels.
+
+    Returns
+    -------
+    numpy.ndarray
+        Mean d theta / d (xc, yc), degree per pixel, shape ``(2,)``.
+    """
     g = theta_gradient(model, CENTRE_PARAMETERS, np.ravel(np.asarray(u, float)), np.ravel(np.asarray(v, float)))
     return np.nanmean(np.where(np.isfinite(g), g, 0.0), axis=1)
 
 
 def centre_root(covariance: np.ndarray) -> np.ndarray:
     """L with L L^T = C for the 2 x 2 covariance of the centre (symmetric square root; negative
-    eigenvalues of a numerically indefinite estimate are set to zero)."""
+    eigenvalues of a numerically indefinite estimate are set to zero).
+
+    Parameters
+    ----------
+    covariance : numpy.ndarray
+        Covariance of (xc, yc), pixel^2: its upper-left 2 x 2 block is used.
+
+    Returns
+    -------
+    numpy.ndarray
+        The symmetric square root L, pixel, shape ``(2, 2)``.
+    """
     c = np.asarray(covariance, float)[:2, :2]
     w, v = np.linalg.eigh(0.5 * (c + c.T))
     return v @ np.diag(np.sqrt(np.clip(w, 0.0, None))) @ v.T
@@ -45,14 +69,38 @@ def centre_root(covariance: np.ndarray) -> np.ndarray:
 def centre_columns(slope: np.ndarray, gradient: np.ndarray, root: np.ndarray) -> np.ndarray:
     """Columns of the whitened centre shift u in a fitted quantity y(theta): y' (theta) d theta / d c . L.
 
-    ``slope`` (n,) dy / d theta (per degree), ``gradient`` (n, 2) d theta / d (xc, yc) (degree per pixel),
-    ``root`` L (2 x 2, pixel). Returns (n, 2)."""
+    Parameters
+    ----------
+    slope : numpy.ndarray
+        dy / d theta at each measurement, units of y per degree, shape ``(n,)``.
+    gradient : numpy.ndarray
+        d theta / d (xc, yc) at each measurement, degree per pixel, shape ``(n, 2)``.
+    root : numpy.ndarray
+        L (:func:`centre_root`), pixel, shape ``(2, 2)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        Design-matrix columns, units of y per unit of u, shape ``(n, 2)``.
+    """
     return np.asarray(slope, float)[:, None] * (np.asarray(gradient, float) @ np.asarray(root, float))
 
 
 def centre_variance(gradient: np.ndarray, covariance: np.ndarray) -> np.ndarray:
-    """Variance of theta (degree^2) that the centre's covariance alone gives: g C_c g^T per row of ``gradient``
-    (n, 2)."""
+    """Variance of theta that the centre's covariance alone gives: g C_c g^T per row of ``gradient``.
+
+    Parameters
+    ----------
+    gradient : numpy.ndarray
+        d theta / d (xc, yc) per measurement, degree per pixel, shape ``(n, 2)``.
+    covariance : numpy.ndarray
+        Covariance of (xc, yc), pixel^2: its upper-left 2 x 2 block is used.
+
+    Returns
+    -------
+    numpy.ndarray
+        Variance of theta per measurement, degree^2, shape ``(n,)``.
+    """
     g = np.asarray(gradient, float)
     c = np.asarray(covariance, float)[:2, :2]
     return np.einsum("ni,ij,nj->n", g, c, g)

@@ -33,19 +33,42 @@ class Board:
     margin_squares: float = 0.5
 
     def corners_mm(self) -> np.ndarray:
-        """Inner corners (nx*ny, 3) in the board frame, OpenCV order (i fastest)."""
+        """Inner corners (nx*ny, 3) in the board frame, OpenCV order (i fastest).
+
+        Returns
+        -------
+        numpy.ndarray
+            Board-frame positions of the inner corners, mm, shape ``(nx * ny, 3)`` with z = 0.
+        """
         i, j = np.meshgrid(np.arange(self.nx), np.arange(self.ny))
         x = (i.ravel() - (self.nx - 1) / 2) * self.square_mm
         y = (j.ravel() - (self.ny - 1) / 2) * self.square_mm
         return np.stack([x, y, np.zeros_like(x)], axis=1)
 
     def half_extent_mm(self) -> tuple[float, float]:
-        """Half width and height of the board including its white margin (mm)."""
+        """Half width and height of the board including its white margin (mm).
+
+        Returns
+        -------
+        tuple of float
+            (half width along x, half height along y), mm.
+        """
         return ((self.nx + 1) / 2 + self.margin_squares) * self.square_mm, \
                ((self.ny + 1) / 2 + self.margin_squares) * self.square_mm
 
     def outline_mm(self, n_per_side: int = 16) -> np.ndarray:
-        """Points along the outer edge of the board (incl. margin), (k, 3) mm."""
+        """Points along the outer edge of the board (incl. margin), (k, 3) mm.
+
+        Parameters
+        ----------
+        n_per_side : int, default 16
+            Points per side.
+
+        Returns
+        -------
+        numpy.ndarray
+            Board-frame points, mm, shape ``(4 * n_per_side, 3)`` with z = 0, going round the board.
+        """
         hx, hy = self.half_extent_mm()
         s = np.linspace(-1, 1, n_per_side, endpoint=False)
         pts = np.concatenate([
@@ -55,12 +78,40 @@ class Board:
 
 
 def rotation_matrix(rvec) -> np.ndarray:
-    """3x3 rotation matrix of a rotation vector (radians)."""
+    """3x3 rotation matrix of a rotation vector (radians).
+
+    Parameters
+    ----------
+    rvec : array_like
+        Rotation vector (axis times angle), radians, 3 elements.
+
+    Returns
+    -------
+    numpy.ndarray
+        Rotation matrix, shape ``(3, 3)``.
+    """
     return cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3, 1))[0]
 
 
 def project_points(model: FisheyeModel, points_mm, rvec, tvec) -> np.ndarray:
-    """Pixel positions (k, 2) of board-frame points through the model at a pose."""
+    """Pixel positions (k, 2) of board-frame points through the model at a pose.
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model.
+    points_mm : numpy.ndarray
+        Board-frame points, mm, shape ``(k, 3)``.
+    rvec : array_like
+        Rotation vector of the pose (board to camera), radians.
+    tvec : array_like
+        Translation of the pose, mm: camera = R(rvec) board + tvec.
+
+    Returns
+    -------
+    numpy.ndarray
+        Pixel coordinates (u, v), shape ``(k, 2)``; NaN where the model does not see the point.
+    """
     R = rotation_matrix(rvec)
     cam = np.asarray(points_mm, float) @ R.T + np.asarray(tvec, float).reshape(1, 3)
     u, v = model.world2cam(cam)

@@ -47,7 +47,22 @@ class CornerResult:
 
 
 def to_uint8(image, low_pct: float = 0.5, high_pct: float = 99.5) -> np.ndarray:
-    """Stretch a float image between two percentiles to 0..255 uint8."""
+    """Stretch a float image between two percentiles to 0..255 uint8.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        Float image; NaN pixels are set to the low percentile.
+    low_pct : float, default 0.5
+        Percentile mapped to 0.
+    high_pct : float, default 99.5
+        Percentile mapped to 255.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 image of the same shape.
+    """
     img = np.asarray(image, dtype=float)
     finite = img[np.isfinite(img)]
     lo, hi = np.percentile(finite, [low_pct, high_pct]) if finite.size else (0.0, 1.0)
@@ -58,6 +73,18 @@ def to_uint8(image, low_pct: float = 0.5, high_pct: float = 99.5) -> np.ndarray:
 
 
 def upsample_factor(shape) -> int:
+    """Integer upsampling that brings an image's short side to ``MIN_DETECT_SIZE_PX``, at most ``MAX_UPSAMPLE``.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        (rows, cols) of the band image.
+
+    Returns
+    -------
+    int
+        The factor, 1 for images already large enough.
+    """
     return int(min(MAX_UPSAMPLE, max(1, np.ceil(MIN_DETECT_SIZE_PX / min(shape)))))
 
 
@@ -109,6 +136,21 @@ def validate_grid(corners, image, nx: int, ny: int) -> str:
 
     Checks that spacings along rows and columns vary smoothly and that the
     squares enclosed by the corners alternate dark / bright.
+
+    Parameters
+    ----------
+    corners : numpy.ndarray
+        Candidate corners (u, v), band pixels, shape ``(nx * ny, 2)``, row by row.
+    image : numpy.ndarray
+        Band image (float, e.g. DN), shape ``(rows, cols)``.
+    nx, ny : int
+        Inner corners per board row and per board column.
+
+    Returns
+    -------
+    str
+        Empty when the grid is plausible, else the reason ("corners collapse", "irregular corner spacing" or
+        "squares do not alternate dark/bright").
     """
     g = np.asarray(corners, float).reshape(ny, nx, 2)
     for axis in (0, 1):
@@ -146,7 +188,21 @@ def _orderings(nx, ny):
 def orient_corners(corners, image, nx: int, ny: int):
     """Reorder detected corners by the module's orientation rule.
 
-    Returns (corners, ambiguous).
+    Parameters
+    ----------
+    corners : numpy.ndarray
+        Detected corners (u, v), band pixels, shape ``(nx * ny, 2)``.
+    image : numpy.ndarray
+        Band image (float, e.g. DN), shape ``(rows, cols)``.
+    nx, ny : int
+        Inner corners per board row and per board column.
+
+    Returns
+    -------
+    corners : numpy.ndarray
+        The corners reordered, shape ``(nx * ny, 2)``.
+    ambiguous : bool
+        True when the board is symmetric (``nx + ny`` even) and the 180-degree ambiguity stays.
     """
     img = np.asarray(image, dtype=float)
     best = None
@@ -181,6 +237,21 @@ def detect_corners(image, nx: int, ny: int, *, upsample: int | None = None) -> C
     band pixel coordinates (pixel centres at integers), ordered by the
     module's orientation rule. When no board is found the result has
     ``corners=None`` and a message (nothing is raised).
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        Band image (float, e.g. DN), shape ``(rows, cols)``.
+    nx, ny : int
+        Inner corners per board row and per board column.
+    upsample : int, optional
+        Upsampling factor; :func:`upsample_factor` of the image when None.
+
+    Returns
+    -------
+    CornerResult
+        The corners (u, v), band pixels, shape ``(nx * ny, 2)``, the detector that found them and the ambiguity
+        flag; or ``corners=None`` and the reasons.
     """
     img = np.asarray(image, dtype=float)
     k = upsample_factor(img.shape) if upsample is None else int(upsample)
@@ -207,6 +278,24 @@ def detect_in_crop(image, seed, nx: int, ny: int, *, upsample: int, margin_px: f
     The crop is searched exactly as :func:`detect_corners` searches a whole
     image, at the upsampling ``upsample`` the whole image would get, and the
     corners come back in the whole image's band pixel coordinates.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        Band image (float, e.g. DN), shape ``(rows, cols)``.
+    seed : numpy.ndarray
+        Approximate corners (u, v), band pixels, shape ``(k, 2)``.
+    nx, ny : int
+        Inner corners per board row and per board column.
+    upsample : int
+        Upsampling factor of the search.
+    margin_px : float
+        Band pixels added around the seed corners' bounding box.
+
+    Returns
+    -------
+    CornerResult
+        As :func:`detect_corners`, corners in the whole image's band pixel coordinates.
     """
     img = np.asarray(image)
     seed = np.asarray(seed, float)
@@ -222,7 +311,20 @@ def detect_in_crop(image, seed, nx: int, ny: int, *, upsample: int, margin_px: f
 
 
 def corner_spacing_px(corners, nx: int, ny: int) -> float:
-    """Median distance between neighbouring corners along the rows (band px): about one square."""
+    """Median distance between neighbouring corners along the rows (band px): about one square.
+
+    Parameters
+    ----------
+    corners : numpy.ndarray
+        Corners (u, v), band pixels, shape ``(nx * ny, 2)``, row by row.
+    nx, ny : int
+        Inner corners per board row and per board column.
+
+    Returns
+    -------
+    float
+        Median spacing, band pixels.
+    """
     g = np.asarray(corners, float).reshape(ny, nx, 2)
     return float(np.median(np.linalg.norm(np.diff(g, axis=1), axis=-1)))
 
@@ -233,6 +335,20 @@ def locate_board(image, nx: int, ny: int, coarse_size_px: int) -> np.ndarray | N
     Area averaging when the image shrinks, cubic when it grows; the
     detectors run without their sub-pixel refinement, which the crop search
     does. Returns None when no plausible grid is found there.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        Band image (float, e.g. DN), shape ``(rows, cols)``.
+    nx, ny : int
+        Inner corners per board row and per board column.
+    coarse_size_px : int
+        Short side of the resampled image, pixels.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        Approximate corners (u, v), band pixels, shape ``(nx * ny, 2)``, or None.
     """
     img = np.asarray(image, dtype=float)
     s = float(coarse_size_px) / min(img.shape)
@@ -259,6 +375,22 @@ def detect_corners_coarse_to_fine(image, nx: int, ny: int, *, coarse_size_px: in
     When the coarse search finds nothing, or the crop search fails, or the
     whole-image search would run at no more pixels than the coarse one, the
     whole image is searched (:func:`detect_corners`).
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        Band image (float, e.g. DN), shape ``(rows, cols)``.
+    nx, ny : int
+        Inner corners per board row and per board column.
+    coarse_size_px : int
+        Short side of the resampled image of the coarse search, pixels.
+    margin_squares : float
+        Margin of the crop around the located board, in squares.
+
+    Returns
+    -------
+    CornerResult
+        As :func:`detect_corners`.
     """
     img = np.asarray(image, dtype=float)
     k = upsample_factor(img.shape)

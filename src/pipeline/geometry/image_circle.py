@@ -107,9 +107,26 @@ def find_image_circle(image, *, n_profiles: int = N_PROFILES, window_frac: float
                       lit_fraction: float = LIT_FRACTION) -> ImageCircle:
     """Centre and radius (pixels) of the bright image circle in a band image.
 
-    ``image`` may be one frame or the maximum over frames. ``window_frac``
-    is the half-length of each radial profile as a fraction of the coarse
-    radius; ``lit_fraction`` the lit level (module docstring).
+    Parameters
+    ----------
+    image : numpy.ndarray
+        Band image, DN, shape ``(rows, cols)``: one frame or the maximum over frames.
+    n_profiles : int, default N_PROFILES
+        Number of radial profiles, evenly spread in azimuth.
+    window_frac : float, default 0.08
+        Half-length of each radial profile as a fraction of the coarse radius.
+    lit_fraction : float, default LIT_FRACTION
+        The lit level (module docstring).
+
+    Returns
+    -------
+    ImageCircle
+        Centre (u, v) and radius, pixels, the RMS distance of the edge points from the circle and their number.
+
+    Raises
+    ------
+    ValueError
+        When fewer than 10 profiles give an edge point.
     """
     img = np.asarray(image, dtype=float)
     cx, cy, r0, k = _coarse_circle(img, lit_fraction)
@@ -158,6 +175,24 @@ def outside_lit_fraction(image, circle: ImageCircle, dark_level_dn: float, *, ri
     lit everywhere (an ordinary camera, or a circle fitted to noise) gives about 1;
     NaN when the circle leaves no pixel outside it, or when the inside is lit by less
     than ``min_snr`` times the pixel noise outside (robust: 1.4826 MAD), i.e. not at all.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        Band image, DN, shape ``(rows, cols)``.
+    circle : ImageCircle
+        The image circle.
+    dark_level_dn : float
+        Dark level subtracted from both medians, DN.
+    rim_margin : float, default 0.05
+        Fraction of the radius left out on either side of the circle.
+    min_snr : float, default 5.0
+        Least ratio of the inside's lit level to the outside's pixel noise.
+
+    Returns
+    -------
+    float
+        The fraction (dimensionless), or NaN.
     """
     img = np.asarray(image, dtype=float)
     r = radius_map(img.shape, (circle.xc, circle.yc))
@@ -173,7 +208,22 @@ def outside_lit_fraction(image, circle: ImageCircle, dark_level_dn: float, *, ri
 
 
 def half_fov_from_circle(model: FisheyeModel, circle: ImageCircle, n_azimuths: int = 36) -> float:
-    """Half field of view (degrees): model theta on the circle, averaged over azimuths."""
+    """Half field of view (degrees): model theta on the circle, averaged over azimuths.
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model.
+    circle : ImageCircle
+        The image circle, pixels.
+    n_azimuths : int, default 36
+        Points on the circle averaged over.
+
+    Returns
+    -------
+    float
+        Half field of view, degree.
+    """
     az = np.linspace(0, 2 * np.pi, n_azimuths, endpoint=False)
     theta, _ = model.theta_phi(circle.xc + circle.radius * np.cos(az),
                                circle.yc + circle.radius * np.sin(az))

@@ -23,9 +23,17 @@ MATLAB_ORIGIN_PX = 1.0
 def read_fisheye_params(path: Path) -> dict:
     """Corners and solution of a MATLAB ``fisheyeParams`` file.
 
-    Returns {"corners": list over boards of (k, 2) detected (u, v), 0-based pixels; "board_mm": (k, 3)
-    board points (mm, z = 0); "model": the file's :class:`FisheyeModel` (0-based centre, its stretch
-    matrix); "mean_error_px": the file's mean reprojection error; "image_shape": (rows, cols)}.
+    Parameters
+    ----------
+    path : pathlib.Path
+        The ``.mat`` file (MATLAB v5) holding a ``fisheyeParams`` structure.
+
+    Returns
+    -------
+    dict
+        ``"corners"``: list over boards of ``(k, 2)`` detected (u, v), 0-based pixels; ``"board_mm"``: ``(k, 3)``
+        board points (mm, z = 0); ``"model"``: the file's :class:`FisheyeModel` (0-based centre, its stretch
+        matrix); ``"mean_error_px"``: the file's mean reprojection error, pixels; ``"image_shape"``: (rows, cols).
     """
     from scipy.io import loadmat
 

@@ -48,15 +48,49 @@ class PinholeModel:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     def parameters(self) -> np.ndarray:
+        """The model's parameters as one vector, in the order of ``PARAMETERS``.
+
+        Returns
+        -------
+        numpy.ndarray
+            (fx, fy, cx, cy) in pixels, then the distortion coefficients (dimensionless).
+        """
         return np.concatenate([[self.fx, self.fy, self.cx, self.cy], np.asarray(self.dist, float)])
 
     @classmethod
     def from_parameters(cls, p, shape) -> PinholeModel:
+        """The model of a parameter vector as :meth:`parameters` writes it.
+
+        Parameters
+        ----------
+        p : array_like
+            (fx, fy, cx, cy) in pixels, then the distortion coefficients.
+        shape : tuple of int
+            (rows, cols) of the band image.
+
+        Returns
+        -------
+        PinholeModel
+            The model.
+        """
         p = np.asarray(p, float)
         return cls(p[0], p[1], p[2], p[3], p[4:].copy(), tuple(shape))
 
     def normalised(self, u, v) -> tuple[np.ndarray, np.ndarray]:
-        """Undistorted normalised ray coordinates (x, y) of pixels (u, v) (OpenCV's undistortPoints)."""
+        """Undistorted normalised ray coordinates (x, y) of pixels (u, v) (OpenCV's undistortPoints).
+
+        Parameters
+        ----------
+        u, v : numpy.ndarray
+            Pixel coordinates (column, row; pixel centres at integers).
+
+        Returns
+        -------
+        x : numpy.ndarray
+            Normalised coordinate X/Z of each ray, of the shape of ``u``.
+        y : numpy.ndarray
+            Normalised coordinate Y/Z of each ray.
+        """
         import cv2
 
         u = np.asarray(u, float)
@@ -67,12 +101,36 @@ class PinholeModel:
         return xy[:, 0].reshape(u.shape), xy[:, 1].reshape(u.shape)
 
     def theta_phi(self, u, v) -> tuple[np.ndarray, np.ndarray]:
-        """Field angle theta and azimuth phi (degrees) of the rays that land on pixels (u, v)."""
+        """Field angle theta and azimuth phi (degrees) of the rays that land on pixels (u, v).
+
+        Parameters
+        ----------
+        u, v : numpy.ndarray
+            Pixel coordinates (column, row; pixel centres at integers).
+
+        Returns
+        -------
+        theta : numpy.ndarray
+            Angle from the optical axis, degree.
+        phi : numpy.ndarray
+            Azimuth ``atan2(y, x)``, degree in (-180, 180].
+        """
         x, y = self.normalised(u, v)
         return np.degrees(np.arctan(np.hypot(x, y))), np.degrees(np.arctan2(y, x))
 
     def project(self, points_cam: np.ndarray) -> np.ndarray:
-        """Pixels (u, v) of camera-frame points (N, 3) (OpenCV's projectPoints)."""
+        """Pixels (u, v) of camera-frame points (N, 3) (OpenCV's projectPoints).
+
+        Parameters
+        ----------
+        points_cam : numpy.ndarray
+            Points in the camera frame (any length unit), shape ``(N, 3)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            Pixel coordinates (u, v), shape ``(N, 2)``.
+        """
         import cv2
 
         pts = np.asarray(points_cam, float).reshape(-1, 1, 3)
@@ -97,9 +155,30 @@ def calibrate_pinhole(image_points: list[np.ndarray | None], object_points_mm: n
                       shape: tuple[int, int], *, fit_k3: bool = False) -> PinholeCalibration:
     """Intrinsics and distortion of one band image from the chessboard corners of several frames.
 
-    ``image_points``: per frame the (N, 2) detected corners (u, v) or None (no board);
-    ``object_points_mm``: the board's (N, 3) corners in its own plane (z = 0). k3 is fixed at 0
-    unless ``fit_k3`` (a phone lens to 40 degrees needs k1, k2; k3 only trades against them).
+    k3 is fixed at 0 unless ``fit_k3`` (a phone lens to 40 degrees needs k1, k2; k3 only trades against them).
+
+    Parameters
+    ----------
+    image_points : list of numpy.ndarray or None
+        Per frame the ``(N, 2)`` detected corners (u, v), pixels, or None (no board).
+    object_points_mm : numpy.ndarray
+        The board's ``(N, 3)`` corners in its own plane (z = 0), mm.
+    shape : tuple of int
+        (rows, cols) of the band image.
+    fit_k3 : bool, default False
+        Fit the sixth-order radial coefficient k3.
+
+    Returns
+    -------
+    PinholeCalibration
+        The model, the RMS and mean reprojection errors (pixels), the frames used, the per-frame RMS, the
+        covariance of the intrinsic parameters (board poses profiled out, scaled by the reduced chi-square), the
+        residuals and the reduced chi-square (pixel^2).
+
+    Raises
+    ------
+    ValueError
+        With fewer than three frames with a board.
     """
     import cv2
 
@@ -149,8 +228,24 @@ def pinhole_maps(model: PinholeModel, covariance: np.ndarray | None = None,
     The solid angle is that of the pixel's square on the sky: dOmega = dx dy / (1 + x^2 + y^2)^(3/2)
     on the normalised plane, with dx dy the pixel's area mapped through the undistortion
     (central differences of ``step_px``). theta_deg_sigma: first-order propagation of
-    ``covariance`` (parameters in ``parameter_names`` order), derivatives by central differences;
-    NaN without a covariance.
+    ``covariance``, derivatives by central differences; NaN without a covariance.
+
+    Parameters
+    ----------
+    model : PinholeModel
+        The band image's model.
+    covariance : numpy.ndarray, optional
+        Covariance of the parameters named in ``parameter_names``, in their units.
+    parameter_names : tuple of str, default ``PARAMETERS[:8]``
+        The parameters the covariance is over, in its order.
+    step_px : float, default 0.5
+        Half step of the central differences of the pixel area, pixels.
+
+    Returns
+    -------
+    dict[str, numpy.ndarray]
+        ``"theta_deg"`` (degree), ``"phi_deg"`` (degree), ``"solid_angle_sr"`` (sr) and ``"theta_deg_sigma"``
+        (degree), each of shape ``model.shape``.
     """
     rows, cols = model.shape
     v, u = np.mgrid[0:rows, 0:cols].astype(float)

@@ -90,17 +90,49 @@ class FisheyeModel:
         return np.array([[self.c, self.d], [self.e, 1.0]])
 
     def f(self, rho):
-        """f(rho) of the polynomial (pixels), Eq. (5) of Larouche et al. (2024)."""
+        """f(rho) of the polynomial (pixels), Eq. (5) of Larouche et al. (2024).
+
+        Parameters
+        ----------
+        rho : float or numpy.ndarray
+            Radial distance on the sensor plane from the principal point, pixels.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``f(rho) = a0 + a2 rho^2 + ...``, pixels, of the shape of ``rho``; negative where theta exceeds 90 degrees.
+        """
         return np.polynomial.polynomial.polyval(rho, self.poly)
 
     def df(self, rho):
-        """Derivative of f with respect to rho."""
+        """Derivative of f with respect to rho.
+
+        Parameters
+        ----------
+        rho : float or numpy.ndarray
+            Radial distance on the sensor plane from the principal point, pixels.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``f'(rho)`` (dimensionless, pixels per pixel), of the shape of ``rho``.
+        """
         return np.polynomial.polynomial.polyval(rho, _derivative(self.poly))
 
     def theta_of_rho(self, rho):
         """Angle from the optical axis (radians) at radial distance rho (pixels).
 
         tan(theta) = rho / f(rho), Eq. (7).
+
+        Parameters
+        ----------
+        rho : float or numpy.ndarray
+            Radial distance on the sensor plane from the principal point, pixels.
+
+        Returns
+        -------
+        numpy.ndarray
+            Field angle theta, radians (0 on the optical axis, beyond pi/2 where f < 0), of the shape of ``rho``.
         """
         rho = np.asarray(rho, dtype=float)
         return np.arctan2(rho, self.f(rho))
@@ -117,14 +149,31 @@ class FisheyeModel:
 
     # ---------------------------------------------------------------- mappings
     def cam2world(self, u, v) -> np.ndarray:
-        """Unit rays (..., 3) in the camera frame seen by pixel coordinates (u, v)."""
+        """Unit rays (..., 3) in the camera frame seen by pixel coordinates (u, v).
+
+        Parameters
+        ----------
+        u, v : float or numpy.ndarray
+            Pixel coordinates (column, row; pixel centres at integers), broadcastable to each other.
+
+        Returns
+        -------
+        numpy.ndarray
+            Unit ray directions, shape ``(..., 3)`` (x right, y down, z along the optical axis into the scene).
+        """
         x, y = self._sensor_xy(u, v)
         z = self.f(np.hypot(x, y))
         ray = np.stack(np.broadcast_arrays(x, y, z), axis=-1)
         return ray / np.linalg.norm(ray, axis=-1, keepdims=True)
 
     def rho_max(self) -> float:
-        """Upper end of the radial domain over which theta(rho) is inverted."""
+        """Upper end of the radial domain over which theta(rho) is inverted.
+
+        Returns
+        -------
+        float
+            The image diagonal, pixels, enlarged by ``1 / |det A|`` when the stretch matrix shrinks the sensor plane.
+        """
         h, w = self.shape
         return float(np.hypot(h, w)) * max(1.0, 1.0 / abs(self.c - self.d * self.e))
 
@@ -140,6 +189,17 @@ class FisheyeModel:
         five Newton steps on ``atan2(rho, f(rho)) - theta`` polish it to
         rounding error, which is robust for theta beyond 90 degrees where
         f(rho) changes sign.
+
+        Parameters
+        ----------
+        theta_rad : float or numpy.ndarray
+            Field angle from the optical axis, radians.
+
+        Returns
+        -------
+        numpy.ndarray
+            Radial distance rho on the sensor plane, pixels, of the shape of ``theta_rad``; NaN for negative,
+            non-finite or out-of-domain angles.
         """
         theta = np.asarray(theta_rad, dtype=float)
         t_lut, r_lut = self._lut()
@@ -157,6 +217,18 @@ class FisheyeModel:
         """Pixel coordinates (u, v) of camera-frame rays (..., 3) (any length).
 
         Rays outside the model's monotone domain give NaN.
+
+        Parameters
+        ----------
+        rays : numpy.ndarray
+            Ray directions in the camera frame, shape ``(..., 3)``, of any length.
+
+        Returns
+        -------
+        u : numpy.ndarray
+            Column coordinate of each ray's pixel, pixels, shape ``(...)``; NaN outside the domain.
+        v : numpy.ndarray
+            Row coordinate of each ray's pixel, pixels, shape ``(...)``; NaN outside the domain.
         """
         rays = np.asarray(rays, dtype=float)
         x, y = rays[..., 0], rays[..., 1]
@@ -171,7 +243,22 @@ class FisheyeModel:
         return u, v
 
     def theta_phi(self, u, v, degrees: bool = True):
-        """Angle from the optical axis and azimuth of pixel coordinates (u, v)."""
+        """Angle from the optical axis and azimuth of pixel coordinates (u, v).
+
+        Parameters
+        ----------
+        u, v : float or numpy.ndarray
+            Pixel coordinates (column, row; pixel centres at integers).
+        degrees : bool, default True
+            Return degrees (True) or radians (False).
+
+        Returns
+        -------
+        theta : numpy.ndarray
+            Angle from the optical axis, degree (or radian).
+        phi : numpy.ndarray
+            Azimuth ``atan2(y, x)`` in the camera frame, from +u towards +v, in ``(-180, 180]`` degree (or radian).
+        """
         x, y = self._sensor_xy(u, v)
         theta = self.theta_of_rho(np.hypot(x, y))
         phi = np.arctan2(y, x)
@@ -184,6 +271,16 @@ class FisheyeModel:
 
         For the ray r = (x', y', f(rho)), d(Omega) = |f - rho f'| /
         (rho^2 + f^2)^(3/2) dx' dy', and dx' dy' = du dv / |det A|.
+
+        Parameters
+        ----------
+        u, v : float or numpy.ndarray
+            Pixel coordinates (column, row; pixel centres at integers).
+
+        Returns
+        -------
+        numpy.ndarray
+            Solid angle per unit pixel area, sr px-2, of the broadcast shape of ``u`` and ``v``.
         """
         x, y = self._sensor_xy(u, v)
         rho = np.hypot(x, y)
@@ -192,7 +289,23 @@ class FisheyeModel:
         return dens / abs(self.c - self.d * self.e)
 
     def image_circle_radius(self, half_fov_deg: float | None = None) -> float:
-        """Radial distance rho (pixels, sensor plane) where theta = half FOV."""
+        """Radial distance rho (pixels, sensor plane) where theta = half FOV.
+
+        Parameters
+        ----------
+        half_fov_deg : float, optional
+            Half field of view, degree; the model's own ``half_fov_deg`` when None.
+
+        Returns
+        -------
+        float
+            Radius rho of the image circle on the sensor plane, pixels (NaN beyond the model's domain).
+
+        Raises
+        ------
+        ValueError
+            When neither the argument nor the model gives a half field of view.
+        """
         hf = self.half_fov_deg if half_fov_deg is None else half_fov_deg
         if hf is None:
             raise ValueError("model has no half_fov_deg; pass one")
@@ -200,7 +313,20 @@ class FisheyeModel:
 
     # ----------------------------------------------------------------- scaling
     def scaled(self, s: float, shape: tuple[int, int] | None = None) -> "FisheyeModel":
-        """The same lens imaged on a grid scaled by s (edges fixed, see module doc)."""
+        """The same lens imaged on a grid scaled by s (edges fixed, see module doc).
+
+        Parameters
+        ----------
+        s : float
+            Scale factor of the new pixel grid (e.g. 0.5 for the Bayer band images of a raw mosaic).
+        shape : tuple of int, optional
+            (rows, cols) of the scaled image; the model's shape times ``s``, rounded, when None.
+
+        Returns
+        -------
+        FisheyeModel
+            The model with coefficients ``a_k s^(1-k)`` and principal point ``s (xc + 0.5) - 0.5``.
+        """
         poly = tuple(a * s ** (1 - k) for k, a in enumerate(self.poly))
         if shape is None:
             shape = tuple(int(round(n * s)) for n in self.shape)
@@ -214,6 +340,14 @@ class FisheyeModel:
 
     # ------------------------------------------------------------ persistence
     def to_dict(self) -> dict:
+        """The model's parameters as plain numbers and lists, as written to YAML (``meta`` is not kept).
+
+        Returns
+        -------
+        dict
+            Keys ``poly`` (pixels), ``xc``, ``yc`` (pixels), ``c``, ``d``, ``e`` (stretch), ``shape`` (rows, cols) and
+            ``half_fov_deg`` (degree or None).
+        """
         return {
             "poly": list(self.poly),
             "xc": self.xc,
@@ -227,6 +361,19 @@ class FisheyeModel:
 
     @classmethod
     def from_dict(cls, d: dict) -> "FisheyeModel":
+        """The model written by :meth:`to_dict`.
+
+        Parameters
+        ----------
+        d : dict
+            Keys as :meth:`to_dict` writes them; ``c``, ``d``, ``e`` default to no stretch (1, 0, 0) and
+            ``half_fov_deg`` to None when absent.
+
+        Returns
+        -------
+        FisheyeModel
+            The model.
+        """
         return cls(
             poly=tuple(d["poly"]),
             xc=float(d["xc"]),
@@ -244,6 +391,16 @@ def field_angle_rad(rays) -> np.ndarray:
 
     tan(theta) = hypot(x, y) / z: Eq. (7) for the ray (x', y', f(rho)) a
     pixel sees; beyond 90 degrees where z < 0.
+
+    Parameters
+    ----------
+    rays : numpy.ndarray
+        Ray directions in the camera frame, shape ``(..., 3)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        Field angle theta, radians, shape ``(...)``.
     """
     rays = np.asarray(rays, dtype=float)
     return np.arctan2(np.hypot(rays[..., 0], rays[..., 1]), rays[..., 2])
@@ -254,6 +411,20 @@ def fit_poly_to_theta(rho, theta_rad, degree: int = 4) -> tuple[float, ...]:
 
     The condition rho cos(theta) = f(rho) sin(theta) is linear in the
     coefficients; rows are weighted so that residuals are ~ radians.
+
+    Parameters
+    ----------
+    rho : numpy.ndarray
+        Radial distances on the sensor plane, pixels, shape ``(n,)``.
+    theta_rad : numpy.ndarray
+        Field angles at those distances, radians, shape ``(n,)``.
+    degree : int, default 4
+        Polynomial degree N of f(rho).
+
+    Returns
+    -------
+    tuple of float
+        Ascending coefficients ``(a0, 0, a2, ..., aN)`` of f(rho), pixels.
     """
     rho = np.asarray(rho, float)
     theta = np.asarray(theta_rad, float)

@@ -18,7 +18,18 @@ ZENITH_LENS = "close"
 
 
 def grid_shape(grid_deg: float) -> tuple[int, int]:
-    """(zenith, azimuth) cells of the grid: 180 / grid_deg by 360 / grid_deg."""
+    """(zenith, azimuth) cells of the grid: 180 / grid_deg by 360 / grid_deg.
+
+    Parameters
+    ----------
+    grid_deg : float
+        Cell size in zenith angle and azimuth, degree.
+
+    Returns
+    -------
+    tuple of int
+        (number of zenith rows, number of azimuth columns).
+    """
     return int(round(180.0 / grid_deg)), int(round(360.0 / grid_deg))
 
 
@@ -26,6 +37,24 @@ def sphere_coordinates(theta_deg, phi_deg, looks_up: bool, out=None):
     """Zenith angle and azimuth (deg) of a lens pixel's direction, by the sphere convention of this module.
 
     With ``out = (zenith, azimuth)`` (arrays of the maps' shape and float type) they are computed there.
+
+    Parameters
+    ----------
+    theta_deg : numpy.ndarray
+        Angle of each pixel from its lens's optical axis, degree.
+    phi_deg : numpy.ndarray
+        Azimuth of each pixel in its lens's camera frame, degree.
+    looks_up : bool
+        True for the lens that looks at the zenith (``ZENITH_LENS``), False for the one that looks at the nadir.
+    out : tuple of numpy.ndarray, optional
+        (zenith, azimuth) arrays to write into.
+
+    Returns
+    -------
+    zenith : numpy.ndarray
+        Zenith angle, degree in [0, 180] (for the zenith lens, ``theta_deg`` itself unless ``out`` is given).
+    azimuth : numpy.ndarray
+        Azimuth, degree in [0, 360).
     """
     theta, phi = np.asarray(theta_deg), np.asarray(phi_deg)
     # float32 maps stay float32 (as the bundle's are); anything else becomes float64
@@ -51,6 +80,18 @@ def wrap_degrees(angle_deg, out=None):
     that is x + 360 [x < 0] (x + 0 turns -0 into +0), three vectorised passes
     instead of a remainder per element. Other angles go through ``np.mod``.
     NaN stays NaN. ``out`` may be ``angle_deg`` itself.
+
+    Parameters
+    ----------
+    angle_deg : numpy.ndarray
+        Angles, degree.
+    out : numpy.ndarray, optional
+        Array to write into.
+
+    Returns
+    -------
+    numpy.ndarray
+        The angles modulo 360, degree in [0, 360).
     """
     x = np.asarray(angle_deg)
     if x.size == 0 or x.dtype.kind != "f":
@@ -65,7 +106,23 @@ def wrap_degrees(angle_deg, out=None):
 
 
 def sphere_cells(zenith_deg, azimuth_deg, grid_deg: float) -> np.ndarray:
-    """Index of the zenith/azimuth cell of every direction (row-major on the grid, int32); -1 where undefined."""
+    """Index of the zenith/azimuth cell of every direction (row-major on the grid, int32); -1 where undefined.
+
+    Parameters
+    ----------
+    zenith_deg : numpy.ndarray
+        Zenith angle of each direction, degree.
+    azimuth_deg : numpy.ndarray
+        Azimuth of each direction, degree in [0, 360).
+    grid_deg : float
+        Cell size, degree.
+
+    Returns
+    -------
+    numpy.ndarray
+        Cell index ``zenith_row * n_azimuth + azimuth_column`` (int32) of the shape of ``zenith_deg``; -1 where a
+        coordinate is not finite. Angles on or beyond the grid's edge fall in the edge cell.
+    """
     n_z, n_a = grid_shape(grid_deg)
     z, a = np.asarray(zenith_deg).ravel(), np.asarray(azimuth_deg).ravel()
     z = z if z.dtype.kind == "f" else z.astype(float)

@@ -41,14 +41,47 @@ _ROWS_PER_BLOCK = 64
 
 
 def parameter_names(stretch: str, degree: int) -> tuple[str, ...]:
-    """Names of the fitted model parameters, in the order of their covariance."""
+    """Names of the fitted model parameters, in the order of their covariance.
+
+    Parameters
+    ----------
+    stretch : str
+        Stretch model of the fit: "symmetric", "full" or "none".
+    degree : int
+        Polynomial degree N of f(rho).
+
+    Returns
+    -------
+    tuple of str
+        ``("xc_px", "yc_px", <stretch terms>, "a0", "a2", ..., "aN")``.
+    """
     head = {"symmetric": ("stretch_c", "stretch_d_and_e"), "full": ("stretch_c", "stretch_d", "stretch_e"),
             "none": ()}[stretch]
     return ("xc_px", "yc_px", *head, "a0", *(f"a{k}" for k in range(2, degree + 1)))
 
 
 def shifted_model(model: FisheyeModel, name: str, h: float) -> FisheyeModel:
-    """``model`` with parameter ``name`` (of :func:`parameter_names`) moved by ``h``."""
+    """``model`` with parameter ``name`` (of :func:`parameter_names`) moved by ``h``.
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model.
+    name : str
+        A parameter name of :func:`parameter_names`.
+    h : float
+        Shift, in the parameter's unit (pixels for the centre and a_k's own units for coefficients).
+
+    Returns
+    -------
+    FisheyeModel
+        The shifted model.
+
+    Raises
+    ------
+    ValueError
+        On an unknown parameter name.
+    """
     if name.startswith("a") and name[1:].isdigit():
         k = int(name[1:])
         poly = list(model.poly) + [0.0] * max(0, k + 1 - len(model.poly))
@@ -70,7 +103,22 @@ def shifted_model(model: FisheyeModel, name: str, h: float) -> FisheyeModel:
 
 
 def theta_gradient(model: FisheyeModel, names, u, v) -> np.ndarray:
-    """d theta / d p (degree per unit of each parameter), shape ``(len(names), *u.shape)``."""
+    """d theta / d p (degree per unit of each parameter), shape ``(len(names), *u.shape)``.
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model.
+    names : sequence of str
+        Parameters (of :func:`parameter_names`) to differentiate against.
+    u, v : numpy.ndarray
+        Pixel coordinates (broadcast together).
+
+    Returns
+    -------
+    numpy.ndarray
+        d theta / d p, degree per unit of each parameter, shape ``(len(names), *u.shape)``.
+    """
     u, v = np.broadcast_arrays(np.asarray(u, float), np.asarray(v, float))
     x, y = model._sensor_xy(u, v)
     rho = np.hypot(x, y)
@@ -96,13 +144,47 @@ def theta_gradient(model: FisheyeModel, names, u, v) -> np.ndarray:
 
 
 def theta_covariance(model: FisheyeModel, names, covariance, u, v) -> np.ndarray:
-    """Covariance (degree^2) of theta between the pixels (u, v) (1-D arrays of k points): (k, k)."""
+    """Covariance (degree^2) of theta between the pixels (u, v) (1-D arrays of k points): (k, k).
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model.
+    names : sequence of str
+        Parameters (of :func:`parameter_names`) to differentiate against.
+    covariance : numpy.ndarray
+        Covariance of the parameters ``names``, in their units, shape ``(len(names), len(names))``.
+    u, v : numpy.ndarray
+        Pixel coordinates of the k points.
+
+    Returns
+    -------
+    numpy.ndarray
+        Covariance of theta between the points, degree^2, shape ``(k, k)``.
+    """
     g = theta_gradient(model, names, np.ravel(u), np.ravel(v))
     return g.T @ np.asarray(covariance, float) @ g
 
 
 def theta_sigma_map(model: FisheyeModel, names, covariance, shape=None) -> np.ndarray:
-    """Standard uncertainty (degree) of theta at every pixel centre of an image (float32)."""
+    """Standard uncertainty (degree) of theta at every pixel centre of an image (float32).
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model.
+    names : sequence of str
+        Parameters (of :func:`parameter_names`) to differentiate against.
+    covariance : numpy.ndarray
+        Covariance of the parameters ``names``, in their units, shape ``(len(names), len(names))``.
+    shape : tuple of int, optional
+        (rows, cols) of the image; ``model.shape`` when None.
+
+    Returns
+    -------
+    numpy.ndarray
+        Standard uncertainty of theta, degree, float32, shape ``(rows, cols)``.
+    """
     rows, cols = model.shape if shape is None else shape
     cov = np.asarray(covariance, float)
     out = np.empty((rows, cols), np.float32)
@@ -121,6 +203,24 @@ def theta_sigma_at_field_angles(model: FisheyeModel, names, covariance, theta_de
 
     NaN beyond the model's half field of view (when it has one) or its domain.
     At theta = 0 the limit from off the axis (``_AXIS_RHO_PX``, see the module docstring).
+
+    Parameters
+    ----------
+    model : FisheyeModel
+        The lens's geometric model.
+    names : sequence of str
+        Parameters (of :func:`parameter_names`) to differentiate against.
+    covariance : numpy.ndarray
+        Covariance of the parameters ``names``, in their units, shape ``(len(names), len(names))``.
+    theta_deg : numpy.ndarray
+        Field angles, degree.
+    n_azimuth : int, default 36
+        Azimuths averaged over.
+
+    Returns
+    -------
+    numpy.ndarray
+        RMS standard uncertainty of theta at each field angle, degree, of the shape of ``theta_deg``.
     """
     theta_deg = np.asarray(theta_deg, float)
     rho = np.maximum(model.rho_of_theta(np.radians(theta_deg)), _AXIS_RHO_PX)

@@ -60,7 +60,25 @@ LEVEL = Attitude()
 
 
 def read_attitude(path) -> pd.DataFrame:
-    """The attitude log as a table indexed by UTC time (sorted), its columns checked; bad input: one line."""
+    """The attitude log as a table indexed by UTC time (sorted), its columns checked; bad input: one line.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The attitude log (CSV with the columns ``ATTITUDE_COLUMNS``, module docstring).
+
+    Returns
+    -------
+    pandas.DataFrame
+        Roll, pitch, heading and their standard uncertainties (degree), indexed by UTC time; ``attrs["path"]`` the
+        file.
+
+    Raises
+    ------
+    InputError
+        When the file cannot be read, lacks a column, has no rows, a time that is not ISO 8601, a value that is
+        not a number, a negative uncertainty or two rows at one time.
+    """
     path = Path(path)
     try:
         table = pd.read_csv(path)
@@ -93,7 +111,27 @@ def read_attitude(path) -> pd.DataFrame:
 
 
 def attitude_at(log: pd.DataFrame, times_utc: pd.DatetimeIndex, frame_names=None) -> list[Attitude]:
-    """Each frame's attitude, linearly interpolated in time (heading unwrapped); outside the log: one line."""
+    """Each frame's attitude, linearly interpolated in time (heading unwrapped); outside the log: one line.
+
+    Parameters
+    ----------
+    log : pandas.DataFrame
+        The attitude log (:func:`read_attitude`).
+    times_utc : pandas.DatetimeIndex
+        The frames' UTC times.
+    frame_names : sequence of str, optional
+        Names of the frames for the error message; the times when None.
+
+    Returns
+    -------
+    list of Attitude
+        One attitude per frame, degree (heading in [0, 360)), the sigmas interpolated as the angles are.
+
+    Raises
+    ------
+    InputError
+        When a frame's time is outside the log's span.
+    """
     t = log.index.as_unit("ns").asi8.astype(float)
     first, last = log.index[0], log.index[-1]
     names = list(frame_names) if frame_names is not None else [str(x) for x in times_utc]
@@ -115,7 +153,22 @@ def attitude_at(log: pd.DataFrame, times_utc: pd.DatetimeIndex, frame_names=None
 
 
 def rotation(roll_deg: float, pitch_deg: float, heading_deg: float) -> Rotation:
-    """Camera (forward, right, down) to earth (north, east, down): Rz(heading) Ry(pitch) Rx(roll)."""
+    """Camera (forward, right, down) to earth (north, east, down): Rz(heading) Ry(pitch) Rx(roll).
+
+    Parameters
+    ----------
+    roll_deg : float
+        Roll, degree (positive lowers the right axis).
+    pitch_deg : float
+        Pitch, degree (positive raises the forward axis).
+    heading_deg : float
+        Heading, degree from north towards east.
+
+    Returns
+    -------
+    scipy.spatial.transform.Rotation
+        The rotation from camera to earth (NED) components.
+    """
     return Rotation.from_euler("ZYX", [heading_deg, pitch_deg, roll_deg], degrees=True)
 
 
@@ -123,6 +176,18 @@ def earth_up_in_camera(roll_deg: float, pitch_deg: float) -> np.ndarray:
     """The earth's zenith as a unit vector in the grid's components (sin z cos a, sin z sin a, cos z).
 
     Heading turns about the vertical and leaves it unchanged.
+
+    Parameters
+    ----------
+    roll_deg : float
+        Roll, degree.
+    pitch_deg : float
+        Pitch, degree.
+
+    Returns
+    -------
+    numpy.ndarray
+        The unit vector of the earth's zenith in the camera's grid components, shape ``(3,)``.
     """
     down_in_camera = rotation(roll_deg, pitch_deg, 0.0).inv().apply([0.0, 0.0, 1.0])
     return _FLIP @ (-down_in_camera)
@@ -130,14 +195,40 @@ def earth_up_in_camera(roll_deg: float, pitch_deg: float) -> np.ndarray:
 
 def camera_to_earth_directions(attitude: Attitude, camera_vectors: np.ndarray) -> np.ndarray:
     """Grid-component unit vectors of camera directions (..., 3) as earth-frame grid components
-    (sin z cos a, sin z sin a, cos z) with a from north towards east."""
+    (sin z cos a, sin z sin a, cos z) with a from north towards east.
+
+    Parameters
+    ----------
+    attitude : Attitude
+        The frame's roll, pitch and heading, degree.
+    camera_vectors : numpy.ndarray
+        Unit vectors in the camera's grid components, shape ``(..., 3)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        The same directions in the earth's grid components (azimuth from north towards east), shape ``(..., 3)``.
+    """
     r = rotation(attitude.roll_deg, attitude.pitch_deg, attitude.heading_deg)
     flat = camera_vectors.reshape(-1, 3) @ _FLIP
     return (r.apply(flat) @ _FLIP).reshape(camera_vectors.shape)
 
 
 def earth_to_camera_directions(attitude: Attitude, earth_vectors: np.ndarray) -> np.ndarray:
-    """The inverse of :func:`camera_to_earth_directions`."""
+    """The inverse of :func:`camera_to_earth_directions`.
+
+    Parameters
+    ----------
+    attitude : Attitude
+        The frame's roll, pitch and heading, degree.
+    earth_vectors : numpy.ndarray
+        Unit vectors in the earth's grid components, shape ``(..., 3)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        The same directions in the camera's grid components, shape ``(..., 3)``.
+    """
     r = rotation(attitude.roll_deg, attitude.pitch_deg, attitude.heading_deg)
     flat = earth_vectors.reshape(-1, 3) @ _FLIP
     return (r.inv().apply(flat) @ _FLIP).reshape(earth_vectors.shape)
@@ -145,7 +236,26 @@ def earth_to_camera_directions(attitude: Attitude, earth_vectors: np.ndarray) ->
 
 def solar_position(times_utc: pd.DatetimeIndex, latitude_deg: float, longitude_deg: float,
                    altitude_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Apparent solar zenith angle and azimuth (deg, from north towards east) at the frames' times (pvlib)."""
+    """Apparent solar zenith angle and azimuth (deg, from north towards east) at the frames' times (pvlib).
+
+    Parameters
+    ----------
+    times_utc : pandas.DatetimeIndex
+        The frames' UTC times.
+    latitude_deg : float
+        Site latitude, degree north.
+    longitude_deg : float
+        Site longitude, degree east.
+    altitude_m : float, default 0.0
+        Site altitude, m.
+
+    Returns
+    -------
+    zenith : numpy.ndarray
+        Apparent (refracted) solar zenith angle, degree, one per time.
+    azimuth : numpy.ndarray
+        Solar azimuth, degree from north towards east, one per time.
+    """
     from pvlib.solarposition import get_solarposition
 
     pos = get_solarposition(times_utc, latitude_deg, longitude_deg, altitude=altitude_m)

@@ -78,6 +78,32 @@ def bracket_table(maps: list[ExposureMaps], bracket: str, lenses, full_scale_dn,
     row is ln(sum L_l / sum L_s) over its pixels (equal weights, so that the estimate's bias is that of a
     sum of many pixels), its variance sum r_l^2 / (sum L_l)^2 + sum r_s^2 / (sum L_s)^2 plus the pixels'
     mean per-exposure relative variances (common to a frame's pixels: they do not average down).
+
+    Parameters
+    ----------
+    maps : list of ExposureMaps
+        The bracket's frames through the chain, by exposure.
+    bracket : str
+        The bracket's name.
+    lenses : sequence of str
+        The maps' lens axis.
+    full_scale_dn : numpy.ndarray
+        ``full_scale_dn[lens, band]``, DN.
+    min_snr : float
+        Least signal-to-noise ratio of the level and of each reading.
+    n_bins : int
+        Bins of the level per lens, band and pair (quantiles of the level).
+    max_signal_fraction : float
+        Largest predicted long-exposure signal, as a fraction of the full scale.
+    bands : sequence of str, default BANDS
+        The maps' band axis.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per pair of consecutive exposures, lens, band and bin: ``value_dn`` ln(sum L_l / sum L_s)
+        (dimensionless), ``sigma_dn`` its standard uncertainty, the exposures (s), the mean signals above dark
+        (DN), the full scale (DN) and the number of pixels.
     """
     rows = []
     usable = np.logical_and.reduce([m.usable for m in maps])
@@ -131,7 +157,24 @@ def bracket_table(maps: list[ExposureMaps], bracket: str, lenses, full_scale_dn,
 
 def bracket_consistency(table: pd.DataFrame, model_effects, config: dict) -> tuple[pd.DataFrame, pd.DataFrame]:
     """The diagnostics on the ``obs_bracket`` table: (ranked missing effects, residual test), as for the
-    stages' tables (:func:`pipeline.diagnostics.missing_effects.rank_missing_effects`)."""
+    stages' tables (:func:`pipeline.diagnostics.missing_effects.rank_missing_effects`).
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        The ``obs_bracket`` rows (:func:`bracket_table`).
+    model_effects : iterable of str
+        The effects the chain models.
+    config : dict
+        The run's configuration (its diagnostic thresholds).
+
+    Returns
+    -------
+    ranked : pandas.DataFrame
+        The candidate missing effects, ranked.
+    tests : pandas.DataFrame
+        The residual tests.
+    """
     obs = [Observations(EXPERIMENT, LEVEL, table.reset_index(drop=True), "1")]
     ranked, _, tests = rank_missing_effects(obs, list(model_effects), config, with_tests=True)
     return ranked, tests

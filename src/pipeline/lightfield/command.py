@@ -99,9 +99,31 @@ def compute_light_field(grid_paths, medium: str | None = None, attitude_path=Non
                         camera_utc_offset_h: float = 0.0, config: dict | None = None) -> xr.Dataset:
     """The light field of every frame and band of the grid files (see the module docstring and docs/light-field.md).
 
-    ``site`` (latitude_deg, longitude_deg[, altitude_m]) gives the solar position (pvlib) and each earth-frame
-    azimuth relative to the sun; ``camera_utc_offset_h`` is the camera clock minus UTC for frame times without
-    an offset. ``config`` the ``lightfield`` section (default: the schema's defaults).
+    Parameters
+    ----------
+    grid_paths : sequence of str or pathlib.Path
+        The radiance sphere grid files.
+    medium : str, optional
+        "air" or "water"; the grids' own attribute when None.
+    attitude_path : str or pathlib.Path, optional
+        The attitude log (CSV, :func:`pipeline.lightfield.attitude.read_attitude`); level when None.
+    site : tuple of float, optional
+        (latitude_deg, longitude_deg[, altitude_m]): gives the solar position (pvlib) and each earth-frame
+        azimuth relative to the sun.
+    camera_utc_offset_h : float, default 0.0
+        The camera clock minus UTC for frame times without an offset, hours.
+    config : dict, optional
+        The ``lightfield`` section of the configuration (default: the schema's defaults).
+
+    Returns
+    -------
+    xarray.Dataset
+        The quantities per frame and band with their uncertainty components, and the earth-frame grids.
+
+    Raises
+    ------
+    InputError
+        On bad grid files, attitude log or frame times.
     """
     cfg = config if config is not None else defaults()["lightfield"]
     return light_field_of_grids(read_sphere_grids(grid_paths, medium), attitude_path, site, camera_utc_offset_h, cfg)
@@ -112,12 +134,36 @@ def light_field_of_grids(grids, attitude_path=None, site=None, camera_utc_offset
                          attitudes=None) -> xr.Dataset:
     """:func:`compute_light_field` on grids already read (:class:`~pipeline.lightfield.grid.SphereGrids`).
 
-    ``exposure_systematic`` (frame, band, exposure, zenith, azimuth): systematic sigmas each common to the
-    cells of one exposure and independent between exposures (an HDR merge's per-exposure terms), beside the
-    grids' band-common ``systematic_sigma``; ``lower_bound`` (frame, band, zenith, azimuth) bool: cells whose
-    value is a lower bound (saturated in every exposure), whose share of each integral is reported;
-    ``extra_maps`` {name: (array (frame, band, zenith, azimuth), attrs)}: camera-frame maps resampled into the
-    earth frame as ``sphere_radiance`` is and added to the output under their names.
+    Parameters
+    ----------
+    grids : SphereGrids
+        The radiance sphere grids, W m-2 sr-1 nm-1.
+    attitude_path : str or pathlib.Path, optional
+        The attitude log (CSV, :func:`pipeline.lightfield.attitude.read_attitude`); level when None.
+    site : tuple of float, optional
+        (latitude_deg, longitude_deg[, altitude_m]): gives the solar position (pvlib) and each earth-frame
+        azimuth relative to the sun.
+    camera_utc_offset_h : float, default 0.0
+        The camera clock minus UTC for frame times without an offset, hours.
+    cfg : dict, optional
+        The ``lightfield`` section of the configuration (default: the schema's defaults).
+    exposure_systematic : numpy.ndarray, optional
+        Shape ``(frame, band, exposure, zenith, azimuth)``: systematic sigmas (W m-2 sr-1 nm-1) each common to the
+        cells of one exposure and independent between exposures (an HDR merge's per-exposure terms), beside the
+        grids' band-common ``systematic_sigma``.
+    lower_bound : numpy.ndarray, optional
+        Shape ``(frame, band, zenith, azimuth)``, bool: cells whose value is a lower bound (saturated in every
+        exposure), whose share of each integral is reported.
+    extra_maps : dict, optional
+        ``{name: (array (frame, band, zenith, azimuth), attrs)}``: camera-frame maps resampled into the earth frame
+        as ``sphere_radiance`` is and added to the output under their names.
+    attitudes : sequence of Attitude, optional
+        Each frame's attitude, taking the place of the log.
+
+    Returns
+    -------
+    xarray.Dataset
+        The light field (as :func:`compute_light_field`).
     """
     cfg = cfg if cfg is not None else defaults()["lightfield"]
     medium = grids.medium or "air"
@@ -280,7 +326,27 @@ def _dataset(grids, medium, attitudes, times, site, attitude_path, results, eart
 
 
 def write_light_field(ds: xr.Dataset, out_path, overwrite: bool = False) -> Path:
-    """Write the light field as NetCDF (atomically); an existing file only with ``overwrite``."""
+    """Write the light field as NetCDF (atomically); an existing file only with ``overwrite``.
+
+    Parameters
+    ----------
+    ds : xarray.Dataset
+        The light field.
+    out_path : str or pathlib.Path
+        The NetCDF file to write.
+    overwrite : bool, default False
+        Replace an existing file.
+
+    Returns
+    -------
+    pathlib.Path
+        The file written.
+
+    Raises
+    ------
+    InputError
+        When the file exists and ``overwrite`` is False.
+    """
     out = Path(out_path)
     if out.exists() and not overwrite:
         raise InputError(out, "exists (give --overwrite to replace it)")
@@ -295,7 +361,33 @@ def light_field_from_raw(bundle_path, raw_paths, medium: str | None = None, atti
                          camera_utc_offset_h: float = 0.0, grid_deg: float | None = None,
                          config: dict | None = None) -> xr.Dataset:
     """The light field of raw frames: ``apply`` with the calibration bundle makes their sphere grid (in a
-    temporary file, without the per-pixel maps), then :func:`compute_light_field`."""
+    temporary file, without the per-pixel maps), then :func:`compute_light_field`.
+
+    Parameters
+    ----------
+    bundle_path : str or pathlib.Path
+        The calibration bundle.
+    raw_paths : sequence of str or pathlib.Path
+        The raw (DNG) frames.
+    medium : str, optional
+        "air" or "water" (air when None).
+    attitude_path : str or pathlib.Path, optional
+        The attitude log (CSV, :func:`pipeline.lightfield.attitude.read_attitude`); level when None.
+    site : tuple of float, optional
+        (latitude_deg, longitude_deg[, altitude_m]): gives the solar position (pvlib) and each earth-frame
+        azimuth relative to the sun.
+    camera_utc_offset_h : float, default 0.0
+        The camera clock minus UTC for frame times without an offset, hours.
+    grid_deg : float, optional
+        Cell size of the sphere grid, degree (default: ``apply.grid_deg``).
+    config : dict, optional
+        The ``lightfield`` section of the configuration.
+
+    Returns
+    -------
+    xarray.Dataset
+        The light field, its attributes naming the bundle.
+    """
     with tempfile.TemporaryDirectory(prefix="lightfield-") as tmp:
         grid = apply_calibration(bundle_path, raw_paths, medium or "air", Path(tmp) / "grid.nc", grid_deg,
                                  pixels=False)
@@ -440,15 +532,31 @@ def light_field_from_brackets(bundle_path, raw_paths, frames_table=None, medium:
                               attitude_path=None, site=None, camera_utc_offset_h: float = 0.0,
                               grid_deg: float | None = None, config: dict | None = None,
                               attitude_from_sun: str | None = None) -> xr.Dataset:
-    """The light field of exposure brackets of raw frames (:mod:`pipeline.lightfield.hdr`): the frames
-    grouped by ``frames_table`` (CSV: file, bracket) or by ``lightfield.bracket_window_s``, each bracket
-    merged per pixel through the chain at each frame's exposure, binned onto the sphere grid and
-    integrated (one output frame per bracket); the bracket-consistency closure
-    (:mod:`pipeline.lightfield.bracket_closure`) as the ``obs_bracket`` table with its residual test and
-    the ranking of the effects the model lacks. With ``site``: the sun's centroid in each bracket's shortest
-    exposure against the solar position (:mod:`pipeline.lightfield.sun`, the ``sun_*`` variables and the
-    ``obs_sun`` table); ``attitude_from_sun`` (``heading`` or ``heading_tilt``, no log) fits the attitude from
-    it. ``config`` the whole configuration (default: the schema's).
+    """The light field of exposure brackets of raw frames (:mod:`pipeline.lightfield.hdr`).
+
+    The frames are grouped by ``frames_table`` or by ``lightfield.bracket_window_s``, each bracket merged per
+    pixel through the chain at each frame's exposure, binned onto the sphere grid and integrated (one output
+    frame per bracket); the bracket-consistency closure (:mod:`pipeline.lightfield.bracket_closure`) as the
+    ``obs_bracket`` table with its residual test and the ranking of the effects the model lacks. With ``site``:
+    the sun's centroid in each bracket's shortest exposure against the solar position
+    (:mod:`pipeline.lightfield.sun`, the ``sun_*`` variables and the ``obs_sun`` table). Bad input: InputError.
+
+    Parameters
+    ----------
+    bundle_path, raw_paths, medium, attitude_path, site, camera_utc_offset_h, grid_deg
+        As for :func:`light_field_from_raw`.
+    frames_table : str or pathlib.Path, optional
+        CSV with the columns file and bracket; the frames grouped by time when None.
+    config : dict, optional
+        The whole configuration (default: the schema's).
+    attitude_from_sun : str, optional
+        ``"heading"`` or ``"heading_tilt"``: the attitude fitted from the sun (needs ``site``, no log).
+
+    Returns
+    -------
+    xarray.Dataset
+        The light field, one frame per bracket, with the dynamic range, the ``obs_bracket`` table and, with a
+        site, the sun closure.
     """
     if attitude_from_sun is not None and (site is None or attitude_path is not None):
         raise InputError(None, "--attitude-from-sun needs --site (the solar position at the frames' times) and "
@@ -550,7 +658,18 @@ def _site(text: str) -> tuple:
 
 
 def add_lightfield_parser(subparsers) -> argparse.ArgumentParser:
-    """``lightfield [--calibration BUNDLE] [--medium air|water] [--attitude FILE] [--site LAT,LON] GRID.nc... -o OUT.nc``."""
+    """``lightfield [--calibration BUNDLE] [--medium air|water] [--attitude FILE] [--site LAT,LON] GRID.nc... -o OUT.nc``.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The command line's subcommands.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The ``lightfield`` subcommand's parser.
+    """
     p = subparsers.add_parser(
         "lightfield", help="radiance sphere grids to irradiances, average cosines and radiances",
         description="E_d, E_u, E_0d, E_0u, E_0, mu_d, mu_u, mu, L_d, L_u and Q per frame and band, with their "
@@ -586,7 +705,18 @@ def add_lightfield_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def lightfield_command(args) -> int:
-    """Run ``lightfield`` from parsed arguments; bad input prints one line and returns 1."""
+    """Run ``lightfield`` from parsed arguments; bad input prints one line and returns 1.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed arguments of ``lightfield``.
+
+    Returns
+    -------
+    int
+        The exit status: 0 on success, 1 on bad input.
+    """
     try:
         if Path(args.out).exists() and not args.overwrite:
             raise InputError(args.out, "exists (give --overwrite to replace it)")

@@ -99,11 +99,28 @@ def _meridian(values: np.ndarray) -> np.ndarray:
 
 
 def fill_between_lenses(radiance, random_sigma, systematic_sigma, zenith_deg, fit_span_deg: float) -> Filled:
-    """Fill the empty cells of one frame and band's camera-frame grid (n_zenith, n_azimuth) by the model above.
+    """Fill the empty cells of one frame and band's camera-frame grid by the model above.
 
-    ``zenith_deg`` the cell centres (regular); ``fit_span_deg`` the zenith span of the quadratic fits. Each
-    azimuth column is taken with its opposite column beyond the poles (the meridian's great circle), so that
+    Each azimuth column is taken with its opposite column beyond the poles (the meridian's great circle), so that
     an empty cap about a pole is interpolated across it.
+
+    Parameters
+    ----------
+    radiance : numpy.ndarray
+        Cell radiance, W m-2 sr-1 nm-1, shape ``(n_zenith, n_azimuth)``; NaN where empty.
+    random_sigma : numpy.ndarray
+        Its random standard uncertainty, same unit and shape.
+    systematic_sigma : numpy.ndarray
+        Its systematic standard uncertainty, same unit and shape.
+    zenith_deg : numpy.ndarray
+        The cell centres' zenith angles (regular), degree, shape ``(n_zenith,)``.
+    fit_span_deg : float
+        The zenith span of the quadratic fits of the curvature, degree.
+
+    Returns
+    -------
+    Filled
+        The filled grid, its sigmas (the interpolation's model sigma apart), the flags and the interpolation map.
     """
     L0 = np.asarray(radiance, float)
     n_z, n_a = L0.shape

@@ -127,7 +127,26 @@ def _array(ds: xr.Dataset, name: str, path: Path) -> np.ndarray | None:
 
 
 def read_sphere_grids(paths, medium: str | None = None) -> SphereGrids:
-    """Read and check the grid files (frames concatenated in the order given); bad input: one line."""
+    """Read and check the grid files (frames concatenated in the order given); bad input: one line.
+
+    Parameters
+    ----------
+    paths : sequence of str or pathlib.Path
+        The grid files (NetCDF as ``apply`` writes them, or made by hand).
+    medium : str, optional
+        The medium given on the command line ("air" or "water"), checked against the files'.
+
+    Returns
+    -------
+    SphereGrids
+        Radiance and its sigmas (W m-2 sr-1 nm-1, dims frame, band, zenith, azimuth), the cell centres (degree)
+        and the frames' files, names and times.
+
+    Raises
+    ------
+    InputError
+        When a file cannot be read or checked, the grids or bands differ between files, or the media disagree.
+    """
     parts = []
     for p in paths:
         path = Path(p)

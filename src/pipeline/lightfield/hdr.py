@@ -88,7 +88,23 @@ class Bracket:
 
 
 def read_frames_table(path) -> dict[str, str]:
-    """The frames table: {file name: bracket}; bad input: one line naming the file."""
+    """The frames table: {file name: bracket}; bad input: one line naming the file.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The frames table (CSV, columns ``file`` and ``bracket``).
+
+    Returns
+    -------
+    dict[str, str]
+        The bracket of each raw file's name.
+
+    Raises
+    ------
+    InputError
+        When the file cannot be read, lacks a column, has an empty entry, or lists a file in two brackets.
+    """
     path = Path(path)
     try:
         table = pd.read_csv(path, dtype=str, keep_default_na=False)
@@ -114,6 +130,28 @@ def group_brackets(frames, table: dict[str, str] | None = None, window_s: float 
 
     One line for a frame the table does not list, a frame without a time (no table), a bracket with one
     exposure only, or a bracket mixing cameras.
+
+    Parameters
+    ----------
+    frames : sequence
+        The decoded frames (with ``path``, ``exposure_s`` in s, ``time``, ``make``, ``model``, ``serial``, ``iso``).
+    table : dict[str, str], optional
+        The frames table (:func:`read_frames_table`); grouping by time when None.
+    window_s : float, default 5.0
+        Without a table, a frame more than this many seconds after its bracket's first frame starts a new one.
+    source : str or pathlib.Path, optional
+        The frames table's path, named in the error messages.
+
+    Returns
+    -------
+    list of Bracket
+        The brackets, each its frames' indices by exposure.
+
+    Raises
+    ------
+    InputError
+        For a frame the table does not list, a frame without a time (no table), a bracket with one exposure only,
+        or a bracket mixing cameras.
     """
     groups: dict[str, list[int]] = {}
     if table is not None:
@@ -173,7 +211,18 @@ class ExposureMaps:
 
     def predicted_snr(self, radiance) -> np.ndarray:
         """The signal-to-noise ratio this exposure would read for ``radiance`` (lens, band, y, x) by its noise
-        model, the pixel's DN per radiance taken from the frame (a property of the chain, not of the noise)."""
+        model, the pixel's DN per radiance taken from the frame (a property of the chain, not of the noise).
+
+        Parameters
+        ----------
+        radiance : numpy.ndarray
+            Radiance, W m-2 sr-1 nm-1, shape ``(lens, band, y, x)``.
+
+        Returns
+        -------
+        numpy.ndarray
+            The predicted signal-to-noise ratio, of the same shape.
+        """
         with np.errstate(invalid="ignore", divide="ignore"):
             per = self.signal_dn / self.radiance
             s = np.asarray(radiance) * per
@@ -189,7 +238,22 @@ def _sum(terms: dict, names, keep: bool, shape) -> np.ndarray:
 
 
 def split_lens(raw, bundle, lens: str):
-    """The band images of one lens of a decoded frame (:func:`pipeline.io.frames.lens_images`)."""
+    """The band images of one lens of a decoded frame (:func:`pipeline.io.frames.lens_images`).
+
+    Parameters
+    ----------
+    raw : RawFrame
+        The decoded frame.
+    bundle : xarray.Dataset
+        The calibration bundle (its ``lens_region_px``).
+    lens : str
+        The lens.
+
+    Returns
+    -------
+    LensImages
+        The lens's band images.
+    """
     span = bundle["lens_region_px"].sel(lens=lens).values
     return lens_images(raw, (tuple(span[0]), tuple(span[1])), lens)
 
@@ -199,7 +263,35 @@ def exposure_maps(raw, bundle, chains: dict, lenses, medium: str, effects, bands
     """A decoded frame through the chain of each of ``lenses`` and ``bands`` (``chains[(lens, band)]``:
     :class:`BandChain`); ``images`` {lens: band images} when already split (:func:`split_lens`).
     ``exposure_terms``: the systematic terms that differ between the bracket's exposures (a bracket at
-    several ISOs adds ``iso_gain``). The maps are float32 (the chain's precision), the sigmas' sums in float64."""
+    several ISOs adds ``iso_gain``). The maps are float32 (the chain's precision), the sigmas' sums in float64.
+
+    Parameters
+    ----------
+    raw : RawFrame
+        The decoded frame.
+    bundle : xarray.Dataset
+        The calibration bundle.
+    chains : dict
+        ``{(lens, band): BandChain}``.
+    lenses : sequence of str
+        The lenses.
+    medium : str
+        "air" or "water".
+    effects : collection of str
+        The effects the chain applies (unused here: each chain holds its own).
+    bands : sequence of str, default BANDS
+        The bands.
+    images : dict, optional
+        ``{lens: LensImages}`` already split.
+    exposure_terms : frozenset of str, default EXPOSURE_TERMS
+        The systematic terms that differ between the bracket's exposures.
+
+    Returns
+    -------
+    ExposureMaps
+        Per (lens, band, y, x) the radiance (W m-2 sr-1 nm-1) and its sigmas by kind, the signal (DN above dark), the usable
+        and saturated masks; per (lens, band) the noise model (DN^2, DN).
+    """
     frame = mm.FrameSettings(exposure_s=float(raw.exposure_s), iso=float(raw.iso))
     arrays = {k: [] for k in ("radiance", "random", "fixed", "exposure", "common", "signal", "usable", "saturated",
                               "read", "shot")}
@@ -261,7 +353,19 @@ def merge_exposures(maps: list[ExposureMaps]) -> Merged:
     """Inverse-variance mean per pixel of the unsaturated, usable measurements (module docstring).
 
     Running sums over the exposures (two passes: the weights' total first), so that the memory is a few
-    maps of one lens and band whatever the number of exposures."""
+    maps of one lens and band whatever the number of exposures.
+
+    Parameters
+    ----------
+    maps : list of ExposureMaps
+        The bracket's frames through the chain.
+
+    Returns
+    -------
+    Merged
+        The merged radiance (W m-2 sr-1 nm-1) and its sigmas by kind, per (lens, band, y, x), the number of exposures
+        merged, the pixels saturated everywhere and their lower bounds.
+    """
     usable = np.logical_and.reduce([m.usable for m in maps])
     shape = np.shape(maps[0].radiance)
     W = np.zeros(shape)
@@ -308,7 +412,26 @@ class SphereMerged:
 
 
 def pixel_sphere_cells(bundle, lenses, medium: str, zenith_lens: str, grid_deg: float) -> np.ndarray:
-    """(lens, band, y, x) sphere cell of every band pixel (-1 without a direction), by apply's convention."""
+    """(lens, band, y, x) sphere cell of every band pixel (-1 without a direction), by apply's convention.
+
+    Parameters
+    ----------
+    bundle : xarray.Dataset
+        The calibration bundle (its ``theta_deg`` and ``phi_deg`` maps).
+    lenses : sequence of str
+        The lenses.
+    medium : str
+        "air" or "water".
+    zenith_lens : str
+        The lens that looks at the zenith.
+    grid_deg : float
+        Cell size of the sphere grid, degree.
+
+    Returns
+    -------
+    numpy.ndarray
+        Cell index (int32), shape ``(lens, band, y, x)`` over R, G, B.
+    """
     out = []
     for lens in lenses:
         per = []
@@ -335,7 +458,17 @@ class SphereBins:
 
     def add(self, merged: Merged, cells: np.ndarray, band_indices) -> None:
         """Add merged maps (lens, band, y, x) whose band axis holds the bands ``band_indices``; ``cells`` the
-        sphere cell of each of their pixels (:func:`pixel_sphere_cells`, the same lens and band axes)."""
+        sphere cell of each of their pixels (:func:`pixel_sphere_cells`, the same lens and band axes).
+
+        Parameters
+        ----------
+        merged : Merged
+            Merged maps, shape ``(lens, band, y, x)``.
+        cells : numpy.ndarray
+            The sphere cell of each pixel, same lens and band axes.
+        band_indices : sequence of int
+            The bins' band of each of the maps' bands.
+        """
         n = self.n
         for j, b in enumerate(band_indices):
             c = cells[:, j].ravel()
@@ -357,6 +490,14 @@ class SphereBins:
                                                    n)
 
     def result(self) -> SphereMerged:
+        """The bracket's merged map on the sphere: the cells' means and their sigmas.
+
+        Returns
+        -------
+        SphereMerged
+            Per (band, zenith, azimuth) the mean radiance (W m-2 sr-1 nm-1; NaN in an empty cell), its sigmas by kind, the
+            count, the flag and the lower bound.
+        """
         has = self.count > 0
         d = np.where(has, self.count, 1)
         radiance = np.where(has, self.sums["value"] / d, np.nan)
@@ -373,16 +514,50 @@ class SphereBins:
 
 def merged_on_sphere(merged: Merged, cells: np.ndarray, grid_deg: float) -> SphereMerged:
     """Bin the merged pixels (lens, band, y, x; every band) onto the sphere grid (module docstring), both
-    lenses together, per band."""
+    lenses together, per band.
+
+    Parameters
+    ----------
+    merged : Merged
+        The merged pixel maps, shape ``(lens, band, y, x)``, every band.
+    cells : numpy.ndarray
+        The sphere cell of each pixel (:func:`pixel_sphere_cells`).
+    grid_deg : float
+        Cell size, degree.
+
+    Returns
+    -------
+    SphereMerged
+        The merged map on the sphere grid (W m-2 sr-1 nm-1).
+    """
     bins = SphereBins(merged.radiance.shape[1], merged.exposure_sigma.shape[0], grid_deg)
     bins.add(merged, cells, range(merged.radiance.shape[1]))
     return bins.result()
 
 
 def dynamic_range(radiance, random_sigma, detection_snr: float, exclude=None) -> tuple[float, int, int]:
-    """Decades between the brightest value and the faintest above its limit of detection (radiance at least
-    ``detection_snr`` random sigmas); ``exclude`` (bool, same shape) keeps values out (lower bounds).
-    Returns (decades, flat index of the brightest, of the faintest); NaN and -1 when none is detected."""
+    """Decades between the brightest value and the faintest above its limit of detection.
+
+    Parameters
+    ----------
+    radiance : numpy.ndarray
+        Radiance (cells or pixels), W m-2 sr-1 nm-1.
+    random_sigma : numpy.ndarray
+        Its random standard uncertainty, same unit and shape.
+    detection_snr : float
+        A value is detected when it is at least this many random sigmas.
+    exclude : numpy.ndarray, optional
+        Boolean, same shape: values kept out (lower bounds).
+
+    Returns
+    -------
+    decades : float
+        log10 of the brightest over the faintest detected value; NaN when none is detected.
+    brightest : int
+        Flat index of the brightest, -1 when none.
+    faintest : int
+        Flat index of the faintest, -1 when none.
+    """
     L = np.asarray(radiance, float).ravel()
     s = np.asarray(random_sigma, float).ravel()
     ok = np.isfinite(L) & np.isfinite(s) & (L > 0) & (L >= detection_snr * s)

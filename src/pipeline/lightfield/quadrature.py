@@ -50,11 +50,30 @@ class GridEdges:
 
     @classmethod
     def regular(cls, n_zenith: int, n_azimuth: int) -> GridEdges:
-        """The regular grid of ``n_zenith`` by ``n_azimuth`` cells."""
+        """The regular grid of ``n_zenith`` by ``n_azimuth`` cells.
+
+        Parameters
+        ----------
+        n_zenith : int
+            Cells in zenith angle, from 0 to pi.
+        n_azimuth : int
+            Cells in azimuth, from 0 to 2 pi.
+
+        Returns
+        -------
+        GridEdges
+            The grid.
+        """
         return cls(np.linspace(0.0, np.pi, int(n_zenith) + 1), np.linspace(0.0, 2.0 * np.pi, int(n_azimuth) + 1))
 
     def halved(self) -> GridEdges:
-        """The grid of half resolution: every other edge (an odd last row or column stays one cell wide)."""
+        """The grid of half resolution: every other edge (an odd last row or column stays one cell wide).
+
+        Returns
+        -------
+        GridEdges
+            The grid of half resolution.
+        """
         def every_other(e):
             kept = e[::2]
             return kept if kept[-1] == e[-1] else np.append(kept, e[-1])
@@ -78,7 +97,20 @@ class GridEdges:
 
 
 def unit_vector(zenith_rad, azimuth_rad) -> np.ndarray:
-    """(..., 3) unit vectors (sin z cos a, sin z sin a, cos z) of the directions."""
+    """(..., 3) unit vectors (sin z cos a, sin z sin a, cos z) of the directions.
+
+    Parameters
+    ----------
+    zenith_rad : numpy.ndarray
+        Zenith angles, radians.
+    azimuth_rad : numpy.ndarray
+        Azimuths, radians (broadcast with ``zenith_rad``).
+
+    Returns
+    -------
+    numpy.ndarray
+        Unit vectors, shape ``(..., 3)``.
+    """
     z, a = np.asarray(zenith_rad, float), np.asarray(azimuth_rad, float)
     return np.stack(np.broadcast_arrays(np.sin(z) * np.cos(a), np.sin(z) * np.sin(a), np.cos(z)), axis=-1)
 
@@ -94,19 +126,52 @@ def _vector(z0, z1, a0, a1):
 
 
 def cell_solid_angles(edges: GridEdges) -> np.ndarray:
-    """(n_zenith, n_azimuth) exact solid angle of every cell (sr); they sum to 4 pi."""
+    """(n_zenith, n_azimuth) exact solid angle of every cell (sr); they sum to 4 pi.
+
+    Parameters
+    ----------
+    edges : GridEdges
+        The grid's cell edges, radians.
+
+    Returns
+    -------
+    numpy.ndarray
+        Solid angle of each cell, sr, shape ``(n_zenith, n_azimuth)``.
+    """
     z, a = edges.zenith, edges.azimuth
     return _omega(z[:-1, None], z[1:, None], a[None, :-1], a[None, 1:])
 
 
 def cell_direction_integrals(edges: GridEdges) -> np.ndarray:
-    """(n_zenith, n_azimuth, 3) exact integral of the unit direction over every cell (sr)."""
+    """(n_zenith, n_azimuth, 3) exact integral of the unit direction over every cell (sr).
+
+    Parameters
+    ----------
+    edges : GridEdges
+        The grid's cell edges, radians.
+
+    Returns
+    -------
+    numpy.ndarray
+        Integral V of the unit direction over each cell, sr, shape ``(n_zenith, n_azimuth, 3)``.
+    """
     z, a = edges.zenith, edges.azimuth
     return _vector(z[:-1, None], z[1:, None], a[None, :-1], a[None, 1:])
 
 
 def cell_centre_directions(edges: GridEdges) -> np.ndarray:
-    """(n_zenith, n_azimuth, 3) unit vectors of the cell centres (mid zenith, mid azimuth)."""
+    """(n_zenith, n_azimuth, 3) unit vectors of the cell centres (mid zenith, mid azimuth).
+
+    Parameters
+    ----------
+    edges : GridEdges
+        The grid's cell edges, radians.
+
+    Returns
+    -------
+    numpy.ndarray
+        Unit vectors, shape ``(n_zenith, n_azimuth, 3)``.
+    """
     z, a = edges.zenith, edges.azimuth
     return unit_vector(0.5 * (z[:-1, None] + z[1:, None]), 0.5 * (a[None, :-1] + a[None, 1:]))
 
@@ -132,6 +197,24 @@ def cap_weights(edges: GridEdges, axis, cos_half_angle: float, subcells: int) ->
 
     ``axis`` a unit 3-vector in the grid's own frame; ``subcells`` the k of the k x k division of the cells
     the cap's edge crosses.
+
+    Parameters
+    ----------
+    edges : GridEdges
+        The grid's cell edges, radians.
+    axis : array_like
+        The cap's axis u, a 3-vector in the grid's frame (normalised here).
+    cos_half_angle : float
+        Cosine c of the cap's half angle (0: a hemisphere).
+    subcells : int
+        k of the k x k division of the cells the cap's edge crosses.
+
+    Returns
+    -------
+    W0 : numpy.ndarray
+        Solid angle of each cell inside the cap, sr, shape ``(n_zenith, n_azimuth)``.
+    W1 : numpy.ndarray
+        Integral of n . u over each cell's part inside the cap, sr, shape ``(n_zenith, n_azimuth)``.
     """
     u = np.asarray(axis, float)
     u = u / np.linalg.norm(u)
@@ -168,8 +251,21 @@ def cap_weights(edges: GridEdges, axis, cos_half_angle: float, subcells: int) ->
 
 
 def coarsen(values: np.ndarray, omega: np.ndarray) -> np.ndarray:
-    """``values`` (..., n_zenith, n_azimuth) on the grid of half resolution: 2 x 2 cells merged, the
-    solid-angle-weighted mean (an odd last row or column is merged alone). NaN stays NaN."""
+    """``values`` on the grid of half resolution: 2 x 2 cells merged, the solid-angle-weighted mean (an odd last
+    row or column is merged alone). NaN stays NaN.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        Cell values, shape ``(..., n_zenith, n_azimuth)``.
+    omega : numpy.ndarray
+        Cell solid angles, sr, shape ``(n_zenith, n_azimuth)`` (:func:`cell_solid_angles`).
+
+    Returns
+    -------
+    numpy.ndarray
+        The merged values, shape ``(..., ceil(n_zenith / 2), ceil(n_azimuth / 2))``, in the unit of ``values``.
+    """
     n_z, n_a = omega.shape
     rz, ra = np.arange(n_z) // 2, np.arange(n_a) // 2
     weighted = values * omega
@@ -214,6 +310,19 @@ def cell_means_from_centres(values: np.ndarray, edges: GridEdges) -> np.ndarray:
     Per cell, the local quadratic in zenith angle through the cell and its neighbours (one-sided at the poles)
     and in azimuth (periodic) averaged over the cell: L + L'_z <z - z_c> + L''_z <(z - z_c)^2> / 2
     + L''_a h_a^2 / 24. Where a neighbour is NaN the cell is left as it is.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        The field at the cell centres (e.g. radiance, W m-2 sr-1 nm-1), shape ``(..., n_zenith, n_azimuth)``.
+    edges : GridEdges
+        The grid's cell edges, radians.
+        Regular in zenith angle.
+
+    Returns
+    -------
+    numpy.ndarray
+        The cell means, of the shape and unit of ``values`` (a copy unchanged for fewer than three zenith rows).
     """
     L = np.asarray(values, float)
     n_z = L.shape[-2]

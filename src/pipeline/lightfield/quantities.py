@@ -61,7 +61,25 @@ COMPONENTS = ("random", "systematic", "fill_model", "attitude", "quadrature")
 
 
 def functional_weights(edges: GridEdges, up: np.ndarray, cone_half_angle_deg: float, subcells: int) -> np.ndarray:
-    """(7, n_cells) weights of LINEAR for the earth zenith ``up`` (grid components)."""
+    """(7, n_cells) weights of LINEAR for the earth zenith ``up`` (grid components).
+
+    Parameters
+    ----------
+    edges : GridEdges
+        The grid's cell edges, radians.
+    up : numpy.ndarray
+        The earth's zenith as a unit vector in the grid's components, shape ``(3,)``.
+    cone_half_angle_deg : float
+        Half angle of the cones about the zenith and nadir over which L_d and L_u are averaged, degree.
+    subcells : int
+        k of the k x k division of the cells a cap's edge crosses.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape ``(7, n_cells)``: per sum of ``LINEAR``, the weight of each cell (sr for the irradiances, a
+        solid-angle fraction summing to 1 for L_d and L_u).
+    """
     cone = float(np.cos(np.radians(cone_half_angle_deg)))
     up_w0, up_w1 = cap_weights(edges, up, 0.0, subcells)
     dn_w0, dn_w1 = cap_weights(edges, -np.asarray(up), 0.0, subcells)
@@ -71,14 +89,38 @@ def functional_weights(edges: GridEdges, up: np.ndarray, cone_half_angle_deg: fl
 
 
 def derived_values(F: np.ndarray) -> np.ndarray:
-    """(..., 11) QUANTITIES from (..., 7) LINEAR."""
+    """(..., 11) QUANTITIES from (..., 7) LINEAR.
+
+    Parameters
+    ----------
+    F : numpy.ndarray
+        The weighted sums of ``LINEAR``, shape ``(..., 7)`` (irradiances in W m-2 nm-1, radiances in
+        W m-2 sr-1 nm-1).
+
+    Returns
+    -------
+    numpy.ndarray
+        The quantities of ``QUANTITIES``, shape ``(..., 11)``: irradiances (W m-2 nm-1), average cosines
+        (dimensionless), L_d, L_u (W m-2 sr-1 nm-1) and Q (sr).
+    """
     Ed, Eu, E0d, E0u, E0, Ld, Lu = np.moveaxis(F, -1, 0)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.stack([Ed, Eu, E0d, E0u, E0, Ed / E0d, Eu / E0u, (Ed - Eu) / E0, Ld, Lu, Eu / Lu], axis=-1)
 
 
 def derived_gradients(F: np.ndarray) -> np.ndarray:
-    """(11, 7) gradient of each of QUANTITIES with respect to LINEAR at F (7,)."""
+    """(11, 7) gradient of each of QUANTITIES with respect to LINEAR at F (7,).
+
+    Parameters
+    ----------
+    F : numpy.ndarray
+        The weighted sums of ``LINEAR``, shape ``(7,)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        d quantity / d sum, shape ``(11, 7)``.
+    """
     Ed, Eu, E0d, E0u, E0, Ld, Lu = F
     g = np.zeros((len(QUANTITIES), len(LINEAR)))
     for q, k in ((0, 0), (1, 1), (2, 2), (3, 3), (4, 4), (8, 5), (9, 6)):
@@ -135,19 +177,39 @@ def light_field_quantities(filled: Filled, edges: GridEdges, attitude: Attitude,
                            lower_bound=None) -> dict:
     """Every quantity of one frame and band with its uncertainty components.
 
-    ``centre_samples``: the grid's values are samples at the cell centres; they are turned into cell means
-    first (:func:`~pipeline.lightfield.quadrature.cell_means_from_centres`) and the size of that correction
-    is part of the quadrature error.
+    Parameters
+    ----------
+    filled : Filled
+        The frame and band's filled camera-frame radiance grid (:func:`pipeline.lightfield.fill.fill_between_lenses`),
+        W m-2 sr-1 nm-1.
+    edges : GridEdges
+        The grid's cell edges, radians.
+    attitude : Attitude
+        The frame's attitude and its sigmas, degree.
+    weights : WeightCache
+        The functional weights per grid and attitude.
+    attitude_step_deg : float
+        The step delta of the attitude's numerical derivatives, degree.
+    centre_samples : bool, default False
+        The grid's values are samples at the cell centres; they are turned into cell means first
+        (:func:`~pipeline.lightfield.quadrature.cell_means_from_centres`) and the size of that correction is part
+        of the quadrature error.
+    exposure_systematic : numpy.ndarray, optional
+        Shape ``(n_exposure, n_zenith, n_azimuth)``: systematic sigmas of the measured cells (W m-2 sr-1 nm-1),
+        each fully correlated over the cells and independent of the others (an HDR merge's per-exposure terms);
+        each goes through the effective weights (filled cells take their edges') as one shared deviation and
+        joins the systematic component in quadrature.
+    lower_bound : numpy.ndarray, optional
+        Shape ``(n_zenith, n_azimuth)``, bool: cells whose value is a lower bound; their share of each integral's
+        value is ``lower_bound_fraction``.
 
-    Returns {"value": (11,), "<component>": (11,) standard uncertainty for each of COMPONENTS,
-    "total": (11,), "filled_fraction": (11,) (NaN for the ratios), "filled_variance_fraction": (11,),
-    "lower_bound_fraction": (11,) (NaN without ``lower_bound``)}.
-
-    ``exposure_systematic`` (n_exposure, n_zenith, n_azimuth): systematic sigmas of the measured cells, each
-    fully correlated over the cells and independent of the others (an HDR merge's per-exposure terms); each
-    goes through the effective weights (filled cells take their edges') as one shared deviation and joins
-    the systematic component in quadrature. ``lower_bound`` (n_zenith, n_azimuth) bool: cells whose value is
-    a lower bound; their share of each integral's value is ``lower_bound_fraction``.
+    Returns
+    -------
+    dict
+        ``"value"``: the 11 ``QUANTITIES`` (units as :func:`derived_values`); for each of ``COMPONENTS`` its
+        standard uncertainty (11,), same units; ``"total"`` (11,) their root sum of squares;
+        ``"filled_fraction"`` (11,) (NaN for the ratios); ``"filled_variance_fraction"`` (11,);
+        ``"lower_bound_fraction"`` (11,) (NaN without ``lower_bound``).
     """
     grid = cell_means_from_centres(filled.radiance, edges) if centre_samples else filled.radiance
     L = grid.ravel()

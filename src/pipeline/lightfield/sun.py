@@ -73,7 +73,20 @@ _ATT_STEP_DEG = 0.05
 
 
 def unit_vector(zenith_deg, azimuth_deg) -> np.ndarray:
-    """Grid components (sin z cos a, sin z sin a, cos z) of directions (..., 3)."""
+    """Grid components (sin z cos a, sin z sin a, cos z) of directions (..., 3).
+
+    Parameters
+    ----------
+    zenith_deg : numpy.ndarray
+        Zenith angles, degree.
+    azimuth_deg : numpy.ndarray
+        Azimuths, degree.
+
+    Returns
+    -------
+    numpy.ndarray
+        Unit vectors, shape ``(..., 3)``.
+    """
     z, a = np.radians(np.asarray(zenith_deg, float)), np.radians(np.asarray(azimuth_deg, float))
     return np.stack([np.sin(z) * np.cos(a), np.sin(z) * np.sin(a), np.cos(z)], axis=-1)
 
@@ -84,7 +97,20 @@ def _angles(v) -> tuple[float, float]:
 
 
 def tangent_basis(zenith_deg: float, azimuth_deg: float) -> np.ndarray:
-    """(2, 3): unit vectors along increasing zenith angle and increasing azimuth at a direction."""
+    """(2, 3): unit vectors along increasing zenith angle and increasing azimuth at a direction.
+
+    Parameters
+    ----------
+    zenith_deg : float
+        Zenith angle of the direction, degree.
+    azimuth_deg : float
+        Azimuth of the direction, degree.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape ``(2, 3)``: the unit vectors along increasing zenith angle and along increasing azimuth.
+    """
     z, a = np.radians(zenith_deg), np.radians(azimuth_deg)
     return np.array([[np.cos(z) * np.cos(a), np.cos(z) * np.sin(a), -np.sin(z)],
                      [-np.sin(a), np.cos(a), 0.0]])
@@ -123,10 +149,36 @@ class SunCentroid:
 
 def sun_centroid(maps, bundle, lenses, medium: str, zenith_lens: str, full_scale_dn, band: str = "G",
                  band_index: int | None = None) -> SunCentroid | None:
-    """The sun's centroid (module docstring) in one frame's chain output ``maps``
-    (:class:`pipeline.lightfield.hdr.ExposureMaps` of ``lenses`` and one or all bands; ``band_index`` its band
-    axis position, default that of ``band`` among all bands when the maps hold them all, else 0);
-    ``full_scale_dn[lens]`` the response's full scale of the band. None when no pixel is saturated."""
+    """The sun's centroid (module docstring) in one frame's chain output.
+
+    Parameters
+    ----------
+    maps : ExposureMaps
+        The frame through the chain (:class:`pipeline.lightfield.hdr.ExposureMaps`) of ``lenses`` and one or all
+        bands.
+    bundle : xarray.Dataset
+        The calibration bundle (its ``theta_deg``, ``phi_deg`` and ``theta_deg_sigma`` maps).
+    lenses : sequence of str
+        The lenses of the maps' lens axis.
+    medium : str
+        "air" or "water": the bundle's geometry used.
+    zenith_lens : str
+        The lens that looks at the grid's zenith.
+    full_scale_dn : numpy.ndarray
+        ``full_scale_dn[lens]``: the response's full scale of the band (nonlinearity full scale, else saturation
+        level), DN.
+    band : str, default "G"
+        The band whose saturated core and rim give the centroid.
+    band_index : int, optional
+        The band's position on the maps' band axis; default that of ``band`` among R, G, B when the maps hold
+        them all, else 0.
+
+    Returns
+    -------
+    SunCentroid or None
+        The centroid's camera-frame zenith angle and azimuth (degree), its covariance (degree^2) and the
+        geometry's sigma (degree); None when no pixel is saturated.
+    """
     b = band_index if band_index is not None else (0 if maps.radiance.shape[1] == 1 else
                                                     ["R", "G", "B"].index(band))
     best = None
@@ -197,7 +249,31 @@ def _attitude_jacobian(att: Attitude, vector, sz, sa) -> np.ndarray:
 
 def sun_closure(centroid: SunCentroid, att: Attitude, solar_zenith_deg: float, solar_azimuth_deg: float,
                 z_limit: float) -> dict:
-    """The closure of one frame (module docstring): a dict of the residual and its uncertainty."""
+    """The closure of one frame (module docstring): a dict of the residual and its uncertainty.
+
+    Parameters
+    ----------
+    centroid : SunCentroid
+        The sun's centroid in the frame, camera grid frame, degree.
+    att : Attitude
+        The frame's attitude, degree.
+    solar_zenith_deg : float
+        Apparent solar zenith angle, degree.
+    solar_azimuth_deg : float
+        Solar azimuth, degree from north towards east.
+    z_limit : float
+        A residual component beyond this many sigmas names its cause (``lightfield.sun_closure_z``).
+
+    Returns
+    -------
+    dict
+        The measured earth-frame zenith angle and azimuth; the residual's components along the zenith angle and
+        horizontal and their sigmas; the heading offset and its sigma; the angle, its sigma along the residual,
+        z, chi^2 on 2 degrees of freedom and its p value (all angles in degree); the attitude's and the
+        measurement's sigma; the named causes (str); and in the camera's tangent plane the residual
+        (``residual_camera_deg``, degree, shape ``(2,)``) and the frame-to-frame covariance
+        (``frame_cov_camera_deg2``, degree^2, shape ``(2, 2)``).
+    """
     r = _earth_residual(att, centroid.vector, solar_zenith_deg, solar_azimuth_deg)
     m = _to_earth(att, centroid, solar_zenith_deg, solar_azimuth_deg)
     c_meas = m @ centroid.cov_deg2 @ m.T
@@ -243,7 +319,30 @@ def _model_attitude(model: str, params, sun_camera_azimuth_deg: float) -> Attitu
 def fit_attitude_from_sun(centroid: SunCentroid, solar_zenith_deg: float, solar_azimuth_deg: float,
                           model: str = "heading") -> dict:
     """Attitude fitted from the sun (module docstring): the fitted attitude (its sigmas set from the fit),
-    the fitted parameters with their sigmas, and the fit's chi^2 and degrees of freedom."""
+    the fitted parameters with their sigmas, and the fit's chi^2 and degrees of freedom.
+
+    Parameters
+    ----------
+    centroid : SunCentroid
+        The sun's centroid in the frame, camera grid frame, degree.
+    solar_zenith_deg : float
+        Apparent solar zenith angle, degree.
+    solar_azimuth_deg : float
+        Solar azimuth, degree from north towards east.
+    model : str, default "heading"
+        "heading" (level assumed) or "heading_tilt" (``FIT_MODELS``).
+
+    Returns
+    -------
+    dict
+        ``"model"``; ``"heading_deg"``, ``"heading_sigma_deg"``, ``"tilt_deg"``, ``"tilt_sigma_deg"`` (degree);
+        ``"chi2"`` and ``"dof"``; ``"attitude"``: the fitted :class:`Attitude`.
+
+    Raises
+    ------
+    ValueError
+        On an unknown model.
+    """
     if model not in FIT_MODELS:
         raise ValueError(f"attitude-from-sun model {model!r}: one of {', '.join(FIT_MODELS)}")
     h0 = (solar_azimuth_deg - centroid.camera_azimuth_deg) % 360.0

@@ -45,15 +45,67 @@ _VARS = {
 
 
 def shortest_exposure_sun_centroid(raw, bundle, chains, lenses, medium, effects, zenith_lens, full_scale_dn):
-    """The sun's centroid in a bracket's shortest exposure ``raw`` (None where no pixel saturates)."""
+    """The sun's centroid in a bracket's shortest exposure ``raw`` (None where no pixel saturates).
+
+    Parameters
+    ----------
+    raw : RawFrame
+        The bracket's shortest exposure, decoded.
+    bundle : xarray.Dataset
+        The calibration bundle.
+    chains : dict
+        ``{(lens, band): BandChain}``, the measurement chain of each lens and band.
+    lenses : sequence of str
+        The lenses.
+    medium : str
+        "air" or "water".
+    effects : collection of str
+        The effects the chain applies.
+    zenith_lens : str
+        The lens that looks at the grid's zenith.
+    full_scale_dn : numpy.ndarray
+        The response's full scale, DN, shape ``(lens, band)`` over R, G, B.
+
+    Returns
+    -------
+    SunCentroid or None
+        The centroid in band ``CENTROID_BAND``, or None.
+    """
     b = ["R", "G", "B"].index(CENTROID_BAND)
     maps = exposure_maps(raw, bundle, chains, lenses, medium, effects, [CENTROID_BAND])
     return sun_centroid(maps, bundle, lenses, medium, zenith_lens, full_scale_dn[:, b], CENTROID_BAND, 0)
 
 
 def sun_attitudes(centroids, logged, solar, model: str | None, names):
-    """Each bracket's attitude: ``logged`` (from the log or level) or, with ``model``, fitted from the sun
-    (every bracket must show it); returns (attitudes, fits or None)."""
+    """Each bracket's attitude: ``logged`` (from the log or level) or, with ``model``, fitted from the sun.
+
+    Every bracket must show the sun when the attitude is fitted from it.
+
+    Parameters
+    ----------
+    centroids : list of SunCentroid or None
+        Each bracket's sun centroid.
+    logged : list of Attitude
+        Each bracket's attitude from the log, or level.
+    solar : list of tuple of float
+        Each bracket's (solar zenith angle, solar azimuth), degree.
+    model : str or None
+        The attitude-from-sun model (``FIT_MODELS``), or None to keep ``logged``.
+    names : list of str
+        The brackets' names, for the error messages.
+
+    Returns
+    -------
+    attitudes : list of Attitude
+        Each bracket's attitude.
+    fits : list of dict or None
+        Each bracket's fit (:func:`pipeline.lightfield.sun.fit_attitude_from_sun`), or None without ``model``.
+
+    Raises
+    ------
+    InputError
+        On an unknown model, a bracket without a saturated sun, or the sun below the horizon.
+    """
     if model is None:
         return list(logged), None
     if model not in FIT_MODELS:
@@ -70,7 +122,28 @@ def sun_attitudes(centroids, logged, solar, model: str | None, names):
 
 
 def sun_dataset(centroids: list[SunCentroid | None], attitudes, solar, names, z_limit: float, fits=None) -> xr.Dataset:
-    """The sun variables along ``frame`` and the ``obs_sun`` residual table (two rows per bracket with a sun)."""
+    """The sun variables along ``frame`` and the ``obs_sun`` residual table (two rows per bracket with a sun).
+
+    Parameters
+    ----------
+    centroids : list of SunCentroid or None
+        Each bracket's sun centroid.
+    attitudes : list of Attitude
+        Each bracket's attitude.
+    solar : list of tuple of float
+        Each bracket's (solar zenith angle, solar azimuth), degree.
+    names : list of str
+        The brackets' names.
+    z_limit : float
+        A closure component beyond this many sigmas names its cause.
+    fits : list of dict, optional
+        The attitude fits from the sun (:func:`sun_attitudes`).
+
+    Returns
+    -------
+    xarray.Dataset
+        ``sun_*`` variables along ``frame`` (degree, with ``long_name`` and ``units``) and the ``obs_sun`` table.
+    """
     n = len(centroids)
     values = {k: np.full(n, np.nan) for k in _VARS}
     lens = np.array([""] * n, dtype=object)
