@@ -101,7 +101,7 @@ def _context(first: dict, columns: list[str]) -> str:
     if "commit" not in columns:
         parts.append(f"commit {first['commit'] or 'not recorded'}")
     if "machine" not in columns:
-        parts.append(first["machine"])
+        parts.append(first["machine"] if first["machine"] not in ("", "not recorded") else "machine not recorded")
     text = ", ".join(parts)
     if "command" not in columns:
         text += f": `{first['command']}`" if first["command"] else ": command not recorded"
