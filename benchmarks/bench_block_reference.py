@@ -164,8 +164,9 @@ def tanh_case(config: dict) -> None:
           f"{row['covariate']} (p {row['covariate_p_value']:.2g})")
 
 
-def form_case(config: dict, draws: int = 2000) -> None:
-    """The power-law gain ladder on the tiny dataset: the block test's figures and its bootstrap null."""
+def form_case(config: dict, draws: int = 2000) -> dict:
+    """The power-law gain ladder on the tiny dataset: the block test's figures and its bootstrap null, printed and
+    returned as one row of ``results/bench_block_reference_form_case.csv`` (figure name -> value)."""
     cfg = config["diagnostics"]
     obs = form_tables(config, "iso_gain_power_law", 101, 7, [])
     table = next(o.table for o in obs if (o.experiment, o.level) == ("linearity", "setting"))
@@ -190,6 +191,19 @@ def form_case(config: dict, draws: int = 2000) -> None:
           f"plug-in nu {ref.nu_plug_in:.1f}, p {stats.f.sf(f_obs, g.k, ref.nu_plug_in):.2g}; propagated (bootstrap) "
           f"nu {ref.nu_propagated:.1f}, p {stats.f.sf(f_obs, g.k, ref.nu_propagated):.2g}; the diagnostics' "
           f"(the seed from the table): p-value {r['p_value']:.2g}, {r['block_reference']} nu {r['block_reference_dof']:.1f}")
+    tau2 = dict(zip(cfg["block_noise_forms"], (float(v) for v in g.tau2)))
+    return {"rows": len(table), "blocks": g.n_blocks, "rows_chi2": f"{fit0.chi2:.1f} -> {fit1.chi2:.1f}",
+            "rows_dof": fit1.dof, "rows_drop": round(fit0.chi2 - fit1.chi2, 1),
+            "tau2_offset_dn2": tau2.get("offset", ""), "tau2_relative": tau2.get("relative", ""),
+            "gls_drop": round(g.delta_chi2, 1), "gls_chi2": round(g.chi2, 1), "gls_dof": g.dof, "f": round(f_obs, 2),
+            "k": g.k, "p_f_k_g1": stats.f.sf(f_obs, g.k, g.n_blocks - 1), "p_f_k_dof": stats.f.sf(f_obs, g.k, g.dof),
+            "null_draws": draws, "null_mean_f": round(float(f.mean()), 3), "null_q999": round(float(np.quantile(f, 0.999)), 2),
+            "f_k_g1_q999": round(float(stats.f.isf(0.001, g.k, g.n_blocks - 1)), 2),
+            "f_k_dof_q999": round(float(stats.f.isf(0.001, g.k, g.dof)), 2),
+            "null_above_f": int(np.sum(f >= f_obs)), "null_nu": round(float(nu), 1), "null_p": stats.f.sf(f_obs, g.k, nu),
+            "seed0_bootstrap_nu": round(float(ref.nu_propagated), 1),
+            "seed0_bootstrap_p": stats.f.sf(f_obs, g.k, ref.nu_propagated),
+            "diagnostics_nu": round(float(r["block_reference_dof"]), 1), "diagnostics_p": r["p_value"]}
 
 
 def main() -> None:
@@ -207,7 +221,11 @@ def main() -> None:
     # the diagnostics with F(k, G - 1) for the first column; the bootstrap references drawn here
     config_f = {**config, "diagnostics": {**config["diagnostics"], "block_reference": "f"}}
     if args.form_case:
-        form_case(config)
+        c0 = time.process_time()
+        row = form_case(config)
+        from record import append_rows
+
+        append_rows("bench_block_reference_form_case", [{**row, "cpu_s": round(time.process_time() - c0)}])
     if args.tanh_case:
         tanh_case(config)
     rng = np.random.default_rng(args.seed)

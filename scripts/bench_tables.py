@@ -87,7 +87,8 @@ def table(name: str, run: str, columns: list[str]) -> str:
     unknown = [c for c in columns if c not in chosen[0]]
     if unknown:
         raise SystemExit(f"{RESULTS / name}: no column {', '.join(unknown)} (named by a bench-table marker of docs/)")
-    lines = [f"*{_context(chosen[0], columns)}*", "", "| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    context = _context(chosen[0], columns)      # empty when every context field is a column
+    lines = ([f"*{context}*", ""] if context else []) + ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     lines += ["| " + " | ".join(_cell(r, c) for c in columns) + " |" for r in chosen]
     return "\n".join(lines) + "\n"
 
@@ -110,6 +111,8 @@ def _context(first: dict, columns: list[str]) -> str:
 
 def _cell(row: dict, column: str) -> str:
     text = row[column].replace("|", "\\|")
+    if column == "commit" and not text:
+        return "not recorded"
     return f"`{text}`" if column == "command" and text not in ("", "not recorded") else text
 
 
