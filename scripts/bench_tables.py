@@ -8,7 +8,8 @@ Each table of a page (any ``docs/*.md``) sits between two markers that name its 
 
 ``run=latest`` shows the newest run of the file, ``run=all`` every row of it. A context field (date, commit,
 machine, command, run) named among the columns is shown per row instead of above the table, and so is one
-that differs between the table's rows. A block
+that differs between the table's rows. A marker indented under a list item has its table indented as far.
+A block
 
     <!-- bench-index -->
     - `bench_apply.csv`: `2026-12-02 05:00` (7 rows); ... (generated)
@@ -32,8 +33,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 DOCS = ROOT / "docs"
-BLOCK = re.compile(r"(<!-- bench-table: (?P<file>[\w.-]+) \| run=(?P<run>[^|]*?) \| (?P<columns>[^>]*?) -->\n)"
-                   r"(?P<body>.*?)(?P<end><!-- end bench-table -->)", re.S)
+BLOCK = re.compile(r"(?P<indent>^[ ]*)(?P<head><!-- bench-table: (?P<file>[\w.-]+) \| run=(?P<run>[^|]*?) \| "
+                   r"(?P<columns>[^>]*?) -->\n)(?P<body>.*?)(?P<end><!-- end bench-table -->)", re.S | re.M)
 #: the list of the runs no table shows: every figure of benchmarks/results is either on the page or named here
 INDEX = re.compile(r"(<!-- bench-index -->\n)(?P<body>.*?)(?P<end><!-- end bench-index -->)", re.S)
 
@@ -191,7 +192,10 @@ def render(text: str, shown: set[tuple[str, str]] | None = None) -> str:
         The page rendered.
     """
     def one(m: re.Match) -> str:
-        return m.group(1) + table(m.group("file"), m.group("run").strip(), m.group("columns").split()) + m.group("end")
+        # a block indented under a list item: its table indented as far
+        rendered = table(m.group("file"), m.group("run").strip(), m.group("columns").split())
+        body = "".join(m.group("indent") + line if line.strip() else line for line in rendered.splitlines(True))
+        return m.group("indent") + m.group("head") + body + m.group("indent") + m.group("end")
     text = BLOCK.sub(one, text)
     if shown is None:
         shown = shown_runs([p.read_text(encoding="utf-8") for p in pages()] + [text])
