@@ -25,7 +25,8 @@ significant at 0.001 / 13. ``--form-case`` first prints the same for the lineari
 tiny dataset (seed 101) with the power-law gain ladder of ``tests/support/effect_forms.py`` written into its raw
 frames (amplitude 0.01, rewrite seed 7): the drops in chi-square, the block-noise variances, the F statistic
 against F(k, G - 1) and F(k, dof), the bootstrap null distribution of its F (2000 draws at the
-variances' estimate) and the diagnostics' references and p-value;
+variances' estimate) and the diagnostics' references and p-value, and appends them as one row to
+``benchmarks/results/bench_block_reference_form_case.csv`` (with ``--null 0 --power 0`` only that);
 ``--tanh-case`` the residual tests of the linearity setting table of the detection benchmark's tanh case
 (seed 521, 4 % at full scale) once ``nonlinearity`` is in the model, their parts, and the mean residual by
 signal level. A benchmark, not a test: nothing is asserted.

@@ -1,8 +1,11 @@
 """Benchmark results as data: each ``benchmarks/bench_*.py`` appends its figures to
 ``benchmarks/results/<bench>.csv``, one row per measured thing, with the date, the commit, the machine and the
-command that gave them; the docs pages (``docs/performance.md``, the detection benchmark's section of
-``docs/effects-and-diagnostics.md``) render their tables from these files (``scripts/bench_tables.py``), so that
-no timing is typed by hand.
+command that gave them; the docs pages (``docs/performance.md``, ``docs/effects-and-diagnostics.md`` and
+every other page with a ``bench-table`` marker) render their tables from these files (``scripts/bench_tables.py``),
+so that no timing is typed by hand. The ``runs_<page>.csv`` files hold the runs a page reported in its prose
+before there was a benchmark to append them (a test, a scratch script or a workflow run, as each row's command
+says), transcribed with their date where the page gave one; a run's figures go there, or to its benchmark's
+file, never into the prose.
 
 A file's columns are the union of its rows' columns: a benchmark that reports a new figure adds a column,
 and the older rows leave it empty.
