@@ -125,7 +125,7 @@ class UnderwaterScene(BracketScene):
     beam_attenuation_per_m: tuple = (0.40, 0.08, 0.05)
     diffuse_attenuation_per_m: tuple = (0.42, 0.09, 0.06)
     diffuse_factor: float = 0.5
-    nadir_ratio: float = 0.003
+    nadir_ratio: float = 0.002
 
     def air_radiance(self, zenith_deg, azimuth_deg, band_index) -> np.ndarray:
         """The sky and the soft sun above the water (Z <= 90 degrees), per band.

@@ -1,0 +1,116 @@
+"""The light field in water against the simulator's truth (issue 33, item 6).
+
+The tiny camera that the session fixture ``calibrated`` calibrated (its bundle
+has the immersion stage: media air and water) is put at 3 m under a flat
+surface (:mod:`pipeline.simulate.underwater`: the refracted CIE sky and a soft
+sun inside Snell's window with Fresnel transmission and the n-squared law, a
+diffuse field exp(k (cos Z - 1)) over the sphere), tilted by up to 7 degrees
+in roll and pitch with any heading, with an attitude log of stated noise (0.2,
+0.2, 1.0 degree). One bracket per seed of five exposures 1/4000 s to 1 s;
+``light_field_from_brackets(..., medium="water", attitude log)`` on a 9 degree
+grid. The truth is the simulator's fine quadrature of the true radiance, never
+the pipeline's code.
+
+- The truth's quadrature against a closed form: with the beam attenuation so
+  large that no refracted light is left, the field is C exp(k cos Z) and every
+  quantity has a closed form (as tests/lightfield/test_lightfield.py's).
+- Over 20 seeds and 3 bands (60 values per quantity): every deviation of E_d,
+  E_u, E_0, mu_d, mu_u and L_u within 3 of its stated sigma; the HDR map spans
+  at least five decades.
+- Unit spread of z = (pipeline - truth) / stated sigma: the spread of 60 values
+  within the 99 % interval of sqrt(chi2_60 / 60), 0.74 to 1.30. NOT MET
+  (strict xfail): the fill model's sigma of the band between the lenses is tens
+  to hundreds of times the interpolation's real error here (measured spread of
+  z about 0.1), because its curvature fits reach across Snell's window's edge
+  and the soft sun, and the empty polar cells of the fine grid are filled
+  across the pole with the same curvature. Without the fill sigma the spreads
+  are about 1 for E_d, E_0 and L_u, but E_u is high by about 2.7 sigma and
+  mu_u low by about 2 sigma in every seed: the linear interpolation over the
+  band overestimates the convex upwelling near the horizon, so the fill must be
+  in the statement, only at its right size.
+
+Run time: about 15 s of CPU beyond the session fixture ``calibrated``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from pipeline.lightfield.command import light_field_from_brackets
+from pipeline.simulate.underwater import UnderwaterScene, light_field_truth, render_underwater_bracket
+
+SEEDS = range(20)
+GRID_DEG = 9.0
+LOG_SIGMA_DEG = (0.2, 0.2, 1.0)
+CHECKED = ("E_d", "E_u", "E_0", "mu_d", "mu_u", "L_u")
+COVERAGE_Z = 3.0
+
+
+def _scene(seed):
+    rng = np.random.default_rng([seed, 33, 6])
+    tilt = rng.uniform(-7.0, 7.0, 2)
+    return replace(UnderwaterScene(), attitude_deg=(float(tilt[0]), float(tilt[1]), float(rng.uniform(0, 360))))
+
+
+@pytest.fixture(scope="module")
+def runs(calibrated, tmp_path_factory):
+    """Per seed: the light field of its bracket and the truth (the truth computed once: the scene's light field
+    does not depend on the camera's attitude)."""
+    bundle = calibrated[4]
+    out = []
+    for seed in SEEDS:
+        folder = tmp_path_factory.mktemp(f"uw{seed}")
+        info = render_underwater_bracket(folder, _scene(seed), seed=seed, attitude_log_sigma_deg=LOG_SIGMA_DEG)
+        ds = light_field_from_brackets(bundle, info["files"], info["frames_csv"], "water", info["attitude_log"],
+                                       grid_deg=GRID_DEG)
+        out.append((info, ds))
+    return out
+
+
+def _z(runs, q):
+    return np.array([[(float(ds[q][0, b]) - info["light_field_truth"][q][b]) / float(ds[f"{q}_sigma"][0, b])
+                      for b in range(3)] for info, ds in runs]).ravel()
+
+
+def test_truth_quadrature_against_the_closed_form():
+    scene = replace(UnderwaterScene(), beam_attenuation_per_m=(1e4, 1e4, 1e4))
+    t = light_field_truth(scene, azimuth_step_deg=2.0)
+    k = 0.5 * np.log(1.0 / scene.nadir_ratio)
+    c = np.cos(np.radians(5.0))
+    for b in range(3):
+        C = scene.diffuse_factor * scene.zenith_radiance[b] * np.exp(
+            -scene.diffuse_attenuation_per_m[b] * scene.depth_m) * np.exp(-k)
+        closed = {"E_d": 2 * np.pi * C * (np.exp(k) * (k - 1) + 1) / k ** 2,
+                  "E_u": 2 * np.pi * C * (1 - np.exp(-k) * (1 + k)) / k ** 2,
+                  "E_0d": 2 * np.pi * C * (np.exp(k) - 1) / k, "E_0u": 2 * np.pi * C * (1 - np.exp(-k)) / k,
+                  "L_d": C * (np.exp(k) - np.exp(k * c)) / (k * (1 - c)),
+                  "L_u": C * (np.exp(-k * c) - np.exp(-k)) / (k * (1 - c))}
+        # midpoint rule on rows of 0.05 to 0.25 degree: relative error below (0.25 deg)^2 k^2 / 24, about 1e-5
+        for q, v in closed.items():
+            assert t[q][b] == pytest.approx(v, rel=1e-4), (q, b)
+
+
+def test_truth_in_water_within_stated_uncertainty(runs):
+    for q in CHECKED:
+        z = _z(runs, q)
+        assert z.size == 60 and np.all(np.isfinite(z)), q
+        assert np.all(np.abs(z) <= COVERAGE_Z), (q, np.abs(z).max())
+    for info, ds in runs:
+        assert float(ds["tilt_deg"][0]) <= 10.0
+        assert (ds["hdr_dynamic_range_decades"][0].values >= 5.0).all()
+        assert (ds["hdr_pixel_dynamic_range_decades"][0].values >= 5.0).all()
+        assert not (ds["hdr_cell_flag"].values > 0).any()        # the refracted sun is measured, not a bound
+
+
+@pytest.mark.xfail(strict=True, reason="the fill model's sigma of the band between the lenses is far above the "
+                                       "interpolation's error in water (module docstring)")
+def test_truth_in_water_unit_spread(runs):
+    n = len(SEEDS) * 3
+    low, high = np.sqrt(chi2.ppf([0.005, 0.995], n) / n)
+    for q in CHECKED:
+        spread = float(np.sqrt(np.mean(_z(runs, q) ** 2)))
+        assert low <= spread <= high, (q, spread, low, high)
