@@ -99,7 +99,7 @@ def test_truth_in_water_within_stated_uncertainty(runs):
         z = _z(runs, q)
         assert z.size == 60 and np.all(np.isfinite(z)), q
         assert np.all(np.abs(z) <= COVERAGE_Z), (q, np.abs(z).max())
-    for info, ds in runs:
+    for _, ds in runs:
         assert float(ds["tilt_deg"][0]) <= 10.0
         assert (ds["hdr_dynamic_range_decades"][0].values >= 5.0).all()
         assert (ds["hdr_pixel_dynamic_range_decades"][0].values >= 5.0).all()
