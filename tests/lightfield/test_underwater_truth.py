@@ -14,6 +14,10 @@ the pipeline's code.
 - The truth's quadrature against a closed form: with the beam attenuation so
   large that no refracted light is left, the field is C exp(k cos Z) and every
   quantity has a closed form (as tests/lightfield/test_lightfield.py's).
+- The truth's refraction: just below the surface with no attenuation and no
+  diffuse light, E_d equals the sky's Fresnel-transmitted irradiance
+  integrated on the air side (the n-squared law and the solid angle's
+  compression cancel).
 - Over 20 seeds and 3 bands (60 values per quantity): every deviation of E_d,
   E_u, E_0, mu_d, mu_u and L_u within 3 of its stated sigma; the HDR map spans
   at least five decades.
@@ -41,7 +45,8 @@ import pytest
 from scipy.stats import chi2
 
 from pipeline.lightfield.command import light_field_from_brackets
-from pipeline.simulate.underwater import UnderwaterScene, light_field_truth, render_underwater_bracket
+from pipeline.simulate.underwater import (WATER_INDEX, UnderwaterScene, fresnel_transmission, light_field_truth,
+                                          render_underwater_bracket)
 
 SEEDS = range(20)
 GRID_DEG = 9.0
@@ -92,6 +97,22 @@ def test_truth_quadrature_against_the_closed_form():
         # midpoint rule on rows of 0.05 to 0.25 degree: relative error below (0.25 deg)^2 k^2 / 24, about 1e-5
         for q, v in closed.items():
             assert t[q][b] == pytest.approx(v, rel=1e-4), (q, b)
+
+
+def test_truth_conserves_the_transmitted_irradiance():
+    """Just below the surface, no attenuation, no diffuse light: the refracted field's E_d is the transmitted
+    irradiance of the sky, the integral over the air side of t_F(Z_a) L_a(Z_a) cos Z_a (the n-squared law and
+    Snell's compression of solid angle cancel); both by midpoint rules of about 1e-5 relative error."""
+    scene = replace(UnderwaterScene(), depth_m=0.0, diffuse_factor=0.0)
+    t = light_field_truth(scene, azimuth_step_deg=0.5)
+    edges = np.radians(np.arange(0.0, 90.0 + 1e-9, 0.02))
+    z1, z2 = edges[:-1], edges[1:]
+    n_a = 720
+    Z, A = np.meshgrid(np.degrees(0.5 * (z1 + z2)), (np.arange(n_a) + 0.5) * 360.0 / n_a, indexing="ij")
+    for b in range(3):
+        L = scene.air_radiance(Z, A, np.full(Z.shape, b)) * fresnel_transmission(Z, WATER_INDEX[b])
+        e = np.sum(L.sum(axis=1) * 0.5 * (np.sin(z2) ** 2 - np.sin(z1) ** 2) * 2 * np.pi / n_a)
+        assert t["E_d"][b] == pytest.approx(e, rel=1e-4), b
 
 
 def test_truth_in_water_within_stated_uncertainty(runs):

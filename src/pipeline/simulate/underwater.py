@@ -233,8 +233,10 @@ def light_field_truth(scene: UnderwaterScene, cone_half_angle_deg: float = 5.0, 
         cone_d, cone_u = edges[1:] <= cone_half_angle_deg + 1e-9, edges[:-1] >= 180.0 - cone_half_angle_deg - 1e-9
         l_d = np.sum((row * solid)[cone_d]) / (n_a * np.sum(solid[cone_d]))
         l_u = np.sum((row * solid)[cone_u]) / (n_a * np.sum(solid[cone_u]))
-        values = {"E_d": e_d, "E_u": e_u, "E_0d": e_0d, "E_0u": e_0u, "E_0": e_0d + e_0u, "mu_d": e_d / e_0d,
-                  "mu_u": e_u / e_0u, "mu": (e_d - e_u) / (e_0d + e_0u), "L_d": l_d, "L_u": l_u, "Q": e_u / l_u}
+        with np.errstate(invalid="ignore", divide="ignore"):     # no upwelling light: NaN ratios
+            values = {"E_d": e_d, "E_u": e_u, "E_0d": e_0d, "E_0u": e_0u, "E_0": e_0d + e_0u, "mu_d": e_d / e_0d,
+                      "mu_u": np.float64(e_u) / e_0u, "mu": (e_d - e_u) / (e_0d + e_0u), "L_d": l_d, "L_u": l_u,
+                      "Q": np.float64(e_u) / l_u}
         for q, v in values.items():
             out[q][b] = v
     return out
