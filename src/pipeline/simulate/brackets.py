@@ -260,7 +260,8 @@ def write_attitude_log(path, attitude_deg, start: datetime, seconds: float, *, s
 def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRACKET_EXPOSURES_S, *, seed: int = 1,
                    scale: str = "tiny", iso: float = 100.0, start: datetime = datetime(2021, 3, 18, 16, 0, 0),
                    bracket: str = "B001", raw_transform=None, first_index: int = 0, site=None,
-                   attitude_log_sigma_deg=None, heading_bias_deg: float = 0.0) -> dict:
+                   attitude_log_sigma_deg=None, heading_bias_deg: float = 0.0, medium: str = "air",
+                   light_factor=1.0) -> dict:
     """Render one bracket into ``folder``: DNG frames, the frames table and the truth.
 
     ``<bracket>_<k>.dng`` per exposure, ``frames.csv`` (appended to when it exists) and the truth in
@@ -298,6 +299,11 @@ def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRA
         ``attitude_deg`` with that noise (:func:`write_attitude_log`); default None (no log).
     heading_bias_deg : float, optional
         A wrong heading in the attitude log, degree; default 0.
+    medium : str, optional
+        ``air`` or ``water``: the lenses' true geometry in that medium; default ``air``.
+    light_factor : float or callable, optional
+        The renderer's light factor (in water: the response over the in-air one,
+        :func:`pipeline.simulate.underwater.in_water_light_factor`); default 1.
 
     Returns
     -------
@@ -317,7 +323,8 @@ def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRA
     files = []
     when = start
     for k, t in enumerate(exposures_s):
-        spec = FrameSpec("both", "signal", iso, float(t), radiance=scene.camera_radiance, medium="air")
+        spec = FrameSpec("both", "signal", iso, float(t), radiance=scene.camera_radiance, medium=medium,
+                         light_factor=light_factor)
         cfa = renderer.render(first_index + k, 97, spec)
         if raw_transform is not None:
             cfa = np.asarray(raw_transform(cfa, float(black), float(white)), np.uint16)
@@ -332,7 +339,7 @@ def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRA
     truth_dir = folder / "truth"
     truth_dir.mkdir(exist_ok=True)
     lenses = list(camera.lens_names)
-    truth = np.stack([truth_band_images(renderer, scene, lens) for lens in lenses])
+    truth = np.stack([truth_band_images(renderer, scene, lens, medium) for lens in lenses])
     ds = xr.Dataset({"radiance": (("lens", "band", "y", "x"), truth,
                                   {"long_name": "true effective band radiance of each band pixel",
                                    "units": "W m-2 sr-1 nm-1"})},
@@ -340,7 +347,7 @@ def render_bracket(folder, scene: BracketScene = BracketScene(), exposures_s=BRA
     ds.to_netcdf(truth_dir / f"{bracket}.nc")
     (truth_dir / f"{bracket}.yaml").write_text(yaml.safe_dump(
         {"scene": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(scene).items()},
-         "exposures_s": [float(t) for t in exposures_s], "iso": iso, "seed": seed, "scale": scale,
+         "exposures_s": [float(t) for t in exposures_s], "iso": iso, "seed": seed, "scale": scale, "medium": medium,
          "files": [p.name for p in files]}, sort_keys=False))
     out = {"files": files, "frames_csv": table, "truth": truth_dir / f"{bracket}.nc", "scene": scene}
     meta = yaml.safe_load((truth_dir / f"{bracket}.yaml").read_text())
