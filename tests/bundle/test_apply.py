@@ -199,7 +199,7 @@ def _backed_by_file(a: np.ndarray) -> bool:
 
 def test_absolute_frame_recovers_the_port_radiance(calibrated, applied):
     _, truth, _, _, _, _ = calibrated
-    bands = truth["experiments_truth"]["absolute"]["bands"]
+    lenses = truth["experiments_truth"]["absolute"]["lenses"]
     for lens in LENSES:
         ds = applied[lens]
         for band in ("R", "G", "B"):
@@ -213,7 +213,7 @@ def test_absolute_frame_recovers_the_port_radiance(calibrated, applied):
             mean = float(radiance.mean())
             # random part averages down over the mask, the systematic part does not
             sigma = float(np.hypot(np.sqrt(np.sum(random.astype(float) ** 2)) / mask.sum(), systematic.mean()))
-            expected = bands[band]["effective_band_radiance_W_sr_m2_nm"]
+            expected = lenses[lens]["bands"][band]["effective_band_radiance_W_sr_m2_nm"]
             assert abs(mean - expected) < 3 * sigma, (lens, band, mean, expected, sigma)
             # the stated systematic part is the R^-1 budget (2.5-4 %: the reference reading's 2.5 %, the
             # region's spread and the lamp's shape part), not more than twice it

@@ -96,7 +96,8 @@ def plan_rolloff(ctx: SimContext) -> ExperimentPlan:
                                                 {"medium": medium, "azimuth_deg": az, "angle_deg": float(angle)},
                                                 scene, medium=medium, light_factor=factor))
     truth = {
-        "rolloff_coefficients": {m: {b: default_rolloff(b, m).tolist() for b in BANDS} for m in MEDIA},
+        "rolloff_coefficients": {lens: {m: {b: default_rolloff(b, m, lens).tolist() for b in BANDS} for m in MEDIA}
+                                 for lens in ctx.camera.lens_names},
         "port_radius_deg": radii,
         "immersion_factor": immersion["immersion_factor"],
         "exposure_s": EXPOSURE_S, "iso": ISO, "frames_per_setting": FRAMES_PER_SETTING,
