@@ -26,11 +26,14 @@ source radiance times response.
 The camera sees, in band b, the effective band radiance of the TRUE source
 spectrum through the TRUE spectral response on a 0.1 nm grid (Eq. 3), so a
 pipeline that uses its measured 10 nm response carries that approximation.
-Truth: R^-1 = 1 / responsivity per band (W sr-1 m-2 nm-1 per DN/s at ISO 100)
-and the effective band radiances.
+Each lens sees the source through its own true response. Truth: R^-1 = 1 / responsivity
+per band (W sr-1 m-2 nm-1 per DN/s at ISO 100, the camera's, the same for both lenses) and,
+per lens (``lenses``), the effective band radiances and what the lab's errors make of R^-1.
 """
 
 from __future__ import annotations
+
+from functools import lru_cache
 
 import numpy as np
 
@@ -61,9 +64,11 @@ def default_source_radiance(wavelength_nm, temperature_k=QTH_TEMPERATURE_K):
     """Simulator's calibration-source radiance, W sr-1 m-2 nm-1.
 
     A Planck spectrum at ``temperature_k`` scaled to 6.8e-4 W sr-1 m-2 nm-1
-    at 589 nm (exact scaling, no interpolation).  With the default spectral
-    response its effective band radiances are about 0.74, 0.48, 0.26 mW
-    sr-1 m-2 nm-1 (R, G, B), as in Table 1 of Larouche et al. (2024).
+    at 589 nm (exact scaling, no interpolation).  Through the close lens's
+    measured spectral response its effective band radiances are about 0.75,
+    0.50, 0.29 mW sr-1 m-2 nm-1 (R, G, B; the far lens's 0.77, 0.52, 0.31),
+    against 0.74, 0.48, 0.26 (+- 0.08, 0.05, 0.03) in Table 1 of Larouche et
+    al. (2024).
     """
     b = planck_radiance(wavelength_nm, temperature_k)
     return b * (REFERENCE_RADIANCE_W_SR_M2_NM / planck_radiance(REFERENCE_WAVELENGTH_NM, temperature_k))
@@ -109,6 +114,46 @@ def lab_factors(errors: dict, response=None) -> dict[str, float]:
     f_ref = float(lamp_factor(REFERENCE_WAVELENGTH_NM, errors))
     return {b: float((1.0 + errors["reference_relative_error"]) * np.trapezoid(radiance * s[b] * f, _FINE_NM)
                      / np.trapezoid(radiance * s[b], _FINE_NM) / f_ref) for b in BANDS}
+
+
+#: the lens whose true response the camera's ``sphere_band_radiance`` is stated for
+SPHERE_REFERENCE_LENS = "close"
+
+
+def lens_band_radiance(camera, lens: str, radiance: dict) -> dict:
+    """The lab sphere's band radiance as one lens sees it.
+
+    The sphere is lit by the same 2796 K lamp as the absolute experiment's port, so its band radiance
+    through each lens's true response is in the ratio of the port's: ``radiance`` (the camera's
+    ``sphere_band_radiance`` or a fraction of it, stated for the close lens's response) times
+    L_b(lens) / L_b(close), Eq. (3) with :func:`default_source_radiance` (the far lens's bands lie 5 nm
+    longer: 3 to 6 % more). A camera with its own response (the smartphone, one lens) sees ``radiance``.
+
+    Parameters
+    ----------
+    camera : object
+        The simulated camera.
+    lens : str
+        The lens name.
+    radiance : dict
+        Band -> band radiance as the close lens sees it (W sr-1 m-2 nm-1).
+
+    Returns
+    -------
+    dict
+        Band -> band radiance through ``lens``'s response.
+    """
+    if getattr(camera, "spectral_response", None) is not None or lens == SPHERE_REFERENCE_LENS:
+        return dict(radiance)
+    ratio = _lens_ratio(lens)
+    return {b: float(radiance[b] * ratio[b]) for b in BANDS}
+
+
+@lru_cache(maxsize=None)
+def _lens_ratio(lens: str) -> dict:
+    this = true_effective_band_radiance(lambda wl: default_spectral_response(wl, lens))
+    ref = true_effective_band_radiance(lambda wl: default_spectral_response(wl, SPHERE_REFERENCE_LENS))
+    return {b: this[b] / ref[b] for b in BANDS}
 
 
 def _port(values):

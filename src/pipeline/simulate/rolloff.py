@@ -17,6 +17,7 @@ from pipeline.io.bands import BANDS
 from pipeline.geometry.scaramuzza import FisheyeModel
 from pipeline.simulate.geometry import band_model, true_raw_models
 from pipeline.simulate.immersion import true_immersion_factors
+from pipeline.simulate.absolute import lens_band_radiance
 from pipeline.simulate.lens import HALF_FOV_DEG, RAW_SIZE_PX, default_model, default_rolloff
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
@@ -90,7 +91,7 @@ def plan_rolloff(ctx: SimContext) -> ExperimentPlan:
             for az in AZIMUTHS_DEG:
                 for angle in ANGLES_DEG[medium][::ctx.scale.rolloff_angle_stride]:
                     theta, phi = port_direction(float(angle), az)
-                    scene = PortScene(sphere, theta, phi, radius)
+                    scene = PortScene(lens_band_radiance(ctx.camera, lens, sphere), theta, phi, radius)
                     for _ in range(FRAMES_PER_SETTING):
                         frames.append(FrameSpec(lens, "signal", ISO, EXPOSURE_S,
                                                 {"medium": medium, "azimuth_deg": az, "angle_deg": float(angle)},
