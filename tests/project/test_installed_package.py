@@ -105,3 +105,20 @@ def test_installed_commands_start(installed, command):
     python, elsewhere = installed
     out = _run([python, "-m", "pipeline", command, "--help"], elsewhere).stdout
     assert out.startswith("usage:") and command in out.splitlines()[0], out
+
+
+def test_installed_package_has_the_default_cameras_data(installed):
+    """The simulator's default camera reads the real camera's measured data (package data in
+    pipeline/simulate/data) from the installed package: the far lens's green response at its measured
+    peak (1 at 540 nm in the authors' file) and the close lens's red roll-off a0 (0.99726 as stored), and
+    the licence text travels with them."""
+    python, elsewhere = installed
+    out = _run([python, "-c", "from importlib.resources import files; "
+                "from pipeline.simulate.spectral import default_spectral_response as r; "
+                "from pipeline.simulate.camera_data import authors_rolloff as a; "
+                "print(float(r([540.0], 'far')['G'][0])); print(a('close', 'air', 'R')[0]); "
+                "print(files('pipeline.simulate').joinpath('data', 'LICENSE-insta360.txt').read_text()[:11])"],
+               elsewhere).stdout.splitlines()
+    assert float(out[0]) == pytest.approx(1.0, abs=1e-9)
+    assert float(out[1]) == pytest.approx(0.99726, abs=1e-5)
+    assert out[2] == "MIT License"

@@ -52,7 +52,13 @@ def test_immersion_through_the_fitted_response(runs):
             sigma = float(chain["immersion_factor_sigma"].sel(band=band))
             # the fit's stated uncertainty (log-linear fit over 11 heights, 5 frames each) explains the error
             assert abs(err) < 3 * sigma, (lens, band, err, sigma)
-        # G has the largest signals, so the largest nonlinearity bias between air and water: removed
+        # G has the largest signals, so the largest nonlinearity bias between air and water: removed. Both runs
+        # reduce the same frames, so their difference is the bias the chain removes, free of most of the frames'
+        # noise (0.0017 in each): +0.0025 to +0.0028 for both lenses at seeds 7, 8 and 9 (the simulator's
+        # measured-response camera and the former one alike). Comparing |error| of the two runs instead is a
+        # coin flip weighted about 3 to 1 per lens (the chain's error, N(0, 0.0017), need only fall below minus
+        # half the bias to lose), which the measured-response camera's far lens lost at seed 7 (-0.0018 against
+        # +0.0010); the chain's own error is held to its stated sigma above.
         err_chain = float(chain["immersion_factor"].sel(band="G")) - truth["immersion_factor"]["G"]
         err_nominal = float(nominal["immersion_factor"].sel(band="G")) - truth["immersion_factor"]["G"]
-        assert abs(err_chain) < abs(err_nominal), (lens, err_chain, err_nominal)
+        assert err_nominal - err_chain > 0.0015, (lens, err_chain, err_nominal)

@@ -428,7 +428,7 @@ def test_summary_rolloff_at_a_field_angle_covers_the_truth(calibrated):
         geo = read_artefact(artefacts["geometry"][lens], "geometry")
         for medium in ("air", "water"):
             for band in ("R", "G", "B"):
-                truth = default_rolloff(band, medium)
+                truth = default_rolloff(band, medium, lens)
                 g_true = float(evaluate_rolloff(truth, 60.0) / evaluate_rolloff(truth, 0.0))
                 g, sigma = rolloff_at_angle(ro, medium, band, 60.0, geo)
                 _, sigma_curve = rolloff_at_angle(ro, medium, band, 60.0)

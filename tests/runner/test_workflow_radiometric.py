@@ -93,7 +93,7 @@ def test_downstream_stages_on_the_fitted_geometry_recover_the_truth(radiometric_
         rolloff = xr.open_dataset(workdir / f"results/rolloff/{lens}.nc")
         for band in "RGB":
             s = spectral.sel(band=band)
-            err = float(s["effective_wavelength_nm"]) - truth["spectral"]["bands"][band]["effective_wavelength_nm"]
+            err = float(s["effective_wavelength_nm"]) - truth["spectral"]["lenses"][lens]["bands"][band]["effective_wavelength_nm"]
             assert abs(err) < 2.0 and abs(err) < 5 * float(s["effective_wavelength_nm_sigma"]) + 0.05, (lens, band, err)
             rel = float(absolute["inverse_responsivity"].sel(band=band)) / \
                 truth["absolute"]["bands"][band]["inverse_responsivity"] - 1
@@ -106,7 +106,7 @@ def test_downstream_stages_on_the_fitted_geometry_recover_the_truth(radiometric_
             for medium, top_deg, tol in (("air", 80.0, 0.015), ("water", 70.0, 0.025)):
                 theta = np.arange(0.0, top_deg + 1.0, 5.0)
                 fitted = evaluate_rolloff(rolloff["rolloff_coefficients"].sel(medium=medium, band=band).values, theta)
-                true = evaluate_rolloff(np.asarray(truth["rolloff"]["rolloff_coefficients"][medium][band]), theta)
+                true = evaluate_rolloff(np.asarray(truth["rolloff"]["rolloff_coefficients"][lens][medium][band]), theta)
                 assert np.abs(fitted / true - 1).max() < tol, (lens, medium, band)
         for ds in (spectral, absolute, immersion, rolloff):
             ds.close()

@@ -202,7 +202,7 @@ def test_mask_radiance_closes_with_the_truth(clean):
         for b, band in enumerate(BANDS):
             sel = mask & (band_index == b)
             gain = cam["radiometry"]["responsivity_dn_s_per_radiance"][band] * t * evaluate_rolloff(
-                default_rolloff(band, "air"), geo.theta_deg[sel])
+                default_rolloff(band, "air", fieldsim.ZENITH_LENS), geo.theta_deg[sel])
             signal = lens[sel] - cam["sensor"]["bias_dn"]
             radiance = np.mean(signal / gain)
             var = (k * np.maximum(signal, 0) + var_fixed) / gain**2

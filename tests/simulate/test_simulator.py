@@ -126,9 +126,11 @@ def test_lab_errors_reach_the_sidecars(tmp_path):
     np.testing.assert_allclose(spec["radiance"] / spec0["radiance"], lamp_factor(spec["wavelength_nm"], errors),
                                rtol=1e-6)
     assert yaml.safe_load((truth_dir_for(plain) / "truth.yaml").read_text())["lab_errors"]["reference_relative_error"] == 0
-    bands = truth["experiments_truth"]["absolute"]["bands"]
-    for band in "RGB":
-        assert bands[band]["inverse_responsivity_lab"] != bands[band]["inverse_responsivity"]
+    absolute = truth["experiments_truth"]["absolute"]
+    for lens in absolute["lenses"]:
+        for band in "RGB":
+            assert absolute["lenses"][lens]["bands"][band]["inverse_responsivity_lab"] \
+                != absolute["bands"][band]["inverse_responsivity"]
 
 
 def test_pixel_sensitivity_multiplies_the_stray_light_too():

@@ -288,7 +288,7 @@ def test_effective_wavelengths_and_inverse_responsivity_against_truth(phone, tmp
     s = _load(spec[LENS])
     a = _load(absolute[LENS])
     for band in ("R", "G", "B"):
-        want = truth["experiments_truth"]["spectral"]["bands"][band]["effective_wavelength_nm"]
+        want = truth["experiments_truth"]["spectral"]["lenses"][LENS]["bands"][band]["effective_wavelength_nm"]
         got, se = float(s["effective_wavelength_nm"].sel(band=band)), float(s["effective_wavelength_nm_sigma"].sel(band=band))
         assert abs(got - want) < 4 * se + 0.3, (band, got, want, se)
         want = truth["experiments_truth"]["absolute"]["bands"][band]["inverse_responsivity"]

@@ -81,7 +81,7 @@ def over_seeds(calibrated, config, tmp_path_factory):
     root, truth, _, artefacts, _, meta = calibrated
     frames = pd.read_csv(root / "linearity" / "frames.csv")
     sphere = frames[(frames["lens"] == LENS) & (frames["kind"] == "signal") & (frames["sweep"] == "exposure")]
-    true_radiance = truth["experiments_truth"]["linearity"]["exposure_source_band_radiance"]
+    true_radiance = truth["experiments_truth"]["linearity"]["exposure_source_band_radiance"][LENS]
     upstream = {stage: {LENS: artefacts[stage][LENS]} for stage in BUNDLE_STAGES if stage != "absolute"}
     rows = []
     for i in range(N_SEEDS):

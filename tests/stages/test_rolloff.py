@@ -53,7 +53,7 @@ def test_rolloff_within_one_percent(clean):
             theta = np.abs(ANGLES_DEG[medium])
             for band in ("R", "G", "B"):
                 c = ds["rolloff_coefficients"].sel(medium=medium, band=band).values
-                rel = evaluate_rolloff(c, theta) / evaluate_rolloff(default_rolloff(band, medium), theta) - 1
+                rel = evaluate_rolloff(c, theta) / evaluate_rolloff(default_rolloff(band, medium, lens), theta) - 1
                 assert np.abs(rel).max() < 0.01, (lens, medium, band, np.abs(rel).max())
 
 
@@ -82,12 +82,12 @@ def test_water_closure_predicts_from_air_without_a_fitted_shape(clean, config):
     tiny scale; g'' is at most 2e-4 per deg^2, so the mean of g and g at the mean angle differ by
     under 0.001). Clean data: the water level leaves immersion_angle insignificant (tested by
     test_clean_rolloff_comes_out_clean) and its own rms_z within the noise."""
-    for ds in clean.values():
+    for lens, ds in clean.items():
         w = dataset_to_table(ds, "obs_water")
         w = w[w["used"] == 1]
         assert len(w) > 100
         for band, g in w.groupby("band"):
-            true = evaluate_rolloff(default_rolloff(band, "water"), g["theta_deg"].to_numpy(float))
+            true = evaluate_rolloff(default_rolloff(band, "water", lens), g["theta_deg"].to_numpy(float))
             err = np.abs(g["x_scale"].to_numpy(float) - true)
             assert (err < 4 * g["air_prediction_sigma"].to_numpy(float) + 0.002).all(), (band, err.max())
         z = w["z"].to_numpy(float)
@@ -129,11 +129,11 @@ def bent(tmp_path_factory, config):
     return out
 
 
-def _curve_against_truth(ds, medium, band):
+def _curve_against_truth(ds, medium, band, lens):
     theta = np.unique(np.abs(ANGLES_DEG[medium]))[1:]
     g, sigma = evaluate_rolloff(ds["rolloff_coefficients"].sel(medium=medium, band=band).values, theta,
                                 ds["rolloff_covariance"].sel(medium=medium, band=band).values)
-    return theta, g, sigma, evaluate_rolloff(default_rolloff(band, medium), theta)
+    return theta, g, sigma, evaluate_rolloff(default_rolloff(band, medium, lens), theta)
 
 
 def test_bent_readings_are_linearised_before_the_ratio(bent):
@@ -153,12 +153,12 @@ def test_bent_readings_are_linearised_before_the_ratio(bent):
     sensor = Camera().sensor
     full_scale = sensor.adc_max_dn - sensor.bias_dn
     zs = []
-    for ds in bent["with"].values():
+    for lens, ds in bent["with"].items():
         assert ds.attrs["response_corrections"] == "nonlinearity"
         assert np.abs(ds["rolloff_nonlinearity_shift"].values).max() > 0
         for medium in ("air", "water"):
             for band in "RGB":
-                _, g, sigma, true = _curve_against_truth(ds, medium, band)
+                _, g, sigma, true = _curve_against_truth(ds, medium, band, lens)
                 zs.append((g - true) / sigma)
     zs = np.concatenate(zs)
     assert np.abs(zs).max() < 3.5 and np.sqrt(np.mean(zs**2)) < 1 + 3 * np.sqrt(2 / zs.size), \
@@ -167,7 +167,7 @@ def test_bent_readings_are_linearised_before_the_ratio(bent):
         assert ds.attrs["response_corrections"] == ""
         table = dataset_to_table(bent["with"][lens], "obs_setting")
         for band in ("R", "G"):
-            theta, g, sigma, true = _curve_against_truth(ds, "air", band)
+            theta, g, sigma, true = _curve_against_truth(ds, "air", band, lens)
             k = int(np.argmin(np.abs(theta - 55.0)))
             axis = table[(table["kind"] == "spot") & (table["medium"] == "air") & (table["band"] == band)
                          & (table["angle_deg"] == 0.0)]

@@ -18,11 +18,17 @@ band is ln(k_b), its noise the relative standard uncertainty of the scale, the q
   ``reference.calibration_relative_sigma``); counted as independent of the lab's reference reading of the
   source, which is conservative when the same instrument served both (Section 2.6 scaled the source to
   the C-OPS that later stood in the field: its absolute error then cancels in part);
-* ``spectral_mismatch_prediction``: with ``spectral_mismatch`` in the model, how far the band-convolved
-  reference may sit from the band radiance: the response's position (the effective wavelength's
+* ``spectral_mismatch_prediction``: how far the reference the model compares with may sit from the band
+  radiance. The band-convolved reference: the response's position (the effective wavelength's
   uncertainty times the scene's in-band spectral slope, d ln L / d ln lambda) and the part of the response
   outside the channels' span, which the convolution leaves out (a share f of the response whose radiance
-  is unknown: uniform within +-f, f / sqrt 3).
+  is unknown: uniform within +-f, f / sqrt 3). The nearest channel (without ``spectral_mismatch`` in the
+  model): besides those, its own departure from the band-convolved reference over the match-ups,
+  |ln(convolved / nearest)| (:func:`nearest_channel_relative_sigma`). A broad band's nearest channel
+  is one wavelength of the sky's spectrum, and which channel is nearest turns on a few nanometres of the
+  effective wavelength (the default camera's close-lens G band, 544.4 nm, lies 10.6 nm from 555 and
+  12.4 nm from 532 nm; the clear sky differs by 7 % between them): the comparison states that
+  difference, which the reference itself measures, instead of taking the channel for the band.
 
 Effects the model lacks move the scale by what their lab-fitted parameter predicts at the field frames'
 setting against the absolute experiment's (the effects' ``predicted_shift``); the field stage writes the
@@ -33,7 +39,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["SCALE_TERMS", "mismatch_prediction_relative_sigma", "scale_relative_sigma"]
+__all__ = ["SCALE_TERMS", "mismatch_prediction_relative_sigma", "nearest_channel_relative_sigma",
+           "scale_relative_sigma"]
 
 #: the terms of a band's field scale budget, relative standard uncertainties
 SCALE_TERMS = ("fit", "camera_calibration", "reference_calibration", "spectral_mismatch_prediction")
@@ -65,6 +72,28 @@ def mismatch_prediction_relative_sigma(spectral_slope, wavelength_nm: float, wav
     slope = float(np.nan_to_num(spectral_slope))
     position = abs(slope) * float(np.nan_to_num(wavelength_sigma_nm)) / float(wavelength_nm)
     return float(np.hypot(position, float(np.nan_to_num(outside_fraction)) / np.sqrt(3.0)))
+
+
+def nearest_channel_relative_sigma(mismatch_factor: float, convolved_sigma: float) -> float:
+    """Relative uncertainty of the nearest reference channel as the band radiance (see the module docstring).
+
+    Parameters
+    ----------
+    mismatch_factor : float
+        The band-convolved over the nearest channel's reference, mean over the match-ups.
+    convolved_sigma : float
+        Relative uncertainty of the band-convolved reference as the band radiance
+        (:func:`mismatch_prediction_relative_sigma`).
+
+    Returns
+    -------
+    float
+        |ln(mismatch_factor)| in quadrature with ``convolved_sigma`` (``convolved_sigma`` alone when the
+        factor is not finite and positive).
+    """
+    m = float(mismatch_factor)
+    departure = abs(np.log(m)) if np.isfinite(m) and m > 0 else 0.0
+    return float(np.hypot(departure, float(np.nan_to_num(convolved_sigma))))
 
 
 def scale_relative_sigma(terms: dict[str, float]) -> float:

@@ -60,7 +60,8 @@ class RadiometricParams:
             "B": 21.9e3 / 0.26e-3,
         }
     )
-    #: effective band radiance of the absolute-calibration source (W sr-1 m-2 nm-1).
+    #: effective band radiance of the lab's integrating sphere (W sr-1 m-2 nm-1) through the close lens's
+    #: response; the far lens sees it through its own (simulate.absolute.lens_band_radiance).
     sphere_band_radiance: dict = field(
         default_factory=lambda: {"R": 0.74e-3, "G": 0.48e-3, "B": 0.26e-3}
     )

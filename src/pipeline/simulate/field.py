@@ -16,7 +16,7 @@ by the camera's heading (recorded in the truth).
 
 Band radiance. Each scene gives every raw pixel the effective band radiance
 of Eq. (3) computed with the TRUE spectral response
-(:func:`pipeline.simulate.spectral.default_spectral_response`) on a 0.1 nm
+of the zenith lens (:func:`pipeline.simulate.spectral.default_spectral_response`) on a 0.1 nm
 grid: the sky's components are spectra times angular patterns, so the band
 average of each spectrum is taken once per frame and the pixels only weigh
 the patterns.
@@ -110,9 +110,22 @@ def reference_responses(fine_nm=_REFERENCE_FINE_NM) -> np.ndarray:
     return np.exp(-0.5 * ((fine_nm[None, :] - ch[:, None]) / sigma) ** 2)
 
 
-def camera_band_weights(native_nm: np.ndarray) -> np.ndarray:
-    """(3, n_native): band averages (Eq. 3) of a spectrum given on ``native_nm``, TRUE response, 0.1 nm grid."""
-    s = default_spectral_response(_CAMERA_FINE_NM)
+def camera_band_weights(native_nm: np.ndarray, lens: str = ZENITH_LENS) -> np.ndarray:
+    """(3, n_native): band averages (Eq. 3) of a spectrum given on ``native_nm``, TRUE response, 0.1 nm grid.
+
+    Parameters
+    ----------
+    native_nm : ndarray
+        The spectrum's wavelengths (nm).
+    lens : str
+        The lens whose true response weighs the spectrum (default: the zenith lens).
+
+    Returns
+    -------
+    ndarray
+        (3, n_native) weights, rows R, G, B.
+    """
+    s = default_spectral_response(_CAMERA_FINE_NM, lens)
     return skymod.band_weights(native_nm, _CAMERA_FINE_NM, np.stack([s[b] for b in BANDS]))
 
 
@@ -185,7 +198,7 @@ def brightest_sky_rate_dn_per_s(sky: skymod.Sky, band_spectra: dict, camera, exc
                          indexing="ij")
     zg, ag = zg.ravel(), ag.ravel()
     resp = camera.radiometry.responsivity_dn_s_per_radiance
-    grid_rolloff = {band: evaluate_rolloff(default_rolloff(band, "air"), zg) for band in BANDS}
+    grid_rolloff = {band: evaluate_rolloff(default_rolloff(band, "air", ZENITH_LENS), zg) for band in BANDS}
     best = 0.0
     for i in range(len(sky.times_utc)):
         zs, azs = float(sky.sun["zenith_deg"].iloc[i]), float(sky.sun["azimuth_deg"].iloc[i])
@@ -195,7 +208,7 @@ def brightest_sky_rate_dn_per_s(sky: skymod.Sky, band_spectra: dict, camera, exc
         patterns = sky.patterns(z[keep], a[keep], i)
         for b, band in enumerate(BANDS):
             radiance = sum(band_spectra[k][b, i] * p for k, p in patterns.items())
-            g = np.concatenate([grid_rolloff[band], evaluate_rolloff(default_rolloff(band, "air"), rz)])[keep]
+            g = np.concatenate([grid_rolloff[band], evaluate_rolloff(default_rolloff(band, "air", ZENITH_LENS), rz)])[keep]
             rate = resp[band] * g * radiance
             best = max(best, float(rate.max()))
     return best

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.io.bands import BANDS
+from pipeline.simulate.absolute import lens_band_radiance
 from pipeline.simulate.camera import DarkPlan, LinearityPlan
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
@@ -61,16 +62,20 @@ def plan_linearity(ctx: SimContext) -> ExperimentPlan:
     """
     plan = LinearityPlan(frames_per_setting=ctx.scale.linearity_frames)
     sphere = ctx.camera.radiometry.sphere_band_radiance
-    exposure_source = {b: plan.exposure_source_fraction * sphere[b] for b in BANDS}
-    gain_source = {b: plan.gain_source_fraction * sphere[b] for b in BANDS}
+    # per lens: the sphere's lamp through each lens's true response (absolute.lens_band_radiance)
+    exposure_source = {lens: lens_band_radiance(ctx.camera, lens, {b: plan.exposure_source_fraction * sphere[b]
+                                                                   for b in BANDS})
+                       for lens in ctx.camera.lens_names}
+    gain_source = {lens: lens_band_radiance(ctx.camera, lens, {b: plan.gain_source_fraction * sphere[b] for b in BANDS})
+                   for lens in ctx.camera.lens_names}
     frames = []
     for lens in ctx.camera.lens_names:
         for t in plan.exposures_s:
             frames += [FrameSpec(lens, "signal", plan.exposure_sweep_iso, t, {"sweep": "exposure"},
-                                 exposure_source) for _ in range(plan.frames_per_setting)]
+                                 exposure_source[lens]) for _ in range(plan.frames_per_setting)]
         for iso in plan.isos:
             frames += [FrameSpec(lens, "signal", iso, plan.gain_sweep_exposure_s, {"sweep": "gain"},
-                                 gain_source) for _ in range(plan.frames_per_setting)]
+                                 gain_source[lens]) for _ in range(plan.frames_per_setting)]
     _log_temperature(ctx, frames)
     return ExperimentPlan(frames, truth={"exposure_source_band_radiance": exposure_source,
                                          "gain_source_band_radiance": gain_source})

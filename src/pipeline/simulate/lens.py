@@ -8,11 +8,11 @@ Larouche et al. (2024):
   lens image, half field of view 91 degrees in air and 76 in water. The
   published centres are taken as 0-based pixel-centre coordinates of that
   image (conventions of :mod:`pipeline.geometry.scaramuzza`);
-* roll-off (Section 3.3, Eq. 13): the published close-lens red coefficients
-  in air and the published values at 70 and 80 degrees per band in air; in
-  water the in-air curve through the in-water geometry and the Fresnel
-  transmissions of the front surface (not the published in-water values,
-  see :func:`default_rolloff`).
+* roll-off (Section 3.3, Eq. 13): in air the authors' fits of each lens and
+  band from their calibration files (:mod:`pipeline.simulate.camera_data`),
+  normalised to g(0) = 1; in water the in-air curve through the in-water
+  geometry and the Fresnel transmissions of the front surface (not the
+  authors' in-water fits, see :func:`default_rolloff`).
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from pipeline.geometry.scaramuzza import FisheyeModel, fit_poly_to_theta
 from pipeline.radiometry.immersion_rolloff import water_rolloff_factor
 from pipeline.radiometry.rolloff import N_COEFFICIENTS, evaluate_rolloff
 from pipeline.simulate.camera import RAW_SIZE_PX
+from pipeline.simulate.camera_data import authors_rolloff
 
 
 #: Published OCamCalib fits on the raw 3456 x 3456 lens image (green band, air).
@@ -97,6 +98,8 @@ PUBLISHED_RED_AIR_CLOSE_LENS = np.array([0.99726, -7.806e-5, 4.074e-9, -4.884e-1
 
 #: largest departure of the stored in-water polynomial from the physics it is fitted to (0 to 76 deg)
 WATER_FIT_MAX_ERROR = 1e-4
+#: Lawson reweightings of the in-water fit (the plain least squares departs up to 1.04e-4 for the far lens)
+LAWSON_ITERATIONS = 20
 
 #: Published roll-off values (Section 3.3): (medium, band) -> {theta_deg: g}.
 #: The in-water values are not used: the physics of water_rolloff_from_air gives 0.548, 0.612, 0.618
@@ -114,27 +117,26 @@ PUBLISHED_ROLLOFF_POINTS = {
 
 @lru_cache(maxsize=None)
 def _default_table():
-    red = PUBLISHED_RED_AIR_CLOSE_LENS / PUBLISHED_RED_AIR_CLOSE_LENS[0]
-    air = {"R": red}
-    # B and G in air: the red shape plus c2 theta^2 + c4 theta^4 chosen to pass
-    # exactly through the published values at 70 and 80 deg.
-    m = np.array([[70.0**2, 70.0**4], [80.0**2, 80.0**4]])
-    for band in ("B", "G"):
-        pts = PUBLISHED_ROLLOFF_POINTS[("air", band)]
-        rhs = np.array([pts[70.0] - evaluate_rolloff(red, 70.0), pts[80.0] - evaluate_rolloff(red, 80.0)])
-        c2, c4 = np.linalg.solve(m, rhs)
-        a = red.copy()
-        a[1] += c2
-        a[2] += c4
-        air[band] = a
-    # Water: from the in-water geometry and the outer surface's Fresnel transmissions
-    # (radiometry.immersion_rolloff): the pixel that sees theta_w in water sees theta_a = theta_w 91 / 76
-    # in air (water_model), and g_w(theta_w) = g_air(theta_a) T_wg(i_w) T_ag(0) / (T_wg(0) T_ag(i_a)),
-    # with the tank's water and the front surface's index of the immersion experiment. Stored as the
-    # even 8th-degree polynomial of Eq. (13) with g(0) = 1, fitted on 0 to 76 deg (largest departure
-    # from the physics under 1e-4, WATER_FIT_MAX_ERROR).
-    water = {band: water_rolloff_from_air(a, band) for band, a in air.items()}
-    return {"air": air, "water": water}
+    # Air: the authors' fits of each lens (Larouche et al.'s calibration files, camera_data) divided by
+    # their a0 (0.997 close, 0.97 far), so that g(0) = 1. The close lens's match the published 70 and
+    # 80 deg values (PUBLISHED_ROLLOFF_POINTS) within 0.004.
+    # Water: not the authors' in-water fits (the far lens's is not normalised and goes negative beyond
+    # 76 deg), but the in-air curve through the in-water geometry and the outer surface's Fresnel
+    # transmissions (radiometry.immersion_rolloff): the pixel that sees theta_w in water sees
+    # theta_a = theta_w 91 / 76 in air (water_model), and
+    # g_w(theta_w) = g_air(theta_a) T_wg(i_w) T_ag(0) / (T_wg(0) T_ag(i_a)), with the tank's water and the
+    # front surface's index of the immersion experiment. Stored as the even 8th-degree polynomial of
+    # Eq. (13) with g(0) = 1, fitted on 0 to 76 deg (largest departure from the physics under 1e-4,
+    # WATER_FIT_MAX_ERROR).
+    table = {}
+    for lens in PUBLISHED_FITS:
+        air = {}
+        for band in ("R", "G", "B"):
+            a = authors_rolloff(lens, "air", band)
+            air[band] = a / a[0]
+        water = {band: water_rolloff_from_air(a, band) for band, a in air.items()}
+        table[lens] = {"air": air, "water": water}
+    return table
 
 
 def water_rolloff_from_air(coef_air, band: str) -> np.ndarray:
@@ -154,7 +156,13 @@ def water_rolloff_from_air(coef_air, band: str) -> np.ndarray:
                                                                    true["n_g"][band])
     powers = 2 * np.arange(1, N_COEFFICIENTS)
     u = theta_w / 90.0
-    c = np.linalg.lstsq(u[:, None] ** powers, g - 1.0, rcond=None)[0]
+    design = u[:, None] ** powers
+    # least squares, then a few of Lawson's reweightings towards the smallest largest departure
+    weight = np.ones_like(theta_w)
+    for _ in range(LAWSON_ITERATIONS + 1):
+        c = np.linalg.lstsq(design * np.sqrt(weight)[:, None], (g - 1.0) * np.sqrt(weight), rcond=None)[0]
+        residual = np.abs(design @ c - (g - 1.0))
+        weight = weight * residual / np.sum(weight * residual)
     coef = np.concatenate([[1.0], c / 90.0**powers])
     err = float(np.max(np.abs(evaluate_rolloff(coef, theta_w) - g)))
     if err > WATER_FIT_MAX_ERROR:
@@ -162,32 +170,46 @@ def water_rolloff_from_air(coef_air, band: str) -> np.ndarray:
     return coef
 
 
-def default_rolloff(band, medium="air"):
+def default_rolloff(band, medium="air", lens="close"):
     """Default "true" roll-off coefficients (a0..a8, theta in degrees) for the simulator.
 
-    band : "R", "G" or "B"; medium : "air" or "water".  All have g(0) = 1.
-
-    * air, R: the published close-lens red coefficients divided by their
-      a0 = 0.99726 (g(70) = 0.6708, g(80) = 0.5785; published 0.669, 0.577).
-    * air, B and G: the red shape plus a2 and a4 corrections that pass
-      through the published 70 and 80 deg values exactly.
+    * air: the real camera's roll-off, the authors' fit of that lens and band
+      (:func:`pipeline.simulate.camera_data.authors_rolloff`, Larouche et al.'s calibration files,
+      MIT licence, (c) 2021 Raphael Larouche) divided by its a0 (0.997 for the close lens, 0.97 for the
+      far one). The close lens's red fit is the published one (PUBLISHED_RED_AIR_CLOSE_LENS); its
+      values at 70 and 80 deg are within 0.004 of the published ones (PUBLISHED_ROLLOFF_POINTS).
     * water: from the in-air curve through the in-water geometry and the Fresnel
-      transmissions of the front surface (:func:`water_rolloff_from_air`). The
-      published in-water values at 70 deg (0.491, 0.562, 0.570) are lower by 12,
-      9 and 8 % than this physics gives (0.548, 0.612, 0.618): the published
-      curve is more compressed (g_air(k theta) with k = 1.26-1.27) than the
-      published half fields of view allow (91 / 76 = 1.20). We keep the physics,
-      so that the simulated camera obeys the model the pipeline tests; a camera
-      like the published one would show the difference as an in-water effect.
+      transmissions of the front surface (:func:`water_rolloff_from_air`), not the authors' in-water
+      fits: the far lens's is not normalised (a0 about 0.90) and goes negative beyond 76 deg, and the
+      published close-lens values at 70 deg (0.491, 0.562, 0.570) are lower by 10 to 12 % than this
+      physics gives: the published curve is more compressed (g_air(k theta) with k = 1.26-1.27) than the
+      published half fields of view allow (91 / 76 = 1.20). We keep the physics, so that the simulated
+      camera obeys the model the pipeline tests; a camera like the published one would show the
+      difference as an in-water effect.
 
     Monotone decreasing from 0 to 91 deg (air) and 0 to 76 deg (water).
-    Returns a new (5,) array.
+
+    Parameters
+    ----------
+    band : str
+        ``"R"``, ``"G"`` or ``"B"`` (any case).
+    medium : str
+        ``"air"`` or ``"water"`` (any case).
+    lens : str
+        ``"close"`` (the default) or ``"far"``.
+
+    Returns
+    -------
+    ndarray
+        A new (5,) array with g(0) = 1.
     """
     band = band.upper()
     medium = medium.lower()
     table = _default_table()
-    if medium not in table:
+    if lens not in table:
+        raise ValueError(f"lens must be one of {sorted(table)}, not {lens!r}")
+    if medium not in table[lens]:
         raise ValueError(f"medium must be 'air' or 'water', not {medium!r}")
-    if band not in table[medium]:
+    if band not in table[lens][medium]:
         raise ValueError(f"band must be 'R', 'G' or 'B', not {band!r}")
-    return table[medium][band].copy()
+    return table[lens][medium][band].copy()

@@ -146,7 +146,7 @@ class Renderer:
             rate = np.zeros(self.shape)
             for b, band in enumerate(BANDS):
                 sel = self.band_index == b
-                rate[sel] = self.resp_e[b] * evaluate_rolloff(default_rolloff(band, medium), theta[sel])
+                rate[sel] = self.resp_e[b] * evaluate_rolloff(default_rolloff(band, medium, lens), theta[sel])
             for effect in self.effects:
                 rate = rate * effect.optics_factor(lens, medium, geo.theta_deg, geo.phi_deg, self.band_index)
             self._unit_rate[key] = rate * geo.lit

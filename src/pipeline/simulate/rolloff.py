@@ -17,6 +17,7 @@ from pipeline.io.bands import BANDS
 from pipeline.geometry.scaramuzza import FisheyeModel
 from pipeline.simulate.geometry import band_model, true_raw_models
 from pipeline.simulate.immersion import true_immersion_factors
+from pipeline.simulate.absolute import lens_band_radiance
 from pipeline.simulate.lens import HALF_FOV_DEG, RAW_SIZE_PX, default_model, default_rolloff
 from pipeline.simulate.plan import ExperimentPlan, FrameSpec, SimContext, planner
 
@@ -90,13 +91,14 @@ def plan_rolloff(ctx: SimContext) -> ExperimentPlan:
             for az in AZIMUTHS_DEG:
                 for angle in ANGLES_DEG[medium][::ctx.scale.rolloff_angle_stride]:
                     theta, phi = port_direction(float(angle), az)
-                    scene = PortScene(sphere, theta, phi, radius)
+                    scene = PortScene(lens_band_radiance(ctx.camera, lens, sphere), theta, phi, radius)
                     for _ in range(FRAMES_PER_SETTING):
                         frames.append(FrameSpec(lens, "signal", ISO, EXPOSURE_S,
                                                 {"medium": medium, "azimuth_deg": az, "angle_deg": float(angle)},
                                                 scene, medium=medium, light_factor=factor))
     truth = {
-        "rolloff_coefficients": {m: {b: default_rolloff(b, m).tolist() for b in BANDS} for m in MEDIA},
+        "rolloff_coefficients": {lens: {m: {b: default_rolloff(b, m, lens).tolist() for b in BANDS} for m in MEDIA}
+                                 for lens in ctx.camera.lens_names},
         "port_radius_deg": radii,
         "immersion_factor": immersion["immersion_factor"],
         "exposure_s": EXPOSURE_S, "iso": ISO, "frames_per_setting": FRAMES_PER_SETTING,

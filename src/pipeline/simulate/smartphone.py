@@ -595,7 +595,9 @@ def _default_lab_plan(name: str, phone: Smartphone, seed: int, index: int):
     from pipeline.simulate import absolute, spectral  # noqa: F401  (register the planners)
     from pipeline.simulate.lab_errors import no_lab_errors
 
-    camera = SimpleNamespace(lens_names=(LENS,), sensor=phone.sensor, radiometry=SimpleNamespace(
+    # the phone keeps its own smooth response, not the default camera's measured one
+    camera = SimpleNamespace(lens_names=(LENS,), sensor=phone.sensor, spectral_response=spectral.two_gaussian_response,
+                             radiometry=SimpleNamespace(
         responsivity_dn_s_per_radiance=dict(phone.responsivity_dn_s_per_radiance),
         sphere_band_radiance=dict(phone.sphere_band_radiance)))
     ctx = SimContext(camera=camera, scale=None, seed=seed, rng=np.random.default_rng([seed, 104729, index]),

@@ -125,7 +125,8 @@ from pipeline.stats.fitting import base_design
 from pipeline.io.frames import iter_frames
 from pipeline.stages.observations import fit_with_effects, table_to_dataset
 from pipeline.radiometry import measurement as mm
-from pipeline.radiometry.field_scale import SCALE_TERMS, mismatch_prediction_relative_sigma, scale_relative_sigma
+from pipeline.radiometry.field_scale import (SCALE_TERMS, mismatch_prediction_relative_sigma,
+                                             nearest_channel_relative_sigma, scale_relative_sigma)
 from pipeline.radiometry.spectral import band_weights
 from pipeline.radiometry.sun_glare import band_direct_irradiance, sun_glare_covariate
 
@@ -1162,13 +1163,18 @@ def _scale_table(ctx, frames, table, fit, scales, valid, st, predict, channels, 
         b = bundle.sel(lens=lens, band=band)
         lam_sigma = float(b["effective_wavelength_nm_sigma"]) if "effective_wavelength_nm_sigma" in b else 0.0
         slope = np.nanmedian([spectral_slope(channels, channel_mean[f], lam_eff[j]) for f in np.flatnonzero(ok)])
+        near = np.array([st[("nearest", band)]["mean"][f] for f in np.flatnonzero(ok)])
+        conv = np.array([st[("convolved", band)]["mean"][f] for f in np.flatnonzero(ok)])
+        mismatch = float(np.mean(conv) / np.mean(near))
+        convolved_sigma = mismatch_prediction_relative_sigma(slope, lam_eff[j], lam_sigma, outside[band])
         terms = {
             "fit": float(np.sqrt(max(fit.cov[i, i], 0.0) * rchi2)) / scales[j],
             "camera_calibration": float(np.nanmedian(frames[f"systematic_{band}"].to_numpy(float)[ok] / camera)),
             "reference_calibration": reference_rel,
-            "spectral_mismatch_prediction": (mismatch_prediction_relative_sigma(slope, lam_eff[j], lam_sigma,
-                                                                                outside[band])
-                                             if predict == "convolved" else 0.0),
+            # the reference compared with as the band radiance: the nearest channel states its departure from
+            # the band-convolved reference (which channel is nearest turns on a few nm of the effective wavelength)
+            "spectral_mismatch_prediction": (convolved_sigma if predict == "convolved"
+                                             else nearest_channel_relative_sigma(mismatch, convolved_sigma)),
         }
         row = {"group": band, "band": band, "lens": lens, "value_dn": float(np.log(scales[j])),
                "sigma_dn": scale_relative_sigma(terms), "k_b": float(scales[j]), "k_predicted": 1.0,
@@ -1189,9 +1195,7 @@ def _scale_table(ctx, frames, table, fit, scales, valid, st, predict, channels, 
         if "dark_current" not in effects:
             row["field_dark_s_per_dn"] = float(np.mean(iso / 100.0 * exposure) / signal_dn)
         if "spectral_mismatch" not in effects:
-            near = np.array([st[("nearest", band)]["mean"][f] for f in np.flatnonzero(ok)])
-            conv = np.array([st[("convolved", band)]["mean"][f] for f in np.flatnonzero(ok)])
-            row["mismatch_factor"] = float(np.mean(conv) / np.mean(near))
+            row["mismatch_factor"] = mismatch
         if "stray_light" not in effects:
             cov = table.loc[table["band"] == band, "sun_glare_covariate"].to_numpy(float)
             row["glare_share_sr"] = float(np.mean(cov) / np.mean(camera))
@@ -1215,8 +1219,9 @@ SCALE_LONG_NAMES = {
     "sigma_camera_calibration": "scale term: the chain's systematic sigma over the mask (R^-1, roll-off, flat "
                                 "field, response corrections), relative",
     "sigma_reference_calibration": "scale term: the reference radiometer's calibration (site.yaml), relative",
-    "sigma_spectral_mismatch_prediction": "scale term: the band-convolved reference as the band radiance "
-                                          "(response position, response outside the channels), relative",
+    "sigma_spectral_mismatch_prediction": "scale term: the reference compared with as the band radiance (response "
+                                          "position, response outside the channels; the nearest channel also its "
+                                          "departure from the band-convolved reference), relative",
     "inv_field_exposure_per_s": "shutter_offset covariate: mean of 1 / exposure over the band's match-ups",
     "calibration_exposure_s": "shutter_offset covariate: exposure of the absolute experiment's signal frames",
     "field_signal_dn": "nonlinearity covariate: mean dark-subtracted DN in the mask over the match-ups",
