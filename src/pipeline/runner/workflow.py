@@ -311,10 +311,11 @@ UPSTREAM_IN_MEMORY_BYTES = 4 * 2**20
 #: process, (resolved path, stage) -> ((inode, size, mtime in ns), the loaded artefact): a process that runs a
 #: stage many times on the same upstream (an absolute stage per simulated lab session of one calibrated camera)
 #: opens and decodes each of them once. The stages replace an artefact by renaming a new file into place (a new
-#: inode); the workflow's jobs, one stage per process, never read one twice. At most ``_UPSTREAM_KEPT_ENTRIES``.
+#: inode); the workflow's jobs, one stage per process, never read one twice. At most ``_UPSTREAM_KEPT_ENTRIES``
+#: artefacts of at most ``_UPSTREAM_KEPT_MEMORY_BYTES`` each in memory are kept.
 UPSTREAM_KEPT_FILE_BYTES = 8 * 2**20
 _UPSTREAM_KEPT: dict[tuple[str, str], tuple[tuple[int, int, int], xr.Dataset]] = {}
-_UPSTREAM_KEPT_ENTRIES = 16
+_UPSTREAM_KEPT_ENTRIES, _UPSTREAM_KEPT_MEMORY_BYTES = 16, 32 * 2**20
 
 
 def _upstream_artefact(path: str | Path, name: str, opened: ExitStack) -> xr.Dataset:
@@ -333,6 +334,8 @@ def _upstream_artefact(path: str | Path, name: str, opened: ExitStack) -> xr.Dat
     if hit is None or hit[0] != identity:
         hit = (identity, read_artefact(path, name))
         _UPSTREAM_KEPT.pop(key, None)
+        if hit[1].nbytes > _UPSTREAM_KEPT_MEMORY_BYTES:
+            return hit[1]                   # read whole, not kept: the stage's own
         while len(_UPSTREAM_KEPT) >= _UPSTREAM_KEPT_ENTRIES:
             _UPSTREAM_KEPT.pop(next(iter(_UPSTREAM_KEPT)))          # the oldest first
         _UPSTREAM_KEPT[key] = hit
