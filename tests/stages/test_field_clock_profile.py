@@ -24,7 +24,6 @@ from pipeline.config import defaults
 from pipeline.io.dataset import write_md5sums
 from pipeline.diagnostics.tables import observations_from_artefacts
 from pipeline.diagnostics.missing_effects import rank_missing_effects
-from pipeline.simulate.dataset import simulate_dataset
 from pipeline.runner.workflow import run_stage
 
 #: the camera of the session fixture ``calibrated`` (conftest.py): seed 5, no lab effect
@@ -51,12 +50,12 @@ def _config(config, *extra):
 
 
 @pytest.fixture(scope="module")
-def hour(calibrated, tmp_path_factory):
-    """A field-only dataset of the calibrated camera with a right clock, and the bundle."""
+def hour(calibrated, make_dataset, tmp_path_factory):
+    """A field-only dataset of the calibrated camera with a right clock (the session's shared dataset, the clean
+    hour of test_field_closure.py: read-only, each test shifts a copy), and the bundle."""
     bundle = calibrated[4]
     base = tmp_path_factory.mktemp("field-clock-profile")
-    root = base / "clean"
-    simulate_dataset(root, scale="tiny", seed=SEED, effects=[], experiments=("field",), progress=False)
+    root, _ = make_dataset(effects=(), seed=SEED, experiments=("field",))
     return base, root, bundle
 
 

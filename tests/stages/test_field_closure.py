@@ -57,20 +57,25 @@ def _config(config, *extra):
 
 
 @pytest.fixture(scope="module")
-def lab(calibrated, tmp_path_factory):
-    """The session's tiny camera calibrated by the pipeline's own stages (seed 5, no lab effect, the default model)."""
+def lab(calibrated, make_dataset, tmp_path_factory):
+    """The session's tiny camera calibrated by the pipeline's own stages (seed 5, no lab effect, the default model),
+    and its clean field hour (the session's shared dataset, read-only: the one test_field_clock_profile.py uses)."""
     root, _, results, artefacts, bundle, _ = calibrated
-    return {"base": tmp_path_factory.mktemp("field-closure"), "bundle": bundle, "artefacts": artefacts}
+    clean, _ = make_dataset(effects=tuple(LAB_EFFECTS), seed=SEED, experiments=("field",))
+    return {"base": tmp_path_factory.mktemp("field-closure"), "bundle": bundle, "artefacts": artefacts,
+            "clean": clean}
 
 
 def _field(lab, name, effects=()):
     """A field-only dataset of the same camera with the given field effects.
 
     Without effects it is the clean hour (the same seed and experiments: the simulator writes the same bytes),
-    so it is simulated once, as ``clean``, and copied for a test that rewrites its frames."""
+    simulated once for the session (``lab["clean"]``, read-only) and copied for a test that rewrites its frames."""
+    if name == "clean":
+        return lab["clean"]
     root = lab["base"] / name
     if not root.exists():
-        if not effects and name != "clean":
+        if not effects:
             clean = _field(lab, "clean")
             shutil.copytree(clean, root)
             shutil.copytree(clean.parent / f"{clean.name}.truth", root.parent / f"{root.name}.truth")

@@ -307,6 +307,41 @@ def decode_ahead_frames(config: dict) -> int:
 UPSTREAM_IN_MEMORY_BYTES = 4 * 2**20
 
 
+#: upstream artefacts of at most this many bytes on disk that :func:`run_stage` read whole and keeps in this
+#: process, (resolved path, stage) -> ((inode, size, mtime in ns), the loaded artefact): a process that runs a
+#: stage many times on the same upstream (an absolute stage per simulated lab session of one calibrated camera)
+#: opens and decodes each of them once. The stages replace an artefact by renaming a new file into place (a new
+#: inode); the workflow's jobs, one stage per process, never read one twice. At most ``_UPSTREAM_KEPT_ENTRIES``
+#: artefacts of at most ``_UPSTREAM_KEPT_MEMORY_BYTES`` each in memory are kept.
+UPSTREAM_KEPT_FILE_BYTES = 8 * 2**20
+_UPSTREAM_KEPT: dict[tuple[str, str], tuple[tuple[int, int, int], xr.Dataset]] = {}
+_UPSTREAM_KEPT_ENTRIES, _UPSTREAM_KEPT_MEMORY_BYTES = 16, 32 * 2**20
+
+
+def _upstream_artefact(path: str | Path, name: str, opened: ExitStack) -> xr.Dataset:
+    """The ``name`` artefact at ``path`` for a stage: a small one loaded whole (kept for the next run on the same
+    file; the stage gets its own deep copy), a larger one opened lazily with its small variables read (closed
+    by ``opened``)."""
+    try:
+        stat = os.stat(path)
+    except OSError:
+        stat = None                         # read_artefact says what is wrong with the path
+    if stat is None or stat.st_size > UPSTREAM_KEPT_FILE_BYTES:
+        return opened.enter_context(read_artefact(path, name, load=False, load_below_bytes=UPSTREAM_IN_MEMORY_BYTES))
+    key = (str(Path(path).resolve()), name)
+    identity = (stat.st_ino, stat.st_size, stat.st_mtime_ns)
+    hit = _UPSTREAM_KEPT.get(key)
+    if hit is None or hit[0] != identity:
+        hit = (identity, read_artefact(path, name))
+        _UPSTREAM_KEPT.pop(key, None)
+        if hit[1].nbytes > _UPSTREAM_KEPT_MEMORY_BYTES:
+            return hit[1]                   # read whole, not kept: the stage's own
+        while len(_UPSTREAM_KEPT) >= _UPSTREAM_KEPT_ENTRIES:
+            _UPSTREAM_KEPT.pop(next(iter(_UPSTREAM_KEPT)))          # the oldest first
+        _UPSTREAM_KEPT[key] = hit
+    return hit[1].copy(deep=True)
+
+
 #: dataset folder -> (its files' fingerprint, the dataset) of the last check in this process that found no
 #: problem: a stage run again on the unchanged folder (the stages of one calibration in a script) is not
 #: checked again
@@ -484,11 +519,10 @@ def run_stage(stage: str, dataset: str | Path | Dataset, config: dict, outputs: 
                             raise InputError(None, f"{stage} stage of lens '{lens}' needs the {name} artefact; "
                                                    f"run the '{name}' stage first")
                         continue
-                    # opened lazily, closed once this lens's artefact is written: a stage reads of its upstream
-                    # only what it uses (at the full resolution the geometry artefact is 128 MB, of which the
-                    # absolute and spectral stages read the theta map in air)
-                    artefacts[name] = opened.enter_context(read_artefact(path, name, load=False,
-                                                                         load_below_bytes=UPSTREAM_IN_MEMORY_BYTES))
+                    # a large one opened lazily, closed once this lens's artefact is written: a stage reads of
+                    # its upstream only what it uses (at the full resolution the geometry artefact is 128 MB, of
+                    # which the absolute and spectral stages read the theta map in air); a small one kept
+                    artefacts[name] = _upstream_artefact(path, name, opened)
                     hashes[_relative(path, results_root)] = hashing.submit(sha256_file, path)
                 if bundle_hash is not None:
                     hashes[_relative(bundle, results_root)] = bundle_hash
