@@ -223,10 +223,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "(one region, 12-bit, GRBG, optically black margins, a gain table not proportional to "
                           "ISO; dark and linearity experiments; scales tiny, small, medium)")
     sim.add_argument("--no-progress", action="store_true", help="no progress bar")
-    from pipeline.bundle.apply import add_apply_parser
+    from pipeline.bundle.apply_parser import add_apply_parser
 
     add_apply_parser(sub)
-    from pipeline.lightfield.command import add_lightfield_parser
+    from pipeline.lightfield.parser import add_lightfield_parser
 
     add_lightfield_parser(sub)
     pub = sub.add_parser("publish", help="file a calibration bundle into the append-only store",

@@ -36,7 +36,6 @@ lacks, is refused with one line naming the file.
 
 from __future__ import annotations
 
-import argparse
 import os
 import queue
 import sys
@@ -63,7 +62,7 @@ from pipeline.io.rawio import read_raw
 from pipeline.io.units import encode_units
 
 __all__ = ["apply_calibration", "band_radiance", "BandChain", "check_frame", "sphere_coordinates", "sphere_directions", "bin_on_sphere",
-           "add_apply_parser", "apply_command"]
+           "apply_command"]
 
 #: flags that keep a pixel out of the sphere grid
 EXCLUDED_FROM_GRID = mm.FLAG_SATURATED | STATIC_OFF_GRID
@@ -1180,39 +1179,6 @@ def _write_unfilled(ds: xr.Dataset, path: Path, encoding: dict, mode: str = "w")
 
 
 # --------------------------------------------------------------------------- command line
-def add_apply_parser(subparsers) -> argparse.ArgumentParser:
-    """``apply --calibration BUNDLE | --store DIR [--medium air|water] RAW.dng... -o OUT.nc``.
-
-    Parameters
-    ----------
-    subparsers : argparse._SubParsersAction
-        The command line's subcommands.
-
-    Returns
-    -------
-    argparse.ArgumentParser
-        The ``apply`` subcommand's parser.
-    """
-    p = subparsers.add_parser("apply", help="raw frames to radiance maps with a calibration bundle")
-    which = p.add_mutually_exclusive_group(required=True)
-    which.add_argument("--calibration", help="calibration bundle (results/calibration/<serial>.nc)")
-    which.add_argument("--store", metavar="DIR", help="calibration store (python -m pipeline publish): each frame "
-                                                      "takes the calibration valid at its DateTimeOriginal")
-    p.add_argument("--medium", choices=("air", "water"), default="air")
-    p.add_argument("raw", nargs="+", help="raw DNG frames of the calibrated camera")
-    p.add_argument("-o", "--out", required=True, help="NetCDF file to write")
-    p.add_argument("--grid-deg", type=float, default=None, help="zenith/azimuth cell size (default: apply.grid_deg)")
-    p.add_argument("--overwrite", action="store_true", help="replace OUT if it exists")
-    p.add_argument("--pixels", action=argparse.BooleanOptionalAction, default=True,
-                   help="write the per-pixel maps of both lenses besides the sphere grid (default); "
-                        "--no-pixels writes the sphere grid only")
-    p.add_argument("--pixel-geometry", action=argparse.BooleanOptionalAction, default=True,
-                   help="with the pixel maps also write each band pixel's theta, phi and solid angle (default); "
-                        "--no-pixel-geometry leaves them in the calibration bundle and names them there "
-                        "(216 MB less per file at the full resolution)")
-    return p
-
-
 def apply_command(args) -> int:
     """Run ``apply`` from parsed arguments; bad input prints one line and returns 1.
 

@@ -13,22 +13,35 @@ import os
 from contextlib import ExitStack
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pandas as pd
 
 from pipeline.io.artefact import read_artefact
 from pipeline.report.formatting import fmt_uncertain, fmt_value, quantity, units_text
 from pipeline.report.inputs import ReportInputs, read_csv_or_empty
-from pipeline.report.palette import apply_style
-from pipeline.report.sections import registered_sections
-from pipeline.report.render import RenderedSection, number_figures, render_page, write_figures
-from pipeline.report.sections.noise_floor import snr_against_radiance
+
+if TYPE_CHECKING:
+    from pipeline.report.render import RenderedSection
+
+# the modules that draw (matplotlib) and render (jinja2) are imported when a report is built, not with the
+# package: the workflow's start-up reads report_settings and the run summary read_csv_or_empty, and
+# matplotlib's import was a quarter of every Snakemake start's CPU (0.7 of 2.9 s on a tiny dataset)
 
 __all__ = ["build_report", "build_sections", "fmt_value", "fmt_uncertain", "quantity", "units_text",
            "read_csv_or_empty", "snr_against_radiance", "ReportInputs", "report_settings"]
 
 #: the stages whose artefacts the report reads, in the order of the chain
 REPORT_STAGES = ("dark", "linearity", "geometry", "rolloff", "spectral", "absolute", "immersion", "field")
+
+
+def __getattr__(name: str):
+    """``snr_against_radiance``, imported on first use (it draws with matplotlib)."""
+    if name == "snr_against_radiance":
+        from pipeline.report.sections.noise_floor import snr_against_radiance
+
+        return snr_against_radiance
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def build_sections(inputs: ReportInputs) -> list[RenderedSection]:
@@ -45,6 +58,10 @@ def build_sections(inputs: ReportInputs) -> list[RenderedSection]:
         One per registered section (:func:`pipeline.report.sections.registered_sections`): its anchor, title,
         introduction and blocks.
     """
+    from pipeline.report.palette import apply_style
+    from pipeline.report.render import RenderedSection
+    from pipeline.report.sections import registered_sections
+
     apply_style()
     return [RenderedSection(s.id, s.title, s.intro, s.build(inputs)) for s in registered_sections()]
 
@@ -147,6 +164,8 @@ def build_report(*, dark: dict[str, Path], linearity: dict[str, Path], missing_e
     pipeline.errors.ArtefactError
         If an artefact given is missing, unreadable or of another stage or version.
     """
+    from pipeline.report.render import number_figures, render_page, write_figures
+
     out_html = Path(out_html)
     failed = dict(failed or {})
     given = {"dark": dark, "linearity": linearity, "geometry": geometry, "rolloff": rolloff, "spectral": spectral,
