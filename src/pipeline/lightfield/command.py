@@ -242,8 +242,8 @@ def _dataset(grids, medium, attitudes, times, site, attitude_path, results, eart
         "sphere_cell_flag": (dims4, earth_flag, {"long_name": "cell source", "flag_values": np.array([0, 1, 2], np.int8),
                                                  "flag_meanings": "measured filled empty"}),
         "fill_fallback_cells": (("frame", "band"), fallback, _attrs(
-            "filled cells whose model sigma is the fallback half step (fewer than three calibrated rows beside "
-            "the run)", "1")),
+            "filled cells whose model sigma is the fallback half step (no smooth window of three calibrated rows "
+            "beside the run, or an edge cell not positive)", "1")),
         "frame_file": ("frame", np.array(grids.frame_names, dtype=str), {"long_name": "raw frame (or grid file:index)"}),
         "grid_file": ("frame", np.array(grids.frame_files, dtype=str), {"long_name": "radiance grid file"}),
     }
@@ -304,8 +304,8 @@ def _dataset(grids, medium, attitudes, times, site, attitude_path, results, eart
         "quadrature": "cell radiance constant over each cell; exact solid angles and cosine integrals per cell, cells "
                       f"the hemisphere's or cone's edge crosses divided into {int(cfg['boundary_subcells'])}^2 "
                       "sub-cells; the quadrature error is the difference from the grid of half resolution",
-        "fill_model": "empty cells between calibrated cells of an azimuth column: linear interpolation in zenith "
-                      "angle; model sigma (z - z_a)(z_b - z) / 2 * max|L''| of quadratic fits over "
+        "fill_model": "empty cells between calibrated cells of an azimuth column: linear interpolation of ln L in "
+                      "zenith angle; model sigma L (z - z_a)(z_b - z) / 2 * max|(ln L)''| of quadratic fits over "
                       f"{float(cfg['fill_fit_span_deg']):g} degrees of calibrated rows on either side",
         "cell_values": "centre samples, turned into cell means by the local quadratic (the correction's size is "
                        "part of the quadrature error)" if grids.centre_samples else "cell means",

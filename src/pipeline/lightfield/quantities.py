@@ -12,9 +12,9 @@ comes from; z is its zenith angle in the earth frame. Per band:
 Each of E_d, E_u, E_0d, E_0u, L_d, L_u is a weighted sum F_k = sum_i W_ki L_i
 over the cells (:mod:`pipeline.lightfield.quadrature`, the earth's zenith
 expressed in the grid's frame by the attitude), the others functions of them.
-A filled cell is a linear map of two measured cells (:mod:`pipeline.lightfield.fill`),
-so its weight moves onto them (W_eff) and the uncertainty is propagated
-through the measured cells exactly:
+A filled cell is (to first order) a linear map of two measured cells
+(:mod:`pipeline.lightfield.fill`), so its weight moves onto them (W_eff) and
+the uncertainty is propagated through the measured cells:
 
 - random (independent per cell): Cov(F_k, F_l) = sum_i W_eff,ki W_eff,li sigma_r,i^2;
 - systematic (common to the band, fully correlated between cells):
@@ -148,11 +148,10 @@ def _effective(W: np.ndarray, filled: Filled) -> np.ndarray:
     if cells.size:
         a = filled.above.ravel()[cells]
         b = filled.below.ravel()[cells]
-        t = filled.t.ravel()[cells]
         moved = W[:, cells]
         Weff[:, cells] = 0.0
-        np.add.at(Weff.T, a, (moved * (1 - t)).T)
-        np.add.at(Weff.T, b, (moved * t).T)
+        np.add.at(Weff.T, a, (moved * filled.weight_above.ravel()[cells]).T)
+        np.add.at(Weff.T, b, (moved * filled.weight_below.ravel()[cells]).T)
     return Weff
 
 
