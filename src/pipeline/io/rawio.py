@@ -521,11 +521,12 @@ def _direct_mosaic(buffer: np.ndarray, lay: _Layout) -> np.ndarray | None:
 
 def _visible(full: np.ndarray, tags: dict) -> np.ndarray | None:
     """The ActiveArea of the full raw image (all of it without one), as rawpy's ``raw_image_visible``; None when
-    the area does not fit the image."""
+    the area does not fit the image or starts on an odd row or column (LibRaw then moves its start to keep
+    the Bayer phase: rawpy reads those files)."""
     if tags["active_area"] is None:
         return full
     top, left, bottom, right = tags["active_area"]
-    if bottom > full.shape[0] or right > full.shape[1]:
+    if bottom > full.shape[0] or right > full.shape[1] or top % 2 or left % 2:
         return None
     return full[top:bottom, left:right]
 
