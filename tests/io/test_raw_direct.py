@@ -172,28 +172,24 @@ def write_layout_dng(path: Path, cfa: np.ndarray, *, bits: int, order: str = "<"
     fmt = {1: "B", 3: "H", 4: "I"}
     ifd_size = 2 + 12 * len(entries) + 4
     extra_at = 8 + ifd_size
+    # the data blocks follow the IFD and its out-of-line values (each padded to an even length)
+    data_at = extra_at + sum(-(-len(v) * size[t] // 2) * 2 for _, t, v in entries if len(v) * size[t] > 4)
+    offsets, at = [0] * len(blocks), data_at
+    for k in (reversed(range(len(blocks))) if blocks_reversed else range(len(blocks))):
+        offsets[k] = at
+        at += len(blocks[k]) + gap
     extra = bytearray()
-    # offsets of the data blocks: after the IFD and its out-of-line values (computed in two passes)
-    for attempt in range(2):
-        extra = bytearray()
-        ifd = bytearray(struct.pack(order + "H", len(entries)))
-        data_at = extra_at + sum(-(-len(v if isinstance(v, bytes) else v) * size[t] // 2) * 2
-                                 for _, t, v in entries if len(v) * size[t] > 4)
-        offsets, at = [0] * len(blocks), data_at
-        for k in (reversed(range(len(blocks))) if blocks_reversed else range(len(blocks))):
-            offsets[k] = at
-            at += len(blocks[k]) + gap
-        for code, typ, value in entries:
-            if code in (273, 324):
-                value = offsets
-            raw = value if isinstance(value, bytes) else struct.pack(order + fmt[typ] * len(value), *value)
-            n = len(value)
-            if len(raw) <= 4:
-                ifd += struct.pack(order + "HHI", code, typ, n)[:8] + raw.ljust(4, b"\0")
-            else:
-                ifd += struct.pack(order + "HHII", code, typ, n, extra_at + len(extra))
-                extra += raw + b"\0" * (len(raw) % 2)
-        ifd += struct.pack(order + "I", 0)
+    ifd = bytearray(struct.pack(order + "H", len(entries)))
+    for code, typ, value in entries:
+        if code in (273, 324):
+            value = offsets
+        raw = value if isinstance(value, bytes) else struct.pack(order + fmt[typ] * len(value), *value)
+        if len(raw) <= 4:
+            ifd += struct.pack(order + "HHI", code, typ, len(value)) + raw.ljust(4, b"\0")
+        else:
+            ifd += struct.pack(order + "HHII", code, typ, len(value), extra_at + len(extra))
+            extra += raw + b"\0" * (len(raw) % 2)
+    ifd += struct.pack(order + "I", 0)
     header = (b"II" if order == "<" else b"MM") + struct.pack(order + "HI", 42, 8)
     body = header + bytes(ifd) + bytes(extra)
     assert len(body) == data_at

@@ -655,7 +655,7 @@ def read_tags(path) -> dict:
 
 
 def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = True,
-             decoder: str = "auto") -> RawFrame:
+             decoder: str = "auto", mapped: bool | None = None) -> RawFrame:
     """Read one raw file: visible CFA mosaic (from the file's bytes, or rawpy) and tags (tifffile).
 
     The file is read once; the MD5 is computed from those bytes and the tags and
@@ -666,8 +666,9 @@ def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = T
     through rawpy. ``require`` lists RawFrame fields that must be present and
     non-zero (see ``TAG_NAMES``). With ``checksums=False`` (a reader that neither
     checks MD5SUMS nor records the frame's sha256, as ``apply``) ``md5`` and
-    ``sha256`` are empty and the file is memory-mapped instead of read: the two
-    hashes of a 48 MB frame cost about as much CPU as its decode.
+    ``sha256`` are empty and the file is memory-mapped instead of read (unless
+    ``mapped`` says otherwise): the two hashes of a 48 MB frame cost more CPU
+    than its decode, and a mapped frame is never copied whole.
 
     Parameters
     ----------
@@ -680,6 +681,10 @@ def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = T
     decoder : {"auto", "rawpy"}, default "auto"
         ``"auto"`` reads an uncompressed CFA DNG directly and the rest with rawpy; ``"rawpy"`` reads every file
         with rawpy.
+    mapped : bool or None, optional
+        Memory-map the file (read-only) instead of reading it into memory; ``None`` (default) maps it when
+        ``checksums`` is False. A mapped frame's mosaic reads the file's pages: the file must not be rewritten
+        while the frame is in use.
 
     Returns
     -------
@@ -698,7 +703,7 @@ def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = T
     if decoder not in ("auto", "rawpy"):
         raise ValueError(f"decoder must be 'auto' or 'rawpy', not {decoder!r}")
     path = Path(path)
-    buffer = _read_buffer(path, mapped=not checksums)
+    buffer = _read_buffer(path, mapped=not checksums if mapped is None else bool(mapped))
     md5 = hashlib.md5(buffer).hexdigest() if checksums else ""
     sha256 = hashlib.sha256(buffer).hexdigest() if checksums else ""
 
