@@ -409,7 +409,7 @@ def _empty_tags(path: Path) -> dict:
 
 @dataclass(frozen=True)
 class _Layout:
-    """Where an uncompressed CFA image's samples lie in the file: strips (``tile`` None) or tiles."""
+    """Where an uncompressed CFA image's samples lie in the file: strips (``tile_cols`` None) or tiles."""
 
     rows: int
     cols: int
