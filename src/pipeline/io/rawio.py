@@ -1,7 +1,10 @@
-"""Raw frame input and output: DNG pixels with rawpy, tags with tifffile.
+"""Raw frame input and output: DNG pixels from the file's bytes or with rawpy, tags with tifffile.
 
 ``read_raw`` reads one raw file into a :class:`RawFrame` (the visible CFA
-mosaic, not demosaiced, plus the tags the pipeline needs).  ``read_tags`` reads
+mosaic, not demosaiced, plus the tags the pipeline needs). An uncompressed CFA
+DNG (strips or tiles, 8 to 16 bits a sample) is read straight from the file's
+bytes, with the same values as LibRaw's; compressed DNG and every other raw
+format go through rawpy.  ``read_tags`` reads
 only the tags, for quick validation.  ``write_dng`` writes the minimal DNG 1.4
 that the simulator produces and that rawpy/LibRaw can open.
 
@@ -13,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import os
 from dataclasses import dataclass
 from datetime import datetime
 from fractions import Fraction
@@ -44,6 +48,10 @@ _COLOR_MATRIX1, _AS_SHOT_NEUTRAL = 50721, 50728
 _SERIAL, _ILLUMINANT1 = 50735, 50778
 _BODY_SERIAL = 42033
 _ACTIVE_AREA, _MASKED_AREAS = 50829, 50830
+_BITS, _COMPRESSION, _SAMPLES, _ROWS_PER_STRIP = 258, 259, 277, 278
+_FILL_ORDER, _SAMPLE_FORMAT = 266, 339
+_TILE_WIDTH, _TILE_LENGTH = 322, 323
+_LINEARIZATION, _OPCODE_LIST1 = 50712, 51008
 
 _PHOTOMETRIC_CFA = 32803
 _PHOTOMETRIC_LINEAR_RAW = 34892
@@ -113,6 +121,9 @@ class RawFrame:
     optical_black_count: int = 0   # number of raw pixels averaged in optical_black_dn
     #: sample variance (DN^2, ddof 1) of those pixels' raw values, None when the DNG declares none
     optical_black_var_dn2: float | None = None
+    #: how the mosaic was read: ``"direct"`` (an uncompressed DNG's strips or tiles, from the file's bytes)
+    #: or ``"rawpy"`` (LibRaw)
+    decoder: str = "rawpy"
 
 
 # ---------------------------------------------------------------------------
@@ -130,15 +141,60 @@ def _short_reason(exc: BaseException) -> str:
     return text or type(exc).__name__
 
 
-def _read_bytes(path: Path) -> bytes:
+def _read_buffer(path: Path, mapped: bool) -> np.ndarray:
+    """The file's bytes as a uint8 array: read into one allocation, or memory-mapped (read-only) when ``mapped``."""
     if not path.exists():
         raise InputError(path, "file not found")
     if not path.is_file():
         raise InputError(path, "not a file")
     try:
-        return path.read_bytes()
+        if mapped and path.stat().st_size:
+            return np.memmap(path, dtype=np.uint8, mode="r").view(np.ndarray)
+        with open(path, "rb", buffering=0) as fh:
+            buffer = np.empty(os.fstat(fh.fileno()).st_size, np.uint8)
+            view, done = memoryview(buffer), 0
+            while done < buffer.size:
+                got = fh.readinto(view[done:])
+                if not got:
+                    return buffer[:done]   # the file shrank while it was read
+                done += got
+            return buffer
     except OSError as exc:
         raise InputError(path, f"cannot read file ({_short_reason(exc)})") from None
+
+
+class _BufferStream(io.RawIOBase):
+    """A read-only binary stream over an array's bytes, without copying them (``io.BytesIO`` copies any
+    buffer but a ``bytes`` object); closing it releases the array."""
+
+    def __init__(self, buffer: np.ndarray):
+        super().__init__()
+        self._view, self._pos = memoryview(buffer).cast("B"), 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: len(self._view)}[whence]
+        self._pos = max(base + int(offset), 0)
+        return self._pos
+
+    def readinto(self, target) -> int:
+        n = max(min(len(target), len(self._view) - self._pos), 0)
+        memoryview(target).cast("B")[:n] = self._view[self._pos:self._pos + n]
+        self._pos += n
+        return n
+
+    def close(self) -> None:
+        if not self.closed:
+            self._view.release()
+        super().close()
 
 
 def _values(tag: tifffile.TiffTag | None) -> list[float] | None:
@@ -321,8 +377,8 @@ class _TagSource:
         return None
 
 
-def _tags_from_tiff(path: Path, tif: tifffile.TiffFile, file_size: int) -> dict:
-    src = _TagSource(tif)
+def _tags_from_tiff(path: Path, tif: tifffile.TiffFile, file_size: int, src: _TagSource | None = None) -> dict:
+    src = _TagSource(tif) if src is None else src
     end = src.data_end()
     if end is not None and end > file_size:
         raise InputError(path, f"truncated file: image data ends at byte {end} but the file has {file_size} bytes")
@@ -349,6 +405,161 @@ def _empty_tags(path: Path) -> dict:
     return {"path": path, "exposure_s": None, "iso": None, "time": None, "black_level": None,
             "white_level": None, "cfa_pattern": None, "make": None, "model": None, "serial": None, "shape": None,
             "active_area": None, "masked_areas": []}
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where an uncompressed CFA image's samples lie in the file: strips (``tile_cols`` None) or tiles."""
+
+    rows: int
+    cols: int
+    bits: int
+    big_endian: bool
+    offsets: np.ndarray
+    counts: np.ndarray
+    block_rows: int                 # rows of one strip (RowsPerStrip) or of one tile (TileLength)
+    tile_cols: int | None = None    # TileWidth; None for strips
+
+
+def _tag_ints(page, code: int) -> list[int] | None:
+    tag = page.tags.get(code)
+    if tag is None:
+        return None
+    values = np.atleast_1d(np.asarray(tag.value)).ravel()
+    if values.size == 0 or not np.issubdtype(values.dtype, np.integer):
+        return None
+    return [int(v) for v in values]
+
+
+def _direct_layout(src: _TagSource, byteorder: str, tags: dict) -> _Layout | None:
+    """The raw IFD's layout when it is a plain uncompressed CFA image that :func:`_direct_mosaic` reads with
+    LibRaw's values: one 8..16-bit unsigned sample a pixel, MSB-first fill, a 2x2 R, G, G, B pattern, black and
+    white levels given, no linearisation table or raw opcodes (LibRaw would change the values); None for
+    anything else, which rawpy then reads."""
+    page = src.raw
+    single = {code: _tag_ints(page, code) for code in (_PHOTOMETRIC, _COMPRESSION, _SAMPLES, _BITS, _FILL_ORDER,
+                                                       _SAMPLE_FORMAT, _IMAGE_WIDTH, _IMAGE_LENGTH)}
+    if single[_PHOTOMETRIC] != [_PHOTOMETRIC_CFA] or single[_COMPRESSION] not in (None, [1]):
+        return None
+    if single[_SAMPLES] not in (None, [1]) or single[_FILL_ORDER] not in (None, [1]):
+        return None
+    if single[_SAMPLE_FORMAT] not in (None, [1]) or single[_BITS] is None or len(set(single[_BITS])) != 1:
+        return None
+    if _LINEARIZATION in page.tags or _OPCODE_LIST1 in page.tags:
+        return None
+    if tags["black_level"] is None or tags["white_level"] is None or tags["cfa_pattern"] is None \
+            or sorted(tags["cfa_pattern"]) != ["B", "G", "G", "R"]:
+        return None
+    bits = single[_BITS][0]
+    if not 8 <= bits <= 16 or single[_IMAGE_WIDTH] is None or single[_IMAGE_LENGTH] is None:
+        return None
+    rows, cols = single[_IMAGE_LENGTH][0], single[_IMAGE_WIDTH][0]
+    tile_cols, tile_rows = _tag_ints(page, _TILE_WIDTH), _tag_ints(page, _TILE_LENGTH)
+    if tile_cols is not None and tile_rows is not None:
+        offsets, counts = _tag_ints(page, _TILE_OFFSETS), _tag_ints(page, _TILE_COUNTS)
+        block_rows, tile = tile_rows[0], tile_cols[0]
+    else:
+        offsets, counts = _tag_ints(page, _STRIP_OFFSETS), _tag_ints(page, _STRIP_COUNTS)
+        block_rows, tile = min((_tag_ints(page, _ROWS_PER_STRIP) or [rows])[0], rows), None
+    if offsets is None or counts is None or len(offsets) != len(counts) or rows <= 0 or cols <= 0 \
+            or block_rows <= 0 or (tile is not None and tile <= 0):
+        return None
+    return _Layout(rows=rows, cols=cols, bits=bits, big_endian=byteorder == ">",
+                   offsets=np.asarray(offsets, np.int64), counts=np.asarray(counts, np.int64),
+                   block_rows=block_rows, tile_cols=tile)
+
+
+def _samples(block: np.ndarray, count: int, bits: int, big_endian: bool) -> np.ndarray:
+    """The first ``count`` samples of each row of ``block`` (uint8, rows x row bytes), as uint16: a view for
+    native-order 16-bit samples, else one decoded copy (8-bit widened; other depths unpacked MSB first, as
+    TIFF packs them, each row starting on a byte)."""
+    if bits == 16:
+        words = block[:, :2 * count].view(">u2" if big_endian else "<u2")
+        return words.view(np.uint16) if words.dtype == np.dtype(np.uint16) else words.astype(np.uint16)
+    if bits == 8:
+        return block[:, :count].astype(np.uint16)
+    padded = np.zeros((block.shape[0], block.shape[1] + 2), np.uint8)
+    padded[:, :block.shape[1]] = block
+    position = np.arange(count, dtype=np.int64) * bits
+    first = position >> 3
+    word = (padded[:, first].astype(np.uint32) << 16) | (padded[:, first + 1].astype(np.uint32) << 8) \
+        | padded[:, first + 2]
+    shift = (24 - bits - (position & 7)).astype(np.uint32)
+    return ((word >> shift) & np.uint32((1 << bits) - 1)).astype(np.uint16)
+
+
+def _direct_mosaic(buffer: np.ndarray, lay: _Layout) -> np.ndarray | None:
+    """The full raw image (rows x cols, uint16) of an uncompressed layout, from the file's bytes: a view on them
+    for native 16-bit samples in strips that follow each other in order (LibRaw reads such strips as one run
+    from the first), else one decoded copy; None when the strips are not one ordered run or a strip or tile
+    is short (rawpy then decides)."""
+    if lay.tile_cols is None:
+        row_bytes = (lay.cols * lay.bits + 7) // 8
+        start = int(lay.offsets[0])
+        firsts = np.arange(lay.offsets.size, dtype=np.int64) * lay.block_rows
+        need = np.minimum(lay.block_rows, lay.rows - firsts) * row_bytes
+        if firsts[-1] >= lay.rows or lay.rows > firsts[-1] + lay.block_rows \
+                or np.any(lay.offsets != start + firsts * row_bytes) or np.any(lay.counts < need) \
+                or start + lay.rows * row_bytes > buffer.size:
+            return None
+        block = buffer[start:start + lay.rows * row_bytes].reshape(lay.rows, row_bytes)
+        return _samples(block, lay.cols, lay.bits, lay.big_endian)
+    across = -(-lay.cols // lay.tile_cols)
+    if lay.offsets.size != across * -(-lay.rows // lay.block_rows):
+        return None
+    row_bytes = (lay.tile_cols * lay.bits + 7) // 8
+    full = np.empty((lay.rows, lay.cols), np.uint16)
+    for k, (offset, count) in enumerate(zip(lay.offsets.tolist(), lay.counts.tolist())):
+        top, left = (k // across) * lay.block_rows, (k % across) * lay.tile_cols
+        height, width = min(lay.block_rows, lay.rows - top), min(lay.tile_cols, lay.cols - left)
+        if count < height * row_bytes or offset + height * row_bytes > buffer.size:
+            return None
+        block = buffer[offset:offset + height * row_bytes].reshape(height, row_bytes)
+        full[top:top + height, left:left + width] = _samples(block, lay.tile_cols, lay.bits, lay.big_endian)[:, :width]
+    return full
+
+
+def _visible(full: np.ndarray, tags: dict) -> np.ndarray | None:
+    """The ActiveArea of the full raw image (all of it without one), as rawpy's ``raw_image_visible``; None when
+    the area does not fit the image or starts on an odd row or column (LibRaw then moves its start to keep
+    the Bayer phase: rawpy reads those files)."""
+    if tags["active_area"] is None:
+        return full
+    top, left, bottom, right = tags["active_area"]
+    if bottom > full.shape[0] or right > full.shape[1] or top % 2 or left % 2:
+        return None
+    return full[top:bottom, left:right]
+
+
+def _rawpy_mosaic(path: Path, buffer: np.ndarray, tags: dict, tiff_problem: str | None):
+    """LibRaw's visible mosaic (a copy), the optically black pixels' sums, the pattern and LibRaw's levels."""
+    raw_buffer = io.BytesIO(buffer)
+    try:
+        with rawpy.imread(raw_buffer) as raw:
+            cfa = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
+            black_sums = _black_sums(raw.raw_image, tags)
+            raw_pattern = raw.raw_pattern
+            colour_desc = raw.color_desc.decode("ascii", "replace")
+            black_per_channel = list(raw.black_level_per_channel)
+            white_rawpy = float(raw.white_level)
+    except (rawpy.LibRawError, rawpy.NotSupportedError, ValueError, OSError) as exc:
+        if tiff_problem:
+            raise InputError(path, f"not a readable DNG/TIFF file ({tiff_problem})") from None
+        raise InputError(path, f"unreadable or truncated raw file ({_short_reason(exc)})") from None
+    finally:
+        raw_buffer.close()
+    if raw_pattern is None or np.shape(raw_pattern) != (2, 2):
+        raise InputError(path, "not a 2x2 Bayer CFA image (rawpy gives no 2x2 raw_pattern)")
+    pattern = "".join(colour_desc[int(i)] for i in np.asarray(raw_pattern).ravel())
+    return cfa, black_sums, pattern, float(np.mean(black_per_channel)), white_rawpy
+
+
+def _black_sums(full: np.ndarray, tags: dict) -> tuple[int, float, float]:
+    """Count, sum and sum of squares (DN, DN^2) of the optically black pixels of the full raw image."""
+    pixels = [full[t:b, left:r] for t, left, b, r in optical_black_rectangles(tags, full.shape)]
+    pixels = [p for p in pixels if p.size]
+    return (int(sum(p.size for p in pixels)), float(sum(p.sum(dtype=np.float64) for p in pixels)),
+            float(sum(np.square(p, dtype=np.float64).sum() for p in pixels)))
 
 
 def _check_require(path: Path, tags: dict, require) -> None:
@@ -443,15 +654,21 @@ def read_tags(path) -> dict:
         raise InputError(path, f"not a readable DNG/TIFF file ({_short_reason(exc)})") from None
 
 
-def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = True) -> RawFrame:
-    """Read one raw file: visible CFA mosaic (rawpy) and tags (tifffile).
+def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = True,
+             decoder: str = "auto", mapped: bool | None = None) -> RawFrame:
+    """Read one raw file: visible CFA mosaic (from the file's bytes, or rawpy) and tags (tifffile).
 
-    The file is read once into memory; the MD5 is computed from those bytes and
-    both rawpy and tifffile decode the same bytes.  ``require`` lists RawFrame
-    fields that must be present and non-zero (see ``TAG_NAMES``). With
-    ``checksums=False`` (a reader that neither checks MD5SUMS nor records the
-    frame's sha256, as ``apply``) ``md5`` and ``sha256`` are empty: the two
-    hashes of a 48 MB frame cost about as much CPU as its decode.
+    The file is read once; the MD5 is computed from those bytes and the tags and
+    pixels are decoded from the same bytes. An uncompressed CFA DNG in strips or
+    tiles (8 to 16 bits a sample, no linearisation table) is read directly: the
+    mosaic is a view on the bytes (native-order 16-bit strips) or one decoded
+    copy, with the values rawpy's ``raw_image_visible`` gives; anything else goes
+    through rawpy. ``require`` lists RawFrame fields that must be present and
+    non-zero (see ``TAG_NAMES``). With ``checksums=False`` (a reader that neither
+    checks MD5SUMS nor records the frame's sha256, as ``apply``) ``md5`` and
+    ``sha256`` are empty and the file is memory-mapped instead of read (unless
+    ``mapped`` says otherwise): the two hashes of a 48 MB frame cost more CPU
+    than its decode, and a mapped frame is never copied whole.
 
     Parameters
     ----------
@@ -461,64 +678,65 @@ def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = T
         The fields whose tags must be present and valid.
     checksums : bool, default True
         Compute the MD5 and sha256 of the file's bytes.
+    decoder : {"auto", "rawpy"}, default "auto"
+        ``"auto"`` reads an uncompressed CFA DNG directly and the rest with rawpy; ``"rawpy"`` reads every file
+        with rawpy.
+    mapped : bool or None, optional
+        Memory-map the file (read-only) instead of reading it into memory; ``None`` (default) maps it when
+        ``checksums`` is False. A mapped frame's mosaic reads the file's pages: the file must not be rewritten
+        while the frame is in use.
 
     Returns
     -------
     RawFrame
-        The visible mosaic (uint16, DN, black level not subtracted), its tags, its checksums and the mean and
-        variance of its optically black pixels (:func:`optical_black_rectangles`). Where the file lacks
-        BlackLevel or WhiteLevel, LibRaw's values are used.
+        The visible mosaic (uint16, DN, black level not subtracted; possibly a read-only view), its tags, its
+        checksums, the mean and variance of its optically black pixels (:func:`optical_black_rectangles`) and
+        the decoder used. Where the file lacks BlackLevel or WhiteLevel, LibRaw's values are used.
 
     Raises
     ------
     pipeline.errors.InputError
         If the file cannot be read or decoded, is not a 2x2 R, G, G, B Bayer image, or lacks a required tag.
+    ValueError
+        If ``decoder`` is not one of the two names.
     """
+    if decoder not in ("auto", "rawpy"):
+        raise ValueError(f"decoder must be 'auto' or 'rawpy', not {decoder!r}")
     path = Path(path)
-    data = _read_bytes(path)
-    md5 = hashlib.md5(data).hexdigest() if checksums else ""
-    sha256 = hashlib.sha256(data).hexdigest() if checksums else ""
+    buffer = _read_buffer(path, mapped=not checksums if mapped is None else bool(mapped))
+    md5 = hashlib.md5(buffer).hexdigest() if checksums else ""
+    sha256 = hashlib.sha256(buffer).hexdigest() if checksums else ""
 
     # tifffile's objects form reference cycles that hold its file object; the cycle lives until the
-    # garbage collector's next full pass, which comes rarely in a loop that allocates few objects, and
-    # a BytesIO keeps the whole file's bytes: closing it frees them at once (each frame's 48 MB piled up
-    # otherwise, a peak that grew with the number of frames read)
-    tiff_buffer = io.BytesIO(data)
+    # garbage collector's next full pass, which comes rarely in a loop that allocates few objects: closing
+    # the stream releases the file's bytes at once (each frame's 48 MB piled up otherwise, a peak that grew
+    # with the number of frames read)
+    tiff_stream, layout = _BufferStream(buffer), None
     try:
-        with tifffile.TiffFile(tiff_buffer) as tif:
-            tags = _tags_from_tiff(path, tif, len(data))
+        with tifffile.TiffFile(io.BufferedReader(tiff_stream)) as tif:
+            src = _TagSource(tif)
+            tags = _tags_from_tiff(path, tif, buffer.size, src)
+            if decoder == "auto":
+                layout = _direct_layout(src, tif.byteorder, tags)
         tiff_problem = None
     except InputError:
         raise
     except Exception as exc:  # noqa: BLE001 - tifffile's errors vary; rawpy decides below
         tags, tiff_problem = _empty_tags(path), _short_reason(exc)
     finally:
-        tiff_buffer.close()
+        tiff_stream.close()
 
-    raw_buffer = io.BytesIO(data)
-    try:
-        with rawpy.imread(raw_buffer) as raw:
-            cfa = np.array(raw.raw_image_visible, dtype=np.uint16, copy=True)
-            full = raw.raw_image
-            black_pixels = [full[t:b, left:r] for t, left, b, r in optical_black_rectangles(tags, full.shape)]
-            black_pixels = [p for p in black_pixels if p.size]
-            black_count = int(sum(p.size for p in black_pixels))
-            black_sum = float(sum(p.sum(dtype=np.float64) for p in black_pixels))
-            black_sumsq = float(sum(np.square(p, dtype=np.float64).sum() for p in black_pixels))
-            raw_pattern = raw.raw_pattern
-            colour_desc = raw.color_desc.decode("ascii", "replace")
-            black_per_channel = list(raw.black_level_per_channel)
-            white_rawpy = float(raw.white_level)
-    except (rawpy.LibRawError, rawpy.NotSupportedError, ValueError, OSError) as exc:
-        if tiff_problem:
-            raise InputError(path, f"not a readable DNG/TIFF file ({tiff_problem})") from None
-        raise InputError(path, f"unreadable or truncated raw file ({_short_reason(exc)})") from None
-    finally:
-        raw_buffer.close()
-
-    if raw_pattern is None or np.shape(raw_pattern) != (2, 2):
-        raise InputError(path, "not a 2x2 Bayer CFA image (rawpy gives no 2x2 raw_pattern)")
-    pattern = "".join(colour_desc[int(i)] for i in np.asarray(raw_pattern).ravel())
+    full = _direct_mosaic(buffer, layout) if layout is not None else None
+    cfa = _visible(full, tags) if full is not None else None
+    if cfa is not None:
+        black_sums, pattern, used = _black_sums(full, tags), tags["cfa_pattern"], "direct"
+        black, white = tags["black_level"], tags["white_level"]
+    else:
+        cfa, black_sums, pattern, black, white = _rawpy_mosaic(path, buffer, tags, tiff_problem)
+        black = tags["black_level"] if tags["black_level"] is not None else black
+        white = tags["white_level"] if tags["white_level"] is not None else white
+        used = "rawpy"
+    del buffer, full
     if sorted(pattern) != ["B", "G", "G", "R"]:
         raise InputError(path, f"unsupported CFA pattern {pattern!r} (need R, G, G, B)")
     if cfa.ndim != 2 or cfa.size == 0:
@@ -526,8 +744,7 @@ def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = T
 
     _check_require(path, tags, require)
 
-    black = tags["black_level"] if tags["black_level"] is not None else float(np.mean(black_per_channel))
-    white = tags["white_level"] if tags["white_level"] is not None else white_rawpy
+    black_count, black_sum, black_sumsq = black_sums
     return RawFrame(
         path=path, cfa=cfa, exposure_s=tags["exposure_s"], iso=tags["iso"], time=tags["time"],
         black_level=float(black), white_level=float(white), cfa_pattern=pattern,
@@ -535,6 +752,7 @@ def read_raw(path, require=("exposure_s", "iso", "time"), *, checksums: bool = T
         optical_black_dn=black_sum / black_count if black_count else None, optical_black_count=black_count,
         optical_black_var_dn2=(max(black_sumsq - black_sum**2 / black_count, 0.0) / (black_count - 1)
                                if black_count > 1 else None),
+        decoder=used,
     )
 
 
