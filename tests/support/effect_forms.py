@@ -346,7 +346,9 @@ FORMS = {
     "dark_current_self_heating": Form("dark_current", dark_current_self_heating, (1.3, 0.3), "e- s-1"),
     "hot_pixels_pareto": Form("hot_pixels", hot_pixels_pareto, (1e-3, 2e-4), "fraction of raw pixels"),
     "bias_drift_ramp": Form("bias_drift", bias_drift_ramp, (6.0, 1.5), "DN over the session"),
-    "iso_gain_power_law": Form("iso_gain", iso_gain_power_law, (0.01, 0.003), "exponent deficit",
+    # clear at 0.02: on the measured-response camera (more far-lens linearity frames saturate) the detectable
+    # largest gain error is 0.034, which 0.01 (3.4 % at ISO 3200) only reached; 0.02 gives 6.7 %, twice it
+    "iso_gain_power_law": Form("iso_gain", iso_gain_power_law, (0.02, 0.003), "exponent deficit",
                                ("linearity",)),
     "temperature_bias_quadratic": Form("temperature", temperature_bias_quadratic, (0.4, 0.1), "DN degree_C-1"),
     "stray_light_power_law": Form("stray_light", stray_light_power_law, (0.02, 0.005), "fraction spread",
