@@ -3,20 +3,14 @@ writes from pipeline.effects (run the script with --write when this fails)."""
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
+
+from repo_scripts import load_script
 
 from pipeline.effects import CATALOGUE
 
 ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / "docs" / "design.md"
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("effect_catalogue_table", ROOT / "scripts" / "effect_catalogue_table.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_design_names_every_catalogue_effect():
@@ -26,7 +20,7 @@ def test_design_names_every_catalogue_effect():
 
 
 def test_catalogue_table_is_current():
-    script = _script()
+    script = load_script("effect_catalogue_table")
     text = DOC.read_text(encoding="utf-8")
     assert script.splice(text, script.table()) == text, \
         "docs/design.md's effect table is stale: PYTHONPATH=src python scripts/effect_catalogue_table.py --write"

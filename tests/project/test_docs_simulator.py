@@ -3,22 +3,16 @@ scripts/simulator_camera_table.py computes from the simulator's truth (run the s
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
+
+from repo_scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 DOC = ROOT / "docs" / "simulator.md"
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("simulator_camera_table", ROOT / "scripts" / "simulator_camera_table.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_default_camera_tables_are_current():
-    script = _script()
+    script = load_script("simulator_camera_table")
     text = DOC.read_text(encoding="utf-8")
     body = script.spectral_table() + "\n" + script.rolloff_table()
     assert script.splice(text, body) == text, \

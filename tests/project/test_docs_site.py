@@ -7,7 +7,7 @@ The site itself is built by ``make docs`` (Sphinx, warnings as errors) in CI; th
 from __future__ import annotations
 
 import importlib
-import importlib.util
+from repo_scripts import load_script
 import re
 from pathlib import Path
 
@@ -21,10 +21,7 @@ DOCS = ROOT / "docs"
 
 @pytest.fixture(scope="module")
 def reference_pages():
-    spec = importlib.util.spec_from_file_location("reference_pages", ROOT / "scripts" / "reference_pages.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("reference_pages")
 
 
 def test_generated_reference_pages_are_current(reference_pages):
@@ -99,16 +96,9 @@ def test_changelog_has_every_current_artefact_version():
             f"docs/changelog.md: the {stage} artefact is at version {version}, its newest entry is {listed[:1]}"
 
 
-def _bench_tables():
-    spec = importlib.util.spec_from_file_location("bench_tables", ROOT / "scripts" / "bench_tables.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_performance_tables_are_rendered_from_the_benchmark_results():
     """No timing typed by hand into a table of docs/performance.md: each is its CSV's rows."""
-    module = _bench_tables()
+    module = load_script("bench_tables")
     text = (DOCS / "performance.md").read_text(encoding="utf-8")
     blocks = module.BLOCK.findall(text)
     assert len(blocks) > 20
@@ -122,7 +112,7 @@ def test_every_pages_benchmark_tables_are_rendered_from_the_benchmark_results():
     """Every docs page's bench-table blocks are their CSVs' rows (python scripts/bench_tables.py --check), and
     the detection benchmark's section of docs/effects-and-diagnostics.md holds no table typed by hand and no
     timing in its prose: its runs are rows of benchmarks/results/bench_detection_*.csv."""
-    module = _bench_tables()
+    module = load_script("bench_tables")
     rendered = module.render_all()
     names = {p.name for p in rendered}
     assert {"performance.md", "effects-and-diagnostics.md"} <= names
