@@ -7,11 +7,11 @@ The site itself is built by ``make docs`` (Sphinx, warnings as errors) in CI; th
 from __future__ import annotations
 
 import importlib
-from repo_scripts import load_script
 import re
 from pathlib import Path
 
 import pytest
+from repo_scripts import load_script
 
 from pipeline.io.artefact import ARTEFACT_VERSIONS
 
